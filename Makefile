@@ -1,0 +1,37 @@
+# thermocal: two commands on a fresh machine with Python 3.11 and make:
+#   make demo   creates .venv, installs thermocal, calibrates the sample runs into ./registry
+#   make test   runs the test suite
+PYTHON ?= python3.11
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+# Prefect: local ephemeral mode, a project-local home, no telemetry (no network here).
+export PREFECT_HOME ?= $(CURDIR)/.venv/prefect-home
+export PREFECT_SERVER_ANALYTICS_ENABLED := false
+export DO_NOT_TRACK := 1
+
+.PHONY: demo test venv clean bench sample-data
+
+$(STAMP): pyproject.toml
+	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "need $(PYTHON) on PATH (or make PYTHON=python3)"; exit 1; }
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install --quiet --upgrade pip
+	$(BIN)/pip install --quiet -e ".[test]"
+	touch $(STAMP)
+
+venv: $(STAMP)
+
+demo: $(STAMP)
+	$(BIN)/thermocal inspect sample_data/standard_short.mcap
+	$(BIN)/thermocal inspect sample_data/standard_short_parquet
+	$(BIN)/thermocal calibrate sample_data/standard_short.mcap --registry registry
+	$(BIN)/thermocal passport log AU-0001 --registry registry
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q
+
+bench: $(STAMP)
+	$(BIN)/python benchmarks/run_all.py
+
+clean:
+	rm -rf $(VENV) registry demo_out

@@ -1,0 +1,104 @@
+"""The calibration flow: ingest -> segment -> fit -> verify -> write, one Prefect task per step (per file for
+ingest and segment). Each task is a call of one library function:
+
+- ingest:  ``pipeline.runio.read_run``
+- segment: ``pipeline.calibration.observe_run`` (``pipeline.segment.segment_run`` + per-segment averages)
+- fit:     ``pipeline.calibration.fit_unit`` (``pipeline.constants``, ``pipeline.thermal``)
+- verify:  ``pipeline.calibration.verify_unit`` (``pipeline.verify``, ``pipeline.compensate``)
+- write:   ``pipeline.publish.publish_calibration`` (``pipeline.passport``, ``pipeline.registry``,
+           ``pipeline.plots``)
+"""
+
+from __future__ import annotations
+
+from .runtime import prefect_defaults
+
+prefect_defaults()
+
+from prefect import flow, get_run_logger, task  # noqa: E402
+from prefect.artifacts import create_markdown_artifact  # noqa: E402
+
+from pipeline import calibration, runio  # noqa: E402
+from pipeline.errors import CalibrationError  # noqa: E402
+from pipeline.publish import publish_calibration  # noqa: E402
+
+
+@task(name="ingest")
+def ingest(path: str):
+    return runio.read_run(path)
+
+
+@task(name="segment")
+def segment(run, settings: calibration.CalibrationSettings):
+    return calibration.observe_run(run, settings.segment)
+
+
+@task(name="fit")
+def fit(unit: str, observations, settings: calibration.CalibrationSettings, normal_temp_c: float):
+    return calibration.fit_unit(unit, observations, settings, normal_temp_c)
+
+
+@task(name="verify")
+def verify(model, observations, normal_temp_c: float, settings: calibration.CalibrationSettings):
+    return calibration.verify_unit(model, observations, normal_temp_c, settings.tolerances)
+
+
+@task(name="write")
+def write(registry: str, unit_fit, rows, status, observations, paths, settings, g_local_mps2):
+    return publish_calibration(registry, unit_fit, rows, status, observations, input_paths=paths,
+                               settings=settings, g_local_mps2=g_local_mps2)
+
+
+def check_one_unit(runs) -> str:
+    serials = sorted({r.meta.unit_serial for r in runs})
+    if len(serials) != 1:
+        raise CalibrationError(f"runs of different units given together: {', '.join(serials)}")
+    return serials[0]
+
+
+@flow(name="thermocal-calibrate", log_prints=False)
+def calibrate_flow(paths: list[str], registry: str,
+                   settings: calibration.CalibrationSettings = calibration.CalibrationSettings()) -> dict:
+    """Calibrate one unit from one or more runs (TP runs, and runs with VP data that verify them)."""
+    logger = get_run_logger()
+    runs = [ingest(p) for p in paths]
+    unit = check_one_unit(runs)
+    observations, warnings = [], []
+    for run in runs:
+        obs, warn = segment(run, settings)
+        observations += obs
+        warnings += warn
+    for w in warnings:
+        logger.warning(w)
+    meta = runs[0].meta
+    unit_fit = fit(unit, observations, settings, meta.normal_temp_c)
+    rows, status = verify(unit_fit.model, observations, meta.normal_temp_c, settings)
+    result = write(registry, unit_fit, rows, status, observations, list(paths), settings, meta.g_local_mps2)
+    result["warnings"] = warnings + unit_fit.skipped
+    create_markdown_artifact(key=_artifact_key(unit), markdown=result_markdown(result),
+                             description=f"thermocal calibration of {unit}")
+    return result
+
+
+def _artifact_key(unit: str) -> str:
+    safe = "".join(c if c.isalnum() else "-" for c in unit.lower()).strip("-")
+    return f"calibration-{safe or 'unit'}"
+
+
+def result_markdown(result: dict) -> str:
+    lines = [f"# {result['unit']}: passport v{result['version']} ({result['status']})", "",
+             f"`{result['passport']}`", "", "| plateau C | positions |", "|---:|---|"]
+    lines += [f"| {p['temp_c']:+.2f} | {' '.join(p['positions'])} |" for p in result["plateaus"]]
+    if result["verification"]:
+        lines += ["", "| T C | VP | dg uncomp. ug | dg m1 ug | dg m2 ug |", "|---:|---|---:|---:|---:|"]
+        lines += [f"| {v['temp_c']:+.1f} | {v['position']} | {v['dg_uncompensated_g'] * 1e6:.1f} | "
+                  f"{v['dg_method1_g'] * 1e6:.1f} | {v['dg_method2_g'] * 1e6:.1f} |" for v in result["verification"]]
+    return "\n".join(lines)
+
+
+def run_calibrate(paths: list[str], registry: str, settings: calibration.CalibrationSettings) -> dict:
+    """Run the flow in this process (local ephemeral Prefect unless PREFECT_API_URL is set)."""
+    from .runtime import flow_settings
+
+    with flow_settings():
+        return calibrate_flow(paths, registry, settings)

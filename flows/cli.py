@@ -1,0 +1,229 @@
+"""The ``thermocal`` command line (contract.md). Commands that take ``--json`` print one JSON object on stdout;
+logs and progress go to stderr; failures exit non-zero with a one-line reason on stderr.
+
+Prefect is imported only by the commands that run a flow (``calibrate``, ``fleet``, ``serve``).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+
+from pipeline.errors import ThermocalError
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
+                  help="thermocal: thermal-chamber calibration of accelerometer units.")
+passport_app = typer.Typer(no_args_is_help=True, help="The passport audit trail: log, show, diff, verify.")
+app.add_typer(passport_app, name="passport")
+
+
+def _emit(obj, as_json: bool, text: str | None = None) -> None:
+    if as_json:
+        sys.stdout.write(json.dumps(obj, indent=2, default=_json_default) + "\n")
+    else:
+        sys.stdout.write((text if text is not None else json.dumps(obj, indent=2, default=_json_default)) + "\n")
+    sys.stdout.flush()
+
+
+def _json_default(o):
+    import numpy as np
+
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    if isinstance(o, (np.floating,)):
+        return float(o)
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+# ---------------------------------------------------------------------------------------------------------- inspect
+@app.command()
+def inspect(run: Path = typer.Argument(..., help="an .mcap file or a Parquet run directory"),
+            as_json: bool = typer.Option(False, "--json", help="print one JSON object")):
+    """What a run holds: metadata, streams, rates, gaps, the plateaus and static positions found (no Prefect)."""
+    from pipeline.inspect import format_summary, summarize_run
+    from pipeline.runio import read_run
+
+    summary = summarize_run(read_run(run))
+    _emit(summary, as_json, None if as_json else format_summary(summary))
+
+
+# --------------------------------------------------------------------------------------------------------- simulate
+@app.command()
+def simulate(out: Path = typer.Option(..., "--out", help="output .mcap file or Parquet directory"),
+             fmt: str = typer.Option("mcap", "--format", help="mcap | parquet"),
+             unit: str = typer.Option("AU-0001", "--unit", help="unit serial written into the run"),
+             seed: int = typer.Option(0, "--seed", help="noise seed"),
+             unit_seed: Optional[int] = typer.Option(None, "--unit-seed",
+                                                     help="another unit of the same type (default: seed 000's unit)"),
+             effect: List[str] = typer.Option([], "--effect", help="ID[:k=v,...] from the effect catalogue; repeat"),
+             program: str = typer.Option("standard", "--program", help="standard | short | differential"),
+             rate_hz: float = typer.Option(10.0, "--rate-hz", help="voltmeter rate"),
+             noise_uv: float = typer.Option(5.0, "--noise-uv", help="voltmeter noise per sample, micro-volts"),
+             case_lag_s: Optional[float] = typer.Option(None, "--case-lag-s", help="AU case lag behind air"),
+             no_fixture_log: bool = typer.Option(False, "--no-fixture-log", help="omit the fixture stream"),
+             encoding: str = typer.Option("json", "--encoding", help="MCAP message encoding: json | protobuf"),
+             truth: Optional[Path] = typer.Option(None, "--truth", help="ground-truth JSON (default: beside)"),
+             as_json: bool = typer.Option(False, "--json")):
+    """Write one simulated run of a chamber program, and its ground truth as JSON beside it."""
+    from pipeline.effects import parse_effect_spec
+    from pipeline.runio import write_run
+    from pipeline.simulate import SimConfig, simulate as sim, write_truth
+
+    try:
+        effects = [parse_effect_spec(e) for e in effect]
+    except ValueError as e:
+        raise ThermocalError(str(e), where="--effect") from None
+    cfg = SimConfig(unit_serial=unit, seed=seed, unit_seed=unit_seed, program=program, rate_hz=rate_hz,
+                    noise_v=noise_uv * 1e-6, case_lag_s=case_lag_s, effects=effects,
+                    with_fixture_log=not no_fixture_log)
+    res = sim(cfg)
+    opts = {"encoding": encoding} if fmt == "mcap" and encoding != "json" else {}
+    path = write_run(res.run, out, fmt, **opts)
+    truth_path = truth or _truth_path(path)
+    write_truth(res.truth, truth_path)
+    n = res.run.voltmeter.height
+    _emit({"run": str(path), "truth": str(truth_path), "samples": n, "unit": unit}, as_json,
+          f"wrote {path} ({n} voltmeter samples) and {truth_path}")
+
+
+def _truth_path(run_path: Path) -> Path:
+    run_path = Path(run_path)
+    return run_path.parent / f"{run_path.name.removesuffix('.mcap')}.truth.json"
+
+
+# -------------------------------------------------------------------------------------------------------- calibrate
+@app.command()
+def calibrate(runs: List[Path] = typer.Argument(..., help="runs of one unit (TP runs and VP runs)"),
+              registry: Path = typer.Option(..., "--registry", help="registry folder"),
+              thermal_model: str = typer.Option("auto", "--thermal-model",
+                                                help="poly1 | poly2 | poly3 | piecewise (default: order = "
+                                                     "distinct temperatures - 1, at most 3)"),
+              constants_method: str = typer.Option("auto", "--constants-method",
+                                                   help="auto | six_position | least_squares"),
+              tol_normal_g: float = typer.Option(3e-4, "--tol-normal-g", help="|dg| limit near T0, g"),
+              tol_range_g: float = typer.Option(1e-3, "--tol-range-g", help="|dg| limit over the range, g"),
+              as_json: bool = typer.Option(False, "--json")):
+    """Ingest, segment, average, fit, verify on the VP segments, write a new passport version (Prefect flow)."""
+    from pipeline.calibration import CalibrationSettings
+    from pipeline.verify import Tolerances
+
+    if thermal_model not in ("auto", "poly1", "poly2", "poly3", "piecewise"):
+        raise ThermocalError(f"unknown thermal model {thermal_model!r} (poly1, poly2, poly3, piecewise)",
+                             where="--thermal-model")
+    settings = CalibrationSettings(thermal_model=thermal_model, constants_method=constants_method,
+                                   tolerances=Tolerances(normal_g=tol_normal_g, operating_range_g=tol_range_g))
+    for r in runs:
+        if not r.exists():
+            raise ThermocalError("no such file or directory", path=str(r))
+    from .calibrate import run_calibrate
+
+    result = run_calibrate([str(r) for r in runs], str(registry), settings)
+    _emit(result, as_json, None if as_json else _calibrate_text(result))
+
+
+def _calibrate_text(r: dict) -> str:
+    lines = [f"{r['unit']}: passport v{r['version']} {'written' if r.get('created') else '(unchanged inputs)'}: "
+             f"{r['passport']}", f"status: {r['status']}"]
+    for p in r["plateaus"]:
+        lines.append(f"  plateau {p['temp_c']:+7.2f} C  {' '.join(p['positions'])}")
+    for v in r["verification"]:
+        lines.append(f"  VP {v['temp_c']:+7.2f} C {v['position']}: dg uncomp {v['dg_uncompensated_g'] * 1e6:8.1f} ug"
+                     f"  m1 {v['dg_method1_g'] * 1e6:8.1f} ug  m2 {v['dg_method2_g'] * 1e6:8.1f} ug")
+    for w in r.get("warnings", []):
+        lines.append(f"  warning: {w}")
+    return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------------------------------------- passport
+@passport_app.command("log")
+def passport_log(unit: str, registry: Path = typer.Option(..., "--registry"),
+                 as_json: bool = typer.Option(False, "--json")):
+    """Versions of a unit: number, date, status, inputs."""
+    from pipeline.registry import Registry
+
+    rows = Registry(registry).log(unit)
+    text = "\n".join(f"v{r['version']:<4} {r['created_utc']}  {str(r.get('status')):<10} {r['sha256'][:12]}  "
+                     + ", ".join(Path(p).name for p in r.get("inputs", [])) for r in rows)
+    _emit({"unit": unit, "versions": rows}, as_json, text or f"{unit}: no versions")
+
+
+@passport_app.command("show")
+def passport_show(unit: str, version: Optional[int] = typer.Argument(None),
+                  registry: Path = typer.Option(..., "--registry")):
+    """One version of a unit's passport (the newest when no version is given), as JSON."""
+    from pipeline.registry import Registry
+
+    _emit(Registry(registry).load(unit, version), True)
+
+
+@passport_app.command("diff")
+def passport_diff(unit: str, v1: int, v2: int, registry: Path = typer.Option(..., "--registry"),
+                  as_json: bool = typer.Option(False, "--json")):
+    """Which constants changed between two versions, by how much (units of physics.md)."""
+    from pipeline.registry import Registry
+
+    d = Registry(registry).diff(unit, v1, v2)
+    _emit(d, as_json, None if as_json else _diff_text(d))
+
+
+def _diff_text(d: dict) -> str:
+    lines = []
+    for key, val in d.items():
+        if isinstance(val, list):
+            lines.append(f"{key}:")
+            lines += [f"  {json.dumps(x, default=_json_default)}" for x in val]
+        else:
+            lines.append(f"{key}: {json.dumps(val, default=_json_default)}")
+    return "\n".join(lines)
+
+
+@passport_app.command("verify")
+def passport_verify(registry: Path = typer.Option(..., "--registry"), as_json: bool = typer.Option(False, "--json")):
+    """Check every version's hash and parent link; names any altered version and exits non-zero."""
+    from pipeline.registry import Registry
+
+    rep = Registry(registry).verify()
+    obj = {"ok": rep.ok, "problems": rep.problems, "notes": getattr(rep, "notes", [])}
+    _emit(obj, as_json, "registry ok" if rep.ok else "\n".join(rep.problems))
+    if not rep.ok:
+        raise typer.Exit(1)
+
+
+# ----------------------------------------------------------------------------------------------------------- main
+def main() -> None:
+    """Console entry point: one-line errors, no tracebacks (set THERMOCAL_DEBUG=1 to see them)."""
+    try:
+        app(standalone_mode=False)
+    except ThermocalError as e:
+        print(f"thermocal: error: {e.one_line()}", file=sys.stderr)
+        sys.exit(2)
+    except typer.Exit as e:
+        sys.exit(e.exit_code)
+    except (typer.Abort, KeyboardInterrupt):
+        print("thermocal: aborted", file=sys.stderr)
+        sys.exit(130)
+    except SystemExit:
+        raise
+    except Exception as e:  # noqa: BLE001 - the last line of defence: one line, not a traceback
+        import click
+
+        if isinstance(e, click.ClickException):
+            e.show()
+            sys.exit(e.exit_code)
+        if os.environ.get("THERMOCAL_DEBUG"):
+            raise
+        print(f"thermocal: internal error: {type(e).__name__}: {' '.join(str(e).split())}", file=sys.stderr)
+        sys.exit(3)
+
+
+if __name__ == "__main__":
+    main()

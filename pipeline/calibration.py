@@ -1,0 +1,206 @@
+"""Calibration of one unit from segmented runs: per-plateau constants, the thermal model, VP verification.
+
+The steps, each a pure function (the Prefect flow in ``flows/calibrate.py`` calls them one per task):
+
+1. ``observations_from_segmentation``: the averaged static segments of one run as :class:`Observation` rows;
+2. ``fit_unit``: per-plateau constants (six-position closed form or least squares), then the thermal model, with
+   the segment averages referred to their plateau's mean temperature (the unit is still settling during a plateau's
+   positions, so each position is at a slightly different temperature);
+3. ``verify_unit``: dg at every VP observation, uncompensated and by both compensation methods.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from .constants import fit_constants
+from .errors import CalibrationError
+from .positions import TEST_POSITIONS, gravity_vector_g, is_test_position, is_verification_position
+from .segment import SegmentSettings, segment_run
+from .thermal import ThermalModel, cluster_temperatures, fit_thermal_model
+from .verify import Tolerances, VerificationRow, overall_status, verify_positions
+
+
+@dataclass(frozen=True)
+class CalibrationSettings:
+    """Everything that changes a passport. ``thermal_model``: auto | poly1 | poly2 | poly3 | piecewise;
+    ``constants_method``: auto | six_position | least_squares."""
+
+    thermal_model: str = "auto"
+    constants_method: str = "auto"
+    cluster_tol_c: float = 3.0
+    temperature_referencing_passes: int = 2
+    tolerances: Tolerances = field(default_factory=Tolerances)
+    segment: SegmentSettings = field(default_factory=SegmentSettings)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class Observation:
+    """One averaged static segment: named position, mean outputs (V), mean AU temperature (C)."""
+
+    run_id: str
+    plateau: int | None          # plateau index within its run (None: not on a plateau)
+    position: str
+    u_v: tuple[float, float, float]
+    std_v: tuple[float, float, float]
+    count: int
+    temp_c: float
+    t_start_ns: int
+    t_end_ns: int
+
+
+@dataclass(frozen=True)
+class PlateauConstants:
+    run_id: str
+    plateau: int
+    temp_c: float
+    K: np.ndarray                # (3, 3) V/g
+    U0: np.ndarray               # (3,) V
+    positions: tuple[str, ...]
+    method: str
+    residual_rms_v: float
+
+    def to_dict(self) -> dict:
+        return {"temp_c": round(self.temp_c, 4), "run_id": self.run_id, "plateau": self.plateau,
+                "K": self.K.tolist(), "U0": self.U0.tolist(), "positions": list(self.positions),
+                "method": self.method, "residual_rms_v": self.residual_rms_v}
+
+
+@dataclass
+class UnitFit:
+    unit: str
+    normal_temp_c: float
+    per_plateau: list[PlateauConstants]
+    model: ThermalModel
+    skipped: list[str]           # one line per plateau that could not be used, and why
+
+
+def observations_from_segmentation(run_id: str, segmentation) -> list[Observation]:
+    """Named static segments on plateaus (and VP segments anywhere) as observations."""
+    out = []
+    for s in segmentation.segments:
+        if s.position is None or s.count == 0:
+            continue
+        if s.plateau is None and not is_verification_position(s.position):
+            continue
+        out.append(Observation(run_id=run_id, plateau=s.plateau, position=s.position, u_v=tuple(s.mean_v),
+                               std_v=tuple(s.std_v), count=int(s.count), temp_c=float(s.temp_c),
+                               t_start_ns=int(s.t_start_ns), t_end_ns=int(s.t_end_ns)))
+    return out
+
+
+def observe_run(run, settings: SegmentSettings = SegmentSettings()) -> tuple[list[Observation], list[str]]:
+    """Segment a run and return its observations and the segmenter's and reader's warnings."""
+    seg = segment_run(run, settings)
+    return observations_from_segmentation(run.meta.run_id, seg), list(run.warnings) + list(seg.warnings)
+
+
+def _group_plateaus(obs: list[Observation]) -> dict[tuple[str, int], list[Observation]]:
+    groups: dict[tuple[str, int], list[Observation]] = {}
+    for o in obs:
+        if o.plateau is not None and is_test_position(o.position):
+            groups.setdefault((o.run_id, o.plateau), []).append(o)
+    return groups
+
+
+def _fit_plateaus(groups, shift_v: dict[int, np.ndarray], method: str, skipped: list[str] | None
+                  ) -> list[PlateauConstants]:
+    fits = []
+    for (run_id, p), rows in groups.items():
+        names = [o.position for o in rows]
+        missing = [tp for tp in TEST_POSITIONS if tp not in names]
+        if missing:
+            if skipped is not None:
+                skipped.append(f"{run_id} plateau {p} at {np.mean([o.temp_c for o in rows]):.1f} C: "
+                               f"fewer than six test positions (missing {', '.join(missing)})")
+            continue
+        u = np.array([np.asarray(o.u_v) - shift_v.get(id(o), 0.0) for o in rows])
+        w = np.array([max(o.count, 1) for o in rows], dtype=float)
+        cf = fit_constants(names, u, method=method, weights=w)
+        fits.append(PlateauConstants(
+            run_id=run_id, plateau=p, temp_c=float(np.mean([o.temp_c for o in rows])), K=cf.K, U0=cf.U0,
+            positions=tuple(dict.fromkeys(names)), method=cf.method,
+            residual_rms_v=float(np.sqrt(np.mean(cf.residual_v ** 2)))))
+    return fits
+
+
+def fit_unit(unit: str, observations: list[Observation], settings: CalibrationSettings = CalibrationSettings(),
+             normal_temp_c: float = 20.0) -> UnitFit:
+    """Per-plateau constants and the thermal model from a unit's observations (any number of runs)."""
+    groups = _group_plateaus(observations)
+    skipped: list[str] = []
+    fits = _fit_plateaus(groups, {}, settings.constants_method, skipped)
+    if not fits:
+        raise CalibrationError("no temperature plateau with the six test positions TP1..TP6"
+                               + (f" ({'; '.join(skipped)})" if skipped else ""), stream="voltmeter")
+    temps = np.array([f.temp_c for f in fits])
+    model = fit_thermal_model(temps, np.array([f.K for f in fits]), np.array([f.U0 for f in fits]),
+                              settings.thermal_model, normal_temp_c, settings.cluster_tol_c)
+    for _ in range(settings.temperature_referencing_passes):
+        # refer every segment average to its plateau's mean temperature with the current model
+        shift = {}
+        plateau_temp = {(f.run_id, f.plateau): f.temp_c for f in fits}
+        for key, rows in groups.items():
+            if key not in plateau_temp:
+                continue
+            t_seg = np.array([o.temp_c for o in rows])
+            a = np.array([gravity_vector_g(o.position) for o in rows])
+            Ks, U0s = model.constants_at(t_seg)
+            Kp, U0p = model.constants_at(np.full(len(rows), plateau_temp[key]))
+            d = np.einsum("nij,nj->ni", Ks - Kp, a) + (U0s - U0p)
+            shift.update({id(o): d[k] for k, o in enumerate(rows)})
+        fits = _fit_plateaus(groups, shift, settings.constants_method, None)
+        model = fit_thermal_model(np.array([f.temp_c for f in fits]), np.array([f.K for f in fits]),
+                                  np.array([f.U0 for f in fits]), settings.thermal_model, normal_temp_c,
+                                  settings.cluster_tol_c)
+    fits.sort(key=lambda f: (f.temp_c, f.run_id, f.plateau))
+    return UnitFit(unit=unit, normal_temp_c=normal_temp_c, per_plateau=fits, model=model, skipped=skipped)
+
+
+def verify_unit(model, observations: list[Observation], normal_temp_c: float,
+                tolerances: Tolerances = Tolerances()) -> tuple[list[VerificationRow], str]:
+    """dg at every VP observation on a plateau; returns the rows (by time) and the overall status."""
+    vp = sorted((o for o in observations if is_verification_position(o.position) and o.plateau is not None),
+                key=lambda o: (o.run_id, o.t_start_ns))
+    if not vp:
+        return [], "unverified"
+    rows = verify_positions(model, [o.position for o in vp], np.array([o.u_v for o in vp]),
+                            np.array([o.temp_c for o in vp]), normal_temp_c=normal_temp_c, tolerances=tolerances,
+                            run_ids=[o.run_id for o in vp], spans_ns=[(o.t_start_ns, o.t_end_ns) for o in vp])
+    return rows, overall_status(rows)
+
+
+def plateau_summary(observations: list[Observation], cluster_tol_c: float = 3.0) -> list[dict]:
+    """``[{"temp_c", "positions"}]`` per plateau, in time order (for ``calibrate --json``)."""
+    groups: dict[tuple[str, int], list[Observation]] = {}
+    for o in observations:
+        if o.plateau is not None:
+            groups.setdefault((o.run_id, o.plateau), []).append(o)
+    out = []
+    for (run_id, p), rows in sorted(groups.items(), key=lambda kv: (kv[0][0], min(o.t_start_ns for o in kv[1]))):
+        rows.sort(key=lambda o: o.t_start_ns)
+        out.append({"temp_c": round(float(np.mean([o.temp_c for o in rows])), 2), "run_id": run_id,
+                    "positions": [o.position for o in rows]})
+    return out
+
+
+def calibration_result(fit: UnitFit, rows: list[VerificationRow], status: str, plateaus: list[dict],
+                       published) -> dict:
+    """The ``calibrate --json`` object of contract.md for a published passport."""
+    return {
+        "unit": fit.unit, "version": published.version, "passport": str(published.path),
+        "passport_sha256": published.sha256, "created": published.created,
+        "plateaus": plateaus,
+        "verification": [{"temp_c": r.temp_c, "position": r.position, "dg_uncompensated_g": r.dg_uncompensated_g,
+                          "dg_method1_g": r.dg_method1_g, "dg_method2_g": r.dg_method2_g} for r in rows],
+        "status": status,
+    }
+
+
+__all__ = ["CalibrationSettings", "Observation", "PlateauConstants", "UnitFit", "observations_from_segmentation",
+           "fit_unit", "verify_unit", "plateau_summary", "cluster_temperatures"]

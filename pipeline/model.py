@@ -1,0 +1,51 @@
+"""The metrological model of seed 000 (eq. 1-2): U = K a + U0 and a_hat = K^-1 (U - U0).
+
+K is 3x3 in V/g (diagonal: gains, off-diagonal: cross-axis sensitivities), U0 the zero-g offsets in V, a the
+specific force along the AU axes in g. Functions take stacks: K of shape (n, 3, 3) or (3, 3), U0 and a of shape
+(n, 3) or (3,).
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+import numpy as np
+
+
+class ConstantsModel(Protocol):
+    """Anything that gives the 12 constants at a temperature: the simulator's truth, a passport's thermal model."""
+
+    def constants_at(self, temp_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """K (n, 3, 3) in V/g and U0 (n, 3) in V at temperatures ``temp_c`` (n,) in C."""
+        ...
+
+
+def output_v(K: np.ndarray, U0: np.ndarray, a_g: np.ndarray) -> np.ndarray:
+    """Output voltages U = K a + U0 (V) for specific force ``a_g`` (g). Broadcasts over a leading axis."""
+    return np.einsum("...ij,...j->...i", K, a_g) + U0
+
+
+def specific_force_g(K: np.ndarray, U0: np.ndarray, u_v: np.ndarray) -> np.ndarray:
+    """Estimated specific force a_hat = K^-1 (U - U0) in g from outputs ``u_v`` (V)."""
+    K = np.asarray(K, dtype=float)
+    rhs = np.asarray(u_v, dtype=float) - U0
+    if K.ndim == 2:
+        return np.linalg.solve(K, rhs.T).T
+    return np.linalg.solve(K, rhs[..., None])[..., 0]
+
+
+def gravity_module_error_g(a_hat_g: np.ndarray) -> np.ndarray:
+    """Gravity-module error dg = |a_hat| - 1 in g (seed 000, eq. 14)."""
+    return np.linalg.norm(a_hat_g, axis=-1) - 1.0
+
+
+class FixedConstants:
+    """Constants that do not depend on temperature (a :class:`ConstantsModel`)."""
+
+    def __init__(self, K: np.ndarray, U0: np.ndarray):
+        self.K = np.asarray(K, dtype=float)
+        self.U0 = np.asarray(U0, dtype=float)
+
+    def constants_at(self, temp_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        n = np.size(temp_c)
+        return np.broadcast_to(self.K, (n, 3, 3)).copy(), np.broadcast_to(self.U0, (n, 3)).copy()

@@ -1,0 +1,735 @@
+"""The passport registry: an append-only, hash-chained store of passport versions, one chain per unit.
+
+Layout (everything is plain files; nothing but this module writes there)::
+
+    ROOT/
+      units/
+        AU-0001/
+          .lock          empty; fcntl.flock'ed by writers (exclusive) and by verify (shared)
+          log.jsonl      append-only: one JSON line per version {version, sha256, created_utc, identity}
+          v0001.json     passport version 1 (read-only, 0444)
+          v0002.json     passport version 2, "parent_sha256" = sha256 of v0001.json's bytes
+          .tmp-*.json    only while a writer holds the lock (a leftover is a killed writer's, cleaned at next publish)
+
+A version file is the passport serialised canonically (:func:`canonical_json`), so its sha256 is stable. Each
+version carries ``parent_sha256`` (the previous version's file hash, a chain), ``content_sha256`` (the hash of its
+own content without that field) and ``provenance.identity`` (the hash of the input hashes and the settings: the same
+inputs calibrated with the same settings give the same identity, and publish then returns the existing version).
+Altering a version breaks its own ``content_sha256`` (unless recomputed), its child's ``parent_sha256`` and its row
+in ``log.jsonl``; the log is what catches an alteration of the newest version, which has no child.
+
+Versions are never modified or deleted: a new one is written to a temp file in the unit's folder, fsync'ed, then
+hard-linked to its final name (which must not exist), and the folder fsync'ed; only then is its log row appended.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import fcntl
+import hashlib
+import json
+import os
+import re
+import secrets
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, Iterator
+
+from pipeline.errors import RegistryError
+
+__all__ = [
+    "PublishResult", "Registry", "VersionInfo", "VerifyReport",
+    "canonical_json", "identity_key", "safe_unit_name", "sha256_bytes", "sha256_file", "content_sha256",
+]
+
+AXES = "xyz"
+_VERSION_FILE = re.compile(r"^v(\d+)\.json$")
+_TEMP_PREFIX = ".tmp-"
+_UNIT_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$")
+_LOG_NAME = "log.jsonl"
+_LOCK_NAME = ".lock"
+_ERRNO_TEXT = {
+    errno.ENOSPC: "no space left on device (disk full)",
+    errno.EDQUOT: "disk quota exceeded",
+    errno.EFBIG: "file too large (size limit reached)",
+    errno.EROFS: "read-only file system",
+    errno.EACCES: "permission denied (read-only registry?)",
+    errno.EPERM: "operation not permitted (read-only registry?)",
+    errno.ENOTDIR: "not a directory",
+    errno.EEXIST: "already exists",
+}
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# hashing and canonical serialisation
+
+
+def _json_default(obj: Any) -> Any:
+    """numpy scalars and arrays (and anything else with ``tolist``) as plain JSON values."""
+    if hasattr(obj, "tolist"):
+        return obj.tolist()
+    raise TypeError(f"{type(obj).__name__} is not JSON serialisable")
+
+
+def canonical_json(obj: Any) -> bytes:
+    """The canonical bytes of a JSON document: sorted keys, indent 2, ASCII, a final newline, no NaN/inf.
+
+    Floats are written with Python's shortest round-trip repr, so load -> canonical_json gives the same bytes.
+    Raises ValueError (non-finite number) or TypeError (not JSON-able).
+    """
+    text = json.dumps(obj, sort_keys=True, indent=2, ensure_ascii=True, allow_nan=False, default=_json_default)
+    return (text + "\n").encode("ascii")
+
+
+def sha256_bytes(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def sha256_file(path: str | os.PathLike) -> str:
+    """Hex sha256 of a file's bytes, read in 1 MiB chunks."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def content_sha256(passport: dict) -> str:
+    """The self-hash stored in a passport: sha256 of its canonical JSON without the ``content_sha256`` key."""
+    body = {k: v for k, v in passport.items() if k != "content_sha256"}
+    return sha256_bytes(canonical_json(body))
+
+
+def identity_key(inputs: list[dict], settings: dict) -> str:
+    """What makes two calibrations "the same": sha256 of the canonical JSON of the sorted input hashes and settings."""
+    return sha256_bytes(canonical_json({"inputs": sorted(str(i["sha256"]) for i in inputs), "settings": settings}))
+
+
+def safe_unit_name(unit: Any) -> str:
+    """A unit serial usable as a folder name: letters, digits, ``.``, ``_``, ``-``; no separator, no ``..``."""
+    if not isinstance(unit, str) or not _UNIT_NAME.match(unit) or ".." in unit:
+        raise RegistryError(f"unit serial {unit!r} is not usable as a registry name "
+                            "(letters, digits, '.', '_', '-'; no path separator, no '..', at most 100 characters)")
+    return unit
+
+
+def _utc_now() -> str:
+    return datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%S.%fZ")
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# file-system helpers (every OSError becomes a one-line RegistryError naming the path)
+
+
+@contextlib.contextmanager
+def _os_errors(path: Path, doing: str) -> Iterator[None]:
+    try:
+        yield
+    except RegistryError:
+        raise
+    except OSError as exc:
+        # name the file the user knows, not a temp file that is already removed
+        named = exc.filename and not Path(os.fsdecode(exc.filename)).name.startswith(_TEMP_PREFIX)
+        where = exc.filename if named else path
+        reason = _ERRNO_TEXT.get(exc.errno, exc.strerror or str(exc))
+        raise RegistryError(f"cannot {doing}: {reason}", path=str(where)) from exc
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+@contextlib.contextmanager
+def _flock(path: Path, exclusive: bool) -> Iterator[None]:
+    """Hold flock on ``path`` (created if exclusive). A shared lock on a missing lock file is a no-op."""
+    if exclusive:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    else:
+        try:
+            fd = os.open(path, os.O_RDONLY)
+        except FileNotFoundError:
+            yield
+            return
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX if exclusive else fcntl.LOCK_SH)
+        yield
+    finally:
+        os.close(fd)  # closing releases the lock
+
+
+def _write_all(fd: int, data: bytes) -> None:
+    view = memoryview(data)
+    while view:
+        n = os.write(fd, view)
+        view = view[n:]
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# public records
+
+
+@dataclass(frozen=True)
+class PublishResult:
+    """Outcome of :meth:`Registry.publish`: the version written (``created``) or the existing one with that identity."""
+    unit: str
+    version: int
+    path: Path
+    sha256: str
+    created: bool
+    passport: dict = field(default_factory=dict, repr=False, compare=False)
+
+
+@dataclass(frozen=True)
+class VersionInfo:
+    """One version of a unit as stored. ``status`` is ``"unreadable"`` for a file that is not valid JSON."""
+    version: int
+    path: Path
+    sha256: str
+    created_utc: str | None
+    status: str | None
+    inputs: list[dict]
+
+
+@dataclass
+class VerifyReport:
+    """Integrity of a registry. ``problems`` (each naming unit and version) make ``ok`` False; ``notes`` do not."""
+    ok: bool
+    problems: list[str]
+    notes: list[str]
+    units_checked: int = 0
+    versions_checked: int = 0
+
+
+@dataclass
+class _UnitState:
+    """What a unit folder holds: version files, log rows, leftover temp files, other names."""
+    files: dict[int, Path]
+    log_rows: dict[int, dict]
+    log_issues: list[tuple[str, bool]]  # (text, is_problem)
+    temps: list[Path]
+    partial_log_tail: bool
+
+    @property
+    def latest(self) -> int:
+        return max([0, *self.files, *self.log_rows])
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# the registry
+
+
+class Registry:
+    """A folder of passports, one append-only hash chain per unit (layout in the module docstring)."""
+
+    def __init__(self, root: str | os.PathLike):
+        self.root = Path(root)
+
+    # -- paths --------------------------------------------------------------------------------------------------
+
+    @property
+    def units_dir(self) -> Path:
+        return self.root / "units"
+
+    def unit_dir(self, unit: str) -> Path:
+        return self.units_dir / safe_unit_name(unit)
+
+    def version_path(self, unit: str, version: int) -> Path:
+        return self.unit_dir(unit) / f"v{int(version):04d}.json"
+
+    # -- reading ------------------------------------------------------------------------------------------------
+
+    def units(self) -> list[str]:
+        """Serials of the units with a folder in the registry (empty for a registry not yet written)."""
+        if not self.units_dir.is_dir():
+            return []
+        with _os_errors(self.units_dir, "list units"):
+            return sorted(p.name for p in self.units_dir.iterdir()
+                          if p.is_dir() and _UNIT_NAME.match(p.name) and ".." not in p.name)
+
+    def _scan(self, unit: str) -> _UnitState:
+        udir = self.unit_dir(unit)
+        files: dict[int, Path] = {}
+        temps: list[Path] = []
+        with _os_errors(udir, "read unit folder"):
+            for p in udir.iterdir():
+                m = _VERSION_FILE.match(p.name)
+                if m:
+                    files[int(m.group(1))] = p
+                elif p.name.startswith(_TEMP_PREFIX):
+                    temps.append(p)
+            rows, issues, partial = self._read_log(udir / _LOG_NAME)
+        return _UnitState(files, rows, issues, sorted(temps), partial)
+
+    @staticmethod
+    def _read_log(path: Path) -> tuple[dict[int, dict], list[tuple[str, bool]], bool]:
+        """Rows by version; issues found (text, is_problem); whether the last line is an unterminated fragment."""
+        rows: dict[int, dict] = {}
+        issues: list[tuple[str, bool]] = []
+        try:
+            data = path.read_bytes()
+        except FileNotFoundError:
+            return rows, issues, False
+        partial = bool(data) and not data.endswith(b"\n")
+        lines = data.split(b"\n")[:-1]  # without the text after the last newline ("" or a fragment)
+        if partial:
+            issues.append((f"log.jsonl ends with an unterminated line (writer interrupted); "
+                           f"it is dropped at the next publish", False))
+        for k, line in enumerate(lines, start=1):
+            try:
+                row = json.loads(line)
+                v = int(row["version"])
+                str(row["sha256"])
+            except (ValueError, KeyError, TypeError):
+                issues.append((f"log.jsonl line {k} is not a valid log row", True))
+                continue
+            if v in rows:
+                issues.append((f"log.jsonl has two rows for v{v}", True))
+            rows[v] = row
+        return rows, issues, partial
+
+    def _require_unit(self, unit: str) -> Path:
+        udir = self.unit_dir(unit)
+        if not udir.is_dir():
+            raise RegistryError(f"unknown unit {unit!r}", path=str(self.root))
+        return udir
+
+    def versions(self, unit: str) -> list[VersionInfo]:
+        """Every stored version of ``unit``, oldest first (unknown unit -> RegistryError)."""
+        self._require_unit(unit)
+        out = []
+        for v, path in sorted(self._scan(unit).files.items()):
+            with _os_errors(path, "read passport"):
+                data = path.read_bytes()
+            try:
+                doc = json.loads(data)
+                if not isinstance(doc, dict):
+                    raise ValueError("not an object")
+            except ValueError:
+                out.append(VersionInfo(v, path, sha256_bytes(data), None, "unreadable", []))
+                continue
+            inputs = (doc.get("provenance") or {}).get("inputs") or []
+            out.append(VersionInfo(v, path, sha256_bytes(data), doc.get("created_utc"), doc.get("status"),
+                                   list(inputs)))
+        return out
+
+    def load(self, unit: str, version: int | None = None) -> dict:
+        """The passport document of ``unit`` at ``version`` (the latest if None)."""
+        udir = self._require_unit(unit)
+        files = self._scan(unit).files
+        if not files:
+            raise RegistryError(f"unit {unit!r} has no version", path=str(udir))
+        v = max(files) if version is None else int(version)
+        if v not in files:
+            raise RegistryError(f"unit {unit!r} has no version {v} (versions 1..{max(files)})", path=str(udir))
+        with _os_errors(files[v], "read passport"):
+            data = files[v].read_bytes()
+        try:
+            doc = json.loads(data)
+        except ValueError as exc:
+            raise RegistryError(f"passport is not valid JSON ({exc})", path=str(files[v])) from exc
+        if not isinstance(doc, dict):
+            raise RegistryError("passport is not a JSON object", path=str(files[v]))
+        return doc
+
+    def log(self, unit: str) -> list[dict]:
+        """Rows for ``passport log``: version, created_utc, status, inputs (paths), sha256."""
+        return [{"version": i.version, "created_utc": i.created_utc, "status": i.status,
+                 "inputs": [str(x.get("path")) for x in i.inputs if isinstance(x, dict)], "sha256": i.sha256}
+                for i in self.versions(unit)]
+
+    def find(self, unit: str, identity: str) -> VersionInfo | None:
+        """The latest version of ``unit`` published with this identity key (see :func:`identity_key`), if any."""
+        if not self.unit_dir(unit).is_dir():
+            return None
+        rows = self._scan(unit).log_rows
+        hits = [v for v, row in rows.items() if row.get("identity") == identity]
+        if not hits:
+            return None
+        v = max(hits)
+        return next((i for i in self.versions(unit) if i.version == v), None)
+
+    # -- writing ------------------------------------------------------------------------------------------------
+
+    def publish(self, passport: dict, *, inputs: list[dict], settings: dict, code_version: str) -> PublishResult:
+        """Store ``passport`` as the next version of its unit, or return the version with the same identity.
+
+        Sets ``version``, ``parent_sha256``, ``created_utc``, ``provenance`` {inputs, code_version, settings,
+        identity} (other provenance keys kept) and ``content_sha256``. The caller's dict is not modified.
+        Raises RegistryError (one line, with the path) if the registry cannot be written; nothing partial is left.
+        """
+        if not isinstance(passport, dict):
+            raise RegistryError("a passport must be a JSON object (dict)")
+        unit = safe_unit_name(passport.get("unit"))
+        try:
+            inputs = [{"path": str(i["path"]), "sha256": str(i["sha256"])} for i in inputs]
+            settings = json.loads(canonical_json(settings))
+            doc = json.loads(canonical_json(passport))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise RegistryError(f"passport, inputs or settings are not valid JSON content ({exc})") from exc
+        identity = identity_key(inputs, settings)
+
+        udir = self.unit_dir(unit)
+        if udir.exists() and not udir.is_dir():
+            raise RegistryError("cannot create the unit folder: a file is in the way", path=str(udir))
+        with _os_errors(udir, "create the unit folder"):
+            created_dir = not udir.is_dir()
+            udir.mkdir(parents=True, exist_ok=True)
+            if created_dir:
+                _fsync_dir(udir.parent)
+        with _os_errors(udir / _LOCK_NAME, "lock the unit"), _flock(udir / _LOCK_NAME, exclusive=True):
+            state = self._prepare_locked(unit, udir)
+            for v, row in sorted(state.log_rows.items(), reverse=True):
+                if row.get("identity") == identity:
+                    return PublishResult(unit, v, state.files[v], row["sha256"], False, self.load(unit, v))
+            latest = state.latest
+            doc["version"] = latest + 1
+            doc["parent_sha256"] = state.log_rows[latest]["sha256"] if latest else None
+            doc["created_utc"] = _utc_now()
+            doc["provenance"] = {**(doc.get("provenance") or {}), "inputs": inputs, "code_version": code_version,
+                                 "settings": settings, "identity": identity}
+            doc.pop("content_sha256", None)
+            doc["content_sha256"] = content_sha256(doc)
+            data = canonical_json(doc)
+            final = self.version_path(unit, doc["version"])
+            self._write_version(udir, final, data)
+            digest = sha256_bytes(data)
+            try:
+                self._append_log(udir, {"version": doc["version"], "sha256": digest,
+                                        "created_utc": doc["created_utc"], "identity": identity})
+            except RegistryError:
+                # all or nothing: the version is not published until logged, so take it back
+                with contextlib.suppress(OSError):
+                    final.unlink()
+                    _fsync_dir(udir)
+                raise
+        return PublishResult(unit, doc["version"], final, digest, True, doc)
+
+    def _prepare_locked(self, unit: str, udir: Path) -> _UnitState:
+        """Under the unit's exclusive lock: clean a killed writer's leftovers, check the chain head, return state.
+
+        Repairs only what an interrupted writer can leave: temp files, an unterminated last log line, and a newest
+        version file whose log row was not yet appended (recorded now, if its content and parent link check out).
+        Anything else (a missing or altered version) refuses the publish.
+        """
+        state = self._scan(unit)
+        with _os_errors(udir, "clean up after an interrupted writer"):
+            for tmp in state.temps:
+                tmp.unlink(missing_ok=True)
+            log_path = udir / _LOG_NAME
+            if state.partial_log_tail:
+                data = log_path.read_bytes()
+                with open(log_path, "r+b") as f:
+                    f.truncate(data.rfind(b"\n") + 1)
+                    f.flush()
+                    os.fsync(f.fileno())
+        if any(problem for _, problem in state.log_issues):
+            raise RegistryError(f"unit {unit}: log.jsonl is damaged; run 'thermocal passport verify'",
+                                path=str(udir / _LOG_NAME))
+        last_logged = max(state.log_rows, default=0)
+        missing = [v for v in range(1, state.latest + 1) if v not in state.files]
+        if missing:
+            raise RegistryError(f"unit {unit}: version v{missing[0]} is missing; run 'thermocal passport verify'",
+                                path=str(udir))
+        unlogged = [v for v in state.files if v > last_logged]
+        if len(unlogged) > 1:
+            raise RegistryError(f"unit {unit}: versions {sorted(unlogged)} are not in log.jsonl", path=str(udir))
+        if unlogged:
+            v = unlogged[0]
+            with _os_errors(state.files[v], "read passport"):
+                data = state.files[v].read_bytes()
+            doc = json.loads(data)
+            parent = state.log_rows[last_logged]["sha256"] if last_logged else None
+            if content_sha256(doc) != doc.get("content_sha256") or doc.get("parent_sha256") != parent:
+                raise RegistryError(f"unit {unit} v{v}: not in log.jsonl and fails its own checks; "
+                                    "run 'thermocal passport verify'", path=str(state.files[v]))
+            row = {"version": v, "sha256": sha256_bytes(data), "created_utc": doc.get("created_utc"),
+                   "identity": (doc.get("provenance") or {}).get("identity"), "recovered": True}
+            self._append_log(udir, row)
+            state.log_rows[v] = row
+        head = state.latest
+        if head:
+            with _os_errors(state.files[head], "read passport"):
+                head_sha = sha256_file(state.files[head])
+            if head_sha != state.log_rows[head]["sha256"]:
+                raise RegistryError(f"unit {unit} v{head}: file was altered after writing (sha256 differs from "
+                                    "log.jsonl); run 'thermocal passport verify'", path=str(state.files[head]))
+        return state
+
+    @staticmethod
+    def _write_version(udir: Path, final: Path, data: bytes) -> None:
+        """Atomically create ``final``: temp file, fsync, link (never over an existing name), fsync the folder."""
+        tmp = udir / f"{_TEMP_PREFIX}{final.stem}-{os.getpid()}-{secrets.token_hex(4)}.json"
+        try:
+            with _os_errors(final, "write passport"):
+                fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+                try:
+                    _write_all(fd, data)
+                    os.fsync(fd)
+                    os.fchmod(fd, 0o444)
+                finally:
+                    os.close(fd)
+            with _os_errors(final, "publish passport"):
+                try:
+                    os.link(tmp, final)  # fails if final exists: a version is never overwritten
+                except OSError as exc:
+                    if exc.errno not in (errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EXDEV):
+                        raise
+                    # no hard links on this file system: rename, safe because we hold the unit's lock
+                    if final.exists():
+                        raise FileExistsError(errno.EEXIST, "version already exists", str(final)) from exc
+                    os.rename(tmp, final)
+                _fsync_dir(udir)
+        finally:
+            with contextlib.suppress(OSError):
+                tmp.unlink(missing_ok=True)
+
+    @staticmethod
+    def _append_log(udir: Path, row: dict) -> None:
+        line = json.dumps(row, sort_keys=True, separators=(",", ":")).encode("ascii") + b"\n"
+        path = udir / _LOG_NAME
+        with _os_errors(path, "append to the log"):
+            existed = path.exists()
+            fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+            try:
+                size = os.fstat(fd).st_size
+                try:
+                    _write_all(fd, line)
+                    os.fsync(fd)
+                except OSError:
+                    with contextlib.suppress(OSError):
+                        os.ftruncate(fd, size)  # no fragment of this row left behind
+                    raise
+            finally:
+                os.close(fd)
+            if not existed:
+                _fsync_dir(udir)
+
+    # -- integrity ----------------------------------------------------------------------------------------------
+
+    def verify(self) -> VerifyReport:
+        """Check every version's hashes and parent links against each other and the logs; name what is wrong.
+
+        Problems: unparsable JSON, a stored content_sha256 that does not match the content, a file whose sha256
+        differs from its log row or from its child's parent_sha256, a broken parent link, a missing (deleted)
+        version, a version gap, a damaged log. Notes (not problems): a killed writer's leftover temp file or
+        unterminated log line, a newest version whose log row was not yet appended.
+        """
+        if not self.root.is_dir():
+            raise RegistryError("no registry here (not a directory)", path=str(self.root))
+        report = VerifyReport(ok=True, problems=[], notes=[])
+        if self.units_dir.is_dir():
+            with _os_errors(self.units_dir, "list units"):
+                for p in sorted(self.units_dir.iterdir()):
+                    if p.is_dir() and _UNIT_NAME.match(p.name) and ".." not in p.name:
+                        self._verify_unit(p.name, report)
+                    else:
+                        report.notes.append(f"{p}: not a unit folder, ignored")
+        report.ok = not report.problems
+        return report
+
+    def _verify_unit(self, unit: str, report: VerifyReport) -> None:
+        udir = self.unit_dir(unit)
+        problems, notes = report.problems, report.notes
+        with _os_errors(udir / _LOCK_NAME, "lock the unit"), _flock(udir / _LOCK_NAME, exclusive=False):
+            state = self._scan(unit)
+            for tmp in state.temps:
+                notes.append(f"{unit}: leftover temp file {tmp.name} from an interrupted writer "
+                             "(not a version; removed at the next publish)")
+            for text, is_problem in state.log_issues:
+                (problems if is_problem else notes).append(f"{unit}: {text}")
+            sha: dict[int, str] = {}
+            docs: dict[int, dict] = {}
+            altered: set[int] = set()
+            for v, path in sorted(state.files.items()):
+                with _os_errors(path, "read passport"):
+                    data = path.read_bytes()
+                sha[v] = sha256_bytes(data)
+                row = state.log_rows.get(v)
+                if row is not None and row["sha256"] != sha[v]:
+                    problems.append(f"{unit} v{v}: file sha256 differs from log.jsonl (altered after writing)")
+                    altered.add(v)
+                try:
+                    doc = json.loads(data)
+                    if not isinstance(doc, dict):
+                        raise ValueError("not a JSON object")
+                except ValueError as exc:
+                    problems.append(f"{unit} v{v}: unparsable JSON ({exc})")
+                    altered.add(v)
+                    continue
+                docs[v] = doc
+                if doc.get("content_sha256") != content_sha256(doc):
+                    problems.append(f"{unit} v{v}: stored content_sha256 does not match the content (altered)")
+                    altered.add(v)
+                if doc.get("version") != v or doc.get("unit") != unit:
+                    problems.append(f"{unit} v{v}: file says unit {doc.get('unit')!r} version "
+                                    f"{doc.get('version')!r}")
+            last_logged = max(state.log_rows, default=0)
+            for v in range(1, state.latest + 1):
+                if v not in state.files:
+                    what = "deleted (listed in log.jsonl)" if v in state.log_rows else "version gap"
+                    problems.append(f"{unit} v{v}: version file missing, {what}")
+                elif v not in state.log_rows:
+                    if v == state.latest and v == last_logged + 1 and v not in altered:
+                        notes.append(f"{unit} v{v}: not yet in log.jsonl (writer interrupted after writing it); "
+                                     "recorded at the next publish")
+                    else:
+                        problems.append(f"{unit} v{v}: not recorded in log.jsonl")
+            for v, doc in sorted(docs.items()):
+                parent = doc.get("parent_sha256")
+                if v == 1:
+                    if parent is not None:
+                        problems.append(f"{unit} v1: parent_sha256 should be null")
+                elif v - 1 in sha and parent != sha[v - 1]:
+                    if v - 1 in altered:
+                        problems.append(f"{unit} v{v - 1}: file sha256 does not match v{v}'s parent_sha256 "
+                                        f"(v{v - 1} altered)")
+                    else:
+                        problems.append(f"{unit} v{v}: broken parent link (parent_sha256 does not match "
+                                        f"v{v - 1}'s file)")
+            report.units_checked += 1
+            report.versions_checked += len(state.files)
+
+    # -- comparison ---------------------------------------------------------------------------------------------
+
+    def diff(self, unit: str, v1: int, v2: int) -> dict:
+        """What changed from version ``v1`` to ``v2`` of ``unit``, in the units of physics.md.
+
+        Returns {"unit", "v1", "v2", "constants", "thermal_model", "fields", "settings", "inputs"}; the lists hold
+        only what changed. A constant or thermal coefficient entry is {"name", "unit", "old", "new", "delta",
+        "delta_scaled", "scaled_unit"}: K (V/g) also as ppm of the row's gain |Kii|, U0 (V) as micro-g (delta/|Kii|),
+        alpha (V/C^n) as micro-g/C^n, beta and gamma (1/C^n) as ppm/C^n. ``fields`` are other changed values
+        (status, normal temperature, thermal-model kind/order/breakpoints, code version) as {"name", "old", "new"};
+        ``settings`` the same for each changed setting (dotted names); ``inputs`` {"added", "removed"}.
+        """
+        a, b = self.load(unit, v1), self.load(unit, v2)
+        gains = _gains_v_per_g(a) or _gains_v_per_g(b)
+        fields = [{"name": k, "old": a.get(k), "new": b.get(k)}
+                  for k in ("schema", "status", "normal_temp_c", "g_local_mps2") if a.get(k) != b.get(k)]
+        pa, pb = a.get("provenance") or {}, b.get("provenance") or {}
+        if pa.get("code_version") != pb.get("code_version"):
+            fields.append({"name": "provenance.code_version", "old": pa.get("code_version"),
+                           "new": pb.get("code_version")})
+        thermal, thermal_fields = _diff_thermal(a.get("thermal_model") or {}, b.get("thermal_model") or {}, gains)
+        old_in = {i["sha256"]: i for i in pa.get("inputs") or []}
+        new_in = {i["sha256"]: i for i in pb.get("inputs") or []}
+        return {
+            "unit": unit, "v1": int(v1), "v2": int(v2),
+            "constants": _diff_constants(a.get("coefficients") or {}, b.get("coefficients") or {}, gains),
+            "thermal_model": thermal,
+            "fields": fields + thermal_fields,
+            "settings": [{"name": k, "old": o, "new": n}
+                         for k, (o, n) in _diff_flat(pa.get("settings") or {}, pb.get("settings") or {}).items()],
+            "inputs": {"added": [new_in[s] for s in new_in if s not in old_in],
+                       "removed": [old_in[s] for s in old_in if s not in new_in]},
+        }
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# diff helpers
+
+
+def _gains_v_per_g(doc: dict) -> list[float] | None:
+    """|Kii| of a passport's normal-temperature K, or None if absent/zero."""
+    try:
+        k = doc["coefficients"]["K"]
+        gains = [abs(float(k[i][i])) for i in range(3)]
+    except (KeyError, IndexError, TypeError, ValueError):
+        return None
+    return gains if all(gains) else None
+
+
+def _entry(name: str, unit: str, old: Any, new: Any, scale: float | None, scaled_unit: str) -> dict:
+    """One changed number; delta_scaled = delta * scale (None when a side is missing or no scale is known)."""
+    numeric = isinstance(old, (int, float)) and isinstance(new, (int, float))
+    delta = new - old if numeric else None
+    return {"name": name, "unit": unit, "old": old, "new": new, "delta": delta,
+            "delta_scaled": delta * scale if numeric and scale is not None else None, "scaled_unit": scaled_unit}
+
+
+def _diff_constants(ca: dict, cb: dict, gains: list[float] | None) -> list[dict]:
+    out = []
+    ka, kb = ca.get("K"), cb.get("K")
+    ua, ub = ca.get("U0"), cb.get("U0")
+    for i, ai in enumerate(AXES):
+        ppm = 1e6 / gains[i] if gains else None
+        for j, aj in enumerate(AXES):
+            old, new = _at(ka, i, j), _at(kb, i, j)
+            if old != new:
+                out.append(_entry(f"K.{ai}{aj}", "V/g", old, new, ppm, "ppm of gain"))
+    for i, ai in enumerate(AXES):
+        old, new = _at(ua, i), _at(ub, i)
+        if old != new:
+            out.append(_entry(f"U0.{ai}", "V", old, new, 1e6 / gains[i] if gains else None, "micro-g"))
+    return out
+
+
+def _at(seq: Any, *index: int) -> Any:
+    try:
+        for i in index:
+            seq = seq[i]
+        return seq
+    except (IndexError, KeyError, TypeError):
+        return None
+
+
+def _coef_scale(group: str, key: str, gains: list[float] | None) -> tuple[float | None, str]:
+    """Scale of a thermal coefficient: alpha_i V/C^n -> micro-g/C^n (/|Kii|); beta, gamma 1/C^n -> ppm/C^n."""
+    if group == "alpha":
+        i = AXES.find(key[:1])
+        return (1e6 / gains[i] if gains and i >= 0 else None), "micro-g"
+    return 1e6, "ppm"
+
+
+def _diff_thermal(ta: dict, tb: dict, gains: list[float] | None) -> tuple[list[dict], list[dict]]:
+    """Changed thermal coefficients (element-wise when the two models have the same shape) and changed shape fields."""
+    fields = [{"name": f"thermal_model.{k}", "old": ta.get(k), "new": tb.get(k)}
+              for k in ("kind", "order", "breakpoints_c") if ta.get(k) != tb.get(k)]
+    if ta.get("kind") != tb.get("kind") or ta.get("breakpoints_c") != tb.get("breakpoints_c"):
+        return [], fields
+    out = []
+    if ta.get("kind") == "polynomial":
+        for group in ("alpha", "beta", "gamma"):
+            ga, gb = ta.get(group) or {}, tb.get(group) or {}
+            for key in sorted(set(ga) | set(gb)):
+                sa, sb = ga.get(key) or [], gb.get(key) or []
+                for n in range(max(len(sa), len(sb))):
+                    old, new = _at(sa, n), _at(sb, n)
+                    if old != new:
+                        scale, su = _coef_scale(group, key, gains)
+                        base = "V" if group == "alpha" else "1"
+                        out.append(_entry(f"{group}.{key}[{n + 1}]", f"{base}/C^{n + 1}", old, new, scale,
+                                          f"{su}/C^{n + 1}"))
+    elif ta.get("kind") == "piecewise_linear":
+        sa, sb = ta.get("segments") or [], tb.get("segments") or []
+        for s in range(max(len(sa), len(sb))):
+            seg_a, seg_b = _at(sa, s) or {}, _at(sb, s) or {}
+            for group in ("alpha", "beta", "gamma"):
+                ga, gb = seg_a.get(group) or {}, seg_b.get(group) or {}
+                for key in sorted(set(ga) | set(gb)):
+                    old, new = ga.get(key), gb.get(key)
+                    if old != new:
+                        scale, su = _coef_scale(group, key, gains)
+                        base = "V" if group == "alpha" else "1"
+                        out.append(_entry(f"segments[{s}].{group}.{key}", f"{base}/C", old, new, scale, f"{su}/C"))
+    return out, fields
+
+
+def _flatten(obj: Any, prefix: str = "") -> dict[str, Any]:
+    """Nested dicts as {"a.b.c": leaf}; an empty dict nested inside is a leaf."""
+    if isinstance(obj, dict) and (obj or not prefix):
+        flat: dict[str, Any] = {}
+        for k, v in obj.items():
+            flat.update(_flatten(v, f"{prefix}.{k}" if prefix else str(k)))
+        return flat
+    return {prefix: obj}
+
+
+def _diff_flat(a: dict, b: dict) -> dict[str, tuple[Any, Any]]:
+    fa, fb = _flatten(a), _flatten(b)
+    return {k: (fa.get(k), fb.get(k)) for k in sorted(set(fa) | set(fb)) if fa.get(k) != fb.get(k)}

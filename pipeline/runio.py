@@ -1,0 +1,150 @@
+"""Reading and writing chamber runs, whatever the layout (log-format.md).
+
+:func:`read_run` opens a ``*.mcap`` file (:mod:`pipeline.io_mcap`) or a Parquet run directory
+(:mod:`pipeline.io_parquet`) and returns the one in-memory form, :class:`pipeline.run.Run`. :func:`write_run` writes
+either layout. The checks both readers share (stream tables in canonical form, time order, fixture labels, required
+streams and metadata) live here too, so that both layouts accept and refuse exactly the same runs.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import polars as pl
+
+from .errors import RunFormatError
+from .positions import MOVING, POSITION_NAMES
+from .run import REQUIRED_STREAMS, STREAM_COLUMNS, Run, RunMeta
+
+FORMATS = ("mcap", "parquet")
+
+#: Labels a fixture event may carry (log-format.md).
+FIXTURE_LABELS: tuple[str, ...] = (*POSITION_NAMES, MOVING)
+
+
+def run_format(path: str | Path) -> str:
+    """``"mcap"`` for a ``*.mcap`` file, ``"parquet"`` for a directory; :class:`RunFormatError` otherwise."""
+    p = Path(path)
+    if p.is_dir():
+        return "parquet"
+    if p.suffix.lower() == ".mcap":
+        if not p.exists():
+            raise RunFormatError("no such file", path=str(p))
+        return "mcap"
+    if not p.exists():
+        raise RunFormatError("no such file or directory", path=str(p))
+    raise RunFormatError("not a run: expected a .mcap file or a Parquet run directory", path=str(p))
+
+
+def read_run(path: str | Path) -> Run:
+    """Read one chamber run from a ``*.mcap`` file or a Parquet run directory."""
+    fmt = run_format(path)
+    if fmt == "mcap":
+        from .io_mcap import read_mcap
+
+        return read_mcap(path)
+    from .io_parquet import read_parquet_run
+
+    return read_parquet_run(path)
+
+
+def write_run(run: Run, path: str | Path, fmt: str = "mcap", **opts: Any) -> Path:
+    """Write ``run`` as an MCAP file (``fmt="mcap"``) or a Parquet run directory (``fmt="parquet"``).
+
+    ``opts`` go to :func:`pipeline.io_mcap.write_mcap` (block size, chunk size, compression, summary). Returns the
+    path written. The file or directory appears complete or not at all (written aside, then renamed).
+    """
+    if fmt == "mcap":
+        from .io_mcap import write_mcap
+
+        return write_mcap(run, path, **opts)
+    if fmt == "parquet":
+        if opts:
+            raise RunFormatError(f"options {sorted(opts)} do not apply to the parquet format", path=str(path))
+        from .io_parquet import write_parquet_run
+
+        return write_parquet_run(run, path)
+    raise RunFormatError(f"unknown run format {fmt!r}; expected one of {', '.join(FORMATS)}", path=str(path))
+
+
+# --- checks shared by the readers and writers -------------------------------------------------------------------
+
+
+def check_stream(stream: str, df: pl.DataFrame, *, path: str, warnings: list[str]) -> pl.DataFrame:
+    """Check a stream table read from a file; return it in time order.
+
+    ``df`` must already hold the canonical columns and dtypes. Null times and unknown fixture labels are errors;
+    samples out of time order are sorted (stable) with a warning. Non-finite values are kept.
+    """
+    t = df["t_ns"]
+    if t.null_count():
+        row = int(t.is_null().arg_max())
+        raise RunFormatError("t_ns is missing (null)", path=path, stream=stream, where=f"row {row}")
+    if not t.is_sorted():
+        t_ns = t.to_numpy()
+        n_back = int(np.count_nonzero(t_ns[1:] < t_ns[:-1]))
+        df = df.sort("t_ns", maintain_order=True)
+        warnings.append(f"{stream}: {n_back} samples were out of time order; sorted by t_ns")
+    if stream == "fixture" and df.height:
+        bad = ~df["position"].is_in(FIXTURE_LABELS) | df["position"].is_null()
+        if bad.any():
+            row = int(bad.arg_max())
+            raise RunFormatError(
+                f"unknown fixture position {df['position'][row]!r} (expected one of {', '.join(FIXTURE_LABELS)})",
+                path=path, stream=stream, where=f"t_ns={df['t_ns'][row]}")
+    return df
+
+
+def assemble_run(meta_values: dict[str, str] | None, frames: dict[str, pl.DataFrame], *, path: str,
+                 warnings: list[str], missing_hint: str = "") -> Run:
+    """Build the :class:`Run` from what a reader found; refuse a run without metadata or a required stream.
+
+    ``frames`` maps stream name to its canonical table (streams absent from the file are absent from the map).
+    ``missing_hint`` is appended to the message when something required is missing (e.g. "file truncated at ...").
+    """
+    hint = f" ({missing_hint})" if missing_hint else ""
+    if meta_values is None:
+        raise RunFormatError(f"no run metadata (an MCAP metadata record named 'run' or run.json){hint}", path=path,
+                             stream="metadata")
+    for stream in REQUIRED_STREAMS:
+        df = frames.get(stream)
+        if df is None:
+            raise RunFormatError(f"required stream is missing{hint}", path=path, stream=stream)
+        if df.height == 0:
+            raise RunFormatError(f"required stream has no samples{hint}", path=path, stream=stream)
+    checked = {name: check_stream(name, df, path=path, warnings=warnings) for name, df in frames.items()}
+    meta = RunMeta.from_strings(meta_values, path=path)
+    return Run(meta=meta, voltmeter=checked["voltmeter"], au_temperature=checked["au_temperature"],
+               chamber=checked.get("chamber"), fixture=checked.get("fixture"), source=path, warnings=warnings)
+
+
+def writable_streams(run: Run, *, path: str) -> dict[str, pl.DataFrame]:
+    """The run's stream tables in canonical column order and dtypes, checked for writing.
+
+    Required streams must be present; times must be present, non-negative and in order (log-format.md).
+    """
+    out = {}
+    for stream in REQUIRED_STREAMS:
+        if run.stream(stream) is None:
+            raise RunFormatError("cannot write a run without this required stream", path=path, stream=stream)
+    for stream, df in run.streams().items():
+        spec = STREAM_COLUMNS[stream]
+        missing = [c for c in spec if c not in df.columns]
+        if missing:
+            raise RunFormatError(f"stream table lacks columns {missing}", path=path, stream=stream)
+        try:
+            df = df.select([pl.col(c).cast(dtype, strict=True) for c, dtype in spec.items()])
+        except pl.exceptions.PolarsError as exc:
+            raise RunFormatError(f"stream table has columns of the wrong type ({exc})", path=path,
+                                 stream=stream) from None
+        t = df["t_ns"]
+        if t.null_count():
+            raise RunFormatError("t_ns has nulls", path=path, stream=stream)
+        if df.height and t.min() < 0:
+            raise RunFormatError("t_ns before the Unix epoch", path=path, stream=stream)
+        if not t.is_sorted():
+            raise RunFormatError("samples are not in time order", path=path, stream=stream)
+        out[stream] = df
+    return out

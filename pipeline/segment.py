@@ -1,0 +1,514 @@
+"""Temperature plateaus and named static positions, found from the data of one chamber run.
+
+A chamber run (physics.md) alternates temperature ramps and soaks; on each soaked plateau the tilt fixture holds the
+unit in a sequence of positions. This module finds both from the recorded signals, not from a timetable:
+
+- plateaus from the AU thermosensor: the local regression slope of the temperature stays below
+  ``plateau_rate_c_per_min`` for at least ``plateau_min_s`` and the temperature stays within ``plateau_band_c`` of
+  the plateau's median (a run whose temperature is stable throughout is one plateau, however short);
+- static stretches from the voltages: the standard deviation of each channel over ``static_window_s`` stays below a
+  threshold set by the run's own noise floor (a multiple of a low quantile of that rolling standard deviation);
+- each static stretch is cut at plateau boundaries (the unit stays in its last position through ramps and soaks),
+  trimmed of the settling after a move, averaged, and named: from the fixture log where it agrees with the direction
+  of gravity seen in the signal, otherwise from that direction alone.
+
+Voltage statistics use short time blocks (``static_window_s / 10``), each reduced exactly (two-pass mean and
+squared deviations, no cumulative sums that lose precision on long runs), and combined into rolling windows with
+the parallel-variance formula. All passes over the samples are vectorised.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .positions import ALL_POSITIONS, MOVING, TEST_POSITIONS, gravity_vector_g, nearest_position
+from .run import Run
+
+_NS = 1_000_000_000
+#: blocks per static window (the time resolution of static detection is static_window_s / this)
+_BLOCKS_PER_WINDOW = 10
+#: the static threshold is this multiple of the low quantile below of the rolling standard deviation
+_NOISE_MULTIPLE = 4.0
+_NOISE_QUANTILE = 0.05
+#: absolute floor of the static threshold, relative to the signal's spread (noise-free runs)
+_NOISE_FLOOR_REL = 1e-6
+#: the plateau slope is a local linear regression over this fraction of plateau_min_s
+_SLOPE_WINDOW_FRACTION = 0.25
+#: at most this fraction of a segment is trimmed at its start, and this fraction at its end
+_MAX_START_TRIM = 0.25
+_MAX_END_TRIM = 0.05
+#: pairs of test positions with opposite gravity, by the axis that is vertical in them (+ first)
+_OPPOSITE_TP = {0: ("TP6", "TP5"), 1: ("TP4", "TP2"), 2: ("TP1", "TP3")}
+
+
+@dataclass(frozen=True)
+class SegmentSettings:
+    """Thresholds of plateau and static-position detection."""
+
+    plateau_rate_c_per_min: float = 0.02   # |dT/dt| below this (smoothed) counts as stable
+    plateau_min_s: float = 600.0           # a plateau lasts at least this long (unless the whole run is stable)
+    plateau_band_c: float = 0.5            # ... and stays within this band around its median
+    static_window_s: float = 2.0           # rolling window for voltage statistics
+    static_min_s: float = 3.0              # shortest static segment kept
+    settle_trim_s: float = 10.0            # trimmed from the start of each static segment (1/10 of it from the end),
+                                           # never more than 25 % (start) + 5 % (end) of a segment
+    max_label_angle_deg: float = 15.0      # a gravity direction further than this from every position: unnamed
+
+
+@dataclass(frozen=True)
+class Plateau:
+    """A stretch of stable AU temperature: first and last thermosensor sample times, mean and std (C)."""
+
+    index: int
+    t_start_ns: int
+    t_end_ns: int
+    temp_c: float
+    temp_std_c: float
+
+    @property
+    def duration_s(self) -> float:
+        return (self.t_end_ns - self.t_start_ns) / _NS
+
+
+@dataclass(frozen=True)
+class StaticSegment:
+    """One static segment (after trimming), its name and its averages.
+
+    ``position`` is TP1..TP6 / VP1..VP6 or None; ``label_source`` says where the name came from (``fixture``,
+    ``gravity`` or ``none``); ``fixture_label`` is the position the fixture log gave for the segment's middle (None
+    if no log or MOVING); ``label_conflict`` is True where that label disagrees with the signal (then the name comes
+    from gravity). ``plateau`` is the index of the plateau the segment lies on, None on a ramp. ``mean_v``,
+    ``std_v`` and ``count`` are over the finite voltmeter samples of the segment (V); ``temp_c`` and ``temp_std_c``
+    the AU temperature interpolated at those samples (C); ``direction_g`` the rough unit gravity vector (AU axes)
+    used for naming (NaN when it cannot be estimated).
+    """
+
+    index: int
+    t_start_ns: int
+    t_end_ns: int
+    position: str | None
+    label_source: str
+    fixture_label: str | None
+    label_conflict: bool
+    plateau: int | None
+    mean_v: tuple[float, float, float]
+    std_v: tuple[float, float, float]
+    count: int
+    temp_c: float
+    temp_std_c: float
+    direction_g: tuple[float, float, float]
+
+    @property
+    def duration_s(self) -> float:
+        return (self.t_end_ns - self.t_start_ns) / _NS
+
+
+@dataclass
+class Segmentation:
+    """Plateaus and static segments of one run, and one warning line per thing worth telling the user."""
+
+    plateaus: list[Plateau]
+    segments: list[StaticSegment]
+    warnings: list[str] = field(default_factory=list)
+
+    def on_plateau(self, i: int) -> list[StaticSegment]:
+        """Segments on plateau ``i``, in time order."""
+        return [s for s in self.segments if s.plateau == i]
+
+    def on_ramps(self) -> list[StaticSegment]:
+        """Segments off every plateau (ramps, early soaks)."""
+        return [s for s in self.segments if s.plateau is None]
+
+    def named(self, position: str) -> list[StaticSegment]:
+        """Segments named ``position``, in time order."""
+        return [s for s in self.segments if s.position == position]
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# plateaus
+
+
+def find_plateaus(t_ns: np.ndarray, temp_c: np.ndarray,
+                  settings: SegmentSettings = SegmentSettings()) -> list[Plateau]:
+    """Plateaus of the AU temperature ``temp_c`` (C) sampled at ``t_ns``; non-finite samples are ignored.
+
+    The slope is a local linear regression over ``plateau_min_s / 4`` centred on each sample; stable samples
+    (|slope| below ``plateau_rate_c_per_min``) form runs; a run lasting ``plateau_min_s`` (or the whole record) is
+    kept, restricted to the samples within ``plateau_band_c`` of its median, and split where they are not.
+    """
+    t_ns = np.asarray(t_ns, dtype=np.int64)
+    temp_c = np.asarray(temp_c, dtype=np.float64)
+    ok = np.isfinite(temp_c)
+    t_ns, temp_c = t_ns[ok], temp_c[ok]
+    if t_ns.size == 0:
+        return []
+    t_s = (t_ns - t_ns[0]) / _NS
+    record_s = float(t_s[-1])
+    slope = _local_slope_c_per_s(t_s, temp_c, settings.plateau_min_s * _SLOPE_WINDOW_FRACTION)
+    stable = np.abs(slope) * 60.0 < settings.plateau_rate_c_per_min
+    min_s = min(settings.plateau_min_s, record_s)
+    out: list[Plateau] = []
+    for i0, i1 in _runs(stable):
+        if t_s[i1 - 1] - t_s[i0] < min_s:
+            continue
+        seg = temp_c[i0:i1]
+        in_band = np.abs(seg - np.median(seg)) <= settings.plateau_band_c
+        for j0, j1 in _runs(in_band):
+            a, b = i0 + j0, i0 + j1
+            if t_s[b - 1] - t_s[a] < min_s:
+                continue
+            out.append(Plateau(len(out), int(t_ns[a]), int(t_ns[b - 1]), float(np.mean(temp_c[a:b])),
+                               float(np.std(temp_c[a:b]))))
+    return out
+
+
+def _local_slope_c_per_s(t_s: np.ndarray, y: np.ndarray, window_s: float) -> np.ndarray:
+    """Least-squares slope of y(t) over the samples within window_s/2 of each sample (one-sided at the ends)."""
+    lo = np.searchsorted(t_s, t_s - window_s / 2, side="left")
+    hi = np.searchsorted(t_s, t_s + window_s / 2, side="right")
+    x = t_s - t_s[t_s.size // 2]
+    yc = y - np.median(y)
+
+    def wsum(v):
+        c = np.concatenate(([0.0], np.cumsum(v)))
+        return c[hi] - c[lo]
+
+    n = (hi - lo).astype(np.float64)
+    sx, sy, sxx, sxy = wsum(x), wsum(yc), wsum(x * x), wsum(x * yc)
+    var = sxx - sx * sx / n
+    with np.errstate(divide="ignore", invalid="ignore"):
+        slope = (sxy - sx * sy / n) / var
+    return np.where(var > 0, slope, 0.0)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# static stretches
+
+
+def rolling_std_v(t_ns: np.ndarray, u_v: np.ndarray, window_s: float) -> tuple[np.ndarray, np.ndarray,
+                                                                              np.ndarray]:
+    """Standard deviation of each channel over windows of ``window_s``, at the resolution of window_s / 10.
+
+    Returns ``block`` (n,) the block of each sample, ``std`` (m, 3) the standard deviation of the window centred on
+    each block (NaN with fewer than 2 finite samples) and ``count`` (m,) the finite samples in that window.
+    Non-finite samples are left out.
+    """
+    t_ns = np.asarray(t_ns, dtype=np.int64)
+    u_v = np.asarray(u_v, dtype=np.float64)
+    block_ns = max(int(window_s * _NS / _BLOCKS_PER_WINDOW), 1)
+    block = ((t_ns - t_ns[0]) // block_ns).astype(np.int64)
+    m = int(block[-1]) + 1
+    finite = np.all(np.isfinite(u_v), axis=1)
+    bf = block[finite]
+    n_b = np.bincount(bf, minlength=m).astype(np.float64)
+    mean_b = np.zeros((m, 3))
+    m2_b = np.zeros((m, 3))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for c in range(3):
+            uc = u_v[finite, c]
+            mc = np.bincount(bf, weights=uc, minlength=m) / n_b
+            mean_b[:, c] = np.where(n_b > 0, mc, 0.0)
+            m2_b[:, c] = np.bincount(bf, weights=(uc - mean_b[bf, c]) ** 2, minlength=m)
+    # rolling sums over K blocks centred on each block (zero-padded at the ends); short sums, no cancellation
+    k = _BLOCKS_PER_WINDOW
+    pad = ((k // 2, k - 1 - k // 2),)
+
+    def roll(v):
+        v = np.pad(v, pad + ((0, 0),) * (v.ndim - 1))
+        return np.lib.stride_tricks.sliding_window_view(v, k, axis=0).sum(axis=-1)
+
+    n_w = roll(n_b)
+    s1 = roll(n_b[:, None] * mean_b)
+    s2 = roll(m2_b + n_b[:, None] * mean_b ** 2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        var = (s2 - s1 * s1 / n_w[:, None]) / (n_w[:, None] - 1)
+    std = np.sqrt(np.clip(var, 0.0, None))
+    std[n_w < 2] = np.nan
+    return block, std, n_w
+
+
+def static_threshold_v(std_v: np.ndarray, u_v: np.ndarray | None = None) -> np.ndarray:
+    """Per-channel static threshold (3,): a multiple of a low quantile of the rolling std, with a tiny floor
+    relative to the signal's spread (so that a noise-free run still has a threshold above rounding)."""
+    valid = np.all(np.isfinite(std_v), axis=1)
+    if not valid.any():
+        return np.full(3, np.inf)
+    floor_q = np.quantile(std_v[valid], _NOISE_QUANTILE, axis=0)
+    scale = 1.0
+    if u_v is not None:
+        sub = u_v[:: max(1, u_v.shape[0] // 100_000)]
+        sub = sub[np.all(np.isfinite(sub), axis=1)]
+        if sub.size:
+            q = np.quantile(sub, [0.01, 0.99], axis=0)
+            scale = max(float(np.max(q[1] - q[0])) / 2, 1e-300)
+    return np.maximum(_NOISE_MULTIPLE * floor_q, _NOISE_FLOOR_REL * scale)
+
+
+def find_static(t_ns: np.ndarray, u_v: np.ndarray,
+                settings: SegmentSettings = SegmentSettings()) -> list[tuple[int, int]]:
+    """Static stretches of the voltages ``u_v`` (n, 3) at times ``t_ns``: index ranges ``(i0, i1)``, i1 exclusive.
+
+    A sample is static when the window of ``static_window_s`` around it has every channel's standard deviation below
+    :func:`static_threshold_v` and the sample is finite. Stretches interrupted only by non-finite samples for less
+    than a window are joined; stretches shorter than ``static_min_s`` are dropped. Not trimmed, not cut at plateaus.
+    """
+    t_ns = np.asarray(t_ns, dtype=np.int64)
+    u_v = np.asarray(u_v, dtype=np.float64)
+    if t_ns.size < 2:
+        return []
+    block, std, _ = rolling_std_v(t_ns, u_v, settings.static_window_s)
+    thr = static_threshold_v(std, u_v)
+    quiet_block = np.all(std < thr, axis=1)          # NaN compares False
+    finite = np.all(np.isfinite(u_v), axis=1)
+    static = quiet_block[block] & finite
+    runs = _runs(static)
+    if runs.size == 0:
+        return []
+    # join stretches separated only by non-finite samples, for less than a window
+    gap_ns = t_ns[runs[1:, 0]] - t_ns[runs[:-1, 1] - 1]
+    nonfinite_cum = np.concatenate(([0], np.cumsum(~finite)))
+    gap_len = runs[1:, 0] - runs[:-1, 1]
+    only_nan = (nonfinite_cum[runs[1:, 0]] - nonfinite_cum[runs[:-1, 1]]) == gap_len
+    join = only_nan & (gap_ns < settings.static_window_s * _NS)
+    keep_start = np.concatenate(([True], ~join))
+    keep_end = np.concatenate((~join, [True]))
+    runs = np.column_stack((runs[keep_start, 0], runs[keep_end, 1]))
+    dur_ns = t_ns[runs[:, 1] - 1] - t_ns[runs[:, 0]]
+    runs = runs[dur_ns >= settings.static_min_s * _NS]
+    return [(int(a), int(b)) for a, b in runs]
+
+
+def _runs(mask: np.ndarray) -> np.ndarray:
+    """Runs of True in a boolean array as an (k, 2) array of [start, end) indices."""
+    d = np.diff(np.concatenate(([0], mask.astype(np.int8), [0])))
+    return np.column_stack((np.flatnonzero(d == 1), np.flatnonzero(d == -1)))
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# the whole run
+
+
+def segment_run(run: Run, settings: SegmentSettings = SegmentSettings()) -> Segmentation:
+    """Plateaus, static segments (cut at plateau boundaries, trimmed, averaged, named) and warnings of ``run``."""
+    warnings: list[str] = []
+    t_ns = run.t_ns()
+    u_v = run.u_v()
+    tt_ns = run.au_temperature["t_ns"].to_numpy()
+    temp = run.au_temperature["temp_c"].to_numpy()
+
+    bad_t = ~np.isfinite(temp)
+    if bad_t.any():
+        warnings.append(f"au_temperature: {int(bad_t.sum())} non-finite samples ignored, first at "
+                        f"t_ns={int(tt_ns[bad_t][0])}")
+        tt_ns, temp = tt_ns[~bad_t], temp[~bad_t]
+    bad_u = ~np.all(np.isfinite(u_v), axis=1)
+    if bad_u.any():
+        warnings.append(f"voltmeter: {int(bad_u.sum())} non-finite samples excluded (not static), first at "
+                        f"t_ns={int(t_ns[bad_u][0])}")
+
+    plateaus = find_plateaus(tt_ns, temp, settings)
+    if not plateaus:
+        warnings.append("au_temperature: no temperature plateau found (the temperature never stays within "
+                        f"{settings.plateau_rate_c_per_min} C/min for {settings.plateau_min_s:.0f} s)")
+
+    pieces = _cut_at_plateaus(t_ns, find_static(t_ns, u_v, settings), plateaus, settings)
+    fixture = _fixture_labels(run, t_ns, pieces)
+
+    rows = []
+    for (i0, i1, p), fix in zip(pieces, fixture):
+        uu = u_v[i0:i1]
+        fin = np.all(np.isfinite(uu), axis=1)
+        uu, tt = uu[fin], t_ns[i0:i1][fin]
+        tc = np.interp(tt.astype(np.float64), tt_ns.astype(np.float64), temp) if temp.size else np.full(tt.size,
+                                                                                                         np.nan)
+        ddof = 1 if uu.shape[0] > 1 else 0
+        rows.append(dict(t_start_ns=int(t_ns[i0]), t_end_ns=int(t_ns[i1 - 1]), plateau=p, fixture_label=fix,
+                         mean_v=uu.mean(axis=0), std_v=uu.std(axis=0, ddof=ddof), count=int(uu.shape[0]),
+                         temp_c=float(tc.mean()), temp_std_c=float(tc.std())))
+
+    names = _name_segments(run, rows, settings, warnings)
+    segments = []
+    for k, (r, nm) in enumerate(zip(rows, names)):
+        segments.append(StaticSegment(
+            index=k, t_start_ns=r["t_start_ns"], t_end_ns=r["t_end_ns"], position=nm["position"],
+            label_source=nm["source"], fixture_label=r["fixture_label"], label_conflict=nm["conflict"],
+            plateau=r["plateau"], mean_v=_tuple3(r["mean_v"]), std_v=_tuple3(r["std_v"]), count=r["count"],
+            temp_c=r["temp_c"], temp_std_c=r["temp_std_c"], direction_g=_tuple3(nm["direction"])))
+    return Segmentation(plateaus=plateaus, segments=segments, warnings=warnings)
+
+
+def _tuple3(v) -> tuple[float, float, float]:
+    return (float(v[0]), float(v[1]), float(v[2]))
+
+
+def _cut_at_plateaus(t_ns: np.ndarray, stretches: list[tuple[int, int]], plateaus: list[Plateau],
+                     settings: SegmentSettings) -> list[tuple[int, int, int | None]]:
+    """Cut static stretches at plateau boundaries, drop pieces shorter than static_min_s, trim each piece.
+
+    Returns (i0, i1, plateau index or None) per piece, in time order.
+    """
+    starts = np.array([p.t_start_ns for p in plateaus], dtype=np.int64)
+    ends = np.array([p.t_end_ns for p in plateaus], dtype=np.int64)
+    # sample index boundaries: a plateau owns samples with start <= t <= end
+    cut_idx = np.sort(np.concatenate((np.searchsorted(t_ns, starts, side="left"),
+                                      np.searchsorted(t_ns, ends, side="right"))))
+    min_ns = settings.static_min_s * _NS
+    out = []
+    for i0, i1 in stretches:
+        inner = cut_idx[(cut_idx > i0) & (cut_idx < i1)]
+        bounds = np.concatenate(([i0], inner, [i1]))
+        for a, b in zip(bounds[:-1], bounds[1:]):
+            a, b = int(a), int(b)
+            dur_ns = t_ns[b - 1] - t_ns[a]
+            if b <= a or dur_ns < min_ns:
+                continue
+            mid = t_ns[(a + b) // 2]
+            on = np.flatnonzero((starts <= mid) & (mid <= ends))
+            trim0 = min(settings.settle_trim_s * _NS, _MAX_START_TRIM * dur_ns)
+            trim1 = min(settings.settle_trim_s / 10 * _NS, _MAX_END_TRIM * dur_ns)
+            a2 = int(np.searchsorted(t_ns, t_ns[a] + trim0, side="left"))
+            b2 = int(np.searchsorted(t_ns, t_ns[b - 1] - trim1, side="right"))
+            if b2 > a2:
+                out.append((a2, b2, int(on[0]) if on.size else None))
+    return out
+
+
+def _fixture_labels(run: Run, t_ns: np.ndarray, pieces) -> list[str | None]:
+    """The fixture position logged for the middle of each piece (None: no log, MOVING or unknown)."""
+    fx = run.fixture
+    if fx is None or fx.height == 0 or not pieces:
+        return [None] * len(pieces)
+    ft = fx["t_ns"].to_numpy()
+    order = np.argsort(ft, kind="stable")
+    ft = ft[order]
+    fp = np.asarray(fx["position"].to_list(), dtype=object)[order]
+    mids = np.array([(t_ns[a] + t_ns[b - 1]) // 2 for a, b, _ in pieces], dtype=np.int64)
+    k = np.searchsorted(ft, mids, side="right") - 1
+    out = []
+    for j in k:
+        name = fp[j] if j >= 0 else None
+        out.append(name if name in ALL_POSITIONS else None)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# naming
+
+
+def _name_segments(run: Run, rows: list[dict], settings: SegmentSettings, warnings: list[str]) -> list[dict]:
+    """Name each averaged segment (dicts with mean_v, fixture_label, t_start_ns) from the fixture log and gravity.
+
+    Returns per segment a dict: position, source, conflict, direction (unit vector or NaN).
+    """
+    if not rows:
+        return []
+    mean_v = np.array([r["mean_v"] for r in rows])
+    fix = [r["fixture_label"] for r in rows]
+    gain_v_per_g = run.meta.nominal_gain_v_per_g
+    if gain_v_per_g is not None and gain_v_per_g != 0 and np.isfinite(gain_v_per_g):
+        gain, offset = np.full(3, float(gain_v_per_g)), np.zeros(3)
+    else:
+        gain, offset = _scale_from_fixture(mean_v, fix)
+        if gain is None:
+            warnings.append("positions unnamed: no nominal_gain_v_per_g in the metadata and no fixture log "
+                            "labelling positions on every axis")
+            nan3 = np.full(3, np.nan)
+            return [dict(position=None, source="none", conflict=False, direction=nan3) for _ in rows]
+
+    names = _nearest(mean_v, gain, offset, settings.max_label_angle_deg)
+    # refine offsets and gains with the opposite test-position pairs found, then name again
+    gain, offset = _refine_scale(mean_v, [n for n, _ in names], fix, gain, offset)
+    names = _nearest(mean_v, gain, offset, settings.max_label_angle_deg)
+
+    out = []
+    for r, (gname, direction) in zip(rows, names):
+        fl = r["fixture_label"]
+        agrees = fl is not None and _angle_deg(direction, gravity_vector_g(fl)) <= settings.max_label_angle_deg
+        if agrees:
+            out.append(dict(position=fl, source="fixture", conflict=False, direction=direction))
+            continue
+        conflict = fl is not None
+        if conflict:
+            warnings.append(f"fixture label conflict at t_ns={r['t_start_ns']}..{r['t_end_ns']}: fixture log says "
+                            f"{fl}, the signal says {gname or 'no known position'}; named from gravity")
+        out.append(dict(position=gname, source="gravity" if gname else "none", conflict=conflict,
+                        direction=direction))
+    return out
+
+
+def _nearest(mean_v: np.ndarray, gain: np.ndarray, offset: np.ndarray, max_angle_deg: float
+             ) -> list[tuple[str | None, np.ndarray]]:
+    """(nearest position within max_angle_deg or None, unit gravity direction) per row of mean_v."""
+    a = (mean_v - offset) / gain
+    norm = np.linalg.norm(a, axis=1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        d = a / norm
+    out = []
+    for v in d:
+        if not np.all(np.isfinite(v)):
+            out.append((None, v))
+            continue
+        name, ang = nearest_position(v)
+        out.append((name if ang <= max_angle_deg else None, v))
+    return out
+
+
+def _angle_deg(d: np.ndarray, v: np.ndarray) -> float:
+    if not np.all(np.isfinite(d)):
+        return np.inf
+    c = float(np.dot(d, v) / (np.linalg.norm(d) * np.linalg.norm(v)))
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def _scale_from_fixture(mean_v: np.ndarray, fix: list[str | None]) -> tuple[np.ndarray | None, np.ndarray]:
+    """Per-axis gain (V/g, signed) and offset (V) fitted as U_i = g_i a_i + c_i over the fixture-labelled segments.
+
+    Returns (None, zeros) when some axis has no spread of labelled gravity (cannot be estimated).
+    """
+    rows = [k for k, f in enumerate(fix) if f is not None]
+    if len(rows) < 2:
+        return None, np.zeros(3)
+    a = np.array([gravity_vector_g(fix[k]) for k in rows])
+    u = mean_v[rows]
+    gain, offset = np.zeros(3), np.zeros(3)
+    for i in range(3):
+        if np.ptp(a[:, i]) < 0.5:
+            return None, np.zeros(3)
+        g, c = np.polyfit(a[:, i], u[:, i], 1)
+        gain[i], offset[i] = g, c
+    if np.any(gain == 0) or not np.all(np.isfinite(gain)):
+        return None, np.zeros(3)
+    return gain, offset
+
+
+def _refine_scale(mean_v: np.ndarray, gravity_names: list[str | None], fix: list[str | None], gain: np.ndarray,
+                  offset: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Offsets from the midpoints of opposite test-position pairs, each axis's gain from its own vertical pair.
+
+    Names are the gravity names (the fixture label where it agrees with them). Medians over repeated segments.
+    """
+    names = [f if (f is not None and f == g) else g for f, g in zip(fix, gravity_names)]
+
+    def med(p):
+        sel = [k for k, n in enumerate(names) if n == p]
+        return np.median(mean_v[sel], axis=0) if sel else None
+
+    per = {p: med(p) for p in TEST_POSITIONS}
+    mids = [0.5 * (per[hi] + per[lo]) for hi, lo in _OPPOSITE_TP.values() if per[hi] is not None
+            and per[lo] is not None]
+    if not mids:
+        return gain, offset
+    new_offset = np.mean(mids, axis=0)
+    new_gain = gain.copy()
+    for i, (hi, lo) in _OPPOSITE_TP.items():
+        if per[hi] is not None and per[lo] is not None:
+            g = 0.5 * (per[hi][i] - per[lo][i])
+            if g != 0 and np.sign(g) == np.sign(gain[i]):
+                new_gain[i] = g
+    return new_gain, new_offset
+
+
+__all__ = ["SegmentSettings", "Plateau", "StaticSegment", "Segmentation", "find_plateaus", "find_static",
+           "rolling_std_v", "static_threshold_v", "segment_run"]

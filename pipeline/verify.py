@@ -1,0 +1,95 @@
+"""Verification at the VP positions (seed 000, eq. 14): gravity-module error dg = |a_hat| - 1 in g, before and
+after compensation, judged against tolerances."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from . import compensate
+from .model import gravity_module_error_g
+
+
+@dataclass(frozen=True)
+class Tolerances:
+    """|dg| limits in g (physics.md, launcher grade): within ``normal_band_c`` of T0 and over the operating range."""
+
+    normal_g: float = 3e-4
+    operating_range_g: float = 1e-3
+    normal_band_c: float = 3.0
+
+    def limit_g(self, temp_c: float, normal_temp_c: float) -> float:
+        return self.normal_g if abs(temp_c - normal_temp_c) <= self.normal_band_c else self.operating_range_g
+
+
+@dataclass(frozen=True)
+class VerificationRow:
+    """One VP segment: dg in g uncompensated (normal-temperature constants), by method 1 and method 2 (full eq. 6/7
+    and simplified eq. 8/9), the tolerance applied and the verdict (on method 1)."""
+
+    temp_c: float
+    position: str
+    run_id: str
+    t_start_ns: int
+    t_end_ns: int
+    dg_uncompensated_g: float
+    dg_method1_g: float
+    dg_method2_g: float
+    dg_method2_simplified_g: float
+    tolerance_g: float
+    passed: bool
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def verify_positions(model, positions: list[str], u_v: np.ndarray, temp_c: np.ndarray, *, normal_temp_c: float,
+                     tolerances: Tolerances = Tolerances(), run_ids: list[str] | None = None,
+                     spans_ns: list[tuple[int, int]] | None = None) -> list[VerificationRow]:
+    """dg at each verification segment (mean outputs ``u_v`` (m, 3) V at mean temperatures ``temp_c`` (m,) C)."""
+    u_v = np.atleast_2d(np.asarray(u_v, dtype=float))
+    temp_c = np.asarray(temp_c, dtype=float)
+    dg0 = gravity_module_error_g(compensate.uncompensated(model, u_v))
+    dg1 = gravity_module_error_g(compensate.method1(model, u_v, temp_c))
+    dg2 = gravity_module_error_g(compensate.method2(model, u_v, temp_c, full=True))
+    dg2s = gravity_module_error_g(compensate.method2(model, u_v, temp_c, full=False))
+    rows = []
+    for k, pos in enumerate(positions):
+        lim = tolerances.limit_g(float(temp_c[k]), normal_temp_c)
+        span = spans_ns[k] if spans_ns else (0, 0)
+        rows.append(VerificationRow(
+            temp_c=round(float(temp_c[k]), 3), position=pos, run_id=run_ids[k] if run_ids else "",
+            t_start_ns=int(span[0]), t_end_ns=int(span[1]),
+            dg_uncompensated_g=float(dg0[k]), dg_method1_g=float(dg1[k]), dg_method2_g=float(dg2[k]),
+            dg_method2_simplified_g=float(dg2s[k]), tolerance_g=lim, passed=bool(abs(dg1[k]) <= lim)))
+    return rows
+
+
+def overall_status(rows: list[VerificationRow]) -> str:
+    """``pass`` when every VP segment is within tolerance, ``fail`` otherwise, ``unverified`` without VP data."""
+    if not rows:
+        return "unverified"
+    return "pass" if all(r.passed for r in rows) else "fail"
+
+
+def summary_by_temperature(rows: list[VerificationRow], cluster_tol_c: float = 3.0) -> list[dict]:
+    """Max |dg| per verification temperature, before and after each compensation (g)."""
+    from .thermal import cluster_temperatures
+
+    if not rows:
+        return []
+    temps = np.array([r.temp_c for r in rows])
+    labels = cluster_temperatures(temps, cluster_tol_c)
+    out = []
+    for c in range(labels.max() + 1):
+        sel = [r for r, lab in zip(rows, labels) if lab == c]
+        out.append({
+            "temp_c": round(float(np.mean([r.temp_c for r in sel])), 2),
+            "n": len(sel),
+            "max_abs_dg_uncompensated_g": max(abs(r.dg_uncompensated_g) for r in sel),
+            "max_abs_dg_method1_g": max(abs(r.dg_method1_g) for r in sel),
+            "max_abs_dg_method2_g": max(abs(r.dg_method2_g) for r in sel),
+            "max_abs_dg_method2_simplified_g": max(abs(r.dg_method2_simplified_g) for r in sel),
+        })
+    return out

@@ -1,0 +1,40 @@
+"""Shared fixtures: seed 000 reference tables, the shared/ folder, an isolated Prefect home."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = REPO.parent / "shared"
+
+# Prefect: never the user's home, no telemetry (no network here); set before any test imports prefect.
+os.environ.setdefault("PREFECT_HOME", str(Path(os.environ.get("TMPDIR", "/tmp")) / f"thermocal-prefect-{os.getpid()}"))
+os.environ["PREFECT_SERVER_ANALYTICS_ENABLED"] = "false"
+os.environ["DO_NOT_TRACK"] = "1"
+
+
+@pytest.fixture(scope="session")
+def seed000():
+    """The paper's Tables 1-3 (pipeline/data holds a copy of shared/reference/seed000_tables.json)."""
+    return json.loads((REPO / "pipeline" / "data" / "seed000_tables.json").read_text())
+
+
+@pytest.fixture(scope="session")
+def seed000_constants(seed000):
+    rows = seed000["table_1_2_constants"]
+    T = np.array([r["temp_c"] for r in rows])
+    K = np.array([r["K"] for r in rows])
+    U0 = np.array([r["U0"] for r in rows])
+    return T, K, U0
+
+
+def shared_path(*parts: str) -> Path:
+    p = SHARED.joinpath(*parts)
+    if not p.exists():
+        pytest.skip(f"shared reference data not available: {p}")
+    return p
