@@ -202,7 +202,8 @@ def passport_verify(registry: Path = typer.Option(..., "--registry"), as_json: b
 def main() -> None:
     """Console entry point: one-line errors, no tracebacks (set THERMOCAL_DEBUG=1 to see them)."""
     try:
-        app(standalone_mode=False)
+        rc = app(standalone_mode=False)
+        sys.exit(rc if isinstance(rc, int) else 0)
     except ThermocalError as e:
         print(f"thermocal: error: {e.one_line()}", file=sys.stderr)
         sys.exit(2)

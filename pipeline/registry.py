@@ -443,9 +443,13 @@ class Registry:
             v = unlogged[0]
             with _os_errors(state.files[v], "read passport"):
                 data = state.files[v].read_bytes()
-            doc = json.loads(data)
+            try:
+                doc = json.loads(data)
+                doc_ok = content_sha256(doc) == doc.get("content_sha256")
+            except (ValueError, AttributeError, TypeError):
+                doc, doc_ok = {}, False
             parent = state.log_rows[last_logged]["sha256"] if last_logged else None
-            if content_sha256(doc) != doc.get("content_sha256") or doc.get("parent_sha256") != parent:
+            if not doc_ok or doc.get("parent_sha256") != parent:
                 raise RegistryError(f"unit {unit} v{v}: not in log.jsonl and fails its own checks; "
                                     "run 'thermocal passport verify'", path=str(state.files[v]))
             row = {"version": v, "sha256": sha256_bytes(data), "created_utc": doc.get("created_utc"),
