@@ -138,11 +138,16 @@ def fit_unit(unit: str, observations: list[Observation], settings: CalibrationSe
     if not fits:
         raise CalibrationError("no temperature plateau with the six test positions TP1..TP6"
                                + (f" ({'; '.join(skipped)})" if skipped else ""), stream="voltmeter")
-    temps = np.array([f.temp_c for f in fits])
-    model = fit_thermal_model(temps, np.array([f.K for f in fits]), np.array([f.U0 for f in fits]),
-                              settings.thermal_model, normal_temp_c, settings.cluster_tol_c)
+    def thermal(kind: str, temps=None, K=None, U0=None) -> ThermalModel:
+        return fit_thermal_model(np.array([f.temp_c for f in fits]) if temps is None else temps,
+                                 np.array([f.K for f in fits]) if K is None else K,
+                                 np.array([f.U0 for f in fits]) if U0 is None else U0,
+                                 kind, normal_temp_c, settings.cluster_tol_c)
+
     for _ in range(settings.temperature_referencing_passes):
-        # refer every segment average to its plateau's mean temperature with the current model
+        # Refer every segment average to its plateau's mean temperature. The local slopes come from the smooth
+        # default polynomial (a piecewise model's slopes are chords, wrong at the breakpoints themselves).
+        local = thermal("auto")
         shift = {}
         plateau_temp = {(f.run_id, f.plateau): f.temp_c for f in fits}
         for key, rows in groups.items():
@@ -150,16 +155,32 @@ def fit_unit(unit: str, observations: list[Observation], settings: CalibrationSe
                 continue
             t_seg = np.array([o.temp_c for o in rows])
             a = np.array([gravity_vector_g(o.position) for o in rows])
-            Ks, U0s = model.constants_at(t_seg)
-            Kp, U0p = model.constants_at(np.full(len(rows), plateau_temp[key]))
+            Ks, U0s = local.constants_at(t_seg)
+            Kp, U0p = local.constants_at(np.full(len(rows), plateau_temp[key]))
             d = np.einsum("nij,nj->ni", Ks - Kp, a) + (U0s - U0p)
             shift.update({id(o): d[k] for k, o in enumerate(rows)})
         fits = _fit_plateaus(groups, shift, settings.constants_method, None)
-        model = fit_thermal_model(np.array([f.temp_c for f in fits]), np.array([f.K for f in fits]),
-                                  np.array([f.U0 for f in fits]), settings.thermal_model, normal_temp_c,
-                                  settings.cluster_tol_c)
+    model = thermal(settings.thermal_model, *_at_calibration_temperatures(fits, thermal("auto"), normal_temp_c,
+                                                                           settings.cluster_tol_c))
     fits.sort(key=lambda f: (f.temp_c, f.run_id, f.plateau))
     return UnitFit(unit=unit, normal_temp_c=normal_temp_c, per_plateau=fits, model=model, skipped=skipped)
+
+
+def _at_calibration_temperatures(fits: list[PlateauConstants], local: ThermalModel, normal_temp_c: float,
+                                 cluster_tol_c: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-plateau constants referred to their calibration temperature: T0 for plateaus within ``cluster_tol_c``
+    of it, else the plateau cluster's mean rounded to 0.1 C. The shift uses the smooth ``local`` model; it is a few
+    hundredths of a degree on a soaked plateau. Breakpoints of a piecewise model then sit at the nominal
+    temperatures."""
+    temps = np.array([f.temp_c for f in fits])
+    labels = cluster_temperatures(temps, cluster_tol_c)
+    nominal = np.array([round(float(temps[labels == lab].mean()), 1) for lab in labels])
+    nominal[np.abs(nominal - normal_temp_c) <= cluster_tol_c] = normal_temp_c
+    K_nom, U0_nom = local.constants_at(nominal)
+    K_t, U0_t = local.constants_at(temps)
+    K = np.array([f.K for f in fits]) + (K_nom - K_t)
+    U0 = np.array([f.U0 for f in fits]) + (U0_nom - U0_t)
+    return nominal, K, U0
 
 
 def verify_unit(model, observations: list[Observation], normal_temp_c: float,
@@ -200,7 +221,3 @@ def calibration_result(fit: UnitFit, rows: list[VerificationRow], status: str, p
                           "dg_method1_g": r.dg_method1_g, "dg_method2_g": r.dg_method2_g} for r in rows],
         "status": status,
     }
-
-
-__all__ = ["CalibrationSettings", "Observation", "PlateauConstants", "UnitFit", "observations_from_segmentation",
-           "fit_unit", "verify_unit", "plateau_summary", "cluster_temperatures"]

@@ -54,8 +54,8 @@ class UnitTruth:
     def constants_at(self, temp_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """K (n, 3, 3) in V/g and U0 (n, 3) in V at temperatures ``temp_c`` (n,) in C."""
         dt_c = np.atleast_1d(np.asarray(temp_c, dtype=float)).reshape(-1) - self.normal_temp_c
-        powers = dt_c[:, None] ** np.arange(self.order + 1)
-        return np.einsum("nm,mij->nij", powers, self.k_coef), powers @ self.u0_coef
+        powers = np.vander(dt_c, self.order + 1, increasing=True)
+        return (powers @ self.k_coef.reshape(-1, 9)).reshape(-1, 3, 3), powers @ self.u0_coef
 
     def relative_coefficients(self) -> dict[str, Any]:
         """The same model in the relative form of physics.md / the passport (polynomial of ``order``).

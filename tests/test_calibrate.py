@@ -49,9 +49,8 @@ def test_flow_piecewise_reproduces_table3_end_to_end(noise_free_run, seed000, tm
     passport = json.loads(Path(res["passport"]).read_text())
     tm = passport["thermal_model"]
     assert tm["kind"] == "piecewise_linear"
-    assert tm["breakpoints_c"] == pytest.approx([-40.0, 20.0, 70.0], abs=0.05)
-    tm = dict(tm, breakpoints_c=[round(b) for b in tm["breakpoints_c"]])
-    _assert_table3(tm, seed000)
+    # breakpoints are the plateaus' measured temperatures (the case is still 0.006 C from -40 after the soak)
+    _assert_table3(tm, seed000, temp_tol_c=0.05)
     # the normal-temperature constants are Table 1's +20 C row
     ref = seed000["table_1_2_constants"][0]
     np.testing.assert_allclose(passport["coefficients"]["K"], ref["K"], atol=2e-8)
@@ -94,7 +93,7 @@ def test_noisy_constants_within_noise_bound(noisy_runs, which):
     rows, status = verify_unit(fit.model, obs, T0)
     for temp in (-10.0, 45.0):
         sel = [r for r in rows if abs(r.temp_c - temp) < 3]
-        assert len(sel) == 6
+        assert {r.position for r in sel} == {f"VP{k}" for k in range(1, 7)}   # (VP6 also during the soak)
         unc = max(abs(r.dg_uncompensated_g) for r in sel)
         m1 = max(abs(r.dg_method1_g) for r in sel)
         m2 = max(abs(r.dg_method2_g) for r in sel)
@@ -124,12 +123,11 @@ def test_real_recording_imucal(tmp_path):
     labels = json.loads((run_dir.parent / "labels.json").read_text())["labels"]
     run = read_run(run_dir)
     obs, _ = observe_run(run)
-    by_pos = {o.position: o for o in obs}
     for lab in labels:
         if not lab["position"].startswith("TP"):
             continue
-        o = by_pos[lab["position"]]
-        overlap = min(o.t_end_ns, lab["t_end_ns"]) - max(o.t_start_ns, lab["t_start_ns"])
+        overlap = max(min(o.t_end_ns, lab["t_end_ns"]) - max(o.t_start_ns, lab["t_start_ns"])
+                      for o in obs if o.position == lab["position"])
         assert overlap > 0.5 * (lab["t_end_ns"] - lab["t_start_ns"]), lab["position"]
     res = run_calibrate([str(run_dir)], str(tmp_path / "reg"), CalibrationSettings())
     assert res["status"] == "unverified"

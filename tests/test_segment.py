@@ -1,0 +1,276 @@
+"""Segmentation of chamber runs: plateaus from the thermosensor, named static positions from the voltages."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import polars as pl
+import pytest
+
+from pipeline.positions import gravity_vector_g, nearest_position
+from pipeline.program import get_program
+from pipeline.run import Run, RunMeta, make_frame
+from pipeline.runio import read_run, write_run
+from pipeline.segment import SegmentSettings, find_plateaus, find_static, segment_run
+from pipeline.simulate import SimConfig, simulate
+
+SHARED = Path(__file__).resolve().parents[2] / "shared"
+REAL = SHARED / "reference" / "real" / "imucal_ferraris"
+NS = 1_000_000_000
+STANDARD_PLATEAUS_C = [20.0, -40.0, -10.0, 20.0, 45.0, 70.0, 20.0]
+
+
+@pytest.fixture(scope="module")
+def standard():
+    return simulate(SimConfig(program="standard", seed=3))
+
+
+def _static_intervals_ns(truth: dict) -> list[tuple[int, int, str]]:
+    """(start, end, position) of the truth's still stretches: from each arrival to the next move's start."""
+    tt = get_program(truth["program"]).timetable()
+    start_ns = truth["holds"][0]["t_start_ns"] - int(round(tt.holds()[0].t_start_s * NS))
+    out, t, pos = [], 0.0, tt.start_position
+    for s in tt.segments:
+        if s.kind == "move":
+            out.append((start_ns + int(t * NS), start_ns + int(s.t_start_s * NS), pos))
+            t = s.t_end_s
+        else:
+            pos = s.position
+    out.append((start_ns + int(t * NS), start_ns + int(tt.duration_s * NS), pos))
+    return out
+
+
+def _check_against_truth(seg, truth, *, source: str):
+    """Plateaus, names, order and times of the segments against the simulator's truth."""
+    # 7 plateaus at the program's temperatures
+    assert [round(p.temp_c) for p in seg.plateaus] == pytest.approx(STANDARD_PLATEAUS_C, abs=0.5)
+    for p, want in zip(seg.plateaus, STANDARD_PLATEAUS_C):
+        assert abs(p.temp_c - want) < 0.5
+        assert p.t_end_ns - p.t_start_ns >= 600 * NS
+
+    # every segment lies inside one still stretch of the truth and carries its position
+    still = _static_intervals_ns(truth)
+    for s in seg.segments:
+        inside = [pos for a, b, pos in still if a <= s.t_start_ns and s.t_end_ns <= b]
+        assert inside, f"segment {s.index} at {s.t_start_ns} overlaps a move"
+        assert s.position == inside[0], (s.index, s.position, inside[0])
+        assert s.count > 0 and np.all(np.isfinite(s.mean_v))
+
+    # every hold of the program is found: one segment, inside the hold's still stretch, covering most of it, on the
+    # plateau of the hold's setpoint; the positions on each plateau come in the program's order
+    by_plateau: dict[int, list[str]] = {}
+    for h in truth["holds"]:
+        over = [s for s in seg.segments if s.t_start_ns < h["t_end_ns"] and s.t_end_ns > h["t_start_ns"]]
+        assert len(over) == 1, h
+        s = over[0]
+        covered = min(s.t_end_ns, h["t_end_ns"]) - max(s.t_start_ns, h["t_start_ns"])
+        assert covered >= 0.9 * (h["t_end_ns"] - h["t_start_ns"])
+        assert s.position == h["position"] and s.label_source == source and not s.label_conflict
+        assert s.plateau is not None
+        assert abs(seg.plateaus[s.plateau].temp_c - h["setpoint_c"]) < 0.5
+        assert abs(s.temp_c - h["case_temp_c_mean"]) < 0.05
+        by_plateau.setdefault(s.plateau, []).append(s.position)
+    tp = [f"TP{i}" for i in range(1, 7)]
+    vp = [f"VP{i}" for i in range(1, 7)]
+    assert [by_plateau[i] for i in range(7)] == [tp, tp, vp, tp + vp, vp, tp, tp + vp]
+    # segments on a plateau that are not holds are the position carried over from the previous stage (soak)
+    for i in range(7):
+        names = [s.position for s in seg.on_plateau(i)]
+        assert names[-len(by_plateau[i]):] == by_plateau[i]
+        assert len(names) - len(by_plateau[i]) <= 1
+
+
+def test_standard_run_with_fixture_log(standard):
+    seg = segment_run(standard.run)
+    _check_against_truth(seg, standard.truth, source="fixture")
+    assert not any("conflict" in w for w in seg.warnings)
+    # averages: the mean of a hold is the noise-free output to within the noise of the mean; std is the noise
+    s = seg.on_plateau(1)[-1]
+    assert s.position == "TP6"
+    assert np.allclose(s.std_v, 5e-6, rtol=0.1)
+    assert all(s.direction_g[i] == pytest.approx(v, abs=0.05) for i, v in enumerate((1.0, 0.0, 0.0)))
+
+
+def test_standard_run_without_fixture_log():
+    res = simulate(SimConfig(program="standard", seed=4, with_fixture_log=False))
+    seg = segment_run(res.run)
+    _check_against_truth(seg, res.truth, source="gravity")
+    assert all(s.fixture_label is None for s in seg.segments)
+
+
+def test_wrong_fixture_label_is_flagged_and_named_from_gravity(standard, tmp_path):
+    run = standard.run
+    hold = [h for h in standard.truth["holds"] if h["setpoint_c"] == -40.0 and h["position"] == "TP3"][0]
+    fx = run.fixture
+    arrival = (fx["t_ns"] == hold["t_start_ns"]) & (fx["position"] == "TP3")
+    assert arrival.sum() == 1
+    fx = fx.with_columns(pl.when(arrival).then(pl.lit("TP4")).otherwise(pl.col("position")).alias("position"))
+    # through a real file: the reader must carry the (wrong) fixture log as it is
+    path = write_run(dataclasses.replace(run, fixture=fx), tmp_path / "wrong_label", fmt="parquet")
+    seg = segment_run(read_run(path))
+
+    bad = [s for s in seg.segments if s.t_start_ns >= hold["t_start_ns"] and s.t_end_ns <= hold["t_end_ns"]]
+    assert len(bad) == 1
+    s = bad[0]
+    assert s.fixture_label == "TP4" and s.label_conflict and s.position == "TP3" and s.label_source == "gravity"
+    lines = [w for w in seg.warnings if "conflict" in w]
+    assert len(lines) == 1 and "TP4" in lines[0] and "TP3" in lines[0] and str(s.t_start_ns) in lines[0]
+    others = [x for x in seg.segments if x is not s]
+    assert not any(x.label_conflict for x in others)
+    assert all(x.label_source == "fixture" for x in others)
+
+
+def test_names_from_fixture_log_when_no_nominal_gain(standard):
+    run = dataclasses.replace(standard.run, meta=dataclasses.replace(standard.run.meta, nominal_gain_v_per_g=None))
+    seg = segment_run(run)
+    _check_against_truth(seg, standard.truth, source="fixture")
+    # neither a gain nor a fixture log: unnamed, with a warning
+    seg = segment_run(dataclasses.replace(run, fixture=None))
+    assert seg.segments and all(s.position is None and s.label_source == "none" for s in seg.segments)
+    assert any("unnamed" in w for w in seg.warnings)
+
+
+def test_nan_samples_excluded_with_warning():
+    res = simulate(SimConfig(program="short", seed=5))
+    run = res.run
+    t = run.t_ns()
+    h = res.truth["holds"][2]                      # a 60 s hold
+    mid = int(np.searchsorted(t, (h["t_start_ns"] + h["t_end_ns"]) // 2))
+    bad = np.zeros(t.size, bool)
+    bad[mid:mid + 3] = True                         # a short burst inside the hold: the hold stays one segment
+    h2 = res.truth["holds"][4]
+    i2 = int(np.searchsorted(t, h2["t_start_ns"] + 30 * NS))
+    bad[i2:i2 + 100] = True                         # 10 s of dropouts: the hold splits in two
+    vm = run.voltmeter.with_columns(pl.when(pl.Series(bad)).then(float("nan")).otherwise(pl.col("uy")).alias("uy"))
+    seg = segment_run(dataclasses.replace(run, voltmeter=vm), SegmentSettings(plateau_min_s=300))
+
+    lines = [w for w in seg.warnings if "non-finite" in w]
+    assert len(lines) == 1 and "103" in lines[0] and f"t_ns={t[mid]}" in lines[0]
+    for s in seg.segments:
+        assert np.all(np.isfinite(s.mean_v)) and np.all(np.isfinite(s.std_v))
+        in_range = (t >= s.t_start_ns) & (t <= s.t_end_ns)
+        assert s.count == int((in_range & ~bad).sum())
+    one = [s for s in seg.segments if s.t_start_ns < h["t_end_ns"] and s.t_end_ns > h["t_start_ns"]]
+    assert len(one) == 1 and one[0].position == h["position"]
+    two = [s for s in seg.segments if s.t_start_ns < h2["t_end_ns"] and s.t_end_ns > h2["t_start_ns"]]
+    assert len(two) == 2 and all(s.position == h2["position"] for s in two)
+    assert two[0].t_end_ns < t[i2] and two[1].t_start_ns > t[i2 + 99]
+
+
+def test_short_program_plateaus_with_shorter_minimum():
+    """The short program's soaks (15 min, case lag 2 min) leave plateaus of about 10 min."""
+    res = simulate(SimConfig(program="short", seed=6))
+    seg = segment_run(res.run, SegmentSettings(plateau_min_s=300))
+    assert [p.temp_c for p in seg.plateaus] == pytest.approx(STANDARD_PLATEAUS_C, abs=0.5)
+    _check_holds(seg, res.truth)
+
+
+def _check_holds(seg, truth):
+    """Every hold: the segments overlapping it carry its position; one of them is on a plateau and covers most of
+    it (a hold's tail may fall after the plateau's end, where the next ramp begins: a separate ramp segment)."""
+    for h in truth["holds"]:
+        over = [s for s in seg.segments if s.t_start_ns < h["t_end_ns"] and s.t_end_ns > h["t_start_ns"]]
+        assert over and all(s.position == h["position"] for s in over), h
+        on = [s for s in over if s.plateau is not None]
+        assert len(on) == 1
+        covered = min(on[0].t_end_ns, h["t_end_ns"]) - max(on[0].t_start_ns, h["t_start_ns"])
+        assert covered >= 0.75 * (h["t_end_ns"] - h["t_start_ns"])
+
+
+def test_noise_free_run():
+    res = simulate(SimConfig(program="short", seed=7, noise_v=0.0, temp_noise_c=0.0, vibration_g=0.0))
+    seg = segment_run(res.run, SegmentSettings(plateau_min_s=300))
+    assert len(seg.plateaus) == 7
+    assert all(s.position is not None for s in seg.segments)
+    _check_holds(seg, res.truth)
+
+
+def test_find_plateaus_constant_and_short():
+    t = np.arange(0, 100) * NS
+    assert [(p.temp_c, p.t_start_ns, p.t_end_ns) for p in find_plateaus(t, np.full(100, 20.0))] == [
+        (20.0, 0, 99 * NS)]
+    # a ramp is no plateau; a ramp then 20 min stable is one plateau, starting after the ramp
+    ts = np.arange(0, 3600.0)
+    temp = np.where(ts < 1200, 20.0 - ts / 60.0, 0.0) + np.random.default_rng(0).normal(0, 0.01, ts.size)
+    ps = find_plateaus((ts * NS).astype(np.int64), temp, SegmentSettings())
+    assert len(ps) == 1 and abs(ps[0].temp_c) < 0.01 and 1190 <= ps[0].t_start_ns / NS < 1300
+    assert find_plateaus((ts[:1200] * NS).astype(np.int64), temp[:1200]) == []
+
+
+def test_find_static_rejects_moves_and_short_holds():
+    rate = 10.0
+    t_s = np.arange(0, 60.0, 1 / rate)
+    u = np.zeros((t_s.size, 3)) + np.random.default_rng(1).normal(0, 1e-5, (t_s.size, 3))
+    u[:, 2] += np.interp(t_s, [0, 20, 25, 27, 30, 32, 60], [0.5, 0.5, -0.5, -0.5, 0.5, 0.5, 0.5])
+    runs = find_static((t_s * NS).astype(np.int64), u, SegmentSettings())
+    # 0-20 s and 30-60 s are static; the 2 s stop at 25-27 s is shorter than static_min_s
+    assert len(runs) == 2
+    (a0, b0), (a1, b1) = runs
+    assert t_s[a0] == 0 and 18.5 <= t_s[b0 - 1] < 20
+    assert 30 < t_s[a1] <= 31.5 and t_s[b1 - 1] == t_s[-1]
+
+
+@pytest.mark.skipif(not REAL.exists(), reason="shared reference data not available")
+def test_real_recording_six_positions():
+    run = read_run(REAL / "run")
+    seg = segment_run(run)
+    assert len(seg.plateaus) == 1 and seg.plateaus[0].temp_c == 20.0
+    assert seg.plateaus[0].t_start_ns == run.au_temperature["t_ns"][0]
+    labels = json.loads((REAL / "labels.json").read_text())["labels"]
+    t = run.t_ns()
+    for lab in labels:
+        if not lab["position"].startswith("TP"):
+            continue
+        a, b = t[lab["start_sample"]], t[lab["end_sample"]]
+        over = [s for s in seg.segments if s.t_start_ns < b and s.t_end_ns > a]
+        assert len(over) == 1, lab
+        s = over[0]
+        assert s.position == lab["position"] and s.label_source == "gravity" and s.plateau == 0
+        assert min(s.t_end_ns, b) - max(s.t_start_ns, a) >= 0.6 * (b - a)
+        # the segment mean is the hand-marked range's mean to within the hand tremor
+        ref = run.u_v()[lab["start_sample"]:lab["end_sample"]].mean(axis=0)
+        assert np.allclose(s.mean_v, ref, atol=0.02)
+    assert not seg.warnings
+
+
+def _hand_run(positions, K, U0, *, hold_s=40.0, move_s=10.0, rate=10.0, gain=-0.55, seed=2) -> Run:
+    """A run built by hand: the positions held in turn with smooth moves between, constant 20 C, no fixture log."""
+    step = hold_s + move_s
+    t_s = np.arange(0, step * len(positions) - move_s, 1 / rate)
+    k = np.minimum((t_s // step).astype(int), len(positions) - 1)
+    vec = np.array([gravity_vector_g(p) for p in positions])
+    f = np.clip((t_s - k * step - hold_s) / move_s, 0, 1)[:, None]
+    f = (1 - np.cos(np.pi * f)) / 2
+    a = vec[k] * (1 - f) + vec[np.minimum(k + 1, len(positions) - 1)] * f
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    u = a @ np.asarray(K).T + U0 + np.random.default_rng(seed).normal(0, 5e-6, a.shape)
+    t_ns = (t_s * NS).astype(np.int64)
+    return Run(RunMeta("AU-9", "hand", nominal_gain_v_per_g=gain),
+               make_frame("voltmeter", {"t_ns": t_ns, "ux": u[:, 0], "uy": u[:, 1], "uz": u[:, 2]}),
+               make_frame("au_temperature", {"t_ns": t_ns[::10], "temp_c": np.full(t_ns[::10].size, 20.0)}))
+
+
+def test_segment_run_minimal_in_memory_run():
+    run = _hand_run(["TP1", "TP3"], -0.55 * np.eye(3), 0.003)
+    seg = segment_run(run)
+    assert [s.position for s in seg.segments] == ["TP1", "TP3"]
+    assert all(s.plateau == 0 and s.temp_c == 20.0 for s in seg.segments)
+    s1, s3 = seg.segments
+    assert s1.t_start_ns == 10 * NS                  # settle trim from the start of the record
+    assert np.allclose(s1.mean_v, [0.003, 0.003, -0.547], atol=3e-6)
+    assert np.allclose(s3.mean_v, [0.003, 0.003, 0.553], atol=3e-6)
+
+
+def test_naming_refined_with_opposite_pairs():
+    """Offsets of 0.1 V and gains 10 % off the nominal tilt the rough gravity directions by up to ~15 degrees; the
+    offsets from opposite test-position pairs and the gains from each axis's own pair bring them back."""
+    order = ["TP1", "TP2", "TP3", "TP4", "TP5", "TP6", "VP1", "VP2", "VP3", "VP4", "VP5", "VP6"]
+    K = np.diag([-0.50, -0.60, -0.55]) + 0.01
+    run = _hand_run(order, K, np.array([0.1, -0.1, 0.08]))
+    seg = segment_run(run)
+    assert [s.position for s in seg.segments] == order
+    for s in seg.segments:
+        assert nearest_position(np.array(s.direction_g))[1] < 5.0
