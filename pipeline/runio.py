@@ -98,22 +98,20 @@ def check_stream(stream: str, df: pl.DataFrame, *, path: str, warnings: list[str
 
 
 def assemble_run(meta_values: dict[str, str] | None, frames: dict[str, pl.DataFrame], *, path: str,
-                 warnings: list[str], missing_hint: str = "") -> Run:
+                 warnings: list[str]) -> Run:
     """Build the :class:`Run` from what a reader found; refuse a run without metadata or a required stream.
 
     ``frames`` maps stream name to its canonical table (streams absent from the file are absent from the map).
-    ``missing_hint`` is appended to the message when something required is missing (e.g. "file truncated at ...").
     """
-    hint = f" ({missing_hint})" if missing_hint else ""
     if meta_values is None:
-        raise RunFormatError(f"no run metadata (an MCAP metadata record named 'run' or run.json){hint}", path=path,
+        raise RunFormatError("no run metadata (an MCAP metadata record named 'run' or run.json)", path=path,
                              stream="metadata")
     for stream in REQUIRED_STREAMS:
         df = frames.get(stream)
         if df is None:
-            raise RunFormatError(f"required stream is missing{hint}", path=path, stream=stream)
+            raise RunFormatError("required stream is missing", path=path, stream=stream)
         if df.height == 0:
-            raise RunFormatError(f"required stream has no samples{hint}", path=path, stream=stream)
+            raise RunFormatError("required stream has no samples", path=path, stream=stream)
     checked = {name: check_stream(name, df, path=path, warnings=warnings) for name, df in frames.items()}
     meta = RunMeta.from_strings(meta_values, path=path)
     return Run(meta=meta, voltmeter=checked["voltmeter"], au_temperature=checked["au_temperature"],

@@ -1,0 +1,637 @@
+"""Chamber runs as MCAP files (log-format.md): a writer, and a fast reader that says what is wrong with a bad file.
+
+Layout: one metadata record named ``run`` (string to string, written before any data); one channel per stream, topics
+``/voltmeter``, ``/au/temperature``, ``/chamber``, ``/fixture``; message encoding ``json``, schema encoding
+``jsonschema``, schema names ``thermocal.VoltageBlock`` ... with the schema files of the project's ``schemas/``.
+A message holds a block of samples (equal-length arrays) and is logged at its first sample's ``t_ns``; ``/fixture``
+messages hold one event each. Topics interleave in time order; chunks are zstd-compressed. JSON has no NaN or
+infinity: a non-finite sample is written as ``null`` and read back as NaN (so +-inf come back as NaN).
+
+The reader works on the memory-mapped file at the level of MCAP records, so it can say at which byte a file is cut or
+corrupt, and read what is complete:
+
+- it walks the top-level records from the start (cheap: chunks are not opened during the walk), which reads files with
+  or without a summary section or indexes alike;
+- with a summary that repeats the channels, chunks whose message index lists only topics that are not part of a run
+  are skipped without being decompressed; messages of unknown topics are never decoded;
+- chunks are decompressed and CRC-checked a few ahead in a worker thread (zstd and crc32 release the GIL) while the
+  main thread decodes;
+- each run-topic message is decoded by the codec of its channel's message encoding (:data:`CODECS`: ``json`` now, a
+  binary encoding later) into numpy arrays; one concatenation per column at the end, no per-sample objects kept;
+- a truncated file keeps its complete chunks, with a warning in ``Run.warnings`` saying what was dropped.
+
+Every problem raises :class:`pipeline.errors.RunFormatError` naming the file, the topic and the byte or ``t_ns``.
+"""
+
+from __future__ import annotations
+
+import functools
+import mmap
+import os
+import struct
+import uuid
+import zlib
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Iterator
+
+import numpy as np
+import orjson
+import polars as pl
+import zstandard
+from mcap.writer import CompressionType, IndexType, Writer
+
+import pipeline
+
+from .errors import RunFormatError
+from .run import REQUIRED_STREAMS, STREAM_COLUMNS, Run, make_frame
+from .runio import assemble_run, writable_streams
+
+MAGIC = b"\x89MCAP0\r\n"
+RUN_METADATA_NAME = "run"
+TOPICS: dict[str, str] = {
+    "voltmeter": "/voltmeter",
+    "au_temperature": "/au/temperature",
+    "chamber": "/chamber",
+    "fixture": "/fixture",
+}
+STREAM_OF_TOPIC: dict[str, str] = {topic: stream for stream, topic in TOPICS.items()}
+SCHEMA_NAMES: dict[str, str] = {
+    "voltmeter": "thermocal.VoltageBlock",
+    "au_temperature": "thermocal.TemperatureBlock",
+    "chamber": "thermocal.ChamberBlock",
+    "fixture": "thermocal.FixtureEvent",
+}
+SCHEMA_DIR = Path(pipeline.__file__).resolve().parent.parent / "schemas"
+
+# MCAP record opcodes (MCAP specification).
+_HEADER, _FOOTER, _SCHEMA, _CHANNEL, _MESSAGE, _CHUNK, _MESSAGE_INDEX, _CHUNK_INDEX = 1, 2, 3, 4, 5, 6, 7, 8
+_METADATA, _DATA_END = 0x0C, 0x0F
+_RECORD_NAMES = {1: "header", 2: "footer", 3: "schema", 4: "channel", 5: "message", 6: "chunk",
+                 7: "message index", 8: "chunk index", 9: "attachment", 10: "attachment index",
+                 11: "statistics", 12: "metadata", 13: "metadata index", 14: "summary offset", 15: "data end"}
+
+_RECORD_HEAD = struct.Struct("<BQ")  # opcode, body length
+_MESSAGE_HEAD = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
+_CHUNK_HEAD = struct.Struct("<QQQI")  # start time, end time, uncompressed size, uncompressed crc
+_U16 = struct.Struct("<H")
+_U32 = struct.Struct("<I")
+_U64 = struct.Struct("<Q")
+_CHANNEL_HEAD = struct.Struct("<HH")  # channel id, schema id
+
+_CHUNKS_AHEAD = 3  # chunks decompressed ahead of decoding
+_NUMPY_DTYPES = {pl.Int64: np.int64, pl.Float64: np.float64, pl.String: object}
+
+
+# --- block codecs ---------------------------------------------------------------------------------------------
+
+
+class BlockMismatch(ValueError):
+    """A message that does not match its stream's schema (the reader adds the file, topic and time)."""
+
+
+@dataclass(frozen=True)
+class BlockCodec:
+    """How the messages of one message encoding are written and read.
+
+    ``encode(stream, columns)`` returns the message bytes of one block (for ``fixture``: one event) given the
+    canonical columns as numpy arrays; ``decode(stream, data)`` returns ``{column: 1-D numpy array}`` (int64 ``t_ns``,
+    float64 values, object array of str for ``position``) and raises :class:`BlockMismatch`. ``schema_data(stream)``
+    is the schema record's content. A binary encoding (issue 8) is one more entry of :data:`CODECS`.
+    """
+
+    message_encoding: str
+    schema_encoding: str
+    schema_data: Callable[[str], bytes]
+    encode: Callable[[str, dict[str, np.ndarray]], bytes]
+    decode: Callable[[str, bytes | memoryview], dict[str, np.ndarray]]
+
+
+@functools.cache
+def _json_schema(stream: str) -> bytes:
+    path = SCHEMA_DIR / f"{SCHEMA_NAMES[stream]}.json"
+    try:
+        return path.read_bytes()
+    except OSError as exc:
+        raise RunFormatError(f"schema file cannot be read ({exc.strerror})", path=str(path)) from None
+
+
+def _json_encode(stream: str, columns: dict[str, np.ndarray]) -> bytes:
+    if stream == "fixture":
+        return orjson.dumps({"t_ns": int(columns["t_ns"][0]), "position": str(columns["position"][0])})
+    # Numpy arrays go straight to orjson (shortest round-trip repr: floats read back bit-exact; NaN -> null).
+    return orjson.dumps(columns, option=orjson.OPT_SERIALIZE_NUMPY)
+
+
+def _json_decode(stream: str, data: bytes | memoryview) -> dict[str, np.ndarray]:
+    try:
+        obj = orjson.loads(data)
+    except orjson.JSONDecodeError as exc:
+        raise BlockMismatch(f"not valid JSON ({exc})") from None
+    if type(obj) is not dict:
+        raise BlockMismatch(f"a JSON {type(obj).__name__}, not an object")
+    for name in STREAM_COLUMNS[stream]:
+        if name not in obj:
+            raise BlockMismatch(f"missing key {name!r}")
+    if stream == "fixture":
+        return _json_fixture_event(obj)
+    columns = {name: (_int_array if name == "t_ns" else _float_array)(obj[name], name)
+               for name in STREAM_COLUMNS[stream]}
+    lengths = {len(a) for a in columns.values()}
+    if len(lengths) > 1:
+        raise BlockMismatch("arrays of unequal length (" + ", ".join(f"{k}: {len(a)}" for k, a in columns.items())
+                            + ")")
+    return columns
+
+
+def _json_fixture_event(obj: dict) -> dict[str, np.ndarray]:
+    t_ns, position = obj["t_ns"], obj["position"]
+    if type(t_ns) is not int or not -(2**63) <= t_ns < 2**63:
+        raise BlockMismatch(f"'t_ns' is not an int64 integer: {t_ns!r}")
+    if type(position) is not str:
+        raise BlockMismatch(f"'position' is not a string: {position!r}")
+    return {"t_ns": np.array([t_ns], dtype=np.int64), "position": np.array([position], dtype=object)}
+
+
+def _as_1d(values: object, name: str) -> np.ndarray:
+    if type(values) is not list:
+        raise BlockMismatch(f"{name!r} is not an array")
+    try:
+        arr = np.asarray(values)  # dtype inferred: float64 / int64, object if nulls or mixed types
+    except (ValueError, OverflowError, TypeError):
+        raise BlockMismatch(f"{name!r} is not an array of numbers") from None
+    if arr.ndim != 1:
+        raise BlockMismatch(f"{name!r} is not a flat array of numbers")
+    return arr
+
+
+def _float_array(values: object, name: str) -> np.ndarray:
+    arr = _as_1d(values, name)
+    kind = arr.dtype.kind
+    if kind == "f":
+        return arr.astype(np.float64, copy=False)
+    if kind in "iu":
+        return arr.astype(np.float64)
+    if kind == "O":  # nulls (non-finite samples) among the numbers: read as NaN
+        null = arr == None  # noqa: E711  (elementwise on an object array)
+        rest = np.asarray(arr[~null].tolist())
+        if rest.dtype.kind in "fiu" and rest.ndim == 1:
+            out = np.full(len(arr), np.nan)
+            out[~null] = rest
+            return out
+    raise BlockMismatch(f"{name!r} holds values that are not numbers (e.g. {_first_non_number(values)!r})")
+
+
+def _int_array(values: object, name: str) -> np.ndarray:
+    arr = _as_1d(values, name)
+    if arr.dtype.kind == "i" or (arr.dtype.kind == "f" and arr.size == 0):
+        return arr.astype(np.int64, copy=False)
+    raise BlockMismatch(f"{name!r} holds values that are not int64 integers (e.g. {_first_non_integer(values)!r})")
+
+
+def _first_non_number(values: list) -> object:
+    return next((v for v in values if v is not None and type(v) not in (int, float)), None)
+
+
+def _first_non_integer(values: list) -> object:
+    return next((v for v in values if type(v) is not int or not -(2**63) <= v < 2**63), None)
+
+
+JSON_CODEC = BlockCodec(message_encoding="json", schema_encoding="jsonschema", schema_data=_json_schema,
+                        encode=_json_encode, decode=_json_decode)
+
+#: Codecs by channel message encoding; the reader dispatches on it.
+CODECS: dict[str, BlockCodec] = {JSON_CODEC.message_encoding: JSON_CODEC}
+
+_COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+
+
+# --- writer -----------------------------------------------------------------------------------------------------
+
+
+def write_mcap(run: Run, path: str | Path, *, block_samples: int = 1000, chunk_size: int = 1 << 20,
+               compression: str = "zstd", summary: bool = True, encoding: str = "json") -> Path:
+    """Write ``run`` as an MCAP file (log-format.md); return the path.
+
+    ``block_samples``: samples per message (at most; ``/fixture`` has one event per message). ``chunk_size``: bytes
+    of uncompressed messages per chunk. ``compression``: ``zstd``, ``lz4`` or ``none``. ``summary=False`` writes no
+    summary section or indexes (as a logger that was not closed cleanly would). ``encoding`` picks the codec.
+    The file is written beside ``path`` under a temporary name and renamed when complete.
+    """
+    path = Path(path)
+    if int(block_samples) < 1:
+        raise RunFormatError(f"block_samples must be >= 1, got {block_samples}", path=str(path))
+    codec = CODECS.get(encoding)
+    if codec is None:
+        raise RunFormatError(f"unknown message encoding {encoding!r} (known: {', '.join(CODECS)})", path=str(path))
+    if compression not in _COMPRESSIONS:
+        raise RunFormatError(f"unknown compression {compression!r} (known: {', '.join(_COMPRESSIONS)})",
+                             path=str(path))
+    streams = writable_streams(run, path=str(path))
+    options = {} if summary else dict(repeat_schemas=False, repeat_channels=False, use_statistics=False,
+                                      use_summary_offsets=False, index_types=IndexType.NONE)
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:12]}.tmp")
+    try:
+        with open(tmp, "xb") as f:
+            writer = Writer(f, chunk_size=chunk_size, compression=_COMPRESSIONS[compression], **options)
+            writer.start(profile="", library=f"thermocal {pipeline.__version__}")
+            try:
+                _write_records(writer, codec, run, streams, int(block_samples))
+            finally:
+                writer.finish()
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
+def _write_records(writer: Writer, codec: BlockCodec, run: Run, streams: dict[str, pl.DataFrame],
+                   block_samples: int) -> None:
+    channel_ids = {}
+    for stream in streams:
+        schema_id = writer.register_schema(SCHEMA_NAMES[stream], codec.schema_encoding, codec.schema_data(stream))
+        channel_ids[stream] = writer.register_channel(TOPICS[stream], codec.message_encoding, schema_id)
+    # The metadata goes out before the first chunk, so a truncated file still has it.
+    writer.add_metadata(RUN_METADATA_NAME, run.meta.to_strings())
+
+    arrays = {stream: {c: df[c].to_numpy() for c in df.columns} for stream, df in streams.items()}
+    for stream, start, stop in _blocks_in_time_order(streams, block_samples):
+        block = {c: a[start:stop] for c, a in arrays[stream].items()}
+        log_time_ns = int(block["t_ns"][0])
+        sequence = start // (1 if stream == "fixture" else block_samples)
+        writer.add_message(channel_ids[stream], log_time_ns, codec.encode(stream, block), log_time_ns,
+                           sequence & 0xFFFFFFFF)
+
+
+def _blocks_in_time_order(streams: dict[str, pl.DataFrame], block_samples: int) -> list[tuple[str, int, int]]:
+    """(stream, start row, stop row) of every message, ordered by first-sample time (ties: stream order)."""
+    names = list(streams)
+    t0, rank, starts, stops = [], [], [], []
+    for k, (stream, df) in enumerate(streams.items()):
+        size = 1 if stream == "fixture" else block_samples
+        s = np.arange(0, df.height, size)
+        t0.append(df["t_ns"].to_numpy()[s])
+        rank.append(np.full(len(s), k))
+        starts.append(s)
+        stops.append(np.minimum(s + size, df.height))
+    t0_a, rank_a, starts_a, stops_a = (np.concatenate(x) for x in (t0, rank, starts, stops))
+    order = np.lexsort((starts_a, rank_a, t0_a))
+    return [(names[rank_a[i]], int(starts_a[i]), int(stops_a[i])) for i in order]
+
+
+# --- reader -----------------------------------------------------------------------------------------------------
+
+
+def read_mcap(path: str | Path) -> Run:
+    """Read a chamber run from an MCAP file (with or without summary and indexes); see the module doc."""
+    p = Path(path)
+    name = str(p)
+    if p.is_dir():
+        raise RunFormatError("is a directory, not an MCAP file", path=name)
+    try:
+        f = open(p, "rb")
+    except OSError as exc:
+        raise RunFormatError(f"cannot open the file ({exc.strerror})", path=name) from None
+    with f:
+        if os.fstat(f.fileno()).st_size == 0:
+            raise RunFormatError("empty file (0 bytes), not an MCAP run", path=name)
+        with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as buf:
+            return _McapRunReader(name, buf).read()
+
+
+class _Malformed(ValueError):
+    pass
+
+
+@dataclass
+class _Channel:
+    topic: str
+    stream: str | None  # the run stream it feeds; None: not a run topic, its messages are skipped
+    decode: Callable[[str, bytes | memoryview], dict[str, np.ndarray]] | None = None
+
+
+class _McapRunReader:
+    """One pass over one file: top-level walk (:meth:`_scan`), then the data records in file order."""
+
+    def __init__(self, path: str, buf: mmap.mmap):
+        self.path = path
+        self.buf = buf
+        self.size = len(buf)
+        self.schemas: dict[int, str] = {}  # schema id -> name
+        self.channels: dict[int, _Channel] = {}
+        self.summary_has_channels = False
+        self.chunk_channels: dict[int, set[int]] = {}  # chunk record offset -> channel ids, from the indexes
+        self.data_records: list[tuple[int, int, int, int]] = []  # (opcode, offset, body start, body end)
+        self.meta: dict[str, str] | None = None
+        self.columns: dict[str, dict[str, list[np.ndarray]]] = {}  # stream -> column -> decoded parts
+        self.skipped: set[str] = set()  # topics whose messages were not decoded
+        self.undefined_channel_messages = 0
+        self.truncation = ""
+        self.warnings: list[str] = []
+        self.zstd = zstandard.ZstdDecompressor()
+
+    def fail(self, message: str, *, stream: str | None = None, where: str | None = None) -> RunFormatError:
+        return RunFormatError(message, path=self.path, stream=stream, where=where)
+
+    def read(self) -> Run:
+        self._check_magic()
+        self._scan()
+        chunks = [(pos, start, end) for op, pos, start, end in self.data_records
+                  if op == _CHUNK and not self._skippable(pos)]
+        wanted = {pos for pos, _, _ in chunks}
+        opened = self._opened_chunks(chunks)
+        try:
+            for op, pos, start, end in self.data_records:
+                if op == _CHUNK:
+                    if pos in wanted:
+                        self._chunk_records(*next(opened))
+                    continue
+                try:
+                    self._message(self.buf, start, end, f"byte {pos}")
+                except (struct.error, _Malformed):
+                    raise self.fail("malformed message record", where=f"byte {pos}") from None
+        finally:
+            opened.close()  # stops the worker before the file is unmapped
+        return self._assemble(len(chunks))
+
+    def _check_magic(self) -> None:
+        head = self.buf[:64]
+        if head.startswith(b"version https://git-lfs"):
+            raise self.fail("not an MCAP file but a Git LFS pointer to one (fetch it with `git lfs pull`)")
+        if not head.startswith(MAGIC):
+            if MAGIC.startswith(head):
+                raise self.fail(f"file is truncated at byte {self.size}: it ends inside the MCAP magic")
+            raise self.fail("not an MCAP file (it does not start with the MCAP magic bytes)")
+
+    # -- top-level walk ------------------------------------------------------------------------------------------
+
+    def _scan(self) -> None:
+        buf, size = self.buf, self.size
+        pos = len(MAGIC)
+        in_summary = False
+        last_chunk = -1
+        while True:
+            if pos + 9 > size:
+                self._truncated(pos, None, 0, in_summary)
+                return
+            op, length = _RECORD_HEAD.unpack_from(buf, pos)
+            start, end = pos + 9, pos + 9 + length
+            if end > size:
+                self._truncated(pos, op, length, in_summary)
+                return
+            if op == _FOOTER:
+                if buf[end:end + len(MAGIC)] != MAGIC:
+                    what = "is truncated in" if size - end < len(MAGIC) else "does not end with"
+                    self.warnings.append(f"the file {what} the closing MCAP magic (byte {end}); all data was read")
+                return
+            try:
+                if op in (_CHUNK, _MESSAGE) and not in_summary:
+                    self.data_records.append((op, pos, start, end))
+                    if op == _CHUNK:
+                        last_chunk = pos
+                elif op == _SCHEMA:
+                    self._schema(buf, start, end)
+                elif op == _CHANNEL:
+                    self._channel(buf, start, end, f"byte {pos}")
+                    self.summary_has_channels |= in_summary
+                elif op == _METADATA:
+                    self._metadata(buf, start, end)
+                elif op == _MESSAGE_INDEX and last_chunk >= 0 and not in_summary:
+                    self.chunk_channels.setdefault(last_chunk, set()).add(_U16.unpack_from(buf, start)[0])
+                elif op == _CHUNK_INDEX:
+                    self._chunk_index(buf, start, end)
+                elif op == _DATA_END:
+                    in_summary = True
+            except (struct.error, UnicodeDecodeError, _Malformed) as exc:
+                detail = f": {exc}" if isinstance(exc, _Malformed) else ""
+                raise self.fail(f"malformed {_RECORD_NAMES.get(op, f'opcode {op:#x}')} record{detail}",
+                                where=f"byte {pos}") from None
+            pos = end
+
+    def _truncated(self, pos: int, op: int | None, length: int, in_summary: bool) -> None:
+        if op is None:
+            what = ("the file ends without a footer" if pos == self.size
+                    else f"the file ends inside the header of the record at byte {pos}")
+        else:
+            kind = _RECORD_NAMES.get(op, f"opcode {op:#x}")
+            what = f"the {kind} record at byte {pos} needs {length} bytes, only {self.size - pos - 9} remain"
+            if op == _CHUNK and pos + 9 + 16 <= self.size:
+                t_start, t_end = struct.unpack_from("<QQ", self.buf, pos + 9)
+                what += f" (its messages: t_ns {t_start}..{t_end})"
+        if in_summary:
+            self.warnings.append(f"file is truncated at byte {self.size} in its summary section ({what}); "
+                                 "all data was read")
+        else:
+            self.truncation = f"file is truncated at byte {self.size}: {what}"
+
+    # -- records ---------------------------------------------------------------------------------------------------
+
+    def _schema(self, buf, start: int, end: int) -> None:
+        (schema_id,) = _U16.unpack_from(buf, start)
+        name, _ = _string(buf, start + 2, end)
+        self.schemas[schema_id] = name
+
+    def _channel(self, buf, start: int, end: int, where: str) -> None:
+        channel_id, schema_id = _CHANNEL_HEAD.unpack_from(buf, start)
+        topic, p = _string(buf, start + 4, end)
+        encoding, _ = _string(buf, p, end)
+        stream = STREAM_OF_TOPIC.get(topic)
+        if stream is None:
+            self.channels[channel_id] = _Channel(topic, None)
+            return
+        codec = CODECS.get(encoding)
+        if codec is None:
+            raise self.fail(f"unsupported message encoding {encoding!r} (supported: {', '.join(CODECS)})",
+                            stream=topic, where=where)
+        schema = self.schemas.get(schema_id)
+        if schema is not None and schema != SCHEMA_NAMES[stream]:
+            raise self.fail(f"channel has schema {schema!r}, expected {SCHEMA_NAMES[stream]!r}", stream=topic,
+                            where=where)
+        self.channels[channel_id] = _Channel(topic, stream, codec.decode)
+        self.columns.setdefault(stream, {c: [] for c in STREAM_COLUMNS[stream]})
+
+    def _metadata(self, buf, start: int, end: int) -> None:
+        name, p = _string(buf, start, end)
+        if name != RUN_METADATA_NAME:
+            return
+        values = _string_map(buf, p, end)
+        if self.meta is None:
+            self.meta = values
+        elif values != self.meta:
+            self.warnings.append("more than one 'run' metadata record; the first one was used")
+
+    def _chunk_index(self, buf, start: int, end: int) -> None:
+        (chunk_offset,) = _U64.unpack_from(buf, start + 16)
+        (map_length,) = _U32.unpack_from(buf, start + 32)
+        p = start + 36
+        if p + map_length > end:
+            raise _Malformed("message index offsets run past the record")
+        ids = {_U16.unpack_from(buf, q)[0] for q in range(p, p + map_length, 10)}
+        if ids:
+            self.chunk_channels[chunk_offset] = ids
+
+    def _skippable(self, pos: int) -> bool:
+        """True for a chunk the summary and indexes show to hold only topics that are not part of a run."""
+        ids = self.chunk_channels.get(pos)
+        if not (self.summary_has_channels and ids):
+            return False
+        if all(i in self.channels and self.channels[i].stream is None for i in ids):
+            self.skipped.update(self.channels[i].topic for i in ids)
+            return True
+        return False
+
+    def _opened_chunks(self, chunks: list[tuple[int, int, int]]) -> Iterator[tuple[bytes, str]]:
+        """Decompressed, CRC-checked chunks in order; the next few are opened in a worker thread meanwhile
+        (zstd and crc32 release the GIL, so this overlaps with JSON decoding)."""
+        with ThreadPoolExecutor(max_workers=1) as pool:
+            ahead: deque = deque(pool.submit(self._open_chunk, *c) for c in chunks[:_CHUNKS_AHEAD])
+            for k in range(len(chunks)):
+                if k + _CHUNKS_AHEAD < len(chunks):
+                    ahead.append(pool.submit(self._open_chunk, *chunks[k + _CHUNKS_AHEAD]))
+                yield ahead.popleft().result()
+
+    def _open_chunk(self, pos: int, start: int, end: int) -> tuple[bytes, str]:
+        """The uncompressed records of the chunk record at ``pos`` and a description of where it is."""
+        buf = self.buf
+        try:
+            t_start, t_end, raw_size, crc = _CHUNK_HEAD.unpack_from(buf, start)
+            compression, p = _string(buf, start + 28, end)
+            (data_length,) = _U64.unpack_from(buf, p)
+            p += 8
+            if p + data_length > end:
+                raise _Malformed("chunk data runs past the record")
+        except (struct.error, UnicodeDecodeError, _Malformed):
+            raise self.fail("malformed chunk record", where=f"byte {pos}") from None
+        where = f"chunk at byte {pos} (t_ns {t_start}..{t_end})"
+        raw = self._decompress(compression, buf[p:p + data_length], raw_size, where)
+        if crc and zlib.crc32(raw) != crc:
+            raise self.fail(f"corrupt chunk: CRC mismatch (stored {crc:#010x}, computed {zlib.crc32(raw):#010x})",
+                            where=where)
+        return raw, where
+
+    def _chunk_records(self, raw: bytes, where: str) -> None:
+        """Decode the run messages among the records of one uncompressed chunk."""
+        view = memoryview(raw)
+        n = len(raw)
+        q = 0
+        try:
+            while q < n:
+                op, length = _RECORD_HEAD.unpack_from(raw, q)
+                body, q_next = q + 9, q + 9 + length
+                if q_next > n:
+                    raise _Malformed(f"record at byte {q} of the chunk runs past its end")
+                if op == _MESSAGE:
+                    self._message(view, body, q_next, where)
+                elif op == _CHANNEL:
+                    self._channel(raw, body, q_next, where)
+                elif op == _SCHEMA:
+                    self._schema(raw, body, q_next)
+                q = q_next
+        except (struct.error, UnicodeDecodeError, _Malformed) as exc:
+            detail = f": {exc}" if isinstance(exc, _Malformed) else ""
+            raise self.fail(f"corrupt chunk: malformed records{detail}", where=where) from None
+
+    def _decompress(self, compression: str, data: bytes, raw_size: int, where: str) -> bytes:
+        try:
+            if compression == "zstd":
+                raw = self.zstd.decompress(data, max_output_size=raw_size)
+            elif compression == "lz4":
+                try:
+                    import lz4.frame
+                except ImportError:
+                    raise self.fail("chunk is lz4-compressed and the lz4 package is not installed",
+                                    where=where) from None
+                raw = lz4.frame.decompress(data)
+            elif compression == "":
+                raw = data
+            else:
+                raise self.fail(f"unsupported chunk compression {compression!r}", where=where)
+        except RunFormatError:
+            raise
+        except Exception as exc:  # zstd / lz4 errors on corrupt data
+            raise self.fail(f"corrupt chunk: cannot decompress {compression} data ({exc})", where=where) from None
+        if len(raw) != raw_size:
+            raise self.fail(f"corrupt chunk: {len(raw)} bytes after decompression, the header says {raw_size}",
+                            where=where)
+        return raw
+
+    def _message(self, buf, start: int, end: int, where: str) -> None:
+        if end - start < _MESSAGE_HEAD.size:
+            raise _Malformed("message record shorter than its header")
+        channel_id, _, log_time, _ = _MESSAGE_HEAD.unpack_from(buf, start)
+        channel = self.channels.get(channel_id)
+        if channel is None:
+            self.undefined_channel_messages += 1
+            return
+        if channel.stream is None:
+            self.skipped.add(channel.topic)
+            return
+        parts = self.columns[channel.stream]
+        try:
+            decoded = channel.decode(channel.stream, buf[start + _MESSAGE_HEAD.size:end])
+        except BlockMismatch as exc:
+            raise self.fail(f"message does not match schema {SCHEMA_NAMES[channel.stream]}: {exc}",
+                            stream=channel.topic,
+                            where=f"t_ns={log_time} (message {len(parts['t_ns'])} of the topic, {where})") from None
+        for name, values in decoded.items():
+            parts[name].append(values)
+
+    # -- result ----------------------------------------------------------------------------------------------------
+
+    def _assemble(self, chunks_read: int) -> Run:
+        frames = {stream: make_frame(stream, _concatenate(stream, parts)) for stream, parts in self.columns.items()}
+        if self.truncation:
+            missing = ["'run' metadata"] if self.meta is None else []
+            missing += [f"{TOPICS[s]} samples" for s in REQUIRED_STREAMS if s not in frames or not frames[s].height]
+            if missing:
+                raise self.fail(f"{self.truncation}; no {' and no '.join(missing)} before that point")
+            self.warnings.append(f"{self.truncation}; dropped that record and anything after it; kept "
+                                 f"{chunks_read} complete chunk(s), voltmeter samples up to "
+                                 f"t_ns={frames['voltmeter']['t_ns'].max()}")
+        if self.meta is None and not frames:
+            topics = sorted({c.topic for c in self.channels.values()})
+            found = f"topics in the file: {', '.join(topics)}" if topics else "the file has no channels"
+            raise self.fail(f"no run topics or run metadata found: not a thermocal chamber run "
+                            f"(expected metadata 'run' and topics {', '.join(TOPICS.values())}; {found})")
+        if self.skipped:
+            self.warnings.append(f"ignored topics that are not part of a run: {', '.join(sorted(self.skipped))}")
+        if self.undefined_channel_messages:
+            self.warnings.append(f"ignored {self.undefined_channel_messages} messages on undefined channels")
+        return assemble_run(self.meta, frames, path=self.path, warnings=self.warnings)
+
+
+def _concatenate(stream: str, parts: dict[str, list[np.ndarray]]) -> dict[str, np.ndarray]:
+    spec = STREAM_COLUMNS[stream]
+    return {name: np.concatenate(arrays) if arrays else np.empty(0, dtype=_NUMPY_DTYPES[spec[name]])
+            for name, arrays in parts.items()}
+
+
+def _string(buf, p: int, end: int) -> tuple[str, int]:
+    """A length-prefixed UTF-8 string at ``p``; returns it and the offset after it."""
+    (n,) = _U32.unpack_from(buf, p)
+    p += 4
+    if p + n > end:
+        raise _Malformed("string runs past the record")
+    return bytes(buf[p:p + n]).decode("utf-8"), p + n
+
+
+def _string_map(buf, p: int, end: int) -> dict[str, str]:
+    """A length-prefixed map<string, string> at ``p``."""
+    (n,) = _U32.unpack_from(buf, p)
+    p += 4
+    stop = p + n
+    if stop > end:
+        raise _Malformed("map runs past the record")
+    out = {}
+    while p < stop:
+        key, p = _string(buf, p, stop)
+        value, p = _string(buf, p, stop)
+        out[key] = value
+    return out
