@@ -143,6 +143,21 @@ def _calibrate_text(r: dict) -> str:
     return "\n".join(lines)
 
 
+# --------------------------------------------------------------------------------------------------------- diagnose
+@app.command()
+def diagnose(run: Path = typer.Argument(..., help="an .mcap file or a Parquet run directory"),
+             passport: Optional[Path] = typer.Option(None, "--passport", help="passport JSON (default: fit the run)"),
+             png: Optional[Path] = typer.Option(None, "--png", help="residual figure (default: beside the run)"),
+             as_json: bool = typer.Option(False, "--json")):
+    """Compare the recording with the simulator driven by the passport: locate, name, model the mismatch."""
+    from .diagnose_cmd import diagnose_command
+
+    if not run.exists():
+        raise ThermocalError("no such file or directory", path=str(run))
+    result, text = diagnose_command(run, passport, png)
+    _emit(result, as_json, text)
+
+
 # --------------------------------------------------------------------------------------------------------- passport
 @passport_app.command("log")
 def passport_log(unit: str, registry: Path = typer.Option(..., "--registry"),

@@ -120,8 +120,9 @@ def _fit_plateaus(groups, shift_v: dict[int, np.ndarray], method: str, skipped: 
                                f"fewer than six test positions (missing {', '.join(missing)})")
             continue
         u = np.array([np.asarray(o.u_v) - shift_v.get(id(o), 0.0) for o in rows])
-        w = np.array([max(o.count, 1) for o in rows], dtype=float)
-        cf = fit_constants(names, u, method=method, weights=w)
+        # one weight per segment: a position carried through a ramp and soak is a long segment taken while the
+        # unit settled; it should not outweigh the program's own hold of that position
+        cf = fit_constants(names, u, method=method)
         fits.append(PlateauConstants(
             run_id=run_id, plateau=p, temp_c=float(np.mean([o.temp_c for o in rows])), K=cf.K, U0=cf.U0,
             positions=tuple(dict.fromkeys(names)), method=cf.method,

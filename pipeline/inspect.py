@@ -66,9 +66,8 @@ def _non_finite(df) -> int:
 def _segmentation_summary(run: Run) -> dict[str, Any]:
     """``plateaus`` and ``static_positions`` found by :func:`pipeline.segment.segment_run`.
 
-    Each plateau and static segment is its dataclass as a JSON-ready dict. Works before the segmenter exists (reports
-    it as not available); a segmenter error is reported, not raised, so that ``inspect`` still shows the streams.
-    TODO(lead): choose the fields to show.
+    Each plateau and static segment is its dataclass as a JSON-ready dict. A segmenter error is reported, not
+    raised, so that ``inspect`` still shows the streams.
     """
     try:
         from .segment import segment_run
@@ -129,6 +128,14 @@ def format_summary(summary: dict[str, Any]) -> str:
     plateaus, positions = summary.get("plateaus") or [], summary.get("static_positions") or []
     lines.append(f"segmentation: {summary.get('segmentation', '-')}; {len(plateaus)} plateaus, "
                  f"{len(positions)} static positions")
+    t0 = min((p["t_start_ns"] for p in plateaus), default=0)
+    for p in plateaus:
+        names = [s["position"] or "?" for s in positions if s["plateau"] == p["index"]]
+        lines.append(f"  plateau {p['index']}: {p['temp_c']:+7.2f} C  from {(p['t_start_ns'] - t0) / 3.6e12:5.2f} h, "
+                     f"{(p['t_end_ns'] - p['t_start_ns']) / 6e10:5.1f} min  {' '.join(names)}")
+    conflicts = [s for s in positions if s.get("label_conflict")]
+    if conflicts:
+        lines.append(f"  {len(conflicts)} segments whose fixture label disagrees with gravity (see warnings)")
     for w in [*summary.get("warnings", []), *summary.get("segmentation_warnings", [])]:
         lines.append(f"warning: {w}")
     return "\n".join(lines)

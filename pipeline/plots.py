@@ -44,7 +44,8 @@ def plot_verification(rows, path: str | Path, *, title: str = "") -> Path:
         ax.axhline(0, color="k", lw=0.5)
         if c == 0:
             ax.set_ylabel("dg = |a| - 1  [micro-g]")
-    axes[0, 0].legend(fontsize=7)
+    if rows:
+        axes[0, 0].legend(fontsize=7)
     fig.suptitle(title or "Gravity-module error at the verification positions")
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)

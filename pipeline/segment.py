@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .positions import ALL_POSITIONS, MOVING, TEST_POSITIONS, gravity_vector_g, nearest_position
+from .positions import ALL_POSITIONS, TEST_POSITIONS, gravity_vector_g, nearest_position
 from .run import Run
 
 _NS = 1_000_000_000
@@ -33,9 +33,11 @@ _BLOCKS_PER_WINDOW = 10
 _NOISE_MULTIPLE = 4.0
 _NOISE_QUANTILE = 0.05
 #: absolute floor of the static threshold, relative to the signal's spread (noise-free runs)
-_NOISE_FLOOR_REL = 1e-6
+_NOISE_FLOOR_REL = 1e-5
 #: the plateau slope is a local linear regression over this fraction of plateau_min_s
 _SLOPE_WINDOW_FRACTION = 0.25
+#: smallest tolerance (C) of the plateau end refinement (noise-free thermosensor)
+_PLATEAU_TOL_FLOOR_C = 1e-3
 #: at most this fraction of a segment is trimmed at its start, and this fraction at its end
 _MAX_START_TRIM = 0.25
 _MAX_END_TRIM = 0.05
@@ -48,7 +50,7 @@ class SegmentSettings:
     """Thresholds of plateau and static-position detection."""
 
     plateau_rate_c_per_min: float = 0.02   # |dT/dt| below this (smoothed) counts as stable
-    plateau_min_s: float = 600.0           # a plateau lasts at least this long (unless the whole run is stable)
+    plateau_min_s: float = 300.0           # a plateau lasts at least this long (unless the whole run is stable)
     plateau_band_c: float = 0.5            # ... and stays within this band around its median
     static_window_s: float = 2.0           # rolling window for voltage statistics
     static_min_s: float = 3.0              # shortest static segment kept
@@ -136,7 +138,8 @@ def find_plateaus(t_ns: np.ndarray, temp_c: np.ndarray,
 
     The slope is a local linear regression over ``plateau_min_s / 4`` centred on each sample; stable samples
     (|slope| below ``plateau_rate_c_per_min``) form runs; a run lasting ``plateau_min_s`` (or the whole record) is
-    kept, restricted to the samples within ``plateau_band_c`` of its median, and split where they are not.
+    kept, restricted to the samples within ``plateau_band_c`` of its median, and split where they are not; its ends
+    are then moved out to where the temperature leaves its value by more than the sensor noise.
     """
     t_ns = np.asarray(t_ns, dtype=np.int64)
     temp_c = np.asarray(temp_c, dtype=np.float64)
@@ -146,22 +149,44 @@ def find_plateaus(t_ns: np.ndarray, temp_c: np.ndarray,
         return []
     t_s = (t_ns - t_ns[0]) / _NS
     record_s = float(t_s[-1])
-    slope = _local_slope_c_per_s(t_s, temp_c, settings.plateau_min_s * _SLOPE_WINDOW_FRACTION)
-    stable = np.abs(slope) * 60.0 < settings.plateau_rate_c_per_min
+    window_s = settings.plateau_min_s * _SLOPE_WINDOW_FRACTION
+    stable = np.abs(_local_slope_c_per_s(t_s, temp_c, window_s)) * 60.0 < settings.plateau_rate_c_per_min
     min_s = min(settings.plateau_min_s, record_s)
-    out: list[Plateau] = []
+    found: list[tuple[int, int]] = []
     for i0, i1 in _runs(stable):
         if t_s[i1 - 1] - t_s[i0] < min_s:
             continue
         seg = temp_c[i0:i1]
         in_band = np.abs(seg - np.median(seg)) <= settings.plateau_band_c
-        for j0, j1 in _runs(in_band):
-            a, b = i0 + j0, i0 + j1
-            if t_s[b - 1] - t_s[a] < min_s:
-                continue
-            out.append(Plateau(len(out), int(t_ns[a]), int(t_ns[b - 1]), float(np.mean(temp_c[a:b])),
-                               float(np.std(temp_c[a:b]))))
+        found += [(i0 + j0, i0 + j1) for j0, j1 in _runs(in_band) if t_s[i0 + j1 - 1] - t_s[i0 + j0] >= min_s]
+    out: list[Plateau] = []
+    for k, (a, b) in enumerate(found):
+        lo = found[k - 1][1] if k > 0 else 0
+        hi = found[k + 1][0] if k + 1 < len(found) else temp_c.size
+        a, b = _extend_plateau(t_s, temp_c, a, b, lo, hi, window_s)
+        out.append(Plateau(k, int(t_ns[a]), int(t_ns[b - 1]), float(np.mean(temp_c[a:b])),
+                           float(np.std(temp_c[a:b]))))
     return out
+
+
+def _extend_plateau(t_s: np.ndarray, temp_c: np.ndarray, a: int, b: int, lo: int, hi: int, window_s: float
+                    ) -> tuple[int, int]:
+    """Move a plateau's ends [a, b) outwards (not past lo / hi) while the temperature stays within the noise of
+    the plateau's value at that end.
+
+    The centred slope window sees a ramp before it begins, so stable runs end up to half a window early (and start
+    late); the true ends are where the temperature leaves the plateau's value by more than its noise (4 sigma of
+    the sample-to-sample scatter, at least 1 mC).
+    """
+    noise = float(np.std(np.diff(temp_c[a:b]))) / np.sqrt(2.0) if b - a > 2 else 0.0
+    tol = max(4.0 * noise, _PLATEAU_TOL_FLOOR_C)
+    head = temp_c[a:np.searchsorted(t_s, t_s[a] + window_s / 2, side="right")].mean()
+    tail = temp_c[np.searchsorted(t_s, t_s[b - 1] - window_s / 2, side="left"):b].mean()
+    after = np.abs(temp_c[b:hi] - tail) > tol
+    b = b + (int(np.argmax(after)) if after.any() else after.size)
+    before = np.abs(temp_c[lo:a][::-1] - head) > tol
+    a = a - (int(np.argmax(before)) if before.any() else before.size)
+    return a, b
 
 
 def _local_slope_c_per_s(t_s: np.ndarray, y: np.ndarray, window_s: float) -> np.ndarray:
@@ -198,19 +223,27 @@ def rolling_std_v(t_ns: np.ndarray, u_v: np.ndarray, window_s: float) -> tuple[n
     t_ns = np.asarray(t_ns, dtype=np.int64)
     u_v = np.asarray(u_v, dtype=np.float64)
     block_ns = max(int(window_s * _NS / _BLOCKS_PER_WINDOW), 1)
-    block = ((t_ns - t_ns[0]) // block_ns).astype(np.int64)
+    block = (t_ns - t_ns[0]) // block_ns                 # non-decreasing: t_ns is sorted
     m = int(block[-1]) + 1
-    finite = np.all(np.isfinite(u_v), axis=1)
-    bf = block[finite]
-    n_b = np.bincount(bf, minlength=m).astype(np.float64)
+    starts = np.concatenate(([0], np.flatnonzero(np.diff(block)) + 1))   # first sample of each non-empty block
+    lengths = np.diff(np.append(starts, block.size))
+    ids = block[starts]
+    finite = finite_rows(u_v)
+    all_finite = bool(finite.all())
+    n_b = np.zeros(m)
+    n_b[ids] = lengths if all_finite else np.add.reduceat(finite.astype(np.int64), starts)
     mean_b = np.zeros((m, 3))
     m2_b = np.zeros((m, 3))
     with np.errstate(invalid="ignore", divide="ignore"):
         for c in range(3):
-            uc = u_v[finite, c]
-            mc = np.bincount(bf, weights=uc, minlength=m) / n_b
-            mean_b[:, c] = np.where(n_b > 0, mc, 0.0)
-            m2_b[:, c] = np.bincount(bf, weights=(uc - mean_b[bf, c]) ** 2, minlength=m)
+            x = u_v[:, c] if all_finite else np.where(finite, u_v[:, c], 0.0)
+            mean = np.add.reduceat(x, starts) / n_b[ids]
+            mean = np.where(n_b[ids] > 0, mean, 0.0)
+            dev = x - np.repeat(mean, lengths)
+            if not all_finite:
+                dev[~finite] = 0.0
+            mean_b[ids, c] = mean
+            m2_b[ids, c] = np.add.reduceat(dev * dev, starts)
     # rolling sums over K blocks centred on each block (zero-padded at the ends); short sums, no cancellation
     k = _BLOCKS_PER_WINDOW
     pad = ((k // 2, k - 1 - k // 2),)
@@ -232,14 +265,14 @@ def rolling_std_v(t_ns: np.ndarray, u_v: np.ndarray, window_s: float) -> tuple[n
 def static_threshold_v(std_v: np.ndarray, u_v: np.ndarray | None = None) -> np.ndarray:
     """Per-channel static threshold (3,): a multiple of a low quantile of the rolling std, with a tiny floor
     relative to the signal's spread (so that a noise-free run still has a threshold above rounding)."""
-    valid = np.all(np.isfinite(std_v), axis=1)
+    valid = finite_rows(std_v)
     if not valid.any():
         return np.full(3, np.inf)
     floor_q = np.quantile(std_v[valid], _NOISE_QUANTILE, axis=0)
     scale = 1.0
     if u_v is not None:
         sub = u_v[:: max(1, u_v.shape[0] // 100_000)]
-        sub = sub[np.all(np.isfinite(sub), axis=1)]
+        sub = sub[finite_rows(sub)]
         if sub.size:
             q = np.quantile(sub, [0.01, 0.99], axis=0)
             scale = max(float(np.max(q[1] - q[0])) / 2, 1e-300)
@@ -261,7 +294,7 @@ def find_static(t_ns: np.ndarray, u_v: np.ndarray,
     block, std, _ = rolling_std_v(t_ns, u_v, settings.static_window_s)
     thr = static_threshold_v(std, u_v)
     quiet_block = np.all(std < thr, axis=1)          # NaN compares False
-    finite = np.all(np.isfinite(u_v), axis=1)
+    finite = finite_rows(u_v)
     static = quiet_block[block] & finite
     runs = _runs(static)
     if runs.size == 0:
@@ -280,6 +313,11 @@ def find_static(t_ns: np.ndarray, u_v: np.ndarray,
     return [(int(a), int(b)) for a, b in runs]
 
 
+def finite_rows(x: np.ndarray) -> np.ndarray:
+    """True for the rows of an (n, 3) array whose three values are finite (fast for either memory order)."""
+    return np.isfinite(x[:, 0]) & np.isfinite(x[:, 1]) & np.isfinite(x[:, 2])
+
+
 def _runs(mask: np.ndarray) -> np.ndarray:
     """Runs of True in a boolean array as an (k, 2) array of [start, end) indices."""
     d = np.diff(np.concatenate(([0], mask.astype(np.int8), [0])))
@@ -294,16 +332,26 @@ def segment_run(run: Run, settings: SegmentSettings = SegmentSettings()) -> Segm
     """Plateaus, static segments (cut at plateau boundaries, trimmed, averaged, named) and warnings of ``run``."""
     warnings: list[str] = []
     t_ns = run.t_ns()
-    u_v = run.u_v()
+    u_v = np.empty((t_ns.size, 3), order="F")       # column-contiguous: the per-channel passes read columns
+    for c, name in enumerate(("ux", "uy", "uz")):
+        u_v[:, c] = run.voltmeter[name].to_numpy()
     tt_ns = run.au_temperature["t_ns"].to_numpy()
     temp = run.au_temperature["temp_c"].to_numpy()
 
+    if np.any(t_ns[1:] < t_ns[:-1]):
+        order = np.argsort(t_ns, kind="stable")
+        t_ns, u_v = t_ns[order], u_v[order]
+        warnings.append("voltmeter: samples not in time order; sorted")
+    if np.any(tt_ns[1:] < tt_ns[:-1]):
+        order = np.argsort(tt_ns, kind="stable")
+        tt_ns, temp = tt_ns[order], temp[order]
+        warnings.append("au_temperature: samples not in time order; sorted")
     bad_t = ~np.isfinite(temp)
     if bad_t.any():
         warnings.append(f"au_temperature: {int(bad_t.sum())} non-finite samples ignored, first at "
                         f"t_ns={int(tt_ns[bad_t][0])}")
         tt_ns, temp = tt_ns[~bad_t], temp[~bad_t]
-    bad_u = ~np.all(np.isfinite(u_v), axis=1)
+    bad_u = ~finite_rows(u_v)
     if bad_u.any():
         warnings.append(f"voltmeter: {int(bad_u.sum())} non-finite samples excluded (not static), first at "
                         f"t_ns={int(t_ns[bad_u][0])}")
@@ -318,9 +366,10 @@ def segment_run(run: Run, settings: SegmentSettings = SegmentSettings()) -> Segm
 
     rows = []
     for (i0, i1, p), fix in zip(pieces, fixture):
-        uu = u_v[i0:i1]
-        fin = np.all(np.isfinite(uu), axis=1)
-        uu, tt = uu[fin], t_ns[i0:i1][fin]
+        uu, tt = u_v[i0:i1], t_ns[i0:i1]
+        fin = finite_rows(uu)
+        if not fin.all():
+            uu, tt = uu[fin], tt[fin]
         tc = np.interp(tt.astype(np.float64), tt_ns.astype(np.float64), temp) if temp.size else np.full(tt.size,
                                                                                                          np.nan)
         ddof = 1 if uu.shape[0] > 1 else 0
@@ -361,15 +410,16 @@ def _cut_at_plateaus(t_ns: np.ndarray, stretches: list[tuple[int, int]], plateau
         bounds = np.concatenate(([i0], inner, [i1]))
         for a, b in zip(bounds[:-1], bounds[1:]):
             a, b = int(a), int(b)
-            dur_ns = t_ns[b - 1] - t_ns[a]
-            if b <= a or dur_ns < min_ns:
+            if b <= a or t_ns[b - 1] - t_ns[a] < min_ns:
                 continue
+            dur_ns = t_ns[b - 1] - t_ns[a]
             mid = t_ns[(a + b) // 2]
             on = np.flatnonzero((starts <= mid) & (mid <= ends))
-            trim0 = min(settings.settle_trim_s * _NS, _MAX_START_TRIM * dur_ns)
-            trim1 = min(settings.settle_trim_s / 10 * _NS, _MAX_END_TRIM * dur_ns)
-            a2 = int(np.searchsorted(t_ns, t_ns[a] + trim0, side="left"))
-            b2 = int(np.searchsorted(t_ns, t_ns[b - 1] - trim1, side="right"))
+            trim0 = int(min(settings.settle_trim_s * _NS, _MAX_START_TRIM * dur_ns))
+            trim1 = int(min(settings.settle_trim_s / 10 * _NS, _MAX_END_TRIM * dur_ns))
+            # (search keys of the array's dtype: a float key would convert the whole array)
+            a2 = a + int(np.searchsorted(t_ns[a:b], t_ns[a] + np.int64(trim0), side="left"))
+            b2 = a + int(np.searchsorted(t_ns[a:b], t_ns[b - 1] - np.int64(trim1), side="right"))
             if b2 > a2:
                 out.append((a2, b2, int(on[0]) if on.size else None))
     return out
@@ -511,4 +561,4 @@ def _refine_scale(mean_v: np.ndarray, gravity_names: list[str | None], fix: list
 
 
 __all__ = ["SegmentSettings", "Plateau", "StaticSegment", "Segmentation", "find_plateaus", "find_static",
-           "rolling_std_v", "static_threshold_v", "segment_run"]
+           "rolling_std_v", "static_threshold_v", "finite_rows", "segment_run"]
