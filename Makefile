@@ -25,7 +25,9 @@ demo: $(STAMP)
 	$(BIN)/thermocal inspect sample_data/standard_short.mcap
 	$(BIN)/thermocal inspect sample_data/standard_short_parquet
 	$(BIN)/thermocal calibrate sample_data/standard_short.mcap --registry registry
+	$(BIN)/thermocal calibrate sample_data/standard_short_parquet --registry registry --thermal-model poly2
 	$(BIN)/thermocal passport log AU-0001 --registry registry
+	$(BIN)/thermocal passport verify --registry registry
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q

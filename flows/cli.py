@@ -158,6 +158,90 @@ def diagnose(run: Path = typer.Argument(..., help="an .mcap file or a Parquet ru
     _emit(result, as_json, text)
 
 
+# ------------------------------------------------------------------------------------------------- fleet and serve
+def _fleet_settings(thermal_model: str, constants_method: str, tol_normal_g: float, tol_range_g: float):
+    from pipeline.calibration import CalibrationSettings
+    from pipeline.verify import Tolerances
+
+    if thermal_model not in ("auto", "poly1", "poly2", "poly3", "piecewise"):
+        raise ThermocalError(f"unknown thermal model {thermal_model!r} (poly1, poly2, poly3, piecewise)",
+                             where="--thermal-model")
+    return CalibrationSettings(thermal_model=thermal_model, constants_method=constants_method,
+                               tolerances=Tolerances(normal_g=tol_normal_g, operating_range_g=tol_range_g))
+
+
+@app.command()
+def fleet(folder: Path = typer.Argument(..., help="folder of runs (searched recursively; .mcap and Parquet)"),
+          registry: Path = typer.Option(..., "--registry", help="registry folder"),
+          dask_address: Optional[str] = typer.Option(None, "--dask-address",
+                                                     help="run the unit tasks on this dask scheduler "
+                                                          "(tcp://host:8786)"),
+          workers: Optional[int] = typer.Option(None, "--workers", help="local pool size (default: CPU count)"),
+          pool: str = typer.Option("auto", "--pool", help="local pool: auto | process | thread"),
+          thermal_model: str = typer.Option("auto", "--thermal-model", help="as for calibrate"),
+          constants_method: str = typer.Option("auto", "--constants-method", help="as for calibrate"),
+          tol_normal_g: float = typer.Option(3e-4, "--tol-normal-g", help="|dg| limit near T0, g"),
+          tol_range_g: float = typer.Option(1e-3, "--tol-range-g", help="|dg| limit over the range, g"),
+          as_json: bool = typer.Option(False, "--json")):
+    """Calibrate every run under FOLDER, one passport per unit (Prefect flow, one task per unit).
+
+    Runs already processed with the same settings are skipped; a bad run is reported and the rest go on.
+    Exit status: 0 all done or skipped; 1 the fleet ran but some runs failed (listed); 2 it could not run.
+    """
+    from pipeline.fleet_plan import discover_runs
+
+    settings = _fleet_settings(thermal_model, constants_method, tol_normal_g, tol_range_g)
+    if pool not in ("auto", "process", "thread"):
+        raise ThermocalError(f"unknown pool {pool!r} (auto, process, thread)", where="--pool")
+    if workers is not None and workers < 1:
+        raise ThermocalError("must be at least 1", where="--workers")
+    discover_runs(folder)  # a missing folder fails here, in one line, before Prefect starts
+    from .fleet import run_fleet
+
+    summary = run_fleet(str(folder), str(registry), settings, dask_address=dask_address, workers=workers, pool=pool,
+                        progress=True)
+    _emit(summary, as_json, None if as_json else _fleet_text(summary))
+    if summary["failed"]:
+        print(f"thermocal: fleet: {len(summary['failed'])} run(s) failed: {summary['failed'][0]['run']}: "
+              f"{summary['failed'][0]['reason']}" + (" (and more, see the summary)" if len(summary["failed"]) > 1
+                                                     else ""), file=sys.stderr)
+        raise typer.Exit(1)
+
+
+def _fleet_text(s: dict) -> str:
+    lines = [f"done: {len(s['done'])} units, failed: {len(s['failed'])} runs, skipped: {len(s['skipped'])} runs"]
+    lines += [f"  {d['unit']:<12} v{d['version']:<4} {d['status']:<10} {'new' if d['created'] else 'existing':<8} "
+              + ", ".join(Path(r).name for r in d["runs"]) for d in s["done"]]
+    lines += [f"  FAILED  {f['run']}: {f['reason']}" for f in s["failed"]]
+    lines += [f"  skipped {x['run']}: {x['why']}" for x in s["skipped"]]
+    return "\n".join(lines)
+
+
+@app.command()
+def serve(inbox: Path = typer.Option(..., "--inbox", help="folder the chamber runs arrive in"),
+          registry: Path = typer.Option(..., "--registry", help="registry folder"),
+          cron: str = typer.Option("0 2 * * *", "--cron", help="when to run (cron syntax)"),
+          timezone: str = typer.Option("UTC", "--timezone", help="time zone of the cron schedule"),
+          name: str = typer.Option("nightly", "--name", help="deployment name (thermocal-fleet/NAME)"),
+          dask_address: Optional[str] = typer.Option(None, "--dask-address", help="as for fleet"),
+          workers: Optional[int] = typer.Option(None, "--workers", help="as for fleet"),
+          thermal_model: str = typer.Option("auto", "--thermal-model", help="as for calibrate"),
+          constants_method: str = typer.Option("auto", "--constants-method", help="as for calibrate"),
+          tol_normal_g: float = typer.Option(3e-4, "--tol-normal-g", help="|dg| limit near T0, g"),
+          tol_range_g: float = typer.Option(1e-3, "--tol-range-g", help="|dg| limit over the range, g")):
+    """Serve the fleet flow over INBOX as a Prefect deployment on a cron schedule (blocks; Ctrl-C stops it).
+
+    Needs a running Prefect server: `prefect server start`, and PREFECT_API_URL=http://127.0.0.1:4200/api.
+    Trigger a run now with `prefect deployment run thermocal-fleet/NAME`.
+    """
+    from .serve import serve_nightly
+
+    settings = _fleet_settings(thermal_model, constants_method, tol_normal_g, tol_range_g)
+    inbox.mkdir(parents=True, exist_ok=True)
+    serve_nightly(str(inbox), str(registry), cron=cron, timezone=timezone, name=name, settings=settings,
+                  dask_address=dask_address, workers=workers)
+
+
 # --------------------------------------------------------------------------------------------------------- passport
 @passport_app.command("log")
 def passport_log(unit: str, registry: Path = typer.Option(..., "--registry"),

@@ -115,7 +115,8 @@ def _fit_plateaus(groups, shift_v: dict[int, np.ndarray], method: str, skipped: 
         names = [o.position for o in rows]
         missing = [tp for tp in TEST_POSITIONS if tp not in names]
         if missing:
-            if skipped is not None:
+            # a position carried through the ramp onto a VP plateau is not an attempt at calibration
+            if skipped is not None and len(set(names)) > 1:
                 skipped.append(f"{run_id} plateau {p} at {np.mean([o.temp_c for o in rows]):.1f} C: "
                                f"fewer than six test positions (missing {', '.join(missing)})")
             continue

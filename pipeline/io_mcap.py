@@ -16,8 +16,9 @@ corrupt, and read what is complete:
   are skipped without being decompressed; messages of unknown topics are never decoded;
 - chunks are decompressed and CRC-checked a few ahead in a worker thread (zstd and crc32 release the GIL) while the
   main thread decodes;
-- each run-topic message is decoded by the codec of its channel's message encoding (:data:`CODECS`: ``json`` now, a
-  binary encoding later) into numpy arrays; one concatenation per column at the end, no per-sample objects kept;
+- each run-topic message is decoded by the codec of its channel's message encoding (:data:`CODECS`: ``json``, and
+  ``protobuf`` from :mod:`pipeline.io_codec_protobuf`) into numpy arrays; one concatenation per column at the end,
+  no per-sample objects kept;
 - a truncated file keeps its complete chunks, with a warning in ``Run.warnings`` saying what was dropped.
 
 Every problem raises :class:`pipeline.errors.RunFormatError` naming the file, the topic and the byte or ``t_ns``.
@@ -99,7 +100,9 @@ class BlockCodec:
     ``encode(stream, columns)`` returns the message bytes of one block (for ``fixture``: one event) given the
     canonical columns as numpy arrays; ``decode(stream, data)`` returns ``{column: 1-D numpy array}`` (int64 ``t_ns``,
     float64 values, object array of str for ``position``) and raises :class:`BlockMismatch`. ``schema_data(stream)``
-    is the schema record's content. A binary encoding (issue 8) is one more entry of :data:`CODECS`.
+    is the schema record's content. ``check_schema(stream, schema_encoding, schema_data)``, if given, raises
+    :class:`BlockMismatch` for a channel whose schema the decoder cannot read. The binary encoding
+    (:mod:`pipeline.io_codec_protobuf`) is one more entry of :data:`CODECS`.
     """
 
     message_encoding: str
@@ -107,6 +110,7 @@ class BlockCodec:
     schema_data: Callable[[str], bytes]
     encode: Callable[[str, dict[str, np.ndarray]], bytes]
     decode: Callable[[str, bytes | memoryview], dict[str, np.ndarray]]
+    check_schema: Callable[[str, str, bytes], None] | None = None
 
 
 @functools.cache
@@ -324,7 +328,7 @@ class _McapRunReader:
         self.path = path
         self.buf = buf
         self.size = len(buf)
-        self.schemas: dict[int, str] = {}  # schema id -> name
+        self.schemas: dict[int, tuple[str, str, bytes]] = {}  # schema id -> (name, encoding, data)
         self.channels: dict[int, _Channel] = {}
         self.summary_has_channels = False
         self.chunk_channels: dict[int, set[int]] = {}  # chunk record offset -> channel ids, from the indexes
@@ -435,8 +439,12 @@ class _McapRunReader:
 
     def _schema(self, buf, start: int, end: int) -> None:
         (schema_id,) = _U16.unpack_from(buf, start)
-        name, _ = _string(buf, start + 2, end)
-        self.schemas[schema_id] = name
+        name, p = _string(buf, start + 2, end)
+        encoding, p = _string(buf, p, end)
+        (n,) = _U32.unpack_from(buf, p)
+        if p + 4 + n > end:
+            raise _Malformed("schema data runs past the record")
+        self.schemas[schema_id] = (name, encoding, bytes(buf[p + 4:p + 4 + n]))
 
     def _channel(self, buf, start: int, end: int, where: str) -> None:
         channel_id, schema_id = _CHANNEL_HEAD.unpack_from(buf, start)
@@ -451,9 +459,15 @@ class _McapRunReader:
             raise self.fail(f"unsupported message encoding {encoding!r} (supported: {', '.join(CODECS)})",
                             stream=topic, where=where)
         schema = self.schemas.get(schema_id)
-        if schema is not None and schema != SCHEMA_NAMES[stream]:
-            raise self.fail(f"channel has schema {schema!r}, expected {SCHEMA_NAMES[stream]!r}", stream=topic,
+        if schema is not None and schema[0] != SCHEMA_NAMES[stream]:
+            raise self.fail(f"channel has schema {schema[0]!r}, expected {SCHEMA_NAMES[stream]!r}", stream=topic,
                             where=where)
+        if schema is not None and codec.check_schema is not None:
+            try:
+                codec.check_schema(stream, schema[1], schema[2])
+            except BlockMismatch as exc:
+                raise self.fail(f"{encoding} channel with an unreadable schema: {exc}", stream=topic,
+                                where=where) from None
         self.channels[channel_id] = _Channel(topic, stream, codec.decode)
         self.columns.setdefault(stream, {c: [] for c in STREAM_COLUMNS[stream]})
 
@@ -635,3 +649,7 @@ def _string_map(buf, p: int, end: int) -> dict[str, str]:
         value, p = _string(buf, p, stop)
         out[key] = value
     return out
+
+
+# The binary block encoding registers itself in CODECS (it imports the names above).
+from . import io_codec_protobuf  # noqa: E402,F401
