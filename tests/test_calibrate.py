@@ -156,3 +156,44 @@ def test_cli_calibrate_json_and_idempotence(tmp_path):
     bad = subprocess.run([exe, "calibrate", str(tmp_path / "nope.mcap"), "--registry", str(tmp_path / "reg")],
                          capture_output=True, text=True, env=env, timeout=120)
     assert bad.returncode != 0 and len(bad.stderr.strip().splitlines()) == 1 and "nope.mcap" in bad.stderr
+
+
+def _slice_run(run, t0_ns: int, t1_ns: int, run_id: str):
+    """A recording of part of the program (as a lab makes a separate VP-only run)."""
+    import dataclasses
+
+    import polars as pl
+
+    cut = lambda df: None if df is None else df.filter(pl.col("t_ns").is_between(t0_ns, t1_ns))  # noqa: E731
+    return dataclasses.replace(run, meta=dataclasses.replace(run.meta, run_id=run_id), voltmeter=cut(run.voltmeter),
+                               au_temperature=cut(run.au_temperature), chamber=cut(run.chamber),
+                               fixture=cut(run.fixture))
+
+
+def test_vp_only_run_verifies_tp_run(tmp_path):
+    """Separate recordings of one unit: TP plateaus (+20, -40 C; +70, +20 C) in two, VP plateaus (-10 C; +45 C)
+    in two VP-only runs; the VP runs verify the TP runs' passport."""
+    from flows.calibrate import run_calibrate
+
+    res = simulate(SimConfig(seed=21, program="short", rate_hz=5))
+    holds = res.truth["holds"]
+    t_start = res.run.voltmeter["t_ns"][0]
+    vp_m10 = [h for h in holds if h["position"].startswith("VP") and h["setpoint_c"] == -10.0]
+    vp_45 = [h for h in holds if h["position"].startswith("VP") and h["setpoint_c"] == 45.0]
+    tp_m40_end = max(h["t_end_ns"] for h in holds if h["setpoint_c"] == -40.0)
+    tp_70 = [h for h in holds if h["setpoint_c"] == 70.0 and h["position"].startswith("TP")]
+    # TP run: +20 and -40 C; then the +70 C plateau through the end (+20 C again); VP run: -10 C ... +45 C
+    tp_a = _slice_run(res.run, t_start, tp_m40_end, "tp-part-a")
+    tp_b = _slice_run(res.run, min(h["t_start_ns"] for h in tp_70) - 1_200_000_000_000, 2**62, "tp-part-b")
+    vp = [_slice_run(res.run, min(h["t_start_ns"] for h in hs) - 1_200_000_000_000, max(h["t_end_ns"] for h in hs),
+                     f"vp-only-{k}") for k, hs in enumerate((vp_m10, vp_45))]
+    paths = [str(write_run(r, tmp_path / f"{r.meta.run_id}.mcap", "mcap")) for r in (tp_a, tp_b, *vp)]
+    out = run_calibrate(paths, str(tmp_path / "reg"), CalibrationSettings())
+    temps_vp = {round(v["temp_c"]) for v in out["verification"]}
+    assert {-10, 45} <= temps_vp
+    assert out["status"] == "pass"
+    passport = json.loads(Path(out["passport"]).read_text())
+    assert {p["run_id"] for p in passport["per_plateau"]} == {"tp-part-a", "tp-part-b"}
+    vp_rows = [v for v in passport["verification"] if min(abs(v["temp_c"] + 10), abs(v["temp_c"] - 45)) < 3]
+    assert {v["run_id"] for v in vp_rows} == {"vp-only-0", "vp-only-1"} and len(vp_rows) >= 12
+    assert len(passport["provenance"]["inputs"]) == 4
