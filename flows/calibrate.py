@@ -7,6 +7,12 @@ ingest and segment). Each task is a call of one library function:
 - verify:  ``pipeline.calibration.verify_unit`` (``pipeline.verify``, ``pipeline.compensate``)
 - write:   ``pipeline.publish.publish_calibration`` (``pipeline.passport``, ``pipeline.registry``,
            ``pipeline.plots``)
+
+The other methods of the source papers replace segment/fit/verify by one task each:
+
+- ``--method scalar``:       ``pipeline.scalar.calibrate_scalar`` (seed 004, orientation-free)
+- ``--method differential``: ``pipeline.differential.calibrate_differential`` (seed 003, from a base passport)
+and are written by ``pipeline.publish.publish_passport``.
 """
 
 from __future__ import annotations
@@ -20,7 +26,9 @@ from prefect.artifacts import create_markdown_artifact  # noqa: E402
 
 from pipeline import calibration, runio  # noqa: E402
 from pipeline.errors import CalibrationError  # noqa: E402
-from pipeline.publish import publish_calibration  # noqa: E402
+from pipeline.publish import publish_calibration, publish_passport  # noqa: E402
+
+METHODS = ("tilt", "scalar", "differential")
 
 
 @task(name="ingest")
@@ -49,6 +57,26 @@ def write(registry: str, unit_fit, rows, status, observations, paths, settings, 
                                settings=settings, g_local_mps2=g_local_mps2)
 
 
+@task(name="fit-scalar")
+def fit_scalar(runs, settings: calibration.CalibrationSettings):
+    from pipeline.scalar import calibrate_scalar
+
+    return calibrate_scalar(runs, settings=settings)
+
+
+@task(name="fit-differential")
+def fit_differential(runs, base_passport: dict, settings: calibration.CalibrationSettings):
+    from pipeline.differential import calibrate_differential
+
+    return calibrate_differential(runs, base_passport, calibration_settings=settings)
+
+
+@task(name="write")
+def write_method(registry: str, mc, paths, settings: dict):
+    return publish_passport(registry, mc.passport, mc.fit, mc.rows, mc.status, mc.plateaus, input_paths=paths,
+                            settings=settings)
+
+
 def check_one_unit(runs) -> str:
     serials = sorted({r.meta.unit_serial for r in runs})
     if len(serials) != 1:
@@ -58,11 +86,32 @@ def check_one_unit(runs) -> str:
 
 @flow(name="thermocal-calibrate", log_prints=False)
 def calibrate_flow(paths: list[str], registry: str,
-                   settings: calibration.CalibrationSettings = calibration.CalibrationSettings()) -> dict:
-    """Calibrate one unit from one or more runs (TP runs, and runs with VP data that verify them)."""
+                   settings: calibration.CalibrationSettings = calibration.CalibrationSettings(),
+                   method: str = "tilt", base_passport: dict | None = None) -> dict:
+    """Calibrate one unit from one or more runs (TP runs, and runs with VP data that verify them).
+
+    ``method``: ``tilt`` (seed 000, default), ``scalar`` (seed 004) or ``differential`` (seed 003, starting from
+    ``base_passport``'s normal-temperature constants)."""
     logger = get_run_logger()
     runs = [ingest(p) for p in paths]
     unit = check_one_unit(runs)
+    if method == "tilt":
+        result = _calibrate_tilt(runs, registry, settings, list(paths), logger)
+    else:
+        if method == "scalar":
+            mc = fit_scalar(runs, settings)
+            extra = {}
+        else:
+            mc = fit_differential(runs, base_passport, settings)
+            extra = {"base_passport_sha256": base_passport.get("content_sha256") or base_passport.get("unit")}
+        result = write_method(registry, mc, list(paths), {**settings.to_dict(), **extra})
+        result["warnings"] = [w for r in runs for w in r.warnings] + list(mc.passport.get("notes", []))
+    create_markdown_artifact(key=_artifact_key(unit), markdown=result_markdown(result),
+                             description=f"thermocal calibration of {unit}")
+    return result
+
+
+def _calibrate_tilt(runs, registry, settings, paths, logger) -> dict:
     observations, warnings = [], []
     for run in runs:
         obs, warn = segment(run, settings)
@@ -71,12 +120,10 @@ def calibrate_flow(paths: list[str], registry: str,
     for w in warnings:
         logger.warning(w)
     meta = runs[0].meta
-    unit_fit = fit(unit, observations, settings, meta.normal_temp_c)
+    unit_fit = fit(runs[0].meta.unit_serial, observations, settings, meta.normal_temp_c)
     rows, status = verify(unit_fit.model, observations, meta.normal_temp_c, settings)
-    result = write(registry, unit_fit, rows, status, observations, list(paths), settings, meta.g_local_mps2)
+    result = write(registry, unit_fit, rows, status, observations, paths, settings, meta.g_local_mps2)
     result["warnings"] = warnings + unit_fit.skipped
-    create_markdown_artifact(key=_artifact_key(unit), markdown=result_markdown(result),
-                             description=f"thermocal calibration of {unit}")
     return result
 
 
@@ -96,9 +143,10 @@ def result_markdown(result: dict) -> str:
     return "\n".join(lines)
 
 
-def run_calibrate(paths: list[str], registry: str, settings: calibration.CalibrationSettings) -> dict:
+def run_calibrate(paths: list[str], registry: str, settings: calibration.CalibrationSettings,
+                  method: str = "tilt", base_passport: dict | None = None) -> dict:
     """Run the flow in this process (local ephemeral Prefect unless PREFECT_API_URL is set)."""
     from .runtime import flow_settings
 
     with flow_settings():
-        return calibrate_flow(paths, registry, settings)
+        return calibrate_flow(paths, registry, settings, method, base_passport)

@@ -111,30 +111,68 @@ def calibrate(runs: List[Path] = typer.Argument(..., help="runs of one unit (TP 
                                                    help="auto | six_position | least_squares"),
               tol_normal_g: float = typer.Option(3e-4, "--tol-normal-g", help="|dg| limit near T0, g"),
               tol_range_g: float = typer.Option(1e-3, "--tol-range-g", help="|dg| limit over the range, g"),
+              method: str = typer.Option("tilt", "--method",
+                                         help="tilt (seed 000, default) | scalar (seed 004) | differential (seed 003)"),
+              base_passport: Optional[Path] = typer.Option(
+                  None, "--base-passport", help="differential: normal-temperature passport to start from "
+                                                "(default: the unit's newest version in the registry)"),
               as_json: bool = typer.Option(False, "--json")):
     """Ingest, segment, average, fit, verify on the VP segments, write a new passport version (Prefect flow)."""
+    settings = _calibration_settings(thermal_model, constants_method, tol_normal_g, tol_range_g)
+    if method not in ("tilt", "scalar", "differential"):
+        raise ThermocalError(f"unknown method {method!r} (tilt, scalar, differential)", where="--method")
+    for r in runs:
+        if not r.exists():
+            raise ThermocalError("no such file or directory", path=str(r))
+    base = _base_passport(runs[0], registry, base_passport) if method == "differential" else None
+    from .calibrate import run_calibrate
+
+    result = run_calibrate([str(r) for r in runs], str(registry), settings, method, base)
+    _emit(result, as_json, None if as_json else _calibrate_text(result))
+
+
+def _base_passport(run: Path, registry: Path, path: Path | None) -> dict:
+    from pipeline.passport import read_passport
+    from pipeline.registry import Registry
+    from pipeline.fleet_plan import read_run_meta
+
+    if path is not None:
+        return read_passport(path)
+    unit = read_run_meta(run).unit_serial
+    try:
+        return Registry(registry).load(unit)
+    except ThermocalError as e:
+        raise ThermocalError(f"the differential method starts from a normal-temperature passport: give "
+                             f"--base-passport or calibrate {unit} first ({e.message})", path=str(run)) from None
+
+
+def _calibration_settings(thermal_model: str, constants_method: str, tol_normal_g: float, tol_range_g: float):
     from pipeline.calibration import CalibrationSettings
     from pipeline.verify import Tolerances
 
     if thermal_model not in ("auto", "poly1", "poly2", "poly3", "piecewise"):
         raise ThermocalError(f"unknown thermal model {thermal_model!r} (poly1, poly2, poly3, piecewise)",
                              where="--thermal-model")
-    settings = CalibrationSettings(thermal_model=thermal_model, constants_method=constants_method,
-                                   tolerances=Tolerances(normal_g=tol_normal_g, operating_range_g=tol_range_g))
-    for r in runs:
-        if not r.exists():
-            raise ThermocalError("no such file or directory", path=str(r))
-    from .calibrate import run_calibrate
+    if constants_method not in ("auto", "six_position", "least_squares"):
+        raise ThermocalError(f"unknown constants method {constants_method!r} (auto, six_position, least_squares)",
+                             where="--constants-method")
+    return CalibrationSettings(thermal_model=thermal_model, constants_method=constants_method,
+                               tolerances=Tolerances(normal_g=tol_normal_g, operating_range_g=tol_range_g))
 
-    result = run_calibrate([str(r) for r in runs], str(registry), settings)
-    _emit(result, as_json, None if as_json else _calibrate_text(result))
+
+def _runs_of(names: list[str]) -> str:
+    """``TP1 TP2 TP2 TP2`` -> ``TP1 TP2 x3``."""
+    import itertools
+
+    return " ".join(f"{k} x{n}" if n > 1 else k
+                    for k, n in ((k, len(list(g))) for k, g in itertools.groupby(names)))
 
 
 def _calibrate_text(r: dict) -> str:
     lines = [f"{r['unit']}: passport v{r['version']} {'written' if r.get('created') else '(unchanged inputs)'}: "
              f"{r['passport']}", f"status: {r['status']}"]
     for p in r["plateaus"]:
-        lines.append(f"  plateau {p['temp_c']:+7.2f} C  {' '.join(p['positions'])}")
+        lines.append(f"  plateau {p['temp_c']:+7.2f} C  {_runs_of(p['positions'])}")
     for v in r["verification"]:
         lines.append(f"  VP {v['temp_c']:+7.2f} C {v['position']}: dg uncomp {v['dg_uncompensated_g'] * 1e6:8.1f} ug"
                      f"  m1 {v['dg_method1_g'] * 1e6:8.1f} ug  m2 {v['dg_method2_g'] * 1e6:8.1f} ug")

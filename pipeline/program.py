@@ -257,12 +257,10 @@ def short_program() -> Program:
                                 case_lag_s=120.0, air_lag_s=30.0)
 
 
-def differential_program(orientations=("TP1", "TP3", "TP6")) -> Program:
-    """Seed 003's differential method (issue 6, simple version): in each orientation the unit is held at +20 C
+def differential_program(orientations=("TP1", "TP2", "TP3", "TP4", "TP5", "TP6")) -> Program:
+    """Seed 003's differential method: in each orientation (default the paper's six) the unit is held at +20 C
     for 30 min, then the chamber cycles +20 -> -40 -> +70 -> +20 C at 1 C/min with 30 min soaks at each end,
-    without moving. Case lag 600 s.
-
-    TODO(issue 6): imprecise (not nominal) orientations and a rate-rich profile for seed 003's dT/dt terms.
+    without moving. Case lag 600 s. Imprecise orientations: add ``--effect fixture_face_error:sigma_deg=1.5``.
     """
     stages = []
     for p in orientations:

@@ -197,3 +197,34 @@ def test_vp_only_run_verifies_tp_run(tmp_path):
     vp_rows = [v for v in passport["verification"] if min(abs(v["temp_c"] + 10), abs(v["temp_c"] - 45)) < 3]
     assert {v["run_id"] for v in vp_rows} == {"vp-only-0", "vp-only-1"} and len(vp_rows) >= 12
     assert len(passport["provenance"]["inputs"]) == 4
+
+
+def test_flow_other_methods_record_method_and_compensate(tmp_path):
+    """calibrate --method scalar / differential through the flow: passports say which method made them, the
+    registry keeps them apart (same inputs, another method = another version) and compensation works for both."""
+    from flows.calibrate import run_calibrate
+    from pipeline.compensate import method1
+    from pipeline.model import gravity_module_error_g, output_v
+    from pipeline.passport import load_model
+
+    reg = str(tmp_path / "reg")
+    short = write_run(simulate(SimConfig(seed=5, program="short", rate_hz=2)).run, tmp_path / "short.mcap", "mcap")
+    tilt = run_calibrate([str(short)], reg, CalibrationSettings())
+    scal = run_calibrate([str(short)], reg, CalibrationSettings(), method="scalar")
+    assert (tilt["version"], scal["version"]) == (1, 2) and scal["method"] == "scalar"
+    diff_run = simulate(SimConfig(seed=6, program="differential", rate_hz=1,
+                                  effects=[("fixture_face_error", {"sigma_deg": 1.5})]))
+    diff_path = write_run(diff_run.run, tmp_path / "diff.mcap", "mcap")
+    base = json.loads(Path(tilt["passport"]).read_text())
+    diff = run_calibrate([str(diff_path)], reg, CalibrationSettings(), method="differential", base_passport=base)
+    assert diff["version"] == 3
+    unit = UnitTruth.from_dict(diff_run.truth["unit"])
+    for res, temps in ((scal, [20.0]), (diff, [-30.0, 0.0, 20.0, 60.0])):
+        doc = json.loads(Path(res["passport"]).read_text())
+        assert doc["method"] == res["method"]
+        model = load_model(doc)
+        a = np.array([[0, 0, 1.0], [0.6, 0, 0.8], [0, -1.0, 0]])
+        for T in temps:
+            K, U0 = unit.constants_at(np.full(3, T))
+            dg = gravity_module_error_g(method1(model, output_v(K, U0, a), np.full(3, T)))
+            assert np.abs(dg).max() < 1e-4, (res["method"], T, dg)
