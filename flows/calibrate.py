@@ -146,7 +146,7 @@ def result_markdown(result: dict) -> str:
 def run_calibrate(paths: list[str], registry: str, settings: calibration.CalibrationSettings,
                   method: str = "tilt", base_passport: dict | None = None) -> dict:
     """Run the flow in this process (local ephemeral Prefect unless PREFECT_API_URL is set)."""
-    from .runtime import flow_settings
+    from .runtime import flow_settings, quiet_task_failures
 
-    with flow_settings():
+    with flow_settings(), quiet_task_failures():
         return calibrate_flow(paths, registry, settings, method, base_passport)

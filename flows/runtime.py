@@ -19,8 +19,12 @@ _DEFAULTS = {
 
 
 def prefect_defaults() -> None:
+    import logging
+
     for k, v in _DEFAULTS.items():
         os.environ.setdefault(k, v)
+    # "EventsWorker - Still processing items" at exit is Prefect draining its event queue, not a problem of ours
+    logging.getLogger("EventsWorker").setLevel(logging.ERROR)
 
 
 @contextlib.contextmanager
@@ -31,3 +35,21 @@ def flow_settings():
 
     with temporary_settings({PREFECT_FLOWS_HEARTBEAT_FREQUENCY: None}):
         yield
+
+
+@contextlib.contextmanager
+def quiet_task_failures():
+    """A failed task or flow run makes Prefect log the exception with its traceback; the command line reports a
+    ThermocalError in one line itself, so Prefect's run loggers are held at CRITICAL meanwhile (the flow's
+    warnings are part of the command's own output)."""
+    import logging
+
+    loggers = [logging.getLogger(n) for n in ("prefect.task_runs", "prefect.flow_runs")]
+    levels = [lg.level for lg in loggers]
+    for lg in loggers:
+        lg.setLevel(logging.CRITICAL)
+    try:
+        yield
+    finally:
+        for lg, lvl in zip(loggers, levels):
+            lg.setLevel(lvl)

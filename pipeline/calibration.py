@@ -52,6 +52,7 @@ class Observation:
     temp_c: float
     t_start_ns: int
     t_end_ns: int
+    source: str = ""             # the file or directory the run was read from ("" for a run made in memory)
 
 
 @dataclass(frozen=True)
@@ -80,8 +81,8 @@ class UnitFit:
     skipped: list[str]           # one line per plateau that could not be used, and why
 
 
-def observations_from_segmentation(run_id: str, segmentation) -> list[Observation]:
-    """Named static segments on plateaus (and VP segments anywhere) as observations."""
+def observations_from_segmentation(run_id: str, segmentation, source: str = "") -> list[Observation]:
+    """Named static segments on plateaus (and VP segments anywhere) as observations (``source``: the run's file)."""
     out = []
     for s in segmentation.segments:
         if s.position is None or s.count == 0:
@@ -90,14 +91,37 @@ def observations_from_segmentation(run_id: str, segmentation) -> list[Observatio
             continue
         out.append(Observation(run_id=run_id, plateau=s.plateau, position=s.position, u_v=tuple(s.mean_v),
                                std_v=tuple(s.std_v), count=int(s.count), temp_c=float(s.temp_c),
-                               t_start_ns=int(s.t_start_ns), t_end_ns=int(s.t_end_ns)))
+                               t_start_ns=int(s.t_start_ns), t_end_ns=int(s.t_end_ns), source=source))
     return out
 
 
 def observe_run(run, settings: SegmentSettings = SegmentSettings()) -> tuple[list[Observation], list[str]]:
-    """Segment a run and return its observations and the segmenter's and reader's warnings."""
+    """Segment a run and return its observations and the segmenter's and reader's warnings.
+
+    A run with no named static position on any temperature plateau is of no use to a calibration:
+    :class:`CalibrationError` naming the file, the stream at fault and the time span.
+    """
     seg = segment_run(run, settings)
-    return observations_from_segmentation(run.meta.run_id, seg), list(run.warnings) + list(seg.warnings)
+    obs = observations_from_segmentation(run.meta.run_id, seg, run.source)
+    warnings = list(run.warnings) + list(seg.warnings)
+    if not any(o.plateau is not None for o in obs):
+        raise _unusable_run(run, seg.plateaus, warnings, settings)
+    return obs, warnings
+
+
+def _unusable_run(run, plateaus, warnings: list[str], settings: SegmentSettings) -> CalibrationError:
+    if not plateaus:
+        t = run.au_temperature["t_ns"]
+        temp = run.au_temperature["temp_c"].fill_nan(None)
+        reads = f", it reads {temp.min():.2f}..{temp.max():.2f} C" if temp.null_count() < temp.len() else ""
+        return CalibrationError(f"no temperature plateau: the AU temperature never stays within "
+                                f"{settings.plateau_rate_c_per_min} C/min for {settings.plateau_min_s:.0f} s{reads}",
+                                path=run.source, stream="au_temperature",
+                                where=f"t_ns={t.min()}..{t.max()}")
+    why = f" ({'; '.join(warnings)})" if warnings else ""
+    return CalibrationError(f"no named static position on any of the {len(plateaus)} temperature plateau(s){why}",
+                            path=run.source, stream="voltmeter",
+                            where=f"t_ns={plateaus[0].t_start_ns}..{plateaus[-1].t_end_ns}")
 
 
 def _group_plateaus(obs: list[Observation]) -> dict[tuple[str, int], list[Observation]]:
@@ -117,7 +141,8 @@ def _fit_plateaus(groups, shift_v: dict[int, np.ndarray], method: str, skipped: 
         if missing:
             # a position carried through the ramp onto a VP plateau is not an attempt at calibration
             if skipped is not None and len(set(names)) > 1:
-                skipped.append(f"{run_id} plateau {p} at {np.mean([o.temp_c for o in rows]):.1f} C: "
+                skipped.append(f"{run_id} plateau {p} at {np.mean([o.temp_c for o in rows]):.1f} C "
+                               f"(t_ns={min(o.t_start_ns for o in rows)}..{max(o.t_end_ns for o in rows)}): "
                                f"fewer than six test positions (missing {', '.join(missing)})")
             continue
         u = np.array([np.asarray(o.u_v) - shift_v.get(id(o), 0.0) for o in rows])
@@ -138,8 +163,13 @@ def fit_unit(unit: str, observations: list[Observation], settings: CalibrationSe
     skipped: list[str] = []
     fits = _fit_plateaus(groups, {}, settings.constants_method, skipped)
     if not fits:
+        on_plateaus = [o for rows in groups.values() for o in rows]
+        where = (f"t_ns={min(o.t_start_ns for o in on_plateaus)}..{max(o.t_end_ns for o in on_plateaus)}"
+                 if on_plateaus else None)
         raise CalibrationError("no temperature plateau with the six test positions TP1..TP6"
-                               + (f" ({'; '.join(skipped)})" if skipped else ""), stream="voltmeter")
+                               + (f" ({'; '.join(skipped)})" if skipped else ""),
+                               path=", ".join(sorted({o.source for o in observations if o.source})) or None,
+                               stream="voltmeter", where=where)
     def thermal(kind: str, temps=None, K=None, U0=None) -> ThermalModel:
         return fit_thermal_model(np.array([f.temp_c for f in fits]) if temps is None else temps,
                                  np.array([f.K for f in fits]) if K is None else K,

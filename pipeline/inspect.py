@@ -13,9 +13,7 @@ import numpy as np
 
 from .errors import ThermocalError
 from .run import Run
-
-#: An interval longer than this many median intervals is reported as a gap.
-GAP_FACTOR = 5.0
+from .runio import GAP_FACTOR, gap_indices  # noqa: F401  (GAP_FACTOR: the gap definition, shared with the readers)
 
 
 def summarize_run(run: Run) -> dict[str, Any]:
@@ -53,7 +51,7 @@ def stream_summary(name: str, t_ns: np.ndarray, non_finite: int) -> dict[str, An
     median_ns = float(np.median(dt_ns))
     if median_ns > 0:
         out["rate_hz"] = 1e9 / median_ns
-        idx = np.flatnonzero(dt_ns > GAP_FACTOR * median_ns)
+        idx = gap_indices(t_ns)
         out["gaps"] = [[int(t_ns[i]), float(dt_ns[i]) * 1e-9] for i in idx]
     return out
 

@@ -14,11 +14,13 @@ corrupt, and read what is complete:
   or without a summary section or indexes alike;
 - with a summary that repeats the channels, chunks whose message index lists only topics that are not part of a run
   are skipped without being decompressed; messages of unknown topics are never decoded;
-- chunks are decompressed and CRC-checked a few ahead in a worker thread (zstd and crc32 release the GIL) while the
-  main thread decodes;
+- chunks are decompressed and CRC-checked a few ahead in two worker threads (zstd and crc32 release the GIL) while
+  the main thread decodes;
 - each run-topic message is decoded by the codec of its channel's message encoding (:data:`CODECS`: ``json``, and
-  ``protobuf`` from :mod:`pipeline.io_codec_protobuf`) into numpy arrays; one concatenation per column at the end,
-  no per-sample objects kept;
+  ``protobuf`` from :mod:`pipeline.io_codec_protobuf`) into numpy arrays, copied straight into pieces of up to a
+  million samples which become the chunks of the polars columns: no per-sample objects, no copy of the whole
+  table; chunk data is read (pread) and decompressed into a few reused buffers, not through the memory map, so
+  neither the file's pages nor per-chunk allocations add to the process's memory;
 - a truncated file keeps its complete chunks, with a warning in ``Run.warnings`` saying what was dropped.
 
 Every problem raises :class:`pipeline.errors.RunFormatError` naming the file, the topic and the byte or ``t_ns``.
@@ -47,7 +49,7 @@ from mcap.writer import CompressionType, IndexType, Writer
 import pipeline
 
 from .errors import RunFormatError
-from .run import REQUIRED_STREAMS, STREAM_COLUMNS, Run, make_frame
+from .run import REQUIRED_STREAMS, STREAM_COLUMNS, Run
 from .runio import assemble_run, writable_streams
 
 MAGIC = b"\x89MCAP0\r\n"
@@ -82,7 +84,10 @@ _U32 = struct.Struct("<I")
 _U64 = struct.Struct("<Q")
 _CHANNEL_HEAD = struct.Struct("<HH")  # channel id, schema id
 
-_CHUNKS_AHEAD = 3  # chunks decompressed ahead of decoding
+_CHUNKS_AHEAD = 4  # chunks decompressed ahead of decoding
+_DECOMPRESS_THREADS = 2  # worker threads decompressing and CRC-checking chunks (both release the GIL)
+_PIECE_SAMPLES = 1 << 20  # decoded blocks are copied into pieces of up to this many samples (one polars chunk each)
+_FIRST_PIECE_SAMPLES = 1024  # pieces start this small and double (short streams stay small)
 _NUMPY_DTYPES = {pl.Int64: np.int64, pl.Float64: np.float64, pl.String: object}
 
 
@@ -307,7 +312,7 @@ def read_mcap(path: str | Path) -> Run:
         if os.fstat(f.fileno()).st_size == 0:
             raise RunFormatError("empty file (0 bytes), not an MCAP run", path=name)
         with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as buf:
-            return _McapRunReader(name, buf).read()
+            return _McapRunReader(name, buf, f.fileno()).read()
 
 
 class _Malformed(ValueError):
@@ -324,9 +329,10 @@ class _Channel:
 class _McapRunReader:
     """One pass over one file: top-level walk (:meth:`_scan`), then the data records in file order."""
 
-    def __init__(self, path: str, buf: mmap.mmap):
+    def __init__(self, path: str, buf: mmap.mmap, fd: int):
         self.path = path
         self.buf = buf
+        self.fd = fd  # chunk data is read with pread into reused buffers, not through the map
         self.size = len(buf)
         self.schemas: dict[int, tuple[str, str, bytes]] = {}  # schema id -> (name, encoding, data)
         self.channels: dict[int, _Channel] = {}
@@ -334,12 +340,11 @@ class _McapRunReader:
         self.chunk_channels: dict[int, set[int]] = {}  # chunk record offset -> channel ids, from the indexes
         self.data_records: list[tuple[int, int, int, int]] = []  # (opcode, offset, body start, body end)
         self.meta: dict[str, str] | None = None
-        self.columns: dict[str, dict[str, list[np.ndarray]]] = {}  # stream -> column -> decoded parts
+        self.columns: dict[str, _StreamColumns] = {}  # stream -> its decoded samples
         self.skipped: set[str] = set()  # topics whose messages were not decoded
         self.undefined_channel_messages = 0
         self.truncation = ""
         self.warnings: list[str] = []
-        self.zstd = zstandard.ZstdDecompressor()
 
     def fail(self, message: str, *, stream: str | None = None, where: str | None = None) -> RunFormatError:
         return RunFormatError(message, path=self.path, stream=stream, where=where)
@@ -362,7 +367,7 @@ class _McapRunReader:
                 except (struct.error, _Malformed):
                     raise self.fail("malformed message record", where=f"byte {pos}") from None
         finally:
-            opened.close()  # stops the worker before the file is unmapped
+            opened.close()  # stops the workers before the file is unmapped
         return self._assemble(len(chunks))
 
     def _check_magic(self) -> None:
@@ -469,7 +474,8 @@ class _McapRunReader:
                 raise self.fail(f"{encoding} channel with an unreadable schema: {exc}", stream=topic,
                                 where=where) from None
         self.channels[channel_id] = _Channel(topic, stream, codec.decode)
-        self.columns.setdefault(stream, {c: [] for c in STREAM_COLUMNS[stream]})
+        if stream not in self.columns:
+            self.columns[stream] = _StreamColumns(stream)
 
     def _metadata(self, buf, start: int, end: int) -> None:
         name, p = _string(buf, start, end)
@@ -501,18 +507,24 @@ class _McapRunReader:
             return True
         return False
 
-    def _opened_chunks(self, chunks: list[tuple[int, int, int]]) -> Iterator[tuple[bytes, str]]:
-        """Decompressed, CRC-checked chunks in order; the next few are opened in a worker thread meanwhile
-        (zstd and crc32 release the GIL, so this overlaps with JSON decoding)."""
-        with ThreadPoolExecutor(max_workers=1) as pool:
-            ahead: deque = deque(pool.submit(self._open_chunk, *c) for c in chunks[:_CHUNKS_AHEAD])
+    def _opened_chunks(self, chunks: list[tuple[int, int, int]]) -> Iterator[tuple[memoryview, str]]:
+        """Decompressed, CRC-checked chunks in order; the next few are opened in worker threads meanwhile
+        (pread, zstd and crc32 release the GIL, so this overlaps with decoding). Each chunk in flight has its own
+        :class:`_ChunkBuffers`, handed on to a later chunk once the caller has decoded this one (decoding copies
+        the samples out), so no memory is allocated per chunk."""
+        with ThreadPoolExecutor(max_workers=_DECOMPRESS_THREADS) as pool:
+            spare = [_ChunkBuffers() for _ in range(min(_CHUNKS_AHEAD, len(chunks)))]
+            ahead: deque = deque(pool.submit(self._open_chunk, *c, spare.pop()) for c in chunks[:_CHUNKS_AHEAD])
             for k in range(len(chunks)):
+                raw, where, buffers = ahead.popleft().result()
+                yield raw, where
                 if k + _CHUNKS_AHEAD < len(chunks):
-                    ahead.append(pool.submit(self._open_chunk, *chunks[k + _CHUNKS_AHEAD]))
-                yield ahead.popleft().result()
+                    ahead.append(pool.submit(self._open_chunk, *chunks[k + _CHUNKS_AHEAD], buffers))
 
-    def _open_chunk(self, pos: int, start: int, end: int) -> tuple[bytes, str]:
-        """The uncompressed records of the chunk record at ``pos`` and a description of where it is."""
+    def _open_chunk(self, pos: int, start: int, end: int, buffers: _ChunkBuffers
+                    ) -> tuple[memoryview, str, _ChunkBuffers]:
+        """The uncompressed records of the chunk record at ``pos`` (in ``buffers``), a description of where it is,
+        and ``buffers``."""
         buf = self.buf
         try:
             t_start, t_end, raw_size, crc = _CHUNK_HEAD.unpack_from(buf, start)
@@ -524,15 +536,24 @@ class _McapRunReader:
         except (struct.error, UnicodeDecodeError, _Malformed):
             raise self.fail("malformed chunk record", where=f"byte {pos}") from None
         where = f"chunk at byte {pos} (t_ns {t_start}..{t_end})"
-        raw = self._decompress(compression, buf[p:p + data_length], raw_size, where)
+        topics = self._chunk_topics(pos)
+        data = buffers.sized("data", data_length)
+        if _read_at(self.fd, data, p) != data_length:
+            raise self.fail("the file changed while it was read", where=where)
+        raw = self._decompress(compression, data, raw_size, where, topics, buffers)
         if crc and zlib.crc32(raw) != crc:
             raise self.fail(f"corrupt chunk: CRC mismatch (stored {crc:#010x}, computed {zlib.crc32(raw):#010x})",
-                            where=where)
-        return raw, where
+                            stream=topics, where=where)
+        return raw, where, buffers
 
-    def _chunk_records(self, raw: bytes, where: str) -> None:
+    def _chunk_topics(self, pos: int) -> str | None:
+        """The topics the indexes list for the chunk at ``pos`` (None for a file without indexes)."""
+        ids = self.chunk_channels.get(pos, ())
+        return ", ".join(sorted({self.channels[i].topic for i in ids if i in self.channels})) or None
+
+    def _chunk_records(self, raw: memoryview, where: str) -> None:
         """Decode the run messages among the records of one uncompressed chunk."""
-        view = memoryview(raw)
+        view = raw
         n = len(raw)
         q = 0
         try:
@@ -552,17 +573,26 @@ class _McapRunReader:
             detail = f": {exc}" if isinstance(exc, _Malformed) else ""
             raise self.fail(f"corrupt chunk: malformed records{detail}", where=where) from None
 
-    def _decompress(self, compression: str, data: bytes, raw_size: int, where: str) -> bytes:
+    def _decompress(self, compression: str, data: memoryview, raw_size: int, where: str, topics: str | None,
+                    buffers: _ChunkBuffers) -> memoryview:
         try:
             if compression == "zstd":
-                raw = self.zstd.decompress(data, max_output_size=raw_size)
+                raw = buffers.sized("raw", raw_size)
+                with buffers.zstd.stream_reader(data) as reader:
+                    got = 0
+                    while got < raw_size and (k := reader.readinto(raw[got:])):
+                        got += k
+                    if got == raw_size and reader.read(1):
+                        raise self.fail(f"corrupt chunk: more than the {raw_size} bytes the header says after "
+                                        "decompression", stream=topics, where=where)
+                raw = raw[:got]
             elif compression == "lz4":
                 try:
                     import lz4.frame
                 except ImportError:
                     raise self.fail("chunk is lz4-compressed and the lz4 package is not installed",
                                     where=where) from None
-                raw = lz4.frame.decompress(data)
+                raw = memoryview(lz4.frame.decompress(data))
             elif compression == "":
                 raw = data
             else:
@@ -570,10 +600,11 @@ class _McapRunReader:
         except RunFormatError:
             raise
         except Exception as exc:  # zstd / lz4 errors on corrupt data
-            raise self.fail(f"corrupt chunk: cannot decompress {compression} data ({exc})", where=where) from None
+            raise self.fail(f"corrupt chunk: cannot decompress {compression} data ({exc})", stream=topics,
+                            where=where) from None
         if len(raw) != raw_size:
             raise self.fail(f"corrupt chunk: {len(raw)} bytes after decompression, the header says {raw_size}",
-                            where=where)
+                            stream=topics, where=where)
         return raw
 
     def _message(self, buf, start: int, end: int, where: str) -> None:
@@ -587,20 +618,19 @@ class _McapRunReader:
         if channel.stream is None:
             self.skipped.add(channel.topic)
             return
-        parts = self.columns[channel.stream]
+        columns = self.columns[channel.stream]
         try:
             decoded = channel.decode(channel.stream, buf[start + _MESSAGE_HEAD.size:end])
         except BlockMismatch as exc:
             raise self.fail(f"message does not match schema {SCHEMA_NAMES[channel.stream]}: {exc}",
                             stream=channel.topic,
-                            where=f"t_ns={log_time} (message {len(parts['t_ns'])} of the topic, {where})") from None
-        for name, values in decoded.items():
-            parts[name].append(values)
+                            where=f"t_ns={log_time} (message {columns.messages} of the topic, {where})") from None
+        columns.add(decoded)
 
     # -- result ----------------------------------------------------------------------------------------------------
 
     def _assemble(self, chunks_read: int) -> Run:
-        frames = {stream: make_frame(stream, _concatenate(stream, parts)) for stream, parts in self.columns.items()}
+        frames = {stream: columns.frame() for stream, columns in self.columns.items()}
         if self.truncation:
             missing = ["'run' metadata"] if self.meta is None else []
             missing += [f"{TOPICS[s]} samples" for s in REQUIRED_STREAMS if s not in frames or not frames[s].height]
@@ -621,10 +651,75 @@ class _McapRunReader:
         return assemble_run(self.meta, frames, path=self.path, warnings=self.warnings)
 
 
-def _concatenate(stream: str, parts: dict[str, list[np.ndarray]]) -> dict[str, np.ndarray]:
-    spec = STREAM_COLUMNS[stream]
-    return {name: np.concatenate(arrays) if arrays else np.empty(0, dtype=_NUMPY_DTYPES[spec[name]])
-            for name, arrays in parts.items()}
+class _ChunkBuffers:
+    """The reused memory of one chunk in flight: its compressed data, its records, its zstd decompressor."""
+
+    def __init__(self) -> None:
+        self.data = bytearray()
+        self.raw = bytearray()
+        self.zstd = zstandard.ZstdDecompressor()
+
+    def sized(self, name: str, size: int) -> memoryview:
+        """The first ``size`` bytes of buffer ``name`` (replaced by a larger one when too small)."""
+        buf = getattr(self, name)
+        if len(buf) < size:
+            buf = bytearray(max(size, 2 * len(buf)))
+            setattr(self, name, buf)
+        return memoryview(buf)[:size]
+
+
+def _read_at(fd: int, view: memoryview, offset: int) -> int:
+    """Read ``len(view)`` bytes of the file at ``offset`` into ``view``; the number of bytes read."""
+    got = 0
+    while got < len(view):
+        if hasattr(os, "preadv"):
+            k = os.preadv(fd, [view[got:]], offset + got)
+        else:  # no preadv (Windows)
+            data = os.pread(fd, len(view) - got, offset + got)
+            k = len(data)
+            view[got:got + k] = data
+        if k == 0:
+            break
+        got += k
+    return got
+
+
+class _StreamColumns:
+    """The decoded samples of one stream, copied block by block into pieces (each becomes one chunk of the polars
+    columns: the table is never copied whole). Pieces start at :data:`_FIRST_PIECE_SAMPLES` rows and double up to
+    :data:`_PIECE_SAMPLES`."""
+
+    def __init__(self, stream: str):
+        self.stream = stream
+        self.dtypes = {name: _NUMPY_DTYPES[dtype] for name, dtype in STREAM_COLUMNS[stream].items()}
+        self.pieces: list[dict[str, np.ndarray]] = []
+        self.current: dict[str, np.ndarray] = {}
+        self.capacity = self.filled = self.messages = 0
+
+    def add(self, block: dict[str, np.ndarray]) -> None:
+        n = len(block["t_ns"])
+        if self.filled + n > self.capacity:
+            self._close_piece()
+            self.capacity = max(n, min(_PIECE_SAMPLES, max(_FIRST_PIECE_SAMPLES, 2 * self.capacity)))
+            self.current = {name: np.empty(self.capacity, dtype=dtype) for name, dtype in self.dtypes.items()}
+        for name, values in block.items():
+            self.current[name][self.filled:self.filled + n] = values
+        self.filled += n
+        self.messages += 1
+
+    def _close_piece(self) -> None:
+        if self.filled:
+            self.pieces.append({name: a[:self.filled] for name, a in self.current.items()})
+        self.current, self.filled = {}, 0
+
+    def frame(self) -> pl.DataFrame:
+        self._close_piece()
+        columns = []
+        for name, dtype in STREAM_COLUMNS[self.stream].items():
+            series = [pl.Series(name, piece[name], dtype=dtype) for piece in self.pieces]
+            columns.append(pl.concat(series, rechunk=False) if len(series) > 1 else
+                           series[0] if series else pl.Series(name, [], dtype=dtype))
+        return pl.DataFrame(columns)
 
 
 def _string(buf, p: int, end: int) -> tuple[str, int]:

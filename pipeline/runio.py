@@ -22,6 +22,12 @@ FORMATS = ("mcap", "parquet")
 
 #: Labels a fixture event may carry (log-format.md).
 FIXTURE_LABELS: tuple[str, ...] = (*POSITION_NAMES, MOVING)
+#: An interval longer than this many median intervals of a stream is a gap (warned about by the readers, listed by
+#: ``inspect``).
+GAP_FACTOR = 5.0
+#: A sampled stream whose time jumps forward by more than this is refused: a clock error, or two recordings in one
+#: file (the segmenter works on the whole time span, so one sample stamped 1970 must not stretch it to decades).
+MAX_JUMP_S = 86_400.0
 
 
 def run_format(path: str | Path) -> str:
@@ -76,7 +82,10 @@ def check_stream(stream: str, df: pl.DataFrame, *, path: str, warnings: list[str
     """Check a stream table read from a file; return it in time order.
 
     ``df`` must already hold the canonical columns and dtypes. Null times and unknown fixture labels are errors;
-    samples out of time order are sorted (stable) with a warning. Non-finite values are kept.
+    samples out of time order are sorted (stable) with a warning. In the sampled streams (all but ``fixture``),
+    repeated samples (same ``t_ns``, same values) are dropped with a warning, while two different samples at one
+    ``t_ns`` or a jump forward by more than :data:`MAX_JUMP_S` are errors; gaps are warned about. Non-finite values
+    are kept.
     """
     t = df["t_ns"]
     if t.null_count():
@@ -84,9 +93,13 @@ def check_stream(stream: str, df: pl.DataFrame, *, path: str, warnings: list[str
         raise RunFormatError("t_ns is missing (null)", path=path, stream=stream, where=f"row {row}")
     if not t.is_sorted():
         t_ns = t.to_numpy()
-        n_back = int(np.count_nonzero(t_ns[1:] < t_ns[:-1]))
+        back = t_ns[1:] < t_ns[:-1]
+        row = int(back.argmax()) + 1
         df = df.sort("t_ns", maintain_order=True)
-        warnings.append(f"{stream}: {n_back} samples were out of time order; sorted by t_ns")
+        warnings.append(f"{stream}: {int(np.count_nonzero(back))} samples were out of time order (first at row {row}: "
+                        f"t_ns={t_ns[row]} after t_ns={t_ns[row - 1]}); sorted by t_ns")
+    if stream != "fixture" and df.height > 1:
+        df = _check_time_base(stream, df, path=path, warnings=warnings)
     if stream == "fixture" and df.height:
         bad = ~df["position"].is_in(FIXTURE_LABELS) | df["position"].is_null()
         if bad.any():
@@ -94,6 +107,54 @@ def check_stream(stream: str, df: pl.DataFrame, *, path: str, warnings: list[str
             raise RunFormatError(
                 f"unknown fixture position {df['position'][row]!r} (expected one of {', '.join(FIXTURE_LABELS)})",
                 path=path, stream=stream, where=f"t_ns={df['t_ns'][row]}")
+    return df
+
+
+def gap_indices(t_ns: np.ndarray) -> np.ndarray:
+    """Indices ``i`` of the sorted times ``t_ns`` after which comes a gap: ``t_ns[i + 1] - t_ns[i]`` longer than
+    :data:`GAP_FACTOR` median intervals (the median from at most ~100 000 intervals)."""
+    dt = np.diff(t_ns)
+    if dt.size == 0:
+        return np.empty(0, dtype=np.intp)
+    median_ns = float(np.median(dt[:: max(1, dt.size // 100_000)]))
+    return np.flatnonzero(dt > GAP_FACTOR * median_ns) if median_ns > 0 else np.empty(0, dtype=np.intp)
+
+
+def _check_time_base(stream: str, df: pl.DataFrame, *, path: str, warnings: list[str]) -> pl.DataFrame:
+    """Jumps (error), repeated samples (dropped) and gaps (warned) of a sampled stream sorted by time."""
+    t_ns = df["t_ns"].to_numpy()
+    dt = np.diff(t_ns)
+    jump = np.flatnonzero(dt > MAX_JUMP_S * 1e9)
+    if jump.size:
+        i = int(jump[0])
+        raise RunFormatError(f"time jumps forward by {dt[i] / 3.6e12:.1f} h after t_ns={t_ns[i]}: a clock error or "
+                             f"two recordings in one file (at most {MAX_JUMP_S / 3600:.0f} h without samples)",
+                             path=path, stream=stream, where=f"t_ns={t_ns[i + 1]}")
+    same = np.flatnonzero(dt == 0) + 1  # rows with the time of the row before
+    if same.size:
+        values = [c for c in df.columns if c != "t_ns"]
+        a = df.select(values)[same - 1]
+        b = df.select(values)[same]
+        equal = np.ones(same.size, dtype=bool)
+        for c in values:
+            x, y = a[c].to_numpy(), b[c].to_numpy()
+            equal &= (x == y) | (np.isnan(x) & np.isnan(y))
+        if not equal.all():
+            k = int(same[~equal][0])
+            raise RunFormatError("two different samples at the same time", path=path, stream=stream,
+                                 where=f"t_ns={t_ns[k]}")
+        warnings.append(f"{stream}: dropped {same.size} repeated samples (same t_ns and values as the one before), "
+                        f"first at t_ns={t_ns[same[0]]}")
+        keep = np.ones(t_ns.size, dtype=bool)
+        keep[same] = False
+        df = df.filter(pl.Series(keep))
+        t_ns = t_ns[keep]
+    gaps = gap_indices(t_ns)
+    if gaps.size:
+        dt = np.diff(t_ns)
+        i = int(gaps[np.argmax(dt[gaps])])
+        warnings.append(f"{stream}: {gaps.size} gap(s) without samples, the longest {dt[i] / 1e9:.1f} s after "
+                        f"t_ns={t_ns[i]}; the samples either side are used")
     return df
 
 

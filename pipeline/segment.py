@@ -224,6 +224,12 @@ def rolling_std_v(t_ns: np.ndarray, u_v: np.ndarray, window_s: float) -> tuple[n
     u_v = np.asarray(u_v, dtype=np.float64)
     block_ns = max(int(window_s * _NS / _BLOCKS_PER_WINDOW), 1)
     block = (t_ns - t_ns[0]) // block_ns                 # non-decreasing: t_ns is sorted
+    # A window spans _BLOCKS_PER_WINDOW blocks: a longer run of empty blocks (a pause in the recording) is shortened
+    # to one block more than that, which changes no window's samples and keeps memory in step with the samples,
+    # not the time span.
+    step = np.diff(block)
+    if step.size and step.max() > _BLOCKS_PER_WINDOW + 1:
+        block = np.concatenate(([0], np.cumsum(np.minimum(step, _BLOCKS_PER_WINDOW + 1))))
     m = int(block[-1]) + 1
     starts = np.concatenate(([0], np.flatnonzero(np.diff(block)) + 1))   # first sample of each non-empty block
     lengths = np.diff(np.append(starts, block.size))
