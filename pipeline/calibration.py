@@ -171,10 +171,15 @@ def fit_unit(unit: str, observations: list[Observation], settings: CalibrationSe
                                path=", ".join(sorted({o.source for o in observations if o.source})) or None,
                                stream="voltmeter", where=where)
     def thermal(kind: str, temps=None, K=None, U0=None) -> ThermalModel:
-        return fit_thermal_model(np.array([f.temp_c for f in fits]) if temps is None else temps,
-                                 np.array([f.K for f in fits]) if K is None else K,
-                                 np.array([f.U0 for f in fits]) if U0 is None else U0,
-                                 kind, normal_temp_c, settings.cluster_tol_c)
+        temps = np.array([f.temp_c for f in fits]) if temps is None else temps
+        try:
+            return fit_thermal_model(temps, np.array([f.K for f in fits]) if K is None else K,
+                                     np.array([f.U0 for f in fits]) if U0 is None else U0,
+                                     kind, normal_temp_c, settings.cluster_tol_c)
+        except ValueError as e:
+            distinct = sorted({round(float(t)) for t in temps})
+            raise CalibrationError(f"thermal model {kind}: {e}; calibration temperatures found: "
+                                   f"{', '.join(f'{t:+d} C' for t in distinct)}", stream="au_temperature") from None
 
     for _ in range(settings.temperature_referencing_passes):
         # Refer every segment average to its plateau's mean temperature. The local slopes come from the smooth

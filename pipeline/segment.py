@@ -19,6 +19,8 @@ the parallel-variance formula. All passes over the samples are vectorised.
 
 from __future__ import annotations
 
+import dataclasses
+
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -29,6 +31,8 @@ from .run import Run
 _NS = 1_000_000_000
 #: blocks per static window (the time resolution of static detection is static_window_s / this)
 _BLOCKS_PER_WINDOW = 10
+#: per-sample passes work on whole blocks of about this many samples at a time
+_SLAB_SAMPLES = 1 << 20
 #: the static threshold is this multiple of the low quantile below of the rolling standard deviation
 _NOISE_MULTIPLE = 4.0
 _NOISE_QUANTILE = 0.05
@@ -223,15 +227,18 @@ def rolling_std_v(t_ns: np.ndarray, u_v: np.ndarray, window_s: float) -> tuple[n
     t_ns = np.asarray(t_ns, dtype=np.int64)
     u_v = np.asarray(u_v, dtype=np.float64)
     block_ns = max(int(window_s * _NS / _BLOCKS_PER_WINDOW), 1)
-    block = (t_ns - t_ns[0]) // block_ns                 # non-decreasing: t_ns is sorted
+    block = t_ns - t_ns[0]
+    block //= block_ns                                   # non-decreasing: t_ns is sorted
     # A window spans _BLOCKS_PER_WINDOW blocks: a longer run of empty blocks (a pause in the recording) is shortened
     # to one block more than that, which changes no window's samples and keeps memory in step with the samples,
     # not the time span.
     step = np.diff(block)
     if step.size and step.max() > _BLOCKS_PER_WINDOW + 1:
-        block = np.concatenate(([0], np.cumsum(np.minimum(step, _BLOCKS_PER_WINDOW + 1))))
+        np.minimum(step, _BLOCKS_PER_WINDOW + 1, out=step)
+        block = np.concatenate(([0], np.cumsum(step)))
     m = int(block[-1]) + 1
-    starts = np.concatenate(([0], np.flatnonzero(np.diff(block)) + 1))   # first sample of each non-empty block
+    starts = np.concatenate(([0], np.flatnonzero(step) + 1))   # first sample of each non-empty block
+    del step
     lengths = np.diff(np.append(starts, block.size))
     ids = block[starts]
     finite = finite_rows(u_v)
@@ -240,16 +247,22 @@ def rolling_std_v(t_ns: np.ndarray, u_v: np.ndarray, window_s: float) -> tuple[n
     n_b[ids] = lengths if all_finite else np.add.reduceat(finite.astype(np.int64), starts)
     mean_b = np.zeros((m, 3))
     m2_b = np.zeros((m, 3))
+    # whole blocks of about _SLAB_SAMPLES samples at a time: the per-sample temporaries stay small
+    edges = np.unique(np.append(np.searchsorted(starts, np.arange(0, block.size, _SLAB_SAMPLES)), starts.size))
     with np.errstate(invalid="ignore", divide="ignore"):
-        for c in range(3):
-            x = u_v[:, c] if all_finite else np.where(finite, u_v[:, c], 0.0)
-            mean = np.add.reduceat(x, starts) / n_b[ids]
-            mean = np.where(n_b[ids] > 0, mean, 0.0)
-            dev = x - np.repeat(mean, lengths)
-            if not all_finite:
-                dev[~finite] = 0.0
-            mean_b[ids, c] = mean
-            m2_b[ids, c] = np.add.reduceat(dev * dev, starts)
+        for ka, kb in zip(edges[:-1], edges[1:]):
+            s0, s1 = starts[ka], (starts[kb] if kb < starts.size else block.size)
+            st, ln, nb = starts[ka:kb] - s0, lengths[ka:kb], n_b[ids[ka:kb]]
+            fin = finite[s0:s1]
+            for c in range(3):
+                x = u_v[s0:s1, c] if all_finite else np.where(fin, u_v[s0:s1, c], 0.0)
+                mean = np.add.reduceat(x, st) / nb
+                mean = np.where(nb > 0, mean, 0.0)
+                dev = x - np.repeat(mean, ln)
+                if not all_finite:
+                    dev[~fin] = 0.0
+                mean_b[ids[ka:kb], c] = mean
+                m2_b[ids[ka:kb], c] = np.add.reduceat(dev * dev, st)
     # rolling sums over K blocks centred on each block (zero-padded at the ends); short sums, no cancellation
     k = _BLOCKS_PER_WINDOW
     pad = ((k // 2, k - 1 - k // 2),)
@@ -307,9 +320,12 @@ def find_static(t_ns: np.ndarray, u_v: np.ndarray,
         return []
     # join stretches separated only by non-finite samples, for less than a window
     gap_ns = t_ns[runs[1:, 0]] - t_ns[runs[:-1, 1] - 1]
-    nonfinite_cum = np.concatenate(([0], np.cumsum(~finite)))
     gap_len = runs[1:, 0] - runs[:-1, 1]
-    only_nan = (nonfinite_cum[runs[1:, 0]] - nonfinite_cum[runs[:-1, 1]]) == gap_len
+    if finite.all():
+        only_nan = np.zeros(gap_len.size, dtype=bool)
+    else:
+        nonfinite_cum = np.concatenate(([0], np.cumsum(~finite)))
+        only_nan = (nonfinite_cum[runs[1:, 0]] - nonfinite_cum[runs[:-1, 1]]) == gap_len
     join = only_nan & (gap_ns < settings.static_window_s * _NS)
     keep_start = np.concatenate(([True], ~join))
     keep_end = np.concatenate((~join, [True]))
@@ -334,13 +350,30 @@ def _runs(mask: np.ndarray) -> np.ndarray:
 # the whole run
 
 
+#: fewest voltmeter samples in a static window, and in a kept static segment (for a stable noise floor)
+MIN_WINDOW_SAMPLES = 12
+MIN_SEGMENT_SAMPLES = 24
+
+
+def for_rate(settings: SegmentSettings, t_ns: np.ndarray) -> SegmentSettings:
+    """``settings`` with the static window and minimum segment length widened to at least
+    :data:`MIN_WINDOW_SAMPLES` and :data:`MIN_SEGMENT_SAMPLES` voltmeter samples: the defaults suit 10 Hz and
+    faster; at 1-2 Hz a 2 s window holds too few samples and a run falls apart into thousands of pieces."""
+    if t_ns.size < 3:
+        return settings
+    dt_s = float(np.median(np.diff(t_ns))) / _NS
+    if not dt_s > 0:
+        return settings
+    return dataclasses.replace(settings, static_window_s=max(settings.static_window_s, MIN_WINDOW_SAMPLES * dt_s),
+                               static_min_s=max(settings.static_min_s, MIN_SEGMENT_SAMPLES * dt_s))
+
+
 def segment_run(run: Run, settings: SegmentSettings = SegmentSettings()) -> Segmentation:
     """Plateaus, static segments (cut at plateau boundaries, trimmed, averaged, named) and warnings of ``run``."""
     warnings: list[str] = []
     t_ns = run.t_ns()
-    u_v = np.empty((t_ns.size, 3), order="F")       # column-contiguous: the per-channel passes read columns
-    for c, name in enumerate(("ux", "uy", "uz")):
-        u_v[:, c] = run.voltmeter[name].to_numpy()
+    # column-contiguous: the per-channel passes read columns (one copy, no per-column temporaries)
+    u_v = run.voltmeter.select("ux", "uy", "uz").to_numpy(order="fortran", writable=True)
     tt_ns = run.au_temperature["t_ns"].to_numpy()
     temp = run.au_temperature["temp_c"].to_numpy()
 
@@ -362,6 +395,7 @@ def segment_run(run: Run, settings: SegmentSettings = SegmentSettings()) -> Segm
         warnings.append(f"voltmeter: {int(bad_u.sum())} non-finite samples excluded (not static), first at "
                         f"t_ns={int(t_ns[bad_u][0])}")
 
+    settings = for_rate(settings, t_ns)
     plateaus = find_plateaus(tt_ns, temp, settings)
     if not plateaus:
         warnings.append("au_temperature: no temperature plateau found (the temperature never stays within "

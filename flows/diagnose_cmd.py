@@ -1,0 +1,81 @@
+"""``thermocal diagnose RUN [--passport FILE] [--json]``: the command behind the CLI (no Prefect).
+
+Reads the run (and the passport when given), runs :func:`pipeline.diagnose.diagnose_run`, writes the figure and the
+passport extended with the fitted effects, and returns the report (contract.md's ``diagnose --json`` object plus
+``figure`` and ``extended_passport`` paths). Both files go beside the run unless paths are given:
+``<run>.diagnose.png`` and ``<run>.diagnose.passport.json``.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+from pipeline.diagnose import diagnose_run
+from pipeline.errors import ThermocalError
+from pipeline.passport import read_passport
+from pipeline.runio import read_run
+
+
+def _beside(run: Path, suffix: str) -> Path:
+    run = Path(run)
+    return run.parent / f"{run.name.removesuffix('.mcap')}{suffix}"
+
+
+def diagnose_command(run: Path, passport: Path | None, as_json: bool, out_png: Path | None,
+                     out_passport: Path | None = None) -> dict:
+    """Diagnose ``run`` against ``passport`` (fitted from the run when None); write the PNG to ``out_png`` and the
+    extended passport to ``out_passport`` (default: beside the run). ``as_json`` only silences the progress line
+    on stderr. Returns the report."""
+    run = Path(run)
+    the_run = read_run(run)
+    doc = read_passport(passport) if passport is not None else None
+    if not as_json:
+        print(f"thermocal: diagnosing {run} ...", file=sys.stderr)
+    result = diagnose_run(the_run, doc, passport_source=str(passport) if passport is not None else None)
+    png = Path(out_png) if out_png is not None else _beside(run, ".diagnose.png")
+    ext = Path(out_passport) if out_passport is not None else _beside(run, ".diagnose.passport.json")
+    try:
+        from pipeline.diagnose_plot import plot_residuals
+
+        title = (f"{the_run.meta.unit_serial} {the_run.meta.run_id}: residual of 30 s blocks, "
+                 f"{result.report['verdict']}")
+        plot_residuals(png, result.t_h, result.before_v, result.after_v, result.sigma_v, result.windows_h,
+                       result.located_h, title=title)
+        ext.parent.mkdir(parents=True, exist_ok=True)
+        ext.write_text(json.dumps(result.passport, indent=1, sort_keys=True) + "\n")
+    except OSError as e:
+        raise ThermocalError(f"cannot write: {e.strerror or e}", path=str(e.filename or png)) from None
+    report = dict(result.report)
+    report["figure"] = str(png)
+    report["extended_passport"] = str(ext)
+    return report
+
+
+def diagnose_text(report: dict) -> str:
+    """The report for a person: verdict, findings with their explanation, fit and VP errors before and after."""
+    uv = 1e6
+    lines = [f"{report['unit']} {report['run_id']}: {report['verdict']}  (passport: {report['passport_source']})",
+             f"  residual RMS of {report['noise_v']['block_s']:.0f} s blocks: before {report['rms_before_v'] * uv:.2f} "
+             f"uV, after {report['rms_after_v'] * uv:.2f} uV (noise {report['rms_noise_v'] * uv:.2f} uV)"]
+    if report.get("vp_max_abs_dg_before_g") is not None:
+        lines.append(f"  VP max |dg|: before {report['vp_max_abs_dg_before_g'] * uv:.1f} ug, after "
+                     f"{report['vp_max_abs_dg_after_g'] * uv:.1f} ug")
+    for k, f in enumerate(report["findings"], 1):
+        w = f["where"]
+        lines.append(f"  {k}. {f['effect']}" + (f" (confounded with {', '.join(f['confounded_with'])})"
+                                                if f.get("confounded_with") else ""))
+        lines.append(f"     {f['explanation']}")
+        lines.append(f"     where: {len(w['windows'])} window(s), axes {'/'.join(w['axes'])}, temperatures "
+                     f"{', '.join(f'{t:+.0f}' for t in w['temps_c']) or '-'} C, positions "
+                     f"{' '.join(w['positions']) or '-'}; RMS there {f['rms_before_v'] * uv:.2f} -> "
+                     f"{f['rms_after_v'] * uv:.2f} uV")
+    for n in report.get("notes", []):
+        lines.append(f"  note: {n}")
+    lines.append(f"  figure: {report.get('figure')}")
+    lines.append(f"  extended passport: {report.get('extended_passport')}")
+    return "\n".join(lines)
+
+
+__all__ = ["diagnose_command", "diagnose_text"]
