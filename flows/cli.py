@@ -184,16 +184,18 @@ def _calibrate_text(r: dict) -> str:
 # --------------------------------------------------------------------------------------------------------- diagnose
 @app.command()
 def diagnose(run: Path = typer.Argument(..., help="an .mcap file or a Parquet run directory"),
-             passport: Optional[Path] = typer.Option(None, "--passport", help="passport JSON (default: fit the run)"),
-             png: Optional[Path] = typer.Option(None, "--png", help="residual figure (default: beside the run)"),
+             passport: Optional[Path] = typer.Option(None, "--passport",
+                                                     help="passport JSON (default: fitted from the run)"),
+             png: Optional[Path] = typer.Option(None, "--png",
+                                                help="figure (default: <run>.diagnose.png beside the run)"),
+             out_passport: Optional[Path] = typer.Option(
+                 None, "--out-passport", help="extended passport (default: <run>.diagnose.passport.json)"),
              as_json: bool = typer.Option(False, "--json")):
-    """Compare the recording with the simulator driven by the passport: locate, name, model the mismatch."""
-    from .diagnose_cmd import diagnose_command
+    """Compare the recording with the model its passport predicts: locate, name and model the mismatch."""
+    from .diagnose_cmd import diagnose_command, diagnose_text
 
-    if not run.exists():
-        raise ThermocalError("no such file or directory", path=str(run))
-    result, text = diagnose_command(run, passport, png)
-    _emit(result, as_json, text)
+    report = diagnose_command(run, passport, as_json, png, out_passport)
+    _emit(report, as_json, None if as_json else diagnose_text(report))
 
 
 # ------------------------------------------------------------------------------------------------- fleet and serve
@@ -216,6 +218,8 @@ def fleet(folder: Path = typer.Argument(..., help="folder of runs (searched recu
                                                           "(tcp://host:8786)"),
           workers: Optional[int] = typer.Option(None, "--workers", help="local pool size (default: CPU count)"),
           pool: str = typer.Option("auto", "--pool", help="local pool: auto | process | thread"),
+          figures: bool = typer.Option(True, "--figures/--no-figures",
+                                       help="the PNG of the VP errors beside each new passport"),
           thermal_model: str = typer.Option("auto", "--thermal-model", help="as for calibrate"),
           constants_method: str = typer.Option("auto", "--constants-method", help="as for calibrate"),
           tol_normal_g: float = typer.Option(3e-4, "--tol-normal-g", help="|dg| limit near T0, g"),
@@ -237,7 +241,7 @@ def fleet(folder: Path = typer.Argument(..., help="folder of runs (searched recu
     from .fleet import run_fleet
 
     summary = run_fleet(str(folder), str(registry), settings, dask_address=dask_address, workers=workers, pool=pool,
-                        progress=True)
+                        figures=figures, progress=True)
     _emit(summary, as_json, None if as_json else _fleet_text(summary))
     if summary["failed"]:
         print(f"thermocal: fleet: {len(summary['failed'])} run(s) failed: {summary['failed'][0]['run']}: "
@@ -275,7 +279,6 @@ def serve(inbox: Path = typer.Option(..., "--inbox", help="folder the chamber ru
     from .serve import serve_nightly
 
     settings = _fleet_settings(thermal_model, constants_method, tol_normal_g, tol_range_g)
-    inbox.mkdir(parents=True, exist_ok=True)
     serve_nightly(str(inbox), str(registry), cron=cron, timezone=timezone, name=name, settings=settings,
                   dask_address=dask_address, workers=workers)
 

@@ -8,6 +8,7 @@ streams and metadata) live here too, so that both layouts accept and refuse exac
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +29,8 @@ GAP_FACTOR = 5.0
 #: A sampled stream whose time jumps forward by more than this is refused: a clock error, or two recordings in one
 #: file (the segmenter works on the whole time span, so one sample stamped 1970 must not stretch it to decades).
 MAX_JUMP_S = 86_400.0
+#: time checks look at this many intervals at a time
+_SLICE = 1 << 20
 
 
 def run_format(path: str | Path) -> str:
@@ -110,27 +113,42 @@ def check_stream(stream: str, df: pl.DataFrame, *, path: str, warnings: list[str
     return df
 
 
+def _intervals(t_ns: np.ndarray):
+    """``(offset, np.diff(t_ns[offset:offset + _SLICE + 1]))`` over the whole array: no temporary the length of a
+    stream (at 1 kHz one is 0.5 GB, and every fresh one costs page faults)."""
+    for a in range(0, t_ns.size - 1, _SLICE):
+        yield a, np.diff(t_ns[a:a + _SLICE + 1])
+
+
 def gap_indices(t_ns: np.ndarray) -> np.ndarray:
     """Indices ``i`` of the sorted times ``t_ns`` after which comes a gap: ``t_ns[i + 1] - t_ns[i]`` longer than
     :data:`GAP_FACTOR` median intervals (the median from at most ~100 000 intervals)."""
-    dt = np.diff(t_ns)
-    if dt.size == 0:
+    n = t_ns.size - 1
+    if n < 1:
         return np.empty(0, dtype=np.intp)
-    median_ns = float(np.median(dt[:: max(1, dt.size // 100_000)]))
-    return np.flatnonzero(dt > GAP_FACTOR * median_ns) if median_ns > 0 else np.empty(0, dtype=np.intp)
+    k = np.arange(0, n, max(1, n // 100_000))
+    median_ns = float(np.median(t_ns[k + 1] - t_ns[k]))
+    if not median_ns > 0:
+        return np.empty(0, dtype=np.intp)
+    limit = np.int64(math.floor(GAP_FACTOR * median_ns))  # integer comparison: no float copy of the intervals
+    return np.concatenate([a + np.flatnonzero(dt > limit) for a, dt in _intervals(t_ns)])
 
 
 def _check_time_base(stream: str, df: pl.DataFrame, *, path: str, warnings: list[str]) -> pl.DataFrame:
     """Jumps (error), repeated samples (dropped) and gaps (warned) of a sampled stream sorted by time."""
     t_ns = df["t_ns"].to_numpy()
-    dt = np.diff(t_ns)
-    jump = np.flatnonzero(dt > MAX_JUMP_S * 1e9)
-    if jump.size:
-        i = int(jump[0])
-        raise RunFormatError(f"time jumps forward by {dt[i] / 3.6e12:.1f} h after t_ns={t_ns[i]}: a clock error or "
-                             f"two recordings in one file (at most {MAX_JUMP_S / 3600:.0f} h without samples)",
-                             path=path, stream=stream, where=f"t_ns={t_ns[i + 1]}")
-    same = np.flatnonzero(dt == 0) + 1  # rows with the time of the row before
+    jump_ns = np.int64(MAX_JUMP_S * 1e9)
+    same_parts = []
+    for a, dt in _intervals(t_ns):
+        jump = np.flatnonzero(dt > jump_ns)
+        if jump.size:
+            i = a + int(jump[0])
+            raise RunFormatError(f"time jumps forward by {(t_ns[i + 1] - t_ns[i]) / 3.6e12:.1f} h after "
+                                 f"t_ns={t_ns[i]}: a clock error or two recordings in one file (at most "
+                                 f"{MAX_JUMP_S / 3600:.0f} h without samples)", path=path, stream=stream,
+                                 where=f"t_ns={t_ns[i + 1]}")
+        same_parts.append(a + np.flatnonzero(dt == 0) + 1)  # rows with the time of the row before
+    same = np.concatenate(same_parts)
     if same.size:
         values = [c for c in df.columns if c != "t_ns"]
         a = df.select(values)[same - 1]
@@ -151,9 +169,9 @@ def _check_time_base(stream: str, df: pl.DataFrame, *, path: str, warnings: list
         t_ns = t_ns[keep]
     gaps = gap_indices(t_ns)
     if gaps.size:
-        dt = np.diff(t_ns)
-        i = int(gaps[np.argmax(dt[gaps])])
-        warnings.append(f"{stream}: {gaps.size} gap(s) without samples, the longest {dt[i] / 1e9:.1f} s after "
+        dt = t_ns[gaps + 1] - t_ns[gaps]
+        i = int(gaps[np.argmax(dt)])
+        warnings.append(f"{stream}: {gaps.size} gap(s) without samples, the longest {dt.max() / 1e9:.1f} s after "
                         f"t_ns={t_ns[i]}; the samples either side are used")
     return df
 

@@ -1,0 +1,250 @@
+"""Fleet throughput: units per minute for a fleet of simulated units of the standard program, by where the unit
+tasks run, with the Prefect overhead per unit; and the single-run latency of ``thermocal calibrate``.
+
+    .venv/bin/python benchmarks/fleet_throughput.py [--units 50] [--rate-hz 10] [--workers N] [--cli-runs 3]
+        [--modes plain,thread1,thread,process,dask] [--keep DIR] [--json-out FILE]
+
+The runs are simulated into a temporary folder (MCAP, one 16.5 h standard run per unit, distinct units and noise;
+about 17 MB each at 10 Hz) and deleted at the end unless ``--keep`` names a folder (reused when it holds them).
+Every mode calibrates the whole fleet into a fresh registry:
+
+- ``plain``:   :func:`pipeline.fleet_plan.calibrate_group` in a loop, no Prefect (the compute baseline);
+- ``thread1``: the fleet flow with one worker thread: its wall time minus the compute measured inside the tasks is
+  Prefect's own cost (flow run, planning, task runs, artifact), given per unit;
+- ``thread``, ``process``: the flow on a local pool of ``--workers`` (default: CPU count) threads / processes;
+- ``dask``:    the flow on a dask LocalCluster (``--workers`` single-threaded worker processes on 127.0.0.1) through
+  ``--dask-address``; the cluster start is timed apart.
+
+Columns: wall time, units per minute, the mean compute per unit measured inside the tasks (it grows when workers
+compete for the cores), the overhead per unit = (workers x wall - sum of in-task compute) / units: the worker
+time per unit not spent calibrating (Prefect, pool start-up, idle tail), and the CPU seconds per unit (this
+process, its finished children -- pool and dask workers -- and the Prefect API server process): unlike wall
+time, CPU time does not depend on what else runs on the machine. The Prefect API is a local temporary server
+started once before the modes (its start-up is reported apart); the load average is printed, since other work on
+the machine slows everything.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+MODES = ("plain", "thread1", "thread", "process", "dask")
+
+
+def _make_unit(args: tuple[Path, int, float, str]) -> str:
+    out, k, rate_hz, program = args
+    from pipeline.runio import write_run
+    from pipeline.simulate import SimConfig, simulate
+
+    path = out / f"AU-{k:04d}.mcap"
+    if not path.exists():
+        res = simulate(SimConfig(unit_serial=f"AU-{k:04d}", unit_seed=1000 + k, seed=k, program=program,
+                                 rate_hz=rate_hz))
+        write_run(res.run, path, "mcap")
+    return str(path)
+
+
+def make_fleet(out: Path, units: int, rate_hz: float, program: str, workers: int) -> list[str]:
+    out.mkdir(parents=True, exist_ok=True)
+    with ProcessPoolExecutor(workers) as pool:
+        return list(pool.map(_make_unit, [(out, k, rate_hz, program) for k in range(1, units + 1)]))
+
+
+def run_plain(paths: list[str], registry: Path) -> dict:
+    from pipeline.fleet_plan import calibrate_group, read_run_meta
+
+    t0 = time.perf_counter()
+    outcomes = [calibrate_group(read_run_meta(p).unit_serial, [p], registry) for p in paths]
+    wall = time.perf_counter() - t0
+    failed = [f for o in outcomes for f in o.failed]
+    return {"wall_s": wall, "compute_s": sum(o.compute_s for o in outcomes), "workers": 1, "units": len(outcomes),
+            "done": sum(o.result is not None for o in outcomes), "failed": len(failed), "runner": "none (no Prefect)"}
+
+
+def run_flow(folder: Path, registry: Path, workers: int, **options) -> dict:
+    from flows.fleet import run_fleet
+
+    t0 = time.perf_counter()
+    summary = run_fleet(str(folder), str(registry), workers=workers, **options)
+    wall = time.perf_counter() - t0
+    t = summary["timing"]
+    return {"wall_s": wall, "compute_s": t["compute_s"], "workers": workers, "units": t["units"],
+            "done": len(summary["done"]), "failed": len(summary["failed"]), "runner": t["runner"],
+            "flow_wall_s": t["wall_s"], "plan_s": t["plan_s"]}
+
+
+def run_dask(folder: Path, registry: Path, workers: int) -> dict:
+    from distributed import Client, LocalCluster
+
+    t0 = time.perf_counter()
+    with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
+                      dashboard_address=None, silence_logs=40) as cluster, Client(cluster) as client:
+        client.wait_for_workers(workers, timeout=120)
+        start_s = time.perf_counter() - t0
+        out = run_flow(folder, registry, workers, dask_address=cluster.scheduler_address)
+    out["cluster_start_s"] = start_s
+    return out
+
+
+def cli_latency(run: str, repeats: int, workdir: Path, api_url: str | None) -> list[float]:
+    """Wall seconds of `thermocal calibrate RUN --registry <fresh> --json`, ``repeats`` times."""
+    exe = str(Path(sys.executable).parent / "thermocal")
+    env = dict(os.environ)
+    if api_url:
+        env["PREFECT_API_URL"] = api_url
+    else:
+        env.pop("PREFECT_API_URL", None)
+    times = []
+    for k in range(repeats):
+        reg = workdir / f"cli-reg-{'server' if api_url else 'ephemeral'}-{k}"
+        t0 = time.perf_counter()
+        proc = subprocess.run([exe, "calibrate", run, "--registry", str(reg), "--json"], env=env,
+                              capture_output=True, text=True, timeout=600)
+        times.append(time.perf_counter() - t0)
+        if proc.returncode != 0:
+            raise RuntimeError(f"thermocal calibrate failed: {proc.stderr.strip()}")
+    return times
+
+
+def start_local_api() -> tuple[str, float, int]:
+    """Start (or find) this process's temporary Prefect server; its URL, the seconds it took, its pid."""
+    os.environ.setdefault("PREFECT_HOME", tempfile.mkdtemp(prefix="thermocal-bench-prefect-"))
+    from flows.runtime import prefect_defaults
+
+    prefect_defaults()
+    from prefect.server.api.server import SubprocessASGIServer
+
+    t0 = time.perf_counter()
+    server = SubprocessASGIServer()
+    server.start()
+    return server.api_url, time.perf_counter() - t0, server.server_process.pid
+
+
+def warm_up(path: str, registry: Path) -> None:
+    """One unit calibrated, and one tiny flow run, before timing: imports, first figure, first flow run."""
+    from flows.fleet import run_fleet
+    from pipeline.fleet_plan import calibrate_group, read_run_meta
+
+    calibrate_group(read_run_meta(path).unit_serial, [path], registry)
+    empty = registry / "empty-inbox"
+    empty.mkdir(parents=True, exist_ok=True)
+    run_fleet(str(empty), str(registry))
+
+
+class CpuClock:
+    """CPU seconds (user + system) of this process, its waited-for children and the Prefect API server."""
+
+    def __init__(self, server_pid: int | None):
+        import psutil
+
+        self.me = psutil.Process()
+        self.server = psutil.Process(server_pid) if server_pid else None
+
+    def __call__(self) -> float:
+        t = self.me.cpu_times()
+        total = t.user + t.system + t.children_user + t.children_system
+        if self.server is not None:
+            s = self.server.cpu_times()
+            total += s.user + s.system
+        return total
+
+
+def table(results: dict[str, dict]) -> str:
+    lines = ["| mode | runner | units | wall s | units/min | compute s/unit (in task) | overhead s/unit | "
+             "CPU s/unit | failed |", "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for mode, r in results.items():
+        n = max(r["units"], 1)
+        overhead = (r["workers"] * r["wall_s"] - r["compute_s"]) / n
+        lines.append(f"| {mode} | {r['runner']} | {r['units']} | {r['wall_s']:.1f} | "
+                     f"{60 * r['done'] / r['wall_s']:.1f} | {r['compute_s'] / n:.2f} | {overhead:.2f} | "
+                     f"{r['cpu_s'] / n:.2f} | {r['failed']} |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--units", type=int, default=50)
+    ap.add_argument("--rate-hz", type=float, default=10.0)
+    ap.add_argument("--program", default="standard")
+    ap.add_argument("--workers", type=int, default=None, help="pool size (default: CPU count)")
+    ap.add_argument("--modes", default=",".join(MODES))
+    ap.add_argument("--cli-runs", type=int, default=3, help="repetitions of the CLI latency (0: skip)")
+    ap.add_argument("--keep", type=Path, default=None, help="folder for the simulated runs (kept)")
+    ap.add_argument("--json-out", type=Path, default=None)
+    args = ap.parse_args()
+    modes = [m for m in args.modes.split(",") if m]
+    unknown = set(modes) - set(MODES)
+    if unknown:
+        ap.error(f"unknown modes {sorted(unknown)}; choose from {', '.join(MODES)}")
+
+    from flows.fleet import default_workers
+
+    workers = args.workers or default_workers()
+    work = Path(tempfile.mkdtemp(prefix="thermocal-fleet-bench-"))
+    runs_dir = args.keep or work / "runs"
+    print(f"# fleet throughput: {args.units} units, {args.program} program at {args.rate_hz:g} Hz, "
+          f"{workers} workers, {os.cpu_count()} CPUs; load average at start {os.getloadavg()[0]:.2f}", flush=True)
+    try:
+        t0 = time.perf_counter()
+        paths = make_fleet(runs_dir, args.units, args.rate_hz, args.program, workers)
+        size_mb = sum(Path(p).stat().st_size for p in paths) / 1e6
+        print(f"simulated and wrote {len(paths)} runs ({size_mb:.0f} MB) in {time.perf_counter() - t0:.1f} s",
+              flush=True)
+        api_url, api_s, api_pid = start_local_api()
+        cpu = CpuClock(api_pid)
+        print(f"local Prefect API started in {api_s:.1f} s ({api_url})", flush=True)
+        warm_up(paths[0], work / "registry-warm-up")
+        results: dict[str, dict] = {}
+        for mode in modes:
+            reg = work / f"registry-{mode}"
+            t_mode, cpu0 = time.perf_counter(), cpu()
+            if mode == "plain":
+                results[mode] = run_plain(paths, reg)
+            elif mode == "thread1":
+                results[mode] = run_flow(runs_dir, reg, 1, pool="thread")
+            elif mode in ("thread", "process"):
+                results[mode] = run_flow(runs_dir, reg, workers, pool=mode)
+            else:
+                results[mode] = run_dask(runs_dir, reg, workers)
+            r = results[mode]
+            r["cpu_s"] = cpu() - cpu0
+            extra = f", cluster start {r['cluster_start_s']:.1f} s" if "cluster_start_s" in r else ""
+            print(f"{mode}: {r['done']} units in {r['wall_s']:.1f} s ({time.perf_counter() - t_mode:.1f} s with "
+                  f"set-up{extra}); load {os.getloadavg()[0]:.2f}", flush=True)
+        print()
+        print(table(results))
+        if "plain" in results and "thread1" in results:
+            p, f1 = results["plain"], results["thread1"]
+            print(f"\nPrefect overhead per unit (thread1 wall - its in-task compute, / units): "
+                  f"{(f1['wall_s'] - f1['compute_s']) / f1['units'] * 1000:.0f} ms; "
+                  f"(thread1 wall - plain wall) / units: {(f1['wall_s'] - p['wall_s']) / f1['units'] * 1000:.0f} ms")
+        cli = {}
+        if args.cli_runs:
+            cli["ephemeral"] = cli_latency(paths[0], args.cli_runs, work, None)
+            cli["server"] = cli_latency(paths[0], args.cli_runs, work, api_url)
+            print(f"\n`thermocal calibrate` on one {args.rate_hz:g} Hz {args.program} run (fresh registry), median of "
+                  f"{args.cli_runs}: {statistics.median(cli['ephemeral']):.1f} s with the local temporary API "
+                  f"(started by the command), {statistics.median(cli['server']):.1f} s with PREFECT_API_URL set to "
+                  f"a running server; plain compute of that unit: "
+                  f"{results.get('plain', {}).get('compute_s', float('nan')) / max(args.units, 1):.1f} s (mean)")
+        print(f"load average at end {os.getloadavg()[0]:.2f}")
+        if args.json_out:
+            args.json_out.write_text(json.dumps({"args": {k: str(v) for k, v in vars(args).items()},
+                                                 "workers": workers, "api_start_s": api_s, "results": results,
+                                                 "cli_s": cli}, indent=2))
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()

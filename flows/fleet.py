@@ -1,0 +1,222 @@
+"""The fleet flow: calibrate every run under a folder, one passport per unit, past bad runs.
+
+One flow run per fleet job, one task per unit (``calibrate-unit``, a call of
+:func:`pipeline.fleet_plan.calibrate_group`): a unit's runs, TP runs and the VP runs that verify them, are
+calibrated together. Planning (discovery, metadata, content hashes, the registry's identity check) is
+:func:`pipeline.fleet_plan.plan_fleet`, run once in the flow.
+
+Where the unit tasks run is a flow parameter, so that a deployment can choose it too:
+
+- ``dask_address="tcp://host:8786"``: on an existing dask.distributed cluster, through prefect-dask's
+  ``DaskTaskRunner(address=...)``. The workers need thermocal installed and must reach the Prefect API: with
+  ``PREFECT_API_URL`` unset the flow's local (ephemeral) API on 127.0.0.1 is handed to them, which serves workers on
+  this machine only; for workers on other machines run ``prefect server start --host 0.0.0.0`` and set
+  ``PREFECT_API_URL`` to it.
+- else a local pool of ``workers`` (default: the machine's CPU count): ``pool="process"`` (Prefect's
+  ProcessPoolTaskRunner) or ``pool="thread"`` (ThreadPoolTaskRunner); ``"auto"`` picks processes (faster here,
+  see benchmarks/fleet_throughput.py) when there are at least two units and two workers.
+
+The flow returns the ``fleet --json`` object (contract.md) and leaves a table artifact ``thermocal-fleet``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import sys
+import time
+
+from .runtime import prefect_defaults
+
+prefect_defaults()
+
+from prefect import flow, get_run_logger, task  # noqa: E402
+from prefect.artifacts import create_table_artifact  # noqa: E402
+from prefect.cache_policies import NO_CACHE  # noqa: E402
+from prefect.futures import as_completed  # noqa: E402
+from prefect.runtime import flow_run  # noqa: E402
+
+from pipeline import fleet_plan  # noqa: E402
+from pipeline.calibration import CalibrationSettings  # noqa: E402
+
+POOLS = ("auto", "process", "thread")
+ARTIFACT_KEY = "thermocal-fleet"
+
+
+@task(name="calibrate-unit", task_run_name="calibrate-{unit}", cache_policy=NO_CACHE)
+def calibrate_unit(unit: str, runs: list[str], registry: str, settings: CalibrationSettings,
+                   figure: bool = True) -> fleet_plan.UnitOutcome:
+    return fleet_plan.calibrate_group(unit, runs, registry, settings, figure)
+
+
+def default_workers() -> int:
+    """Workers of the local pool: the CPUs this process may use."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def make_task_runner(dask_address: str | None, workers: int | None, pool: str, n_units: int):
+    """The task runner for the unit tasks (see the module doc), its description, and whether its tasks run in
+    other processes."""
+    if dask_address:
+        from prefect_dask import DaskTaskRunner
+
+        return DaskTaskRunner(address=dask_address), f"DaskTaskRunner({dask_address})", True
+    from prefect.task_runners import ProcessPoolTaskRunner, ThreadPoolTaskRunner
+
+    if pool not in POOLS:
+        raise ValueError(f"unknown pool {pool!r}; expected one of {', '.join(POOLS)}")
+    n = max(1, min(workers or default_workers(), n_units))
+    if pool == "auto":
+        pool = "process" if n > 1 else "thread"
+    if pool == "process":
+        return ProcessPoolTaskRunner(max_workers=n), f"ProcessPoolTaskRunner({n})", True
+    return ThreadPoolTaskRunner(max_workers=n), f"ThreadPoolTaskRunner({n})", False
+
+
+@contextlib.contextmanager
+def _api_for_workers():
+    """Tasks in other processes report to the Prefect API: in local ephemeral mode, hand them its URL (else each
+    worker would start a private temporary server)."""
+    from prefect.settings import PREFECT_API_URL, temporary_settings
+
+    if PREFECT_API_URL.value():
+        yield
+        return
+    from prefect.server.api.server import SubprocessASGIServer
+
+    server = SubprocessASGIServer()  # the one this process already uses for the flow run
+    server.start()
+    with temporary_settings({PREFECT_API_URL: server.api_url}):
+        yield
+
+
+class _Progress:
+    """A rich progress bar and one line per unit on stderr (when ``show``); always a Prefect log line per unit."""
+
+    def __init__(self, show: bool, total: int, logger):
+        self.logger = logger
+        self.bar = None
+        if show and total:
+            from rich.console import Console
+            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+            self.bar = Progress(TextColumn("fleet"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                                console=Console(stderr=True), transient=False)
+            self.task = self.bar.add_task("units", total=total)
+
+    def __enter__(self):
+        if self.bar:
+            self.bar.start()
+        return self
+
+    def __exit__(self, *exc):
+        if self.bar:
+            self.bar.stop()
+
+    def unit_done(self, line: str, failures: list[dict]) -> None:
+        self.logger.info(line)
+        for f in failures:
+            self.logger.warning(_failure_line(f))
+        if self.bar:
+            self.bar.console.print(line, highlight=False)
+            self.bar.advance(self.task)
+
+
+@flow(name="thermocal-fleet", log_prints=False)
+def fleet_flow(root: str, registry: str, settings: CalibrationSettings = CalibrationSettings(),
+               dask_address: str | None = None, workers: int | None = None, pool: str = "auto",
+               figures: bool = True, progress: bool = False) -> dict:
+    """Calibrate every run under ``root`` into ``registry``: one task per unit, bad runs reported, done units
+    skipped. Returns the ``fleet --json`` object: ``done``, ``failed``, ``skipped`` (contract.md), ``flow_run_id``
+    and ``timing`` (wall, planning and in-task compute seconds, the runner)."""
+    logger = get_run_logger()
+    t0 = time.perf_counter()
+    plan = fleet_plan.plan_fleet(root, registry, settings)
+    logger.info(f"{plan.runs_found} runs under {root}: {len(plan.groups)} units to calibrate, "
+                f"{len(plan.skipped)} runs skipped, {len(plan.failed)} unreadable")
+    for f in plan.failed:
+        logger.warning(_failure_line(f))
+    t_plan = time.perf_counter() - t0
+    outcomes: list[fleet_plan.UnitOutcome] = []
+    runner_name = "none"
+    if plan.groups:
+        runner, runner_name, remote = make_task_runner(dask_address, workers, pool, len(plan.groups))
+        with (_api_for_workers() if remote else contextlib.nullcontext()), runner, \
+                _Progress(progress, len(plan.groups), logger) as bar:
+            futures = {runner.submit(calibrate_unit, {"unit": g.unit, "runs": list(g.runs), "registry": str(registry),
+                                                      "settings": settings, "figure": figures}): g
+                       for g in plan.groups}
+            for fut in as_completed(list(futures)):
+                group = futures[fut]
+                try:
+                    outcome = fut.result()
+                except Exception as exc:  # noqa: BLE001 - a worker lost or killed: this unit fails, not the fleet
+                    reason = fleet_plan.reason_of(exc)
+                    outcome = fleet_plan.UnitOutcome(group.unit, list(group.runs), None,
+                                                     [{"run": r, "reason": reason} for r in group.runs], 0.0)
+                outcomes.append(outcome)
+                bar.unit_done(_unit_line(outcome, len(outcomes), len(plan.groups)), outcome.failed)
+    summary = fleet_summary(plan, outcomes)
+    summary["flow_run_id"] = str(flow_run.id)
+    summary["timing"] = {"wall_s": time.perf_counter() - t0, "plan_s": t_plan,
+                         "compute_s": sum(o.compute_s for o in outcomes), "units": len(outcomes),
+                         "runner": runner_name}
+    create_table_artifact(key=ARTIFACT_KEY, table=summary_table(summary),
+                          description=f"thermocal fleet over {root}: {len(summary['done'])} units done, "
+                                      f"{len(summary['failed'])} runs failed, {len(summary['skipped'])} skipped")
+    return summary
+
+
+def _failure_line(f: dict) -> str:
+    """A failed run in one line: its reason, which names the file (else prefixed with it)."""
+    return f["reason"] if f["run"] in f["reason"] else f"{f['run']}: {f['reason']}"
+
+
+def _unit_line(o: fleet_plan.UnitOutcome, k: int, total: int) -> str:
+    if o.result is None:
+        head = f"{o.unit}: FAILED ({o.failed[0]['reason'] if o.failed else 'no runs'})"
+    else:
+        r = o.result
+        head = (f"{o.unit}: v{r['version']} {r['status']}{'' if r.get('created', True) else ' (existing)'}, "
+                f"{len(o.used_runs)} run(s)" + (f", {len(o.failed)} dropped" if o.failed else ""))
+    return f"[{k}/{total}] {head} ({o.compute_s:.1f} s)"
+
+
+def fleet_summary(plan: fleet_plan.FleetPlan, outcomes: list[fleet_plan.UnitOutcome]) -> dict:
+    """The ``fleet --json`` object: done units (by serial), failed runs, skipped runs (by path)."""
+    done, failed = [], list(plan.failed)
+    for o in sorted(outcomes, key=lambda o: o.unit):
+        if o.result is not None:
+            r = o.result
+            done.append({"unit": o.unit, "version": r["version"], "status": r["status"], "runs": o.used_runs,
+                         "created": bool(r.get("created", True)), "passport": r["passport"],
+                         "passport_sha256": r["passport_sha256"]})
+        failed += [{**f, "unit": o.unit} for f in o.failed]
+    return {"done": done, "failed": sorted(failed, key=lambda f: f["run"]),
+            "skipped": sorted(plan.skipped, key=lambda s: s["run"])}
+
+
+def summary_table(summary: dict) -> list[dict]:
+    """Rows of the table artifact: one per done unit, failed run, skipped run."""
+    rows = [{"unit": d["unit"], "outcome": "done", "version": d["version"], "status": d["status"],
+             "runs": ", ".join(os.path.basename(r) for r in d["runs"]), "detail": "" if d["created"] else "existing"}
+            for d in summary["done"]]
+    rows += [{"unit": f.get("unit", ""), "outcome": "failed", "version": "", "status": "",
+              "runs": os.path.basename(f["run"]), "detail": f["reason"]} for f in summary["failed"]]
+    rows += [{"unit": s.get("unit", ""), "outcome": "skipped", "version": s.get("version", ""), "status": "",
+              "runs": os.path.basename(s["run"]), "detail": s["why"]} for s in summary["skipped"]]
+    return rows
+
+
+def run_fleet(root: str, registry: str, settings: CalibrationSettings = CalibrationSettings(), *,
+              dask_address: str | None = None, workers: int | None = None, pool: str = "auto",
+              figures: bool = True, progress: bool = False) -> dict:
+    """Run the fleet flow in this process (local ephemeral Prefect unless PREFECT_API_URL is set)."""
+    from .runtime import flow_settings
+
+    with flow_settings():
+        return fleet_flow(str(root), str(registry), settings, dask_address=dask_address, workers=workers, pool=pool,
+                          figures=figures, progress=progress and sys.stderr is not None)
