@@ -23,6 +23,7 @@ prefect_defaults()
 
 from prefect import flow, get_run_logger, task  # noqa: E402
 from prefect.artifacts import create_markdown_artifact  # noqa: E402
+from prefect.cache_policies import NO_CACHE  # noqa: E402  (no input hashing: a Run is large and never reused)
 
 from pipeline import calibration, runio  # noqa: E402
 from pipeline.errors import CalibrationError  # noqa: E402
@@ -31,47 +32,47 @@ from pipeline.publish import publish_calibration, publish_passport  # noqa: E402
 METHODS = ("tilt", "scalar", "differential")
 
 
-@task(name="ingest")
+@task(name="ingest", cache_policy=NO_CACHE)
 def ingest(path: str):
     return runio.read_run(path)
 
 
-@task(name="segment")
+@task(name="segment", cache_policy=NO_CACHE)
 def segment(run, settings: calibration.CalibrationSettings):
     return calibration.observe_run(run, settings.segment)
 
 
-@task(name="fit")
+@task(name="fit", cache_policy=NO_CACHE)
 def fit(unit: str, observations, settings: calibration.CalibrationSettings, normal_temp_c: float):
     return calibration.fit_unit(unit, observations, settings, normal_temp_c)
 
 
-@task(name="verify")
+@task(name="verify", cache_policy=NO_CACHE)
 def verify(model, observations, normal_temp_c: float, settings: calibration.CalibrationSettings):
     return calibration.verify_unit(model, observations, normal_temp_c, settings.tolerances)
 
 
-@task(name="write")
+@task(name="write", cache_policy=NO_CACHE)
 def write(registry: str, unit_fit, rows, status, observations, paths, settings, g_local_mps2):
     return publish_calibration(registry, unit_fit, rows, status, observations, input_paths=paths,
                                settings=settings, g_local_mps2=g_local_mps2)
 
 
-@task(name="fit-scalar")
+@task(name="fit-scalar", cache_policy=NO_CACHE)
 def fit_scalar(runs, settings: calibration.CalibrationSettings):
     from pipeline.scalar import calibrate_scalar
 
     return calibrate_scalar(runs, settings=settings)
 
 
-@task(name="fit-differential")
+@task(name="fit-differential", cache_policy=NO_CACHE)
 def fit_differential(runs, base_passport: dict, settings: calibration.CalibrationSettings):
     from pipeline.differential import calibrate_differential
 
     return calibrate_differential(runs, base_passport, calibration_settings=settings)
 
 
-@task(name="write")
+@task(name="write", cache_policy=NO_CACHE)
 def write_method(registry: str, mc, paths, settings: dict):
     return publish_passport(registry, mc.passport, mc.fit, mc.rows, mc.status, mc.plateaus, input_paths=paths,
                             settings=settings)
