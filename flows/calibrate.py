@@ -26,7 +26,6 @@ from prefect.artifacts import create_markdown_artifact  # noqa: E402
 from prefect.cache_policies import NO_CACHE  # noqa: E402  (no input hashing: a Run is large and never reused)
 
 from pipeline import calibration, runio  # noqa: E402
-from pipeline.errors import CalibrationError  # noqa: E402
 from pipeline.publish import publish_calibration, publish_passport  # noqa: E402
 
 METHODS = ("tilt", "scalar", "differential")
@@ -78,13 +77,6 @@ def write_method(registry: str, mc, paths, settings: dict):
                             settings=settings)
 
 
-def check_one_unit(runs) -> str:
-    serials = sorted({r.meta.unit_serial for r in runs})
-    if len(serials) != 1:
-        raise CalibrationError(f"runs of different units given together: {', '.join(serials)}")
-    return serials[0]
-
-
 @flow(name="thermocal-calibrate", log_prints=False)
 def calibrate_flow(paths: list[str], registry: str,
                    settings: calibration.CalibrationSettings = calibration.CalibrationSettings(),
@@ -95,7 +87,7 @@ def calibrate_flow(paths: list[str], registry: str,
     ``base_passport``'s normal-temperature constants)."""
     logger = get_run_logger()
     runs = [ingest(p) for p in paths]
-    unit = check_one_unit(runs)
+    unit = calibration.unit_of(runs)
     if method == "tilt":
         result = _calibrate_tilt(runs, registry, settings, list(paths), logger)
     else:

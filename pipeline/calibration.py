@@ -95,6 +95,16 @@ def observations_from_segmentation(run_id: str, segmentation, source: str = "") 
     return out
 
 
+def unit_of(runs) -> str:
+    """The one unit serial of ``runs``; CalibrationError when none are given or they are of different units."""
+    serials = sorted({r.meta.unit_serial for r in runs})
+    if not serials:
+        raise CalibrationError("no runs given")
+    if len(serials) != 1:
+        raise CalibrationError(f"runs of different units given together: {', '.join(serials)}")
+    return serials[0]
+
+
 def observe_run(run, settings: SegmentSettings = SegmentSettings()) -> tuple[list[Observation], list[str]]:
     """Segment a run and return its observations and the segmenter's and reader's warnings.
 

@@ -568,20 +568,16 @@ def calibrate_differential(runs, base_passport: dict, *, settings: DifferentialS
     :class:`RateTerms`), ``differential`` the fit's details and ``base_passport`` the starting passport's unit,
     version and method. VP segments in the runs, if any, verify it as usual (without rate terms).
     """
-    from .calibration import CalibrationSettings, UnitFit, observe_run, plateau_summary, verify_unit
+    from .calibration import CalibrationSettings, UnitFit, observe_run, plateau_summary, unit_of, verify_unit
     from .passport import build_passport
     from .scalar import MethodCalibration
 
     calibration_settings = calibration_settings or CalibrationSettings()
     runs = list(runs)
-    if not runs:
-        raise CalibrationError("no runs given")
-    serials = sorted({r.meta.unit_serial for r in runs})
-    if len(serials) != 1:
-        raise CalibrationError(f"runs of different units given together: {', '.join(serials)}")
-    if base_passport.get("unit") not in (None, serials[0]):
+    serial = unit_of(runs)
+    if base_passport.get("unit") not in (None, serial):
         raise CalibrationError(f"the base passport is for unit {base_passport.get('unit')}, the runs for "
-                               f"{serials[0]}")
+                               f"{serial}")
     try:
         c = base_passport["coefficients"]
         K0, U0 = np.asarray(c["K"], float), np.asarray(c["U0"], float)
@@ -598,7 +594,7 @@ def calibrate_differential(runs, base_passport: dict, *, settings: DifferentialS
         except CalibrationError:
             pass
     rows, status = verify_unit(fit.model.static, observations, t0, calibration_settings.tolerances)
-    unit_fit = UnitFit(unit=serials[0], normal_temp_c=t0, per_plateau=[], model=fit.model.static,
+    unit_fit = UnitFit(unit=serial, normal_temp_c=t0, per_plateau=[], model=fit.model.static,
                        skipped=list(fit.notes))
     plateaus = plateau_summary(observations, calibration_settings.cluster_tol_c)
     extra = {"differential": fit.summary(), "rate_terms": fit.model.rate.to_dict(),

@@ -343,18 +343,14 @@ def calibrate_scalar(runs, *, settings=None, normal_temp_c: float | None = None,
     passport's extra field ``scalar`` holds the fit's details (:meth:`ScalarFit.summary`).
     """
     from .calibration import CalibrationSettings, Observation, PlateauConstants, UnitFit, \
-        observations_from_segmentation, plateau_summary, verify_unit
+        observations_from_segmentation, plateau_summary, unit_of, verify_unit
     from .passport import build_passport
     from .segment import segment_run
     from .thermal import PolynomialModel
 
     settings = settings or CalibrationSettings()
     runs = list(runs)
-    if not runs:
-        raise CalibrationError("no runs given")
-    serials = sorted({r.meta.unit_serial for r in runs})
-    if len(serials) != 1:
-        raise CalibrationError(f"runs of different units given together: {', '.join(serials)}")
+    serial = unit_of(runs)
     meta = runs[0].meta
     t0 = float(meta.normal_temp_c if normal_temp_c is None else normal_temp_c)
     observations: list[Observation] = []
@@ -395,7 +391,7 @@ def calibrate_scalar(runs, *, settings=None, normal_temp_c: float | None = None,
                                U0=fit_s.U0, positions=tuple(dict.fromkeys(names)), method=fit_s.method,
                                residual_rms_v=float(np.sqrt(np.mean(resid_v ** 2))))
     thermal = PolynomialModel(fit_s.K, fit_s.U0, t0, 0, np.zeros((0, 3)), np.zeros((0, 3, 3)))
-    unit_fit = UnitFit(unit=serials[0], normal_temp_c=t0, per_plateau=[plateau], model=thermal, skipped=notes)
+    unit_fit = UnitFit(unit=serial, normal_temp_c=t0, per_plateau=[plateau], model=thermal, skipped=notes)
     rows, status = verify_unit(thermal, observations, t0, settings.tolerances)
     plateaus = plateau_summary(observations, settings.cluster_tol_c)
     doc = build_passport(unit_fit, rows, status, g_local_mps2=meta.g_local_mps2, plateaus=plateaus,
