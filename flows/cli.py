@@ -199,17 +199,6 @@ def diagnose(run: Path = typer.Argument(..., help="an .mcap file or a Parquet ru
 
 
 # ------------------------------------------------------------------------------------------------- fleet and serve
-def _fleet_settings(thermal_model: str, constants_method: str, tol_normal_g: float, tol_range_g: float):
-    from pipeline.calibration import CalibrationSettings
-    from pipeline.verify import Tolerances
-
-    if thermal_model not in ("auto", "poly1", "poly2", "poly3", "piecewise"):
-        raise ThermocalError(f"unknown thermal model {thermal_model!r} (poly1, poly2, poly3, piecewise)",
-                             where="--thermal-model")
-    return CalibrationSettings(thermal_model=thermal_model, constants_method=constants_method,
-                               tolerances=Tolerances(normal_g=tol_normal_g, operating_range_g=tol_range_g))
-
-
 @app.command()
 def fleet(folder: Path = typer.Argument(..., help="folder of runs (searched recursively; .mcap and Parquet)"),
           registry: Path = typer.Option(..., "--registry", help="registry folder"),
@@ -232,7 +221,7 @@ def fleet(folder: Path = typer.Argument(..., help="folder of runs (searched recu
     """
     from pipeline.fleet_plan import discover_runs
 
-    settings = _fleet_settings(thermal_model, constants_method, tol_normal_g, tol_range_g)
+    settings = _calibration_settings(thermal_model, constants_method, tol_normal_g, tol_range_g)
     if pool not in ("auto", "process", "thread"):
         raise ThermocalError(f"unknown pool {pool!r} (auto, process, thread)", where="--pool")
     if workers is not None and workers < 1:
@@ -278,7 +267,7 @@ def serve(inbox: Path = typer.Option(..., "--inbox", help="folder the chamber ru
     """
     from .serve import serve_nightly
 
-    settings = _fleet_settings(thermal_model, constants_method, tol_normal_g, tol_range_g)
+    settings = _calibration_settings(thermal_model, constants_method, tol_normal_g, tol_range_g)
     serve_nightly(str(inbox), str(registry), cron=cron, timezone=timezone, name=name, settings=settings,
                   dask_address=dask_address, workers=workers)
 

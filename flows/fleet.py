@@ -13,8 +13,11 @@ Where the unit tasks run is a flow parameter, so that a deployment can choose it
   this machine only; for workers on other machines run ``prefect server start --host 0.0.0.0`` and set
   ``PREFECT_API_URL`` to it.
 - else a local pool of ``workers`` (default: the machine's CPU count): ``pool="process"`` (Prefect's
-  ProcessPoolTaskRunner) or ``pool="thread"`` (ThreadPoolTaskRunner); ``"auto"`` picks processes (faster here,
-  see benchmarks/fleet_throughput.py) when there are at least two units and two workers.
+  ProcessPoolTaskRunner) or ``pool="thread"`` (ThreadPoolTaskRunner). Measured on 2 cores with 50 standard runs
+  at 10 Hz (benchmarks/fleet_throughput.py): one worker 52 units/min, two threads 62 (the GIL: reading JSON
+  blocks and drawing the figure hold it), two processes 82; but starting the worker processes (spawn, imports)
+  costs ~4 s, ~0.3 s of worker time per unit over 50 units. ``"auto"`` therefore picks processes from
+  :data:`AUTO_PROCESS_MIN_UNITS` units on (break-even with threads: ~15 standard runs), threads below.
 
 The flow returns the ``fleet --json`` object (contract.md) and leaves a table artifact ``thermocal-fleet``.
 """
@@ -40,6 +43,8 @@ from pipeline import fleet_plan  # noqa: E402
 from pipeline.calibration import CalibrationSettings  # noqa: E402
 
 POOLS = ("auto", "process", "thread")
+#: ``pool="auto"``: a process pool from this many units on (its start-up pays off), else threads.
+AUTO_PROCESS_MIN_UNITS = 20
 ARTIFACT_KEY = "thermocal-fleet"
 
 
@@ -70,7 +75,7 @@ def make_task_runner(dask_address: str | None, workers: int | None, pool: str, n
         raise ValueError(f"unknown pool {pool!r}; expected one of {', '.join(POOLS)}")
     n = max(1, min(workers or default_workers(), n_units))
     if pool == "auto":
-        pool = "process" if n > 1 else "thread"
+        pool = "process" if n > 1 and n_units >= AUTO_PROCESS_MIN_UNITS else "thread"
     if pool == "process":
         return ProcessPoolTaskRunner(max_workers=n), f"ProcessPoolTaskRunner({n})", True
     return ThreadPoolTaskRunner(max_workers=n), f"ThreadPoolTaskRunner({n})", False
