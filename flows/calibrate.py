@@ -28,8 +28,6 @@ from prefect.cache_policies import NO_CACHE  # noqa: E402  (no input hashing: a 
 from pipeline import calibration, runio  # noqa: E402
 from pipeline.publish import publish_calibration, publish_passport  # noqa: E402
 
-METHODS = ("tilt", "scalar", "differential")
-
 
 @task(name="ingest", cache_policy=NO_CACHE)
 def ingest(path: str):
@@ -113,7 +111,7 @@ def _calibrate_tilt(runs, registry, settings, paths, logger) -> dict:
     for w in warnings:
         logger.warning(w)
     meta = runs[0].meta
-    unit_fit = fit(runs[0].meta.unit_serial, observations, settings, meta.normal_temp_c)
+    unit_fit = fit(meta.unit_serial, observations, settings, meta.normal_temp_c)
     rows, status = verify(unit_fit.model, observations, meta.normal_temp_c, settings)
     result = write(registry, unit_fit, rows, status, observations, paths, settings, meta.g_local_mps2)
     result["warnings"] = warnings + unit_fit.skipped
