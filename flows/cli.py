@@ -134,7 +134,7 @@ def calibrate(runs: List[Path] = typer.Argument(..., help="runs of one unit (TP 
 def _base_passport(run: Path, registry: Path, path: Path | None) -> dict:
     from pipeline.passport import read_passport
     from pipeline.registry import Registry
-    from pipeline.fleet_plan import read_run_meta
+    from pipeline.runio import read_run_meta
 
     if path is not None:
         return read_passport(path)

@@ -3,7 +3,7 @@ calibrate one unit's group while isolating a bad run.
 
 - :func:`discover_runs`: every run under a folder, both layouts (``*.mcap`` files; Parquet run directories, i.e.
   directories holding ``voltmeter.parquet`` or ``run.json``); hidden names (writers' temp files) are ignored.
-- :func:`read_run_meta`: a run's metadata only (the MCAP ``run`` record through the summary's metadata index; a
+- :func:`pipeline.runio.read_run_meta`: a run's metadata only (the MCAP ``run`` record through the summary's metadata index; a
   Parquet run's ``run.json``), to group runs by unit without reading their samples.
 - :func:`plan_fleet`: groups by unit serial; a group whose identity (the content hashes of its runs and the
   settings, :func:`pipeline.registry.identity_key`) is already in the registry is skipped ("already processed").
@@ -21,22 +21,18 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import orjson
-from mcap.reader import make_reader
-
 from .calibration import CalibrationSettings, fit_unit, observe_run, verify_unit
 from .errors import CalibrationError, RunFormatError, ThermocalError
 from .provenance import input_digest
 from .publish import provenance_settings, publish_calibration
 from .registry import Registry, identity_key
 from .run import RunMeta
-from .runio import read_run, run_format
+from .io_parquet import META_FILE as PARQUET_META_FILE
+from .runio import read_run, read_run_meta, run_format  # noqa: F401  (read_run_meta: part of this API)
 
 #: A directory holding one of these is a Parquet run directory (log-format.md).
-PARQUET_META_FILE = "run.json"
 PARQUET_RUN_MARKERS = ("voltmeter.parquet", PARQUET_META_FILE)
 MCAP_SUFFIX = ".mcap"
-MCAP_MAGIC = b"\x89MCAP0\r\n"
 ALREADY_PROCESSED = "already processed"
 #: The method :func:`pipeline.publish.publish_calibration` records (seed 000's tilt calibration).
 TILT_METHOD = "tilt_six_position"
@@ -115,34 +111,6 @@ def discover_runs(root: str | os.PathLike) -> list[Path]:
         found += [Path(dirpath) / f for f in filenames
                   if f.lower().endswith(MCAP_SUFFIX) and not f.startswith(".")]
     return sorted(found)
-
-
-def read_run_meta(path: str | os.PathLike) -> RunMeta:
-    """A run's metadata without reading its samples (about a millisecond); RunFormatError if it cannot be had.
-
-    MCAP: the ``run`` metadata record, through the summary's metadata index (files without a summary: read from
-    the start up to that record, which thermocal's writer puts before the data). Parquet: ``run.json``. For a
-    precise account of what is wrong with a bad run, read it with :func:`pipeline.runio.read_run`.
-    """
-    p = Path(path)
-    try:
-        if run_format(p) == "parquet":
-            values = orjson.loads((p / PARQUET_META_FILE).read_bytes())
-        else:
-            with open(p, "rb") as f:
-                if f.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
-                    raise RunFormatError("not an MCAP file (it does not start with the MCAP magic bytes)",
-                                         path=str(p))
-                f.seek(0)
-                values = next((dict(m.metadata) for m in make_reader(f).iter_metadata() if m.name == "run"), None)
-    except RunFormatError:
-        raise
-    except Exception as exc:  # noqa: BLE001 - OSError, JSON or MCAP library errors: one line
-        raise RunFormatError(f"cannot read the run metadata ({type(exc).__name__}: {exc})", path=str(p),
-                             stream="metadata") from None
-    if values is None:
-        raise RunFormatError("no run metadata (an MCAP metadata record named 'run')", path=str(p), stream="metadata")
-    return RunMeta.from_strings(values, path=str(p))
 
 
 def _unit_of(path: Path) -> str:

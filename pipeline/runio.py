@@ -225,3 +225,37 @@ def writable_streams(run: Run, *, path: str) -> dict[str, pl.DataFrame]:
             raise RunFormatError("samples are not in time order", path=path, stream=stream)
         out[stream] = df
     return out
+
+
+def read_run_meta(path: str | os.PathLike) -> RunMeta:
+    """A run's metadata without reading its samples (about a millisecond); RunFormatError if it cannot be had.
+
+    MCAP: the ``run`` metadata record, through the summary's metadata index (files without a summary: read from
+    the start up to that record, which thermocal's writer puts before the data). Parquet: ``run.json``. For a
+    precise account of what is wrong with a bad run, read it with :func:`read_run`.
+    """
+    import orjson
+    from mcap.reader import make_reader
+
+    from .io_mcap import MAGIC
+    from .io_parquet import META_FILE
+
+    p = Path(path)
+    try:
+        if run_format(p) == "parquet":
+            values = orjson.loads((p / META_FILE).read_bytes())
+        else:
+            with open(p, "rb") as f:
+                if f.read(len(MAGIC)) != MAGIC:
+                    raise RunFormatError("not an MCAP file (it does not start with the MCAP magic bytes)",
+                                         path=str(p))
+                f.seek(0)
+                values = next((dict(m.metadata) for m in make_reader(f).iter_metadata() if m.name == "run"), None)
+    except RunFormatError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - OSError, JSON or MCAP library errors: one line
+        raise RunFormatError(f"cannot read the run metadata ({type(exc).__name__}: {exc})", path=str(p),
+                             stream="metadata") from None
+    if values is None:
+        raise RunFormatError("no run metadata (an MCAP metadata record named 'run')", path=str(p), stream="metadata")
+    return RunMeta.from_strings(values, path=str(p))

@@ -38,3 +38,22 @@ def shared_path(*parts: str) -> Path:
     if not p.exists():
         pytest.skip(f"shared reference data not available: {p}")
     return p
+
+
+def run_in_child(fn, prepare, what: str) -> None:
+    """Run ``fn`` in a forked child after ``prepare()`` (e.g. drop privileges, limit file sizes); the child reports
+    through its exit code, so a failed assertion in it fails the test (its traceback is printed)."""
+    import traceback
+
+    pid = os.fork()
+    if pid == 0:  # pragma: no cover - the child reports through its exit code
+        code = 0
+        try:
+            prepare()
+            fn()
+        except BaseException:
+            traceback.print_exc()
+            code = 1
+        os._exit(code)
+    _, status = os.waitpid(pid, 0)
+    assert os.waitstatus_to_exitcode(status) == 0, f"{what} failed (traceback above)"

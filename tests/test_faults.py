@@ -22,7 +22,6 @@ import sys
 import tempfile
 import textwrap
 import time
-import traceback
 from pathlib import Path
 
 import pytest
@@ -33,6 +32,7 @@ from pipeline.publish import publish_calibration
 from pipeline.registry import Registry, sha256_file
 from pipeline.runio import write_run
 from tests.badcorpus import valid
+from tests.conftest import run_in_child
 
 UNIT = "BAD-00"
 THERMOCAL = str(Path(sys.executable).parent / "thermocal")
@@ -281,19 +281,11 @@ def _fsize_child(fn) -> None:
     """Run ``fn`` in a forked child whose file writes stop at 16 KiB (EFBIG, as on a full disk)."""
     import resource
 
-    pid = os.fork()
-    if pid == 0:  # pragma: no cover - reports through its exit code
-        code = 0
-        try:
-            signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
-            resource.setrlimit(resource.RLIMIT_FSIZE, (16384, 16384))
-            fn()
-        except BaseException:
-            traceback.print_exc()
-            code = 1
-        os._exit(code)
-    _, status = os.waitpid(pid, 0)
-    assert os.waitstatus_to_exitcode(status) == 0, "the check in the child failed (traceback above)"
+    def limit_file_size():
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (16384, 16384))
+
+    run_in_child(fn, limit_file_size, "the check in the child")
 
 
 def test_full_disk_gives_a_clear_error_and_writes_nothing(calibration, tmp_path):

@@ -10,7 +10,6 @@ import subprocess
 import sys
 import tempfile
 import textwrap
-import traceback
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +17,7 @@ import pytest
 
 from pipeline.errors import RegistryError
 from pipeline.registry import Registry, canonical_json, content_sha256, identity_key, sha256_file
+from tests.conftest import run_in_child
 
 UNIT = "AU-0001"
 INPUTS = [{"path": "runs/a.mcap", "sha256": "a" * 64}, {"path": "runs/b.mcap", "sha256": "b" * 64}]
@@ -293,19 +293,11 @@ def run_unprivileged(fn) -> None:
     if os.geteuid() != 0:
         fn()
         return
-    pid = os.fork()
-    if pid == 0:  # pragma: no cover - the child reports through its exit code
-        code = 0
-        try:
-            os.setgid(65534)
-            os.setuid(65534)
-            fn()
-        except BaseException:
-            traceback.print_exc()
-            code = 1
-        os._exit(code)
-    _, status = os.waitpid(pid, 0)
-    assert os.waitstatus_to_exitcode(status) == 0, "the unprivileged check failed (traceback above)"
+    def drop_to_nobody():
+        os.setgid(65534)
+        os.setuid(65534)
+
+    run_in_child(fn, drop_to_nobody, "the unprivileged check")
 
 
 def test_read_only_registry_is_a_clean_error():
