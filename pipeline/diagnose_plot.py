@@ -15,13 +15,10 @@ def plot_residuals(path: str | Path, t_h: np.ndarray, before_v: np.ndarray, afte
     """Write a PNG: one panel per axis with the block residuals (uV) against the passport (before) and the
     extended model (after), the +-3 sigma noise band of the blocks, the windows where the residual before exceeds
     the noise (located, marked under each panel) and where the findings show (shaded)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from .plots import new_figure
 
     path = Path(path)
-    fig, axes = plt.subplots(3, 1, figsize=(11, 8), sharex=True)
+    fig, axes = new_figure(3, 1, figsize=(11, 8), sharex=True)
     for i, ax in enumerate(axes):
         for k, (a, b) in enumerate(windows_h):
             ax.axvspan(a, b, color="tab:orange", alpha=0.15, lw=0, label="where the findings show" if k == 0 else None)
@@ -41,7 +38,6 @@ def plot_residuals(path: str | Path, t_h: np.ndarray, before_v: np.ndarray, afte
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
-    plt.close(fig)
     return path
 
 

@@ -1,4 +1,5 @@
-"""Figures (PNG). matplotlib is imported lazily, with the Agg backend, so the library imports without it."""
+"""Figures (PNG). matplotlib is imported lazily, so the library imports without it; figures are made as
+``matplotlib.figure.Figure`` objects (no pyplot state), so they can be drawn from several threads at once."""
 
 from __future__ import annotations
 
@@ -7,26 +8,24 @@ from pathlib import Path
 import numpy as np
 
 
-def _pyplot():
-    import matplotlib
+def new_figure(nrows: int, ncols: int, **subplots_kw):
+    """A figure of its own (not registered with pyplot) and its axes grid, for writing a PNG with ``savefig``."""
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
+    fig = Figure(figsize=subplots_kw.pop("figsize", None))
+    return fig, fig.subplots(nrows, ncols, **subplots_kw)
 
 
 def plot_verification(rows, path: str | Path, *, title: str = "") -> Path:
     """VP gravity-module errors before and after compensation, per verification temperature (like seed 000's
     Fig. 6-7): one panel per temperature, dg in micro-g per position: uncompensated, method 1, method 2."""
-    plt = _pyplot()
     from .thermal import cluster_temperatures
 
     path = Path(path)
     temps = np.array([r.temp_c for r in rows])
     labels = cluster_temperatures(temps) if len(rows) else np.array([], int)
     n = int(labels.max() + 1) if len(rows) else 1
-    fig, axes = plt.subplots(1, n, figsize=(4.2 * n, 3.6), squeeze=False, sharey=True)
+    fig, axes = new_figure(1, n, figsize=(4.2 * n, 3.6), squeeze=False, sharey=True)
     for c in range(n):
         ax = axes[0, c]
         sel = [r for r, lab in zip(rows, labels) if lab == c]
@@ -50,5 +49,4 @@ def plot_verification(rows, path: str | Path, *, title: str = "") -> Path:
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
-    plt.close(fig)
     return path
