@@ -76,7 +76,8 @@ def simulate(out: Path = typer.Option(..., "--out", help="output .mcap file or P
     """Write one simulated run of a chamber program, and its ground truth as JSON beside it."""
     from pipeline.effects import parse_effect_spec
     from pipeline.runio import write_run
-    from pipeline.simulate import SimConfig, simulate as sim, write_truth
+    from pipeline.simulate import SimConfig, write_truth
+    from pipeline.simulate_large import simulate_run
 
     try:
         effects = [parse_effect_spec(e) for e in effect]
@@ -85,7 +86,7 @@ def simulate(out: Path = typer.Option(..., "--out", help="output .mcap file or P
     cfg = SimConfig(unit_serial=unit, seed=seed, unit_seed=unit_seed, program=program, rate_hz=rate_hz,
                     noise_v=noise_uv * 1e-6, case_lag_s=case_lag_s, effects=effects,
                     with_fixture_log=not no_fixture_log)
-    res = sim(cfg)
+    res = simulate_run(cfg)
     opts = {"encoding": encoding} if fmt == "mcap" and encoding != "json" else {}
     path = write_run(res.run, out, fmt, **opts)
     truth_path = truth or _truth_path(path)

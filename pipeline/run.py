@@ -140,8 +140,19 @@ class Run:
     def t_ns(self) -> np.ndarray:
         return self.voltmeter["t_ns"].to_numpy()
 
+    def voltmeter_slab(self, s0: int, s1: int, columns: tuple[str, ...] = ("ux", "uy", "uz")) -> list[np.ndarray]:
+        """Voltmeter samples ``s0 .. s1 - 1`` of the named columns as 1-D numpy arrays.
+
+        The readers build long tables in chunks (no whole-record copy while reading); a slab inside one chunk is a
+        view of the table's memory, one across a chunk boundary a copy of the slab only. Per-sample passes over a
+        long run read it a slab (~1 M samples) at a time this way, so that their memory stays that of the table.
+        """
+        df = self.voltmeter
+        return [df[c].slice(s0, s1 - s0).to_numpy() for c in columns]
+
     def u_v(self) -> np.ndarray:
-        """Voltmeter samples as an (n, 3) float64 array of volts."""
+        """Voltmeter samples as an (n, 3) float64 array of volts (a copy of all samples; see
+        :meth:`voltmeter_slab`)."""
         return np.column_stack([self.voltmeter[c].to_numpy() for c in ("ux", "uy", "uz")])
 
     def temperature_at(self, t_ns: np.ndarray) -> np.ndarray:

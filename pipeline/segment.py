@@ -14,7 +14,9 @@ unit in a sequence of positions. This module finds both from the recorded signal
 
 Voltage statistics use short time blocks (``static_window_s / 10``), each reduced exactly (two-pass mean and
 squared deviations, no cumulative sums that lose precision on long runs), and combined into rolling windows with
-the parallel-variance formula. All passes over the samples are vectorised.
+the parallel-variance formula. All passes over the samples are vectorised and read the voltages a slab of about
+1 M samples at a time from the run's table (:class:`Channels`): besides the table, segmenting a run holds its
+times (8 bytes per sample) and a few masks (1 byte per sample), not a copy of the voltages.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
+import polars as pl
 
 from .positions import ALL_POSITIONS, TEST_POSITIONS, gravity_vector_g, nearest_position
 from .run import Run
@@ -118,6 +121,9 @@ class Segmentation:
     plateaus: list[Plateau]
     segments: list[StaticSegment]
     warnings: list[str] = field(default_factory=list)
+    #: the untrimmed static stretches (:func:`find_static`) as voltmeter sample index ranges [i0, i1), in the
+    #: time-sorted order of the samples (the table's order when it is in time order)
+    stretches: list[tuple[int, int]] = field(default_factory=list)
 
     def on_plateau(self, i: int) -> list[StaticSegment]:
         """Segments on plateau ``i``, in time order."""
@@ -216,53 +222,135 @@ def _local_slope_c_per_s(t_s: np.ndarray, y: np.ndarray, window_s: float) -> np.
 # static stretches
 
 
-def rolling_std_v(t_ns: np.ndarray, u_v: np.ndarray, window_s: float) -> tuple[np.ndarray, np.ndarray,
-                                                                              np.ndarray]:
-    """Standard deviation of each channel over windows of ``window_s``, at the resolution of window_s / 10.
+class Channels:
+    """The three voltmeter channels (V) of a record, read a slab of samples at a time.
 
-    Returns ``block`` (n,) the block of each sample, ``std`` (m, 3) the standard deviation of the window centred on
-    each block (NaN with fewer than 2 finite samples) and ``count`` (m,) the finite samples in that window.
-    Non-finite samples are left out.
+    Built from an (n, 3) array, or from three 1-D columns (numpy arrays or polars Series: a run's table columns,
+    which the readers build in chunks). A slab inside one chunk is a view, one across chunks a copy of the slab:
+    the per-sample passes of this module never copy the whole record.
+    """
+
+    def __init__(self, u_v):
+        if isinstance(u_v, np.ndarray):
+            if u_v.ndim != 2 or u_v.shape[1] != 3:
+                raise ValueError(f"voltages must be an (n, 3) array, got shape {u_v.shape}")
+            cols = [u_v[:, c] for c in range(3)]
+        else:
+            cols = list(u_v)
+            if len(cols) != 3:
+                raise ValueError(f"expected 3 voltage channels, got {len(cols)}")
+        self._cols = [c if isinstance(c, pl.Series) else np.asarray(c, dtype=np.float64) for c in cols]
+        self.n = len(self._cols[0])
+
+    @classmethod
+    def of_run(cls, run: Run) -> Channels:
+        return cls([run.voltmeter[c] for c in ("ux", "uy", "uz")])
+
+    def slab(self, s0: int, s1: int) -> list[np.ndarray]:
+        """Samples ``s0 .. s1 - 1`` of each channel, as three float64 arrays."""
+        return [c.slice(s0, s1 - s0).to_numpy() if isinstance(c, pl.Series) else c[s0:s1] for c in self._cols]
+
+    def every(self, step: int) -> np.ndarray:
+        """Every ``step``-th sample, as a small (k, 3) array."""
+        return np.column_stack([c.gather_every(step).to_numpy() if isinstance(c, pl.Series) else c[::step]
+                                for c in self._cols])
+
+    def finite(self) -> np.ndarray:
+        """True (n,) where all three channels are finite (one byte per sample)."""
+        out = np.empty(self.n, dtype=bool)
+        for s0 in range(0, self.n, _SLAB_SAMPLES):
+            s1 = min(s0 + _SLAB_SAMPLES, self.n)
+            x, y, z = self.slab(s0, s1)
+            np.logical_and(np.isfinite(x), np.isfinite(y), out=out[s0:s1])
+            out[s0:s1] &= np.isfinite(z)
+        return out
+
+
+@dataclass(frozen=True)
+class BlockStats:
+    """Voltage statistics of a record on short time blocks, and over rolling windows of blocks.
+
+    Blocks are ``block_ns`` long from the first sample; a run of empty blocks longer than a window (a pause in the
+    recording) is shortened to one block more than a window, which changes no window's samples. ``starts`` (k,)
+    is the first sample of each non-empty block and ``ids`` (k,) its index among the m blocks; ``std`` (m, 3)
+    is the standard deviation (V) of each channel over the window centred on each block (NaN with fewer than 2
+    finite samples) and ``count`` (m,) the finite samples in that window; ``finite`` (n,) marks the samples whose
+    three channels are finite.
+    """
+
+    starts: np.ndarray
+    ids: np.ndarray
+    std: np.ndarray
+    count: np.ndarray
+    finite: np.ndarray
+
+    def per_sample(self, block_value: np.ndarray) -> np.ndarray:
+        """A per-block value (m,) spread over the samples (n,) (use with bool values: one byte per sample)."""
+        lengths = np.diff(np.append(self.starts, self.finite.size))
+        return np.repeat(block_value[self.ids], lengths)
+
+
+def _block_starts(t_ns: np.ndarray, block_ns: int) -> tuple[np.ndarray, np.ndarray]:
+    """First sample of each non-empty block of ``block_ns`` (from the first sample) and its block number, a slab
+    at a time (no per-sample index array of the whole record). ``t_ns`` is sorted."""
+    t0 = t_ns[0]
+    starts, numbers = [], []
+    last = -1
+    for s0 in range(0, t_ns.size, _SLAB_SAMPLES):
+        b = t_ns[s0:s0 + _SLAB_SAMPLES] - t0
+        b //= block_ns
+        new = np.flatnonzero(np.diff(b)) + 1
+        if b[0] != last:
+            new = np.concatenate(([0], new))
+        starts.append(new + s0)
+        numbers.append(b[new])
+        last = b[-1]
+    return np.concatenate(starts), np.concatenate(numbers)
+
+
+def rolling_std_v(t_ns: np.ndarray, u_v, window_s: float) -> BlockStats:
+    """Standard deviation of each channel of ``u_v`` (an (n, 3) array or :class:`Channels`, V) over windows of
+    ``window_s``, at the resolution of window_s / 10 (see :class:`BlockStats`). Non-finite samples are left out.
+
+    Each block is reduced exactly (two-pass mean and squared deviations), a slab of whole blocks at a time, and the
+    blocks are combined into windows with the parallel-variance formula.
     """
     t_ns = np.asarray(t_ns, dtype=np.int64)
-    u_v = np.asarray(u_v, dtype=np.float64)
+    ch = u_v if isinstance(u_v, Channels) else Channels(u_v)
     block_ns = max(int(window_s * _NS / _BLOCKS_PER_WINDOW), 1)
-    block = t_ns - t_ns[0]
-    block //= block_ns                                   # non-decreasing: t_ns is sorted
-    # A window spans _BLOCKS_PER_WINDOW blocks: a longer run of empty blocks (a pause in the recording) is shortened
-    # to one block more than that, which changes no window's samples and keeps memory in step with the samples,
-    # not the time span.
-    step = np.diff(block)
-    if step.size and step.max() > _BLOCKS_PER_WINDOW + 1:
-        np.minimum(step, _BLOCKS_PER_WINDOW + 1, out=step)
-        block = np.concatenate(([0], np.cumsum(step)))
-    m = int(block[-1]) + 1
-    starts = np.concatenate(([0], np.flatnonzero(step) + 1))   # first sample of each non-empty block
-    del step
-    lengths = np.diff(np.append(starts, block.size))
-    ids = block[starts]
-    finite = finite_rows(u_v)
-    all_finite = bool(finite.all())
+    starts, numbers = _block_starts(t_ns, block_ns)
+    step = np.diff(numbers)
+    np.minimum(step, _BLOCKS_PER_WINDOW + 1, out=step)
+    ids = np.concatenate(([0], np.cumsum(step)))
+    m = int(ids[-1]) + 1
+    lengths = np.diff(np.append(starts, t_ns.size))
+    finite = np.empty(t_ns.size, dtype=bool)
     n_b = np.zeros(m)
-    n_b[ids] = lengths if all_finite else np.add.reduceat(finite.astype(np.int64), starts)
     mean_b = np.zeros((m, 3))
     m2_b = np.zeros((m, 3))
     # whole blocks of about _SLAB_SAMPLES samples at a time: the per-sample temporaries stay small
-    edges = np.unique(np.append(np.searchsorted(starts, np.arange(0, block.size, _SLAB_SAMPLES)), starts.size))
-    with np.errstate(invalid="ignore", divide="ignore"):
+    edges = np.unique(np.append(np.searchsorted(starts, np.arange(0, t_ns.size, _SLAB_SAMPLES)), starts.size))
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
         for ka, kb in zip(edges[:-1], edges[1:]):
-            s0, s1 = starts[ka], (starts[kb] if kb < starts.size else block.size)
-            st, ln, nb = starts[ka:kb] - s0, lengths[ka:kb], n_b[ids[ka:kb]]
+            s0, s1 = starts[ka], (starts[kb] if kb < starts.size else t_ns.size)
+            st, ln, bid = starts[ka:kb] - s0, lengths[ka:kb], ids[ka:kb]
+            cols = ch.slab(s0, s1)
             fin = finite[s0:s1]
-            for c in range(3):
-                x = u_v[s0:s1, c] if all_finite else np.where(fin, u_v[s0:s1, c], 0.0)
+            np.logical_and(np.isfinite(cols[0]), np.isfinite(cols[1]), out=fin)
+            fin &= np.isfinite(cols[2])
+            all_finite = bool(fin.all())
+            nb = ln.astype(np.float64) if all_finite else np.add.reduceat(fin, st).astype(np.float64)
+            n_b[bid] = nb
+            for c, x in enumerate(cols):
+                if not all_finite:
+                    x = np.where(fin, x, 0.0)
                 mean = np.add.reduceat(x, st) / nb
                 mean = np.where(nb > 0, mean, 0.0)
                 dev = x - np.repeat(mean, ln)
                 if not all_finite:
                     dev[~fin] = 0.0
-                mean_b[ids[ka:kb], c] = mean
-                m2_b[ids[ka:kb], c] = np.add.reduceat(dev * dev, st)
+                mean_b[bid, c] = mean
+                m2_b[bid, c] = np.add.reduceat(dev * dev, st)
     # rolling sums over K blocks centred on each block (zero-padded at the ends); short sums, no cancellation
     k = _BLOCKS_PER_WINDOW
     pad = ((k // 2, k - 1 - k // 2),)
@@ -278,19 +366,21 @@ def rolling_std_v(t_ns: np.ndarray, u_v: np.ndarray, window_s: float) -> tuple[n
         var = (s2 - s1 * s1 / n_w[:, None]) / (n_w[:, None] - 1)
     std = np.sqrt(np.clip(var, 0.0, None))
     std[n_w < 2] = np.nan
-    return block, std, n_w
+    return BlockStats(starts=starts, ids=ids, std=std, count=n_w, finite=finite)
 
 
-def static_threshold_v(std_v: np.ndarray, u_v: np.ndarray | None = None) -> np.ndarray:
+def static_threshold_v(std_v: np.ndarray, u_v=None) -> np.ndarray:
     """Per-channel static threshold (3,): a multiple of a low quantile of the rolling std, with a tiny floor
-    relative to the signal's spread (so that a noise-free run still has a threshold above rounding)."""
+    relative to the signal's spread (so that a noise-free run still has a threshold above rounding). ``u_v``: the
+    samples, an (n, 3) array or :class:`Channels` (about 100 000 of them are looked at)."""
     valid = finite_rows(std_v)
     if not valid.any():
         return np.full(3, np.inf)
     floor_q = np.quantile(std_v[valid], _NOISE_QUANTILE, axis=0)
     scale = 1.0
     if u_v is not None:
-        sub = u_v[:: max(1, u_v.shape[0] // 100_000)]
+        ch = u_v if isinstance(u_v, Channels) else Channels(u_v)
+        sub = ch.every(max(1, ch.n // 100_000))
         sub = sub[finite_rows(sub)]
         if sub.size:
             q = np.quantile(sub, [0.01, 0.99], axis=0)
@@ -298,41 +388,45 @@ def static_threshold_v(std_v: np.ndarray, u_v: np.ndarray | None = None) -> np.n
     return np.maximum(_NOISE_MULTIPLE * floor_q, _NOISE_FLOOR_REL * scale)
 
 
-def find_static(t_ns: np.ndarray, u_v: np.ndarray,
-                settings: SegmentSettings = SegmentSettings()) -> list[tuple[int, int]]:
-    """Static stretches of the voltages ``u_v`` (n, 3) at times ``t_ns``: index ranges ``(i0, i1)``, i1 exclusive.
+def find_static(t_ns: np.ndarray, u_v, settings: SegmentSettings = SegmentSettings()) -> list[tuple[int, int]]:
+    """Static stretches of the voltages ``u_v`` at times ``t_ns``: index ranges ``(i0, i1)``, i1 exclusive.
 
-    A sample is static when the window of ``static_window_s`` around it has every channel's standard deviation below
-    :func:`static_threshold_v` and the sample is finite. Stretches interrupted only by non-finite samples for less
-    than a window are joined; stretches shorter than ``static_min_s`` are dropped. Not trimmed, not cut at plateaus.
+    ``u_v`` (V) is an (n, 3) array, three 1-D columns (numpy arrays or polars Series) or :class:`Channels`; it is
+    read a slab at a time. A sample is static when the window of ``static_window_s`` around it has every channel's
+    standard deviation below :func:`static_threshold_v` and the sample is finite. Stretches interrupted only by
+    non-finite samples for less than a window are joined; stretches shorter than ``static_min_s`` are dropped. Not
+    trimmed, not cut at plateaus.
     """
-    t_ns = np.asarray(t_ns, dtype=np.int64)
-    u_v = np.asarray(u_v, dtype=np.float64)
+    return _static_and_bad(np.asarray(t_ns, dtype=np.int64), u_v if isinstance(u_v, Channels) else Channels(u_v),
+                           settings)[0]
+
+
+def _static_and_bad(t_ns: np.ndarray, ch: Channels, settings: SegmentSettings
+                    ) -> tuple[list[tuple[int, int]], np.ndarray]:
+    """:func:`find_static`'s stretches, and the indices of the non-finite samples."""
     if t_ns.size < 2:
-        return []
-    block, std, _ = rolling_std_v(t_ns, u_v, settings.static_window_s)
-    thr = static_threshold_v(std, u_v)
-    quiet_block = np.all(std < thr, axis=1)          # NaN compares False
-    finite = finite_rows(u_v)
-    static = quiet_block[block] & finite
+        return [], np.flatnonzero(~ch.finite())
+    stats = rolling_std_v(t_ns, ch, settings.static_window_s)
+    thr = static_threshold_v(stats.std, ch)
+    quiet_block = np.all(stats.std < thr, axis=1)          # NaN compares False
+    static = stats.per_sample(quiet_block)
+    static &= stats.finite
     runs = _runs(static)
+    del static
+    bad = np.flatnonzero(~stats.finite)
     if runs.size == 0:
-        return []
+        return [], bad
     # join stretches separated only by non-finite samples, for less than a window
     gap_ns = t_ns[runs[1:, 0]] - t_ns[runs[:-1, 1] - 1]
     gap_len = runs[1:, 0] - runs[:-1, 1]
-    if finite.all():
-        only_nan = np.zeros(gap_len.size, dtype=bool)
-    else:
-        nonfinite_cum = np.concatenate(([0], np.cumsum(~finite)))
-        only_nan = (nonfinite_cum[runs[1:, 0]] - nonfinite_cum[runs[:-1, 1]]) == gap_len
+    only_nan = (np.searchsorted(bad, runs[1:, 0]) - np.searchsorted(bad, runs[:-1, 1])) == gap_len
     join = only_nan & (gap_ns < settings.static_window_s * _NS)
     keep_start = np.concatenate(([True], ~join))
     keep_end = np.concatenate((~join, [True]))
     runs = np.column_stack((runs[keep_start, 0], runs[keep_end, 1]))
     dur_ns = t_ns[runs[:, 1] - 1] - t_ns[runs[:, 0]]
     runs = runs[dur_ns >= settings.static_min_s * _NS]
-    return [(int(a), int(b)) for a, b in runs]
+    return [(int(a), int(b)) for a, b in runs], bad
 
 
 def finite_rows(x: np.ndarray) -> np.ndarray:
@@ -342,8 +436,12 @@ def finite_rows(x: np.ndarray) -> np.ndarray:
 
 def _runs(mask: np.ndarray) -> np.ndarray:
     """Runs of True in a boolean array as an (k, 2) array of [start, end) indices."""
-    d = np.diff(np.concatenate(([0], mask.astype(np.int8), [0])))
-    return np.column_stack((np.flatnonzero(d == 1), np.flatnonzero(d == -1)))
+    edge = np.flatnonzero(mask[1:] != mask[:-1]) + 1
+    bounds = np.concatenate(([0], edge, [mask.size]))
+    first_true = 0 if mask.size and mask[0] else 1
+    b = bounds[first_true:]
+    k = b.size // 2
+    return np.column_stack((b[0:2 * k:2], b[1:2 * k + 1:2])) if k else np.zeros((0, 2), dtype=np.int64)
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -361,26 +459,38 @@ def for_rate(settings: SegmentSettings, t_ns: np.ndarray) -> SegmentSettings:
     faster; at 1-2 Hz a 2 s window holds too few samples and a run falls apart into thousands of pieces."""
     if t_ns.size < 3:
         return settings
-    dt_s = float(np.median(np.diff(t_ns))) / _NS
+    dt_s = median_interval_ns(t_ns) / _NS
     if not dt_s > 0:
         return settings
     return dataclasses.replace(settings, static_window_s=max(settings.static_window_s, MIN_WINDOW_SAMPLES * dt_s),
                                static_min_s=max(settings.static_min_s, MIN_SEGMENT_SAMPLES * dt_s))
 
 
+def median_interval_ns(t_ns: np.ndarray, pairs: int = 100_000) -> float:
+    """Median interval (ns) between consecutive samples of the sorted times ``t_ns``, from up to ``pairs`` pairs
+    spread evenly over the record (a long record's rate without a difference array of all its samples)."""
+    if t_ns.size < 2:
+        return float("nan")
+    i = np.unique(np.linspace(0, t_ns.size - 2, min(t_ns.size - 1, pairs)).astype(np.int64))
+    return float(np.median(t_ns[i + 1] - t_ns[i]))
+
+
 def segment_run(run: Run, settings: SegmentSettings = SegmentSettings()) -> Segmentation:
-    """Plateaus, static segments (cut at plateau boundaries, trimmed, averaged, named) and warnings of ``run``."""
+    """Plateaus, static segments (cut at plateau boundaries, trimmed, averaged, named) and warnings of ``run``.
+
+    The voltages are read from the run's table a slab at a time (:class:`Channels`): besides the table, the
+    per-sample memory is the times (8 bytes per sample) and a few masks (1 byte per sample).
+    """
     warnings: list[str] = []
     t_ns = run.t_ns()
-    # column-contiguous: the per-channel passes read columns (one copy, no per-column temporaries)
-    u_v = run.voltmeter.select("ux", "uy", "uz").to_numpy(order="fortran", writable=True)
+    volts = run.voltmeter
+    if np.any(t_ns[1:] < t_ns[:-1]):
+        volts = volts.sort("t_ns", maintain_order=True)
+        t_ns = volts["t_ns"].to_numpy()
+        warnings.append("voltmeter: samples not in time order; sorted")
+    ch = Channels([volts[c] for c in ("ux", "uy", "uz")])
     tt_ns = run.au_temperature["t_ns"].to_numpy()
     temp = run.au_temperature["temp_c"].to_numpy()
-
-    if np.any(t_ns[1:] < t_ns[:-1]):
-        order = np.argsort(t_ns, kind="stable")
-        t_ns, u_v = t_ns[order], u_v[order]
-        warnings.append("voltmeter: samples not in time order; sorted")
     if np.any(tt_ns[1:] < tt_ns[:-1]):
         order = np.argsort(tt_ns, kind="stable")
         tt_ns, temp = tt_ns[order], temp[order]
@@ -390,10 +500,6 @@ def segment_run(run: Run, settings: SegmentSettings = SegmentSettings()) -> Segm
         warnings.append(f"au_temperature: {int(bad_t.sum())} non-finite samples ignored, first at "
                         f"t_ns={int(tt_ns[bad_t][0])}")
         tt_ns, temp = tt_ns[~bad_t], temp[~bad_t]
-    bad_u = ~finite_rows(u_v)
-    if bad_u.any():
-        warnings.append(f"voltmeter: {int(bad_u.sum())} non-finite samples excluded (not static), first at "
-                        f"t_ns={int(t_ns[bad_u][0])}")
 
     settings = for_rate(settings, t_ns)
     plateaus = find_plateaus(tt_ns, temp, settings)
@@ -401,20 +507,25 @@ def segment_run(run: Run, settings: SegmentSettings = SegmentSettings()) -> Segm
         warnings.append("au_temperature: no temperature plateau found (the temperature never stays within "
                         f"{settings.plateau_rate_c_per_min} C/min for {settings.plateau_min_s:.0f} s)")
 
-    pieces = _cut_at_plateaus(t_ns, find_static(t_ns, u_v, settings), plateaus, settings)
+    stretches, bad_u = _static_and_bad(t_ns, ch, settings)
+    if bad_u.size:
+        warnings.append(f"voltmeter: {bad_u.size} non-finite samples excluded (not static), first at "
+                        f"t_ns={int(t_ns[bad_u[0]])}")
+    pieces = _cut_at_plateaus(t_ns, stretches, plateaus, settings)
     fixture = _fixture_labels(run, t_ns, pieces)
 
     rows = []
     for (i0, i1, p), fix in zip(pieces, fixture):
-        uu, tt = u_v[i0:i1], t_ns[i0:i1]
-        fin = finite_rows(uu)
+        cols, tt = ch.slab(i0, i1), t_ns[i0:i1]
+        fin = np.isfinite(cols[0]) & np.isfinite(cols[1]) & np.isfinite(cols[2])
         if not fin.all():
-            uu, tt = uu[fin], tt[fin]
+            cols, tt = [c[fin] for c in cols], tt[fin]
         tc = np.interp(tt.astype(np.float64), tt_ns.astype(np.float64), temp) if temp.size else np.full(tt.size,
                                                                                                          np.nan)
-        ddof = 1 if uu.shape[0] > 1 else 0
+        ddof = 1 if tt.size > 1 else 0
         rows.append(dict(t_start_ns=int(t_ns[i0]), t_end_ns=int(t_ns[i1 - 1]), plateau=p, fixture_label=fix,
-                         mean_v=uu.mean(axis=0), std_v=uu.std(axis=0, ddof=ddof), count=int(uu.shape[0]),
+                         mean_v=np.array([c.mean() for c in cols]),
+                         std_v=np.array([c.std(ddof=ddof) for c in cols]), count=int(tt.size),
                          temp_c=float(tc.mean()), temp_std_c=float(tc.std())))
 
     names = _name_segments(run, rows, settings, warnings)
@@ -425,7 +536,7 @@ def segment_run(run: Run, settings: SegmentSettings = SegmentSettings()) -> Segm
             label_source=nm["source"], fixture_label=r["fixture_label"], label_conflict=nm["conflict"],
             plateau=r["plateau"], mean_v=_tuple3(r["mean_v"]), std_v=_tuple3(r["std_v"]), count=r["count"],
             temp_c=r["temp_c"], temp_std_c=r["temp_std_c"], direction_g=_tuple3(nm["direction"])))
-    return Segmentation(plateaus=plateaus, segments=segments, warnings=warnings)
+    return Segmentation(plateaus=plateaus, segments=segments, warnings=warnings, stretches=stretches)
 
 
 def _tuple3(v) -> tuple[float, float, float]:
@@ -600,5 +711,5 @@ def _refine_scale(mean_v: np.ndarray, gravity_names: list[str | None], fix: list
     return new_gain, new_offset
 
 
-__all__ = ["SegmentSettings", "Plateau", "StaticSegment", "Segmentation", "find_plateaus", "find_static",
-           "rolling_std_v", "static_threshold_v", "finite_rows", "segment_run"]
+__all__ = ["SegmentSettings", "Plateau", "StaticSegment", "Segmentation", "Channels", "BlockStats",
+           "find_plateaus", "find_static", "rolling_std_v", "static_threshold_v", "finite_rows", "segment_run"]

@@ -26,6 +26,18 @@ from .simulate import THERMAL_RATE_HZ, SimConfig, SimResult, _check, _face_rotat
 
 #: effects whose contribution at a sample depends on other samples (cannot be computed chunk by chunk)
 NON_LOCAL_EFFECTS = ("thermal_lag", "tilt_settling")
+#: :func:`simulate_run` computes runs of more voltmeter samples than this in chunks (in one piece: ~200 B a sample)
+CHUNKED_ABOVE_SAMPLES = 5_000_000
+
+
+def simulate_run(config: SimConfig, chunked_above_samples: int = CHUNKED_ABOVE_SAMPLES) -> SimResult:
+    """A simulated run of any length: :func:`~pipeline.simulate.simulate` up to ``chunked_above_samples``
+    voltmeter samples, :func:`simulate_chunked` above (about 2 GB instead of 12 GB for the 1 kHz standard run) unless
+    an effect needs the whole record (:data:`NON_LOCAL_EFFECTS`), which is then simulated in one piece."""
+    _check(config)
+    n = int(np.floor(get_program(config.program).timetable().duration_s * config.rate_hz)) + 1
+    local = not any(eid in NON_LOCAL_EFFECTS for eid, _ in config.effects)
+    return simulate_chunked(config) if n > chunked_above_samples and local else simulate(config)
 
 
 def simulate_chunked(config: SimConfig, chunk_samples: int = 1_000_000) -> SimResult:

@@ -160,6 +160,36 @@ def test_nan_samples_excluded_with_warning():
     assert two[0].t_end_ns < t[i2] and two[1].t_start_ns > t[i2 + 99]
 
 
+def test_slabs_and_chunks_change_nothing(monkeypatch):
+    """The segmenter reads the voltages a slab at a time from the table's chunks: with slabs of 1000 samples and a
+    table of uneven chunks (slabs across chunk boundaries), with NaN bursts, every number is the same as with one
+    slab over a one-chunk table, and the (n, 3)-array form of find_static finds the same stretches."""
+    import pipeline.segment as segment
+
+    run = simulate(SimConfig(program="short", seed=8)).run
+    u = run.voltmeter["ux"].to_numpy().copy()
+    u[5000:5004] = np.nan
+    u[20000:20150] = np.nan
+    one = run.voltmeter.with_columns(pl.Series("ux", u))
+    cuts = [0, 777, 13_001, 13_002, 40_000, one.height]
+    chunked = pl.concat([one.slice(a, b - a) for a, b in zip(cuts[:-1], cuts[1:])], rechunk=False)
+    assert chunked["uy"].n_chunks() == 5
+    settings = SegmentSettings(plateau_min_s=300)
+
+    want = segment_run(dataclasses.replace(run, voltmeter=one), settings)
+    monkeypatch.setattr(segment, "_SLAB_SAMPLES", 1000)
+    got = segment_run(dataclasses.replace(run, voltmeter=chunked), settings)
+    assert got.warnings == want.warnings and got.stretches == want.stretches
+    assert len(got.segments) == len(want.segments) > 20
+    for a, b in zip(got.segments, want.segments):
+        assert (a.t_start_ns, a.t_end_ns, a.count, a.position) == (b.t_start_ns, b.t_end_ns, b.count, b.position)
+        np.testing.assert_allclose(a.mean_v, b.mean_v, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(a.std_v, b.std_v, rtol=1e-9, atol=1e-15)
+    t = one["t_ns"].to_numpy()
+    array_form = find_static(t, one.select("ux", "uy", "uz").to_numpy(), segment.for_rate(settings, t))
+    assert array_form == want.stretches
+
+
 def test_short_program_plateaus_with_shorter_minimum():
     """The short program's soaks (15 min, case lag 2 min) leave plateaus of about 10 min."""
     res = simulate(SimConfig(program="short", seed=6))

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from pipeline.simulate import SimConfig, simulate
-from pipeline.simulate_large import simulate_chunked
+from pipeline.simulate_large import simulate_chunked, simulate_run
 
 LOCAL_EFFECTS = [("time_drift", {}), ("thermal_hysteresis", {}), ("warmup_transient", {}),
                  ("temperature_curvature", {}), ("scale_nonlinearity", {}), ("fixture_face_error", {})]
@@ -39,3 +41,17 @@ def test_noise_has_the_configured_size():
 def test_effects_across_samples_are_refused(effect):
     with pytest.raises(ValueError, match="depend on other samples"):
         simulate_chunked(SimConfig(program="short", effects=[(effect, {})]))
+
+
+def test_simulate_run_chunks_long_runs_only():
+    """Above the threshold a run of local effects is computed in chunks (its context is the 1 Hz one); below it,
+    or with an effect across samples, in one piece (the context has every voltmeter sample)."""
+    cfg = SimConfig(program="short", rate_hz=5.0, noise_v=0.0, temp_noise_c=0.0, effects=[("time_drift", {})])
+    n = simulate(cfg).run.voltmeter.height
+    chunked = simulate_run(cfg, chunked_above_samples=n - 1)
+    assert chunked.context.t_s.size < n / 4
+    whole = simulate_run(cfg, chunked_above_samples=n)
+    assert whole.context.t_s.size == n
+    np.testing.assert_array_equal(chunked.run.voltmeter["ux"].to_numpy(), whole.run.voltmeter["ux"].to_numpy())
+    lagged = simulate_run(dataclasses.replace(cfg, effects=[("thermal_lag", {})]), chunked_above_samples=n - 1)
+    assert lagged.context.t_s.size == n
