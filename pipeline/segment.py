@@ -453,11 +453,12 @@ MIN_WINDOW_SAMPLES = 12
 MIN_SEGMENT_SAMPLES = 24
 
 
-def for_rate(settings: SegmentSettings, t_ns: np.ndarray) -> SegmentSettings:
+def for_rate(settings: SegmentSettings, t_ns) -> SegmentSettings:
     """``settings`` with the static window and minimum segment length widened to at least
     :data:`MIN_WINDOW_SAMPLES` and :data:`MIN_SEGMENT_SAMPLES` voltmeter samples: the defaults suit 10 Hz and
-    faster; at 1-2 Hz a 2 s window holds too few samples and a run falls apart into thousands of pieces."""
-    if t_ns.size < 3:
+    faster; at 1-2 Hz a 2 s window holds too few samples and a run falls apart into thousands of pieces.
+    ``t_ns``: the sorted voltmeter times (ns), a numpy array or a polars Series (a run's column, not copied)."""
+    if len(t_ns) < 3:
         return settings
     dt_s = median_interval_ns(t_ns) / _NS
     if not dt_s > 0:
@@ -466,13 +467,19 @@ def for_rate(settings: SegmentSettings, t_ns: np.ndarray) -> SegmentSettings:
                                static_min_s=max(settings.static_min_s, MIN_SEGMENT_SAMPLES * dt_s))
 
 
-def median_interval_ns(t_ns: np.ndarray, pairs: int = 100_000) -> float:
-    """Median interval (ns) between consecutive samples of the sorted times ``t_ns``, from up to ``pairs`` pairs
-    spread evenly over the record (a long record's rate without a difference array of all its samples)."""
-    if t_ns.size < 2:
+def median_interval_ns(t_ns, pairs: int = 100_000) -> float:
+    """Median interval (ns) between consecutive samples of the sorted times ``t_ns`` (numpy array or polars
+    Series), from up to ``pairs`` pairs spread evenly over the record: a long record's rate without a difference
+    array of all its samples."""
+    n = len(t_ns)
+    if n < 2:
         return float("nan")
-    i = np.unique(np.linspace(0, t_ns.size - 2, min(t_ns.size - 1, pairs)).astype(np.int64))
-    return float(np.median(t_ns[i + 1] - t_ns[i]))
+    i = np.unique(np.linspace(0, n - 2, min(n - 1, pairs)).astype(np.int64))
+    if isinstance(t_ns, pl.Series):
+        d = (t_ns.gather(i + 1) - t_ns.gather(i)).to_numpy()
+    else:
+        d = t_ns[i + 1] - t_ns[i]
+    return float(np.median(d))
 
 
 def segment_run(run: Run, settings: SegmentSettings = SegmentSettings()) -> Segmentation:
