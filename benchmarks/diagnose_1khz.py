@@ -4,7 +4,7 @@
                                                  [--effect time_drift] [--seed 5] [--no-effect] [--out benchmarks/out]
 
 Each measurement is one fresh Python process (so that ``ru_maxrss`` is that diagnosis's peak), run under
-``flock /tmp/tc/bench.lock`` (other jobs measuring on the same machine wait their turn). The process reads the run
+``flock`` on :data:`LOCK` (other jobs measuring on the same machine wait their turn). The process reads the run
 (``read_run``), diagnoses it (``diagnose_run``: segmentation, passport fitted from the run, the static record, the
 fits) and draws the PNG, as the command does; the main steps inside are timed by wrapping them, with the peak RSS
 reached by the end of each ("fits": the rest of ``diagnose_run``, on the blocks).
@@ -35,7 +35,8 @@ sys.path.insert(0, str(HERE))
 
 from make_runs import LAYOUTS, OUT, make_runs  # noqa: E402
 
-LOCK = Path("/tmp/tc/bench.lock")
+#: measurements wait for this lock (other benchmark jobs on the machine take it too); THERMOCAL_BENCH_LOCK moves it
+LOCK = Path(os.environ.get("THERMOCAL_BENCH_LOCK", Path(tempfile.gettempdir()) / "thermocal-bench.lock"))
 #: the concealed effects' sizes (a fifth of the catalogue defaults, as in tests/test_diagnose_concealed.py); only
 #: effects that act sample by sample (simulate_chunked refuses the others)
 EFFECTS = {
