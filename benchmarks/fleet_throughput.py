@@ -2,26 +2,38 @@
 tasks run, with the Prefect overhead per unit; and the single-run latency of ``thermocal calibrate``.
 
     .venv/bin/python benchmarks/fleet_throughput.py [--units 50] [--rate-hz 10] [--workers N] [--cli-runs 3]
-        [--modes plain,thread1,thread,process,dask] [--keep DIR] [--json-out FILE]
+        [--modes plain,pool,thread1,thread,process,dask,cli,cli-ephemeral] [--encoding json|protobuf]
+        [--keep DIR] [--json-out FILE]
 
 The runs are simulated into a temporary folder (MCAP, one 16.5 h standard run per unit, distinct units and noise;
-about 17 MB each at 10 Hz) and deleted at the end unless ``--keep`` names a folder (reused when it holds them).
+about 17 MB each at 10 Hz; ``--encoding``: JSON blocks, the default, or protobuf) and deleted at the end unless
+``--keep`` names a folder (reused when it holds them: wrap runs in ``flock`` when other jobs share the machine).
 Every mode calibrates the whole fleet into a fresh registry:
 
 - ``plain``:   :func:`pipeline.fleet_plan.calibrate_group` in a loop, no Prefect (the compute baseline);
+- ``pool``:    what the flow's ``pool="process"`` does, without Prefect: :func:`pipeline.fleet_plan.plan_fleet`, then
+  ``calibrate_group`` on a spawn process pool of ``--workers`` warmed by ``prepare_worker`` (the parallel
+  baseline: ``process`` wall / ``pool`` wall - 1 is Prefect's share);
 - ``thread1``: the fleet flow with one worker thread: its wall time minus the compute measured inside the tasks is
   Prefect's own cost (flow run, planning, task runs, artifact), given per unit;
 - ``thread``, ``process``: the flow on a local pool of ``--workers`` (default: CPU count) threads / processes;
 - ``dask``:    the flow on a dask LocalCluster (``--workers`` single-threaded worker processes on 127.0.0.1) through
-  ``--dask-address``; the cluster start is timed apart.
+  ``--dask-address``; the cluster start is timed apart;
+- ``cli``:     ``thermocal fleet FOLDER --registry R --json --workers N`` in a fresh process, end to end (Python
+  start, imports, flow, pool, planning), with ``PREFECT_API_URL`` set to the running local API (as nightly runs
+  under ``thermocal serve`` or with a server); ``cli-ephemeral``: the same without ``PREFECT_API_URL``, so the
+  command starts its own temporary API (Prefect home made once before, untimed: the usual case after the first
+  command on a machine).
 
 Columns: wall time, units per minute, the mean compute per unit measured inside the tasks (it grows when workers
 compete for the cores), the overhead per unit = (workers x wall - sum of in-task compute) / units: the worker
-time per unit not spent calibrating (Prefect, pool start-up, idle tail), and the CPU seconds per unit (this
-process, its finished children -- pool and dask workers -- and the Prefect API server process): unlike wall
-time, CPU time does not depend on what else runs on the machine. The Prefect API is a local temporary server
-started once before the modes (its start-up is reported apart); the load average is printed, since other work on
-the machine slows everything.
+time per unit not spent calibrating (Prefect, planning, pool start-up, idle tail), the same as a share of the
+workers' wall time (1 - sum of in-task compute / (workers x wall)), and the CPU seconds per unit, split into the
+finished children (pool and dask workers; in the ``cli`` modes the command and everything it started), this
+process (the flow, planning and Prefect's client side; the calibration itself in the thread modes) and the
+Prefect API server: unlike wall time, CPU time hardly depends on what else runs on the machine. The Prefect API is
+a local temporary server started once before the modes (its start-up is reported apart); the load average is
+printed (it counts this benchmark's own threads too), since other work on the machine slows everything.
 """
 
 from __future__ import annotations
@@ -38,11 +50,11 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-MODES = ("plain", "thread1", "thread", "process", "dask")
+MODES = ("plain", "pool", "thread1", "thread", "process", "dask", "cli", "cli-ephemeral")
 
 
-def _make_unit(args: tuple[Path, int, float, str]) -> str:
-    out, k, rate_hz, program = args
+def _make_unit(args: tuple[Path, int, float, str, str]) -> str:
+    out, k, rate_hz, program, encoding = args
     from pipeline.runio import write_run
     from pipeline.simulate import SimConfig, simulate
 
@@ -50,14 +62,15 @@ def _make_unit(args: tuple[Path, int, float, str]) -> str:
     if not path.exists():
         res = simulate(SimConfig(unit_serial=f"AU-{k:04d}", unit_seed=1000 + k, seed=k, program=program,
                                  rate_hz=rate_hz))
-        write_run(res.run, path, "mcap")
+        write_run(res.run, path, "mcap", encoding=encoding)
     return str(path)
 
 
-def make_fleet(out: Path, units: int, rate_hz: float, program: str, workers: int) -> list[str]:
+def make_fleet(out: Path, units: int, rate_hz: float, program: str, workers: int, encoding: str = "json"
+               ) -> list[str]:
     out.mkdir(parents=True, exist_ok=True)
     with ProcessPoolExecutor(workers) as pool:
-        return list(pool.map(_make_unit, [(out, k, rate_hz, program) for k in range(1, units + 1)]))
+        return list(pool.map(_make_unit, [(out, k, rate_hz, program, encoding) for k in range(1, units + 1)]))
 
 
 def run_plain(paths: list[str], registry: Path) -> dict:
@@ -71,6 +84,27 @@ def run_plain(paths: list[str], registry: Path) -> dict:
             "done": sum(o.result is not None for o in outcomes), "failed": len(failed), "runner": "none (no Prefect)"}
 
 
+def run_pool(folder: Path, registry: Path, workers: int) -> dict:
+    import multiprocessing
+
+    from pipeline.calibration import CalibrationSettings
+    from pipeline.fleet_plan import calibrate_group, plan_fleet, prepare_worker
+
+    t0 = time.perf_counter()
+    plan = plan_fleet(folder, registry)
+    t_plan = time.perf_counter() - t0
+    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
+                             initializer=prepare_worker) as pool:
+        futures = [pool.submit(calibrate_group, g.unit, g.runs, str(registry), CalibrationSettings(), True,
+                               g.digests) for g in plan.groups]
+        outcomes = [f.result() for f in futures]
+    wall = time.perf_counter() - t0
+    failed = [f for o in outcomes for f in o.failed]
+    return {"wall_s": wall, "compute_s": sum(o.compute_s for o in outcomes), "workers": workers,
+            "units": len(outcomes), "done": sum(o.result is not None for o in outcomes), "failed": len(failed),
+            "runner": f"ProcessPoolExecutor({workers}), no Prefect", "plan_s": t_plan}
+
+
 def run_flow(folder: Path, registry: Path, workers: int, **options) -> dict:
     from flows.fleet import run_fleet
 
@@ -80,6 +114,29 @@ def run_flow(folder: Path, registry: Path, workers: int, **options) -> dict:
     t = summary["timing"]
     return {"wall_s": wall, "compute_s": t["compute_s"], "workers": workers, "units": t["units"],
             "done": len(summary["done"]), "failed": len(summary["failed"]), "runner": t["runner"],
+            "flow_wall_s": t["wall_s"], "plan_s": t["plan_s"]}
+
+
+def run_cli(folder: Path, registry: Path, workers: int, api_url: str | None, home: Path) -> dict:
+    """``thermocal fleet`` in a fresh process (see the module doc), with ``api_url`` or else its own temporary API
+    using the Prefect home ``home``."""
+    env = dict(os.environ, PREFECT_HOME=str(home))
+    if api_url:
+        env["PREFECT_API_URL"] = api_url
+    else:
+        env.pop("PREFECT_API_URL", None)
+    cmd = [str(Path(sys.executable).parent / "thermocal"), "fleet", str(folder), "--registry", str(registry),
+           "--json", "--workers", str(workers)]
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=3600)
+    wall = time.perf_counter() - t0
+    if proc.returncode not in (0, 1):
+        raise RuntimeError(f"thermocal fleet failed: {proc.stderr.strip()[-2000:]}")
+    summary = json.loads(proc.stdout)
+    t = summary["timing"]
+    return {"wall_s": wall, "compute_s": t["compute_s"], "workers": workers, "units": t["units"],
+            "done": len(summary["done"]), "failed": len(summary["failed"]),
+            "runner": f"thermocal fleet, {'PREFECT_API_URL' if api_url else 'own temporary API'}: {t['runner']}",
             "flow_wall_s": t["wall_s"], "plan_s": t["plan_s"]}
 
 
@@ -142,7 +199,8 @@ def warm_up(path: str, registry: Path) -> None:
 
 
 class CpuClock:
-    """CPU seconds (user + system) of this process, its waited-for children and the Prefect API server."""
+    """CPU seconds (user + system) of this process (the flow, planning, Prefect's client side), of its waited-for
+    children (pool and dask worker processes) and of the Prefect API server."""
 
     def __init__(self, server_pid: int | None):
         import psutil
@@ -150,24 +208,28 @@ class CpuClock:
         self.me = psutil.Process()
         self.server = psutil.Process(server_pid) if server_pid else None
 
-    def __call__(self) -> float:
+    def __call__(self) -> dict[str, float]:
         t = self.me.cpu_times()
-        total = t.user + t.system + t.children_user + t.children_system
+        out = {"flow": t.user + t.system, "workers": t.children_user + t.children_system, "api": 0.0}
         if self.server is not None:
             s = self.server.cpu_times()
-            total += s.user + s.system
-        return total
+            out["api"] = s.user + s.system
+        return out
 
 
 def table(results: dict[str, dict]) -> str:
     lines = ["| mode | runner | units | wall s | units/min | compute s/unit (in task) | overhead s/unit | "
-             "CPU s/unit | failed |", "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+             "overhead % of wall | CPU s/unit (workers + flow + API) | failed |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---|---:|"]
     for mode, r in results.items():
         n = max(r["units"], 1)
         overhead = (r["workers"] * r["wall_s"] - r["compute_s"]) / n
+        c = r["cpu"]
         lines.append(f"| {mode} | {r['runner']} | {r['units']} | {r['wall_s']:.1f} | "
                      f"{60 * r['done'] / r['wall_s']:.1f} | {r['compute_s'] / n:.2f} | {overhead:.2f} | "
-                     f"{r['cpu_s'] / n:.2f} | {r['failed']} |")
+                     f"{100 * overhead * n / (r['workers'] * r['wall_s']):.0f} | "
+                     f"{r['cpu_s'] / n:.2f} ({c['workers'] / n:.2f} + {c['flow'] / n:.2f} + {c['api'] / n:.2f}) | "
+                     f"{r['failed']} |")
     return "\n".join(lines)
 
 
@@ -176,6 +238,7 @@ def main() -> None:
     ap.add_argument("--units", type=int, default=50)
     ap.add_argument("--rate-hz", type=float, default=10.0)
     ap.add_argument("--program", default="standard")
+    ap.add_argument("--encoding", default="json", choices=("json", "protobuf"), help="MCAP message encoding")
     ap.add_argument("--workers", type=int, default=None, help="pool size (default: CPU count)")
     ap.add_argument("--modes", default=",".join(MODES))
     ap.add_argument("--cli-runs", type=int, default=3, help="repetitions of the CLI latency (0: skip)")
@@ -196,7 +259,7 @@ def main() -> None:
           f"{workers} workers, {os.cpu_count()} CPUs; load average at start {os.getloadavg()[0]:.2f}", flush=True)
     try:
         t0 = time.perf_counter()
-        paths = make_fleet(runs_dir, args.units, args.rate_hz, args.program, workers)
+        paths = make_fleet(runs_dir, args.units, args.rate_hz, args.program, workers, args.encoding)
         size_mb = sum(Path(p).stat().st_size for p in paths) / 1e6
         print(f"simulated and wrote {len(paths)} runs ({size_mb:.0f} MB) in {time.perf_counter() - t0:.1f} s",
               flush=True)
@@ -204,25 +267,43 @@ def main() -> None:
         cpu = CpuClock(api_pid)
         print(f"local Prefect API started in {api_s:.1f} s ({api_url})", flush=True)
         warm_up(paths[0], work / "registry-warm-up")
+        (work / "empty-inbox").mkdir()
         results: dict[str, dict] = {}
         for mode in modes:
             reg = work / f"registry-{mode}"
             t_mode, cpu0 = time.perf_counter(), cpu()
             if mode == "plain":
                 results[mode] = run_plain(paths, reg)
+            elif mode == "pool":
+                results[mode] = run_pool(runs_dir, reg, workers)
             elif mode == "thread1":
                 results[mode] = run_flow(runs_dir, reg, 1, pool="thread")
             elif mode in ("thread", "process"):
                 results[mode] = run_flow(runs_dir, reg, workers, pool=mode)
+            elif mode == "cli":
+                results[mode] = run_cli(runs_dir, reg, workers, api_url, work / "prefect-home-cli")
+            elif mode == "cli-ephemeral":
+                home = work / "prefect-home-cli-ephemeral"
+                run_cli(work / "empty-inbox", work / "registry-cli-warm-up", workers, None, home)  # creates its DB
+                t_mode, cpu0 = time.perf_counter(), cpu()
+                results[mode] = run_cli(runs_dir, reg, workers, None, home)
             else:
                 results[mode] = run_dask(runs_dir, reg, workers)
             r = results[mode]
-            r["cpu_s"] = cpu() - cpu0
+            cpu1 = cpu()
+            r["cpu"] = {k: cpu1[k] - cpu0[k] for k in cpu1}
+            r["cpu_s"] = sum(r["cpu"].values())
             extra = f", cluster start {r['cluster_start_s']:.1f} s" if "cluster_start_s" in r else ""
+            if "flow_wall_s" in r:
+                extra += f"; inside the flow {r['flow_wall_s']:.1f} s, of which planning {r['plan_s']:.1f} s"
             print(f"{mode}: {r['done']} units in {r['wall_s']:.1f} s ({time.perf_counter() - t_mode:.1f} s with "
                   f"set-up{extra}); load {os.getloadavg()[0]:.2f}", flush=True)
         print()
         print(table(results))
+        if "pool" in results and "process" in results:
+            p, f = results["pool"], results["process"]
+            print(f"\nPrefect's share of the process mode's wall time (1 - pool wall / process wall): "
+                  f"{100 * (1 - p['wall_s'] / f['wall_s']):.1f} %")
         if "plain" in results and "thread1" in results:
             p, f1 = results["plain"], results["thread1"]
             print(f"\nPrefect overhead per unit (thread1 wall - its in-task compute, / units): "

@@ -12,12 +12,18 @@ Where the unit tasks run is a flow parameter, so that a deployment can choose it
   ``PREFECT_API_URL`` unset the flow's local (ephemeral) API on 127.0.0.1 is handed to them, which serves workers on
   this machine only; for workers on other machines run ``prefect server start --host 0.0.0.0`` and set
   ``PREFECT_API_URL`` to it.
-- else a local pool of ``workers`` (default: the machine's CPU count): ``pool="process"`` (Prefect's
-  ProcessPoolTaskRunner) or ``pool="thread"`` (ThreadPoolTaskRunner). Measured on 2 cores with 50 standard runs
-  at 10 Hz (benchmarks/fleet_throughput.py): one worker 52 units/min, two threads 62 (the GIL: reading JSON
-  blocks and drawing the figure hold it), two processes 82; but starting the worker processes (spawn, imports)
-  costs ~4 s, ~0.3 s of worker time per unit over 50 units. ``"auto"`` therefore picks processes from
-  :data:`AUTO_PROCESS_MIN_UNITS` units on (break-even with threads: ~15 standard runs), threads below.
+- else a local pool of ``workers`` (default: the machine's CPU count). ``pool="process"``: the unit tasks run in
+  Prefect's ThreadPoolTaskRunner and each hands its calibration to a process pool of the flow's own
+  (``concurrent.futures``, spawn, workers warmed by :func:`pipeline.fleet_plan.prepare_worker`), so the
+  computation runs in parallel past the GIL while Prefect's side of a task run (states, events) stays in the flow
+  process. Prefect's ProcessPoolTaskRunner was dropped for this: it rebuilds Prefect's settings for every task
+  run in the worker (~0.13 s of CPU per task, 15 % of a unit) and its workers import Prefect (~4 s to start).
+  A task shows Running from the moment its unit is queued for a process (twice as many task threads as
+  processes keep the processes busy); a worker process killed (OOM) breaks the pool, and the units not done by
+  then fail with that reason, as they did on Prefect's process pool. ``pool="thread"``: the calibration runs in
+  the task's thread (the GIL: JSON blocks and figures hold it). ``"auto"`` picks processes from
+  :data:`AUTO_PROCESS_MIN_UNITS` units on (starting the workers costs ~1 s of CPU each), threads below. Figures:
+  benchmarks/fleet_throughput.py and the README.
 
 The flow returns the ``fleet --json`` object (contract.md) and leaves a table artifact ``thermocal-fleet``.
 """
@@ -25,9 +31,12 @@ The flow returns the ``fleet --json`` object (contract.md) and leaves a table ar
 from __future__ import annotations
 
 import contextlib
+import contextvars
+import multiprocessing
 import os
 import sys
 import time
+from concurrent.futures import Executor, ProcessPoolExecutor
 
 from .runtime import prefect_defaults
 
@@ -44,14 +53,25 @@ from pipeline.calibration import CalibrationSettings  # noqa: E402
 
 POOLS = ("auto", "process", "thread")
 #: ``pool="auto"``: a process pool from this many units on (its start-up pays off), else threads.
-AUTO_PROCESS_MIN_UNITS = 20
+AUTO_PROCESS_MIN_UNITS = 4
 ARTIFACT_KEY = "thermocal-fleet"
+#: The flow's process pool, if any, to which the unit tasks (threads of the flow process) hand their calibration.
+_COMPUTE_POOL: contextvars.ContextVar[Executor | None] = contextvars.ContextVar("thermocal_compute_pool",
+                                                                                default=None)
 
 
 @task(name="calibrate-unit", task_run_name="calibrate-{unit}", cache_policy=NO_CACHE)
 def calibrate_unit(unit: str, runs: list[str], registry: str, settings: CalibrationSettings,
-                   figure: bool = True) -> fleet_plan.UnitOutcome:
-    return fleet_plan.calibrate_group(unit, runs, registry, settings, figure)
+                   figure: bool = True, digests: dict | None = None) -> fleet_plan.UnitOutcome:
+    """:func:`pipeline.fleet_plan.calibrate_group`, in the flow's process pool when it has one."""
+    return _calibrate_group(unit, runs, registry, settings, figure, digests)
+
+
+def _calibrate_group(*args) -> fleet_plan.UnitOutcome:
+    """``calibrate_group(*args)`` in the flow's process pool if it has one, else here. (A function of its own, so
+    that a task shipped to dask by value does not take the pool's context variable along.)"""
+    pool = _COMPUTE_POOL.get()
+    return pool.submit(fleet_plan.calibrate_group, *args).result() if pool else fleet_plan.calibrate_group(*args)
 
 
 def default_workers() -> int:
@@ -63,13 +83,13 @@ def default_workers() -> int:
 
 
 def make_task_runner(dask_address: str | None, workers: int | None, pool: str, n_units: int):
-    """The task runner for the unit tasks (see the module doc), its description, and whether its tasks run in
-    other processes."""
+    """The task runner for the unit tasks (see the module doc), its description, whether its tasks run in other
+    processes, and the size of the process pool the tasks hand their calibration to (0: none)."""
     if dask_address:
         from prefect_dask import DaskTaskRunner
 
-        return DaskTaskRunner(address=dask_address), f"DaskTaskRunner({dask_address})", True
-    from prefect.task_runners import ProcessPoolTaskRunner, ThreadPoolTaskRunner
+        return DaskTaskRunner(address=dask_address), f"DaskTaskRunner({dask_address})", True, 0
+    from prefect.task_runners import ThreadPoolTaskRunner
 
     if pool not in POOLS:
         raise ValueError(f"unknown pool {pool!r}; expected one of {', '.join(POOLS)}")
@@ -77,8 +97,28 @@ def make_task_runner(dask_address: str | None, workers: int | None, pool: str, n
     if pool == "auto":
         pool = "process" if n > 1 and n_units >= AUTO_PROCESS_MIN_UNITS else "thread"
     if pool == "process":
-        return ProcessPoolTaskRunner(max_workers=n), f"ProcessPoolTaskRunner({n})", True
-    return ThreadPoolTaskRunner(max_workers=n), f"ThreadPoolTaskRunner({n})", False
+        # twice as many task threads as processes: while a thread does Prefect's bookkeeping of a finished unit,
+        # the next unit is already queued for the process that computed it (no process waits for a thread)
+        threads = min(2 * n, n_units)
+        return (ThreadPoolTaskRunner(max_workers=threads),
+                f"ThreadPoolTaskRunner({threads}) + ProcessPoolExecutor({n})", False, n)
+    return ThreadPoolTaskRunner(max_workers=n), f"ThreadPoolTaskRunner({n})", False, 0
+
+
+@contextlib.contextmanager
+def _compute_pool(processes: int):
+    """The flow's process pool of ``processes`` workers for the unit tasks (none if 0), for the duration."""
+    if not processes:
+        yield
+        return
+    pool = ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("spawn"),
+                               initializer=fleet_plan.prepare_worker)
+    token = _COMPUTE_POOL.set(pool)
+    try:
+        yield
+    finally:
+        _COMPUTE_POOL.reset(token)
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 @contextlib.contextmanager
@@ -148,11 +188,12 @@ def fleet_flow(root: str, registry: str, settings: CalibrationSettings = Calibra
     outcomes: list[fleet_plan.UnitOutcome] = []
     runner_name = "none"
     if plan.groups:
-        runner, runner_name, remote = make_task_runner(dask_address, workers, pool, len(plan.groups))
-        with (_api_for_workers() if remote else contextlib.nullcontext()), runner, \
+        runner, runner_name, remote, processes = make_task_runner(dask_address, workers, pool, len(plan.groups))
+        with (_api_for_workers() if remote else contextlib.nullcontext()), runner, _compute_pool(processes), \
                 _Progress(progress, len(plan.groups), logger) as bar:
             futures = {runner.submit(calibrate_unit, {"unit": g.unit, "runs": list(g.runs), "registry": str(registry),
-                                                      "settings": settings, "figure": figures}): g
+                                                      "settings": settings, "figure": figures,
+                                                      "digests": g.digests}): g
                        for g in plan.groups}
             for fut in as_completed(list(futures)):
                 group = futures[fut]

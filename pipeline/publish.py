@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import contextlib
 import os
+from collections.abc import Mapping
 from pathlib import Path
 
 from .calibration import CalibrationSettings, UnitFit, calibration_result, plateau_summary
 from .passport import build_passport
-from .provenance import code_version, input_digest
+from .provenance import RunDigest, code_version, input_digest
 from .registry import Registry
 
 
@@ -21,21 +22,26 @@ def provenance_settings(settings: dict, method: str) -> dict:
 
 def publish_calibration(registry_root: str | Path, fit: UnitFit, rows, status: str, observations, *,
                         input_paths: list[str], settings: CalibrationSettings, g_local_mps2: float,
-                        figure: bool = True) -> dict:
+                        figure: bool = True, input_digests: Mapping[str, RunDigest] | None = None) -> dict:
     """Build the passport of seed 000's tilt method (``tilt_six_position``) and publish it with
     :func:`publish_passport`. Returns the ``calibrate --json`` object."""
     plateaus = plateau_summary(observations)
     doc = build_passport(fit, rows, status, g_local_mps2=g_local_mps2, plateaus=plateaus, method="tilt_six_position")
     return publish_passport(registry_root, doc, fit, rows, status, plateaus, input_paths=input_paths,
-                            settings=settings.to_dict(), figure=figure)
+                            settings=settings.to_dict(), figure=figure, input_digests=input_digests)
 
 
 def publish_passport(registry_root: str | Path, doc: dict, fit: UnitFit, rows, status: str, plateaus: list[dict], *,
-                     input_paths: list[str], settings: dict, figure: bool = True) -> dict:
+                     input_paths: list[str], settings: dict, figure: bool = True,
+                     input_digests: Mapping[str, RunDigest] | None = None) -> dict:
     """Publish a passport of any method as a new version (or find the identical existing one: same input hashes,
     same settings, same method) and, for a new version, write ``<passport>.png`` with the VP errors before and after
-    compensation. Returns the ``calibrate --json`` object."""
-    inputs = [{"path": str(Path(p).resolve()), "sha256": input_digest(p)} for p in input_paths]
+    compensation. Returns the ``calibrate --json`` object.
+
+    ``input_digests``: hashes of the input paths made earlier (:func:`pipeline.provenance.hash_run`, by the fleet's
+    planning), reused for the runs not changed since (else the run is hashed again)."""
+    known = input_digests or {}
+    inputs = [{"path": str(Path(p).resolve()), "sha256": input_digest(p, known.get(str(p)))} for p in input_paths]
     settings = provenance_settings(settings, doc.get("method", "tilt_six_position"))
     published = Registry(Path(registry_root)).publish(doc, inputs=inputs, settings=settings,
                                                       code_version=code_version())

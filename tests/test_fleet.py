@@ -167,13 +167,15 @@ def _failed_reason(summary, name):
 
 
 def test_fleet_flow_nightly_cycle(fleet, tmp_path):
-    """First night: every good unit calibrated, bad runs reported with their one-line reasons, a table artifact.
-    Second night, after AU-0203's VP-only runs arrived: only AU-0203 is recalibrated (v2, verified at -10 and
-    +45 C by them); units already processed are skipped by content hash."""
+    """First night (the unit tasks hand their calibration to the flow's process pool): every good unit
+    calibrated, bad runs reported with their one-line reasons, one task run per unit, a table artifact.
+    Second night (threads), after AU-0203's VP-only runs arrived: only AU-0203 is recalibrated (v2, verified at
+    -10 and +45 C by them); units already processed are skipped by content hash."""
     from flows.fleet import ARTIFACT_KEY, run_fleet
 
     inbox, reg = fleet["inbox"], tmp_path / "reg"
-    s1 = run_fleet(str(inbox), str(reg), pool="thread", workers=2)
+    s1 = run_fleet(str(inbox), str(reg), pool="process", workers=2)
+    assert s1["timing"]["runner"] == "ThreadPoolTaskRunner(4) + ProcessPoolExecutor(2)"
     done = _by_unit(s1)
     assert sorted(done) == ["AU-0201", "AU-0202", "AU-0203", "AU-0204"]
     assert all(d["version"] == 1 and d["created"] and d["status"] == "pass" for d in done.values())
@@ -195,6 +197,8 @@ def test_fleet_flow_nightly_cycle(fleet, tmp_path):
     assert len(arts) == 1 and arts[0]["type"] == "table"
     table = json.loads(arts[0]["data"]) if isinstance(arts[0]["data"], str) else arts[0]["data"]
     assert len(table) == 4 + 3 + 1 and {r["outcome"] for r in table} == {"done", "failed", "skipped"}
+    task_runs = _api_filter("task_runs", {"flow_runs": {"id": {"any_": [s1["flow_run_id"]]}}})
+    assert sorted(tr["name"] for tr in task_runs) == [f"calibrate-AU-020{k}" for k in range(1, 6)]
 
     for vp in sorted(fleet["later"].glob("AU-0203-vp-*")):
         shutil.copytree(vp, inbox / "ch1" / vp.name)
@@ -217,6 +221,40 @@ def test_fleet_flow_nightly_cycle(fleet, tmp_path):
     assert sorted(g.unit for g in plan.groups) == ["AU-0204", "AU-0205"]
     # other settings are another identity: everything is to be done again
     assert len(plan_fleet(inbox, reg, CalibrationSettings(thermal_model="poly1")).groups) == 5
+
+
+def test_planned_hashes_reused_until_the_run_changes(fleet, tmp_path):
+    """The planning's content hashes travel with the groups: the calibration reuses them (no second read of the
+    run) while a run's file signature is unchanged, and hashes again a run replaced after planning, so the
+    passport names the bytes that were calibrated."""
+    from pipeline.provenance import RunDigest, file_signature, hash_run, input_digest
+
+    inbox = tmp_path / "inbox"
+    inbox.mkdir()
+    shutil.copy(fleet["inbox"] / "ch1" / "AU-0203-tp-a.mcap", inbox / "AU-0203-a.mcap")
+    shutil.copytree(fleet["inbox"] / "ch2" / "AU-0202_run", inbox / "AU-0202_run")
+    plan = plan_fleet(inbox, tmp_path / "reg", CalibrationSettings())
+    for g in plan.groups:
+        assert [g.digests[r].sha256 for r in g.runs] == [input_digest(r) for r in g.runs]
+    run, pq = str((inbox / "AU-0203-a.mcap").resolve()), str((inbox / "AU-0202_run").resolve())
+    # reused while unchanged: a planted hash comes back as it is
+    planted = RunDigest("0" * 64, file_signature(run))
+    assert input_digest(run, planted) == "0" * 64
+    # a Parquet run directory: any file rewritten changes its signature
+    before = hash_run(pq)
+    meta = Path(pq) / "run.json"
+    os.utime(meta, ns=(meta.stat().st_atime_ns, meta.stat().st_mtime_ns + 1_000_000))
+    assert file_signature(pq) != before.signature and input_digest(pq, before) == before.sha256
+    # a run replaced after planning (a writer's rename onto it): hashed again when its passport is written
+    group = next(g for g in plan.groups if g.unit == "AU-0203")
+    replacement = inbox / ".incoming.mcap"
+    shutil.copy(fleet["inbox"] / "ch1" / "AU-0203-tp-b.mcap", replacement)
+    os.replace(replacement, run)
+    assert input_digest(run, group.digests[run]) != group.digests[run].sha256
+    out = calibrate_group(group.unit, group.runs, tmp_path / "reg", CalibrationSettings(), False, group.digests)
+    passport = json.loads(Path(out.result["passport"]).read_text())
+    assert passport["provenance"]["inputs"] == [{"path": run, "sha256": input_digest(run)}]
+    assert {p["run_id"] for p in passport["per_plateau"]} == {"AU-0203-tp-b"}
 
 
 def test_fleet_on_dask_localcluster(fleet, tmp_path):
