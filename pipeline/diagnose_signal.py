@@ -31,7 +31,7 @@ import polars as pl
 from .effects import SignalContext, first_order_lag, ramp_sign_from_temperature
 from .positions import ALL_POSITIONS, MOVING, POSITION_NAMES
 from .run import Run
-from .segment import Segmentation, SegmentSettings, for_rate
+from .segment import Segmentation, SegmentSettings, finite_columns, for_rate
 
 _NS = 1_000_000_000
 #: per-sample passes read the voltmeter this many samples at a time (a slab's temporaries, not the record's)
@@ -200,10 +200,6 @@ def _spans(i0: int, i1: int, slab: int):
     return ((s, min(s + slab, i1)) for s in range(int(i0), int(i1), slab))
 
 
-def _finite(cols: list[np.ndarray]) -> np.ndarray:
-    return np.isfinite(cols[0]) & np.isfinite(cols[1]) & np.isfinite(cols[2])
-
-
 def _rows_v(run: Run, s0: int, s1: int) -> np.ndarray:
     """Voltmeter samples s0 .. s1 - 1 as an (m, 3) array (V); for short ranges."""
     return np.column_stack(run.voltmeter_slab(s0, s1))
@@ -248,7 +244,7 @@ def _micro_means(run: Run, kept: list[tuple[int, int]], t0_s: np.ndarray, start_
     for k, (a, b) in enumerate(kept):
         for s0, s1 in _spans(a, b, slab):
             t_ns, *u = run.voltmeter_slab(s0, s1, ("t_ns", "ux", "uy", "uz"))
-            fin = _finite(u)
+            fin = finite_columns(u)
             if not fin.all():
                 t_ns, u = t_ns[fin], [x[fin] for x in u]
             if t_ns.size == 0:
@@ -440,7 +436,7 @@ def sample_noise_v(run: Run, ranges: list[tuple[int, int]], *, slab_samples: int
         for a, b in ranges:
             for s0, s1 in _spans(a, b - 1, slab):          # pairs (i, i + 1), a <= i < b - 1
                 u = run.voltmeter_slab(s0, s1 + 1)
-                fin = _finite(u)
+                fin = finite_columns(u)
                 both = fin[1:] & fin[:-1]
                 yield [np.diff(x) for x in u] if both.all() else [np.diff(x)[both] for x in u]
 

@@ -260,9 +260,7 @@ class Channels:
         out = np.empty(self.n, dtype=bool)
         for s0 in range(0, self.n, _SLAB_SAMPLES):
             s1 = min(s0 + _SLAB_SAMPLES, self.n)
-            x, y, z = self.slab(s0, s1)
-            np.logical_and(np.isfinite(x), np.isfinite(y), out=out[s0:s1])
-            out[s0:s1] &= np.isfinite(z)
+            finite_columns(self.slab(s0, s1), out=out[s0:s1])
         return out
 
 
@@ -335,9 +333,7 @@ def rolling_std_v(t_ns: np.ndarray, u_v, window_s: float) -> BlockStats:
             s0, s1 = starts[ka], (starts[kb] if kb < starts.size else t_ns.size)
             st, ln, bid = starts[ka:kb] - s0, lengths[ka:kb], ids[ka:kb]
             cols = ch.slab(s0, s1)
-            fin = finite[s0:s1]
-            np.logical_and(np.isfinite(cols[0]), np.isfinite(cols[1]), out=fin)
-            fin &= np.isfinite(cols[2])
+            fin = finite_columns(cols, out=finite[s0:s1])
             all_finite = bool(fin.all())
             nb = ln.astype(np.float64) if all_finite else np.add.reduceat(fin, st).astype(np.float64)
             n_b[bid] = nb
@@ -434,7 +430,14 @@ def _static_and_bad(t_ns: np.ndarray, ch: Channels, settings: SegmentSettings
 
 def finite_rows(x: np.ndarray) -> np.ndarray:
     """True for the rows of an (n, 3) array whose three values are finite (fast for either memory order)."""
-    return np.isfinite(x[:, 0]) & np.isfinite(x[:, 1]) & np.isfinite(x[:, 2])
+    return finite_columns((x[:, 0], x[:, 1], x[:, 2]))
+
+
+def finite_columns(cols, out: np.ndarray | None = None) -> np.ndarray:
+    """True where all three 1-D columns ``cols`` (of one length) are finite; written into ``out`` when given."""
+    out = np.logical_and(np.isfinite(cols[0]), np.isfinite(cols[1]), out=out)
+    out &= np.isfinite(cols[2])
+    return out
 
 
 def _runs(mask: np.ndarray) -> np.ndarray:
@@ -527,7 +530,7 @@ def segment_run(run: Run, settings: SegmentSettings = SegmentSettings()) -> Segm
     rows = []
     for (i0, i1, p), fix in zip(pieces, fixture):
         cols, tt = ch.slab(i0, i1), t_ns[i0:i1]
-        fin = np.isfinite(cols[0]) & np.isfinite(cols[1]) & np.isfinite(cols[2])
+        fin = finite_columns(cols)
         if not fin.all():
             cols, tt = [c[fin] for c in cols], tt[fin]
         tc = np.interp(tt.astype(np.float64), tt_ns.astype(np.float64), temp) if temp.size else np.full(tt.size,
@@ -722,4 +725,5 @@ def _refine_scale(mean_v: np.ndarray, gravity_names: list[str | None], fix: list
 
 
 __all__ = ["SegmentSettings", "Plateau", "StaticSegment", "Segmentation", "Channels", "BlockStats",
-           "find_plateaus", "find_static", "rolling_std_v", "static_threshold_v", "finite_rows", "segment_run"]
+           "find_plateaus", "find_static", "rolling_std_v", "static_threshold_v", "finite_rows", "finite_columns",
+           "segment_run"]
