@@ -38,9 +38,9 @@ from make_runs import OUT, make_runs  # noqa: E402
 COMPUTE = """
 import json, sys, tempfile, time
 t0 = time.perf_counter()
-from pipeline.calibration import CalibrationSettings, fit_unit, observe_run, verify_unit
-from pipeline.publish import publish_calibration
-from pipeline.runio import read_run
+from pipeline.calibrate.tilt import CalibrationSettings, fit_unit, observe_run, verify_unit
+from pipeline.calibrate.publish import publish_calibration
+from pipeline.io.runs import read_run
 t1 = time.perf_counter()
 s = CalibrationSettings()
 run = read_run(sys.argv[1])

@@ -11,7 +11,7 @@ reached by the end of each ("fits": the rest of ``diagnose_run``, on the blocks)
 
 Runs: the clean standard runs of :mod:`make_runs` (``std_{rate}hz_*``, made if missing), and (unless
 ``--no-effect``) a run with one concealed effect at 1 kHz and at 10 Hz, same seed and effect, made by
-:func:`pipeline.simulate_large.simulate_chunked` (Parquet, in ``benchmarks/out/``; under a minute at 1 kHz here). The
+:func:`pipeline.simulate.large.simulate_chunked` (Parquet, in ``benchmarks/out/``; under a minute at 1 kHz here). The
 findings of each rate must be the same.
 
 Prints a markdown table: wall and CPU seconds, peak RSS against the decoded samples (8 bytes per number of every
@@ -54,9 +54,9 @@ EFFECTS = {
 
 def child(path: Path) -> None:
     """Read and diagnose ``path`` in this (fresh) process; print the figures as one JSON line."""
-    import pipeline.diagnose as diagnose
-    from pipeline.diagnose_plot import plot_residuals
-    from pipeline.runio import read_run
+    import pipeline.diagnose.diagnosis as diagnose
+    from pipeline.diagnose.plot import plot_residuals
+    from pipeline.io.runs import read_run
 
     stages: dict[str, list[float]] = {}
 
@@ -130,8 +130,8 @@ def effect_runs(effect: str, seed: int, rates: list[int], out: Path) -> dict[int
     for rate in rates:
         path = out / f"eff_{effect}_s{seed}_{rate}hz_parquet"
         if not path.exists():
-            code = ("import sys; from pipeline.simulate import SimConfig; "
-                    "from pipeline.simulate_large import simulate_chunked; from pipeline.runio import write_run; "
+            code = ("import sys; from pipeline.simulate.chamber import SimConfig; "
+                    "from pipeline.simulate.large import simulate_chunked; from pipeline.io.runs import write_run; "
                     f"res = simulate_chunked(SimConfig(rate_hz={float(rate)}, seed={seed}, "
                     f"effects=[({effect!r}, {EFFECTS[effect]!r})])); write_run(res.run, sys.argv[1], 'parquet')")
             t = time.perf_counter()

@@ -23,10 +23,10 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.diagnose import diagnose_run
+from pipeline.diagnose.diagnosis import diagnose_run
 from pipeline.effects import EFFECTS, make_effect
-from pipeline.runio import read_run, write_run
-from pipeline.simulate import SimConfig, simulate
+from pipeline.io.runs import read_run, write_run
+from pipeline.simulate.chamber import SimConfig, simulate
 
 
 def scaled_params(effect_id: str, s: float) -> dict:

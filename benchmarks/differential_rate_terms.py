@@ -25,12 +25,12 @@ import time
 
 import numpy as np
 
-from pipeline import program
-from pipeline.calibration import fit_unit, observe_run
-from pipeline.differential import (DifferentialModel, DifferentialSettings, block_data, compensate_blocks,
+from pipeline.simulate import program
+from pipeline.calibrate.tilt import fit_unit, observe_run
+from pipeline.calibrate.differential import (DifferentialModel, DifferentialSettings, block_data, compensate_blocks,
                                    fit_differential, window_std_g)
 from pipeline.positions import TEST_POSITIONS
-from pipeline.simulate import SimConfig, simulate, unit_for
+from pipeline.simulate.chamber import SimConfig, simulate, unit_for
 from pipeline.thermal import PolynomialModel
 
 T0 = 20.0

@@ -10,8 +10,8 @@ about 17 MB each at 10 Hz; ``--encoding``: JSON blocks, the default, or protobuf
 ``--keep`` names a folder (reused when it holds them: wrap runs in ``flock`` when other jobs share the machine).
 Every mode calibrates the whole fleet into a fresh registry:
 
-- ``plain``:   :func:`pipeline.fleet_plan.calibrate_group` in a loop, no Prefect (the compute baseline);
-- ``pool``:    what the flow's ``pool="process"`` does, without Prefect: :func:`pipeline.fleet_plan.plan_fleet`, then
+- ``plain``:   :func:`pipeline.calibrate.fleet.calibrate_group` in a loop, no Prefect (the compute baseline);
+- ``pool``:    what the flow's ``pool="process"`` does, without Prefect: :func:`pipeline.calibrate.fleet.plan_fleet`, then
   ``calibrate_group`` on a spawn process pool of ``--workers`` warmed by ``prepare_worker`` (the parallel
   baseline: ``process`` wall / ``pool`` wall - 1 is Prefect's share);
 - ``thread1``: the fleet flow with one worker thread: its wall time minus the compute measured inside the tasks is
@@ -55,8 +55,8 @@ MODES = ("plain", "pool", "thread1", "thread", "process", "dask", "cli", "cli-ep
 
 def _make_unit(args: tuple[Path, int, float, str, str]) -> str:
     out, k, rate_hz, program, encoding = args
-    from pipeline.runio import write_run
-    from pipeline.simulate import SimConfig, simulate
+    from pipeline.io.runs import write_run
+    from pipeline.simulate.chamber import SimConfig, simulate
 
     path = out / f"AU-{k:04d}.mcap"
     if not path.exists():
@@ -74,7 +74,7 @@ def make_fleet(out: Path, units: int, rate_hz: float, program: str, workers: int
 
 
 def run_plain(paths: list[str], registry: Path) -> dict:
-    from pipeline.fleet_plan import calibrate_group, read_run_meta
+    from pipeline.calibrate.fleet import calibrate_group, read_run_meta
 
     t0 = time.perf_counter()
     outcomes = [calibrate_group(read_run_meta(p).unit_serial, [p], registry) for p in paths]
@@ -87,8 +87,8 @@ def run_plain(paths: list[str], registry: Path) -> dict:
 def run_pool(folder: Path, registry: Path, workers: int) -> dict:
     import multiprocessing
 
-    from pipeline.calibration import CalibrationSettings
-    from pipeline.fleet_plan import calibrate_group, plan_fleet, prepare_worker
+    from pipeline.calibrate.tilt import CalibrationSettings
+    from pipeline.calibrate.fleet import calibrate_group, plan_fleet, prepare_worker
 
     t0 = time.perf_counter()
     plan = plan_fleet(folder, registry)
@@ -190,7 +190,7 @@ def start_local_api() -> tuple[str, float, int]:
 def warm_up(path: str, registry: Path) -> None:
     """One unit calibrated, and one tiny flow run, before timing: imports, first figure, first flow run."""
     from flows.fleet import run_fleet
-    from pipeline.fleet_plan import calibrate_group, read_run_meta
+    from pipeline.calibrate.fleet import calibrate_group, read_run_meta
 
     calibrate_group(read_run_meta(path).unit_serial, [path], registry)
     empty = registry / "empty-inbox"

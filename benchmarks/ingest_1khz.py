@@ -10,7 +10,7 @@ peak memory figure (``ru_maxrss``, which sees numpy and polars memory and mapped
 - the floor of each layout: ``pyarrow.parquet.read_table`` of the run's Parquet files; for MCAP the ``mcap``
   library's message iteration plus the plainest decode of each message (``orjson.loads`` and ``numpy.asarray`` per
   column for JSON, ``numpy.frombuffer`` of the packed fields for protobuf) and one concatenation per column;
-- thermocal's ingest (``pipeline.runio.read_run``);
+- thermocal's ingest (``pipeline.io.runs.read_run``);
 - the whole calibration without Prefect: ingest, segmentation and averaging (``observe_run``), fit, verification,
   and writing the passport into a fresh registry (``publish_calibration``: hashes the input, draws the figure);
 - with ``--flow``, the same through the Prefect flow (``flows.calibrate.run_calibrate``) after a warm-up flow has
@@ -93,7 +93,7 @@ def _packed_fields(data: bytes, np):
 
 
 def ingest(path: Path) -> dict:
-    from pipeline.runio import read_run
+    from pipeline.io.runs import read_run
 
     run = read_run(path)
     return _run_counts(run)
@@ -101,9 +101,9 @@ def ingest(path: Path) -> dict:
 
 def calibrate(path: Path) -> dict:
     """The calibration steps of the flow, without Prefect; each step timed."""
-    from pipeline.calibration import CalibrationSettings, fit_unit, observe_run, verify_unit
-    from pipeline.publish import publish_calibration
-    from pipeline.runio import read_run
+    from pipeline.calibrate.tilt import CalibrationSettings, fit_unit, observe_run, verify_unit
+    from pipeline.calibrate.publish import publish_calibration
+    from pipeline.io.runs import read_run
 
     settings = CalibrationSettings()
     stages = {}
@@ -130,7 +130,7 @@ def calibrate(path: Path) -> dict:
 def flow(path: Path) -> dict:
     """The Prefect calibrate flow on the run, timed after a trivial warm-up flow has started Prefect."""
     from flows.calibrate import run_calibrate
-    from pipeline.calibration import CalibrationSettings
+    from pipeline.calibrate.tilt import CalibrationSettings
     from prefect import flow as prefect_flow
 
     t = time.perf_counter()

@@ -4,7 +4,7 @@ protobuf blocks, and MCAP with protobuf blocks in lz4 chunks instead of zstd (th
     .venv/bin/python benchmarks/make_runs.py [--rate-hz 1000] [--out benchmarks/out] [--force]
 
 At 1 kHz the run has about 59 M voltmeter samples (1.9 GB in memory); it is simulated in time chunks
-(:func:`pipeline.simulate_large.simulate_chunked`) and takes a few minutes to make. Files that exist are kept
+(:func:`pipeline.simulate.large.simulate_chunked`) and takes a few minutes to make. Files that exist are kept
 (``--force`` remakes them). ``benchmarks/out/`` is not committed.
 """
 
@@ -34,9 +34,9 @@ def make_runs(rate_hz: int, out: Path = OUT, force: bool = False, log=print) -> 
     missing = {k: p for k, p in paths.items() if force or not p.exists()}
     if not missing:
         return paths
-    from pipeline.runio import write_run
-    from pipeline.simulate import SimConfig
-    from pipeline.simulate_large import simulate_chunked
+    from pipeline.io.runs import write_run
+    from pipeline.simulate.chamber import SimConfig
+    from pipeline.simulate.large import simulate_chunked
 
     t0 = time.perf_counter()
     run = simulate_chunked(SimConfig(rate_hz=float(rate_hz))).run

@@ -34,7 +34,7 @@ import numpy as np
 
 from pipeline.positions import ALL_POSITIONS
 from pipeline.model import gravity_module_error_g, specific_force_g
-from pipeline.scalar import lower_gauge, scalar_first_order, scalar_nonlinear
+from pipeline.calibrate.scalar import lower_gauge, scalar_first_order, scalar_nonlinear
 
 G_MPS2 = 9.81
 M_POSITIONS = 24

@@ -1,18 +1,18 @@
 """The calibration flow: ingest -> segment -> fit -> verify -> write, one Prefect task per step (per file for
 ingest and segment). Each task is a call of one library function:
 
-- ingest:  ``pipeline.runio.read_run``
-- segment: ``pipeline.calibration.observe_run`` (``pipeline.segment.segment_run`` + per-segment averages)
-- fit:     ``pipeline.calibration.fit_unit`` (``pipeline.constants``, ``pipeline.thermal``)
-- verify:  ``pipeline.calibration.verify_unit`` (``pipeline.verify``, ``pipeline.compensate``)
-- write:   ``pipeline.publish.publish_calibration`` (``pipeline.passport``, ``pipeline.registry``,
+- ingest:  ``pipeline.io.runs.read_run``
+- segment: ``pipeline.calibrate.tilt.observe_run`` (``pipeline.segment.segment_run`` + per-segment averages)
+- fit:     ``pipeline.calibrate.tilt.fit_unit`` (``pipeline.constants``, ``pipeline.thermal``)
+- verify:  ``pipeline.calibrate.tilt.verify_unit`` (``pipeline.verify``, ``pipeline.compensate``)
+- write:   ``pipeline.calibrate.publish.publish_calibration`` (``pipeline.passport.document``, ``pipeline.passport.registry``,
            ``pipeline.plots``)
 
 The other methods of the source papers replace segment/fit/verify by one task each:
 
-- ``--method scalar``:       ``pipeline.scalar.calibrate_scalar`` (seed 004, orientation-free)
-- ``--method differential``: ``pipeline.differential.calibrate_differential`` (seed 003, from a base passport)
-and are written by ``pipeline.publish.publish_passport``.
+- ``--method scalar``:       ``pipeline.calibrate.scalar.calibrate_scalar`` (seed 004, orientation-free)
+- ``--method differential``: ``pipeline.calibrate.differential.calibrate_differential`` (seed 003, from a base passport)
+and are written by ``pipeline.calibrate.publish.publish_passport``.
 """
 
 from __future__ import annotations
@@ -25,8 +25,9 @@ from prefect import flow, get_run_logger, task  # noqa: E402
 from prefect.artifacts import create_markdown_artifact  # noqa: E402
 from prefect.cache_policies import NO_CACHE  # noqa: E402  (no input hashing: a Run is large and never reused)
 
-from pipeline import calibration, runio  # noqa: E402
-from pipeline.publish import publish_calibration, publish_passport  # noqa: E402
+from pipeline.calibrate import tilt as calibration  # noqa: E402
+from pipeline.calibrate.publish import publish_calibration, publish_passport  # noqa: E402
+from pipeline.io import runs as runio  # noqa: E402
 
 
 @task(name="ingest", cache_policy=NO_CACHE)
@@ -57,14 +58,14 @@ def write(registry: str, unit_fit, rows, status, observations, paths, settings, 
 
 @task(name="fit-scalar", cache_policy=NO_CACHE)
 def fit_scalar(runs, settings: calibration.CalibrationSettings):
-    from pipeline.scalar import calibrate_scalar
+    from pipeline.calibrate.scalar import calibrate_scalar
 
     return calibrate_scalar(runs, settings=settings)
 
 
 @task(name="fit-differential", cache_policy=NO_CACHE)
 def fit_differential(runs, base_passport: dict, settings: calibration.CalibrationSettings):
-    from pipeline.differential import calibrate_differential
+    from pipeline.calibrate.differential import calibrate_differential
 
     return calibrate_differential(runs, base_passport, calibration_settings=settings)
 

@@ -50,7 +50,7 @@ def inspect(run: Path = typer.Argument(..., help="an .mcap file or a Parquet run
             as_json: bool = typer.Option(False, "--json", help="print one JSON object")):
     """What a run holds: metadata, streams, rates, gaps, the plateaus and static positions found (no Prefect)."""
     from pipeline.inspect import format_summary, summarize_run
-    from pipeline.runio import read_run
+    from pipeline.io.runs import read_run
 
     summary = summarize_run(read_run(run))
     _emit(summary, as_json, None if as_json else format_summary(summary))
@@ -75,9 +75,9 @@ def simulate(out: Path = typer.Option(..., "--out", help="output .mcap file or P
              as_json: bool = typer.Option(False, "--json")):
     """Write one simulated run of a chamber program, and its ground truth as JSON beside it."""
     from pipeline.effects import parse_effect_spec
-    from pipeline.runio import write_run
-    from pipeline.simulate import SimConfig, write_truth
-    from pipeline.simulate_large import simulate_run
+    from pipeline.io.runs import write_run
+    from pipeline.simulate.chamber import SimConfig, write_truth
+    from pipeline.simulate.large import simulate_run
 
     try:
         effects = [parse_effect_spec(e) for e in effect]
@@ -133,9 +133,9 @@ def calibrate(runs: List[Path] = typer.Argument(..., help="runs of one unit (TP 
 
 
 def _base_passport(run: Path, registry: Path, path: Path | None) -> dict:
-    from pipeline.passport import read_passport
-    from pipeline.registry import Registry
-    from pipeline.runio import read_run_meta
+    from pipeline.io.runs import read_run_meta
+    from pipeline.passport.document import read_passport
+    from pipeline.passport.registry import Registry
 
     if path is not None:
         return read_passport(path)
@@ -148,7 +148,7 @@ def _base_passport(run: Path, registry: Path, path: Path | None) -> dict:
 
 
 def _calibration_settings(thermal_model: str, constants_method: str, tol_normal_g: float, tol_range_g: float):
-    from pipeline.calibration import CalibrationSettings
+    from pipeline.calibrate.tilt import CalibrationSettings
     from pipeline.verify import Tolerances
 
     if thermal_model not in ("auto", "poly1", "poly2", "poly3", "piecewise"):
@@ -220,7 +220,7 @@ def fleet(folder: Path = typer.Argument(..., help="folder of runs (searched recu
     Runs already processed with the same settings are skipped; a bad run is reported and the rest go on.
     Exit status: 0 all done or skipped; 1 the fleet ran but some runs failed (listed); 2 it could not run.
     """
-    from pipeline.fleet_plan import discover_runs
+    from pipeline.calibrate.fleet import discover_runs
 
     settings = _calibration_settings(thermal_model, constants_method, tol_normal_g, tol_range_g)
     if pool not in ("auto", "process", "thread"):
@@ -278,7 +278,7 @@ def serve(inbox: Path = typer.Option(..., "--inbox", help="folder the chamber ru
 def passport_log(unit: str, registry: Path = typer.Option(..., "--registry"),
                  as_json: bool = typer.Option(False, "--json")):
     """Versions of a unit: number, date, status, inputs."""
-    from pipeline.registry import Registry
+    from pipeline.passport.registry import Registry
 
     rows = Registry(registry).log(unit)
     text = "\n".join(f"v{r['version']:<4} {r['created_utc']}  {str(r.get('status')):<10} {r['sha256'][:12]}  "
@@ -290,7 +290,7 @@ def passport_log(unit: str, registry: Path = typer.Option(..., "--registry"),
 def passport_show(unit: str, version: Optional[int] = typer.Argument(None),
                   registry: Path = typer.Option(..., "--registry")):
     """One version of a unit's passport (the newest when no version is given), as JSON."""
-    from pipeline.registry import Registry
+    from pipeline.passport.registry import Registry
 
     _emit(Registry(registry).load(unit, version), True)
 
@@ -299,7 +299,7 @@ def passport_show(unit: str, version: Optional[int] = typer.Argument(None),
 def passport_diff(unit: str, v1: int, v2: int, registry: Path = typer.Option(..., "--registry"),
                   as_json: bool = typer.Option(False, "--json")):
     """Which constants changed between two versions, by how much (units of physics.md)."""
-    from pipeline.registry import Registry
+    from pipeline.passport.registry import Registry
 
     d = Registry(registry).diff(unit, v1, v2)
     _emit(d, as_json, None if as_json else _diff_text(d))
@@ -319,7 +319,7 @@ def _diff_text(d: dict) -> str:
 @passport_app.command("verify")
 def passport_verify(registry: Path = typer.Option(..., "--registry"), as_json: bool = typer.Option(False, "--json")):
     """Check every version's hash and parent link; names any altered version and exits non-zero."""
-    from pipeline.registry import Registry
+    from pipeline.passport.registry import Registry
 
     rep = Registry(registry).verify()
     obj = {"ok": rep.ok, "problems": rep.problems, "notes": getattr(rep, "notes", [])}

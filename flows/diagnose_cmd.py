@@ -1,6 +1,6 @@
 """``thermocal diagnose RUN [--passport FILE] [--json]``: the command behind the CLI (no Prefect).
 
-Reads the run (and the passport when given), runs :func:`pipeline.diagnose.diagnose_run`, writes the figure and the
+Reads the run (and the passport when given), runs :func:`pipeline.diagnose.diagnosis.diagnose_run`, writes the figure and the
 passport extended with the fitted effects, and returns the report (contract.md's ``diagnose --json`` object plus
 ``figure`` and ``extended_passport`` paths). Both files go beside the run unless paths are given:
 ``<run>.diagnose.png`` and ``<run>.diagnose.passport.json``.
@@ -12,10 +12,10 @@ import json
 import sys
 from pathlib import Path
 
-from pipeline.diagnose import diagnose_run
+from pipeline.diagnose.diagnosis import diagnose_run
 from pipeline.errors import ThermocalError
-from pipeline.passport import read_passport
-from pipeline.runio import read_run
+from pipeline.io.runs import read_run
+from pipeline.passport.document import read_passport
 
 
 def _beside(run: Path, suffix: str) -> Path:
@@ -37,7 +37,7 @@ def diagnose_command(run: Path, passport: Path | None, as_json: bool, out_png: P
     png = Path(out_png) if out_png is not None else _beside(run, ".diagnose.png")
     ext = Path(out_passport) if out_passport is not None else _beside(run, ".diagnose.passport.json")
     try:
-        from pipeline.diagnose_plot import plot_residuals
+        from pipeline.diagnose.plot import plot_residuals
 
         title = (f"{the_run.meta.unit_serial} {the_run.meta.run_id}: residual of 30 s blocks, "
                  f"{result.report['verdict']}")

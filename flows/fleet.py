@@ -1,9 +1,9 @@
 """The fleet flow: calibrate every run under a folder, one passport per unit, past bad runs.
 
 One flow run per fleet job, one task per unit (``calibrate-unit``, a call of
-:func:`pipeline.fleet_plan.calibrate_group`): a unit's runs, TP runs and the VP runs that verify them, are
+:func:`pipeline.calibrate.fleet.calibrate_group`): a unit's runs, TP runs and the VP runs that verify them, are
 calibrated together. Planning (discovery, metadata, content hashes, the registry's identity check) is
-:func:`pipeline.fleet_plan.plan_fleet`, run once in the flow.
+:func:`pipeline.calibrate.fleet.plan_fleet`, run once in the flow.
 
 Where the unit tasks run is a flow parameter, so that a deployment can choose it too:
 
@@ -14,7 +14,7 @@ Where the unit tasks run is a flow parameter, so that a deployment can choose it
   ``PREFECT_API_URL`` to it.
 - else a local pool of ``workers`` (default: the machine's CPU count). ``pool="process"``: the unit tasks run in
   Prefect's ThreadPoolTaskRunner and each hands its calibration to a process pool of the flow's own
-  (``concurrent.futures``, spawn, workers warmed by :func:`pipeline.fleet_plan.prepare_worker`), so the
+  (``concurrent.futures``, spawn, workers warmed by :func:`pipeline.calibrate.fleet.prepare_worker`), so the
   computation runs in parallel past the GIL while Prefect's side of a task run (states, events) stays in the flow
   process. Prefect's ProcessPoolTaskRunner was dropped for this: it rebuilds Prefect's settings for every task
   run in the worker (~0.13 s of CPU per task, 15 % of a unit) and its workers import Prefect (~4 s to start).
@@ -48,8 +48,8 @@ from prefect.cache_policies import NO_CACHE  # noqa: E402
 from prefect.futures import as_completed  # noqa: E402
 from prefect.runtime import flow_run  # noqa: E402
 
-from pipeline import fleet_plan  # noqa: E402
-from pipeline.calibration import CalibrationSettings  # noqa: E402
+from pipeline.calibrate import fleet as fleet_plan  # noqa: E402
+from pipeline.calibrate.tilt import CalibrationSettings  # noqa: E402
 
 POOLS = ("auto", "process", "thread")
 #: ``pool="auto"``: a process pool from this many units on (its start-up pays off), else threads.
@@ -63,7 +63,7 @@ _COMPUTE_POOL: contextvars.ContextVar[Executor | None] = contextvars.ContextVar(
 @task(name="calibrate-unit", task_run_name="calibrate-{unit}", cache_policy=NO_CACHE)
 def calibrate_unit(unit: str, runs: list[str], registry: str, settings: CalibrationSettings,
                    figure: bool = True, digests: dict | None = None) -> fleet_plan.UnitOutcome:
-    """:func:`pipeline.fleet_plan.calibrate_group`, in the flow's process pool when it has one."""
+    """:func:`pipeline.calibrate.fleet.calibrate_group`, in the flow's process pool when it has one."""
     return _calibrate_group(unit, runs, registry, settings, figure, digests)
 
 
@@ -146,7 +146,13 @@ class _Progress:
         self.bar = None
         if show and total:
             from rich.console import Console
-            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+            from rich.progress import (
+                BarColumn,
+                MofNCompleteColumn,
+                Progress,
+                TextColumn,
+                TimeElapsedColumn,
+            )
 
             self.bar = Progress(TextColumn("fleet"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                                 console=Console(stderr=True), transient=False)

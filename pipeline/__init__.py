@@ -1,19 +1,30 @@
-"""thermocal's library: pure computation for thermal calibration of accelerometer units.
+"""thermocal's library: pure computation for thermal calibration of accelerometer units (no module imports Prefect).
 
-Modules are named for what they hold:
+Physics core (modules named for the physics, units in every docstring):
 
-- ``run``: the one canonical in-memory form of a chamber run (whatever the file format)
-- ``positions``: the tilt fixture's test (TP) and verification (VP) positions
-- ``model``: the metrological model U = K a + U0 and its inverse
-- ``io_mcap`` / ``io_parquet`` / ``runio``: readers and writers of the two log layouts
-- ``simulate``: the chamber-program simulator, with the catalogue of left-out effects in ``effects``
-- ``segment``: temperature plateaus and static positions found from the data
-- ``constants``: the 12 constants per plateau (six-position closed form, least squares)
-- ``thermal``: temperature models (polynomial, piecewise linear)
+- ``positions``: the tilt fixture's test (TP) and verification (VP) positions, specific force in g
+- ``model``: the metrological model U = K a + U0 (V, V/g) and its inverse
+- ``constants``: the 12 constants at one temperature from static positions (closed form, least squares)
+- ``thermal``: temperature models of the constants (polynomial, piecewise linear) in dT = T - T0 (C)
 - ``compensate``: compensation methods 1 and 2
-- ``verify``: gravity-module error at the verification positions
-- ``passport``: the passport document
-No module here imports Prefect.
+- ``verify``: gravity-module error at the verification positions (g)
+- ``effects``: the catalogue of left-out physics (simulation, fit terms, explanation, properties)
+
+Steps and data:
+
+- ``run``: the one canonical in-memory form of a chamber run, whatever the file format
+- ``segment``: temperature plateaus and static positions found from the data
+- ``inspect``: what a recording holds, before anything is fitted
+- ``plots``: figures (PNG)
+- ``errors``: the one-line error types
+
+Sub-packages:
+
+- ``io``: reading and writing runs (MCAP and Parquet layouts, block codecs, shared checks, schemas as package data)
+- ``simulate``: the chamber-run simulator (programs, the simulated unit, chunked long runs)
+- ``calibrate``: one recipe per method (tilt, scalar, differential), publishing into the registry, fleets
+- ``passport``: the passport document, the registry (storage and integrity), provenance of inputs
+- ``diagnose``: mismatch diagnosis (locate, name, model, refit)
 """
 
 __version__ = "0.1.0"

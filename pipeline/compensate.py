@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .model import specific_force_g
+from pipeline.model import specific_force_g
 
 
 def method1(model, u_v: np.ndarray, temp_c: np.ndarray) -> np.ndarray:

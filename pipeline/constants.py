@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .positions import TEST_POSITIONS
+from pipeline.positions import TEST_POSITIONS
 
 
 @dataclass(frozen=True)
@@ -67,7 +67,7 @@ def fit_constants(positions: list[str], u_v: np.ndarray, *, method: str = "auto"
     ``method``: ``"six_position"`` (needs TP1..TP6, each once; repeats are averaged), ``"least_squares"`` (all
     given positions), or ``"auto"``: least squares when more than six positions are given, else the closed form.
     """
-    from .positions import gravity_vector_g
+    from pipeline.positions import gravity_vector_g
 
     u_v = np.asarray(u_v, dtype=float)
     a_g = np.array([gravity_vector_g(p) for p in positions])

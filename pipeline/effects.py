@@ -32,8 +32,8 @@ import numpy as np
 from scipy.signal import lfilter, lfiltic
 from scipy.spatial.transform import Rotation
 
-from .model import ConstantsModel, output_v
-from .positions import ALL_POSITIONS, AXES, POSITION_NAMES
+from pipeline.model import ConstantsModel, output_v
+from pipeline.positions import ALL_POSITIONS, AXES, POSITION_NAMES
 
 Vec3 = tuple[float, float, float]
 

@@ -11,9 +11,9 @@ from typing import Any
 
 import numpy as np
 
-from .errors import ThermocalError
-from .run import Run
-from .runio import GAP_FACTOR, gap_indices  # noqa: F401  (GAP_FACTOR: the gap definition, shared with the readers)
+from pipeline.errors import ThermocalError
+from pipeline.io.checks import GAP_FACTOR, gap_indices  # noqa: F401  (GAP_FACTOR: the gap definition, shared with the readers)
+from pipeline.run import Run
 
 
 def summarize_run(run: Run) -> dict[str, Any]:
@@ -68,7 +68,7 @@ def _segmentation_summary(run: Run) -> dict[str, Any]:
     raised, so that ``inspect`` still shows the streams.
     """
     try:
-        from .segment import segment_run
+        from pipeline.segment import segment_run
     except ImportError:
         return {"plateaus": [], "static_positions": [], "segmentation": "not available (pipeline.segment missing)"}
     try:

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .thermal import cluster_temperatures
+from pipeline.thermal import cluster_temperatures
 
 #: The series of the verification figure: row attribute (g), legend label, matplotlib format, colour.
 _DG_SERIES = (("dg_uncompensated_g", "uncompensated", "o-", "C0"), ("dg_method1_g", "method 1", "s-", "C1"),

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 import polars as pl
 
-from .errors import RunFormatError
+from pipeline.errors import RunFormatError
 
 STREAM_COLUMNS: dict[str, dict[str, Any]] = {
     "voltmeter": {"t_ns": pl.Int64, "ux": pl.Float64, "uy": pl.Float64, "uz": pl.Float64},

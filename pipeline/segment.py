@@ -22,14 +22,18 @@ times (8 bytes per sample) and a few masks (1 byte per sample), not a copy of th
 from __future__ import annotations
 
 import dataclasses
-
 from dataclasses import dataclass, field
 
 import numpy as np
 import polars as pl
 
-from .positions import ALL_POSITIONS, TEST_POSITIONS, gravity_vector_g, nearest_position
-from .run import Run
+from pipeline.positions import (
+    ALL_POSITIONS,
+    TEST_POSITIONS,
+    gravity_vector_g,
+    nearest_position,
+)
+from pipeline.run import Run
 
 _NS = 1_000_000_000
 #: blocks per static window (the time resolution of static detection is static_window_s / this)

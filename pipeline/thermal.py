@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .positions import AXES
+from pipeline.positions import AXES
 
 OFF_DIAGONAL = [(i, j) for i in range(3) for j in range(3) if i != j]
 DIAG_KEYS = [AXES[i] * 2 for i in range(3)]                         # "xx", "yy", "zz"

@@ -7,8 +7,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from . import compensate
-from .model import gravity_module_error_g
+from pipeline import compensate
+from pipeline.model import gravity_module_error_g
 
 
 @dataclass(frozen=True)
@@ -75,7 +75,7 @@ def overall_status(rows: list[VerificationRow]) -> str:
 
 def summary_by_temperature(rows: list[VerificationRow], cluster_tol_c: float = 3.0) -> list[dict]:
     """Max |dg| per verification temperature, before and after each compensation (g)."""
-    from .thermal import cluster_temperatures
+    from pipeline.thermal import cluster_temperatures
 
     if not rows:
         return []

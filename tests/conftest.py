@@ -20,8 +20,8 @@ os.environ["DO_NOT_TRACK"] = "1"
 
 @pytest.fixture(scope="session")
 def seed000():
-    """The paper's Tables 1-3 (pipeline/data holds a copy of shared/reference/seed000_tables.json)."""
-    return json.loads((REPO / "pipeline" / "data" / "seed000_tables.json").read_text())
+    """The paper's Tables 1-3 (pipeline/simulate/data holds a copy of shared/reference/seed000_tables.json)."""
+    return json.loads((REPO / "pipeline" / "simulate" / "data" / "seed000_tables.json").read_text())
 
 
 @pytest.fixture(scope="session")

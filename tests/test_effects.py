@@ -12,9 +12,9 @@ from pipeline.effects import EFFECTS, FixtureFaceError, SignalContext, TiltSettl
     ramp_sign_from_temperature
 from pipeline.model import output_v
 from pipeline.positions import gravity_vector_g
-from pipeline.program import standard_program
-from pipeline.simulate import SimConfig, simulate
-from pipeline.unit import seed000_unit
+from pipeline.simulate.program import standard_program
+from pipeline.simulate.chamber import SimConfig, simulate
+from pipeline.simulate.unit import seed000_unit
 
 CATALOGUE = ["thermal_lag", "thermal_hysteresis", "time_drift", "warmup_transient", "temperature_curvature",
              "scale_nonlinearity", "fixture_face_error", "tilt_settling"]

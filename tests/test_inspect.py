@@ -9,7 +9,7 @@ import pytest
 
 from pipeline.inspect import format_summary, stream_summary, summarize_run
 from pipeline.run import Run, RunMeta, make_frame
-from pipeline.runio import read_run, write_run
+from pipeline.io.runs import read_run, write_run
 
 T0_NS = 1_793_491_200_000_000_000
 

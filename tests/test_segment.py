@@ -11,11 +11,11 @@ import polars as pl
 import pytest
 
 from pipeline.positions import gravity_vector_g, nearest_position
-from pipeline.program import get_program
+from pipeline.simulate.program import get_program
 from pipeline.run import Run, RunMeta, make_frame
-from pipeline.runio import read_run, write_run
+from pipeline.io.runs import read_run, write_run
 from pipeline.segment import SegmentSettings, find_plateaus, find_static, segment_run
-from pipeline.simulate import SimConfig, simulate
+from pipeline.simulate.chamber import SimConfig, simulate
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
 REAL = SHARED / "reference" / "real" / "imucal_ferraris"

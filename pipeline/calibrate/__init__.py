@@ -1,0 +1,1 @@
+"""Calibration recipes (tilt, scalar, differential), publishing into the registry, fleets."""

@@ -1,0 +1,611 @@
+"""Differential specific-force thermal calibration (seed 003, Zhuo and Du).
+
+After a normal-temperature calibration (K0, U0 at T0, e.g. a six-position passport), the unit sits in a chamber at a
+few roughly known orientations -- no precise positioning, fixture face errors of a degree or more -- while the
+temperature cycles. At one orientation the specific force a does not change, so the difference of a channel's
+output between two times at that orientation holds only the temperature-induced change of its constants:
+
+    (U_c(t2) - U_c(t1)) / K0_cc = a_c [s(t2) - s(t1)] + sum_{j != c} (K0_cj / K0_cc) a_j [g_cj(t2) - g_cj(t1)]
+                                  + [b(t2) - b(t1)] / K0_cc
+
+with the relative scale-factor change s, the bias change b (V) and the relative cross-axis changes g_cj, each a
+polynomial in dT = T - T0 (order up to 3) plus terms in the temperature rate r = dT/dt (order up to 2):
+
+    s  = sum_m beta_m dT^m   + sum_n sum_k beta~_nk  r^n dT^k
+    b  = sum_m alpha_m dT^m  + sum_n sum_k alpha~_nk r^n dT^k          (k = 0 only in the paper)
+    g_cj = sum_m gamma_cjm dT^m
+
+The specific force a is not known precisely, but it multiplies only small changes, so the orientation's mean output
+with the normal-temperature constants, a0 = K0^-1 (U - U0) (the paper's F^p), stands in for it. a0 carries the mean
+temperature error of the window (mg uncompensated), which multiplies the scale change; ``refine_passes`` refits with
+the windows' compensated mean instead (a micro-g effect). The paper fits s and b per axis (its quartz-flexure units have negligible cross-axis temperature terms). This project adds, as options:
+
+- the cross-axis terms g_cj for the axes j the orientations excite (``cross_axis``, on by default: seed 000's unit
+  has gamma up to 6e-3 /C on cross-axis terms of 0.03 of the gain, about 1 mg of cross-axis change over 50 C);
+- rate terms times dT^k (``rate_dt_order``): a lag of the sensing element behind the thermosensor makes
+  b(T_e) = b(T - tau r) ~ b(T) - tau r b'(T), whose factor b'(T) changes with T when b is curved;
+- the lag itself (``lag_fit``): the polynomials evaluated at the element temperature T_e, the thermosensor through a
+  first-order lag tau (tau dT_e/dt = T - T_e), with tau fitted (a one-dimensional search around the linear fit).
+  The paper's rate terms are the first-order expansion of this; the lag model also holds at the ends of ramps,
+  where dT/dt changes within tau.
+
+Processing as in the paper: the outputs are averaged over ``block_s`` (10 s) blocks and the thermosensor smoothed
+(Savitzky-Golay over ``temp_smooth_s``, which also gives the rate); each orientation window (a static stretch of the
+run) is split into halves and block i of the first half is differenced with block i of the second (equal spacing,
+the longest baseline); least squares over all orientations, per channel.
+
+The result maps onto the passport: alpha (bias, V/C^m), beta (scale, 1/C^m) and gamma (cross-axis, 1/C^m) of the
+polynomial thermal model, and the rate terms and lag in an extra field ``rate_terms`` that
+:func:`compensate_differential` applies (``pipeline.compensate`` works on the same passport without them).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.linalg import lstsq as scipy_lstsq
+from scipy.optimize import minimize_scalar
+from scipy.signal import savgol_filter
+
+from pipeline.effects import first_order_lag
+from pipeline.errors import CalibrationError
+from pipeline.model import specific_force_g
+from pipeline.positions import AXES
+from pipeline.thermal import PolynomialModel, thermal_model_from_dict
+
+_NS = 1_000_000_000
+RATE_UNIT = "C/min"
+
+
+@dataclass(frozen=True)
+class DifferentialSettings:
+    """Model orders and the smoothing of seed 003's method (the paper: polynomial order 3, rate order 2)."""
+
+    poly_order: int = 3             # scale factor, bias (and cross-axis) polynomial in dT, 1..3
+    rate_order: int = 2             # terms in r^n, n = 1..rate_order (0: none)
+    rate_dt_order: int = 0          # rate terms also times dT^k, k = 1..rate_dt_order (0: the paper's model)
+    cross_axis: bool = True         # fit the cross-axis temperature terms the orientations excite
+    lag_fit: bool = False           # evaluate the polynomials at the lagged element temperature, tau fitted
+    lag_max_s: float = 1800.0       # search range of tau (s)
+    block_s: float = 10.0           # outputs averaged over blocks of this length (s)
+    temp_smooth_s: float = 301.0    # Savitzky-Golay window of the thermosensor, for T and r (s)
+    min_window_s: float = 3600.0    # shortest orientation window used (s)
+    trim_s: float = 60.0            # dropped at both ends of each orientation window (s)
+    max_turn_deg: float = 2.0       # static stretches closer than this in gravity direction are one orientation
+    min_excitation: float = 0.2     # smallest singular value per sqrt(windows) of [1, a_c, a_j] to fit a term
+    refine_passes: int = 1          # refits with each window's specific force from the previous fit's compensation
+
+    def __post_init__(self):
+        if not 1 <= self.poly_order <= 3:
+            raise ValueError(f"poly_order must be 1..3, got {self.poly_order}")
+        if not 0 <= self.rate_order <= 2:
+            raise ValueError(f"rate_order must be 0..2, got {self.rate_order}")
+        if not 0 <= self.rate_dt_order <= 2:
+            raise ValueError(f"rate_dt_order must be 0..2, got {self.rate_dt_order}")
+        if not self.block_s > 0 or not self.temp_smooth_s > 0 or not self.lag_max_s > 0:
+            raise ValueError("block_s, temp_smooth_s and lag_max_s must be positive")
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# The thermosensor, smoothed
+
+
+def smooth_temperature(t_s: np.ndarray, temp_c: np.ndarray, window_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Savitzky-Golay (quadratic) smoothing of a thermosensor series over ``window_s``: the smoothed temperature
+    (C) and its rate (C/min) at ``t_s``. Non-finite samples are dropped (their outputs interpolated); the series is
+    resampled to its median step first (the filter needs a uniform grid)."""
+    t_s = np.asarray(t_s, dtype=float)
+    temp_c = np.asarray(temp_c, dtype=float)
+    ok = np.isfinite(t_s) & np.isfinite(temp_c)
+    if ok.sum() < 5:
+        raise CalibrationError("too few thermosensor samples to smooth", stream="au_temperature")
+    ts, y0 = t_s[ok], temp_c[ok]
+    h = float(np.median(np.diff(ts)))
+    grid = ts[0] + h * np.arange(int(np.floor((ts[-1] - ts[0]) / h)) + 1)
+    y = np.interp(grid, ts, y0)
+    win = min(max(int(round(window_s / h)) | 1, 5), grid.size if grid.size % 2 else grid.size - 1)
+    smooth = savgol_filter(y, win, 2, mode="interp")
+    rate = savgol_filter(y, win, 2, deriv=1, delta=h, mode="interp") * 60.0
+    return np.interp(t_s, grid, smooth), np.interp(t_s, grid, rate)
+
+
+@dataclass
+class Thermosensor:
+    """The smoothed thermosensor of a run: times ``t_s`` (s since ``t_ref_ns``), temperature (C), rate (C/min)."""
+
+    t_s: np.ndarray
+    temp_c: np.ndarray
+    rate_c_per_min: np.ndarray
+    t_ref_ns: int = 0
+
+    @classmethod
+    def from_run(cls, run, window_s: float, t_ref_ns: int | None = None) -> Thermosensor:
+        tt_ns = run.au_temperature["t_ns"].to_numpy()
+        t_ref = int(run.t_ns()[0]) if t_ref_ns is None else int(t_ref_ns)
+        t_s = (tt_ns - t_ref) / _NS
+        temp, rate = smooth_temperature(t_s, run.au_temperature["temp_c"].to_numpy(), window_s)
+        return cls(t_s, temp, rate, t_ref)
+
+    def at(self, t_s: np.ndarray, lag_tau_s: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """Temperature (the element temperature through a first-order lag ``lag_tau_s`` if > 0) and rate at
+        ``t_s``, interpolated."""
+        temp = first_order_lag(self.t_s, self.temp_c, lag_tau_s) if lag_tau_s > 0 else self.temp_c
+        return np.interp(t_s, self.t_s, temp), np.interp(t_s, self.t_s, self.rate_c_per_min)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# The model: a polynomial thermal model plus rate terms and lag
+
+
+@dataclass
+class RateTerms:
+    """Temperature-rate terms and lag: ``alpha_rate`` (n, k+1, 3) in V/(C/min)^n/C^k for the bias and
+    ``beta_rate`` (n, k+1, 3) in 1/(C/min)^n/C^k for the relative scale factors, index [n-1, k, axis] multiplying
+    r^n dT^k; ``lag_tau_s`` the element lag (0: none). The rate r is the thermosensor's, smoothed over
+    ``temp_smooth_s``."""
+
+    alpha_rate: np.ndarray
+    beta_rate: np.ndarray
+    temp_smooth_s: float
+    lag_tau_s: float = 0.0
+
+    @property
+    def order(self) -> int:
+        return self.alpha_rate.shape[0]
+
+    @property
+    def dt_order(self) -> int:
+        return self.alpha_rate.shape[1] - 1
+
+    def to_dict(self) -> dict:
+        return {"order": self.order, "dt_order": self.dt_order, "rate_unit": RATE_UNIT,
+                "temp_smooth_s": float(self.temp_smooth_s), "lag_tau_s": float(self.lag_tau_s),
+                "units": {"alpha_rate": "V/(C/min)^n/C^k", "beta_rate": "1/(C/min)^n/C^k"},
+                "index": "[n-1][k] multiplies r^n dT^k",
+                "alpha_rate": {AXES[i]: self.alpha_rate[..., i].tolist() for i in range(3)},
+                "beta_rate": {AXES[i] * 2: self.beta_rate[..., i].tolist() for i in range(3)}}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> RateTerms:
+        shape = (int(d["order"]), int(d["dt_order"]) + 1)
+        a = np.stack([np.asarray(d["alpha_rate"][ax], dtype=float).reshape(shape) for ax in AXES], axis=-1)
+        b = np.stack([np.asarray(d["beta_rate"][ax * 2], dtype=float).reshape(shape) for ax in AXES], axis=-1)
+        return cls(a, b, float(d["temp_smooth_s"]), float(d.get("lag_tau_s", 0.0)))
+
+
+def _rate_basis(dt_c, rate, order: int, dt_order: int) -> np.ndarray:
+    """r^n dT^k, shape (m, order, dt_order + 1)."""
+    dt_c = np.asarray(dt_c, dtype=float)
+    rate = np.asarray(rate, dtype=float)
+    n = np.arange(1, order + 1)
+    k = np.arange(dt_order + 1)
+    return rate[:, None, None] ** n[None, :, None] * dt_c[:, None, None] ** k[None, None, :]
+
+
+@dataclass
+class DifferentialModel:
+    """Constants K(T, r) and U0(T, r): the polynomial model ``static`` plus the ``rate`` terms (None: without).
+    With a lag, T is the element temperature (:meth:`Thermosensor.at` with ``lag_tau_s``)."""
+
+    static: PolynomialModel
+    rate: RateTerms | None = None
+
+    @property
+    def K0(self) -> np.ndarray:
+        return self.static.K0
+
+    @property
+    def U00(self) -> np.ndarray:
+        return self.static.U00
+
+    @property
+    def normal_temp_c(self) -> float:
+        return self.static.normal_temp_c
+
+    @property
+    def lag_tau_s(self) -> float:
+        return self.rate.lag_tau_s if self.rate is not None else 0.0
+
+    def constants_at(self, temp_c: np.ndarray, rate_c_per_min: np.ndarray | None = None
+                     ) -> tuple[np.ndarray, np.ndarray]:
+        """K (m, 3, 3) V/g and U0 (m, 3) V at temperatures ``temp_c`` (m,) C and rates (m,) C/min."""
+        K, U0 = self.static.constants_at(temp_c)
+        if self.rate is None or rate_c_per_min is None or self.rate.order == 0:
+            return K, U0
+        g = _rate_basis(np.atleast_1d(temp_c) - self.normal_temp_c, np.atleast_1d(rate_c_per_min),
+                        self.rate.order, self.rate.dt_order)
+        U0 = U0 + np.einsum("mnk,nki->mi", g, self.rate.alpha_rate)
+        K = K.copy()
+        K[:, np.arange(3), np.arange(3)] += np.einsum("mnk,nki->mi", g, self.rate.beta_rate) * np.diag(self.K0)
+        return K, U0
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Orientation windows and block averages
+
+
+@dataclass(frozen=True)
+class OrientationWindow:
+    """One orientation held through (part of) a temperature cycle: sample range [i0, i1) of the voltmeter, times,
+    the mean specific force with the normal-temperature constants (g) and the temperature range covered (C)."""
+
+    index: int
+    i0: int
+    i1: int
+    t_start_ns: int
+    t_end_ns: int
+    a0_g: tuple[float, float, float]
+    temp_min_c: float
+    temp_max_c: float
+
+    def to_dict(self) -> dict:
+        return {"t_start_ns": self.t_start_ns, "t_end_ns": self.t_end_ns, "a0_g": list(self.a0_g),
+                "temp_min_c": round(self.temp_min_c, 3), "temp_max_c": round(self.temp_max_c, 3),
+                "duration_s": round((self.t_end_ns - self.t_start_ns) / _NS, 1)}
+
+
+def orientation_windows(t_ns: np.ndarray, u_v: np.ndarray, temp_c: np.ndarray, K0: np.ndarray, U0: np.ndarray,
+                        settings: DifferentialSettings = DifferentialSettings()) -> list[OrientationWindow]:
+    """The orientation windows of a run: static stretches (``pipeline.segment.find_static``) joined while the
+    gravity direction stays within ``max_turn_deg``, trimmed by ``trim_s`` at both ends, at least
+    ``min_window_s`` long. ``temp_c`` (n,) is the temperature at the voltmeter samples."""
+    from pipeline.segment import find_static
+
+    groups: list[list[int]] = []
+    last_dir = None
+    for i0, i1 in find_static(t_ns, u_v):
+        a = specific_force_g(K0, U0, np.nanmean(u_v[i0:i1], axis=0))
+        d = a / np.linalg.norm(a)
+        if last_dir is not None and np.degrees(np.arccos(np.clip(d @ last_dir, -1, 1))) <= settings.max_turn_deg:
+            groups[-1][1] = i1
+        else:
+            groups.append([i0, i1])
+        last_dir = d
+    out = []
+    for i0, i1 in groups:
+        j0 = int(np.searchsorted(t_ns, t_ns[i0] + settings.trim_s * _NS))
+        j1 = int(np.searchsorted(t_ns, t_ns[i1 - 1] - settings.trim_s * _NS, side="right"))
+        if j1 <= j0 or (t_ns[j1 - 1] - t_ns[j0]) < settings.min_window_s * _NS:
+            continue
+        a0 = specific_force_g(K0, U0, np.nanmean(u_v[j0:j1], axis=0))
+        out.append(OrientationWindow(len(out), j0, j1, int(t_ns[j0]), int(t_ns[j1 - 1]), tuple(float(x) for x in a0),
+                                     float(np.nanmin(temp_c[j0:j1])), float(np.nanmax(temp_c[j0:j1]))))
+    return out
+
+
+@dataclass
+class BlockData:
+    """Block averages of a run in its orientation windows: block centre times ``t_s`` (m,) in s since the
+    thermosensor's ``t_ref_ns``, outputs ``u_v`` (m, 3) V, the window of each block (m,), the windows, and the
+    smoothed thermosensor."""
+
+    t_s: np.ndarray
+    u_v: np.ndarray
+    window: np.ndarray
+    windows: list[OrientationWindow]
+    sensor: Thermosensor
+    run_id: str = ""
+
+    def a0_g(self) -> np.ndarray:
+        """(n_windows, 3) mean specific force of each window with the normal-temperature constants."""
+        return np.array([w.a0_g for w in self.windows])
+
+    def temperature(self, lag_tau_s: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """Temperature (element temperature with a lag) and rate at the block centres."""
+        return self.sensor.at(self.t_s, lag_tau_s)
+
+
+def block_data(run, K0: np.ndarray, U0: np.ndarray,
+               settings: DifferentialSettings = DifferentialSettings()) -> BlockData:
+    """Orientation windows of ``run`` and the ``block_s`` averages of its outputs in them. Blocks with fewer than
+    80 % of their samples are dropped. Raises CalibrationError when the run has no orientation window."""
+    t_ns = run.t_ns()
+    u_v = run.u_v()
+    sensor = Thermosensor.from_run(run, settings.temp_smooth_s)
+    t_s = (t_ns - sensor.t_ref_ns) / _NS
+    windows = orientation_windows(t_ns, u_v, sensor.at(t_s)[0], K0, U0, settings)
+    if not windows:
+        raise CalibrationError(f"no orientation held for {settings.min_window_s:.0f} s or more (the differential "
+                               "method needs the unit static at a few orientations through a temperature cycle)",
+                               path=run.source or None, stream="voltmeter")
+    idx = np.concatenate([np.arange(w.i0, w.i1) for w in windows])
+    win = np.concatenate([np.full(w.i1 - w.i0, w.index) for w in windows])
+    start_s = np.array([(w.t_start_ns - sensor.t_ref_ns) / _NS for w in windows])
+    block = np.floor((t_s[idx] - start_s[win]) / settings.block_s).astype(np.int64)
+    key = win.astype(np.int64) * (1 << 40) + block
+    ok = np.isfinite(u_v[idx]).all(axis=1)
+    idx, win, key = idx[ok], win[ok], key[ok]
+    bounds = np.concatenate(([0], np.flatnonzero(np.diff(key)) + 1))
+    counts = np.diff(np.append(bounds, key.size))
+    step_s = float(np.median(np.diff(t_s))) if t_s.size > 1 else settings.block_s
+    full = counts >= 0.8 * settings.block_s / step_s
+    u_b = np.add.reduceat(u_v[idx], bounds, axis=0) / counts[:, None]
+    t_b = np.add.reduceat(t_s[idx], bounds) / counts
+    return BlockData(t_s=t_b[full], u_v=u_b[full], window=win[bounds][full], windows=windows, sensor=sensor,
+                     run_id=run.meta.run_id)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# The fit
+
+
+@dataclass
+class DifferentialFit:
+    """Result of :func:`fit_differential`: the model, which terms each channel has, and the fit's residuals.
+
+    ``terms[c]`` lists the fitted terms of channel c (``bias``, ``scale``, ``cross_x``..., ``bias_rate``,
+    ``scale_rate``); ``residual_rms_g`` (3,) the rms of the differenced equations after the fit (g);
+    ``notes`` what could not be determined.
+    """
+
+    model: DifferentialModel
+    terms: list[list[str]]
+    residual_rms_g: np.ndarray
+    n_pairs: int
+    windows: list[dict]
+    settings: DifferentialSettings
+    notes: list[str] = field(default_factory=list)
+
+    def summary(self) -> dict:
+        st = self.settings
+        return {"terms": {AXES[c]: t for c, t in enumerate(self.terms)},
+                "residual_rms_g": self.residual_rms_g.tolist(), "n_pairs": int(self.n_pairs),
+                "windows": self.windows, "poly_order": st.poly_order, "rate_order": st.rate_order,
+                "rate_dt_order": st.rate_dt_order, "cross_axis": st.cross_axis, "lag_fit": st.lag_fit,
+                "lag_tau_s": self.model.lag_tau_s, "block_s": st.block_s, "temp_smooth_s": st.temp_smooth_s}
+
+
+def _half_pairs(window: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Indices (i, j) pairing block k of each window's first half with block k of its second half."""
+    first, second = [], []
+    for w in np.unique(window):
+        idx = np.flatnonzero(window == w)
+        n = idx.size // 2
+        first.append(idx[:n])
+        second.append(idx[n:2 * n])
+    return np.concatenate(first), np.concatenate(second)
+
+
+def _excited(a_windows: np.ndarray, cols: list[int], min_sv: float) -> bool:
+    """Whether the windows' [1, a0[:, cols]] (n_windows, 1 + len(cols)) separates the terms: its smallest singular
+    value per sqrt(n_windows) is at least ``min_sv`` (about 0.58 for an axis up in one of six windows and down in
+    another, 0.02 for an axis that stayed horizontal within a degree)."""
+    V = np.column_stack([np.ones(len(a_windows))] + [a_windows[:, c] for c in cols])
+    if V.shape[0] < V.shape[1]:
+        return False
+    return bool(np.linalg.svd(V, compute_uv=False)[-1] / np.sqrt(len(V)) >= min_sv)
+
+
+def _channel_terms(c: int, K0: np.ndarray, a_windows: np.ndarray, settings: DifferentialSettings
+                   ) -> tuple[list[str], list[str]]:
+    """The terms channel c can have given the orientations, and a note per term that it cannot."""
+    names, axes, notes = ["bias"], [], []
+    if _excited(a_windows, [c], settings.min_excitation):
+        names.append("scale")
+        axes.append(c)
+    else:
+        notes.append(f"channel {AXES[c]}: no orientation had gravity along it; its scale-factor temperature "
+                     "terms are not determined (left at 0)")
+    for j in range(3):
+        if settings.cross_axis and j != c and K0[c, j] != 0 and _excited(a_windows, axes + [j],
+                                                                          settings.min_excitation):
+            names.append(f"cross_{AXES[j]}")
+            axes.append(j)
+    if settings.rate_order:
+        names += ["bias_rate"] + (["scale_rate"] if "scale" in names else [])
+    return names, notes
+
+
+@dataclass
+class _Equations:
+    """The differenced equations of all runs: per pair, the static and rate basis differences, the window's
+    specific force, the output differences; rebuilt for each trial lag."""
+
+    df: np.ndarray      # (p, P)
+    dg: np.ndarray      # (p, R*(Kx+1))
+    a0: np.ndarray      # (p, 3)
+    du: np.ndarray      # (p, 3)
+
+
+def _equations(data: list[BlockData], a_g: list[np.ndarray], normal_temp_c: float,
+               settings: DifferentialSettings, lag_tau_s: float) -> _Equations:
+    """The differenced equations; ``a_g`` holds each run's specific force per window (n_windows, 3)."""
+    P, R, Kx = settings.poly_order, settings.rate_order, settings.rate_dt_order
+    parts = []
+    for d, a in zip(data, a_g):
+        i, j = _half_pairs(d.window)
+        temp, rate = d.temperature(lag_tau_s)
+        dt = temp - normal_temp_c
+        f = dt[:, None] ** np.arange(1, P + 1)[None, :]
+        g = _rate_basis(dt, rate, R, Kx).reshape(len(dt), -1)
+        parts.append((f[j] - f[i], g[j] - g[i], a[d.window[i]], d.u_v[j] - d.u_v[i]))
+    return _Equations(*(np.concatenate([p[k] for p in parts]) for k in range(4)))
+
+
+def _solve(eq: _Equations, c: int, names: list[str], K0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least squares of channel c's differenced equation over the named terms: coefficients and residuals (g)."""
+    cols = {"bias": eq.df, "scale": eq.a0[:, [c]] * eq.df, "bias_rate": eq.dg, "scale_rate": eq.a0[:, [c]] * eq.dg}
+    X = np.concatenate([cols[n] if n in cols else (K0[c, AXES.index(n[-1])] / K0[c, c])
+                        * eq.a0[:, [AXES.index(n[-1])]] * eq.df for n in names], axis=1)
+    y = eq.du[:, c] / K0[c, c]
+    scale = np.linalg.norm(X, axis=0)
+    scale[scale == 0] = 1.0
+    coef = scipy_lstsq(X / scale, y, lapack_driver="gelsy", check_finite=False)[0] / scale
+    return coef, y - X @ coef
+
+
+def _best_lag(data, a_g, K0, normal_temp_c, settings, names) -> float:
+    """The element lag tau (s) minimising the summed squared residuals of the three channels: a grid over
+    [0, lag_max_s], then a bounded search around the best grid point."""
+    def cost(tau):
+        eq = _equations(data, a_g, normal_temp_c, settings, float(tau))
+        return sum(float(np.sum(_solve(eq, c, names[c], K0)[1] ** 2)) for c in range(3))
+
+    grid = np.linspace(0.0, settings.lag_max_s, 13)
+    costs = [cost(t) for t in grid]
+    k = int(np.argmin(costs))
+    lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
+    res = minimize_scalar(cost, bounds=(lo, hi), method="bounded", options={"xatol": 0.5})
+    return float(res.x) if res.fun <= costs[k] else float(grid[k])
+
+
+def fit_differential(data: list[BlockData], K0: np.ndarray, U0: np.ndarray, normal_temp_c: float,
+                     settings: DifferentialSettings = DifferentialSettings()) -> DifferentialFit:
+    """Least-squares temperature coefficients from the half-window differences of one or more runs' block data,
+    starting from the normal-temperature constants ``K0`` (3, 3) V/g and ``U0`` (3,) V at ``normal_temp_c``."""
+    K0 = np.asarray(K0, dtype=float)
+    U0 = np.asarray(U0, dtype=float)
+    windows = [dict(w.to_dict(), run_id=d.run_id) for d in data for w in d.windows]
+    a_windows = np.array([w["a0_g"] for w in windows])
+    names, notes = [], []
+    for c in range(3):
+        n, msg = _channel_terms(c, K0, a_windows, settings)
+        names.append(n)
+        notes += msg
+    a_g = [d.a0_g() for d in data]
+    tau = _best_lag(data, a_g, K0, normal_temp_c, settings, names) if settings.lag_fit else 0.0
+    for _ in range(1 + settings.refine_passes):
+        model, resid, n_pairs = _fit_once(data, a_g, K0, U0, normal_temp_c, settings, names, tau)
+        # the windows' specific force, now compensated (the first pass used the normal-temperature estimate a0)
+        a_g = [np.array([a[d.window == w.index].mean(axis=0) for w in d.windows])
+               for d, a in ((d, compensate_blocks(model, d)) for d in data)]
+    return DifferentialFit(model=model, terms=names, residual_rms_g=resid, n_pairs=n_pairs, windows=windows,
+                           settings=settings, notes=notes)
+
+
+def _fit_once(data, a_g, K0, U0, normal_temp_c, settings, names, tau) -> tuple[DifferentialModel, np.ndarray, int]:
+    """One linear fit with the windows' specific force ``a_g`` and the element lag ``tau`` (s)."""
+    P, R, Kx = settings.poly_order, settings.rate_order, settings.rate_dt_order
+    eq = _equations(data, a_g, normal_temp_c, settings, tau)
+    if len(eq.du) < 10 * max(len(n) for n in names) * max(P, R * (Kx + 1)):
+        raise CalibrationError(f"too few differenced blocks ({len(eq.du)}) for the differential model")
+    alpha, rel = np.zeros((P, 3)), np.zeros((P, 3, 3))
+    alpha_rate, beta_rate = np.zeros((R, Kx + 1, 3)), np.zeros((R, Kx + 1, 3))
+    resid = np.zeros(3)
+    for c in range(3):
+        coef, r = _solve(eq, c, names[c], K0)
+        resid[c] = np.sqrt(np.mean(r ** 2))
+        k = 0
+        for name in names[c]:
+            width = R * (Kx + 1) if name.endswith("_rate") else P
+            part = coef[k:k + width]
+            k += width
+            if name == "bias":
+                alpha[:, c] = part * K0[c, c]
+            elif name == "scale":
+                rel[:, c, c] = part
+            elif name.startswith("cross_"):
+                rel[:, c, AXES.index(name[-1])] = part
+            elif name == "bias_rate":
+                alpha_rate[:, :, c] = part.reshape(R, Kx + 1) * K0[c, c]
+            else:
+                beta_rate[:, :, c] = part.reshape(R, Kx + 1)
+    static = PolynomialModel(K0, U0, float(normal_temp_c), P, alpha, rel)
+    rate = RateTerms(alpha_rate, beta_rate, settings.temp_smooth_s, tau)
+    return DifferentialModel(static, rate), resid, len(eq.du)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Compensation
+
+
+def compensate_differential(model: DifferentialModel, u_v: np.ndarray, temp_c: np.ndarray,
+                            rate_c_per_min: np.ndarray | None = None) -> np.ndarray:
+    """Specific force (m, 3) in g: a = K(T, r)^-1 (U - U0(T, r)) (method 1 with the rate terms; without them when
+    ``rate_c_per_min`` is None). ``temp_c`` is the element temperature when the model has a lag."""
+    K, U0 = model.constants_at(np.atleast_1d(temp_c), rate_c_per_min)
+    return specific_force_g(K, U0, np.atleast_2d(u_v))
+
+
+def compensate_blocks(model: DifferentialModel, data: BlockData, *, with_rate: bool = True) -> np.ndarray:
+    """Compensated specific force (m, 3) in g of block data, with the model's lag and (unless ``with_rate`` is
+    False) its rate terms."""
+    temp, rate = data.temperature(model.lag_tau_s)
+    return compensate_differential(model, data.u_v, temp, rate if with_rate else None)
+
+
+def window_std_g(data: BlockData, a_g: np.ndarray) -> np.ndarray:
+    """Per orientation window and axis, the standard deviation over the window of the block-mean specific force
+    ``a_g`` (m, 3): the paper's "10 s standard deviation over the full temperature range" with 10 s blocks.
+    Shape (n_windows, 3), g."""
+    return np.array([a_g[data.window == w.index].std(axis=0) for w in data.windows])
+
+
+def model_from_passport(passport: dict) -> DifferentialModel:
+    """The passport's constants, polynomial thermal model and (for a differential passport) rate terms."""
+    c = passport["coefficients"]
+    static = thermal_model_from_dict(passport["thermal_model"], np.asarray(c["K"], float), np.asarray(c["U0"], float),
+                                     float(passport.get("normal_temp_c", 20.0)))
+    if not isinstance(static, PolynomialModel):
+        raise CalibrationError("the differential compensation needs a polynomial thermal model")
+    rt = passport.get("rate_terms")
+    return DifferentialModel(static, RateTerms.from_dict(rt) if rt else None)
+
+
+def compensate_run(passport: dict, run) -> tuple[np.ndarray, np.ndarray]:
+    """Every voltmeter sample of ``run`` compensated with a passport's model, lag and rate terms: times (n,) ns and
+    specific force (n, 3) g. The thermosensor is smoothed as when the passport was made."""
+    model = model_from_passport(passport)
+    window = model.rate.temp_smooth_s if model.rate else DifferentialSettings().temp_smooth_s
+    sensor = Thermosensor.from_run(run, window)
+    t_ns = run.t_ns()
+    temp, rate = sensor.at((t_ns - sensor.t_ref_ns) / _NS, model.lag_tau_s)
+    return t_ns, compensate_differential(model, run.u_v(), temp, rate)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# From runs to a passport
+
+
+def calibrate_differential(runs, base_passport: dict, *, settings: DifferentialSettings = DifferentialSettings(),
+                           calibration_settings=None):
+    """Passport of method ``differential`` from one unit's temperature-cycle runs and a normal-temperature passport
+    (any method; its K and U0 at T0 are the starting point, its thermal model is not used).
+
+    Returns a :class:`pipeline.calibrate.scalar.MethodCalibration`. The passport's ``thermal_model`` is the polynomial of
+    order ``settings.poly_order`` (alpha, beta, gamma), ``rate_terms`` holds the rate terms and lag (see
+    :class:`RateTerms`), ``differential`` the fit's details and ``base_passport`` the starting passport's unit,
+    version and method. VP segments in the runs, if any, verify it as usual (without rate terms).
+    """
+    from pipeline.calibrate.scalar import MethodCalibration
+    from pipeline.calibrate.tilt import (
+        CalibrationSettings,
+        UnitFit,
+        observe_run,
+        plateau_summary,
+        unit_of,
+        verify_unit,
+    )
+    from pipeline.passport.document import build_passport
+
+    calibration_settings = calibration_settings or CalibrationSettings()
+    runs = list(runs)
+    serial = unit_of(runs)
+    if base_passport.get("unit") not in (None, serial):
+        raise CalibrationError(f"the base passport is for unit {base_passport.get('unit')}, the runs for "
+                               f"{serial}")
+    try:
+        c = base_passport["coefficients"]
+        K0, U0 = np.asarray(c["K"], float), np.asarray(c["U0"], float)
+        t0 = float(base_passport.get("normal_temp_c", 20.0))
+    except (KeyError, TypeError, ValueError) as e:
+        raise CalibrationError(f"the base passport has no usable coefficients K, U0 ({e})") from None
+    if K0.shape != (3, 3) or U0.shape != (3,) or not np.all(np.isfinite(K0)) or not np.all(np.isfinite(U0)):
+        raise CalibrationError("the base passport's K must be 3x3 and U0 a 3-vector of finite numbers")
+    fit = fit_differential([block_data(r, K0, U0, settings) for r in runs], K0, U0, t0, settings)
+    observations = []
+    for r in runs:
+        try:                 # VP segments, if any, verify the passport; a run without plateaus simply has none
+            observations += observe_run(r, calibration_settings.segment)[0]
+        except CalibrationError:
+            pass
+    rows, status = verify_unit(fit.model.static, observations, t0, calibration_settings.tolerances)
+    unit_fit = UnitFit(unit=serial, normal_temp_c=t0, per_plateau=[], model=fit.model.static,
+                       skipped=list(fit.notes))
+    plateaus = plateau_summary(observations, calibration_settings.cluster_tol_c)
+    extra = {"differential": fit.summary(), "rate_terms": fit.model.rate.to_dict(),
+             "base_passport": {k: base_passport.get(k) for k in ("unit", "version", "method", "created_utc")}}
+    doc = build_passport(unit_fit, rows, status, g_local_mps2=runs[0].meta.g_local_mps2, plateaus=plateaus,
+                         method="differential", extra=extra)
+    return MethodCalibration(passport=doc, fit=unit_fit, rows=rows, status=status, plateaus=plateaus)

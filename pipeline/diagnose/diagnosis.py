@@ -1,0 +1,438 @@
+"""Mismatch diagnosis: where a recording departs from the model its passport predicts, which left-out physics of
+the effect catalogue (physics.md) explains it, the extended model, and the fit before and after.
+
+Steps (:func:`diagnose_run`):
+
+1. The passport is given or fitted from the run itself (default thermal model: polynomial of order = distinct
+   calibration temperatures - 1, at most 3). The recording is reduced to its named static stretches (soaks, ramps
+   and positions; moves left out) as 1 s means and ~30 s blocks (:mod:`pipeline.diagnose.signal`); the passport
+   drives the model with the recorded temperature and positions: residual = recorded - predicted.
+2. Noise from the data: the voltmeter's white noise from first differences of static samples, the thermosensor's
+   from its second differences (through dU/dT it is part of a block's error), and an Allan-type factor from the
+   scatter of consecutive blocks' residuals (:func:`pipeline.diagnose.fit.block_noise_factor`).
+3. Locate: blocks whose residual exceeds ``locate_sigma`` block sigmas, merged into time windows, with their axes,
+   temperatures and positions.
+4. Name: the base model is refit jointly with each catalogue effect's terms (built from the simulator's own
+   ``delta_u_v``), scored by BIC with plausibility checks, and accepted greedily (:mod:`pipeline.diagnose.fit`);
+   effects the run's program cannot tell apart are reported together as confounded.
+5. Improve: residual RMS before (passport) and after (base + accepted effects), overall and per finding; VP gravity
+   module errors before and after; the extended model stored in the passport (:mod:`pipeline.diagnose.model`).
+
+The report is contract.md's ``diagnose --json`` object (``verdict`` is ``consistent`` exactly when ``findings`` is
+empty) with extra keys. RMS values are of block means (a block is ~30 s), where left-out physics stands out of the
+noise; per-sample RMS is dominated by the white noise.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from pipeline.calibrate.tilt import (
+    CalibrationSettings,
+    fit_unit,
+    observations_from_segmentation,
+    plateau_summary,
+    verify_unit,
+)
+from pipeline.diagnose.fit import (
+    Design,
+    Selection,
+    SelectionSettings,
+    block_noise_factor,
+    select_terms,
+)
+from pipeline.diagnose.model import (
+    ExtendedModel,
+    add_polynomial_correction,
+    compensate_extended,
+    polynomial_reference,
+    raise_order,
+)
+from pipeline.diagnose.signal import (
+    Blocks,
+    StaticRecord,
+    make_blocks,
+    segment_settings_for,
+    static_record,
+    temperature_noise_c,
+)
+from pipeline.diagnose.terms import TERMS
+from pipeline.effects import make_effect
+from pipeline.errors import CalibrationError
+from pipeline.model import gravity_module_error_g, output_v, specific_force_g
+from pipeline.passport.document import build_passport, load_model
+from pipeline.positions import AXES, POSITION_NAMES, is_verification_position
+from pipeline.run import Run
+from pipeline.segment import Segmentation, segment_run
+from pipeline.thermal import default_order
+
+_NS = 1_000_000_000
+_UV = 1e6
+#: sigma factor of blocks left out of the fits (they keep their place in the figure)
+_EXCLUDE = 1e3
+
+
+@dataclass(frozen=True)
+class DiagnoseSettings:
+    """Block length, location and reporting thresholds (in block sigmas), and the selection settings."""
+
+    block_s: float = 30.0
+    micro_s: float = 1.0
+    locate_sigma: float = 5.0
+    where_sigma: float = 3.0
+    merge_gap_s: float = 60.0
+    selection: SelectionSettings = field(default_factory=SelectionSettings)
+
+
+@dataclass
+class Diagnosis:
+    """The report (contract.md's JSON object plus extras), the passport with its extended model, and the block
+    series behind the figure: times (h), residuals before and after (B, 3) V, block sigma, the windows where the
+    findings show and where the residual before exceeded the noise (h)."""
+
+    report: dict
+    passport: dict
+    extended: ExtendedModel
+    t_h: np.ndarray
+    before_v: np.ndarray
+    after_v: np.ndarray
+    sigma_v: np.ndarray
+    windows_h: list[tuple[float, float]]
+    located_h: list[tuple[float, float]]
+
+
+def fit_passport(run: Run, segmentation: Segmentation, settings: CalibrationSettings = CalibrationSettings()) -> dict:
+    """A passport fitted from the run itself (what ``calibrate`` would write, without registry fields)."""
+    obs = observations_from_segmentation(run.meta.run_id, segmentation)
+    fit = fit_unit(run.meta.unit_serial, obs, settings, normal_temp_c=run.meta.normal_temp_c)
+    rows, status = verify_unit(fit.model, obs, run.meta.normal_temp_c, settings.tolerances)
+    return build_passport(fit, rows, status, g_local_mps2=run.meta.g_local_mps2, plateaus=plateau_summary(obs))
+
+
+def diagnose_run(run: Run, passport: dict | None = None, settings: DiagnoseSettings = DiagnoseSettings(),
+                 passport_source: str | None = None) -> Diagnosis:
+    """Diagnose ``run`` against ``passport`` (fitted from the run when None). See the module doc."""
+    with _one_blas_thread():
+        return _diagnose(run, passport, settings, passport_source)
+
+
+def _one_blas_thread():
+    """Hundreds of small eigen-decompositions: a threaded BLAS only gets in their way (badly so on a busy
+    machine). Uses threadpoolctl when it is installed (optional)."""
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover - optional
+        return contextlib.nullcontext()
+    return threadpool_limits(1)
+
+
+def _diagnose(run: Run, passport: dict | None, settings: DiagnoseSettings, passport_source: str | None
+              ) -> Diagnosis:
+    seg_settings = segment_settings_for(run)
+    seg = segment_run(run, seg_settings)
+    if passport is None:
+        passport = fit_passport(run, seg, CalibrationSettings(segment=seg_settings))
+        passport_source = "fitted from the run (default thermal model)"
+    model, reference, notes = _base_model(passport)
+    rec = static_record(run, seg, micro_s=settings.micro_s, settings=seg_settings)
+    if rec.size < 10 or not np.all(np.isfinite(rec.sigma_sample_v)):
+        raise CalibrationError("too few named static samples to compare with the model and estimate the noise",
+                               stream="voltmeter")
+    blocks = make_blocks(rec, settings.block_s)
+    sigma = _block_sigma(run, rec, blocks, reference)
+    excluded = blocks.mean(rec.ramp_uncertain.astype(float)) > 0      # direction of the last ramp unknown there
+    sigma[excluded] *= _EXCLUDE
+    design = Design(rec, blocks, reference, sigma)
+    design.set_sigma(design.sigma * block_noise_factor(design, design.fit(())))
+    candidates = [e for e in TERMS if not (e == "temperature_curvature" and reference.order >= 3)]
+    sel = select_terms(design, candidates, settings.selection)
+    factor = block_noise_factor(design, sel.final)
+    if sel.accepted and np.any(factor > 1.05):     # correlated residual the accepted effects leave: widen, redo
+        design.set_sigma(design.sigma * factor)
+        sel = select_terms(design, candidates, settings.selection)
+
+    final_trials = _final_trials(sel)
+    predicted = blocks.mean(output_v(*model.constants_at(rec.temp_c), rec.a_g))
+    before = design.y - predicted
+    after = design.y - sel.final.fitted
+    extended = ExtendedModel(add_polynomial_correction(reference, sel.final.base_coef),
+                             [make_effect(t.effect, t.params) for t in final_trials],
+                             source={"run_id": run.meta.run_id, "run": run.source, "method": "thermocal diagnose"})
+    w = (blocks.n * ~excluded)[:, None] * np.ones(3)
+    noise_sigma = design.sigma / np.where(excluded, _EXCLUDE, 1.0)[:, None]
+    findings = [_finding(design, sel, t, before, after, seg, settings) for t in final_trials]
+    located = _where(design, np.abs(before) > settings.locate_sigma * design.sigma, seg, settings)
+    vp = _vp_errors(seg, rec, model, extended)
+    out_passport = copy.deepcopy(passport)
+    out_passport["extended_model"] = extended.to_dict()
+    notes += rec.warnings
+    if reference.order >= 3:
+        notes.append(f"the base thermal model is of order {reference.order}: temperature_curvature (a cubic term) "
+                     "is already part of it and is not tested")
+    rms_before, rms_refit = _rms(before, w), _rms(design.y - sel.base.fitted, w)
+    if not findings and rms_before > 3 * rms_refit and rms_before > 2 * _rms(noise_sigma, w):
+        notes.append(f"the passport's own model departs from the recording by {rms_before * _UV:.2f} uV RMS where "
+                     f"its base refit to this run (a polynomial of order {reference.order}) leaves "
+                     f"{rms_refit * _UV:.2f} uV: its constants or thermal model, not a left-out effect")
+    report = {
+        "verdict": "mismatch" if findings else "consistent",
+        "findings": findings,
+        "unit": run.meta.unit_serial,
+        "run_id": run.meta.run_id,
+        "passport_source": passport_source or "given",
+        "base_model": {"kind": "polynomial", "order": reference.order},
+        "noise_v": {"per_sample": rec.sigma_sample_v.tolist(), "thermosensor_c": temperature_noise_c(run)[0],
+                    "block_s": settings.block_s, "block_sigma_median": np.median(noise_sigma, axis=0).tolist(),
+                    "blocks_left_out": int(excluded.sum()),
+                    "ramp_direction_from": rec.ramp_source},
+        "rms_before_v": rms_before,
+        "rms_base_refit_v": rms_refit,
+        "rms_after_v": _rms(after, w),
+        "rms_noise_v": _rms(noise_sigma, w),
+        "located": located,
+        "vp": vp,
+        "vp_max_abs_dg_before_g": max((abs(v["dg_before_g"]) for v in vp), default=None),
+        "vp_max_abs_dg_after_g": max((abs(v["dg_after_g"]) for v in vp), default=None),
+        "extended_model": out_passport["extended_model"],
+        "candidates": sel.rounds,
+        "blocks": blocks.size,
+        "notes": notes,
+    }
+    return Diagnosis(report=report, passport=out_passport, extended=extended, t_h=blocks.t_s / 3600.0,
+                     before_v=before, after_v=after, sigma_v=noise_sigma,
+                     windows_h=_hours(rec, [w for f in findings for w in f["where"]["windows"]]),
+                     located_h=_hours(rec, located["windows"]))
+
+
+def _hours(rec: StaticRecord, windows_ns: list[list[int]]) -> list[tuple[float, float]]:
+    return [((a - rec.start_ns) / _NS / 3600.0, (b - rec.start_ns) / _NS / 3600.0) for a, b in windows_ns]
+
+
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def _base_model(passport: dict):
+    """The passport's model, the polynomial base the fits refine, and notes on how one became the other.
+
+    The base is of the order the passport's calibration temperatures warrant (distinct temperatures - 1, at most
+    3): a cubic part is ``temperature_curvature`` only beyond that.
+    """
+    model = load_model(passport)
+    reference = polynomial_reference(model)
+    cal_temps = np.array([p["temp_c"] for p in passport.get("per_plateau", []) if "temp_c" in p], dtype=float)
+    order = max(reference.order, default_order(cal_temps) if cal_temps.size else 0)
+    notes = []
+    if model is not reference:
+        notes.append("the passport's piecewise-linear thermal model was referred to a polynomial of order "
+                     f"{reference.order} through its breakpoints for the refit")
+    if order > reference.order:
+        notes.append(f"the passport's polynomial of order {reference.order} was refit as order {order}, what its "
+                     f"{order + 1} calibration temperatures warrant")
+        reference = raise_order(reference, order)
+    return model, reference, notes
+
+
+def _block_sigma(run: Run, rec: StaticRecord, blocks: Blocks, reference) -> np.ndarray:
+    """Expected sigma (B, 3) V of each block mean: white voltmeter noise and, through dU/dT, thermosensor noise."""
+    sigma_t, rate_t = temperature_noise_c(run)
+    kp, up = reference.constants_at(blocks.temp_c + 0.5)
+    km, um = reference.constants_at(blocks.temp_c - 0.5)
+    du_dt = output_v(kp - km, up - um, blocks.a_g)
+    n_t = np.maximum(1.0, (blocks.t_end_s - blocks.t_start_s + 1.0) * rate_t)
+    return np.sqrt(rec.sigma_sample_v[None, :] ** 2 / blocks.n[:, None] + du_dt ** 2 * sigma_t ** 2 / n_t[:, None])
+
+
+def _final_trials(sel: Selection):
+    """Accepted trials with the final (refined) time constants and coefficients."""
+    out = []
+    for t in sel.accepted:
+        value = dict(sel.state)[t.effect]
+        coef = sel.final.term_coef(t.effect) if t.effect in sel.final.slices else np.zeros(0)
+        params = TERMS[t.effect].parameters(coef, value, sel.final.labels.get(t.effect, []))
+        out.append(type(t)(t.effect, value, t.chi2, t.added_rank, t.delta_bic, params, t.reason, t.change_w))
+    return out
+
+
+def _rms(r: np.ndarray, w: np.ndarray) -> float:
+    return float(np.sqrt(np.sum(w * r ** 2) / np.sum(w))) if np.sum(w) > 0 else 0.0
+
+
+def _windows(blocks: Blocks, flagged: np.ndarray, start_ns: int, merge_gap_s: float, half_s: float
+             ) -> list[list[int]]:
+    """Flagged blocks merged into [t_start_ns, t_end_ns] windows (gaps up to ``merge_gap_s`` bridged)."""
+    idx = np.flatnonzero(flagged)
+    out: list[list[float]] = []
+    for i in idx:
+        a, b = blocks.t_start_s[i] - half_s, blocks.t_end_s[i] + half_s
+        if out and a - out[-1][1] <= merge_gap_s:
+            out[-1][1] = max(out[-1][1], b)
+        else:
+            out.append([a, b])
+    return [[int(start_ns + round(a * _NS)), int(start_ns + round(b * _NS))] for a, b in out]
+
+
+def _where(design: Design, flagged: np.ndarray, seg: Segmentation, settings: DiagnoseSettings) -> dict:
+    """Windows, axes, temperatures and positions of the flagged (B, 3) block values."""
+    blocks, rec = design.blocks, design.rec
+    any_axis = flagged.any(axis=1)
+    t_ns = rec.start_ns + blocks.t_s * _NS
+    temps, on_ramps = set(), 0
+    for i in np.flatnonzero(any_axis):
+        on = [p.temp_c for p in seg.plateaus if p.t_start_ns <= t_ns[i] <= p.t_end_ns]
+        if on:
+            temps.add(round(float(on[0]), 1))
+        else:
+            on_ramps += 1
+    positions = {POSITION_NAMES[int(p)] for p in blocks.position_idx[any_axis]}
+    return {"windows": _windows(blocks, any_axis, rec.start_ns, settings.merge_gap_s, settings.micro_s / 2),
+            "axes": [AXES[i] for i in range(3) if flagged[:, i].any()],
+            "temps_c": sorted(temps),
+            "positions": [p for p in POSITION_NAMES if p in positions],
+            "blocks": int(any_axis.sum()),
+            "blocks_on_ramps": on_ramps}
+
+
+def _finding(design: Design, sel: Selection, trial, before: np.ndarray, after: np.ndarray, seg: Segmentation,
+             settings: DiagnoseSettings) -> dict:
+    """One accepted effect as a contract finding: where its terms change the model, how much, in words."""
+    effect = trial.effect
+    signature = _shows(design, sel, effect)
+    z = np.abs(signature) / design.sigma
+    share = (z ** 2).sum(axis=0)
+    axes_on = share >= 0.05 * share.max()
+    # where the effect stands out of the noise and is at least a quarter of its largest size (a large effect
+    # spreads a little into the base refit everywhere; that is not where it shows); small effects: where largest
+    level = np.minimum(settings.where_sigma, 0.5 * z.max(axis=0))
+    big = np.abs(signature) >= 0.25 * np.abs(signature).max(axis=0)
+    flagged = (z >= level[None, :]) & big & axes_on[None, :] & (z > 0)
+    where = _where(design, flagged, seg, settings)
+    w = design.blocks.n[:, None] * flagged
+    confounded = sel.confounded.get(effect, [])
+    finding = {
+        "effect": effect,
+        "explanation": _explain(effect, trial.params, signature, flagged, where, confounded,
+                                float(design.rec.t_s[-1]) / 3600.0),
+        "where": where,
+        "parameters": trial.params,
+        "rms_before_v": _rms(before, w),
+        "rms_after_v": _rms(after, w),
+        "delta_bic": round(trial.delta_bic, 1),
+        "max_effect_v": float(np.abs(signature[flagged]).max()) if flagged.any() else 0.0,
+    }
+    if confounded:
+        finding["confounded_with"] = list(confounded)
+    return finding
+
+
+#: effects whose own term is mostly absorbed by the base model at the calibration points: they show where the
+#: data depart from the model refitted without them (between calibration temperatures, at revisits)
+_SHOWN_BY_REFIT = ("temperature_curvature", "time_drift")
+
+
+def _shows(design: Design, sel: Selection, effect: str) -> np.ndarray:
+    """(B, 3) V: what the effect puts into the model where it shows. Its own fitted term (a decay after power-on
+    or a move, a lag on ramps, an offset after a ramp, a per-position error), or for the effects in
+    ``_SHOWN_BY_REFIT`` the change of the fitted values against the model refitted without it."""
+    f = sel.final
+    if effect in _SHOWN_BY_REFIT:
+        return f.fitted - design.fit(tuple(s for s in sel.state if s[0] != effect)).fitted
+    if effect == "thermal_lag":
+        tau = dict(sel.state)[effect]
+        return design.base_prediction(f, tau) - design.base_prediction(f, None)
+    _, cols = design.term_columns(effect, dict(sel.state)[effect])
+    return cols @ f.term_coef(effect)
+
+
+def _vec_uv(v, unit: str = "uV") -> str:
+    return ", ".join(f"{a} {x * _UV:+.1f}" for a, x in zip(AXES, v)) + f" {unit}"
+
+
+def _temps_text(where: dict) -> str:
+    temps = where["temps_c"]
+    text = (" at " + ", ".join(f"{t:+.0f}" for t in temps) + " C") if temps else ""
+    if where.get("blocks_on_ramps"):
+        text += (" and on the ramps" if temps else " on the ramps")
+    return text
+
+
+def _explain(effect: str, p: dict, signature: np.ndarray, flagged: np.ndarray, where: dict,
+             confounded: list[str], duration_h: float) -> str:
+    """One or two plain sentences: what, where, how big, with units."""
+    peak = float(np.abs(signature[flagged]).max()) * _UV if flagged.any() else 0.0
+    axes = "/".join(where["axes"]) or "no axis"
+    temps = _temps_text(where)
+    if effect == "thermal_lag":
+        text = (f"The sensing element lags the thermosensor by about {p['tau_s']:.0f} s (a thermal gradient): "
+                f"during ramps and early in soaks the {axes} outputs depart from the passport by up to {peak:.1f} "
+                "uV, with the sign of dT/dt, and agree again on soaked plateaus.")
+    elif effect == "thermal_hysteresis":
+        text = (f"The zero offsets depend on the direction the temperature came from: after heating they sit "
+                f"2h = {_vec_uv(2 * np.asarray(p['h_v']))} above their values after cooling, so the same "
+                f"temperature revisited from above and from below disagrees{temps}, even soaked.")
+    elif effect == "time_drift":
+        text = (f"The zero offsets age at {_vec_uv(p['r_v_per_h'], 'uV/h')}, "
+                f"{_vec_uv(np.asarray(p['r_v_per_h']) * duration_h)} over the {duration_h:.1f} h run: revisits "
+                f"of one temperature{temps} drift monotonically with time.")
+    elif effect == "warmup_transient":
+        text = (f"After power-on the zero offsets settle by {_vec_uv(p['a_v'])} with a time constant of about "
+                f"{p['tau_s'] / 60:.1f} min: the early part of the first plateau{temps} is off by up to "
+                f"{peak:.1f} uV.")
+    elif effect == "temperature_curvature":
+        c50 = np.asarray(p["c_v_per_c3"]) * 50.0 ** 3
+        r50 = np.asarray(p["c_rel_per_c3"]) * 50.0 ** 3 * 1e6
+        text = (f"The temperature dependence has a cubic part the passport's polynomial lacks (at 50 C from T0: "
+                f"offsets {_vec_uv(c50)}, gains {', '.join(f'{a} {x:+.0f}' for a, x in zip(AXES, r50))} ppm): up "
+                f"to {peak:.1f} uV on {axes}{temps}, where a polynomial through the calibration temperatures cannot "
+                "follow it.")
+    elif effect == "scale_nonlinearity":
+        text = (f"The scale factors have a second-order part K2 = {_vec_uv(p['k2_v_per_g2'], 'uV/g^2')}: a "
+                f"channel reads that much more when its own axis is vertical than the linear model says (up to "
+                f"{peak:.1f} uV in single positions), which also biases the VP gravity module.")
+    elif effect == "fixture_face_error":
+        worst = max(p["delta_rad"].items(), key=lambda kv: np.linalg.norm(kv[1]))
+        text = (f"The tilt fixture's faces carry their own small angular errors, up to "
+                f"{np.degrees(np.linalg.norm(worst[1])) * 3600:.0f} arcsec (in {worst[0]}): they move the "
+                f"horizontal channels of single positions by up to {peak:.1f} uV, the same at every temperature.")
+    elif effect == "tilt_settling":
+        text = (f"After every move the reading creeps to its final value: {p['f'] * 1e6:.0f} ppm of the step, "
+                f"decaying with a time constant of about {p['tau_s']:.0f} s (up to {peak:.1f} uV at the start of "
+                "each static position).")
+    else:  # pragma: no cover - every catalogue id has a sentence
+        text = f"{effect}: up to {peak:.1f} uV on {axes}."
+    if confounded:
+        text += (f" Under this run's program it cannot be told apart from {', '.join(confounded)}: they explain "
+                 "the mismatch equally well.")
+    return text
+
+
+def _vp_errors(seg: Segmentation, rec: StaticRecord, model, extended: ExtendedModel) -> list[dict]:
+    """Gravity-module error dg = |a| - 1 (g) of each VP segment on a plateau: the passport (method 1) before, the
+    extended model after, from the same 1 s means."""
+    vp = [s for s in seg.segments if s.position and is_verification_position(s.position) and s.plateau is not None]
+    if not vp or rec.size == 0:
+        return []
+    t_ns = rec.start_ns + rec.t_s * _NS
+    k, u0 = model.constants_at(rec.temp_c)
+    a_before = specific_force_g(k, u0, rec.u_v)
+    a_after = extended.specific_force_g(rec.u_v, rec.context(extended.base),
+                                        rec.element_temperature_c(extended.lag_tau_s))
+    out = []
+    for s in vp:
+        m = (t_ns >= s.t_start_ns) & (t_ns <= s.t_end_ns)
+        if not m.any():
+            continue
+        wts = rec.count[m][:, None]
+        mean_b = (a_before[m] * wts).sum(0) / wts.sum()
+        mean_a = (a_after[m] * wts).sum(0) / wts.sum()
+        out.append({"temp_c": round(float(s.temp_c), 2), "position": s.position,
+                    "t_start_ns": int(s.t_start_ns), "t_end_ns": int(s.t_end_ns),
+                    "dg_before_g": float(gravity_module_error_g(mean_b)),
+                    "dg_after_g": float(gravity_module_error_g(mean_a))})
+    return out
+
+
+__all__ = ["DiagnoseSettings", "Diagnosis", "diagnose_run", "fit_passport", "compensate_extended"]

@@ -1,0 +1,174 @@
+"""The extended model ``diagnose`` writes into a passport: the refit base thermal model plus fitted catalogue effects.
+
+Stored in the passport as ``extended_model``::
+
+    {"schema": "thermocal.extended_model/1", "normal_temp_c": 20.0,
+     "base": {"coefficients": {"K": [[...]], "U0": [...]}, "thermal_model": <polynomial, contract form>},
+     "effects": [{"effect": "<catalogue id>", "parameters": {...}}, ...],      # pipeline.effects parameter names
+     "source": {...}}
+
+The forward model is the simulator's: ``U = K(T*) a + U0(T*) + sum of delta_u_v`` over the effects, with
+``T* = T_e`` (the lagged element temperature) when ``thermal_lag`` is among them and T otherwise.
+:func:`compensate_extended` inverts it for the specific force: it needs the signal context of the samples (times,
+temperature, ramp direction, moves), because several effects depend on the history of the run, not only on the
+current sample. The face error is not compensated: the rotated vector is the true specific force.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from pipeline.effects import Effect, SignalContext, ThermalLag, make_effect
+from pipeline.model import output_v, specific_force_g
+from pipeline.passport.document import load_model
+from pipeline.thermal import PiecewiseModel, PolynomialModel, fit_polynomial
+
+SCHEMA_ID = "thermocal.extended_model/1"
+
+
+@dataclass
+class ExtendedModel:
+    """A polynomial base thermal model and catalogue effects with fitted parameters."""
+
+    base: PolynomialModel
+    effects: list[Effect]
+    source: dict | None = None
+
+    @property
+    def lag_tau_s(self) -> float | None:
+        return next((e.tau_s for e in self.effects if isinstance(e, ThermalLag)), None)
+
+    def element_temperature_c(self, ctx: SignalContext, element_temp_c: np.ndarray | None = None) -> np.ndarray:
+        """T* of the samples: the lagged element temperature with thermal lag (``element_temp_c`` when given,
+        e.g. computed on a continuous thermosensor series; else the lag of ``ctx.temp_c``), else ``ctx.temp_c``."""
+        lag = next((e for e in self.effects if isinstance(e, ThermalLag)), None)
+        if lag is None:
+            return np.asarray(ctx.temp_c, float)
+        return lag.element_temperature_c(ctx) if element_temp_c is None else np.asarray(element_temp_c, float)
+
+    def _output_terms_v(self, ctx: SignalContext, with_face: bool) -> np.ndarray:
+        out = np.zeros((len(ctx.t_s), 3))
+        for e in self.effects:
+            if e.acts_on == "temperature" or (e.acts_on == "specific_force" and not with_face):
+                continue
+            out += e.delta_u_v(ctx)
+        return out
+
+    def output_v(self, ctx: SignalContext, element_temp_c: np.ndarray | None = None) -> np.ndarray:
+        """Predicted outputs (n, 3) V for the context's nominal specific force ``ctx.a_g``."""
+        c = replace(ctx, constants=self.base)
+        k, u0 = self.base.constants_at(self.element_temperature_c(c, element_temp_c))
+        return output_v(k, u0, c.a_g) + self._output_terms_v(c, with_face=True)
+
+    def specific_force_g(self, u_v: np.ndarray, ctx: SignalContext, element_temp_c: np.ndarray | None = None,
+                         iterations: int = 3) -> np.ndarray:
+        """Specific force (n, 3) g from outputs ``u_v`` (n, 3) V: the base inverted at T*, the output effects
+        subtracted, iterated because some effects depend on the specific force (ctx.a_g is not used)."""
+        u_v = np.asarray(u_v, dtype=float)
+        k, u0 = self.base.constants_at(self.element_temperature_c(ctx, element_temp_c))
+        a = specific_force_g(k, u0, u_v)
+        if not any(e.acts_on == "output" for e in self.effects):
+            return a
+        for _ in range(iterations):
+            c = replace(ctx, a_g=a, constants=self.base)
+            a = specific_force_g(k, u0, u_v - self._output_terms_v(c, with_face=False))
+        return a
+
+    def to_dict(self) -> dict[str, Any]:
+        doc = {"schema": SCHEMA_ID, "normal_temp_c": float(self.base.normal_temp_c),
+               "base": {"coefficients": {"K": np.asarray(self.base.K0).tolist(),
+                                         "U0": np.asarray(self.base.U00).tolist()},
+                        "thermal_model": self.base.to_dict()},
+               "effects": [{"effect": e.id, "parameters": _effect_params(e)} for e in self.effects]}
+        if self.source:
+            doc["source"] = self.source
+        return doc
+
+    @classmethod
+    def from_dict(cls, d: dict) -> ExtendedModel:
+        if d.get("schema") != SCHEMA_ID:
+            raise ValueError(f"not a {SCHEMA_ID} document")
+        t0 = float(d["normal_temp_c"])
+        c = d["base"]["coefficients"]
+        base = PolynomialModel.from_dict(d["base"]["thermal_model"], np.asarray(c["K"], float),
+                                         np.asarray(c["U0"], float), t0)
+        return cls(base, [make_effect(e["effect"], e["parameters"]) for e in d["effects"]], d.get("source"))
+
+
+def _effect_params(e: Effect) -> dict[str, Any]:
+    p = e.params()
+    if e.id == "fixture_face_error":          # the fitted rotations are the parameters, not the random draw
+        p = {"delta_rad": p["delta_rad"]}
+    return p
+
+
+def polynomial_reference(model, order: int | None = None) -> PolynomialModel:
+    """A passport's thermal model as a :class:`PolynomialModel`: itself when polynomial; a piecewise-linear model
+    becomes the polynomial through (or fitted to) its breakpoints, of ``order`` (default: breakpoints - 1, at most
+    3)."""
+    if isinstance(model, PolynomialModel):
+        return model
+    if isinstance(model, PiecewiseModel):
+        nodes = np.asarray(model.nodes_c, float)
+        k = min(3, len(nodes) - 1) if order is None else order
+        return fit_polynomial(nodes, model.K_nodes, model.U0_nodes, k, model.normal_temp_c)
+    raise TypeError(f"unsupported thermal model {type(model).__name__}")
+
+
+def raise_order(model: PolynomialModel, order: int) -> PolynomialModel:
+    """The same polynomial model written with ``order`` powers (the higher ones zero)."""
+    extra = order - model.order
+    if extra <= 0:
+        return model
+    return PolynomialModel(model.K0, model.U00, model.normal_temp_c, order,
+                           np.concatenate([np.asarray(model.alpha).reshape(-1, 3), np.zeros((extra, 3))]),
+                           np.concatenate([np.asarray(model.rel).reshape(-1, 3, 3), np.zeros((extra, 3, 3))]))
+
+
+def add_polynomial_correction(reference: PolynomialModel, correction: np.ndarray) -> PolynomialModel:
+    """``reference`` plus a correction (3, order+1, 4) in absolute form (per channel i and power n: the change of
+    K_n[i, j] in V/g/C^n for j = x, y, z, then of U0_n[i] in V/C^n)."""
+    k = reference.order + 1
+    k_abs = np.empty((k, 3, 3))
+    u_abs = np.empty((k, 3))
+    k_abs[0], u_abs[0] = reference.K0, reference.U00
+    if reference.order:
+        k_abs[1:] = reference.rel * reference.K0
+        u_abs[1:] = reference.alpha
+    k_abs += np.transpose(correction[:, :, :3], (1, 0, 2))
+    u_abs += correction[:, :, 3].T
+    k0 = k_abs[0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rel = np.where(k0 != 0, k_abs[1:] / k0, 0.0)
+    return PolynomialModel(k0, u_abs[0], reference.normal_temp_c, reference.order, u_abs[1:], rel)
+
+
+def load_extended(passport: dict) -> ExtendedModel | None:
+    """The passport's extended model, or None when it has none."""
+    d = passport.get("extended_model")
+    return None if d is None else ExtendedModel.from_dict(d)
+
+
+def compensate_extended(passport: dict, u_v: np.ndarray, ctx: SignalContext,
+                        element_temp_c: np.ndarray | None = None) -> np.ndarray:
+    """Specific force (n, 3) g of outputs ``u_v`` (n, 3) V with the passport's extended model, falling back to
+    method 1 with the passport's own thermal model when it has none.
+
+    ``ctx`` describes the samples: ``t_s`` (s since the recording started), ``temp_c`` (thermosensor, C),
+    ``ramp_sign``, ``move_start_s`` / ``arrive_s`` and ``position_idx``; its ``a_g`` and ``constants`` are not
+    used. With thermal lag, ``element_temp_c`` may give the lagged temperature computed on a continuous
+    thermosensor series when the samples have gaps (default: the lag of ``ctx.temp_c`` over ``ctx.t_s``).
+    """
+    ext = load_extended(passport)
+    if ext is not None:
+        return ext.specific_force_g(u_v, ctx, element_temp_c)
+    k, u0 = load_model(passport).constants_at(np.asarray(ctx.temp_c, float))
+    return specific_force_g(k, u0, np.asarray(u_v, float))
+
+
+__all__ = ["ExtendedModel", "SCHEMA_ID", "polynomial_reference", "raise_order", "add_polynomial_correction",
+           "load_extended",
+           "compensate_extended"]

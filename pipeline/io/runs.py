@@ -1,0 +1,95 @@
+"""Reading and writing chamber runs, whatever the layout (log-format.md).
+
+:func:`read_run` opens a ``*.mcap`` file (:mod:`pipeline.io.mcap`) or a Parquet run directory
+(:mod:`pipeline.io.parquet`) and returns the one in-memory form, :class:`pipeline.run.Run`. :func:`write_run` writes
+either layout; :func:`read_run_meta` reads only the metadata. The checks both layouts share are in
+:mod:`pipeline.io.checks`.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import orjson
+from mcap.reader import make_reader
+
+from pipeline.errors import RunFormatError
+from pipeline.io.mcap import MAGIC, read_mcap, write_mcap
+from pipeline.io.parquet import META_FILE, read_parquet_run, write_parquet_run
+from pipeline.run import Run, RunMeta
+
+FORMATS = ("mcap", "parquet")
+
+
+def run_format(path: str | Path) -> str:
+    """``"mcap"`` for a ``*.mcap`` file, ``"parquet"`` for a directory; :class:`RunFormatError` otherwise."""
+    p = Path(path)
+    if p.is_dir():
+        return "parquet"
+    if p.suffix.lower() == ".mcap":
+        if not p.exists():
+            raise RunFormatError("no such file", path=str(p))
+        return "mcap"
+    if not p.exists():
+        raise RunFormatError("no such file or directory", path=str(p))
+    raise RunFormatError("not a run: expected a .mcap file or a Parquet run directory", path=str(p))
+
+
+def read_run(path: str | Path) -> Run:
+    """Read one chamber run from a ``*.mcap`` file or a Parquet run directory."""
+    fmt = run_format(path)
+    if fmt == "mcap":
+
+        return read_mcap(path)
+
+    return read_parquet_run(path)
+
+
+def write_run(run: Run, path: str | Path, fmt: str = "mcap", **opts: Any) -> Path:
+    """Write ``run`` as an MCAP file (``fmt="mcap"``) or a Parquet run directory (``fmt="parquet"``).
+
+    ``opts`` go to :func:`pipeline.io.mcap.write_mcap` (block size, chunk size, compression, summary). Returns the
+    path written. The file or directory appears complete or not at all (written aside, then renamed).
+    """
+    if fmt == "mcap":
+
+        return write_mcap(run, path, **opts)
+    if fmt == "parquet":
+        if opts:
+            raise RunFormatError(f"options {sorted(opts)} do not apply to the parquet format", path=str(path))
+
+        return write_parquet_run(run, path)
+    raise RunFormatError(f"unknown run format {fmt!r}; expected one of {', '.join(FORMATS)}", path=str(path))
+
+
+# --- checks shared by the readers and writers -------------------------------------------------------------------
+
+
+def read_run_meta(path: str | os.PathLike) -> RunMeta:
+    """A run's metadata without reading its samples (about a millisecond); RunFormatError if it cannot be had.
+
+    MCAP: the ``run`` metadata record, through the summary's metadata index (files without a summary: read from
+    the start up to that record, which thermocal's writer puts before the data). Parquet: ``run.json``. For a
+    precise account of what is wrong with a bad run, read it with :func:`read_run`.
+    """
+    p = Path(path)
+    try:
+        if run_format(p) == "parquet":
+            values = orjson.loads((p / META_FILE).read_bytes())
+        else:
+            with open(p, "rb") as f:
+                if f.read(len(MAGIC)) != MAGIC:
+                    raise RunFormatError("not an MCAP file (it does not start with the MCAP magic bytes)",
+                                         path=str(p))
+                f.seek(0)
+                values = next((dict(m.metadata) for m in make_reader(f).iter_metadata() if m.name == "run"), None)
+    except RunFormatError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - OSError, JSON or MCAP library errors: one line
+        raise RunFormatError(f"cannot read the run metadata ({type(exc).__name__}: {exc})", path=str(p),
+                             stream="metadata") from None
+    if values is None:
+        raise RunFormatError("no run metadata (an MCAP metadata record named 'run')", path=str(p), stream="metadata")
+    return RunMeta.from_strings(values, path=str(p))

@@ -1,0 +1,288 @@
+"""Chamber programs: what the chamber setpoint and the tilt fixture do over a run (physics.md).
+
+A :class:`Program` is a list of stages, each a list of steps: :class:`Ramp` and :class:`Soak` of the chamber
+setpoint (the unit stays in its last position), :class:`Move` to a position and :class:`Hold` of a position (the
+setpoint stays). :meth:`Program.timetable` expands it into a :class:`Timetable` of segments that answers vectorised
+questions for a time grid ``t_s`` (seconds since the start): setpoint, position per sample, moves, fixture events.
+
+This timetable is the simulator's script only; the pipeline finds plateaus and positions from the data.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Union
+
+import numpy as np
+
+from pipeline.positions import (
+    ALL_POSITIONS,
+    MOVING,
+    POSITION_NAMES,
+    TEST_POSITIONS,
+    VERIFICATION_POSITIONS,
+)
+
+TP = tuple(TEST_POSITIONS)
+VP = tuple(VERIFICATION_POSITIONS)
+
+
+@dataclass(frozen=True)
+class Ramp:
+    """Chamber setpoint ramps linearly from its current value to ``to_c`` at ``rate_c_per_min``."""
+
+    to_c: float
+    rate_c_per_min: float = 1.0
+
+
+@dataclass(frozen=True)
+class Soak:
+    """Chamber setpoint held for ``duration_s``; the unit stays where it is."""
+
+    duration_s: float
+
+
+@dataclass(frozen=True)
+class Move:
+    """The fixture turns the unit to ``to_position`` in ``duration_s`` (no-op if already there)."""
+
+    to_position: str
+    duration_s: float = 20.0
+
+
+@dataclass(frozen=True)
+class Hold:
+    """The unit is held static in ``position`` (which must be the current one) for ``duration_s``."""
+
+    position: str
+    duration_s: float = 300.0
+
+
+Step = Union[Ramp, Soak, Move, Hold]
+
+
+@dataclass(frozen=True)
+class Stage:
+    label: str
+    steps: tuple[Step, ...]
+
+
+@dataclass(frozen=True)
+class Segment:
+    """One piece of the expanded program: ``kind`` is ``ramp``, ``soak``, ``move`` or ``hold``.
+
+    ``position`` is the position during the segment (``MOVING`` for a move, which goes from ``from_position`` to
+    ``to_position``; both equal ``position`` otherwise). The setpoint goes linearly from ``setpoint_start_c`` to
+    ``setpoint_end_c``. ``stage`` is the index of the program stage.
+    """
+
+    kind: str
+    t_start_s: float
+    t_end_s: float
+    setpoint_start_c: float
+    setpoint_end_c: float
+    position: str
+    from_position: str
+    to_position: str
+    stage: int
+
+
+@dataclass(frozen=True)
+class Program:
+    """A chamber program. The unit starts at ``start_setpoint_c`` (soaked) in ``start_position``.
+
+    ``case_lag_s`` and ``air_lag_s`` are the simulator's defaults for this program: the first-order lags of the AU
+    case behind the chamber air and of the air behind the setpoint.
+    """
+
+    name: str
+    stages: tuple[Stage, ...]
+    start_setpoint_c: float = 20.0
+    start_position: str = "TP1"
+    case_lag_s: float = 600.0
+    air_lag_s: float = 90.0
+
+    def steps(self) -> list[Step]:
+        return [s for stage in self.stages for s in stage.steps]
+
+    def timetable(self) -> Timetable:
+        """Expand into segments; zero-length ramps and moves to the current position are dropped."""
+        t, sp, pos = 0.0, float(self.start_setpoint_c), self.start_position
+        _check_position(pos)
+        segs: list[Segment] = []
+        for k, stage in enumerate(self.stages):
+            for step in stage.steps:
+                if isinstance(step, Ramp):
+                    if step.rate_c_per_min <= 0:
+                        raise ValueError(f"ramp rate must be positive, got {step.rate_c_per_min}")
+                    dur = abs(step.to_c - sp) / step.rate_c_per_min * 60.0
+                    if dur > 0:
+                        segs.append(Segment("ramp", t, t + dur, sp, float(step.to_c), pos, pos, pos, k))
+                    sp = float(step.to_c)
+                elif isinstance(step, Soak):
+                    dur = _duration(step)
+                    segs.append(Segment("soak", t, t + dur, sp, sp, pos, pos, pos, k))
+                elif isinstance(step, Move):
+                    _check_position(step.to_position)
+                    if step.to_position == pos:
+                        continue
+                    dur = _duration(step)
+                    segs.append(Segment("move", t, t + dur, sp, sp, MOVING, pos, step.to_position, k))
+                    pos = step.to_position
+                elif isinstance(step, Hold):
+                    if step.position != pos:
+                        raise ValueError(f"Hold {step.position} while the unit is in {pos}: add a Move first")
+                    dur = _duration(step)
+                    segs.append(Segment("hold", t, t + dur, sp, sp, pos, pos, pos, k))
+                else:
+                    raise TypeError(f"unknown program step {step!r}")
+                t += dur
+        return Timetable(tuple(s for s in segs if s.t_end_s > s.t_start_s), self.start_position,
+                         float(self.start_setpoint_c))
+
+
+def _duration(step: Step) -> float:
+    dur = float(step.duration_s)
+    if not dur >= 0:
+        raise ValueError(f"duration must be >= 0 s in {step!r}")
+    return dur
+
+
+def _check_position(name: str) -> None:
+    if name not in ALL_POSITIONS:
+        raise ValueError(f"unknown position {name!r}; expected one of {', '.join(POSITION_NAMES)}")
+
+
+def visit(positions, hold_s: float = 300.0, move_s: float = 20.0) -> tuple[Step, ...]:
+    """Move to and hold each position in turn (the move is dropped where the unit is already there)."""
+    return tuple(s for p in positions for s in (Move(p, move_s), Hold(p, hold_s)))
+
+
+@dataclass(frozen=True)
+class Timetable:
+    """The expanded program. All queries are vectorised over a time grid ``t_s`` (s since the start)."""
+
+    segments: tuple[Segment, ...]
+    start_position: str
+    start_setpoint_c: float
+
+    @property
+    def duration_s(self) -> float:
+        return self.segments[-1].t_end_s if self.segments else 0.0
+
+    def _starts(self) -> np.ndarray:
+        return np.array([s.t_start_s for s in self.segments])
+
+    def _index(self, t_s) -> np.ndarray:
+        """Segment index of each time; a segment owns [t_start, t_end)."""
+        return np.clip(np.searchsorted(self._starts(), np.asarray(t_s, float), side="right") - 1, 0,
+                       len(self.segments) - 1)
+
+    def setpoint_c(self, t_s) -> np.ndarray:
+        """Chamber setpoint (C), piecewise linear."""
+        knots = [self.segments[0].t_start_s] + [s.t_end_s for s in self.segments]
+        values = [self.segments[0].setpoint_start_c] + [s.setpoint_end_c for s in self.segments]
+        return np.interp(np.asarray(t_s, float), knots, values)
+
+    def position_index(self, t_s) -> np.ndarray:
+        """Nominal position per sample as an index into ``positions.POSITION_NAMES``; -1 while moving."""
+        table = np.array([POSITION_NAMES.index(s.position) if s.position != MOVING else -1 for s in self.segments])
+        return table[self._index(t_s)]
+
+    def positions(self, t_s) -> np.ndarray:
+        """Nominal position name per sample (``MOVING`` during moves), as an object array."""
+        names = np.array(list(POSITION_NAMES) + [MOVING], dtype=object)
+        return names[self.position_index(t_s)]
+
+    def moves(self) -> list[Segment]:
+        return [s for s in self.segments if s.kind == "move"]
+
+    def move_times_s(self) -> tuple[np.ndarray, np.ndarray]:
+        """Start and end (arrival) times of every move, s."""
+        mv = self.moves()
+        return np.array([s.t_start_s for s in mv]), np.array([s.t_end_s for s in mv])
+
+    def fixture_events(self) -> list[tuple[float, str]]:
+        """What the tilt controller logs, (t_s, position): the start position at 0, then ``MOVING`` at each move
+        start and the new position at its arrival."""
+        events = [(0.0, self.start_position)]
+        for s in self.moves():
+            events += [(s.t_start_s, MOVING), (s.t_end_s, s.to_position)]
+        return events
+
+    def holds(self) -> list[Segment]:
+        """The static position holds (Hold steps) in time order."""
+        return [s for s in self.segments if s.kind == "hold"]
+
+    def ramp_sign(self, t_s) -> np.ndarray:
+        """Direction the temperature last came from: +1 from the start of a heating ramp on, -1 from a cooling
+        ramp, 0 before the first ramp (physics.md, thermal_hysteresis)."""
+        sign = np.zeros(len(self.segments))
+        last = 0.0
+        for i, s in enumerate(self.segments):
+            if s.kind == "ramp":
+                last = float(np.sign(s.setpoint_end_c - s.setpoint_start_c))
+            sign[i] = last
+        return sign[self._index(t_s)]
+
+    def stage_index(self, t_s) -> np.ndarray:
+        return np.array([s.stage for s in self.segments])[self._index(t_s)]
+
+
+def _temperature_program(name: str, soak_s: tuple[float, float], hold_s: float, move_s: float,
+                         rate_c_per_min: float, case_lag_s: float, air_lag_s: float) -> Program:
+    """The seven stages of physics.md with the given timings; soak_s = (normal soak, long soak at -40/+70 C)."""
+    soak, long_soak = soak_s
+    plan = [  # (setpoint C, soak s, positions)
+        (20.0, soak, TP),
+        (-40.0, long_soak, TP),
+        (-10.0, soak, VP),
+        (20.0, soak, TP + VP),
+        (45.0, soak, VP),
+        (70.0, long_soak, TP),
+        (20.0, soak, TP + VP),
+    ]
+    stages = tuple(
+        Stage(f"{sp:+.0f} C", (Ramp(sp, rate_c_per_min), Soak(sk)) + visit(pos, hold_s, move_s))
+        for sp, sk, pos in plan)
+    return Program(name, stages, start_setpoint_c=20.0, start_position="TP1", case_lag_s=case_lag_s,
+                   air_lag_s=air_lag_s)
+
+
+def standard_program() -> Program:
+    """physics.md "The standard chamber program": 7 stages, holds 300 s, moves 20 s, ramps 1 C/min, soaks 60 min
+    (90 min at -40 and +70 C); about 16.5 h. Case lag 600 s."""
+    return _temperature_program("standard", (3600.0, 5400.0), hold_s=300.0, move_s=20.0, rate_c_per_min=1.0,
+                                case_lag_s=600.0, air_lag_s=90.0)
+
+
+def short_program() -> Program:
+    """The standard sequence of temperatures and positions, short: soaks 15 min, holds 60 s, moves 10 s, ramps
+    5 C/min (about 3.5 h). Case lag 120 s."""
+    return _temperature_program("short", (900.0, 900.0), hold_s=60.0, move_s=10.0, rate_c_per_min=5.0,
+                                case_lag_s=120.0, air_lag_s=30.0)
+
+
+def differential_program(orientations=("TP1", "TP2", "TP3", "TP4", "TP5", "TP6")) -> Program:
+    """Seed 003's differential method: in each orientation (default the paper's six) the unit is held at +20 C
+    for 30 min, then the chamber cycles +20 -> -40 -> +70 -> +20 C at 1 C/min with 30 min soaks at each end,
+    without moving. Case lag 600 s. Imprecise orientations: add ``--effect fixture_face_error:sigma_deg=1.5``.
+    """
+    stages = []
+    for p in orientations:
+        steps = (Move(p, 20.0), Hold(p, 1800.0), Ramp(-40.0), Soak(1800.0), Ramp(70.0), Soak(1800.0), Ramp(20.0),
+                 Soak(1800.0))
+        stages.append(Stage(f"cycle in {p}", steps))
+    return Program("differential", tuple(stages), start_setpoint_c=20.0, start_position="TP1", case_lag_s=600.0,
+                   air_lag_s=90.0)
+
+
+PROGRAMS = {"standard": standard_program, "short": short_program, "differential": differential_program}
+
+
+def get_program(name: str) -> Program:
+    """The program called ``name``: ``standard``, ``short`` or ``differential``."""
+    try:
+        return PROGRAMS[name]()
+    except KeyError:
+        raise ValueError(f"unknown chamber program {name!r}; expected one of {', '.join(PROGRAMS)}") from None
