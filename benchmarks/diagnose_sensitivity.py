@@ -1,6 +1,6 @@
 """Sensitivity of ``thermocal diagnose``: per catalogue effect, the smallest size it still names correctly.
 
-For each effect, the catalogue's default parameters (pipeline/effects.py) are scaled by a factor s (for
+For each effect, the catalogue's default parameters (pipeline/effects/) are scaled by a factor s (for
 ``thermal_lag`` the time constant, for ``fixture_face_error`` the angular sigma, for the others every size
 parameter; time constants of the other effects are kept). A size counts as named when, on every seed, diagnose's
 first finding is that effect (or a confounded group holding it) and the fit improves. The factor is bisected in
@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.diagnose.diagnosis import diagnose_run
-from pipeline.effects import EFFECTS, make_effect
+from pipeline.effects.catalogue import EFFECTS, make_effect
 from pipeline.io.runs import read_run, write_run
 from pipeline.simulate.chamber import SimConfig, simulate
 
@@ -128,7 +128,7 @@ def main(argv=None) -> None:
             print(f"{effect_id}: scale {r['scale']:.3g} ({time.time() - t0:.0f} s)", file=sys.stderr, flush=True)
             rows.append(r)
     print(f"Standard program, {args.rate_hz:g} Hz, 5 uV per-sample noise, seeds {seeds}; smallest size named first "
-          f"on every seed (x default of pipeline/effects.py):\n")
+          f"on every seed (x default of pipeline/effects/):\n")
     print("| effect | smallest size named | x default | peak effect (uV) | / sample noise | / 30 s block noise |")
     print("|---|---|---|---|---|---|")
     for r in rows:

@@ -74,7 +74,7 @@ def simulate(out: Path = typer.Option(..., "--out", help="output .mcap file or P
              truth: Optional[Path] = typer.Option(None, "--truth", help="ground-truth JSON (default: beside)"),
              as_json: bool = typer.Option(False, "--json")):
     """Write one simulated run of a chamber program, and its ground truth as JSON beside it."""
-    from pipeline.effects import parse_effect_spec
+    from pipeline.effects.catalogue import parse_effect_spec
     from pipeline.io.runs import write_run
     from pipeline.simulate.chamber import SimConfig, write_truth
     from pipeline.simulate.large import simulate_run

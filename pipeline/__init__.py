@@ -8,7 +8,7 @@ Physics core (modules named for the physics, units in every docstring):
 - ``thermal``: temperature models of the constants (polynomial, piecewise linear) in dT = T - T0 (C)
 - ``compensate``: compensation methods 1 and 2
 - ``verify``: gravity-module error at the verification positions (g)
-- ``effects``: the catalogue of left-out physics (simulation, fit terms, explanation, properties)
+- ``dynamics``: first-order lag (s) and the direction the temperature last came from
 
 Steps and data:
 
@@ -24,6 +24,8 @@ Sub-packages:
 - ``simulate``: the chamber-run simulator (programs, the simulated unit, chunked long runs)
 - ``calibrate``: one recipe per method (tilt, scalar, differential), publishing into the registry, fleets
 - ``passport``: the passport document, the registry (storage and integrity), provenance of inputs
+- ``effects``: the catalogue of left-out physics, one module per effect (its simulation, fit terms, explanation
+  and properties), the catalogue by id
 - ``diagnose``: mismatch diagnosis (locate, name, model, refit)
 """
 

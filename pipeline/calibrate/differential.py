@@ -48,7 +48,7 @@ from scipy.linalg import lstsq as scipy_lstsq
 from scipy.optimize import minimize_scalar
 from scipy.signal import savgol_filter
 
-from pipeline.effects import first_order_lag
+from pipeline.dynamics import first_order_lag
 from pipeline.errors import CalibrationError
 from pipeline.model import specific_force_g
 from pipeline.positions import AXES

@@ -60,8 +60,8 @@ from pipeline.diagnose.signal import (
     static_record,
     temperature_noise_c,
 )
-from pipeline.diagnose.terms import TERMS
-from pipeline.effects import make_effect
+from pipeline.effects.base import Shown
+from pipeline.effects.catalogue import EFFECTS, effect_class, make_effect
 from pipeline.errors import CalibrationError
 from pipeline.model import gravity_module_error_g, output_v, specific_force_g
 from pipeline.passport.document import build_passport, load_model
@@ -148,7 +148,9 @@ def _diagnose(run: Run, passport: dict | None, settings: DiagnoseSettings, passp
     sigma[excluded] *= _EXCLUDE
     design = Design(rec, blocks, reference, sigma)
     design.set_sigma(design.sigma * block_noise_factor(design, design.fit(())))
-    candidates = [e for e in TERMS if not (e == "temperature_curvature" and reference.order >= 3)]
+    in_base = [e for e, c in EFFECTS.items()
+               if c.in_base_from_order is not None and reference.order >= c.in_base_from_order]
+    candidates = [e for e in EFFECTS if e not in in_base]
     sel = select_terms(design, candidates, settings.selection)
     factor = block_noise_factor(design, sel.final)
     if sel.accepted and np.any(factor > 1.05):     # correlated residual the accepted effects leave: widen, redo
@@ -170,9 +172,9 @@ def _diagnose(run: Run, passport: dict | None, settings: DiagnoseSettings, passp
     out_passport = copy.deepcopy(passport)
     out_passport["extended_model"] = extended.to_dict()
     notes += rec.warnings
-    if reference.order >= 3:
-        notes.append(f"the base thermal model is of order {reference.order}: temperature_curvature (a cubic term) "
-                     "is already part of it and is not tested")
+    for e in in_base:
+        notes.append(f"the base thermal model is of order {reference.order}: {e} is already part of it and is not "
+                     "tested")
     rms_before, rms_refit = _rms(before, w), _rms(design.y - sel.base.fitted, w)
     if not findings and rms_before > 3 * rms_refit and rms_before > 2 * _rms(noise_sigma, w):
         notes.append(f"the passport's own model departs from the recording by {rms_before * _UV:.2f} uV RMS where "
@@ -252,7 +254,7 @@ def _final_trials(sel: Selection):
     for t in sel.accepted:
         value = dict(sel.state)[t.effect]
         coef = sel.final.term_coef(t.effect) if t.effect in sel.final.slices else np.zeros(0)
-        params = TERMS[t.effect].parameters(coef, value, sel.final.labels.get(t.effect, []))
+        params = effect_class(t.effect).fit_parameters(coef, value, sel.final.labels.get(t.effect, []))
         out.append(type(t)(t.effect, value, t.chi2, t.added_rank, t.delta_bic, params, t.reason, t.change_w))
     return out
 
@@ -328,27 +330,19 @@ def _finding(design: Design, sel: Selection, trial, before: np.ndarray, after: n
     return finding
 
 
-#: effects whose own term is mostly absorbed by the base model at the calibration points: they show where the
-#: data depart from the model refitted without them (between calibration temperatures, at revisits)
-_SHOWN_BY_REFIT = ("temperature_curvature", "time_drift")
-
-
 def _shows(design: Design, sel: Selection, effect: str) -> np.ndarray:
     """(B, 3) V: what the effect puts into the model where it shows. Its own fitted term (a decay after power-on
-    or a move, a lag on ramps, an offset after a ramp, a per-position error), or for the effects in
-    ``_SHOWN_BY_REFIT`` the change of the fitted values against the model refitted without it."""
+    or a move, a lag on ramps, an offset after a ramp, a per-position error), or for effects ``shown_by_refit``
+    the change of the fitted values against the model refitted without it."""
     f = sel.final
-    if effect in _SHOWN_BY_REFIT:
+    cls = effect_class(effect)
+    if cls.shown_by_refit:
         return f.fitted - design.fit(tuple(s for s in sel.state if s[0] != effect)).fitted
-    if effect == "thermal_lag":
+    if cls.acts_on == "temperature":
         tau = dict(sel.state)[effect]
         return design.base_prediction(f, tau) - design.base_prediction(f, None)
     _, cols = design.term_columns(effect, dict(sel.state)[effect])
     return cols @ f.term_coef(effect)
-
-
-def _vec_uv(v, unit: str = "uV") -> str:
-    return ", ".join(f"{a} {x * _UV:+.1f}" for a, x in zip(AXES, v)) + f" {unit}"
 
 
 def _temps_text(where: dict) -> str:
@@ -361,48 +355,11 @@ def _temps_text(where: dict) -> str:
 
 def _explain(effect: str, p: dict, signature: np.ndarray, flagged: np.ndarray, where: dict,
              confounded: list[str], duration_h: float) -> str:
-    """One or two plain sentences: what, where, how big, with units."""
+    """The effect's own sentences (what, where, how big, with units), and what it cannot be told apart from."""
     peak = float(np.abs(signature[flagged]).max()) * _UV if flagged.any() else 0.0
-    axes = "/".join(where["axes"]) or "no axis"
-    temps = _temps_text(where)
-    if effect == "thermal_lag":
-        text = (f"The sensing element lags the thermosensor by about {p['tau_s']:.0f} s (a thermal gradient): "
-                f"during ramps and early in soaks the {axes} outputs depart from the passport by up to {peak:.1f} "
-                "uV, with the sign of dT/dt, and agree again on soaked plateaus.")
-    elif effect == "thermal_hysteresis":
-        text = (f"The zero offsets depend on the direction the temperature came from: after heating they sit "
-                f"2h = {_vec_uv(2 * np.asarray(p['h_v']))} above their values after cooling, so the same "
-                f"temperature revisited from above and from below disagrees{temps}, even soaked.")
-    elif effect == "time_drift":
-        text = (f"The zero offsets age at {_vec_uv(p['r_v_per_h'], 'uV/h')}, "
-                f"{_vec_uv(np.asarray(p['r_v_per_h']) * duration_h)} over the {duration_h:.1f} h run: revisits "
-                f"of one temperature{temps} drift monotonically with time.")
-    elif effect == "warmup_transient":
-        text = (f"After power-on the zero offsets settle by {_vec_uv(p['a_v'])} with a time constant of about "
-                f"{p['tau_s'] / 60:.1f} min: the early part of the first plateau{temps} is off by up to "
-                f"{peak:.1f} uV.")
-    elif effect == "temperature_curvature":
-        c50 = np.asarray(p["c_v_per_c3"]) * 50.0 ** 3
-        r50 = np.asarray(p["c_rel_per_c3"]) * 50.0 ** 3 * 1e6
-        text = (f"The temperature dependence has a cubic part the passport's polynomial lacks (at 50 C from T0: "
-                f"offsets {_vec_uv(c50)}, gains {', '.join(f'{a} {x:+.0f}' for a, x in zip(AXES, r50))} ppm): up "
-                f"to {peak:.1f} uV on {axes}{temps}, where a polynomial through the calibration temperatures cannot "
-                "follow it.")
-    elif effect == "scale_nonlinearity":
-        text = (f"The scale factors have a second-order part K2 = {_vec_uv(p['k2_v_per_g2'], 'uV/g^2')}: a "
-                f"channel reads that much more when its own axis is vertical than the linear model says (up to "
-                f"{peak:.1f} uV in single positions), which also biases the VP gravity module.")
-    elif effect == "fixture_face_error":
-        worst = max(p["delta_rad"].items(), key=lambda kv: np.linalg.norm(kv[1]))
-        text = (f"The tilt fixture's faces carry their own small angular errors, up to "
-                f"{np.degrees(np.linalg.norm(worst[1])) * 3600:.0f} arcsec (in {worst[0]}): they move the "
-                f"horizontal channels of single positions by up to {peak:.1f} uV, the same at every temperature.")
-    elif effect == "tilt_settling":
-        text = (f"After every move the reading creeps to its final value: {p['f'] * 1e6:.0f} ppm of the step, "
-                f"decaying with a time constant of about {p['tau_s']:.0f} s (up to {peak:.1f} uV at the start of "
-                "each static position).")
-    else:  # pragma: no cover - every catalogue id has a sentence
-        text = f"{effect}: up to {peak:.1f} uV on {axes}."
+    shown = Shown(peak_uv=peak, axes="/".join(where["axes"]) or "no axis", temps=_temps_text(where),
+                  duration_h=duration_h)
+    text = effect_class(effect).explain(p, shown)
     if confounded:
         text += (f" Under this run's program it cannot be told apart from {', '.join(confounded)}: they explain "
                  "the mismatch equally well.")

@@ -7,8 +7,8 @@ The base model is linear in its coefficients: per channel i,
 so on block means (:class:`pipeline.diagnose.signal.Blocks`) it is a weighted linear least-squares problem, exact
 block by block (the specific force is constant inside a block, and the block means of dT^n are taken over the
 micro-samples). It is fitted as a correction to a reference model (the passport's), which keeps the numbers small.
-Each catalogue term adds linear columns (:mod:`pipeline.diagnose.terms`) and at most one nonlinear time constant,
-found on a log grid and refined. A term is scored against the current model by
+Each catalogue term adds linear columns (the effect's ``fit_columns``, :mod:`pipeline.effects`) and at most one
+nonlinear time constant, found on a log grid and refined. A term is scored against the current model by
 
     dBIC = chi2(with the term) - chi2(without) + (added rank + nonlinear parameters) ln(N)
 
@@ -35,7 +35,7 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 
 from pipeline.diagnose.signal import Blocks, StaticRecord
-from pipeline.diagnose.terms import TERMS
+from pipeline.effects.catalogue import effect_class
 
 #: eigenvalues of a (unit-column) normal matrix below this are combinations the data cannot tell apart
 _RANK_TOL = 1e-10
@@ -118,6 +118,11 @@ class Selection:
     rounds: list[list[dict]] = field(default_factory=list)
 
 
+def _moves_temperature(effect_id: str) -> bool:
+    """The effect moves the temperature the base model is evaluated at (thermal lag) instead of adding columns."""
+    return effect_class(effect_id).acts_on == "temperature"
+
+
 def _key(value: float | None) -> float | None:
     return None if value is None else round(float(value), 9)
 
@@ -183,7 +188,7 @@ class Design:
         """Labels and (B, 3, p) columns of a catalogue term (block means of its unit-parameter delta_u_v)."""
         key = (effect_id, _key(value))
         if key not in self._columns:
-            labels, cols = TERMS[effect_id].columns(self.ctx, key[1])
+            labels, cols = effect_class(effect_id).fit_columns(self.ctx, key[1])
             mats = [self.blocks.mean(c) for c in cols]
             self._columns[key] = (labels, np.stack(mats, axis=2) if mats else np.zeros((self.blocks.size, 3, 0)))
             if len(self._columns) > 512:
@@ -196,7 +201,7 @@ class Design:
         normal equations with unit columns; directions the data cannot tell apart are left out of the rank.
         The base columns are block-diagonal over the channels, which the products exploit."""
         state = tuple(state)
-        lag = next((v for e, v in state if e == "thermal_lag"), None)
+        lag = next((v for e, v in state if _moves_temperature(e)), None)
         slices, labels, mats = {}, {}, []
         nb = 4 * (self.order + 1)
         col = 3 * nb
@@ -241,7 +246,7 @@ class Design:
               ) -> tuple[float, int, np.ndarray, list[str], np.ndarray]:
         """chi2, added rank, coefficients, labels and weighted change (B, 3) of the fitted values when the term is
         added to ``current`` (thermal lag: refit with the lagged temperature)."""
-        if effect_id == "thermal_lag":
+        if _moves_temperature(effect_id):
             fr = self.fit(current.state + ((effect_id, value),))
             return fr.chi2, fr.rank - current.rank, np.zeros(0), [], current.rw - fr.rw
         labels, cols = self.term_columns(effect_id, value)
@@ -262,7 +267,7 @@ class Design:
 
     def trial(self, current: FitResult, effect_id: str, ln_n: float) -> Trial:
         """Score a candidate at its best time constant (grid, then refined); implausible values get a reason."""
-        term = TERMS[effect_id]
+        term = effect_class(effect_id)
         on_edge = False
         if term.nonlinear is None:
             value = None
@@ -279,7 +284,7 @@ class Design:
                 if res.fun < chi[k]:
                     value = float(np.exp(res.x))
         chi2, added, coef, labels, change = self.score(current, effect_id, value)
-        params = term.parameters(coef, value, labels)
+        params = term.fit_parameters(coef, value, labels)
         reason = term.implausible(params)
         if on_edge and reason is None:
             reason = f"time constant {value:.3g} s at the edge of the searched range"
@@ -341,7 +346,7 @@ def _refine(design: Design, state: tuple) -> tuple:
         if value is None:
             continue
         others = tuple(s for j, s in enumerate(state) if j != k)
-        grid = np.asarray(TERMS[effect_id].grid)
+        grid = np.asarray(effect_class(effect_id).grid)
         x0 = np.log(value)
 
         def chi2(x):

@@ -21,7 +21,8 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.effects import Effect, SignalContext, ThermalLag, make_effect
+from pipeline.effects.base import Effect, SignalContext
+from pipeline.effects.catalogue import make_effect
 from pipeline.model import output_v, specific_force_g
 from pipeline.passport.document import load_model
 from pipeline.thermal import PiecewiseModel, PolynomialModel, fit_polynomial
@@ -38,13 +39,19 @@ class ExtendedModel:
     source: dict | None = None
 
     @property
+    def _lag(self) -> Effect | None:
+        """The effect that moves the temperature the constants are evaluated at (thermal lag), if any."""
+        return next((e for e in self.effects if e.acts_on == "temperature"), None)
+
+    @property
     def lag_tau_s(self) -> float | None:
-        return next((e.tau_s for e in self.effects if isinstance(e, ThermalLag)), None)
+        lag = self._lag
+        return None if lag is None else lag.tau_s
 
     def element_temperature_c(self, ctx: SignalContext, element_temp_c: np.ndarray | None = None) -> np.ndarray:
         """T* of the samples: the lagged element temperature with thermal lag (``element_temp_c`` when given,
         e.g. computed on a continuous thermosensor series; else the lag of ``ctx.temp_c``), else ``ctx.temp_c``."""
-        lag = next((e for e in self.effects if isinstance(e, ThermalLag)), None)
+        lag = self._lag
         if lag is None:
             return np.asarray(ctx.temp_c, float)
         return lag.element_temperature_c(ctx) if element_temp_c is None else np.asarray(element_temp_c, float)
@@ -82,7 +89,7 @@ class ExtendedModel:
                "base": {"coefficients": {"K": np.asarray(self.base.K0).tolist(),
                                          "U0": np.asarray(self.base.U00).tolist()},
                         "thermal_model": self.base.to_dict()},
-               "effects": [{"effect": e.id, "parameters": _effect_params(e)} for e in self.effects]}
+               "effects": [{"effect": e.id, "parameters": e.stored_params()} for e in self.effects]}
         if self.source:
             doc["source"] = self.source
         return doc
@@ -96,13 +103,6 @@ class ExtendedModel:
         base = PolynomialModel.from_dict(d["base"]["thermal_model"], np.asarray(c["K"], float),
                                          np.asarray(c["U0"], float), t0)
         return cls(base, [make_effect(e["effect"], e["parameters"]) for e in d["effects"]], d.get("source"))
-
-
-def _effect_params(e: Effect) -> dict[str, Any]:
-    p = e.params()
-    if e.id == "fixture_face_error":          # the fitted rotations are the parameters, not the random draw
-        p = {"delta_rad": p["delta_rad"]}
-    return p
 
 
 def polynomial_reference(model, order: int | None = None) -> PolynomialModel:

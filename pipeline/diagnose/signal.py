@@ -28,7 +28,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import polars as pl
 
-from pipeline.effects import SignalContext, first_order_lag, ramp_sign_from_temperature
+from pipeline.dynamics import first_order_lag, ramp_sign_from_temperature
+from pipeline.effects.base import SignalContext
 from pipeline.positions import ALL_POSITIONS, MOVING, POSITION_NAMES
 from pipeline.run import Run
 from pipeline.segment import Segmentation, SegmentSettings, finite_columns, for_rate

@@ -53,8 +53,8 @@ def build_passport(fit, verification_rows, status: str, *, g_local_mps2: float, 
 def load_model(passport: dict):
     """The passport's constants and thermal model as a ConstantsModel (with K0, U00, deltas, constants_at).
 
-    A passport extended by ``diagnose`` (``extended_model``) is evaluated by ``pipeline.effects`` where compensation
-    of the extra terms needs the signal context; here it is the base model.
+    A passport extended by ``diagnose`` (``extended_model``) is evaluated by the effects of ``pipeline.effects``
+    where compensation of the extra terms needs the signal context; here it is the base model.
     """
     c = passport["coefficients"]
     return thermal_model_from_dict(passport["thermal_model"], np.asarray(c["K"], float), np.asarray(c["U0"], float),

@@ -29,13 +29,9 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from pipeline.effects import (
-    Effect,
-    FixtureFaceError,
-    SignalContext,
-    first_order_lag,
-    make_effect,
-)
+from pipeline.dynamics import first_order_lag
+from pipeline.effects.base import Effect, SignalContext
+from pipeline.effects.catalogue import make_effect
 from pipeline.model import output_v
 from pipeline.positions import ALL_POSITIONS, POSITION_NAMES
 from pipeline.run import Run, RunMeta, make_frame
@@ -177,8 +173,9 @@ def _check(config: SimConfig) -> None:
 
 
 def _face_rotations_rad(effects: list[Effect]) -> np.ndarray:
-    """(12, 3) face-error rotation vectors of the positions (POSITION_NAMES order); zero without the effect."""
-    faces = [e for e in effects if isinstance(e, FixtureFaceError)]
+    """(12, 3) rotation vectors of the positions' specific force (POSITION_NAMES order) from the effects that act
+    on it (the fixture's face errors); zero without them."""
+    faces = [e for e in effects if e.acts_on == "specific_force"]
     if not faces:
         return np.zeros((len(POSITION_NAMES), 3))
     rot = faces[-1].rotation_vectors_rad()

@@ -18,7 +18,8 @@ import dataclasses
 
 import numpy as np
 
-from pipeline.effects import SignalContext, make_effect
+from pipeline.effects.base import SignalContext
+from pipeline.effects.catalogue import effect_class, make_effect
 from pipeline.model import output_v
 from pipeline.run import Run, make_frame
 from pipeline.simulate.chamber import (
@@ -32,8 +33,6 @@ from pipeline.simulate.chamber import (
 )
 from pipeline.simulate.program import get_program
 
-#: effects whose contribution at a sample depends on other samples (cannot be computed chunk by chunk)
-NON_LOCAL_EFFECTS = ("thermal_lag", "tilt_settling")
 #: :func:`simulate_run` computes runs of more voltmeter samples than this in chunks (in one piece: ~200 B a sample)
 CHUNKED_ABOVE_SAMPLES = 5_000_000
 
@@ -41,10 +40,10 @@ CHUNKED_ABOVE_SAMPLES = 5_000_000
 def simulate_run(config: SimConfig, chunked_above_samples: int = CHUNKED_ABOVE_SAMPLES) -> SimResult:
     """A simulated run of any length: :func:`~pipeline.simulate.chamber.simulate` up to ``chunked_above_samples``
     voltmeter samples, :func:`simulate_chunked` above (about 2 GB instead of 12 GB for the 1 kHz standard run) unless
-    an effect needs the whole record (:data:`NON_LOCAL_EFFECTS`), which is then simulated in one piece."""
+    an effect needs the whole record (not ``local``), which is then simulated in one piece."""
     _check(config)
     n = int(np.floor(get_program(config.program).timetable().duration_s * config.rate_hz)) + 1
-    local = not any(eid in NON_LOCAL_EFFECTS for eid, _ in config.effects)
+    local = all(effect_class(eid).local for eid, _ in config.effects)
     return simulate_chunked(config) if n > chunked_above_samples and local else simulate(config)
 
 
@@ -55,7 +54,7 @@ def simulate_chunked(config: SimConfig, chunk_samples: int = 1_000_000) -> SimRe
     ``context`` is the 1 Hz one (the per-sample context of a long run is what this function avoids building).
     """
     _check(config)
-    refused = [eid for eid, _ in config.effects if eid in NON_LOCAL_EFFECTS]
+    refused = [eid for eid, _ in config.effects if not effect_class(eid).local]
     if refused:
         raise ValueError(f"effects {refused} depend on other samples; use pipeline.simulate.chamber.simulate")
     if int(chunk_samples) < 1:

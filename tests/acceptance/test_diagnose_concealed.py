@@ -8,7 +8,7 @@ the concealed ones (the first is the larger; a confounded group counts when it h
 (overall, where each finding shows, and at the VP positions), the fitted sizes are the concealed ones, and clean runs
 are ``consistent`` on several seeds and units.
 
-Effect sizes are a fifth of the catalogue defaults (pipeline/effects.py), a few uV to tens of uV: what a calibration
+Effect sizes are a fifth of the catalogue defaults (pipeline/effects/), a few uV to tens of uV: what a calibration
 engineer cares about (the VP gravity-module error moves by 1-40 micro-g), far from huge.
 """
 

@@ -16,7 +16,7 @@ from flows.diagnose_cmd import diagnose_command, diagnose_text
 from pipeline.diagnose.diagnosis import diagnose_run, fit_passport
 from pipeline.diagnose.model import ExtendedModel, compensate_extended, load_extended
 from pipeline.diagnose.signal import make_blocks, segment_settings_for, static_record
-from pipeline.effects import make_effect
+from pipeline.effects.catalogue import make_effect
 from pipeline.errors import ThermocalError
 from pipeline.model import gravity_module_error_g
 from pipeline.io.runs import write_run

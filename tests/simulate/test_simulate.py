@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.effects import first_order_lag
+from pipeline.dynamics import first_order_lag
 from pipeline.model import output_v
 from pipeline.positions import MOVING, VERIFICATION_POSITIONS, gravity_vector_g
 from pipeline.simulate.program import PROGRAMS, Hold, Move, Program, Ramp, Soak, Stage, get_program, short_program, \

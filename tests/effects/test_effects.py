@@ -8,8 +8,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.effects import EFFECTS, FixtureFaceError, SignalContext, TiltSettling, make_effect, parse_effect_spec, \
-    ramp_sign_from_temperature
+from pipeline.dynamics import ramp_sign_from_temperature
+from pipeline.effects.base import SignalContext
+from pipeline.effects.catalogue import EFFECTS, make_effect, parse_effect_spec
+from pipeline.effects.fixture_face_error import FixtureFaceError
+from pipeline.effects.tilt_settling import TiltSettling
 from pipeline.model import output_v
 from pipeline.positions import gravity_vector_g
 from pipeline.simulate.program import standard_program

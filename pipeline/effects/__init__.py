@@ -1,0 +1,3 @@
+"""The catalogue of left-out physics (physics.md "the effect catalogue"): one module per effect, each holding its
+simulation, its fit terms, its explanation and its properties (:mod:`pipeline.effects.base`); the catalogue by id
+and the CLI syntax in :mod:`pipeline.effects.catalogue`."""
