@@ -18,7 +18,7 @@ from pipeline.errors import ThermocalError
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="thermocal: thermal-chamber calibration of accelerometer units.")
-passport_app = typer.Typer(no_args_is_help=True, help="The passport audit trail: log, show, diff, verify.")
+passport_app = typer.Typer(no_args_is_help=True, help="The passport audit trail: log, show, diff, verify, head.")
 app.add_typer(passport_app, name="passport")
 
 
@@ -317,15 +317,52 @@ def _diff_text(d: dict) -> str:
 
 
 @passport_app.command("verify")
-def passport_verify(registry: Path = typer.Option(..., "--registry"), as_json: bool = typer.Option(False, "--json")):
-    """Check every version's hash and parent link; names any altered version and exits non-zero."""
+def passport_verify(registry: Path = typer.Option(..., "--registry"),
+                    against: Optional[Path] = typer.Option(
+                        None, "--against", help="a head statement made earlier ('passport head'): name every "
+                                                "version it listed that the registry no longer holds"),
+                    as_json: bool = typer.Option(False, "--json")):
+    """Check every version's hashes, parent links and signatures; names any altered, unsigned, deleted or stray
+    version and exits 1."""
     from pipeline.passport.registry import Registry
 
-    rep = Registry(registry).verify()
+    head = _read_head(against) if against is not None else None
+    rep = Registry(registry).verify(against=head)
     obj = {"ok": rep.ok, "problems": rep.problems, "notes": getattr(rep, "notes", [])}
     _emit(obj, as_json, "registry ok" if rep.ok else "\n".join(rep.problems))
     if not rep.ok:
         raise typer.Exit(1)
+
+
+def _read_head(path: Path) -> dict:
+    try:
+        head = json.loads(path.read_bytes())
+    except OSError as e:
+        raise ThermocalError(f"cannot read the head statement ({e.strerror})", path=str(path)) from None
+    except ValueError as e:
+        raise ThermocalError(f"the head statement is not JSON ({e})", path=str(path)) from None
+    if not isinstance(head, dict):
+        raise ThermocalError("the head statement is not a JSON object", path=str(path))
+    return head
+
+
+@passport_app.command("head")
+def passport_head(registry: Path = typer.Option(..., "--registry"),
+                  out: Optional[Path] = typer.Option(None, "--out", help="write the statement to this file "
+                                                                          "(keep it outside the registry)")):
+    """A signed statement of every unit's newest version (JSON); keep it outside the registry and check the
+    registry against it later with 'passport verify --against FILE'."""
+    from pipeline.passport.canonical import canonical_json
+    from pipeline.passport.registry import Registry
+
+    data = canonical_json(Registry(registry).head())
+    if out is not None:
+        try:
+            out.write_bytes(data)
+        except OSError as e:
+            raise ThermocalError(f"cannot write the head statement ({e.strerror})", path=str(out)) from None
+    sys.stdout.write(data.decode("ascii"))
+    sys.stdout.flush()
 
 
 # ----------------------------------------------------------------------------------------------------------- main

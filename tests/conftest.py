@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +17,8 @@ SHARED = REPO.parent / "shared"
 os.environ.setdefault("PREFECT_HOME", str(Path(os.environ.get("TMPDIR", "/tmp")) / f"thermocal-prefect-{os.getpid()}"))
 os.environ["PREFECT_SERVER_ANALYTICS_ENABLED"] = "false"
 os.environ["DO_NOT_TRACK"] = "1"
+# Signing keys: never the user's key folder; one station key for the session, created on first use.
+os.environ["THERMOCAL_KEY_DIR"] = tempfile.mkdtemp(prefix="thermocal-test-keys-")
 
 
 @pytest.fixture(scope="session")

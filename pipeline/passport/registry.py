@@ -1,4 +1,4 @@
-"""The passport registry: an append-only, hash-chained store of passport versions, one chain per unit.
+"""The passport registry: an append-only, hash-chained, signed store of passport versions, one chain per unit.
 
 Layout (everything is plain files; nothing but this module writes there)::
 
@@ -8,18 +8,27 @@ Layout (everything is plain files; nothing but this module writes there)::
           .lock          empty; fcntl.flock'ed by writers (exclusive) and by verify (shared)
           log.jsonl      append-only: one JSON line per version {version, sha256, created_utc, identity}
           v0001.json     passport version 1 (read-only, 0444)
+          v0001.png      its verification figure (written after the version)
           v0002.json     passport version 2, "parent_sha256" = sha256 of v0001.json's bytes
           .tmp-*.json    only while a writer holds the lock (a leftover is a killed writer's, cleaned at next publish)
 
+Any other name in a unit folder (``v2.json``, ``v002.json``, ``notes.txt``) is a stray file that verify names.
+
 A version file is the passport serialised canonically (:func:`canonical_json`), so its sha256 is stable. Each
 version carries ``parent_sha256`` (the previous version's file hash, a chain), ``content_sha256`` (the hash of its
-own content without that field) and ``provenance.identity`` (the hash of the input hashes and the settings: the same
-inputs calibrated with the same settings give the same identity, and publish then returns the existing version).
-Altering a version breaks its own ``content_sha256`` (unless recomputed), its child's ``parent_sha256`` and its row
-in ``log.jsonl``; the log is what catches an alteration of the newest version, which has no child.
+own content without that field and the signature), ``signature`` (Ed25519 by the writing station's key, over the
+same bytes: :mod:`pipeline.passport.signing`, keys kept outside the registry) and ``provenance.identity`` (the hash
+of the input hashes and the settings: the same inputs calibrated with the same settings give the same identity, and
+publish then returns the existing version). Altering a version breaks its own ``content_sha256`` (unless
+recomputed), its signature (which only the station's key can remake), its child's ``parent_sha256`` and its row in
+``log.jsonl``. Deleting the newest versions together with their log rows (a rollback) leaves a consistent shorter
+chain: a head statement (:meth:`Registry.head`, signed, kept elsewhere) is what names them later
+(``verify(against=...)``).
 
 Versions are never modified or deleted: a new one is written to a temp file in the unit's folder, fsync'ed, then
 hard-linked to its final name (which must not exist), and the folder fsync'ed; only then is its log row appended.
+A unit whose chain does not verify (any version, any check) is never appended to; an interrupted write (a newest
+version without its log row) is recovered only when it is this station's own signed version.
 """
 
 from __future__ import annotations
@@ -38,6 +47,8 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from pipeline.errors import RegistryError
+from pipeline.passport.canonical import canonical_json, content_sha256, sha256_bytes
+from pipeline.passport.signing import TrustStore, sign_record, station_key, trusted_keys, verify_record
 
 __all__ = [
     "PublishResult", "Registry", "VersionInfo", "VerifyReport",
@@ -46,10 +57,14 @@ __all__ = [
 
 AXES = "xyz"
 _VERSION_FILE = re.compile(r"^v(\d+)\.json$")
+_FIGURE_FILE = re.compile(r"^v(\d+)\.png$")
 _TEMP_PREFIX = ".tmp-"
 _UNIT_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$")
 _LOG_NAME = "log.jsonl"
 _LOCK_NAME = ".lock"
+#: Other names a unit folder may hold besides versions, their figures, the log, the lock and temp files.
+OTHER_UNIT_FILES: frozenset[str] = frozenset({"approvals.jsonl"})
+HEAD_SCHEMA = "thermocal.head/1"
 _ERRNO_TEXT = {
     errno.ENOSPC: "no space left on device (disk full)",
     errno.EDQUOT: "disk quota exceeded",
@@ -66,27 +81,6 @@ _ERRNO_TEXT = {
 # hashing and canonical serialisation
 
 
-def _json_default(obj: Any) -> Any:
-    """numpy scalars and arrays (and anything else with ``tolist``) as plain JSON values."""
-    if hasattr(obj, "tolist"):
-        return obj.tolist()
-    raise TypeError(f"{type(obj).__name__} is not JSON serialisable")
-
-
-def canonical_json(obj: Any) -> bytes:
-    """The canonical bytes of a JSON document: sorted keys, indent 2, ASCII, a final newline, no NaN/inf.
-
-    Floats are written with Python's shortest round-trip repr, so load -> canonical_json gives the same bytes.
-    Raises ValueError (non-finite number) or TypeError (not JSON-able).
-    """
-    text = json.dumps(obj, sort_keys=True, indent=2, ensure_ascii=True, allow_nan=False, default=_json_default)
-    return (text + "\n").encode("ascii")
-
-
-def sha256_bytes(data: bytes) -> str:
-    return hashlib.sha256(data).hexdigest()
-
-
 def sha256_file(path: str | os.PathLike) -> str:
     """Hex sha256 of a file's bytes, read in 1 MiB chunks."""
     h = hashlib.sha256()
@@ -94,12 +88,6 @@ def sha256_file(path: str | os.PathLike) -> str:
         for chunk in iter(lambda: f.read(1 << 20), b""):
             h.update(chunk)
     return h.hexdigest()
-
-
-def content_sha256(passport: dict) -> str:
-    """The self-hash stored in a passport: sha256 of its canonical JSON without the ``content_sha256`` key."""
-    body = {k: v for k, v in passport.items() if k != "content_sha256"}
-    return sha256_bytes(canonical_json(body))
 
 
 def identity_key(inputs: list[dict], settings: dict) -> str:
@@ -113,6 +101,11 @@ def safe_unit_name(unit: Any) -> str:
         raise RegistryError(f"unit serial {unit!r} is not usable as a registry name "
                             "(letters, digits, '.', '_', '-'; no path separator, no '..', at most 100 characters)")
     return unit
+
+
+def _version_name(version: int) -> str:
+    """The one file name of a version: ``v0001.json`` ... ``v9999.json``, ``v10000.json`` ..."""
+    return f"v{int(version):04d}.json"
 
 
 def _utc_now() -> str:
@@ -214,6 +207,7 @@ class _UnitState:
     log_issues: list[tuple[str, bool]]  # (text, is_problem)
     temps: list[Path]
     partial_log_tail: bool
+    strays: list[Path] = field(default_factory=list)
 
     @property
     def latest(self) -> int:
@@ -240,7 +234,7 @@ class Registry:
         return self.units_dir / safe_unit_name(unit)
 
     def version_path(self, unit: str, version: int) -> Path:
-        return self.unit_dir(unit) / f"v{int(version):04d}.json"
+        return self.unit_dir(unit) / _version_name(version)
 
     # -- reading ------------------------------------------------------------------------------------------------
 
@@ -256,15 +250,18 @@ class Registry:
         udir = self.unit_dir(unit)
         files: dict[int, Path] = {}
         temps: list[Path] = []
+        strays: list[Path] = []
         with _os_errors(udir, "read unit folder"):
             for p in udir.iterdir():
                 m = _VERSION_FILE.match(p.name)
-                if m:
+                if m and p.name == _version_name(int(m.group(1))) and p.is_file():
                     files[int(m.group(1))] = p
                 elif p.name.startswith(_TEMP_PREFIX):
                     temps.append(p)
+                elif not (p.name in (_LOG_NAME, _LOCK_NAME, *OTHER_UNIT_FILES) or _FIGURE_FILE.match(p.name)):
+                    strays.append(p)
             rows, issues, partial = self._read_log(udir / _LOG_NAME)
-        return _UnitState(files, rows, issues, sorted(temps), partial)
+        return _UnitState(files, rows, issues, sorted(temps), partial, sorted(strays))
 
     @staticmethod
     def _read_log(path: Path) -> tuple[dict[int, dict], list[tuple[str, bool]], bool]:
@@ -382,8 +379,10 @@ class Registry:
             udir.mkdir(parents=True, exist_ok=True)
             if created_dir:
                 _fsync_dir(udir.parent)
+        key = station_key()  # before the lock: created on first use, with its message
+        trust = trusted_keys()
         with _os_errors(udir / _LOCK_NAME, "lock the unit"), _flock(udir / _LOCK_NAME, exclusive=True):
-            state = self._prepare_locked(unit, udir)
+            state = self._prepare_locked(unit, udir, trust)
             for v, row in sorted(state.log_rows.items(), reverse=True):
                 if row.get("identity") == identity:
                     return PublishResult(unit, v, state.files[v], row["sha256"], False, self.load(unit, v))
@@ -393,8 +392,7 @@ class Registry:
             doc["created_utc"] = _utc_now()
             doc["provenance"] = {**(doc.get("provenance") or {}), "inputs": inputs, "code_version": code_version,
                                  "settings": settings, "identity": identity}
-            doc.pop("content_sha256", None)
-            doc["content_sha256"] = content_sha256(doc)
+            doc = sign_record(doc, key)
             data = canonical_json(doc)
             final = self.version_path(unit, doc["version"])
             self._write_version(udir, final, data)
@@ -410,17 +408,19 @@ class Registry:
                 raise
         return PublishResult(unit, doc["version"], final, digest, True, doc)
 
-    def _prepare_locked(self, unit: str, udir: Path) -> _UnitState:
-        """Under the unit's exclusive lock: clean a killed writer's leftovers, check the chain head, return state.
+    def _prepare_locked(self, unit: str, udir: Path, trust: TrustStore) -> _UnitState:
+        """Under the unit's exclusive lock: clean a killed writer's leftovers, check the whole chain, return state.
 
         Repairs only what an interrupted writer can leave: temp files, an unterminated last log line, and a newest
-        version file whose log row was not yet appended (recorded now, if its content and parent link check out).
-        Anything else (a missing or altered version) refuses the publish.
+        version file whose log row was not yet appended: recorded now, but only if it is this station's own signed
+        version with a correct self-hash and parent link. Then every version of the unit must verify
+        (:meth:`verify`'s checks, signatures included); if any does not, the publish is refused in one line.
         """
         state = self._scan(unit)
         with _os_errors(udir, "clean up after an interrupted writer"):
             for tmp in state.temps:
                 tmp.unlink(missing_ok=True)
+            state.temps = []
             log_path = udir / _LOG_NAME
             if state.partial_log_tail:
                 data = log_path.read_bytes()
@@ -428,18 +428,11 @@ class Registry:
                     f.truncate(data.rfind(b"\n") + 1)
                     f.flush()
                     os.fsync(f.fileno())
-        if any(problem for _, problem in state.log_issues):
-            raise RegistryError(f"unit {unit}: log.jsonl is damaged; run 'thermocal passport verify'",
-                                path=str(udir / _LOG_NAME))
+                state.log_issues = [(text, p) for text, p in state.log_issues if p]
+                state.partial_log_tail = False
         last_logged = max(state.log_rows, default=0)
-        missing = [v for v in range(1, state.latest + 1) if v not in state.files]
-        if missing:
-            raise RegistryError(f"unit {unit}: version v{missing[0]} is missing; run 'thermocal passport verify'",
-                                path=str(udir))
-        unlogged = [v for v in state.files if v > last_logged]
-        if len(unlogged) > 1:
-            raise RegistryError(f"unit {unit}: versions {sorted(unlogged)} are not in log.jsonl", path=str(udir))
-        if unlogged:
+        unlogged = sorted(v for v in state.files if v > last_logged)
+        if len(unlogged) == 1 and unlogged[0] == last_logged + 1 and not any(p for _, p in state.log_issues):
             v = unlogged[0]
             with _os_errors(state.files[v], "read passport"):
                 data = state.files[v].read_bytes()
@@ -449,20 +442,27 @@ class Registry:
             except (ValueError, AttributeError, TypeError):
                 doc, doc_ok = {}, False
             parent = state.log_rows[last_logged]["sha256"] if last_logged else None
-            if not doc_ok or doc.get("parent_sha256") != parent:
-                raise RegistryError(f"unit {unit} v{v}: not in log.jsonl and fails its own checks; "
-                                    "run 'thermocal passport verify'", path=str(state.files[v]))
+            sig = verify_record(doc, trust) if doc_ok else None
+            if not doc_ok or doc.get("parent_sha256") != parent or doc.get("version") != v:
+                why = "fails its own checks"
+            elif not (sig.ok and sig.own):
+                why = ("is not this station's own signed version" + (f" ({sig.problem})" if sig.problem else "")
+                       + "; it is not recovered")
+            else:
+                why = None
+            if why:
+                raise RegistryError(f"unit {unit} v{v}: not in log.jsonl and {why}; run 'thermocal passport "
+                                    "verify'", path=str(state.files[v]))
             row = {"version": v, "sha256": sha256_bytes(data), "created_utc": doc.get("created_utc"),
                    "identity": (doc.get("provenance") or {}).get("identity"), "recovered": True}
             self._append_log(udir, row)
             state.log_rows[v] = row
-        head = state.latest
-        if head:
-            with _os_errors(state.files[head], "read passport"):
-                head_sha = sha256_file(state.files[head])
-            if head_sha != state.log_rows[head]["sha256"]:
-                raise RegistryError(f"unit {unit} v{head}: file was altered after writing (sha256 differs from "
-                                    "log.jsonl); run 'thermocal passport verify'", path=str(state.files[head]))
+        problems: list[str] = []
+        self._check_unit(unit, state, trust, problems, [])
+        if problems:
+            more = f" (and {len(problems) - 1} more problem(s))" if len(problems) > 1 else ""
+            raise RegistryError(f"refusing to append to a chain that does not verify: {problems[0]}{more}; run "
+                                "'thermocal passport verify'", path=str(udir))
         return state
 
     @staticmethod
@@ -516,88 +516,169 @@ class Registry:
 
     # -- integrity ----------------------------------------------------------------------------------------------
 
-    def verify(self) -> VerifyReport:
-        """Check every version's hashes and parent links against each other and the logs; name what is wrong.
+    def verify(self, against: dict | None = None) -> VerifyReport:
+        """Check every version's hashes, parent links and signature against each other, the logs and the trusted
+        keys; name what is wrong. ``against``: a head statement (:meth:`head`) made earlier: every version it
+        listed must still be here, unchanged.
 
         Problems: unparsable JSON, a stored content_sha256 that does not match the content, a file whose sha256
         differs from its log row or from its child's parent_sha256, a broken parent link, a missing (deleted)
-        version, a version gap, a damaged log. Notes (not problems): a killed writer's leftover temp file or
-        unterminated log line, a newest version whose log row was not yet appended.
+        version, a version gap, a damaged log, a version without a valid signature by a trusted key, a stray or
+        misnamed file in a unit folder, a version listed by ``against`` that is gone or replaced, a head statement
+        not signed by a trusted key. Notes (not problems): a killed writer's leftover temp file or unterminated log
+        line, a newest version whose log row was not yet appended.
         """
         if not self.root.is_dir():
             raise RegistryError("no registry here (not a directory)", path=str(self.root))
+        trust = trusted_keys()
         report = VerifyReport(ok=True, problems=[], notes=[])
         if self.units_dir.is_dir():
             with _os_errors(self.units_dir, "list units"):
                 for p in sorted(self.units_dir.iterdir()):
                     if p.is_dir() and _UNIT_NAME.match(p.name) and ".." not in p.name:
-                        self._verify_unit(p.name, report)
+                        self._verify_unit(p.name, report, trust)
                     else:
                         report.notes.append(f"{p}: not a unit folder, ignored")
+        if against is not None:
+            self._verify_against(against, report, trust)
         report.ok = not report.problems
         return report
 
-    def _verify_unit(self, unit: str, report: VerifyReport) -> None:
+    def _verify_unit(self, unit: str, report: VerifyReport, trust: TrustStore) -> None:
         udir = self.unit_dir(unit)
-        problems, notes = report.problems, report.notes
         with _os_errors(udir / _LOCK_NAME, "lock the unit"), _flock(udir / _LOCK_NAME, exclusive=False):
             state = self._scan(unit)
-            for tmp in state.temps:
-                notes.append(f"{unit}: leftover temp file {tmp.name} from an interrupted writer "
-                             "(not a version; removed at the next publish)")
-            for text, is_problem in state.log_issues:
-                (problems if is_problem else notes).append(f"{unit}: {text}")
-            sha: dict[int, str] = {}
-            docs: dict[int, dict] = {}
-            altered: set[int] = set()
-            for v, path in sorted(state.files.items()):
-                with _os_errors(path, "read passport"):
-                    data = path.read_bytes()
-                sha[v] = sha256_bytes(data)
-                row = state.log_rows.get(v)
-                if row is not None and row["sha256"] != sha[v]:
-                    problems.append(f"{unit} v{v}: file sha256 differs from log.jsonl (altered after writing)")
-                    altered.add(v)
-                try:
-                    doc = json.loads(data)
-                    if not isinstance(doc, dict):
-                        raise ValueError("not a JSON object")
-                except ValueError as exc:
-                    problems.append(f"{unit} v{v}: unparsable JSON ({exc})")
-                    altered.add(v)
-                    continue
-                docs[v] = doc
-                if doc.get("content_sha256") != content_sha256(doc):
-                    problems.append(f"{unit} v{v}: stored content_sha256 does not match the content (altered)")
-                    altered.add(v)
-                if doc.get("version") != v or doc.get("unit") != unit:
-                    problems.append(f"{unit} v{v}: file says unit {doc.get('unit')!r} version "
-                                    f"{doc.get('version')!r}")
-            last_logged = max(state.log_rows, default=0)
-            for v in range(1, state.latest + 1):
-                if v not in state.files:
-                    what = "deleted (listed in log.jsonl)" if v in state.log_rows else "version gap"
-                    problems.append(f"{unit} v{v}: version file missing, {what}")
-                elif v not in state.log_rows:
-                    if v == state.latest and v == last_logged + 1 and v not in altered:
-                        notes.append(f"{unit} v{v}: not yet in log.jsonl (writer interrupted after writing it); "
-                                     "recorded at the next publish")
-                    else:
-                        problems.append(f"{unit} v{v}: not recorded in log.jsonl")
-            for v, doc in sorted(docs.items()):
-                parent = doc.get("parent_sha256")
-                if v == 1:
-                    if parent is not None:
-                        problems.append(f"{unit} v1: parent_sha256 should be null")
-                elif v - 1 in sha and parent != sha[v - 1]:
-                    if v - 1 in altered:
-                        problems.append(f"{unit} v{v - 1}: file sha256 does not match v{v}'s parent_sha256 "
-                                        f"(v{v - 1} altered)")
-                    else:
-                        problems.append(f"{unit} v{v}: broken parent link (parent_sha256 does not match "
-                                        f"v{v - 1}'s file)")
+            self._check_unit(unit, state, trust, report.problems, report.notes)
             report.units_checked += 1
             report.versions_checked += len(state.files)
+
+    def _check_unit(self, unit: str, state: _UnitState, trust: TrustStore, problems: list[str],
+                    notes: list[str]) -> None:
+        """Append the unit's problems and notes (the checks of :meth:`verify`)."""
+        for tmp in state.temps:
+            notes.append(f"{unit}: leftover temp file {tmp.name} from an interrupted writer "
+                         "(not a version; removed at the next publish)")
+        for stray in state.strays:
+            m = _VERSION_FILE.match(stray.name)
+            hint = (f" (misnamed: version {int(m.group(1))} would be {_version_name(int(m.group(1)))})" if m
+                    else "")
+            problems.append(f"{unit}: stray file {stray.name!r} in the unit folder, not written by thermocal{hint}")
+        for text, is_problem in state.log_issues:
+            (problems if is_problem else notes).append(f"{unit}: {text}")
+        sha: dict[int, str] = {}
+        docs: dict[int, dict] = {}
+        altered: set[int] = set()
+        unsigned: set[int] = set()
+        for v, path in sorted(state.files.items()):
+            with _os_errors(path, "read passport"):
+                data = path.read_bytes()
+            sha[v] = sha256_bytes(data)
+            row = state.log_rows.get(v)
+            if row is not None and row["sha256"] != sha[v]:
+                problems.append(f"{unit} v{v}: file was altered after writing (sha256 differs from log.jsonl)")
+                altered.add(v)
+            try:
+                doc = json.loads(data)
+                if not isinstance(doc, dict):
+                    raise ValueError("not a JSON object")
+            except ValueError as exc:
+                problems.append(f"{unit} v{v}: unparsable JSON ({exc})")
+                altered.add(v)
+                continue
+            docs[v] = doc
+            if doc.get("content_sha256") != content_sha256(doc):
+                problems.append(f"{unit} v{v}: stored content_sha256 does not match the content (altered)")
+                altered.add(v)
+            if doc.get("version") != v or doc.get("unit") != unit:
+                problems.append(f"{unit} v{v}: file says unit {doc.get('unit')!r} version "
+                                f"{doc.get('version')!r}")
+            if v not in altered:
+                check = verify_record(doc, trust)
+                if not check.ok:
+                    problems.append(f"{unit} v{v}: hashes are consistent but it is {check.problem}"
+                                    if check.problem.startswith(("not signed", "signed by"))
+                                    else f"{unit} v{v}: {check.problem}")
+                    unsigned.add(v)
+        last_logged = max(state.log_rows, default=0)
+        for v in range(1, state.latest + 1):
+            if v not in state.files:
+                what = "deleted (listed in log.jsonl)" if v in state.log_rows else "version gap"
+                problems.append(f"{unit} v{v}: version file missing, {what}")
+            elif v not in state.log_rows:
+                if v == state.latest and v == last_logged + 1 and v not in altered | unsigned:
+                    notes.append(f"{unit} v{v}: not yet in log.jsonl (writer interrupted after writing it); "
+                                 "recorded at the next publish")
+                else:
+                    problems.append(f"{unit} v{v}: not recorded in log.jsonl")
+        for v, doc in sorted(docs.items()):
+            parent = doc.get("parent_sha256")
+            if v == 1:
+                if parent is not None:
+                    problems.append(f"{unit} v1: parent_sha256 should be null")
+            elif v - 1 in sha and parent != sha[v - 1]:
+                if v - 1 in altered:
+                    problems.append(f"{unit} v{v - 1}: file sha256 does not match v{v}'s parent_sha256 "
+                                    f"(v{v - 1} altered)")
+                else:
+                    problems.append(f"{unit} v{v}: broken parent link (parent_sha256 does not match "
+                                    f"v{v - 1}'s file)")
+
+    # -- head statements -----------------------------------------------------------------------------------------
+
+    def head(self) -> dict:
+        """A signed statement of every unit's newest version (``passport head``): {"schema", "registry",
+        "created_utc", "units": {unit: {"version", "sha256"}}, "content_sha256", "signature"}. Kept outside the
+        registry, it lets a later ``verify --against`` name versions that were deleted or rolled back.
+
+        A registry that does not verify gets no statement (RegistryError naming the first problem): a head
+        statement must not vouch for a forged version.
+        """
+        report = self.verify()
+        if not report.ok:
+            more = f" (and {len(report.problems) - 1} more)" if len(report.problems) > 1 else ""
+            raise RegistryError(f"the registry does not verify, no head statement signed: {report.problems[0]}"
+                                f"{more}", path=str(self.root))
+        units: dict[str, dict] = {}
+        for unit in self.units():
+            udir = self.unit_dir(unit)
+            with _os_errors(udir / _LOCK_NAME, "lock the unit"), _flock(udir / _LOCK_NAME, exclusive=False):
+                files = self._scan(unit).files
+                if files:
+                    v = max(files)
+                    with _os_errors(files[v], "read passport"):
+                        units[unit] = {"version": v, "sha256": sha256_file(files[v])}
+        return sign_record({"schema": HEAD_SCHEMA, "registry": str(self.root.resolve()), "created_utc": _utc_now(),
+                            "units": units})
+
+    def _verify_against(self, head: dict, report: VerifyReport, trust: TrustStore) -> None:
+        """Name every version the head statement listed that this registry no longer holds, or holds changed."""
+        problems = report.problems
+        if not isinstance(head, dict) or head.get("schema") != HEAD_SCHEMA or not isinstance(head.get("units"),
+                                                                                               dict):
+            raise RegistryError(f"not a head statement (schema {HEAD_SCHEMA}, from 'thermocal passport head')")
+        when = head.get("created_utc")
+        if head.get("content_sha256") != content_sha256(head):
+            problems.append(f"head statement of {when}: altered (content_sha256 does not match)")
+        else:
+            check = verify_record(head, trust)
+            if not check.ok:
+                problems.append(f"head statement of {when}: {check.problem}")
+        for unit, entry in sorted(head["units"].items()):
+            try:
+                listed, listed_sha = int(entry["version"]), str(entry["sha256"])
+                udir = self.unit_dir(unit)
+            except (KeyError, TypeError, ValueError, RegistryError):
+                problems.append(f"head statement of {when}: entry for unit {unit!r} is malformed")
+                continue
+            files = self._scan(unit).files if udir.is_dir() else {}
+            gone = [v for v in range(1, listed + 1) if v not in files]
+            for v in gone:
+                problems.append(f"{unit} v{v}: listed by the head statement of {when} and no longer in the "
+                                f"registry ({'unit folder deleted' if not files else 'deleted or rolled back'})")
+            if listed in files and sha256_file(files[listed]) != listed_sha:
+                problems.append(f"{unit} v{listed}: differs from the head statement of {when} (replaced: rolled "
+                                "back and written again, or altered)")
+        report.ok = not problems
 
     # -- comparison ---------------------------------------------------------------------------------------------
 

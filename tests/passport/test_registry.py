@@ -193,7 +193,7 @@ def test_deleted_version_is_named(tmp_path):
     report = reg.verify()
     assert not report.ok and problems_naming(report, UNIT, 2)
     assert any("deleted" in p for p in problems_naming(report, UNIT, 2))
-    with pytest.raises(RegistryError, match="v2 is missing"):
+    with pytest.raises(RegistryError, match="v2: version file missing"):
         publish(reg, settings={"order": 4})
     # deleting the newest is caught by the log
     reg.version_path("AU-0002", 1).unlink()
@@ -300,9 +300,10 @@ def run_unprivileged(fn) -> None:
     run_in_child(fn, drop_to_nobody, "the unprivileged check")
 
 
-def test_read_only_registry_is_a_clean_error():
+def test_read_only_registry_is_a_clean_error(monkeypatch):
     base = Path(tempfile.mkdtemp(prefix="thermocal-ro-", dir="/tmp" if Path("/tmp").is_dir() else None))
     os.chmod(base, 0o777)  # reachable by the unprivileged child
+    monkeypatch.setenv("THERMOCAL_KEY_DIR", str(base / "keys"))  # a station key the unprivileged user owns
 
     def check():
         reg = Registry(base / "reg")
