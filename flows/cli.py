@@ -16,10 +16,64 @@ import typer
 
 from pipeline.errors import ThermocalError
 
-app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
+app = typer.Typer(add_completion=False, pretty_exceptions_enable=False,
                   help="thermocal: thermal-chamber calibration of accelerometer units.")
-passport_app = typer.Typer(no_args_is_help=True, help="The passport audit trail: log, show, diff, verify, head.")
+passport_app = typer.Typer(help="The passport audit trail: log, show, diff, verify, head.")
 app.add_typer(passport_app, name="passport")
+
+#: The help texts of options and arguments that several commands share.
+JSON_HELP = "print one JSON object on stdout instead of text"
+REGISTRY_HELP = "registry folder: every unit's passport versions"
+UNIT_HELP = "the unit's serial number, e.g. AU-0001"
+
+
+def _plain_type_words() -> None:
+    """Help shows an option's value as a plain word (``PATH``, ``NUMBER``, ...) or its ``metavar``, and nothing for
+    a flag or an argument (its name is shown), where typer's default shows Python type tags (``<bool>``,
+    ``<list[Path]>``)."""
+    from typer import core
+
+    words = {"float": "NUMBER", "int": "INTEGER", "str": "TEXT"}
+
+    def display(self, ctx):
+        if isinstance(self, core.TyperArgument) or getattr(self, "is_flag", False):
+            return None
+        if self.metavar is not None:
+            return self.metavar
+        desc = getattr(self, "type_descriptor", None)
+        if desc is None:
+            return None
+        word = "PATH" if desc.is_path else words.get(self.bare_type().removeprefix("list[").removesuffix("]"),
+                                                    "VALUE")
+        return word
+
+    for cls in (getattr(core, "TyperArgument", None), getattr(core, "TyperOption", None)):
+        if cls is not None and hasattr(cls, "display_type_rich"):
+            cls.display_type_rich = display
+
+
+_plain_type_words()
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("thermocal")
+    except PackageNotFoundError:  # a source tree that was not installed
+        return "unknown"
+
+
+def _print_version(value: bool) -> None:
+    if value:
+        sys.stdout.write(f"thermocal {_version()}\n")
+        raise typer.Exit(0)
+
+
+@app.callback()
+def _main_options(_version_flag: bool = typer.Option(False, "--version", callback=_print_version, is_eager=True,
+                                                     help="print the version of thermocal and exit")):
+    """thermocal: thermal-chamber calibration of accelerometer units."""
 
 
 def _emit(obj, as_json: bool, text: str | None = None) -> None:
@@ -46,8 +100,8 @@ def _json_default(o):
 
 # ---------------------------------------------------------------------------------------------------------- inspect
 @app.command()
-def inspect(run: Path = typer.Argument(..., help="an .mcap file or a Parquet run directory"),
-            as_json: bool = typer.Option(False, "--json", help="print one JSON object")):
+def inspect(run: Path = typer.Argument(..., metavar="RUN", help="an .mcap file or a Parquet run directory"),
+            as_json: bool = typer.Option(False, "--json", help=JSON_HELP)):
     """What a run holds: metadata, streams, rates, gaps, the plateaus and static positions found (no Prefect)."""
     from pipeline.inspect import format_summary, summarize_run
     from pipeline.io.runs import read_run
@@ -59,26 +113,42 @@ def inspect(run: Path = typer.Argument(..., help="an .mcap file or a Parquet run
 # --------------------------------------------------------------------------------------------------------- simulate
 @app.command()
 def simulate(out: Path = typer.Option(..., "--out", help="output .mcap file or Parquet directory"),
-             fmt: str = typer.Option("mcap", "--format", help="mcap | parquet"),
-             unit: str = typer.Option("AU-0001", "--unit", help="unit serial written into the run"),
-             seed: int = typer.Option(0, "--seed", help="noise seed"),
-             unit_seed: Optional[int] = typer.Option(None, "--unit-seed",
-                                                     help="another unit of the same type (default: seed 000's unit)"),
-             effect: List[str] = typer.Option([], "--effect", help="ID[:k=v,...] from the effect catalogue; repeat"),
-             program: str = typer.Option("standard", "--program", help="standard | short | differential"),
-             rate_hz: float = typer.Option(10.0, "--rate-hz", help="voltmeter rate"),
+             fmt: str = typer.Option("mcap", "--format", help="file format: mcap (one file) | parquet (a folder)"),
+             unit: str = typer.Option("AU-0001", "--unit", help="unit serial number written into the run"),
+             seed: int = typer.Option(0, "--seed", help="random seed of the measurement noise"),
+             unit_seed: Optional[int] = typer.Option(
+                 None, "--unit-seed", help="draw a different unit of the same type from this seed (default: the "
+                                           "reference unit, whose constants are the published tables)"),
+             effect: List[str] = typer.Option([], "--effect", metavar="ID[:k=v,...]",
+                                              help="add a physical effect from the catalogue, with its parameters "
+                                                   "by name; repeat for several"),
+             program: str = typer.Option("standard", "--program",
+                                         help="chamber program: standard (full temperature steps), short (a few "
+                                              "plateaus, for quick tries) | differential (six orientations "
+                                              "through a temperature cycle)"),
+             rate_hz: float = typer.Option(10.0, "--rate-hz", help="voltmeter sampling rate, Hz"),
              noise_uv: float = typer.Option(5.0, "--noise-uv", help="voltmeter noise per sample, micro-volts"),
-             case_lag_s: Optional[float] = typer.Option(None, "--case-lag-s", help="AU case lag behind air"),
-             no_fixture_log: bool = typer.Option(False, "--no-fixture-log", help="omit the fixture stream"),
+             case_lag_s: Optional[float] = typer.Option(None, "--case-lag-s",
+                                                        help="time constant of the unit's case temperature behind "
+                                                             "the chamber air, s (default: the unit type's)"),
+             no_fixture_log: bool = typer.Option(False, "--no-fixture-log",
+                                                 help="leave out the fixture's position log"),
              encoding: str = typer.Option("json", "--encoding", help="MCAP message encoding: json | protobuf"),
-             truth: Optional[Path] = typer.Option(None, "--truth", help="ground-truth JSON (default: beside)"),
-             as_json: bool = typer.Option(False, "--json")):
+             truth: Optional[Path] = typer.Option(None, "--truth",
+                                                  help="where to write the ground truth as JSON (default: beside "
+                                                       "the run, NAME.truth.json)"),
+             as_json: bool = typer.Option(False, "--json", help=JSON_HELP)):
     """Write one simulated run of a chamber program, and its ground truth as JSON beside it."""
     from pipeline.effects.catalogue import parse_effect_spec
     from pipeline.io.runs import write_run
     from pipeline.simulate.chamber import SimConfig, write_truth
     from pipeline.simulate.large import simulate_run
+    from pipeline.simulate.program import PROGRAMS
 
+    if program not in PROGRAMS:
+        raise ThermocalError(f"unknown chamber program {program!r} ({', '.join(PROGRAMS)})", where="--program")
+    if fmt not in ("mcap", "parquet"):
+        raise ThermocalError(f"unknown format {fmt!r} (mcap, parquet)", where="--format")
     try:
         effects = [parse_effect_spec(e) for e in effect]
     except ValueError as e:
@@ -103,21 +173,32 @@ def _truth_path(run_path: Path) -> Path:
 
 # -------------------------------------------------------------------------------------------------------- calibrate
 @app.command()
-def calibrate(runs: List[Path] = typer.Argument(..., help="runs of one unit (TP runs and VP runs)"),
-              registry: Path = typer.Option(..., "--registry", help="registry folder"),
+def calibrate(runs: List[Path] = typer.Argument(..., metavar="RUN",
+                                              help="runs of one unit (.mcap files or Parquet run directories)"),
+              registry: Path = typer.Option(..., "--registry", help=REGISTRY_HELP),
               thermal_model: str = typer.Option("auto", "--thermal-model",
-                                                help="poly1 | poly2 | poly3 | piecewise (default: order = "
-                                                     "distinct temperatures - 1, at most 3)"),
+                                                help="temperature model of the constants: poly1 | poly2 | poly3 "
+                                                     "(polynomial of that order) | piecewise (linear between "
+                                                     "plateaus); auto: the highest order the plateaus allow, at "
+                                                     "most 3"),
               constants_method: str = typer.Option("auto", "--constants-method",
-                                                   help="auto | six_position | least_squares"),
-              tol_normal_g: float = typer.Option(3e-4, "--tol-normal-g", help="|dg| limit near T0, g"),
-              tol_range_g: float = typer.Option(1e-3, "--tol-range-g", help="|dg| limit over the range, g"),
+                                                   help="how the constants are solved per plateau: six_position "
+                                                        "(closed form from TP1..TP6) | least_squares (every "
+                                                        "position) | auto"),
+              tol_normal_g: float = typer.Option(3e-4, "--tol-normal-g",
+                                                 help="pass limit of the gravity-module error |dg| at the normal "
+                                                      "temperature, g"),
+              tol_range_g: float = typer.Option(1e-3, "--tol-range-g",
+                                                help="pass limit of |dg| over the rest of the temperature range, g"),
               method: str = typer.Option("tilt", "--method",
-                                         help="tilt (seed 000, default) | scalar (seed 004) | differential (seed 003)"),
+                                         help="tilt (known fixture positions, default) | scalar (the positions "
+                                              "need not be known: only |a| = 1 g is used) | differential (a "
+                                              "temperature cycle in fixed orientations, starting from an earlier "
+                                              "passport)"),
               base_passport: Optional[Path] = typer.Option(
                   None, "--base-passport", help="differential: normal-temperature passport to start from "
                                                 "(default: the unit's newest version in the registry)"),
-              as_json: bool = typer.Option(False, "--json")):
+              as_json: bool = typer.Option(False, "--json", help=JSON_HELP)):
     """Ingest, segment, average, fit, verify on the VP segments, write a new passport version (Prefect flow)."""
     settings = _calibration_settings(thermal_model, constants_method, tol_normal_g, tol_range_g)
     if method not in ("tilt", "scalar", "differential"):
@@ -184,14 +265,17 @@ def _calibrate_text(r: dict) -> str:
 
 # --------------------------------------------------------------------------------------------------------- diagnose
 @app.command()
-def diagnose(run: Path = typer.Argument(..., help="an .mcap file or a Parquet run directory"),
+def diagnose(run: Path = typer.Argument(..., metavar="RUN", help="an .mcap file or a Parquet run directory"),
              passport: Optional[Path] = typer.Option(None, "--passport",
-                                                     help="passport JSON (default: fitted from the run)"),
+                                                     help="the passport file to compare with (default: one fitted "
+                                                          "from the run itself)"),
              png: Optional[Path] = typer.Option(None, "--png",
-                                                help="figure (default: <run>.diagnose.png beside the run)"),
+                                                help="where to write the figure (default: RUN.diagnose.png "
+                                                     "beside the run)"),
              out_passport: Optional[Path] = typer.Option(
-                 None, "--out-passport", help="extended passport (default: <run>.diagnose.passport.json)"),
-             as_json: bool = typer.Option(False, "--json")):
+                 None, "--out-passport", help="where to write the passport extended by the findings (default: "
+                                              "RUN.diagnose.passport.json beside the run)"),
+             as_json: bool = typer.Option(False, "--json", help=JSON_HELP)):
     """Compare the recording with the model its passport predicts: locate, name and model the mismatch."""
     from .diagnose_cmd import diagnose_command, diagnose_text
 
@@ -201,20 +285,23 @@ def diagnose(run: Path = typer.Argument(..., help="an .mcap file or a Parquet ru
 
 # ------------------------------------------------------------------------------------------------- fleet and serve
 @app.command()
-def fleet(folder: Path = typer.Argument(..., help="folder of runs (searched recursively; .mcap and Parquet)"),
-          registry: Path = typer.Option(..., "--registry", help="registry folder"),
+def fleet(folder: Path = typer.Argument(..., metavar="FOLDER", help="folder of runs (searched recursively; .mcap and Parquet)"),
+          registry: Path = typer.Option(..., "--registry", help=REGISTRY_HELP),
           dask_address: Optional[str] = typer.Option(None, "--dask-address",
-                                                     help="run the unit tasks on this dask scheduler "
-                                                          "(tcp://host:8786)"),
-          workers: Optional[int] = typer.Option(None, "--workers", help="local pool size (default: CPU count)"),
-          pool: str = typer.Option("auto", "--pool", help="local pool: auto | process | thread"),
+                                                     help="run the units on this dask scheduler "
+                                                          "(tcp://host:8786) instead of this computer"),
+          workers: Optional[int] = typer.Option(None, "--workers",
+                                                help="how many units at once on this computer (default: the "
+                                                     "number of CPUs)"),
+          pool: str = typer.Option("auto", "--pool",
+                                   help="run the units in processes or threads: auto | process | thread"),
           figures: bool = typer.Option(True, "--figures/--no-figures",
                                        help="the PNG of the VP errors beside each new passport"),
           thermal_model: str = typer.Option("auto", "--thermal-model", help="as for calibrate"),
           constants_method: str = typer.Option("auto", "--constants-method", help="as for calibrate"),
-          tol_normal_g: float = typer.Option(3e-4, "--tol-normal-g", help="|dg| limit near T0, g"),
-          tol_range_g: float = typer.Option(1e-3, "--tol-range-g", help="|dg| limit over the range, g"),
-          as_json: bool = typer.Option(False, "--json")):
+          tol_normal_g: float = typer.Option(3e-4, "--tol-normal-g", help="as for calibrate"),
+          tol_range_g: float = typer.Option(1e-3, "--tol-range-g", help="as for calibrate"),
+          as_json: bool = typer.Option(False, "--json", help=JSON_HELP)):
     """Calibrate every run under FOLDER, one passport per unit (Prefect flow, one task per unit).
 
     Runs already processed with the same settings are skipped; a bad run is reported and the rest go on.
@@ -251,7 +338,7 @@ def _fleet_text(s: dict) -> str:
 
 @app.command()
 def serve(inbox: Path = typer.Option(..., "--inbox", help="folder the chamber runs arrive in"),
-          registry: Path = typer.Option(..., "--registry", help="registry folder"),
+          registry: Path = typer.Option(..., "--registry", help=REGISTRY_HELP),
           cron: str = typer.Option("0 2 * * *", "--cron", help="when to run (cron syntax)"),
           timezone: str = typer.Option("UTC", "--timezone", help="time zone of the cron schedule"),
           name: str = typer.Option("nightly", "--name", help="deployment name (thermocal-fleet/NAME)"),
@@ -259,8 +346,8 @@ def serve(inbox: Path = typer.Option(..., "--inbox", help="folder the chamber ru
           workers: Optional[int] = typer.Option(None, "--workers", help="as for fleet"),
           thermal_model: str = typer.Option("auto", "--thermal-model", help="as for calibrate"),
           constants_method: str = typer.Option("auto", "--constants-method", help="as for calibrate"),
-          tol_normal_g: float = typer.Option(3e-4, "--tol-normal-g", help="|dg| limit near T0, g"),
-          tol_range_g: float = typer.Option(1e-3, "--tol-range-g", help="|dg| limit over the range, g")):
+          tol_normal_g: float = typer.Option(3e-4, "--tol-normal-g", help="as for calibrate"),
+          tol_range_g: float = typer.Option(1e-3, "--tol-range-g", help="as for calibrate")):
     """Serve the fleet flow over INBOX as a Prefect deployment on a cron schedule (blocks; Ctrl-C stops it).
 
     Needs a running Prefect server: `prefect server start`, and PREFECT_API_URL=http://127.0.0.1:4200/api.
@@ -275,8 +362,9 @@ def serve(inbox: Path = typer.Option(..., "--inbox", help="folder the chamber ru
 
 # --------------------------------------------------------------------------------------------------------- passport
 @passport_app.command("log")
-def passport_log(unit: str, registry: Path = typer.Option(..., "--registry"),
-                 as_json: bool = typer.Option(False, "--json")):
+def passport_log(unit: str = typer.Argument(..., metavar="UNIT", help=UNIT_HELP),
+                 registry: Path = typer.Option(..., "--registry", help=REGISTRY_HELP),
+                 as_json: bool = typer.Option(False, "--json", help=JSON_HELP)):
     """Versions of a unit: number, date, status, inputs."""
     from pipeline.passport.registry import Registry
 
@@ -287,8 +375,9 @@ def passport_log(unit: str, registry: Path = typer.Option(..., "--registry"),
 
 
 @passport_app.command("show")
-def passport_show(unit: str, version: Optional[int] = typer.Argument(None),
-                  registry: Path = typer.Option(..., "--registry")):
+def passport_show(unit: str = typer.Argument(..., metavar="UNIT", help=UNIT_HELP),
+                  version: Optional[int] = typer.Argument(None, metavar="V", help="version number (default: the newest)"),
+                  registry: Path = typer.Option(..., "--registry", help=REGISTRY_HELP)):
     """One version of a unit's passport (the newest when no version is given), as JSON."""
     from pipeline.passport.registry import Registry
 
@@ -296,8 +385,11 @@ def passport_show(unit: str, version: Optional[int] = typer.Argument(None),
 
 
 @passport_app.command("diff")
-def passport_diff(unit: str, v1: int, v2: int, registry: Path = typer.Option(..., "--registry"),
-                  as_json: bool = typer.Option(False, "--json")):
+def passport_diff(unit: str = typer.Argument(..., metavar="UNIT", help=UNIT_HELP),
+                  v1: int = typer.Argument(..., metavar="V1", help="the older version number"),
+                  v2: int = typer.Argument(..., metavar="V2", help="the newer version number"),
+                  registry: Path = typer.Option(..., "--registry", help=REGISTRY_HELP),
+                  as_json: bool = typer.Option(False, "--json", help=JSON_HELP)):
     """Which constants changed between two versions, by how much (units of physics.md)."""
     from pipeline.passport.registry import Registry
 
@@ -317,11 +409,11 @@ def _diff_text(d: dict) -> str:
 
 
 @passport_app.command("verify")
-def passport_verify(registry: Path = typer.Option(..., "--registry"),
+def passport_verify(registry: Path = typer.Option(..., "--registry", help=REGISTRY_HELP),
                     against: Optional[Path] = typer.Option(
                         None, "--against", help="a head statement made earlier ('passport head'): name every "
                                                 "version it listed that the registry no longer holds"),
-                    as_json: bool = typer.Option(False, "--json")):
+                    as_json: bool = typer.Option(False, "--json", help=JSON_HELP)):
     """Check every version's hashes, parent links and signatures; names any altered, unsigned, deleted or stray
     version and exits 1."""
     from pipeline.passport.registry import Registry
@@ -347,7 +439,7 @@ def _read_head(path: Path) -> dict:
 
 
 @passport_app.command("head")
-def passport_head(registry: Path = typer.Option(..., "--registry"),
+def passport_head(registry: Path = typer.Option(..., "--registry", help=REGISTRY_HELP),
                   out: Optional[Path] = typer.Option(None, "--out", help="write the statement to this file "
                                                                           "(keep it outside the registry)")):
     """A signed statement of every unit's newest version (JSON); keep it outside the registry and check the
@@ -366,11 +458,42 @@ def passport_head(registry: Path = typer.Option(..., "--registry"),
 
 
 # ----------------------------------------------------------------------------------------------------------- main
+def _click_errors() -> tuple[type, ...]:
+    """The exception classes of a command-line usage error: click's, and typer's own copy of click's (newer typer
+    vendors click)."""
+    import click
+
+    found = [click.ClickException]
+    try:
+        from typer._click.exceptions import ClickException as vendored
+    except ImportError:
+        pass
+    else:
+        found.append(vendored)
+    return tuple(found)
+
+
+_CLICK_ERRORS = _click_errors()
+
+
+def _usage_line(e: Exception) -> str:
+    """One line for a usage error: the message, the command it concerns and where help is."""
+    msg = " ".join((e.format_message() if hasattr(e, "format_message") else str(e)).split())
+    ctx = getattr(e, "ctx", None)
+    cmd = ctx.command_path if ctx is not None and getattr(ctx, "command_path", "") else "thermocal"
+    if not msg:  # a group called without its command
+        msg = "missing command."
+    return f"thermocal: usage error: {msg} (see `{cmd} --help`)"
+
+
 def main() -> None:
     """Console entry point: one-line errors, no tracebacks (set THERMOCAL_DEBUG=1 to see them)."""
     try:
         rc = app(standalone_mode=False)
         sys.exit(rc if isinstance(rc, int) else 0)
+    except _CLICK_ERRORS as e:  # usage: a missing or unknown command, option or value
+        print(_usage_line(e), file=sys.stderr)
+        sys.exit(2 if getattr(e, "exit_code", 2) in (None, 2) else e.exit_code)
     except ThermocalError as e:
         print(f"thermocal: error: {e.one_line()}", file=sys.stderr)
         sys.exit(2)
@@ -382,11 +505,6 @@ def main() -> None:
     except SystemExit:
         raise
     except Exception as e:  # noqa: BLE001 - the last line of defence: one line, not a traceback
-        import click
-
-        if isinstance(e, click.ClickException):
-            e.show()
-            sys.exit(e.exit_code)
         if os.environ.get("THERMOCAL_DEBUG"):
             raise
         print(f"thermocal: internal error: {type(e).__name__}: {' '.join(str(e).split())}", file=sys.stderr)

@@ -111,12 +111,12 @@ def format_summary(summary: dict[str, Any]) -> str:
         rate = f", {s['rate_hz']:.4g} Hz" if s["rate_hz"] else ""
         unit = "events" if name == "fixture" else "samples"
         lines.append(f"{name}: {s['samples']} {unit}{rate}, {_duration(s['duration_s'])} "
-                     f"from t_ns={s['t_start_ns']} to t_ns={s['t_end_ns']}")
+                     f"from {utc_text(s['t_start_ns'])} to {utc_text(s['t_end_ns'])}")
         details = []
         if s["gaps"]:
             longest = max(g[1] for g in s["gaps"])
-            details.append(f"{len(s['gaps'])} gaps (longest {_duration(longest)} at t_ns="
-                           f"{max(s['gaps'], key=lambda g: g[1])[0]})")
+            details.append(f"{len(s['gaps'])} gaps (longest {_duration(longest)} at "
+                           f"{utc_text(max(s['gaps'], key=lambda g: g[1])[0])})")
         if s["non_finite"]:
             details.append(f"{s['non_finite']} non-finite values")
         if "positions" in s:
@@ -137,6 +137,15 @@ def format_summary(summary: dict[str, Any]) -> str:
     for w in [*summary.get("warnings", []), *summary.get("segmentation_warnings", [])]:
         lines.append(f"warning: {w}")
     return "\n".join(lines)
+
+
+def utc_text(t_ns: int) -> str:
+    """``t_ns`` (ns since the Unix epoch) as a UTC time for people, to the millisecond:
+    ``2026-11-01 00:00:00.000 UTC``."""
+    from datetime import datetime, timedelta, timezone
+
+    t = datetime(1970, 1, 1, tzinfo=timezone.utc) + timedelta(microseconds=int(t_ns) // 1000)
+    return t.strftime("%Y-%m-%d %H:%M:%S.") + f"{t.microsecond // 1000:03d} UTC"
 
 
 def _duration(seconds: float) -> str:

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from pipeline.inspect import format_summary, stream_summary, summarize_run
+from pipeline.inspect import utc_text, format_summary, stream_summary, summarize_run
 from pipeline.run import Run, RunMeta, make_frame
 from pipeline.io.runs import read_run, write_run
 
@@ -68,7 +68,7 @@ def test_format_summary(run):
     text = format_summary(summarize_run(run))
     assert "run inspect-1  unit AU-0003  station ch1" in text
     assert "voltmeter: 19700 samples, 10 Hz, 33.3 min" in text
-    assert "1 gaps (longest 30.1 s at t_ns=%d)" % (T0_NS + 500 * 10**9) in text
+    assert "1 gaps (longest 30.1 s at %s)" % utc_text(T0_NS + 500 * 10**9) in text
     assert "4 non-finite values" in text
     assert "fixture: 3 events" in text and "positions MOVING TP1 TP2" in text
     assert "segmentation:" in text

@@ -1,0 +1,90 @@
+"""The command line as a person meets it (issue 16, item 8): usage errors exit 2 with one line on stderr,
+``--version``, a plain-words help text for every option and argument (no Python type tags), times in UTC."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import typer
+
+from flows.cli import app, main
+from pipeline.inspect import format_summary, utc_text
+
+THERMOCAL = str(Path(sys.executable).parent / "thermocal")
+
+
+def run_main(monkeypatch, capsys, *args: str) -> tuple[int, str, str]:
+    monkeypatch.setattr(sys, "argv", ["thermocal", *args])
+    with pytest.raises(SystemExit) as info:
+        main()
+    out, err = capsys.readouterr()
+    return info.value.code, out, err
+
+
+@pytest.mark.parametrize("args, says", [
+    ((), "missing command"),
+    (("calibrat", "x.mcap"), "no such command 'calibrat'"),
+    (("passport",), "missing command"),
+    (("passport", "lg", "AU-0001"), "no such command 'lg'"),
+    (("simulate", "--out", "x.mcap", "--program", "bogus"), "unknown chamber program 'bogus'"),
+    (("simulate", "--out", "x.mcap", "--format", "csv"), "unknown format 'csv'"),
+    (("simulate", "--out", "x.mcap", "--rate-hz", "fast"), "--rate-hz"),
+    (("calibrate",), "missing argument 'run'"),
+    (("calibrate", "x.mcap", "--registry", "r", "--bogus"), "no such option: --bogus"),
+])
+def test_usage_errors_exit_2_with_one_line(monkeypatch, capsys, tmp_path, args, says):
+    monkeypatch.chdir(tmp_path)
+    code, out, err = run_main(monkeypatch, capsys, *args)
+    assert code == 2, (code, err)
+    assert out == ""
+    assert err.count("\n") == 1 and err.startswith("thermocal: "), err
+    assert says in err.lower(), err
+    assert "internal error" not in err and not list(tmp_path.iterdir())
+
+
+def test_version_in_a_console_script():
+    p = subprocess.run([THERMOCAL, "--version"], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0 and p.stderr == ""
+    assert re.fullmatch(r"thermocal \d+\.\d+\.\d+\S*\n", p.stdout), p.stdout
+
+
+def _commands(group, path=()):
+    """Every (command path, click command) of the application."""
+    for name, cmd in group.commands.items():
+        if hasattr(cmd, "commands"):
+            yield from _commands(cmd, (*path, name))
+        else:
+            yield (*path, name), cmd
+
+
+def test_every_option_and_argument_has_plain_help(monkeypatch, capsys):
+    root = typer.main.get_command(app)
+    commands = list(_commands(root))
+    assert len(commands) >= 10
+    jargon = re.compile(r"seed \d{3}|<(bool|str|int|float|path|list\[\w+\])>", re.IGNORECASE)
+    for path, cmd in commands:
+        for p in cmd.params:
+            if p.name == "help":
+                continue
+            assert (p.help or "").strip(), f"{' '.join(path)} {p.name}: no help text"
+            assert not jargon.search(p.help), f"{' '.join(path)} {p.name}: {p.help}"
+        monkeypatch.setenv("COLUMNS", "200")
+        code, out, err = run_main(monkeypatch, capsys, *path, "--help")
+        assert code == 0 and err == "", err
+        assert not jargon.search(out), f"{' '.join(path)} --help:\n{out}"
+
+
+def test_inspect_prints_times_in_utc(tmp_path):
+    assert utc_text(1_793_491_200_123_456_789) == "2026-11-01 00:00:00.123 UTC"
+    summary = {"metadata": {"run_id": "r"}, "plateaus": [], "static_positions": [], "warnings": [],
+               "streams": {"voltmeter": {"samples": 3, "rate_hz": 1.0, "t_start_ns": 1_793_491_200_000_000_000,
+                                         "t_end_ns": 1_793_491_202_000_000_000, "duration_s": 2.0,
+                                         "gaps": [[1_793_491_201_000_000_000, 5.0]], "non_finite": 0}}}
+    text = format_summary(summary)
+    assert "t_ns" not in text
+    assert "from 2026-11-01 00:00:00.000 UTC to 2026-11-01 00:00:02.000 UTC" in text
+    assert "at 2026-11-01 00:00:01.000 UTC" in text
