@@ -601,8 +601,12 @@ def calibrate_differential(runs, base_passport: dict, *, settings: DifferentialS
         except CalibrationError:
             pass
     rows, status = verify_unit(fit.model.static, observations, t0, calibration_settings.tolerances)
+    covered = None
+    if fit.windows:      # the temperatures the orientation windows went through
+        covered = (round(min(w["temp_min_c"] for w in fit.windows), 1),
+                   round(max(w["temp_max_c"] for w in fit.windows), 1))
     unit_fit = UnitFit(unit=serial, normal_temp_c=t0, per_plateau=[], model=fit.model.static,
-                       skipped=list(fit.notes))
+                       skipped=list(fit.notes), valid_temp_c=covered)
     plateaus = plateau_summary(observations, calibration_settings.cluster_tol_c)
     extra = {"differential": fit.summary(), "rate_terms": fit.model.rate.to_dict(),
              "base_passport": {k: base_passport.get(k) for k in ("unit", "version", "method", "created_utc")}}

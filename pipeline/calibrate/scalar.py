@@ -399,7 +399,9 @@ def calibrate_scalar(runs, *, settings=None, normal_temp_c: float | None = None,
                                U0=fit_s.U0, positions=tuple(dict.fromkeys(names)), method=fit_s.method,
                                residual_rms_v=float(np.sqrt(np.mean(resid_v ** 2))))
     thermal = PolynomialModel(fit_s.K, fit_s.U0, t0, 0, np.zeros((0, 3)), np.zeros((0, 3, 3)))
-    unit_fit = UnitFit(unit=serial, normal_temp_c=t0, per_plateau=[plateau], model=thermal, skipped=notes)
+    seg_temps = [s.temp_c for _, s in static]
+    unit_fit = UnitFit(unit=serial, normal_temp_c=t0, per_plateau=[plateau], model=thermal, skipped=notes,
+                       valid_temp_c=(round(min(seg_temps), 1), round(max(seg_temps), 1)))
     rows, status = verify_unit(thermal, observations, t0, settings.tolerances)
     plateaus = plateau_summary(observations, settings.cluster_tol_c)
     doc = build_passport(unit_fit, rows, status, g_local_mps2=meta.g_local_mps2, plateaus=plateaus,

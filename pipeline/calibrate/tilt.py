@@ -11,7 +11,7 @@ The steps, each a pure function (the Prefect flow in ``flows/calibrate.py`` call
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
@@ -25,6 +25,15 @@ from pipeline.positions import (
 )
 from pipeline.segment import SegmentSettings, segment_run
 from pipeline.thermal import ThermalModel, cluster_temperatures, fit_thermal_model
+from pipeline.uncertainty import (
+    ThermalSigma,
+    design_matrix,
+    estimator_matrix,
+    excess_scatter_v,
+    plateau_sigma,
+    segment_noise_var_v2,
+    thermal_sigma,
+)
 from pipeline.verify import (
     Tolerances,
     VerificationRow,
@@ -75,6 +84,8 @@ class PlateauConstants:
     positions: tuple[str, ...]
     method: str
     residual_rms_v: float
+    K_sigma: np.ndarray | None = None     # (3, 3) V/g, standard uncertainty of K (None: not estimated)
+    U0_sigma: np.ndarray | None = None    # (3,) V
 
     def to_dict(self) -> dict:
         return {"temp_c": round(self.temp_c, 4), "run_id": self.run_id, "plateau": self.plateau,
@@ -89,6 +100,9 @@ class UnitFit:
     per_plateau: list[PlateauConstants]
     model: ThermalModel
     skipped: list[str]           # one line per plateau that could not be used, and why
+    uncertainty: ThermalSigma | None = None      # of K0, U00 and the thermal model's coefficients
+    valid_temp_c: tuple[float, float] | None = None   # the calibration temperatures the data covered (C)
+    excess_scatter_v: np.ndarray | None = None   # (3,) V, segment scatter beyond the measured noise (pooled)
 
 
 def observations_from_segmentation(run_id: str, segmentation, source: str = "") -> list[Observation]:
@@ -217,10 +231,39 @@ def fit_unit(unit: str, observations: list[Observation], settings: CalibrationSe
             d = np.einsum("nij,nj->ni", Ks - Kp, a) + (U0s - U0p)
             shift.update({id(o): d[k] for k, o in enumerate(rows)})
         fits = _fit_plateaus(groups, shift, settings.constants_method, None)
-    model = thermal(settings.thermal_model, *_at_calibration_temperatures(fits, thermal("auto"), normal_temp_c,
-                                                                           settings.cluster_tol_c))
+    fits, tau_v = _with_uncertainty(fits, groups, shift if settings.temperature_referencing_passes else {})
+    nominal, K_nom, U0_nom = _at_calibration_temperatures(fits, thermal("auto"), normal_temp_c,
+                                                          settings.cluster_tol_c)
+    model = thermal(settings.thermal_model, nominal, K_nom, U0_nom)
+    sigma = thermal_sigma(lambda t, K, U0: thermal(settings.thermal_model, t, K, U0), nominal, K_nom, U0_nom,
+                          np.array([f.K_sigma for f in fits]), np.array([f.U0_sigma for f in fits]))
+    temps = [f.temp_c for f in fits]
     fits.sort(key=lambda f: (f.temp_c, f.run_id, f.plateau))
-    return UnitFit(unit=unit, normal_temp_c=normal_temp_c, per_plateau=fits, model=model, skipped=skipped)
+    return UnitFit(unit=unit, normal_temp_c=normal_temp_c, per_plateau=fits, model=model, skipped=skipped,
+                   uncertainty=sigma, valid_temp_c=(round(min(temps), 1), round(max(temps), 1)),
+                   excess_scatter_v=tau_v)
+
+
+def _with_uncertainty(fits: list[PlateauConstants], groups, shift_v: dict[int, np.ndarray]
+                      ) -> tuple[list[PlateauConstants], np.ndarray]:
+    """The plateau fits with the standard uncertainties of their constants (:mod:`pipeline.uncertainty`): the
+    noise measured in each segment plus the excess scatter of the fits' residuals, pooled over the plateaus."""
+    parts = []
+    for f in fits:
+        rows = groups[(f.run_id, f.plateau)]
+        names = [o.position for o in rows]
+        u = np.array([np.asarray(o.u_v) - shift_v.get(id(o), 0.0) for o in rows])
+        A = design_matrix(names)
+        resid = u - A @ np.vstack([f.K.T, f.U0])
+        parts.append((estimator_matrix(names, f.method), A, resid,
+                      segment_noise_var_v2(np.array([o.std_v for o in rows]), np.array([o.count for o in rows]))))
+    tau_v = excess_scatter_v([p[2] for p in parts], [p[3] for p in parts], [p[0] for p in parts],
+                             [p[1] for p in parts])
+    out = []
+    for f, (W, _, _, var) in zip(fits, parts):
+        K_sig, U0_sig = plateau_sigma(W, var + tau_v ** 2)
+        out.append(replace(f, K_sigma=K_sig, U0_sigma=U0_sig))
+    return out, tau_v
 
 
 def _at_calibration_temperatures(fits: list[PlateauConstants], local: ThermalModel, normal_temp_c: float,

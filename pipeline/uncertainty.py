@@ -1,0 +1,222 @@
+"""Standard uncertainties (1 sigma) of the passport constants and of their temperature model.
+
+Three steps, each linear propagation of independent errors:
+
+1. **Segment means.** Each averaged static segment's mean output carries the voltmeter noise measured in it,
+   ``std_v**2 / count`` (V^2), plus an *excess scatter* ``tau**2`` per channel: what the fit's residuals show beyond
+   that noise (fixture face errors, settling, non-linearity). ``tau`` is pooled over all plateaus of the calibration,
+   because one plateau leaves only two or three residual degrees of freedom per channel (:func:`excess_scatter_v`).
+2. **Constants per plateau.** The six-position closed form and the least-squares fit are linear in the segment
+   means, ``[K_i., U0_i] = W u_i`` for channel i; their variances are ``sum_k W[:, k]**2 var(u_ik)``
+   (:func:`estimator_matrix`, :func:`plateau_sigma`).
+3. **Temperature model.** Every coefficient of the polynomial or piecewise model of one constant is a function of
+   that constant's values on the plateaus only (plateaus are independent). Each plateau value is moved by its own
+   standard uncertainty and the model refitted; the changes, added in quadrature, are the coefficients' standard
+   uncertainties (exact for the linear coefficients, first order for the relative beta and gamma, which divide by
+   K(T0)). Where the plateau constants scatter about the model by more than their uncertainties allow (chi^2 per
+   degree of freedom above 1, pooled over the 12 constants), the uncertainties are scaled up by that ratio
+   (:func:`thermal_sigma`).
+
+A value the data cannot determine (a relative coefficient of a zero constant) is ``None``, never a made-up number.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.positions import TEST_POSITIONS, gravity_vector_g
+
+
+def estimator_matrix(positions: list[str], method: str) -> np.ndarray:
+    """W (4, m): the fitted ``[K_ix, K_iy, K_iz, U0_i]`` of any channel i as ``W @ u_i`` over the m segment means.
+
+    ``method``: ``six_position`` (repeats of a position averaged first, then the closed form of seed 000 eq. 11,
+    which equals least squares over TP1..TP6) or ``least_squares`` (unweighted, over all m segments).
+    """
+    if method == "six_position":
+        avg = np.zeros((len(TEST_POSITIONS), len(positions)))
+        for r, name in enumerate(TEST_POSITIONS):
+            idx = [k for k, p in enumerate(positions) if p == name]
+            avg[r, idx] = 1.0 / len(idx)
+        return np.linalg.pinv(design_matrix(list(TEST_POSITIONS))) @ avg
+    return np.linalg.pinv(design_matrix(positions))
+
+
+def segment_noise_var_v2(std_v: np.ndarray, count: np.ndarray) -> np.ndarray:
+    """Variance (V^2) of each segment mean from the noise measured in it: std^2 / n, shape (m, 3)."""
+    std_v = np.asarray(std_v, dtype=float)
+    n = np.maximum(np.asarray(count, dtype=float), 1.0)
+    return std_v ** 2 / n[:, None]
+
+
+def design_matrix(positions: list[str]) -> np.ndarray:
+    """A (m, 4): the rows [a_x, a_y, a_z, 1] (g) of the segments' positions."""
+    return np.array([np.append(gravity_vector_g(p), 1.0) for p in positions])
+
+
+def excess_scatter_v(residuals_v: list[np.ndarray], noise_var_v2: list[np.ndarray],
+                     estimators: list[np.ndarray], designs: list[np.ndarray]) -> np.ndarray:
+    """Per channel (3,), V: the scatter of the segment means about the plateau fits beyond their measured noise.
+
+    ``residuals_v`` (m_p, 3), ``noise_var_v2`` (m_p, 3), ``estimators`` (W, (4, m_p)) and ``designs`` (A, (m_p, 4))
+    per plateau. A residual's
+    expected square from noise alone is ``(1 - h_k) var_k`` (h_k the leverage of segment k); the excess of the
+    pooled sum of squares over that, divided by the pooled degrees of freedom, is tau^2 (0 when the noise explains
+    the residuals).
+    """
+    ss = np.zeros(3)
+    expected = np.zeros(3)
+    dof = 0.0
+    for r, var, W, A in zip(residuals_v, noise_var_v2, estimators, designs):
+        H = A @ W                                  # fitted means = H u
+        lev = np.clip(np.diag(H), 0.0, 1.0)
+        ss += np.sum(np.asarray(r) ** 2, axis=0)
+        expected += np.sum((1.0 - lev)[:, None] * var, axis=0)
+        dof += float(np.sum(1.0 - lev))
+    if dof <= 0.5:
+        return np.zeros(3)
+    return np.sqrt(np.maximum(ss - expected, 0.0) / dof)
+
+
+def plateau_sigma(W: np.ndarray, var_v2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Standard uncertainties of one plateau's constants: K (3, 3) V/g and U0 (3,) V, from the segment-mean
+    variances ``var_v2`` (m, 3) and the estimator W (4, m)."""
+    var = (W ** 2) @ var_v2                      # (4, 3): rows K_.x, K_.y, K_.z, U0; columns channel i
+    sig = np.sqrt(var)
+    return sig[:3].T.copy(), sig[3].copy()
+
+
+@dataclass(frozen=True)
+class ThermalSigma:
+    """Standard uncertainties of a fitted temperature model: the normal-temperature constants and the model's
+    coefficients in the passport's layout (``thermal_model`` dict with the same keys, values in the same units)."""
+
+    K0: np.ndarray            # (3, 3) V/g
+    U00: np.ndarray           # (3,) V
+    thermal_model: dict
+    birge_ratio: float        # sqrt(chi^2 / dof) of the plateau constants about the model (pooled), or nan
+    dof: int
+
+
+def thermal_sigma(fit_model, temps_c: np.ndarray, K: np.ndarray, U0: np.ndarray, K_sigma: np.ndarray,
+                  U0_sigma: np.ndarray) -> ThermalSigma:
+    """Propagate per-plateau uncertainties through ``fit_model(temps_c, K, U0) -> model`` (a polynomial or piecewise
+    model of :mod:`pipeline.thermal` with ``K0``, ``U00``, ``constants_at`` and ``to_dict``).
+
+    ``K`` (p, 3, 3), ``U0`` (p, 3) at ``temps_c`` (p,), ``K_sigma``/``U0_sigma`` their standard uncertainties.
+    Each plateau is moved by +-1 sigma in all 12 constants at once: every output depends on one constant's column
+    only, so one refit per plateau and sign gives the contributions of that plateau to every output.
+    """
+    temps_c = np.asarray(temps_c, dtype=float)
+    base = fit_model(temps_c, K, U0)
+    base_vec, layout = _flatten_model(base)
+    var = np.zeros_like(base_vec)
+    for p in range(len(temps_c)):
+        Kp, Kmi = K.copy(), K.copy()
+        Up, Umi = U0.copy(), U0.copy()
+        Kp[p] += K_sigma[p]
+        Kmi[p] -= K_sigma[p]
+        Up[p] += U0_sigma[p]
+        Umi[p] -= U0_sigma[p]
+        plus, _ = _flatten_model(fit_model(temps_c, Kp, Up))
+        minus, _ = _flatten_model(fit_model(temps_c, Kmi, Umi))
+        var += ((plus - minus) / 2.0) ** 2
+    ratio, dof = _birge(base, temps_c, K, U0, K_sigma, U0_sigma)
+    scale = max(1.0, ratio) if np.isfinite(ratio) else 1.0
+    sig = np.sqrt(var) * scale
+    undetermined = ~np.isfinite(base_vec) | _undetermined_mask(base, layout)
+    sig = np.where(undetermined, np.nan, sig)
+    K0_sig = sig[:9].reshape(3, 3)
+    U00_sig = sig[9:12]
+    return ThermalSigma(K0=K0_sig, U00=U00_sig, thermal_model=_unflatten_model(base, sig[12:], layout),
+                        birge_ratio=float(ratio), dof=int(dof))
+
+
+def _birge(model, temps_c, K, U0, K_sigma, U0_sigma) -> tuple[float, int]:
+    """sqrt(chi^2/dof) of the plateau constants about the model, pooled over the 12 constants (nan if dof = 0)."""
+    Km, U0m = model.constants_at(temps_c)
+    r = np.concatenate([(K - Km).reshape(len(temps_c), 9), U0 - U0m], axis=1)
+    s = np.concatenate([K_sigma.reshape(len(temps_c), 9), U0_sigma], axis=1)
+    n_params = _n_params(model)
+    dof = len(temps_c) - n_params
+    if dof <= 0:
+        return float("nan"), 0
+    ok = s > 0
+    chi2 = float(np.sum((r[ok] / s[ok]) ** 2))
+    cols = int(np.sum(np.any(ok, axis=0)))
+    return float(np.sqrt(chi2 / max(1, dof * cols))), int(dof)
+
+
+def _n_params(model) -> int:
+    if hasattr(model, "order"):
+        return int(model.order) + 1
+    return len(model.nodes_c)
+
+
+def _flatten_model(model) -> tuple[np.ndarray, list]:
+    """K0 (9), U00 (3) and every number of ``model.to_dict()``'s coefficients, in a fixed order; the layout lists
+    (path, length) of each coefficient list so the sigmas can be put back in the same shape."""
+    parts = [np.asarray(model.K0, float).reshape(9), np.asarray(model.U00, float).reshape(3)]
+    layout = []
+    d = model.to_dict()
+    for path, values in _coefficient_lists(d):
+        arr = np.atleast_1d(np.asarray(values, dtype=float))
+        layout.append((path, arr.size, np.ndim(values) == 0))
+        parts.append(arr)
+    return np.concatenate(parts), layout
+
+
+def _coefficient_lists(d: dict):
+    """(path, value) for each coefficient in a thermal-model dict, in a fixed order."""
+    if d.get("kind") == "polynomial":
+        for group in ("alpha", "beta", "gamma"):
+            for key in sorted(d.get(group) or {}):
+                yield (group, key), d[group][key]
+    else:
+        for s, seg in enumerate(d.get("segments") or []):
+            for group in ("alpha", "beta", "gamma"):
+                for key in sorted(seg.get(group) or {}):
+                    yield ("segments", s, group, key), seg[group][key]
+
+
+def _undetermined_mask(model, layout) -> np.ndarray:
+    """True where a relative coefficient (beta, gamma) divides by a zero constant: not determined by the data."""
+    K0 = np.asarray(model.K0, float)
+    mask = [False] * 12
+    for path, n, _ in layout:
+        group, key = path[-2], path[-1]
+        zero = False
+        if group in ("beta", "gamma"):
+            i, j = "xyz".index(key[0]), "xyz".index(key[1])
+            zero = K0[i, j] == 0
+        mask += [zero] * n
+    return np.array(mask)
+
+
+def _unflatten_model(model, sig: np.ndarray, layout) -> dict:
+    """The model's dict with every coefficient replaced by its standard uncertainty (None where undetermined)."""
+    d = model.to_dict()
+    out = {k: v for k, v in d.items() if k not in ("alpha", "beta", "gamma", "segments")}
+    if d.get("kind") != "polynomial":
+        out["segments"] = [{k: v for k, v in seg.items() if k not in ("alpha", "beta", "gamma")}
+                           for seg in d.get("segments") or []]
+    pos = 0
+    for path, n, scalar in layout:
+        vals = [None if not np.isfinite(v) else float(v) for v in sig[pos:pos + n]]
+        pos += n
+        value = vals[0] if scalar else vals
+        if path[0] == "segments":
+            out["segments"][path[1]].setdefault(path[2], {})[path[3]] = value
+        else:
+            out.setdefault(path[0], {})[path[1]] = value
+    return out
+
+
+def as_json_list(a: np.ndarray):
+    """A sigma array as nested lists with None for undetermined (nan) values."""
+    a = np.asarray(a, dtype=float)
+    if a.ndim == 0:
+        return None if not np.isfinite(a) else float(a)
+    return [as_json_list(x) for x in a]
