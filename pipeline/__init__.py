@@ -9,6 +9,7 @@ Physics core (modules named for the physics, units in every docstring):
 - ``compensate``: compensation methods 1 and 2
 - ``verify``: gravity-module error at the verification positions (g)
 - ``dynamics``: first-order lag (s) and the direction the temperature last came from
+- ``uncertainty``: standard uncertainties (1 sigma) of the constants per plateau, at T0 and of the thermal model
 
 Steps and data:
 
