@@ -691,6 +691,8 @@ class Registry:
         alpha (V/C^n) as micro-g/C^n, beta and gamma (1/C^n) as ppm/C^n. ``fields`` are other changed values
         (status, normal temperature, thermal-model kind/order/breakpoints, code version) as {"name", "old", "new"};
         ``settings`` the same for each changed setting (dotted names); ``inputs`` {"added", "removed"}.
+        Constant and coefficient entries also carry ``uncertainty``, ``uncertainty_scaled`` and ``significant``
+        (:mod:`pipeline.passport.significance`; rule in ``significance``).
         """
         a, b = self.load(unit, v1), self.load(unit, v2)
         gains = _gains_v_per_g(a) or _gains_v_per_g(b)
@@ -703,10 +705,14 @@ class Registry:
         thermal, thermal_fields = _diff_thermal(a.get("thermal_model") or {}, b.get("thermal_model") or {}, gains)
         old_in = {i["sha256"]: i for i in pa.get("inputs") or []}
         new_in = {i["sha256"]: i for i in pb.get("inputs") or []}
+        from pipeline.passport.significance import annotate, significance_note
+
         return {
             "unit": unit, "v1": int(v1), "v2": int(v2),
-            "constants": _diff_constants(a.get("coefficients") or {}, b.get("coefficients") or {}, gains),
-            "thermal_model": thermal,
+            "constants": annotate(_diff_constants(a.get("coefficients") or {}, b.get("coefficients") or {}, gains),
+                                  a, b),
+            "thermal_model": annotate(thermal, a, b),
+            "significance": significance_note(),
             "fields": fields + thermal_fields,
             "settings": [{"name": k, "old": o, "new": n}
                          for k, (o, n) in _diff_flat(pa.get("settings") or {}, pb.get("settings") or {}).items()],
