@@ -38,18 +38,14 @@ from make_runs import OUT, make_runs  # noqa: E402
 COMPUTE = """
 import json, sys, tempfile, time
 t0 = time.perf_counter()
-from pipeline.calibrate.tilt import CalibrationSettings, fit_unit, observe_run, verify_unit
-from pipeline.calibrate.publish import publish_calibration
+from pipeline.calibrate import tilt
+from pipeline.calibrate.publish import publish
+from pipeline.calibrate.settings import CalibrationSettings
 from pipeline.io.runs import read_run
 t1 = time.perf_counter()
 s = CalibrationSettings()
-run = read_run(sys.argv[1])
-obs, _ = observe_run(run, s.segment)
-fit = fit_unit(run.meta.unit_serial, obs, s, run.meta.normal_temp_c)
-rows, status = verify_unit(fit.model, obs, run.meta.normal_temp_c, s.tolerances)
 with tempfile.TemporaryDirectory() as reg:
-    publish_calibration(reg, fit, rows, status, obs, input_paths=[sys.argv[1]], settings=s,
-                        g_local_mps2=run.meta.g_local_mps2)
+    publish(reg, tilt.calibrate([read_run(sys.argv[1])], s), input_paths=[sys.argv[1]], settings=s)
 print(json.dumps({"import_s": t1 - t0, "compute_s": time.perf_counter() - t1}))
 """
 

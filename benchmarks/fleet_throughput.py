@@ -87,7 +87,7 @@ def run_plain(paths: list[str], registry: Path) -> dict:
 def run_pool(folder: Path, registry: Path, workers: int) -> dict:
     import multiprocessing
 
-    from pipeline.calibrate.tilt import CalibrationSettings
+    from pipeline.calibrate.settings import CalibrationSettings
     from pipeline.calibrate.fleet import calibrate_group, plan_fleet, prepare_worker
 
     t0 = time.perf_counter()

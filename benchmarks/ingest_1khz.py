@@ -12,7 +12,7 @@ peak memory figure (``ru_maxrss``, which sees numpy and polars memory and mapped
   column for JSON, ``numpy.frombuffer`` of the packed fields for protobuf) and one concatenation per column;
 - thermocal's ingest (``pipeline.io.runs.read_run``);
 - the whole calibration without Prefect: ingest, segmentation and averaging (``observe_run``), fit, verification,
-  and writing the passport into a fresh registry (``publish_calibration``: hashes the input, draws the figure);
+  and writing the passport into a fresh registry (``pipeline.calibrate.publish.publish``: hashes the input, draws the figure);
 - with ``--flow``, the same through the Prefect flow (``flows.calibrate.run_calibrate``) after a warm-up flow has
   started Prefect, so that the figure does not include Prefect's start-up.
 
@@ -101,8 +101,9 @@ def ingest(path: Path) -> dict:
 
 def calibrate(path: Path) -> dict:
     """The calibration steps of the flow, without Prefect; each step timed."""
-    from pipeline.calibrate.tilt import CalibrationSettings, fit_unit, observe_run, verify_unit
-    from pipeline.calibrate.publish import publish_calibration
+    from pipeline.calibrate import tilt
+    from pipeline.calibrate.publish import publish
+    from pipeline.calibrate.settings import CalibrationSettings
     from pipeline.io.runs import read_run
 
     settings = CalibrationSettings()
@@ -111,26 +112,22 @@ def calibrate(path: Path) -> dict:
     run = read_run(path)
     stages["ingest"] = _lap(t)
     t = time.perf_counter()
-    observations, _ = observe_run(run, settings.segment)
+    observed = tilt.observe(run, settings)
     stages["segment"] = _lap(t)
     t = time.perf_counter()
-    fit = fit_unit(run.meta.unit_serial, observations, settings, run.meta.normal_temp_c)
-    stages["fit"] = _lap(t)
-    t = time.perf_counter()
-    rows, status = verify_unit(fit.model, observations, run.meta.normal_temp_c, settings.tolerances)
-    stages["verify"] = _lap(t)
+    result = tilt.calibrate_observed([observed], settings)
+    stages["fit+verify"] = _lap(t)
     t = time.perf_counter()
     with tempfile.TemporaryDirectory() as registry:
-        publish_calibration(registry, fit, rows, status, observations, input_paths=[str(path)], settings=settings,
-                            g_local_mps2=run.meta.g_local_mps2)
+        publish(registry, result, input_paths=[str(path)], settings=settings)
     stages["write"] = _lap(t)
-    return {**_run_counts(run), "stages": stages, "status": status, "plateaus": len(fit.per_plateau)}
+    return {**_run_counts(run), "stages": stages, "status": result.status, "plateaus": len(result.fit.per_plateau)}
 
 
 def flow(path: Path) -> dict:
     """The Prefect calibrate flow on the run, timed after a trivial warm-up flow has started Prefect."""
     from flows.calibrate import run_calibrate
-    from pipeline.calibrate.tilt import CalibrationSettings
+    from pipeline.calibrate.settings import CalibrationSettings
     from prefect import flow as prefect_flow
 
     t = time.perf_counter()

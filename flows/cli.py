@@ -201,35 +201,47 @@ def calibrate(runs: List[Path] = typer.Argument(..., metavar="RUN",
               as_json: bool = typer.Option(False, "--json", help=JSON_HELP)):
     """Ingest, segment, average, fit, verify on the VP segments, write a new passport version (Prefect flow)."""
     settings = _calibration_settings(thermal_model, constants_method, tol_normal_g, tol_range_g)
-    if method not in ("tilt", "scalar", "differential"):
-        raise ThermocalError(f"unknown method {method!r} (tilt, scalar, differential)", where="--method")
+    _check_method(method)
     for r in runs:
         if not r.exists():
             raise ThermocalError("no such file or directory", path=str(r))
-    base = _base_passport(runs[0], registry, base_passport) if method == "differential" else None
+    base = _base_passport(runs[0], registry, base_passport) if _needs_base(method) else None
     from .calibrate import run_calibrate
 
     result = run_calibrate([str(r) for r in runs], str(registry), settings, method, base)
     _emit(result, as_json, None if as_json else _calibrate_text(result))
 
 
+def _check_method(method: str) -> None:
+    from pipeline.calibrate.methods import METHODS
+
+    if method not in METHODS:
+        raise ThermocalError(f"unknown method {method!r} ({', '.join(METHODS)})", where="--method")
+
+
+def _needs_base(method: str) -> bool:
+    from pipeline.calibrate.methods import NEEDS_BASE_PASSPORT
+
+    return method in NEEDS_BASE_PASSPORT
+
+
 def _base_passport(run: Path, registry: Path, path: Path | None) -> dict:
+    from pipeline.calibrate.methods import base_passport_of
     from pipeline.io.runs import read_run_meta
     from pipeline.passport.document import read_passport
-    from pipeline.passport.registry import Registry
 
     if path is not None:
         return read_passport(path)
     unit = read_run_meta(run).unit_serial
     try:
-        return Registry(registry).load(unit)
+        return base_passport_of(registry, unit)
     except ThermocalError as e:
         raise ThermocalError(f"the differential method starts from a normal-temperature passport: give "
                              f"--base-passport or calibrate {unit} first ({e.message})", path=str(run)) from None
 
 
 def _calibration_settings(thermal_model: str, constants_method: str, tol_normal_g: float, tol_range_g: float):
-    from pipeline.calibrate.tilt import CalibrationSettings
+    from pipeline.calibrate.settings import CalibrationSettings
     from pipeline.verify import Tolerances
 
     if thermal_model not in ("auto", "poly1", "poly2", "poly3", "piecewise"):
@@ -301,6 +313,9 @@ def fleet(folder: Path = typer.Argument(..., metavar="FOLDER", help="folder of r
           constants_method: str = typer.Option("auto", "--constants-method", help="as for calibrate"),
           tol_normal_g: float = typer.Option(3e-4, "--tol-normal-g", help="as for calibrate"),
           tol_range_g: float = typer.Option(1e-3, "--tol-range-g", help="as for calibrate"),
+          method: str = typer.Option("tilt", "--method",
+                                     help="tilt (default), scalar, or differential (starting from each unit's newest "
+                                          "tilt or scalar passport in the registry)"),
           as_json: bool = typer.Option(False, "--json", help=JSON_HELP)):
     """Calibrate every run under FOLDER, one passport per unit (Prefect flow, one task per unit).
 
@@ -310,6 +325,7 @@ def fleet(folder: Path = typer.Argument(..., metavar="FOLDER", help="folder of r
     from pipeline.calibrate.fleet import discover_runs
 
     settings = _calibration_settings(thermal_model, constants_method, tol_normal_g, tol_range_g)
+    _check_method(method)
     if pool not in ("auto", "process", "thread"):
         raise ThermocalError(f"unknown pool {pool!r} (auto, process, thread)", where="--pool")
     if workers is not None and workers < 1:
@@ -318,7 +334,7 @@ def fleet(folder: Path = typer.Argument(..., metavar="FOLDER", help="folder of r
     from .fleet import run_fleet
 
     summary = run_fleet(str(folder), str(registry), settings, dask_address=dask_address, workers=workers, pool=pool,
-                        figures=figures, progress=True)
+                        figures=figures, progress=True, method=method)
     _emit(summary, as_json, None if as_json else _fleet_text(summary))
     if summary["failed"]:
         print(f"thermocal: fleet: {len(summary['failed'])} run(s) failed: {summary['failed'][0]['run']}: "

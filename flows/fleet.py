@@ -49,7 +49,7 @@ from prefect.futures import as_completed  # noqa: E402
 from prefect.runtime import flow_run  # noqa: E402
 
 from pipeline.calibrate import fleet as fleet_plan  # noqa: E402
-from pipeline.calibrate.tilt import CalibrationSettings  # noqa: E402
+from pipeline.calibrate.settings import CalibrationSettings  # noqa: E402
 
 POOLS = ("auto", "process", "thread")
 #: ``pool="auto"``: a process pool from this many units on (its start-up pays off), else threads.
@@ -62,9 +62,10 @@ _COMPUTE_POOL: contextvars.ContextVar[Executor | None] = contextvars.ContextVar(
 
 @task(name="calibrate-unit", task_run_name="calibrate-{unit}", cache_policy=NO_CACHE)
 def calibrate_unit(unit: str, runs: list[str], registry: str, settings: CalibrationSettings,
-                   figure: bool = True, digests: dict | None = None) -> fleet_plan.UnitOutcome:
+                   figure: bool = True, digests: dict | None = None, method: str = "tilt",
+                   base_passport: dict | None = None) -> fleet_plan.UnitOutcome:
     """:func:`pipeline.calibrate.fleet.calibrate_group`, in the flow's process pool when it has one."""
-    return _calibrate_group(unit, runs, registry, settings, figure, digests)
+    return _calibrate_group(unit, runs, registry, settings, figure, digests, method, base_passport)
 
 
 def _calibrate_group(*args) -> fleet_plan.UnitOutcome:
@@ -179,13 +180,13 @@ class _Progress:
 @flow(name="thermocal-fleet", log_prints=False)
 def fleet_flow(root: str, registry: str, settings: CalibrationSettings = CalibrationSettings(),
                dask_address: str | None = None, workers: int | None = None, pool: str = "auto",
-               figures: bool = True, progress: bool = False) -> dict:
-    """Calibrate every run under ``root`` into ``registry``: one task per unit, bad runs reported, done units
-    skipped. Returns the ``fleet --json`` object: ``done``, ``failed``, ``skipped`` (contract.md), ``flow_run_id``
+               figures: bool = True, progress: bool = False, method: str = "tilt") -> dict:
+    """Calibrate every run under ``root`` into ``registry`` by ``method`` (``pipeline.calibrate.methods``): one
+    task per unit, bad runs reported, done units skipped. Returns the ``fleet --json`` object: ``done``, ``failed``, ``skipped`` (contract.md), ``flow_run_id``
     and ``timing`` (wall, planning and in-task compute seconds, the runner)."""
     logger = get_run_logger()
     t0 = time.perf_counter()
-    plan = fleet_plan.plan_fleet(root, registry, settings)
+    plan = fleet_plan.plan_fleet(root, registry, settings, method)
     logger.info(f"{plan.runs_found} runs under {root}: {len(plan.groups)} units to calibrate, "
                 f"{len(plan.skipped)} runs skipped, {len(plan.failed)} unreadable")
     for f in plan.failed:
@@ -199,7 +200,8 @@ def fleet_flow(root: str, registry: str, settings: CalibrationSettings = Calibra
                 _Progress(progress, len(plan.groups), logger) as bar:
             futures = {runner.submit(calibrate_unit, {"unit": g.unit, "runs": list(g.runs), "registry": str(registry),
                                                       "settings": settings, "figure": figures,
-                                                      "digests": g.digests}): g
+                                                      "digests": g.digests, "method": method,
+                                                      "base_passport": g.base_passport}): g
                        for g in plan.groups}
             for fut in as_completed(list(futures)):
                 group = futures[fut]
@@ -265,10 +267,10 @@ def summary_table(summary: dict) -> list[dict]:
 
 def run_fleet(root: str, registry: str, settings: CalibrationSettings = CalibrationSettings(), *,
               dask_address: str | None = None, workers: int | None = None, pool: str = "auto",
-              figures: bool = True, progress: bool = False) -> dict:
+              figures: bool = True, progress: bool = False, method: str = "tilt") -> dict:
     """Run the fleet flow in this process (local ephemeral Prefect unless PREFECT_API_URL is set)."""
     from .runtime import flow_settings
 
     with flow_settings():
         return fleet_flow(str(root), str(registry), settings, dask_address=dask_address, workers=workers, pool=pool,
-                          figures=figures, progress=progress and sys.stderr is not None)
+                          figures=figures, progress=progress and sys.stderr is not None, method=method)

@@ -17,7 +17,7 @@ import os
 from pathlib import Path
 from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
 
-from pipeline.calibrate.tilt import CalibrationSettings
+from pipeline.calibrate.settings import CalibrationSettings
 from pipeline.errors import ThermocalError
 
 DEPLOYMENT_NAME = "nightly"

@@ -48,8 +48,12 @@ from scipy.linalg import lstsq as scipy_lstsq
 from scipy.optimize import minimize_scalar
 from scipy.signal import savgol_filter
 
+from pipeline.calibrate.observations import ObservedRun, observe_run, plateau_summary, unit_of, verify_unit
+from pipeline.calibrate.result import CalibrationResult, UnitFit, base_reference
+from pipeline.calibrate.settings import CalibrationSettings
 from pipeline.dynamics import first_order_lag
 from pipeline.errors import CalibrationError
+from pipeline.passport.document import build_passport
 from pipeline.model import specific_force_g
 from pipeline.positions import AXES
 from pipeline.thermal import PolynomialModel, thermal_model_from_dict
@@ -558,33 +562,18 @@ def compensate_run(passport: dict, run) -> tuple[np.ndarray, np.ndarray]:
 # From runs to a passport
 
 
-def calibrate_differential(runs, base_passport: dict, *, settings: DifferentialSettings = DifferentialSettings(),
-                           calibration_settings=None):
-    """Passport of method ``differential`` from one unit's temperature-cycle runs and a normal-temperature passport
-    (any method; its K and U0 at T0 are the starting point, its thermal model is not used).
+#: The passport's ``method`` for this recipe.
+METHOD = "differential"
 
-    Returns a :class:`pipeline.calibrate.scalar.MethodCalibration`. The passport's ``thermal_model`` is the polynomial of
-    order ``settings.poly_order`` (alpha, beta, gamma), ``rate_terms`` holds the rate terms and lag (see
-    :class:`RateTerms`), ``differential`` the fit's details and ``base_passport`` the starting passport's unit,
-    version and method. VP segments in the runs, if any, verify it as usual (without rate terms).
-    """
-    from pipeline.calibrate.scalar import MethodCalibration
-    from pipeline.calibrate.tilt import (
-        CalibrationSettings,
-        UnitFit,
-        observe_run,
-        plateau_summary,
-        unit_of,
-        verify_unit,
-    )
-    from pipeline.passport.document import build_passport
 
-    calibration_settings = calibration_settings or CalibrationSettings()
-    runs = list(runs)
-    serial = unit_of(runs)
-    if base_passport.get("unit") not in (None, serial):
-        raise CalibrationError(f"the base passport is for unit {base_passport.get('unit')}, the runs for "
-                               f"{serial}")
+def base_constants(base_passport: dict | None, unit: str) -> tuple[np.ndarray, np.ndarray, float]:
+    """K0 (3, 3) V/g, U0 (3,) V and T0 (C) of the base passport the differential method starts from (any method;
+    its thermal model is not used); CalibrationError when there is none, it is of another unit or has no usable
+    constants."""
+    if base_passport is None:
+        raise CalibrationError("the differential method starts from a normal-temperature passport (none given)")
+    if base_passport.get("unit") not in (None, unit):
+        raise CalibrationError(f"the base passport is for unit {base_passport.get('unit')}, the runs for {unit}")
     try:
         c = base_passport["coefficients"]
         K0, U0 = np.asarray(c["K"], float), np.asarray(c["U0"], float)
@@ -593,23 +582,59 @@ def calibrate_differential(runs, base_passport: dict, *, settings: DifferentialS
         raise CalibrationError(f"the base passport has no usable coefficients K, U0 ({e})") from None
     if K0.shape != (3, 3) or U0.shape != (3,) or not np.all(np.isfinite(K0)) or not np.all(np.isfinite(U0)):
         raise CalibrationError("the base passport's K must be 3x3 and U0 a 3-vector of finite numbers")
-    fit = fit_differential([block_data(r, K0, U0, settings) for r in runs], K0, U0, t0, settings)
-    observations = []
-    for r in runs:
-        try:                 # VP segments, if any, verify the passport; a run without plateaus simply has none
-            observations += observe_run(r, calibration_settings.segment)[0]
-        except CalibrationError:
-            pass
-    rows, status = verify_unit(fit.model.static, observations, t0, calibration_settings.tolerances)
+    return K0, U0, t0
+
+
+def observe(run, settings: CalibrationSettings = CalibrationSettings(), *, base_passport: dict | None = None,
+            differential: DifferentialSettings = DifferentialSettings()) -> ObservedRun:
+    """The run's orientation windows and block averages (``data``, :func:`block_data`, with the base passport's
+    normal-temperature constants) and its VP observations, if any (a run without plateaus simply has none)."""
+    K0, U0, _ = base_constants(base_passport, run.meta.unit_serial)
+    data = block_data(run, K0, U0, differential)
+    try:
+        observations = observe_run(run, settings.segment)[0]
+    except CalibrationError:
+        observations = []
+    return ObservedRun(meta=run.meta, source=run.source, observations=observations, warnings=list(run.warnings),
+                       data=data)
+
+
+def calibrate_observed(observed: list[ObservedRun], settings: CalibrationSettings = CalibrationSettings(), *,
+                       base_passport: dict | None = None,
+                       differential: DifferentialSettings = DifferentialSettings()) -> CalibrationResult:
+    """Passport of method ``differential`` from one unit's observed runs and a normal-temperature passport.
+
+    The passport's ``thermal_model`` is the polynomial of order ``differential.poly_order`` (alpha, beta, gamma),
+    ``rate_terms`` holds the rate terms and lag (see :class:`RateTerms`), ``differential`` the fit's details and
+    ``base_passport`` the starting passport's unit, version and method. VP segments in the runs, if any, verify it
+    as usual (without rate terms).
+    """
+    serial = unit_of(observed)
+    K0, U0, t0 = base_constants(base_passport, serial)
+    fit = fit_differential([r.data for r in observed], K0, U0, t0, differential)
+    observations = [o for r in observed for o in r.observations]
+    rows, status = verify_unit(fit.model.static, observations, t0, settings.tolerances)
     covered = None
     if fit.windows:      # the temperatures the orientation windows went through
         covered = (round(min(w["temp_min_c"] for w in fit.windows), 1),
                    round(max(w["temp_max_c"] for w in fit.windows), 1))
     unit_fit = UnitFit(unit=serial, normal_temp_c=t0, per_plateau=[], model=fit.model.static,
                        skipped=list(fit.notes), valid_temp_c=covered)
-    plateaus = plateau_summary(observations, calibration_settings.cluster_tol_c)
+    plateaus = plateau_summary(observations)
     extra = {"differential": fit.summary(), "rate_terms": fit.model.rate.to_dict(),
              "base_passport": {k: base_passport.get(k) for k in ("unit", "version", "method", "created_utc")}}
-    doc = build_passport(unit_fit, rows, status, g_local_mps2=runs[0].meta.g_local_mps2, plateaus=plateaus,
-                         method="differential", extra=extra)
-    return MethodCalibration(passport=doc, fit=unit_fit, rows=rows, status=status, plateaus=plateaus)
+    doc = build_passport(unit_fit, rows, status, g_local_mps2=observed[0].meta.g_local_mps2, plateaus=plateaus,
+                         method=METHOD, extra=extra)
+    return CalibrationResult(passport=doc, fit=unit_fit, rows=rows, status=status, plateaus=plateaus,
+                             warnings=[w for r in observed for w in r.warnings] + list(fit.notes),
+                             settings_extra=base_reference(base_passport))
+
+
+def calibrate(runs, settings: CalibrationSettings = CalibrationSettings(), *, base_passport: dict | None = None,
+              differential: DifferentialSettings = DifferentialSettings()) -> CalibrationResult:
+    """The differential calibration of one unit from its temperature-cycle runs, starting from ``base_passport``'s
+    normal-temperature constants: :func:`observe` each run, then :func:`calibrate_observed`."""
+    runs = list(runs)
+    base_constants(base_passport, unit_of(runs))
+    observed = [observe(r, settings, base_passport=base_passport, differential=differential) for r in runs]
+    return calibrate_observed(observed, settings, base_passport=base_passport, differential=differential)

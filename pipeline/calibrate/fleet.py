@@ -10,9 +10,11 @@ calibrate one unit's group while isolating a bad run.
   Metadata and hashes are read in a few threads (hashing releases the GIL); the hashes travel with the groups, so
   the calibration does not read the runs a second time to hash them (unless a run changed since, by its
   :func:`pipeline.passport.provenance.file_signature`).
-- :func:`calibrate_group`: the calibration of one unit from all its runs (TP runs and the VP runs that verify them).
-  A run that cannot be read or segmented is dropped and reported; the others are calibrated. Never raises for a bad
-  input: failures come back as ``{"run", "reason"}`` rows with the one-line reason.
+- :func:`calibrate_group`: the calibration of one unit from all its runs (TP runs and the VP runs that verify them)
+  by any method (``pipeline.calibrate.methods``; the differential method starts from the unit's passport in the
+  registry, :func:`pipeline.calibrate.methods.base_passport_of`). A run that cannot be read or observed (the
+  recipe's per-run step) is dropped and reported; the others are calibrated. Never raises for a bad input: failures
+  come back as ``{"run", "reason"}`` rows with the one-line reason.
 
 The Prefect flow (``flows/fleet.py``) runs :func:`plan_fleet` once and :func:`calibrate_group` as one task per unit.
 """
@@ -26,13 +28,10 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from pipeline.calibrate.publish import provenance_settings, publish_calibration
-from pipeline.calibrate.tilt import (
-    CalibrationSettings,
-    fit_unit,
-    observe_run,
-    verify_unit,
-)
+from pipeline.calibrate.methods import NEEDS_BASE_PASSPORT, base_passport_of, recipe
+from pipeline.calibrate.publish import publish, recorded_settings
+from pipeline.calibrate.result import base_reference
+from pipeline.calibrate.settings import CalibrationSettings
 from pipeline.errors import CalibrationError, RunFormatError, ThermocalError
 from pipeline.io.parquet import META_FILE as PARQUET_META_FILE
 from pipeline.io.runs import read_run, read_run_meta, run_format  # noqa: F401  (read_run_meta: part of this API)
@@ -44,21 +43,20 @@ from pipeline.run import RunMeta
 PARQUET_RUN_MARKERS = ("voltmeter.parquet", PARQUET_META_FILE)
 MCAP_SUFFIX = ".mcap"
 ALREADY_PROCESSED = "already processed"
-#: The method :func:`pipeline.calibrate.publish.publish_calibration` records (seed 000's tilt calibration).
-TILT_METHOD = "tilt_six_position"
 #: Threads reading runs' metadata and hashing them while planning.
 PLAN_THREADS = min(4, os.cpu_count() or 1)
 
 
 @dataclass(frozen=True)
 class UnitGroup:
-    """The runs of one unit to calibrate together (absolute paths), the identity their passport will have and the
-    runs' hashes by path (for :func:`calibrate_group`)."""
+    """The runs of one unit to calibrate together (absolute paths), the identity their passport will have, the
+    runs' hashes by path and the base passport of a method that needs one (for :func:`calibrate_group`)."""
 
     unit: str
     runs: tuple[str, ...]
     identity: str
     digests: dict[str, RunDigest] = field(default_factory=dict, compare=False)
+    base_passport: dict | None = field(default=None, compare=False)
 
 
 @dataclass
@@ -141,7 +139,7 @@ def _unit_of(path: Path) -> str:
 
 
 def plan_fleet(root: str | os.PathLike, registry: str | os.PathLike | Registry,
-               settings: CalibrationSettings = CalibrationSettings()) -> FleetPlan:
+               settings: CalibrationSettings = CalibrationSettings(), method: str = "tilt") -> FleetPlan:
     """Group the runs under ``root`` by unit and decide what to calibrate.
 
     A run whose metadata or bytes cannot be read is ``failed``; a second copy of a run (same content hash as
@@ -160,7 +158,7 @@ def plan_fleet(root: str | os.PathLike, registry: str | os.PathLike | Registry,
             plan.failed.append({"run": str(path), "reason": reason_of(digest)})
             continue
         by_unit.setdefault(unit, []).append({"path": str(path), "sha256": digest.sha256, "digest": digest})
-    settings_dict = provenance_settings(settings.to_dict(), TILT_METHOD)
+    rec = recipe(method)
     for unit, inputs in sorted(by_unit.items()):
         unique: dict[str, dict] = {}
         for item in inputs:
@@ -168,8 +166,10 @@ def plan_fleet(root: str | os.PathLike, registry: str | os.PathLike | Registry,
             if first is not item:
                 plan.skipped.append({"run": item["path"], "why": f"duplicate of {first['path']}", "unit": unit})
         kept = list(unique.values())
-        identity = identity_key(kept, settings_dict)
         try:
+            base = base_passport_of(reg, unit) if method in NEEDS_BASE_PASSPORT else None
+            extra = base_reference(base) if base is not None else {}
+            identity = identity_key(kept, recorded_settings(settings, rec.METHOD, extra))
             done = reg.find(unit, identity)
         except ThermocalError as exc:  # e.g. a unit serial that cannot be a registry name
             plan.failed += [{"run": i["path"], "reason": exc.one_line()} for i in kept]
@@ -179,7 +179,7 @@ def plan_fleet(root: str | os.PathLike, registry: str | os.PathLike | Registry,
                              for i in kept]
             continue
         plan.groups.append(UnitGroup(unit=unit, runs=tuple(i["path"] for i in kept), identity=identity,
-                                     digests={i["path"]: i["digest"] for i in kept}))
+                                     digests={i["path"]: i["digest"] for i in kept}, base_passport=base))
     return plan
 
 
@@ -207,45 +207,45 @@ def prepare_worker() -> None:
 
 def calibrate_group(unit: str, runs: list[str] | tuple[str, ...], registry: str | os.PathLike,
                     settings: CalibrationSettings = CalibrationSettings(), figure: bool = True,
-                    digests: Mapping[str, RunDigest] | None = None) -> UnitOutcome:
-    """Calibrate ``unit`` from ``runs`` and publish the passport into ``registry`` (as ``thermocal calibrate``;
-    ``figure``: the PNG of the VP errors beside a new passport, ~0.1 s of CPU of a standard 10 Hz unit's ~0.9 s
-    (JSON blocks; ~0.55 s protobuf); ``digests``: the runs' hashes from the planning, :attr:`UnitGroup.digests`,
-    reused for the runs unchanged since).
+                    digests: Mapping[str, RunDigest] | None = None, method: str = "tilt",
+                    base_passport: dict | None = None) -> UnitOutcome:
+    """Calibrate ``unit`` from ``runs`` by ``method`` and publish the passport into ``registry`` (as ``thermocal
+    calibrate``; ``figure``: the PNG of the VP errors beside a new passport, ~0.1 s of CPU of a standard 10 Hz
+    unit's ~0.9 s (JSON blocks; ~0.55 s protobuf); ``digests``: the runs' hashes from the planning,
+    :attr:`UnitGroup.digests`, reused for the runs unchanged since; ``base_passport``: the differential method's
+    starting passport, :attr:`UnitGroup.base_passport`).
 
-    Runs that cannot be read or segmented, or belong to another unit, are dropped (listed in ``failed``); the
-    rest are calibrated together. If the unit cannot be calibrated at all, every remaining run is listed in
-    ``failed`` with the reason and ``result`` is None. Bad inputs never raise.
+    Runs that cannot be read or observed (the recipe's per-run step), or belong to another unit, are dropped
+    (listed in ``failed``); the rest are calibrated together. If the unit cannot be calibrated at all, every
+    remaining run is listed in ``failed`` with the reason and ``result`` is None. Bad inputs never raise.
     """
     t0 = time.perf_counter()
     runs = [str(r) for r in runs]
     failed: list[dict] = []
     good: list[str] = []
-    observations: list = []
-    warnings: list[str] = []
-    meta = None
+    observed: list = []
+    result = None
+    try:
+        rec = recipe(method)
+    except CalibrationError as exc:
+        return UnitOutcome(unit=unit, runs=runs, result=None, failed=[{"run": p, "reason": reason_of(exc)}
+                                                                      for p in runs],
+                           compute_s=time.perf_counter() - t0)
     for path in runs:
         try:
             run = read_run(path)
             if run.meta.unit_serial != unit:
                 raise CalibrationError(f"run is of unit {run.meta.unit_serial!r}, not {unit!r}", path=path)
-            obs, warn = observe_run(run, settings.segment)
+            observed.append(rec.observe(run, settings, base_passport=base_passport))
         except Exception as exc:  # noqa: BLE001 - drop this run, calibrate the others
             failed.append({"run": path, "reason": reason_of(exc)})
             continue
-        meta = meta or run.meta
         good.append(path)
-        observations += obs
-        warnings += warn
-    result = None
     if good:
         try:
-            fit = fit_unit(unit, observations, settings, meta.normal_temp_c)
-            rows, status = verify_unit(fit.model, observations, meta.normal_temp_c, settings.tolerances)
-            result = publish_calibration(registry, fit, rows, status, observations, input_paths=good,
-                                         settings=settings, g_local_mps2=meta.g_local_mps2, figure=figure,
-                                         input_digests=digests)
-            result["warnings"] = warnings + fit.skipped
+            calibration = rec.calibrate_observed(observed, settings, base_passport=base_passport)
+            result = publish(registry, calibration, input_paths=good, settings=settings, figure=figure,
+                             input_digests=digests)
         except Exception as exc:  # noqa: BLE001 - the unit fails, the fleet goes on
             reason = reason_of(exc)
             failed += [{"run": p, "reason": reason} for p in good]

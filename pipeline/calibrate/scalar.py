@@ -26,7 +26,7 @@ diagonal and zeros above it.
   ``model="diagonal"`` assumes orthogonal axes (3 gains and 3 offsets), which six positions can determine.
 
 Both return a :class:`ScalarFit` with K (3, 3) V/g, U0 (3,) V in the model of physics.md (U = K a + U0).
-:func:`calibrate_scalar` makes a passport (method ``scalar``) from runs: all static segments on the normal-temperature
+:func:`calibrate` makes a passport (method ``scalar``) from runs: all static segments on the normal-temperature
 plateau, named or not.
 """
 
@@ -37,8 +37,20 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares as _scipy_least_squares
 
+from pipeline.calibrate.observations import (
+    ObservedRun,
+    observations_from_segmentation,
+    plateau_summary,
+    unit_of,
+    verify_unit,
+)
+from pipeline.calibrate.result import CalibrationResult, PlateauConstants, UnitFit
+from pipeline.calibrate.settings import CalibrationSettings
 from pipeline.errors import CalibrationError
 from pipeline.model import gravity_module_error_g, specific_force_g
+from pipeline.passport.document import build_passport
+from pipeline.segment import segment_run
+from pipeline.thermal import PolynomialModel
 
 #: channel pairs of psi_xy, psi_xz, psi_yz
 PSI_PAIRS = ((0, 1), (0, 2), (1, 2))
@@ -312,63 +324,40 @@ def lower_gauge(K: np.ndarray) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------------------------------------------
-# From runs to a passport
+# The recipe: from runs to a passport
+
+#: The passport's ``method`` for this recipe.
+METHOD = "scalar"
 
 
-@dataclass
-class MethodCalibration:
-    """A calibration by one of the alternative methods, ready to publish: the passport document (without version,
-    parent and provenance, which the registry sets), the :class:`pipeline.calibrate.tilt.UnitFit` it was built from,
-    the VP verification rows and status, and the plateau summary."""
-
-    passport: dict
-    fit: object
-    rows: list
-    status: str
-    plateaus: list[dict]
+def observe(run, settings: CalibrationSettings = CalibrationSettings(), *, base_passport: dict | None = None
+            ) -> ObservedRun:
+    """The run's observations (named segments, for the verification and the plateau summary) and, as ``data``,
+    every static segment on a plateau with finite mean outputs, named or not (orientations are not used)."""
+    seg = segment_run(run, settings.segment)
+    static = [s for s in seg.segments if s.plateau is not None and s.count > 0 and np.all(np.isfinite(s.mean_v))]
+    return ObservedRun(meta=run.meta, source=run.source, warnings=list(run.warnings), data=static,
+                       observations=observations_from_segmentation(run.meta.run_id, seg, run.source))
 
 
-def calibrate_scalar(runs, *, settings=None, normal_temp_c: float | None = None, model: str = "auto",
-                     k_prelim_v_per_g=None, u0_prelim_v=None) -> MethodCalibration:
-    """Passport of method ``scalar`` from one unit's runs: the scalar nonlinear fit over every static segment on
-    the plateaus within ``settings.cluster_tol_c`` of the normal temperature (named or not: orientations are not
-    used), polynomial thermal model of order 0 (K and U0 at T0), verified on the VP segments as usual.
+def calibrate_observed(observed: list[ObservedRun], settings: CalibrationSettings = CalibrationSettings(), *,
+                       base_passport: dict | None = None, normal_temp_c: float | None = None, model: str = "auto",
+                       k_prelim_v_per_g=None, u0_prelim_v=None) -> CalibrationResult:
+    """Passport of method ``scalar`` from one unit's observed runs: the scalar nonlinear fit over every static
+    segment on the plateaus within ``settings.cluster_tol_c`` of the normal temperature, polynomial thermal model
+    of order 0 (K and U0 at T0), verified on the VP segments as usual.
 
     Preliminary constants: the runs' ``nominal_gain_v_per_g`` (sign included) and zero offsets when the metadata has
     a gain, else :func:`preliminary_from_outputs`. ``model``: ``full`` (>= 9 spread positions, e.g. the standard
     program's TP and VP positions at +20 C), ``diagonal`` (orthogonal axes, >= 6 positions) or ``auto`` (full when
-    the positions determine it, else diagonal, with a note in the passport).
-
-    Returns a :class:`MethodCalibration`; publish ``.passport`` with ``pipeline.passport.registry.Registry.publish``. The
-    passport's extra field ``scalar`` holds the fit's details (:meth:`ScalarFit.summary`).
+    the positions determine it, else diagonal, with a note in the passport). The passport's extra field ``scalar``
+    holds the fit's details (:meth:`ScalarFit.summary`).
     """
-    from pipeline.calibrate.tilt import (
-        CalibrationSettings,
-        Observation,
-        PlateauConstants,
-        UnitFit,
-        observations_from_segmentation,
-        plateau_summary,
-        unit_of,
-        verify_unit,
-    )
-    from pipeline.passport.document import build_passport
-    from pipeline.segment import segment_run
-    from pipeline.thermal import PolynomialModel
-
-    settings = settings or CalibrationSettings()
-    runs = list(runs)
-    serial = unit_of(runs)
-    meta = runs[0].meta
+    serial = unit_of(observed)
+    meta = observed[0].meta
     t0 = float(meta.normal_temp_c if normal_temp_c is None else normal_temp_c)
-    observations: list[Observation] = []
-    static = []
-    for run in runs:
-        seg = segment_run(run, settings.segment)
-        observations += observations_from_segmentation(run.meta.run_id, seg, run.source)
-        static += [(run.meta.run_id, s) for s in seg.segments
-                   if s.plateau is not None and s.count > 0 and abs(s.temp_c - t0) <= settings.cluster_tol_c
-                   and np.all(np.isfinite(s.mean_v))]
+    observations = [o for r in observed for o in r.observations]
+    static = [(r.meta.run_id, s) for r in observed for s in r.data if abs(s.temp_c - t0) <= settings.cluster_tol_c]
     if not static:
         raise CalibrationError(f"no static segment on a plateau within {settings.cluster_tol_c} C of the normal "
                                f"temperature {t0:+.1f} C", stream="voltmeter")
@@ -403,7 +392,17 @@ def calibrate_scalar(runs, *, settings=None, normal_temp_c: float | None = None,
     unit_fit = UnitFit(unit=serial, normal_temp_c=t0, per_plateau=[plateau], model=thermal, skipped=notes,
                        valid_temp_c=(round(min(seg_temps), 1), round(max(seg_temps), 1)))
     rows, status = verify_unit(thermal, observations, t0, settings.tolerances)
-    plateaus = plateau_summary(observations, settings.cluster_tol_c)
+    plateaus = plateau_summary(observations)
     doc = build_passport(unit_fit, rows, status, g_local_mps2=meta.g_local_mps2, plateaus=plateaus,
-                         method="scalar", extra={"scalar": fit_s.summary()})
-    return MethodCalibration(passport=doc, fit=unit_fit, rows=rows, status=status, plateaus=plateaus)
+                         method=METHOD, extra={"scalar": fit_s.summary()})
+    return CalibrationResult(passport=doc, fit=unit_fit, rows=rows, status=status, plateaus=plateaus,
+                             warnings=[w for r in observed for w in r.warnings] + notes)
+
+
+def calibrate(runs, settings: CalibrationSettings = CalibrationSettings(), *, base_passport: dict | None = None,
+              **options) -> CalibrationResult:
+    """The scalar calibration of one unit from its runs: :func:`observe` each, then :func:`calibrate_observed`
+    (``options``: its ``normal_temp_c``, ``model``, ``k_prelim_v_per_g``, ``u0_prelim_v``)."""
+    runs = list(runs)
+    unit_of(runs)
+    return calibrate_observed([observe(r, settings) for r in runs], settings, **options)

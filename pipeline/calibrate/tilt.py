@@ -1,32 +1,41 @@
-"""Calibration of one unit from segmented runs: per-plateau constants, the thermal model, VP verification.
+"""Seed 000's tilt calibration (``tilt_six_position``): per-plateau constants from the six test positions, the
+thermal model, VP verification.
 
-The steps, each a pure function (the Prefect flow in ``flows/calibrate.py`` calls them one per task):
+The recipe, each step a pure function:
 
-1. ``observations_from_segmentation``: the averaged static segments of one run as :class:`Observation` rows;
+1. ``observe`` (per run): the run's averaged static segments (:func:`pipeline.calibrate.observations.observe_run`);
 2. ``fit_unit``: per-plateau constants (six-position closed form or least squares), then the thermal model, with
    the segment averages referred to their plateau's mean temperature (the unit is still settling during a plateau's
    positions, so each position is at a slightly different temperature);
-3. ``verify_unit``: dg at every VP observation, uncompensated and by both compensation methods.
+3. ``verify_unit`` (:mod:`pipeline.calibrate.observations`): dg at every VP observation, uncompensated and by both
+   compensation methods;
+4. ``calibrate_observed``: 2 and 3 and the passport document, as a
+   :class:`pipeline.calibrate.result.CalibrationResult`. ``calibrate(runs)`` is 1 then 4.
 """
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import replace
 
 import numpy as np
 
+from pipeline.calibrate.observations import (
+    Observation,
+    ObservedRun,
+    observations_from_segmentation,
+    observe_run,
+    plateau_summary,
+    unit_of,
+    verify_unit,
+)
+from pipeline.calibrate.result import CalibrationResult, PlateauConstants, UnitFit
+from pipeline.calibrate.settings import CalibrationSettings
 from pipeline.constants import fit_constants
 from pipeline.errors import CalibrationError
-from pipeline.positions import (
-    TEST_POSITIONS,
-    gravity_vector_g,
-    is_test_position,
-    is_verification_position,
-)
-from pipeline.segment import SegmentSettings, segment_run
+from pipeline.passport.document import build_passport
+from pipeline.positions import TEST_POSITIONS, gravity_vector_g, is_test_position
 from pipeline.thermal import ThermalModel, cluster_temperatures, fit_thermal_model
 from pipeline.uncertainty import (
-    ThermalSigma,
     design_matrix,
     estimator_matrix,
     excess_scatter_v,
@@ -34,128 +43,43 @@ from pipeline.uncertainty import (
     segment_noise_var_v2,
     thermal_sigma,
 )
-from pipeline.verify import (
-    Tolerances,
-    VerificationRow,
-    overall_status,
-    verify_positions,
-)
+
+#: The passport's ``method`` for this recipe.
+METHOD = "tilt_six_position"
+
+__all__ = ["METHOD", "CalibrationSettings", "Observation", "ObservedRun", "UnitFit", "PlateauConstants",
+           "observe", "calibrate_observed", "calibrate", "fit_unit", "observe_run", "observations_from_segmentation",
+           "unit_of", "verify_unit", "plateau_summary"]
 
 
-@dataclass(frozen=True)
-class CalibrationSettings:
-    """Everything that changes a passport. ``thermal_model``: auto | poly1 | poly2 | poly3 | piecewise;
-    ``constants_method``: auto | six_position | least_squares."""
-
-    thermal_model: str = "auto"
-    constants_method: str = "auto"
-    cluster_tol_c: float = 3.0
-    temperature_referencing_passes: int = 2
-    tolerances: Tolerances = field(default_factory=Tolerances)
-    segment: SegmentSettings = field(default_factory=SegmentSettings)
-
-    def to_dict(self) -> dict:
-        return asdict(self)
+def observe(run, settings: CalibrationSettings = CalibrationSettings(), *, base_passport: dict | None = None
+            ) -> ObservedRun:
+    """The run's observations and warnings; CalibrationError for a run with no named static position on any
+    plateau (``base_passport`` is not used by this method)."""
+    obs, warnings = observe_run(run, settings.segment)
+    return ObservedRun(meta=run.meta, source=run.source, observations=obs, warnings=warnings)
 
 
-@dataclass(frozen=True)
-class Observation:
-    """One averaged static segment: named position, mean outputs (V), mean AU temperature (C)."""
-
-    run_id: str
-    plateau: int | None          # plateau index within its run (None: not on a plateau)
-    position: str
-    u_v: tuple[float, float, float]
-    std_v: tuple[float, float, float]
-    count: int
-    temp_c: float
-    t_start_ns: int
-    t_end_ns: int
-    source: str = ""             # the file or directory the run was read from ("" for a run made in memory)
+def calibrate_observed(observed: list[ObservedRun], settings: CalibrationSettings = CalibrationSettings(), *,
+                       base_passport: dict | None = None) -> CalibrationResult:
+    """Fit, verify and make the passport document from one unit's observed runs."""
+    unit = unit_of(observed)
+    meta = observed[0].meta
+    observations = [o for r in observed for o in r.observations]
+    fit = fit_unit(unit, observations, settings, meta.normal_temp_c)
+    rows, status = verify_unit(fit.model, observations, meta.normal_temp_c, settings.tolerances)
+    plateaus = plateau_summary(observations)
+    doc = build_passport(fit, rows, status, g_local_mps2=meta.g_local_mps2, plateaus=plateaus, method=METHOD)
+    return CalibrationResult(passport=doc, fit=fit, rows=rows, status=status, plateaus=plateaus,
+                             warnings=[w for r in observed for w in r.warnings] + list(fit.skipped))
 
 
-@dataclass(frozen=True)
-class PlateauConstants:
-    run_id: str
-    plateau: int
-    temp_c: float
-    K: np.ndarray                # (3, 3) V/g
-    U0: np.ndarray               # (3,) V
-    positions: tuple[str, ...]
-    method: str
-    residual_rms_v: float
-    K_sigma: np.ndarray | None = None     # (3, 3) V/g, standard uncertainty of K (None: not estimated)
-    U0_sigma: np.ndarray | None = None    # (3,) V
-
-    def to_dict(self) -> dict:
-        return {"temp_c": round(self.temp_c, 4), "run_id": self.run_id, "plateau": self.plateau,
-                "K": self.K.tolist(), "U0": self.U0.tolist(), "positions": list(self.positions),
-                "method": self.method, "residual_rms_v": self.residual_rms_v}
-
-
-@dataclass
-class UnitFit:
-    unit: str
-    normal_temp_c: float
-    per_plateau: list[PlateauConstants]
-    model: ThermalModel
-    skipped: list[str]           # one line per plateau that could not be used, and why
-    uncertainty: ThermalSigma | None = None      # of K0, U00 and the thermal model's coefficients
-    valid_temp_c: tuple[float, float] | None = None   # the calibration temperatures the data covered (C)
-    excess_scatter_v: np.ndarray | None = None   # (3,) V, segment scatter beyond the measured noise (pooled)
-
-
-def observations_from_segmentation(run_id: str, segmentation, source: str = "") -> list[Observation]:
-    """Named static segments on plateaus (and VP segments anywhere) as observations (``source``: the run's file)."""
-    out = []
-    for s in segmentation.segments:
-        if s.position is None or s.count == 0:
-            continue
-        if s.plateau is None and not is_verification_position(s.position):
-            continue
-        out.append(Observation(run_id=run_id, plateau=s.plateau, position=s.position, u_v=tuple(s.mean_v),
-                               std_v=tuple(s.std_v), count=int(s.count), temp_c=float(s.temp_c),
-                               t_start_ns=int(s.t_start_ns), t_end_ns=int(s.t_end_ns), source=source))
-    return out
-
-
-def unit_of(runs) -> str:
-    """The one unit serial of ``runs``; CalibrationError when none are given or they are of different units."""
-    serials = sorted({r.meta.unit_serial for r in runs})
-    if not serials:
-        raise CalibrationError("no runs given")
-    if len(serials) != 1:
-        raise CalibrationError(f"runs of different units given together: {', '.join(serials)}")
-    return serials[0]
-
-
-def observe_run(run, settings: SegmentSettings = SegmentSettings()) -> tuple[list[Observation], list[str]]:
-    """Segment a run and return its observations and the segmenter's and reader's warnings.
-
-    A run with no named static position on any temperature plateau is of no use to a calibration:
-    :class:`CalibrationError` naming the file, the stream at fault and the time span.
-    """
-    seg = segment_run(run, settings)
-    obs = observations_from_segmentation(run.meta.run_id, seg, run.source)
-    warnings = list(run.warnings) + list(seg.warnings)
-    if not any(o.plateau is not None for o in obs):
-        raise _unusable_run(run, seg.plateaus, warnings, settings)
-    return obs, warnings
-
-
-def _unusable_run(run, plateaus, warnings: list[str], settings: SegmentSettings) -> CalibrationError:
-    if not plateaus:
-        t = run.au_temperature["t_ns"]
-        temp = run.au_temperature["temp_c"].fill_nan(None)
-        reads = f", it reads {temp.min():.2f}..{temp.max():.2f} C" if temp.null_count() < temp.len() else ""
-        return CalibrationError(f"no temperature plateau: the AU temperature never stays within "
-                                f"{settings.plateau_rate_c_per_min} C/min for {settings.plateau_min_s:.0f} s{reads}",
-                                path=run.source, stream="au_temperature",
-                                where=f"t_ns={t.min()}..{t.max()}")
-    why = f" ({'; '.join(warnings)})" if warnings else ""
-    return CalibrationError(f"no named static position on any of the {len(plateaus)} temperature plateau(s){why}",
-                            path=run.source, stream="voltmeter",
-                            where=f"t_ns={plateaus[0].t_start_ns}..{plateaus[-1].t_end_ns}")
+def calibrate(runs, settings: CalibrationSettings = CalibrationSettings(), *, base_passport: dict | None = None
+              ) -> CalibrationResult:
+    """The tilt calibration of one unit from its runs (TP runs, and runs with VP data that verify them)."""
+    runs = list(runs)
+    unit_of(runs)
+    return calibrate_observed([observe(r, settings) for r in runs], settings)
 
 
 def _group_plateaus(obs: list[Observation]) -> dict[tuple[str, int], list[Observation]]:
@@ -281,43 +205,3 @@ def _at_calibration_temperatures(fits: list[PlateauConstants], local: ThermalMod
     K = np.array([f.K for f in fits]) + (K_nom - K_t)
     U0 = np.array([f.U0 for f in fits]) + (U0_nom - U0_t)
     return nominal, K, U0
-
-
-def verify_unit(model, observations: list[Observation], normal_temp_c: float,
-                tolerances: Tolerances = Tolerances()) -> tuple[list[VerificationRow], str]:
-    """dg at every VP observation on a plateau; returns the rows (by time) and the overall status."""
-    vp = sorted((o for o in observations if is_verification_position(o.position) and o.plateau is not None),
-                key=lambda o: (o.run_id, o.t_start_ns))
-    if not vp:
-        return [], "unverified"
-    rows = verify_positions(model, [o.position for o in vp], np.array([o.u_v for o in vp]),
-                            np.array([o.temp_c for o in vp]), normal_temp_c=normal_temp_c, tolerances=tolerances,
-                            run_ids=[o.run_id for o in vp], spans_ns=[(o.t_start_ns, o.t_end_ns) for o in vp])
-    return rows, overall_status(rows)
-
-
-def plateau_summary(observations: list[Observation], cluster_tol_c: float = 3.0) -> list[dict]:
-    """``[{"temp_c", "positions"}]`` per plateau, in time order (for ``calibrate --json``)."""
-    groups: dict[tuple[str, int], list[Observation]] = {}
-    for o in observations:
-        if o.plateau is not None:
-            groups.setdefault((o.run_id, o.plateau), []).append(o)
-    out = []
-    for (run_id, p), rows in sorted(groups.items(), key=lambda kv: (kv[0][0], min(o.t_start_ns for o in kv[1]))):
-        rows.sort(key=lambda o: o.t_start_ns)
-        out.append({"temp_c": round(float(np.mean([o.temp_c for o in rows])), 2), "run_id": run_id,
-                    "positions": [o.position for o in rows]})
-    return out
-
-
-def calibration_result(fit: UnitFit, rows: list[VerificationRow], status: str, plateaus: list[dict],
-                       published) -> dict:
-    """The ``calibrate --json`` object of contract.md for a published passport."""
-    return {
-        "unit": fit.unit, "version": published.version, "passport": str(published.path),
-        "passport_sha256": published.sha256, "created": published.created,
-        "plateaus": plateaus,
-        "verification": [{"temp_c": r.temp_c, "position": r.position, "dg_uncompensated_g": r.dg_uncompensated_g,
-                          "dg_method1_g": r.dg_method1_g, "dg_method2_g": r.dg_method2_g} for r in rows],
-        "status": status,
-    }

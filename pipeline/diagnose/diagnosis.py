@@ -31,13 +31,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline.calibrate.tilt import (
-    CalibrationSettings,
-    fit_unit,
-    observations_from_segmentation,
-    plateau_summary,
-    verify_unit,
-)
+from pipeline.calibrate import tilt
+from pipeline.calibrate.observations import ObservedRun, observations_from_segmentation
+from pipeline.calibrate.settings import CalibrationSettings
 from pipeline.diagnose.fit import (
     Design,
     Selection,
@@ -64,7 +60,7 @@ from pipeline.effects.base import Shown
 from pipeline.effects.catalogue import EFFECTS, effect_class, make_effect
 from pipeline.errors import CalibrationError
 from pipeline.model import gravity_module_error_g, output_v, specific_force_g
-from pipeline.passport.document import build_passport, load_model
+from pipeline.passport.document import load_model
 from pipeline.positions import AXES, POSITION_NAMES, is_verification_position
 from pipeline.run import Run
 from pipeline.segment import Segmentation, segment_run
@@ -106,11 +102,11 @@ class Diagnosis:
 
 
 def fit_passport(run: Run, segmentation: Segmentation, settings: CalibrationSettings = CalibrationSettings()) -> dict:
-    """A passport fitted from the run itself (what ``calibrate`` would write, without registry fields)."""
-    obs = observations_from_segmentation(run.meta.run_id, segmentation)
-    fit = fit_unit(run.meta.unit_serial, obs, settings, normal_temp_c=run.meta.normal_temp_c)
-    rows, status = verify_unit(fit.model, obs, run.meta.normal_temp_c, settings.tolerances)
-    return build_passport(fit, rows, status, g_local_mps2=run.meta.g_local_mps2, plateaus=plateau_summary(obs))
+    """A passport fitted from the run itself by the tilt recipe (what ``calibrate`` would write, without registry
+    fields), from the run's ``segmentation``."""
+    observed = ObservedRun(meta=run.meta, source="",
+                           observations=observations_from_segmentation(run.meta.run_id, segmentation))
+    return tilt.calibrate_observed([observed], settings).passport
 
 
 def diagnose_run(run: Run, passport: dict | None = None, settings: DiagnoseSettings = DiagnoseSettings(),

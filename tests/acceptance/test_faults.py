@@ -1,4 +1,4 @@
-"""Faults (issue 7) through the calibration's write path, ``pipeline.calibrate.publish.publish_calibration``: a calibration
+"""Faults (issue 7) through the calibration's write path, ``pipeline.calibrate.publish.publish``: a calibration
 killed (SIGKILL) at random moments leaves a registry that ``passport verify`` accepts and loses or alters no earlier
 version, nor leaves a partial figure; two processes calibrating the same unit at once both finish; a full disk or a
 read-only registry gives a one-line error and writes nothing partial.
@@ -26,9 +26,10 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.calibrate.tilt import CalibrationSettings, fit_unit, observe_run, verify_unit
+from pipeline.calibrate import tilt
+from pipeline.calibrate.publish import publish as publish_result
+from pipeline.calibrate.settings import CalibrationSettings
 from pipeline.errors import RegistryError
-from pipeline.calibrate.publish import publish_calibration
 from pipeline.passport.registry import Registry, sha256_file
 from pipeline.io.runs import write_run
 from tests.acceptance.badcorpus import valid
@@ -46,20 +47,18 @@ def calibration(tmp_path_factory):
     d = tmp_path_factory.mktemp("faults")
     run = valid().run
     paths = [write_run(run, d / "run.mcap"), write_run(run, d / "run_parquet", "parquet")]
-    obs, _ = observe_run(run)
-    fit = fit_unit(UNIT, obs)
-    rows, status = verify_unit(fit.model, obs, 20.0)
+    result = tilt.calibrate([run])
+    assert result.unit == UNIT
     state = d / "calibration.pickle"
-    state.write_bytes(pickle.dumps((fit, rows, status, obs, str(paths[0]))))
-    return {"state": state, "paths": paths, "fit": fit, "rows": rows, "status": status, "obs": obs}
+    state.write_bytes(pickle.dumps((result, str(paths[0]))))
+    return {"state": state, "paths": paths, "result": result}
 
 
 def publish(calibration, registry: Path, k: int = 0, input_path: Path | None = None, **kw) -> dict:
     """The calibration's write step; ``k`` varies the settings, so each k is a new version."""
     c = calibration
-    return publish_calibration(registry, c["fit"], c["rows"], c["status"], c["obs"],
-                               input_paths=[str(input_path or c["paths"][0])],
-                               settings=CalibrationSettings(cluster_tol_c=3.0 + k * 1e-3), g_local_mps2=9.80665, **kw)
+    return publish_result(registry, c["result"], input_paths=[str(input_path or c["paths"][0])],
+                          settings=CalibrationSettings(cluster_tol_c=3.0 + k * 1e-3), **kw)
 
 
 def snapshot(registry: Path) -> dict[str, str]:
@@ -86,12 +85,12 @@ def assert_registry_sound(registry: Path, before: dict[str, str]) -> dict[str, s
 
 ZYGOTE = textwrap.dedent("""
     import os, pickle, signal, sys
-    from pipeline.calibrate.tilt import CalibrationSettings
-    from pipeline.calibrate.publish import publish_calibration
+    from pipeline.calibrate.settings import CalibrationSettings
+    from pipeline.calibrate.publish import publish
     from pipeline.plots import plot_verification
-    fit, rows, status, obs, run_path = pickle.loads(open(sys.argv[1], "rb").read())
+    result, run_path = pickle.loads(open(sys.argv[1], "rb").read())
     registry = sys.argv[2]
-    plot_verification(rows, sys.argv[3])            # warm up matplotlib before forking
+    plot_verification(result.rows, sys.argv[3])            # warm up matplotlib before forking
     signal.signal(signal.SIGCHLD, signal.SIG_IGN)   # killed children are reaped at once
     print("ready", flush=True)
     for line in sys.stdin:
@@ -101,9 +100,8 @@ ZYGOTE = textwrap.dedent("""
             signal.signal(signal.SIGCHLD, signal.SIG_DFL)
             try:
                 while True:
-                    publish_calibration(registry, fit, rows, status, obs, input_paths=[run_path],
-                                        settings=CalibrationSettings(cluster_tol_c=3.0 + k * 1e-3),
-                                        g_local_mps2=9.80665, figure=k % 3 != 0)
+                    publish(registry, result, input_paths=[run_path],
+                            settings=CalibrationSettings(cluster_tol_c=3.0 + k * 1e-3), figure=k % 3 != 0)
                     k += 1000
             finally:
                 import traceback
@@ -163,18 +161,14 @@ def test_calibration_killed_at_random_moments(calibration, tmp_path):
 
 CALIBRATE = textwrap.dedent("""
     import json, sys
-    from pipeline.calibrate.tilt import CalibrationSettings, fit_unit, observe_run, verify_unit
-    from pipeline.calibrate.publish import publish_calibration
+    from pipeline.calibrate import tilt
+    from pipeline.calibrate.publish import publish
+    from pipeline.calibrate.settings import CalibrationSettings
     from pipeline.io.runs import read_run
     path, registry = sys.argv[1], sys.argv[2]
     print("ready", flush=True)
     sys.stdin.readline()                             # both start together
-    run = read_run(path)
-    obs, _ = observe_run(run)
-    fit = fit_unit(run.meta.unit_serial, obs)
-    rows, status = verify_unit(fit.model, obs, run.meta.normal_temp_c)
-    result = publish_calibration(registry, fit, rows, status, obs, input_paths=[path],
-                                 settings=CalibrationSettings(), g_local_mps2=run.meta.g_local_mps2)
+    result = publish(registry, tilt.calibrate([read_run(path)]), input_paths=[path], settings=CalibrationSettings())
     print(json.dumps({k: result[k] for k in ("version", "passport_sha256", "created", "figure")}))
 """)
 

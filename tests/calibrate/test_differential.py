@@ -13,8 +13,9 @@ import pytest
 
 from pipeline import compensate
 from pipeline.simulate import program
+from pipeline.calibrate import differential
 from pipeline.calibrate.tilt import fit_unit, observe_run, verify_unit
-from pipeline.calibrate.differential import (DifferentialModel, DifferentialSettings, block_data, calibrate_differential,
+from pipeline.calibrate.differential import (DifferentialModel, DifferentialSettings, block_data,
                                    compensate_blocks, compensate_run, fit_differential, model_from_passport,
                                    window_std_g)
 from pipeline.errors import CalibrationError
@@ -136,11 +137,12 @@ def test_coefficients_against_truth(fits):
 
 
 def test_passport_of_method_differential(runs, base, tmp_path):
-    """``calibrate_differential`` makes a schema-valid passport (method, polynomial thermal model of order 3,
+    """``differential.calibrate`` makes a schema-valid passport (method, polynomial thermal model of order 3,
     rate_terms with the lag); ``compensate_run`` on the held-out run gives 10 s block std under 10 ug at every
     orientation; ``pipeline.compensate`` works on the same passport (without lag: hundreds of ug)."""
     fit_run, held = runs
-    mc = calibrate_differential([fit_run], base[1], settings=DifferentialSettings(rate_order=0, lag_fit=True))
+    mc = differential.calibrate([fit_run], base_passport=base[1],
+                                differential=DifferentialSettings(rate_order=0, lag_fit=True))
     doc = mc.passport
     assert doc["method"] == "differential" and doc["thermal_model"]["order"] == 3
     assert doc["rate_terms"]["lag_tau_s"] == pytest.approx(TAU_S, abs=2.0)

@@ -17,7 +17,8 @@ from pipeline.model import gravity_module_error_g, output_v, specific_force_g
 from pipeline.passport.document import load_model
 from pipeline.positions import ALL_POSITIONS
 from pipeline.passport.registry import Registry
-from pipeline.calibrate.scalar import (calibrate_scalar, lower_gauge, scalar_first_order, scalar_nonlinear)
+from pipeline.calibrate import scalar
+from pipeline.calibrate.scalar import lower_gauge, scalar_first_order, scalar_nonlinear
 from pipeline.simulate.chamber import SimConfig, simulate
 from pipeline.simulate.unit import random_unit, seed000_unit
 from tests.conftest import REPO, shared_path
@@ -203,7 +204,7 @@ def test_calibrate_scalar_real_run_falls_back_to_diagonal(real_positions):
     from pipeline.io.runs import read_run
 
     base = real_positions[0]
-    mc = calibrate_scalar([read_run(base / "run")])
+    mc = scalar.calibrate([read_run(base / "run")])
     doc = mc.passport
     assert doc["method"] == "scalar" and doc["scalar"]["model"] == "diagonal"
     assert any("diagonal model" in n for n in doc["notes"])
@@ -227,7 +228,7 @@ def test_calibrate_scalar_passport_compensates(short_run, tmp_path):
     from pipeline.segment import segment_run
 
     run = short_run.run
-    mc = calibrate_scalar([run])
+    mc = scalar.calibrate([run])
     doc = mc.passport
     K, U0 = _constants(random_unit(11))
     assert doc["method"] == "scalar" and doc["scalar"]["model"] == "full"

@@ -1,0 +1,51 @@
+"""The calibration methods by name: one recipe module per method, each with the same interface.
+
+A recipe module (``tilt``, ``scalar``, ``differential``) has ``METHOD`` (the passport's ``method``),
+``observe(run, settings, *, base_passport=None) -> ObservedRun`` (the per-run step: what a fleet isolates),
+``calibrate_observed(observed, settings, *, base_passport=None) -> CalibrationResult`` and
+``calibrate(runs, settings, *, base_passport=None) -> CalibrationResult`` (the two in a row).
+"""
+
+from __future__ import annotations
+
+from types import ModuleType
+
+from pipeline.calibrate import differential, scalar, tilt
+from pipeline.errors import CalibrationError
+
+#: recipe module by the name ``calibrate --method`` and ``fleet --method`` take
+RECIPES: dict[str, ModuleType] = {"tilt": tilt, "scalar": scalar, "differential": differential}
+#: the method names, the default first
+METHODS: tuple[str, ...] = tuple(RECIPES)
+#: methods that start from a normal-temperature passport (``base_passport``)
+NEEDS_BASE_PASSPORT: tuple[str, ...] = ("differential",)
+
+
+def recipe(method: str) -> ModuleType:
+    """The recipe module of ``method``; CalibrationError naming the known methods otherwise."""
+    try:
+        return RECIPES[method]
+    except KeyError:
+        raise CalibrationError(f"unknown method {method!r} ({', '.join(METHODS)})") from None
+
+
+def base_passport_of(registry, unit: str) -> dict:
+    """The passport a differential calibration of ``unit`` starts from by default: the unit's newest version in
+    ``registry`` (a folder or a :class:`pipeline.passport.registry.Registry`) not itself made by the differential
+    method (a differential passport's constants at T0 are its base's, so starting from it changes nothing but the
+    identity). CalibrationError when the unit has none."""
+    from pipeline.passport.registry import Registry
+
+    reg = registry if isinstance(registry, Registry) else Registry(registry)
+    try:
+        versions = [v.version for v in reg.versions(unit)]
+    except CalibrationError:
+        raise
+    except Exception as e:  # noqa: BLE001 - an unknown unit or unreadable registry: the reason, in one line
+        raise CalibrationError(f"no normal-temperature passport of {unit} to start from "
+                               f"({getattr(e, 'message', e)})") from None
+    for v in reversed(versions):
+        doc = reg.load(unit, v)
+        if doc.get("method") not in NEEDS_BASE_PASSPORT:
+            return doc
+    raise CalibrationError(f"no normal-temperature passport of {unit} to start from (only differential versions)")

@@ -1,0 +1,136 @@
+"""What every calibration method takes from a run: the averaged static segments (observations), the run's
+warnings, and the VP verification of a fitted model on them.
+
+- :class:`Observation`: one averaged static segment (position, mean outputs V, mean AU temperature C);
+- :func:`observations_from_segmentation` / :func:`observe_run`: a run's observations (the latter refuses a run with
+  no named static position on any plateau, with a one-line error naming the file, the stream and the time span);
+- :class:`ObservedRun`: one run reduced for a calibration, the per-run step of every recipe (what a fleet isolates:
+  a run that cannot be observed is dropped, the others are calibrated);
+- :func:`unit_of`: the one unit serial of a set of runs;
+- :func:`verify_unit`: dg at every VP observation on a plateau, uncompensated and by both compensation methods;
+- :func:`plateau_summary`: the plateaus and their positions, for ``calibrate --json``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from pipeline.errors import CalibrationError
+from pipeline.positions import is_verification_position
+from pipeline.run import RunMeta
+from pipeline.segment import SegmentSettings, segment_run
+from pipeline.verify import Tolerances, VerificationRow, overall_status, verify_positions
+
+
+@dataclass(frozen=True)
+class Observation:
+    """One averaged static segment: named position, mean outputs (V), mean AU temperature (C)."""
+
+    run_id: str
+    plateau: int | None          # plateau index within its run (None: not on a plateau)
+    position: str
+    u_v: tuple[float, float, float]
+    std_v: tuple[float, float, float]
+    count: int
+    temp_c: float
+    t_start_ns: int
+    t_end_ns: int
+    source: str = ""             # the file or directory the run was read from ("" for a run made in memory)
+
+
+@dataclass
+class ObservedRun:
+    """One run reduced for a calibration (the per-run step of every recipe): its metadata and file, its
+    observations (named static segments), the reader's and segmenter's warnings, and ``data``, what the method
+    keeps of the run besides (the scalar method: every static segment on a plateau; the differential method: the
+    block averages of its orientation windows). Small: the samples themselves are not kept."""
+
+    meta: RunMeta
+    source: str
+    observations: list[Observation]
+    warnings: list[str] = field(default_factory=list)
+    data: Any = None
+
+
+def observations_from_segmentation(run_id: str, segmentation, source: str = "") -> list[Observation]:
+    """Named static segments on plateaus (and VP segments anywhere) as observations (``source``: the run's file)."""
+    out = []
+    for s in segmentation.segments:
+        if s.position is None or s.count == 0:
+            continue
+        if s.plateau is None and not is_verification_position(s.position):
+            continue
+        out.append(Observation(run_id=run_id, plateau=s.plateau, position=s.position, u_v=tuple(s.mean_v),
+                               std_v=tuple(s.std_v), count=int(s.count), temp_c=float(s.temp_c),
+                               t_start_ns=int(s.t_start_ns), t_end_ns=int(s.t_end_ns), source=source))
+    return out
+
+
+def unit_of(runs) -> str:
+    """The one unit serial of ``runs`` (runs or :class:`ObservedRun`, anything with a ``meta``); CalibrationError
+    when none are given or they are of different units."""
+    serials = sorted({r.meta.unit_serial for r in runs})
+    if not serials:
+        raise CalibrationError("no runs given")
+    if len(serials) != 1:
+        raise CalibrationError(f"runs of different units given together: {', '.join(serials)}")
+    return serials[0]
+
+
+def observe_run(run, settings: SegmentSettings = SegmentSettings()) -> tuple[list[Observation], list[str]]:
+    """Segment a run and return its observations and the segmenter's and reader's warnings.
+
+    A run with no named static position on any temperature plateau is of no use to a calibration:
+    :class:`CalibrationError` naming the file, the stream at fault and the time span.
+    """
+    seg = segment_run(run, settings)
+    obs = observations_from_segmentation(run.meta.run_id, seg, run.source)
+    warnings = list(run.warnings) + list(seg.warnings)
+    if not any(o.plateau is not None for o in obs):
+        raise _unusable_run(run, seg.plateaus, warnings, settings)
+    return obs, warnings
+
+
+def _unusable_run(run, plateaus, warnings: list[str], settings: SegmentSettings) -> CalibrationError:
+    if not plateaus:
+        t = run.au_temperature["t_ns"]
+        temp = run.au_temperature["temp_c"].fill_nan(None)
+        reads = f", it reads {temp.min():.2f}..{temp.max():.2f} C" if temp.null_count() < temp.len() else ""
+        return CalibrationError(f"no temperature plateau: the AU temperature never stays within "
+                                f"{settings.plateau_rate_c_per_min} C/min for {settings.plateau_min_s:.0f} s{reads}",
+                                path=run.source, stream="au_temperature",
+                                where=f"t_ns={t.min()}..{t.max()}")
+    why = f" ({'; '.join(warnings)})" if warnings else ""
+    return CalibrationError(f"no named static position on any of the {len(plateaus)} temperature plateau(s){why}",
+                            path=run.source, stream="voltmeter",
+                            where=f"t_ns={plateaus[0].t_start_ns}..{plateaus[-1].t_end_ns}")
+
+
+def verify_unit(model, observations: list[Observation], normal_temp_c: float,
+                tolerances: Tolerances = Tolerances()) -> tuple[list[VerificationRow], str]:
+    """dg at every VP observation on a plateau; returns the rows (by time) and the overall status."""
+    vp = sorted((o for o in observations if is_verification_position(o.position) and o.plateau is not None),
+                key=lambda o: (o.run_id, o.t_start_ns))
+    if not vp:
+        return [], "unverified"
+    rows = verify_positions(model, [o.position for o in vp], np.array([o.u_v for o in vp]),
+                            np.array([o.temp_c for o in vp]), normal_temp_c=normal_temp_c, tolerances=tolerances,
+                            run_ids=[o.run_id for o in vp], spans_ns=[(o.t_start_ns, o.t_end_ns) for o in vp])
+    return rows, overall_status(rows)
+
+
+def plateau_summary(observations: list[Observation]) -> list[dict]:
+    """``[{"temp_c", "run_id", "positions"}]`` per plateau, in time order (for ``calibrate --json``)."""
+    groups: dict[tuple[str, int], list[Observation]] = {}
+    for o in observations:
+        if o.plateau is not None:
+            groups.setdefault((o.run_id, o.plateau), []).append(o)
+    out = []
+    for (run_id, p), rows in sorted(groups.items(), key=lambda kv: (kv[0][0], min(o.t_start_ns for o in kv[1]))):
+        rows.sort(key=lambda o: o.t_start_ns)
+        out.append({"temp_c": round(float(np.mean([o.temp_c for o in rows])), 2), "run_id": run_id,
+                    "positions": [o.position for o in rows]})
+    return out
