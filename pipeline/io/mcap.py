@@ -354,10 +354,11 @@ class _McapRunReader:
         if name != RUN_METADATA_NAME:
             return
         values = _string_map(buf, p, end)
-        if self.meta is None:
-            self.meta = values
-        elif values != self.meta:
-            self.warnings.append("more than one 'run' metadata record; the first one was used")
+        if self.meta is not None:  # which one describes the recording? neither is taken on trust
+            differ = "that differ" if values != self.meta else "(identical)"
+            raise self.fail(f"two 'run' metadata records {differ}: a run has exactly one", stream="metadata",
+                            where=f"byte {start}")
+        self.meta = values
 
     def _chunk_index(self, buf, start: int, end: int) -> None:
         (chunk_offset,) = _U64.unpack_from(buf, start + 16)

@@ -84,7 +84,11 @@ def read_run_meta(path: str | os.PathLike) -> RunMeta:
                     raise RunFormatError("not an MCAP file (it does not start with the MCAP magic bytes)",
                                          path=str(p))
                 f.seek(0)
-                values = next((dict(m.metadata) for m in make_reader(f).iter_metadata() if m.name == "run"), None)
+                records = [dict(m.metadata) for m in make_reader(f).iter_metadata() if m.name == "run"]
+                if len(records) > 1:
+                    raise RunFormatError("two 'run' metadata records: a run has exactly one", path=str(p),
+                                         stream="metadata")
+                values = records[0] if records else None
     except RunFormatError:
         raise
     except Exception as exc:  # noqa: BLE001 - OSError, JSON or MCAP library errors: one line

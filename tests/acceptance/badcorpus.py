@@ -90,10 +90,11 @@ def _mcap(run: Run, path: Path, **opts) -> Path:
 
 
 def rewrite_mcap(src: Path, dst: Path, edit: Edit | None = None,
-                 meta: Callable[[dict[str, str]], dict[str, str] | None] | None = None, **writer_opts) -> Path:
+                 meta: Callable[[dict[str, str]], dict[str, str] | None] | None = None,
+                 second_meta: dict[str, str] | None = None, **writer_opts) -> Path:
     """Copy the MCAP file ``src`` message by message (file order) through ``edit``, and its ``run`` metadata
-    through ``meta`` (None from it: no metadata). New topics get a schema of their own. ``writer_opts`` go to the
-    mcap Writer (default: the corpus's chunk size, zstd)."""
+    through ``meta`` (None from it: no metadata; ``second_meta``: a second ``run`` record after it). New topics get
+    a schema of their own. ``writer_opts`` go to the mcap Writer (default: the corpus's chunk size, zstd)."""
     with open(src, "rb") as f_in, open(dst, "wb") as f_out:
         reader = make_reader(f_in)
         meta_values = next(dict(m.metadata) for m in reader.iter_metadata() if m.name == "run")
@@ -105,6 +106,8 @@ def rewrite_mcap(src: Path, dst: Path, edit: Edit | None = None,
         channels: dict[str, int] = {}
         if meta_values is not None:
             writer.add_metadata("run", meta_values)
+        if second_meta is not None:
+            writer.add_metadata("run", second_meta)
         for schema, channel, message in reader.iter_messages(log_time_order=False):
             schemas.setdefault(channel.topic, (schema.name, schema.data))
             out = edit(channel.topic, message.log_time, message.data) if edit else \
@@ -173,11 +176,16 @@ def _crc(folder: Path, unit: str) -> Path:
     return path
 
 
-def _rewritten(name: str, edit: Edit | None = None, meta: Callable[[dict], dict | None] | None = None
-               ) -> Callable[[Path, str], Path]:
+def _rewritten(name: str, edit: Edit | None = None, meta: Callable[[dict], dict | None] | None = None,
+               second_meta: Callable[[dict], dict] | None = None) -> Callable[[Path, str], Path]:
     def build(folder: Path, unit: str) -> Path:
         base = _base(folder, unit)
-        out = rewrite_mcap(base, folder / f"{name}.mcap", edit, meta)
+        second = None
+        if second_meta is not None:
+            with open(base, "rb") as f:
+                second = second_meta(next(dict(m.metadata) for m in make_reader(f).iter_metadata()
+                                          if m.name == "run"))
+        out = rewrite_mcap(base, folder / f"{name}.mcap", edit, meta, second)
         base.unlink()
         return out
     return build
@@ -343,6 +351,17 @@ def _empty_dir(folder: Path, unit: str) -> Path:
     return folder / "empty-run"
 
 
+def _corrupt_page(d: Path) -> None:
+    """Flip one bit inside the data of the first page of voltmeter.parquet's ``uy`` column (bit-rot)."""
+    import pyarrow.parquet as pq
+
+    f = d / "voltmeter.parquet"
+    col = pq.ParquetFile(f).metadata.row_group(0).column(2)
+    data = bytearray(f.read_bytes())
+    data[col.data_page_offset + col.total_compressed_size // 2] ^= 0x04
+    f.write_bytes(bytes(data))
+
+
 def _meta_without(key: str) -> Callable[[dict], dict]:
     return lambda m: {k: v for k, v in m.items() if k != key}
 
@@ -381,6 +400,8 @@ CASES: tuple[Case, ...] = (
          ("no run metadata",), stream="metadata"),
     Case("mcap-metadata-malformed", _rewritten("bad-metadata", meta=lambda m: {**m, "normal_temp_c": "warm"}),
          RunFormatError, ("'normal_temp_c' is not a number",), stream="metadata"),
+    Case("mcap-two-run-metadata", _rewritten("two-run-records", second_meta=lambda m: {**m, "unit_serial": "AU-9999"}),
+         RunFormatError, ("two 'run' metadata records that differ",), stream="metadata", where="byte "),
     Case("mcap-metadata-without-serial", _rewritten("no-serial", meta=_meta_without("unit_serial")),
          RunFormatError, ("'unit_serial' is missing",), stream="metadata"),
     # samples that cannot be used as they are
@@ -418,6 +439,9 @@ CASES: tuple[Case, ...] = (
     Case("parquet-no-rows", _parquet("no-rows", _voltmeter_parquet(lambda v: v.head(0))), RunFormatError,
          ("required stream has no samples",),
          stream="voltmeter"),
+    Case("parquet-corrupted-page", _parquet("bit-rot", _corrupt_page), RunFormatError,
+         ("voltmeter.parquet", "column 'uy': page checksum mismatch", "corrupted"), stream="voltmeter",
+         where="rows 0.."),
     Case("parquet-metadata-malformed",
          _parquet("bad-json", lambda d: (d / "run.json").write_bytes(b'{"unit_serial": ')),
          RunFormatError, ("run.json", "cannot read the run metadata"), stream="metadata"),
