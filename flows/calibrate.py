@@ -42,17 +42,18 @@ def fit(observed, method: str, settings: CalibrationSettings, base_passport: dic
 
 
 @task(name="write", cache_policy=NO_CACHE)
-def write(registry: str, calibration, paths: list[str], settings: CalibrationSettings):
-    return publish(registry, calibration, input_paths=paths, settings=settings)
+def write(registry: str, calibration, paths: list[str], settings: CalibrationSettings, dry_run: bool = False):
+    return publish(registry, calibration, input_paths=paths, settings=settings, dry_run=dry_run)
 
 
 @flow(name="thermocal-calibrate", log_prints=False)
 def calibrate_flow(paths: list[str], registry: str, settings: CalibrationSettings = CalibrationSettings(),
-                   method: str = "tilt", base_passport: dict | None = None) -> dict:
+                   method: str = "tilt", base_passport: dict | None = None, dry_run: bool = False) -> dict:
     """Calibrate one unit from one or more runs (TP runs, and runs with VP data that verify them).
 
     ``method``: ``tilt`` (seed 000, default), ``scalar`` (seed 004) or ``differential`` (seed 003, starting from
-    ``base_passport``'s normal-temperature constants)."""
+    ``base_passport``'s normal-temperature constants). ``dry_run``: compute everything, write nothing to the
+    registry."""
     logger = get_run_logger()
     recipe(method)                          # an unknown method fails before any run is read
     runs = [ingest(p) for p in paths]
@@ -62,7 +63,7 @@ def calibrate_flow(paths: list[str], registry: str, settings: CalibrationSetting
     calibration = fit(observed, method, settings, base_passport)
     for w in calibration.warnings:
         logger.warning(w)
-    result = write(registry, calibration, list(paths), settings)
+    result = write(registry, calibration, list(paths), settings, dry_run)
     create_markdown_artifact(key=_artifact_key(unit), markdown=result_markdown(result),
                              description=f"thermocal calibration of {unit}")
     return result
@@ -85,9 +86,9 @@ def result_markdown(result: dict) -> str:
 
 
 def run_calibrate(paths: list[str], registry: str, settings: CalibrationSettings,
-                  method: str = "tilt", base_passport: dict | None = None) -> dict:
+                  method: str = "tilt", base_passport: dict | None = None, dry_run: bool = False) -> dict:
     """Run the flow in this process (local ephemeral Prefect unless PREFECT_API_URL is set)."""
     from .runtime import flow_settings, quiet_task_failures
 
     with flow_settings(), quiet_task_failures():
-        return calibrate_flow(paths, registry, settings, method, base_passport)
+        return calibrate_flow(paths, registry, settings, method, base_passport, dry_run)

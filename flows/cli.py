@@ -18,7 +18,7 @@ from pipeline.errors import ThermocalError
 
 app = typer.Typer(add_completion=False, pretty_exceptions_enable=False,
                   help="thermocal: thermal-chamber calibration of accelerometer units.")
-passport_app = typer.Typer(help="The passport audit trail: log, show, diff, verify, head.")
+passport_app = typer.Typer(help="The passport audit trail: log, show, diff, approve, verify, head.")
 app.add_typer(passport_app, name="passport")
 
 #: The help texts of options and arguments that several commands share.
@@ -197,9 +197,14 @@ def calibrate(runs: List[Path] = typer.Argument(..., metavar="RUN",
                                               "passport)"),
               base_passport: Optional[Path] = typer.Option(
                   None, "--base-passport", help="differential: normal-temperature passport to start from "
-                                                "(default: the unit's newest version in the registry)"),
+                                                "(default: the unit's current passport in the registry: its "
+                                                "newest approved version, else its newest that did not fail)"),
+              dry_run: bool = typer.Option(False, "--dry-run", help="compute and print everything, write nothing "
+                                                                    "to the registry"),
               as_json: bool = typer.Option(False, "--json", help=JSON_HELP)):
-    """Ingest, segment, average, fit, verify on the VP segments, write a new passport version (Prefect flow)."""
+    """Ingest, segment, average, fit, verify on the VP segments, write a new passport version (Prefect flow).
+
+    Exit status 1 (with the result printed) when the calibration's status is fail."""
     settings = _calibration_settings(thermal_model, constants_method, tol_normal_g, tol_range_g)
     _check_method(method)
     for r in runs:
@@ -208,8 +213,12 @@ def calibrate(runs: List[Path] = typer.Argument(..., metavar="RUN",
     base = _base_passport(runs[0], registry, base_passport) if _needs_base(method) else None
     from .calibrate import run_calibrate
 
-    result = run_calibrate([str(r) for r in runs], str(registry), settings, method, base)
+    result = run_calibrate([str(r) for r in runs], str(registry), settings, method, base, dry_run)
     _emit(result, as_json, None if as_json else _calibrate_text(result))
+    if result.get("status") == "fail":
+        print(f"thermocal: calibrate: {result['unit']}: status fail (the compensated gravity-module error "
+              "exceeds its limit at a verification position)", file=sys.stderr)
+        raise typer.Exit(1)
 
 
 def _check_method(method: str) -> None:
@@ -263,8 +272,13 @@ def _runs_of(names: list[str]) -> str:
 
 
 def _calibrate_text(r: dict) -> str:
-    lines = [f"{r['unit']}: passport v{r['version']} {'written' if r.get('created') else '(unchanged inputs)'}: "
-             f"{r['passport']}", f"status: {r['status']}"]
+    if r.get("dry_run"):
+        head = (f"{r['unit']}: dry run, nothing written (same inputs and settings as v{r['version']})"
+                if r.get("existing") else f"{r['unit']}: dry run, nothing written (would be v{r['version']})")
+    else:
+        head = (f"{r['unit']}: passport v{r['version']} {'written' if r.get('created') else '(unchanged inputs)'}: "
+                f"{r['passport']}")
+    lines = [head, f"status: {r['status']}"]
     for p in r["plateaus"]:
         lines.append(f"  plateau {p['temp_c']:+7.2f} C  {_runs_of(p['positions'])}")
     for v in r["verification"]:
@@ -422,6 +436,24 @@ def _diff_text(d: dict) -> str:
         else:
             lines.append(f"{key}: {json.dumps(val, default=_json_default)}")
     return "\n".join(lines)
+
+
+@passport_app.command("approve")
+def passport_approve(unit: str = typer.Argument(..., metavar="UNIT", help=UNIT_HELP),
+                     version: int = typer.Argument(..., metavar="V", help="the version number to approve"),
+                     by: str = typer.Option(..., "--by", help="name of the person approving"),
+                     registry: Path = typer.Option(..., "--registry", help=REGISTRY_HELP),
+                     as_json: bool = typer.Option(False, "--json", help=JSON_HELP)):
+    """Approve a version: a signed record of who approved which version when (the version is not changed). The
+    newest approved version is the unit's current passport."""
+    from pipeline.passport.registry import Registry
+
+    reg = Registry(registry)
+    rec = reg.approve(unit, version, by)
+    current = reg.current(unit)
+    _emit({"approval": rec, "current_version": current}, as_json,
+          f"{unit} v{rec['version']} approved by {rec['by']} at {rec['approved_utc']}; current passport: "
+          f"v{current}")
 
 
 @passport_app.command("verify")

@@ -30,22 +30,31 @@ def recipe(method: str) -> ModuleType:
 
 
 def base_passport_of(registry, unit: str) -> dict:
-    """The passport a differential calibration of ``unit`` starts from by default: the unit's newest version in
-    ``registry`` (a folder or a :class:`pipeline.passport.registry.Registry`) not itself made by the differential
-    method (a differential passport's constants at T0 are its base's, so starting from it changes nothing but the
-    identity). CalibrationError when the unit has none."""
+    """The passport a differential calibration of ``unit`` starts from by default: the unit's current passport in
+    ``registry`` (a folder or a :class:`pipeline.passport.registry.Registry`): its newest approved version, else
+    its newest version that did not fail its verification; never one made by the differential method itself (a
+    differential passport's constants at T0 are its base's, so starting from it changes nothing but the identity).
+    CalibrationError when the unit has none."""
     from pipeline.passport.registry import Registry
 
     reg = registry if isinstance(registry, Registry) else Registry(registry)
     try:
         versions = [v.version for v in reg.versions(unit)]
+        approved = {a["version"] for a in reg.approvals(unit)}
     except CalibrationError:
         raise
     except Exception as e:  # noqa: BLE001 - an unknown unit or unreadable registry: the reason, in one line
         raise CalibrationError(f"no normal-temperature passport of {unit} to start from "
                                f"({getattr(e, 'message', e)})") from None
-    for v in reversed(versions):
-        doc = reg.load(unit, v)
-        if doc.get("method") not in NEEDS_BASE_PASSPORT:
-            return doc
+    docs = {v: reg.load(unit, v) for v in reversed(versions)}
+    usable = [v for v, d in docs.items() if d.get("method") not in NEEDS_BASE_PASSPORT]
+    for v in usable:
+        if v in approved:
+            return docs[v]
+    for v in usable:
+        if docs[v].get("status") != "fail":
+            return docs[v]
+    if usable:
+        raise CalibrationError(f"no normal-temperature passport of {unit} to start from: every version failed its "
+                               "verification and none is approved ('thermocal passport approve')")
     raise CalibrationError(f"no normal-temperature passport of {unit} to start from (only differential versions)")

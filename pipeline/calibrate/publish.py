@@ -24,10 +24,13 @@ def recorded_settings(settings: CalibrationSettings | dict, method: str, extra: 
 
 
 def calibration_json(result: CalibrationResult, published) -> dict:
-    """The ``calibrate --json`` object of contract.md for a published passport."""
+    """The ``calibrate --json`` object of contract.md for a published passport (``published`` None: a dry run,
+    nothing written)."""
     return {
-        "unit": result.unit, "version": published.version, "passport": str(published.path),
-        "passport_sha256": published.sha256, "created": published.created,
+        "unit": result.unit, "version": published.version if published else None,
+        "passport": str(published.path) if published else None,
+        "passport_sha256": published.sha256 if published else None,
+        "created": published.created if published else False,
         "plateaus": result.plateaus,
         "verification": [{"temp_c": r.temp_c, "position": r.position, "dg_uncompensated_g": r.dg_uncompensated_g,
                           "dg_method1_g": r.dg_method1_g, "dg_method2_g": r.dg_method2_g} for r in result.rows],
@@ -37,16 +40,26 @@ def calibration_json(result: CalibrationResult, published) -> dict:
 
 def publish(registry_root: str | Path, result: CalibrationResult, *, input_paths: list[str],
             settings: CalibrationSettings, figure: bool = True,
-            input_digests: Mapping[str, RunDigest] | None = None) -> dict:
+            input_digests: Mapping[str, RunDigest] | None = None, dry_run: bool = False) -> dict:
     """Publish a calibration of any method as a new version (or find the identical existing one: same input hashes,
     same settings, same method) and, for a new version, write ``<passport>.png`` with the VP errors before and after
     compensation. Returns the ``calibrate --json`` object (with ``method``, ``warnings`` and ``figure``).
 
     ``input_digests``: hashes of the input paths made earlier (:func:`pipeline.passport.provenance.hash_run`, by the
-    fleet's planning), reused for the runs not changed since (else the run is hashed again)."""
+    fleet's planning), reused for the runs not changed since (else the run is hashed again).
+
+    ``dry_run`` (``calibrate --dry-run``): nothing is written (no version, no figure); the result says which
+    version would be written (``version``) or which existing one has the same inputs and settings
+    (``existing``: true), with ``dry_run``: true and the passport's content (``passport_content``)."""
     known = input_digests or {}
     inputs = [{"path": str(Path(p).resolve()), "sha256": input_digest(p, known.get(str(p)))} for p in input_paths]
     recorded = recorded_settings(settings, result.method, result.settings_extra)
+    if dry_run:
+        version, existing = Registry(Path(registry_root)).planned(result.passport, inputs=inputs, settings=recorded)
+        out = calibration_json(result, None)
+        out.update(version=version, existing=existing, dry_run=True, method=result.method, figure=None,
+                   warnings=list(result.warnings), passport_content=result.passport)
+        return out
     published = Registry(Path(registry_root)).publish(result.passport, inputs=inputs, settings=recorded,
                                                       code_version=code_version())
     out = calibration_json(result, published)

@@ -10,6 +10,7 @@ Layout (everything is plain files; nothing but this module writes there)::
           v0001.json     passport version 1 (read-only, 0444)
           v0001.png      its verification figure (written after the version)
           v0002.json     passport version 2, "parent_sha256" = sha256 of v0001.json's bytes
+          approvals.jsonl  append-only: one signed approval record per line (:meth:`Registry.approve`)
           .tmp-*.json    only while a writer holds the lock (a leftover is a killed writer's, cleaned at next publish)
 
 Any other name in a unit folder (``v2.json``, ``v002.json``, ``notes.txt``) is a stray file that verify names.
@@ -65,6 +66,8 @@ _LOCK_NAME = ".lock"
 #: Other names a unit folder may hold besides versions, their figures, the log, the lock and temp files.
 OTHER_UNIT_FILES: frozenset[str] = frozenset({"approvals.jsonl"})
 HEAD_SCHEMA = "thermocal.head/1"
+APPROVAL_SCHEMA = "thermocal.approval/1"
+_APPROVALS_NAME = "approvals.jsonl"
 _ERRNO_TEXT = {
     errno.ENOSPC: "no space left on device (disk full)",
     errno.EDQUOT: "disk quota exceeded",
@@ -335,10 +338,123 @@ class Registry:
         return doc
 
     def log(self, unit: str) -> list[dict]:
-        """Rows for ``passport log``: version, created_utc, status, inputs (paths), sha256."""
+        """Rows for ``passport log``: version, created_utc, status, inputs (paths), sha256, and ``approved`` (the
+        valid approval records of that version: by, approved_utc) and ``current`` (True for the unit's current
+        passport, :meth:`current`)."""
+        approvals = self.approvals(unit)
+        current = self.current(unit)
         return [{"version": i.version, "created_utc": i.created_utc, "status": i.status,
-                 "inputs": [str(x.get("path")) for x in i.inputs if isinstance(x, dict)], "sha256": i.sha256}
+                 "inputs": [str(x.get("path")) for x in i.inputs if isinstance(x, dict)], "sha256": i.sha256,
+                 "approved": [{"by": a["by"], "approved_utc": a["approved_utc"]} for a in approvals
+                              if a["version"] == i.version and a["sha256"] == i.sha256],
+                 "current": i.version == current}
                 for i in self.versions(unit)]
+
+    # -- approvals and the current passport ----------------------------------------------------------------------
+
+    def approve(self, unit: str, version: int, by: str) -> dict:
+        """Record that ``by`` approved ``version`` of ``unit``: a signed record of its own (schema
+        ``thermocal.approval/1``: unit, version, the version file's sha256, by, approved_utc), appended to the
+        unit's ``approvals.jsonl``. The version itself is not changed. Approving an already approved version
+        returns its existing record. RegistryError: unknown unit or version, a version that does not check
+        out (altered after writing), a failed calibration, an empty name."""
+        by = " ".join(str(by).split())
+        if not by:
+            raise RegistryError("approve needs the approver's name (--by NAME)")
+        udir = self._require_unit(unit)
+        key = station_key()
+        with _os_errors(udir / _LOCK_NAME, "lock the unit"), _flock(udir / _LOCK_NAME, exclusive=True):
+            state = self._scan(unit)
+            v = int(version)
+            if v not in state.files:
+                raise RegistryError(f"unit {unit!r} has no version {v}", path=str(udir))
+            with _os_errors(state.files[v], "read passport"):
+                data = state.files[v].read_bytes()
+            digest = sha256_bytes(data)
+            row = state.log_rows.get(v)
+            if row is None or row.get("sha256") != digest:
+                raise RegistryError(f"unit {unit} v{v} does not match its log.jsonl row (altered or not yet "
+                                    "recorded); run 'thermocal passport verify'", path=str(state.files[v]))
+            status = json.loads(data).get("status")
+            if status == "fail":
+                raise RegistryError(f"unit {unit} v{v} failed its verification (status fail) and cannot be "
+                                    "approved", path=str(state.files[v]))
+            for rec in self._approval_records(udir)[0]:
+                if rec.get("version") == v and rec.get("sha256") == digest and rec.get("by") == by:
+                    return rec
+            record = sign_record({"schema": APPROVAL_SCHEMA, "unit": unit, "version": v, "sha256": digest,
+                                  "status": status, "by": by, "approved_utc": _utc_now()}, key)
+            self._append_log(udir, record, _APPROVALS_NAME)
+        return record
+
+    @staticmethod
+    def _approval_records(udir: Path) -> tuple[list[dict], list[tuple[str, bool]]]:
+        """Every parsable record of ``approvals.jsonl`` (signature not checked) and the issues found (text,
+        is_problem): a line that is not a record is a problem, an unterminated last line (a killed writer) a
+        note."""
+        path = udir / _APPROVALS_NAME
+        try:
+            data = path.read_bytes()
+        except FileNotFoundError:
+            return [], []
+        issues: list[tuple[str, bool]] = []
+        if data and not data.endswith(b"\n"):
+            issues.append((f"{_APPROVALS_NAME} ends with an unterminated line (writer interrupted); ignored", False))
+        records = []
+        for k, line in enumerate(data.split(b"\n")[:-1], start=1):
+            try:
+                rec = json.loads(line)
+                if not isinstance(rec, dict) or rec.get("schema") != APPROVAL_SCHEMA:
+                    raise ValueError
+                int(rec["version"]), str(rec["sha256"]), str(rec["by"])
+            except (ValueError, KeyError, TypeError):
+                issues.append((f"{_APPROVALS_NAME} line {k} is not an approval record", True))
+                continue
+            records.append(rec)
+        return records, issues
+
+    def approvals(self, unit: str, trust: TrustStore | None = None) -> list[dict]:
+        """The unit's approval records whose content and signature check out (oldest first)."""
+        udir = self._require_unit(unit)
+        records, _ = self._approval_records(udir)
+        if not records:
+            return []
+        trust = trust or trusted_keys()
+        return [r for r in records if r.get("content_sha256") == content_sha256(r) and verify_record(r, trust).ok]
+
+    def current(self, unit: str) -> int | None:
+        """The unit's current passport version: the newest approved version (a valid approval record whose
+        sha256 is the version file's), else the newest version; None for a unit without versions."""
+        versions = {i.version: i.sha256 for i in self.versions(unit)}
+        if not versions:
+            return None
+        approved = [a["version"] for a in self.approvals(unit) if versions.get(a["version"]) == a["sha256"]]
+        return max(approved) if approved else max(versions)
+
+    def load_current(self, unit: str) -> tuple[dict, bool]:
+        """The unit's current passport (:meth:`current`) and whether it is approved."""
+        v = self.current(unit)
+        if v is None:
+            raise RegistryError(f"unit {unit!r} has no version", path=str(self.unit_dir(unit)))
+        doc = self.load(unit, v)
+        approved = any(a["version"] == v for a in self.approvals(unit))
+        return doc, approved
+
+    def planned(self, passport: dict, *, inputs: list[dict], settings: dict) -> tuple[int, bool]:
+        """What :meth:`publish` would do, writing nothing (``calibrate --dry-run``): (the version it would
+        write, False), or (the existing version with the same identity, True)."""
+        unit = safe_unit_name(passport.get("unit"))
+        try:
+            inputs = [{"path": str(i["path"]), "sha256": str(i["sha256"])} for i in inputs]
+            settings = json.loads(canonical_json(settings))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise RegistryError(f"inputs or settings are not valid JSON content ({exc})") from exc
+        if not self.unit_dir(unit).is_dir():
+            return 1, False
+        found = self.find(unit, identity_key(inputs, settings))
+        if found is not None:
+            return found.version, True
+        return self._scan(unit).latest + 1, False
 
     def find(self, unit: str, identity: str) -> VersionInfo | None:
         """The latest version of ``unit`` published with this identity key (see :func:`identity_key`), if any."""
@@ -494,10 +610,10 @@ class Registry:
                 tmp.unlink(missing_ok=True)
 
     @staticmethod
-    def _append_log(udir: Path, row: dict) -> None:
+    def _append_log(udir: Path, row: dict, name: str = _LOG_NAME) -> None:
         line = json.dumps(row, sort_keys=True, separators=(",", ":")).encode("ascii") + b"\n"
-        path = udir / _LOG_NAME
-        with _os_errors(path, "append to the log"):
+        path = udir / name
+        with _os_errors(path, f"append to {name}"):
             existed = path.exists()
             fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
             try:
@@ -565,6 +681,7 @@ class Registry:
             problems.append(f"{unit}: stray file {stray.name!r} in the unit folder, not written by thermocal{hint}")
         for text, is_problem in state.log_issues:
             (problems if is_problem else notes).append(f"{unit}: {text}")
+        self._check_approvals(unit, state, trust, problems, notes)
         sha: dict[int, str] = {}
         docs: dict[int, dict] = {}
         altered: set[int] = set()
@@ -622,6 +739,26 @@ class Registry:
                 else:
                     problems.append(f"{unit} v{v}: broken parent link (parent_sha256 does not match "
                                     f"v{v - 1}'s file)")
+
+    def _check_approvals(self, unit: str, state: _UnitState, trust: TrustStore, problems: list[str],
+                         notes: list[str]) -> None:
+        """Every approval record: its own hash, a trusted signature, and a version that holds the approved bytes."""
+        records, issues = self._approval_records(self.unit_dir(unit))
+        for text, is_problem in issues:
+            (problems if is_problem else notes).append(f"{unit}: {text}")
+        for rec in records:
+            what = f"{unit} approval of v{rec['version']} by {rec['by']!r}"
+            if rec.get("content_sha256") != content_sha256(rec) or rec.get("unit") != unit:
+                problems.append(f"{what}: altered (content_sha256 does not match)")
+                continue
+            check = verify_record(rec, trust)
+            if not check.ok:
+                problems.append(f"{what}: {check.problem}")
+            path = state.files.get(int(rec["version"]))
+            if path is None:
+                problems.append(f"{what}: the approved version is missing")
+            elif sha256_file(path) != rec["sha256"]:
+                problems.append(f"{what}: the version file is not the one approved (sha256 differs)")
 
     # -- head statements -----------------------------------------------------------------------------------------
 
