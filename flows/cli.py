@@ -289,6 +289,42 @@ def _calibrate_text(r: dict) -> str:
     return "\n".join(lines)
 
 
+# ----------------------------------------------------------------------------------------------------------- export
+@app.command()
+def export(unit: str = typer.Argument(..., metavar="UNIT", help=UNIT_HELP),
+           version: Optional[int] = typer.Argument(None, metavar="V",
+                                                   help="version number (default: the unit's current passport: "
+                                                        "its newest approved version, else its newest)"),
+           registry: Path = typer.Option(..., "--registry", help=REGISTRY_HELP),
+           fmt: str = typer.Option(..., "--format", help="px4 (TC_A0_* parameters) | ardupilot (INS_TCAL1_* "
+                                                         "parameters) | csv (every constant and coefficient)"),
+           out: Optional[Path] = typer.Option(None, "--out", help="write the file here (default: print it)"),
+           as_json: bool = typer.Option(False, "--json", help=JSON_HELP)):
+    """The passport in a format flight software or a spreadsheet loads, with what the format cannot hold and the
+    error that leaves over the passport's valid temperature range."""
+    from pipeline.passport.export import export_passport
+    from pipeline.passport.registry import Registry
+
+    reg = Registry(registry)
+    doc = reg.load(unit, version) if version is not None else reg.load_current(unit)[0]
+    exp = export_passport(doc, fmt)
+    if out is not None:
+        try:
+            out.write_text(exp.text)
+        except OSError as e:
+            raise ThermocalError(f"cannot write the export ({e.strerror})", path=str(out)) from None
+    if as_json:
+        _emit({**exp.summary(), "out": str(out) if out else None, "text": None if out else exp.text}, True)
+    elif out is None:
+        sys.stdout.write(exp.text)
+        sys.stdout.flush()
+    else:
+        res = exp.residual
+        tail = (f"; not held: scale/cross-axis temperature terms, worst {res['total_worst_ug']:.0f} micro-g over "
+                f"{exp.valid_temp_c[0]:g}..{exp.valid_temp_c[1]:g} C" if res else "")
+        _emit(None, False, f"wrote {out} ({fmt}, {unit} v{exp.version}){tail}")
+
+
 # --------------------------------------------------------------------------------------------------------- diagnose
 @app.command()
 def diagnose(run: Path = typer.Argument(..., metavar="RUN", help="an .mcap file or a Parquet run directory"),
