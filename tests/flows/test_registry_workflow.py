@@ -34,7 +34,9 @@ def test_cli_dry_run_of_a_failing_calibration_exits_1_and_writes_nothing(tmp_pat
     r = json.loads(p.stdout)                                     # the JSON is printed all the same
     assert r["status"] == "fail" and r["dry_run"] is True and r["version"] == 1 and r["passport"] is None
     assert r["passport_content"]["uncertainty"]["coefficients"]["K"] and r["passport_content"]["valid_temp_c"]
-    assert len(p.stderr.strip().splitlines()) == 1 and "fail" in p.stderr
+    # our one line (on a loaded machine Prefect's ephemeral server may log its own shutdown after it)
+    ours = [line for line in p.stderr.splitlines() if line.startswith("thermocal:")]
+    assert len(ours) == 1 and "status fail" in ours[0] and p.stderr.startswith("thermocal:")
     assert not reg.exists()                                      # nothing written
 
 
