@@ -32,7 +32,8 @@ def recipe(method: str) -> ModuleType:
 def base_passport_of(registry, unit: str) -> dict:
     """The passport a differential calibration of ``unit`` starts from by default: the unit's current passport in
     ``registry`` (a folder or a :class:`pipeline.passport.registry.Registry`): its newest approved version, else
-    its newest version that did not fail its verification; never one made by the differential method itself (a
+    its newest tilt version that did not fail its verification, else its newest other version that did not fail
+    (a scalar one: K in a rotated gauge); never one made by the differential method itself (a
     differential passport's constants at T0 are its base's, so starting from it changes nothing but the identity).
     CalibrationError when the unit has none."""
     from pipeline.passport.registry import Registry
@@ -51,9 +52,12 @@ def base_passport_of(registry, unit: str) -> dict:
     for v in usable:
         if v in approved:
             return docs[v]
-    for v in usable:
-        if docs[v].get("status") != "fail":
+    good = [v for v in usable if docs[v].get("status") != "fail"]
+    for v in good:            # unapproved: a tilt calibration (K in the unit's own axes) before a scalar one
+        if docs[v].get("method", "tilt_six_position") == "tilt_six_position":
             return docs[v]
+    for v in good:
+        return docs[v]
     if usable:
         raise CalibrationError(f"no normal-temperature passport of {unit} to start from: every version failed its "
                                "verification and none is approved ('thermocal passport approve')")

@@ -51,6 +51,7 @@ from pipeline.model import gravity_module_error_g, specific_force_g
 from pipeline.passport.document import build_passport
 from pipeline.segment import segment_run
 from pipeline.thermal import PolynomialModel
+from pipeline.uncertainty import ThermalSigma
 
 #: channel pairs of psi_xy, psi_xz, psi_yz
 PSI_PAIRS = ((0, 1), (0, 2), (1, 2))
@@ -314,6 +315,18 @@ def scalar_nonlinear(u_v: np.ndarray, k_prelim_v_per_g, u0_prelim_v, *, model: s
                      k_prelim_v_per_g=k_p, u0_prelim_v=u0_p)
 
 
+def constants_sigma(fit: ScalarFit) -> tuple[np.ndarray, np.ndarray]:
+    """Standard uncertainties of the scalar fit's K (3, 3) V/g and U0 (3,) V, from the fit's own parameter standard
+    errors (residual-scaled, :func:`_standard_errors`): K = diag(k_p) K_n and U0 = u0_p + k_p d0, so sigma(K_ii) =
+    |k_p_i| sigma(d1_i), sigma(K_ij, lower) = |k_p_i| sigma(psi), sigma(U0_i) = |k_p_i| sigma(d0_i). The upper
+    entries are zero by the gauge, and the diagonal model has no cross-axis terms: NaN (not determined)."""
+    k = np.abs(np.asarray(fit.k_prelim_v_per_g, dtype=float))
+    K_sig = np.full((3, 3), np.nan)
+    K_sig[np.diag_indices(3)] = k * fit.std[3:6]
+    K_sig[_LOWER] = k[_LOWER[0]] * fit.std[6:9]
+    return K_sig, k * fit.std[0:3]
+
+
 def lower_gauge(K: np.ndarray) -> np.ndarray:
     """The lower-triangular K' = K R^T (R a rotation) with the same K K^T and the signs of K's diagonal: the form
     in which a scalar calibration can recover ``K`` (for comparing a fit with a truth)."""
@@ -384,13 +397,17 @@ def calibrate_observed(observed: list[ObservedRun], settings: CalibrationSetting
     names = [s.position or "unnamed" for _, s in static]
     # output residual: the norm error seen through the gains, dg |K_ii| (V)
     resid_v = fit_s.norm_error_g[:, None] * np.abs(np.diag(fit_s.K))[None, :]
+    K_sig, U0_sig = constants_sigma(fit_s)
     plateau = PlateauConstants(run_id=static[0][0], plateau=int(static[0][1].plateau), temp_c=temp, K=fit_s.K,
                                U0=fit_s.U0, positions=tuple(dict.fromkeys(names)), method=fit_s.method,
-                               residual_rms_v=float(np.sqrt(np.mean(resid_v ** 2))))
+                               residual_rms_v=float(np.sqrt(np.mean(resid_v ** 2))), K_sigma=K_sig, U0_sigma=U0_sig)
     thermal = PolynomialModel(fit_s.K, fit_s.U0, t0, 0, np.zeros((0, 3)), np.zeros((0, 3, 3)))
     seg_temps = [s.temp_c for _, s in static]
+    sigma = ThermalSigma(K0=K_sig, U00=U0_sig, thermal_model={"kind": "polynomial", "order": 0, "alpha": {},
+                                                              "beta": {}, "gamma": {}},
+                         birge_ratio=float("nan"), dof=0)
     unit_fit = UnitFit(unit=serial, normal_temp_c=t0, per_plateau=[plateau], model=thermal, skipped=notes,
-                       valid_temp_c=(round(min(seg_temps), 1), round(max(seg_temps), 1)))
+                       valid_temp_c=(round(min(seg_temps), 1), round(max(seg_temps), 1)), uncertainty=sigma)
     rows, status = verify_unit(thermal, observations, t0, settings.tolerances)
     plateaus = plateau_summary(observations)
     doc = build_passport(unit_fit, rows, status, g_local_mps2=meta.g_local_mps2, plateaus=plateaus,
