@@ -5,7 +5,8 @@ Physics core (modules named for the physics, units in every docstring):
 - ``positions``: the tilt fixture's test (TP) and verification (VP) positions, specific force in g
 - ``model``: the metrological model U = K a + U0 (V, V/g) and its inverse
 - ``constants``: the 12 constants at one temperature from static positions (closed form, least squares)
-- ``thermal``: temperature models of the constants (polynomial, piecewise linear) in dT = T - T0 (C)
+- ``thermal``: temperature models of the constants (polynomial, piecewise linear) in dT = T - T0 (C), and the
+  temperature-rate terms and lag of the differential method (C/min, s)
 - ``compensate``: compensation methods 1 and 2
 - ``verify``: gravity-module error at the verification positions (g)
 - ``dynamics``: first-order lag (s) and the direction the temperature last came from
@@ -23,8 +24,10 @@ Sub-packages:
 
 - ``io``: reading and writing runs (MCAP and Parquet layouts, block codecs, shared checks, schemas as package data)
 - ``simulate``: the chamber-run simulator (programs, the simulated unit, chunked long runs)
-- ``calibrate``: one recipe per method (tilt, scalar, differential), publishing into the registry, fleets
-- ``passport``: the passport document, the registry (storage and integrity), provenance of inputs
+- ``calibrate``: one recipe per method (``tilt``, ``scalar``, ``differential``: observe each run, then fit and verify,
+  into one result type), the observations they share, the settings, the one publish path, fleets
+- ``passport``: the passport document and its typed form with the one loader (the right compensation model for
+  every method), the registry (storage, integrity, signatures), the physics-unit diff of two versions, provenance
 - ``effects``: the catalogue of left-out physics, one module per effect (its simulation, fit terms, explanation
   and properties), the catalogue by id
 - ``diagnose``: mismatch diagnosis (locate, name, model, refit)

@@ -9,6 +9,11 @@ Relative forms in dT = T - T0 (physics.md):
 or piecewise linear with breakpoints at the calibration temperatures. Both models are
 :class:`pipeline.model.ConstantsModel`: ``constants_at(temp_c)`` gives K (n, 3, 3) V/g and U0 (n, 3) V.
 Internally a relative coefficient array ``rel`` of shape (..., 3, 3) holds beta on the diagonal and gamma off it.
+
+Seed 003's differential method adds terms in the temperature rate r (C/min) and a lag of the sensing element behind
+the thermosensor (s): :class:`RateTerms`, and :class:`DifferentialModel` (a polynomial model plus rate terms, whose
+``constants_at(temp_c, rate_c_per_min)`` gives K and U0 at a temperature and rate). ``pipeline.calibrate.differential``
+fits them.
 """
 
 from __future__ import annotations
@@ -251,3 +256,94 @@ def thermal_model_from_dict(d: dict, K0: np.ndarray, U00: np.ndarray, normal_tem
     if kind == "piecewise_linear":
         return PiecewiseModel.from_dict(d, K0, U00, normal_temp_c)
     raise ValueError(f"unknown thermal model kind {kind!r}")
+
+
+#: unit of the temperature rate r in the rate terms
+RATE_UNIT = "C/min"
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Temperature-rate terms and lag (seed 003's differential method; pipeline.calibrate.differential fits them)
+
+
+@dataclass
+class RateTerms:
+    """Temperature-rate terms and lag: ``alpha_rate`` (n, k+1, 3) in V/(C/min)^n/C^k for the bias and
+    ``beta_rate`` (n, k+1, 3) in 1/(C/min)^n/C^k for the relative scale factors, index [n-1, k, axis] multiplying
+    r^n dT^k; ``lag_tau_s`` the element lag (0: none). The rate r is the thermosensor's, smoothed over
+    ``temp_smooth_s``."""
+
+    alpha_rate: np.ndarray
+    beta_rate: np.ndarray
+    temp_smooth_s: float
+    lag_tau_s: float = 0.0
+
+    @property
+    def order(self) -> int:
+        return self.alpha_rate.shape[0]
+
+    @property
+    def dt_order(self) -> int:
+        return self.alpha_rate.shape[1] - 1
+
+    def to_dict(self) -> dict:
+        return {"order": self.order, "dt_order": self.dt_order, "rate_unit": RATE_UNIT,
+                "temp_smooth_s": float(self.temp_smooth_s), "lag_tau_s": float(self.lag_tau_s),
+                "units": {"alpha_rate": "V/(C/min)^n/C^k", "beta_rate": "1/(C/min)^n/C^k"},
+                "index": "[n-1][k] multiplies r^n dT^k",
+                "alpha_rate": {AXES[i]: self.alpha_rate[..., i].tolist() for i in range(3)},
+                "beta_rate": {AXES[i] * 2: self.beta_rate[..., i].tolist() for i in range(3)}}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> RateTerms:
+        shape = (int(d["order"]), int(d["dt_order"]) + 1)
+        a = np.stack([np.asarray(d["alpha_rate"][ax], dtype=float).reshape(shape) for ax in AXES], axis=-1)
+        b = np.stack([np.asarray(d["beta_rate"][ax * 2], dtype=float).reshape(shape) for ax in AXES], axis=-1)
+        return cls(a, b, float(d["temp_smooth_s"]), float(d.get("lag_tau_s", 0.0)))
+
+
+def rate_basis(dt_c, rate, order: int, dt_order: int) -> np.ndarray:
+    """r^n dT^k, shape (m, order, dt_order + 1)."""
+    dt_c = np.asarray(dt_c, dtype=float)
+    rate = np.asarray(rate, dtype=float)
+    n = np.arange(1, order + 1)
+    k = np.arange(dt_order + 1)
+    return rate[:, None, None] ** n[None, :, None] * dt_c[:, None, None] ** k[None, None, :]
+
+
+@dataclass
+class DifferentialModel:
+    """Constants K(T, r) and U0(T, r): the polynomial model ``static`` plus the ``rate`` terms (None: without).
+    With a lag, T is the element temperature (:meth:`Thermosensor.at` with ``lag_tau_s``)."""
+
+    static: PolynomialModel
+    rate: RateTerms | None = None
+
+    @property
+    def K0(self) -> np.ndarray:
+        return self.static.K0
+
+    @property
+    def U00(self) -> np.ndarray:
+        return self.static.U00
+
+    @property
+    def normal_temp_c(self) -> float:
+        return self.static.normal_temp_c
+
+    @property
+    def lag_tau_s(self) -> float:
+        return self.rate.lag_tau_s if self.rate is not None else 0.0
+
+    def constants_at(self, temp_c: np.ndarray, rate_c_per_min: np.ndarray | None = None
+                     ) -> tuple[np.ndarray, np.ndarray]:
+        """K (m, 3, 3) V/g and U0 (m, 3) V at temperatures ``temp_c`` (m,) C and rates (m,) C/min."""
+        K, U0 = self.static.constants_at(temp_c)
+        if self.rate is None or rate_c_per_min is None or self.rate.order == 0:
+            return K, U0
+        g = rate_basis(np.atleast_1d(temp_c) - self.normal_temp_c, np.atleast_1d(rate_c_per_min),
+                        self.rate.order, self.rate.dt_order)
+        U0 = U0 + np.einsum("mnk,nki->mi", g, self.rate.alpha_rate)
+        K = K.copy()
+        K[:, np.arange(3), np.arange(3)] += np.einsum("mnk,nki->mi", g, self.rate.beta_rate) * np.diag(self.K0)
+        return K, U0

@@ -53,13 +53,12 @@ from pipeline.calibrate.result import CalibrationResult, UnitFit, base_reference
 from pipeline.calibrate.settings import CalibrationSettings
 from pipeline.dynamics import first_order_lag
 from pipeline.errors import CalibrationError
-from pipeline.passport.document import build_passport
+from pipeline.passport.document import build_passport, load_passport
 from pipeline.model import specific_force_g
 from pipeline.positions import AXES
-from pipeline.thermal import PolynomialModel, thermal_model_from_dict
+from pipeline.thermal import DifferentialModel, PolynomialModel, RateTerms, rate_basis
 
 _NS = 1_000_000_000
-RATE_UNIT = "C/min"
 
 
 @dataclass(frozen=True)
@@ -136,93 +135,6 @@ class Thermosensor:
         ``t_s``, interpolated."""
         temp = first_order_lag(self.t_s, self.temp_c, lag_tau_s) if lag_tau_s > 0 else self.temp_c
         return np.interp(t_s, self.t_s, temp), np.interp(t_s, self.t_s, self.rate_c_per_min)
-
-
-# ---------------------------------------------------------------------------------------------------------------
-# The model: a polynomial thermal model plus rate terms and lag
-
-
-@dataclass
-class RateTerms:
-    """Temperature-rate terms and lag: ``alpha_rate`` (n, k+1, 3) in V/(C/min)^n/C^k for the bias and
-    ``beta_rate`` (n, k+1, 3) in 1/(C/min)^n/C^k for the relative scale factors, index [n-1, k, axis] multiplying
-    r^n dT^k; ``lag_tau_s`` the element lag (0: none). The rate r is the thermosensor's, smoothed over
-    ``temp_smooth_s``."""
-
-    alpha_rate: np.ndarray
-    beta_rate: np.ndarray
-    temp_smooth_s: float
-    lag_tau_s: float = 0.0
-
-    @property
-    def order(self) -> int:
-        return self.alpha_rate.shape[0]
-
-    @property
-    def dt_order(self) -> int:
-        return self.alpha_rate.shape[1] - 1
-
-    def to_dict(self) -> dict:
-        return {"order": self.order, "dt_order": self.dt_order, "rate_unit": RATE_UNIT,
-                "temp_smooth_s": float(self.temp_smooth_s), "lag_tau_s": float(self.lag_tau_s),
-                "units": {"alpha_rate": "V/(C/min)^n/C^k", "beta_rate": "1/(C/min)^n/C^k"},
-                "index": "[n-1][k] multiplies r^n dT^k",
-                "alpha_rate": {AXES[i]: self.alpha_rate[..., i].tolist() for i in range(3)},
-                "beta_rate": {AXES[i] * 2: self.beta_rate[..., i].tolist() for i in range(3)}}
-
-    @classmethod
-    def from_dict(cls, d: dict) -> RateTerms:
-        shape = (int(d["order"]), int(d["dt_order"]) + 1)
-        a = np.stack([np.asarray(d["alpha_rate"][ax], dtype=float).reshape(shape) for ax in AXES], axis=-1)
-        b = np.stack([np.asarray(d["beta_rate"][ax * 2], dtype=float).reshape(shape) for ax in AXES], axis=-1)
-        return cls(a, b, float(d["temp_smooth_s"]), float(d.get("lag_tau_s", 0.0)))
-
-
-def _rate_basis(dt_c, rate, order: int, dt_order: int) -> np.ndarray:
-    """r^n dT^k, shape (m, order, dt_order + 1)."""
-    dt_c = np.asarray(dt_c, dtype=float)
-    rate = np.asarray(rate, dtype=float)
-    n = np.arange(1, order + 1)
-    k = np.arange(dt_order + 1)
-    return rate[:, None, None] ** n[None, :, None] * dt_c[:, None, None] ** k[None, None, :]
-
-
-@dataclass
-class DifferentialModel:
-    """Constants K(T, r) and U0(T, r): the polynomial model ``static`` plus the ``rate`` terms (None: without).
-    With a lag, T is the element temperature (:meth:`Thermosensor.at` with ``lag_tau_s``)."""
-
-    static: PolynomialModel
-    rate: RateTerms | None = None
-
-    @property
-    def K0(self) -> np.ndarray:
-        return self.static.K0
-
-    @property
-    def U00(self) -> np.ndarray:
-        return self.static.U00
-
-    @property
-    def normal_temp_c(self) -> float:
-        return self.static.normal_temp_c
-
-    @property
-    def lag_tau_s(self) -> float:
-        return self.rate.lag_tau_s if self.rate is not None else 0.0
-
-    def constants_at(self, temp_c: np.ndarray, rate_c_per_min: np.ndarray | None = None
-                     ) -> tuple[np.ndarray, np.ndarray]:
-        """K (m, 3, 3) V/g and U0 (m, 3) V at temperatures ``temp_c`` (m,) C and rates (m,) C/min."""
-        K, U0 = self.static.constants_at(temp_c)
-        if self.rate is None or rate_c_per_min is None or self.rate.order == 0:
-            return K, U0
-        g = _rate_basis(np.atleast_1d(temp_c) - self.normal_temp_c, np.atleast_1d(rate_c_per_min),
-                        self.rate.order, self.rate.dt_order)
-        U0 = U0 + np.einsum("mnk,nki->mi", g, self.rate.alpha_rate)
-        K = K.copy()
-        K[:, np.arange(3), np.arange(3)] += np.einsum("mnk,nki->mi", g, self.rate.beta_rate) * np.diag(self.K0)
-        return K, U0
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -422,7 +334,7 @@ def _equations(data: list[BlockData], a_g: list[np.ndarray], normal_temp_c: floa
         temp, rate = d.temperature(lag_tau_s)
         dt = temp - normal_temp_c
         f = dt[:, None] ** np.arange(1, P + 1)[None, :]
-        g = _rate_basis(dt, rate, R, Kx).reshape(len(dt), -1)
+        g = rate_basis(dt, rate, R, Kx).reshape(len(dt), -1)
         parts.append((f[j] - f[i], g[j] - g[i], a[d.window[i]], d.u_v[j] - d.u_v[i]))
     return _Equations(*(np.concatenate([p[k] for p in parts]) for k in range(4)))
 
@@ -536,21 +448,14 @@ def window_std_g(data: BlockData, a_g: np.ndarray) -> np.ndarray:
     return np.array([a_g[data.window == w.index].std(axis=0) for w in data.windows])
 
 
-def model_from_passport(passport: dict) -> DifferentialModel:
-    """The passport's constants, polynomial thermal model and (for a differential passport) rate terms."""
-    c = passport["coefficients"]
-    static = thermal_model_from_dict(passport["thermal_model"], np.asarray(c["K"], float), np.asarray(c["U0"], float),
-                                     float(passport.get("normal_temp_c", 20.0)))
-    if not isinstance(static, PolynomialModel):
-        raise CalibrationError("the differential compensation needs a polynomial thermal model")
-    rt = passport.get("rate_terms")
-    return DifferentialModel(static, RateTerms.from_dict(rt) if rt else None)
-
-
 def compensate_run(passport: dict, run) -> tuple[np.ndarray, np.ndarray]:
     """Every voltmeter sample of ``run`` compensated with a passport's model, lag and rate terms: times (n,) ns and
-    specific force (n, 3) g. The thermosensor is smoothed as when the passport was made."""
-    model = model_from_passport(passport)
+    specific force (n, 3) g. The thermosensor is smoothed as when the passport was made. The passport's base thermal
+    model must be polynomial."""
+    p = load_passport(passport)
+    if not isinstance(p.thermal_model, PolynomialModel):
+        raise CalibrationError("the differential compensation needs a polynomial thermal model")
+    model = DifferentialModel(p.thermal_model, p.rate_terms)
     window = model.rate.temp_smooth_s if model.rate else DifferentialSettings().temp_smooth_s
     sensor = Thermosensor.from_run(run, window)
     t_ns = run.t_ns()

@@ -44,7 +44,6 @@ from pipeline.diagnose.fit import (
 from pipeline.diagnose.model import (
     ExtendedModel,
     add_polynomial_correction,
-    compensate_extended,
     polynomial_reference,
     raise_order,
 )
@@ -60,7 +59,7 @@ from pipeline.effects.base import Shown
 from pipeline.effects.catalogue import EFFECTS, effect_class, make_effect
 from pipeline.errors import CalibrationError
 from pipeline.model import gravity_module_error_g, output_v, specific_force_g
-from pipeline.passport.document import load_model
+from pipeline.passport.document import compensate_extended, load_model
 from pipeline.positions import AXES, POSITION_NAMES, is_verification_position
 from pipeline.run import Run
 from pipeline.segment import Segmentation, segment_run

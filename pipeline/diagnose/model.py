@@ -9,9 +9,9 @@ Stored in the passport as ``extended_model``::
 
 The forward model is the simulator's: ``U = K(T*) a + U0(T*) + sum of delta_u_v`` over the effects, with
 ``T* = T_e`` (the lagged element temperature) when ``thermal_lag`` is among them and T otherwise.
-:func:`compensate_extended` inverts it for the specific force: it needs the signal context of the samples (times,
-temperature, ramp direction, moves), because several effects depend on the history of the run, not only on the
-current sample. The face error is not compensated: the rotated vector is the true specific force.
+:func:`pipeline.passport.document.compensate_extended` inverts it for the specific force: it needs the signal
+context of the samples (times, temperature, ramp direction, moves), because several effects depend on the history
+of the run, not only on the current sample. The face error is not compensated: the rotated vector is the true specific force.
 """
 
 from __future__ import annotations
@@ -24,7 +24,6 @@ import numpy as np
 from pipeline.effects.base import Effect, SignalContext
 from pipeline.effects.catalogue import make_effect
 from pipeline.model import output_v, specific_force_g
-from pipeline.passport.document import load_model
 from pipeline.thermal import PiecewiseModel, PolynomialModel, fit_polynomial
 
 SCHEMA_ID = "thermocal.extended_model/1"
@@ -146,29 +145,4 @@ def add_polynomial_correction(reference: PolynomialModel, correction: np.ndarray
     return PolynomialModel(k0, u_abs[0], reference.normal_temp_c, reference.order, u_abs[1:], rel)
 
 
-def load_extended(passport: dict) -> ExtendedModel | None:
-    """The passport's extended model, or None when it has none."""
-    d = passport.get("extended_model")
-    return None if d is None else ExtendedModel.from_dict(d)
-
-
-def compensate_extended(passport: dict, u_v: np.ndarray, ctx: SignalContext,
-                        element_temp_c: np.ndarray | None = None) -> np.ndarray:
-    """Specific force (n, 3) g of outputs ``u_v`` (n, 3) V with the passport's extended model, falling back to
-    method 1 with the passport's own thermal model when it has none.
-
-    ``ctx`` describes the samples: ``t_s`` (s since the recording started), ``temp_c`` (thermosensor, C),
-    ``ramp_sign``, ``move_start_s`` / ``arrive_s`` and ``position_idx``; its ``a_g`` and ``constants`` are not
-    used. With thermal lag, ``element_temp_c`` may give the lagged temperature computed on a continuous
-    thermosensor series when the samples have gaps (default: the lag of ``ctx.temp_c`` over ``ctx.t_s``).
-    """
-    ext = load_extended(passport)
-    if ext is not None:
-        return ext.specific_force_g(u_v, ctx, element_temp_c)
-    k, u0 = load_model(passport).constants_at(np.asarray(ctx.temp_c, float))
-    return specific_force_g(k, u0, np.asarray(u_v, float))
-
-
-__all__ = ["ExtendedModel", "SCHEMA_ID", "polynomial_reference", "raise_order", "add_polynomial_correction",
-           "load_extended",
-           "compensate_extended"]
+__all__ = ["ExtendedModel", "SCHEMA_ID", "polynomial_reference", "raise_order", "add_polynomial_correction"]

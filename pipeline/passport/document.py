@@ -1,21 +1,37 @@
-"""The calibration passport (contract.md): one JSON document per version.
+"""The calibration passport (contract.md): one JSON document per version, and its typed form.
 
-``build_passport`` assembles the required content from a :class:`pipeline.calibrate.tilt.UnitFit` and its
-verification; the registry (``pipeline.passport.registry``) adds version, parent link, creation time and provenance.
-``load_model`` turns a passport back into a :class:`pipeline.model.ConstantsModel` for compensation.
+- :func:`build_passport` assembles the required content from a :class:`pipeline.calibrate.result.UnitFit` and its
+  verification; the registry (``pipeline.passport.registry``) adds version, parent link, creation time and
+  provenance.
+- :class:`Passport`: the typed passport (format version, unit, method, constants, thermal model, rate terms,
+  extended model, validity range), with the JSON document as stored beside it; :func:`load_passport` is the one
+  loader (a document or a file), and :meth:`Passport.compensation_model` the right compensation model for every
+  method: the thermal model (``tilt_six_position``, ``scalar``), the thermal model with rate terms and lag
+  (``differential``: :class:`pipeline.thermal.DifferentialModel`), or the extended model a ``diagnose`` wrote
+  (:class:`pipeline.diagnose.model.ExtendedModel`, which needs the samples' signal context).
+- :func:`load_model` (the base thermal model), :func:`load_extended`, :func:`compensate_extended` and
+  :func:`read_passport` (the document of a file) are views of the same loader.
 """
 
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from pipeline.thermal import thermal_model_from_dict
+from pipeline.diagnose.model import ExtendedModel
+from pipeline.errors import ThermocalError
+from pipeline.model import specific_force_g
+from pipeline.thermal import DifferentialModel, PolynomialModel, RateTerms, ThermalModel, thermal_model_from_dict
 from pipeline.verify import summary_by_temperature
 
+#: the passport's format version (its ``schema`` field)
 SCHEMA_ID = "thermocal.passport/1"
+#: the method of a passport that does not record one (written before methods were recorded)
+DEFAULT_METHOD = "tilt_six_position"
 
 
 def build_passport(fit, verification_rows, status: str, *, g_local_mps2: float, plateaus: list[dict],
@@ -76,24 +92,120 @@ def uncertainty_block(fit) -> dict | None:
     }
 
 
-def load_model(passport: dict):
-    """The passport's constants and thermal model as a ConstantsModel (with K0, U00, deltas, constants_at).
+@dataclass(frozen=True)
+class Passport:
+    """A passport, typed. ``format``: the format version (``thermocal.passport/1``); ``method``:
+    ``tilt_six_position``, ``scalar`` or ``differential``; ``K`` (3, 3) V/g and ``U0`` (3,) V at ``normal_temp_c``
+    (C); ``thermal_model`` K(T), U0(T); ``rate_terms`` the differential method's rate terms and lag (None for the
+    others); ``extended`` the model a ``diagnose`` fitted (None: none); ``valid_temp_c`` the calibration
+    temperatures the data covered (C); ``document`` the JSON object as stored (contract.md), unchanged."""
 
-    A passport extended by ``diagnose`` (``extended_model``) is evaluated by the effects of ``pipeline.effects``
-    where compensation of the extra terms needs the signal context; here it is the base model.
-    """
-    c = passport["coefficients"]
-    return thermal_model_from_dict(passport["thermal_model"], np.asarray(c["K"], float), np.asarray(c["U0"], float),
-                                   float(passport.get("normal_temp_c", 20.0)))
+    format: str
+    unit: str | None
+    method: str
+    version: int | None
+    normal_temp_c: float
+    g_local_mps2: float
+    K: np.ndarray
+    U0: np.ndarray
+    thermal_model: ThermalModel
+    rate_terms: RateTerms | None = None
+    extended: ExtendedModel | None = None
+    status: str | None = None
+    valid_temp_c: tuple[float, float] | None = None
+    document: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
+
+    @classmethod
+    def from_dict(cls, doc: dict, path: str | None = None) -> Passport:
+        """The typed passport of a JSON document; ThermocalError (one line, naming ``path``) when it is not a
+        passport of this format or its constants or models cannot be read. Fields the models do not need may be
+        absent (a document assembled in memory)."""
+        if not isinstance(doc, dict):
+            raise ThermocalError("a passport is a JSON object", path=path)
+        fmt = doc.get("schema", SCHEMA_ID)
+        if fmt != SCHEMA_ID:
+            raise ThermocalError(f"not a {SCHEMA_ID} document (schema {fmt!r})", path=path)
+        try:
+            c = doc["coefficients"]
+            K, U0 = np.asarray(c["K"], float), np.asarray(c["U0"], float)
+            t0 = float(doc.get("normal_temp_c", 20.0))
+            thermal = thermal_model_from_dict(doc["thermal_model"], K, U0, t0)
+            rate = RateTerms.from_dict(doc["rate_terms"]) if doc.get("rate_terms") else None
+            extended = load_extended(doc)
+        except (KeyError, TypeError, ValueError, IndexError) as e:
+            raise ThermocalError(f"passport cannot be read: {type(e).__name__}: {e}", path=path) from None
+        if K.shape != (3, 3) or U0.shape != (3,):
+            raise ThermocalError("passport coefficients: K must be 3x3 and U0 a 3-vector", path=path)
+        if rate is not None and not isinstance(thermal, PolynomialModel):
+            raise ThermocalError("passport with rate terms needs a polynomial thermal model", path=path)
+        valid = doc.get("valid_temp_c")
+        return cls(format=fmt, unit=doc.get("unit"), method=doc.get("method") or DEFAULT_METHOD,
+                   version=doc.get("version"), normal_temp_c=t0, g_local_mps2=float(doc.get("g_local_mps2", 9.80665)),
+                   K=K, U0=U0, thermal_model=thermal, rate_terms=rate, extended=extended, status=doc.get("status"),
+                   valid_temp_c=(float(valid[0]), float(valid[1])) if valid else None, document=doc)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON document (contract.md), as it was loaded."""
+        return self.document
+
+    def compensation_model(self):
+        """The model that compensates this passport's unit: the extended model when a ``diagnose`` wrote one
+        (its compensation needs the signal context: :func:`compensate_extended`), else the thermal model with the
+        rate terms and lag when the method fitted them (:class:`pipeline.thermal.DifferentialModel`), else the
+        thermal model (:class:`pipeline.thermal.PolynomialModel` or ``PiecewiseModel``). All but the extended model
+        give ``constants_at(temp_c)`` for ``pipeline.compensate``."""
+        if self.extended is not None:
+            return self.extended
+        if self.rate_terms is not None:
+            return DifferentialModel(self.thermal_model, self.rate_terms)
+        return self.thermal_model
+
+
+def load_passport(source: dict | str | Path) -> Passport:
+    """The one passport loader: a JSON document (dict) or a passport file; ThermocalError naming the file when it
+    cannot be read or is not a passport."""
+    if isinstance(source, dict):
+        return Passport.from_dict(source)
+    try:
+        doc = json.loads(Path(source).read_text())
+    except (OSError, ValueError) as e:
+        raise ThermocalError(f"cannot read passport: {e}", path=str(source)) from None
+    if not isinstance(doc, dict) or doc.get("schema") != SCHEMA_ID:
+        raise ThermocalError(f"not a {SCHEMA_ID} document", path=str(source))
+    return Passport.from_dict(doc, path=str(source))
 
 
 def read_passport(path: str | Path) -> dict:
-    from pipeline.errors import ThermocalError
+    """The JSON document of a passport file (checked by :func:`load_passport`)."""
+    return load_passport(path).to_dict()
 
-    try:
-        doc = json.loads(Path(path).read_text())
-    except (OSError, ValueError) as e:
-        raise ThermocalError(f"cannot read passport: {e}", path=str(path)) from None
-    if not isinstance(doc, dict) or doc.get("schema") != SCHEMA_ID:
-        raise ThermocalError(f"not a {SCHEMA_ID} document", path=str(path))
-    return doc
+
+def load_model(passport: dict) -> ThermalModel:
+    """The passport's constants and base thermal model (with K0, U00, deltas, constants_at), for
+    ``pipeline.compensate``: :attr:`Passport.thermal_model`. The rate terms and an extended model are left out;
+    :meth:`Passport.compensation_model` gives them."""
+    return Passport.from_dict(passport).thermal_model
+
+
+def load_extended(passport: dict) -> ExtendedModel | None:
+    """The passport's extended model (written by ``diagnose``), or None when it has none."""
+    d = passport.get("extended_model")
+    return None if d is None else ExtendedModel.from_dict(d)
+
+
+def compensate_extended(passport: dict, u_v: np.ndarray, ctx, element_temp_c: np.ndarray | None = None
+                        ) -> np.ndarray:
+    """Specific force (n, 3) g of outputs ``u_v`` (n, 3) V with the passport's extended model, falling back to
+    method 1 with the passport's own thermal model when it has none.
+
+    ``ctx`` (:class:`pipeline.effects.base.SignalContext`) describes the samples: ``t_s`` (s since the recording
+    started), ``temp_c`` (thermosensor, C), ``ramp_sign``, ``move_start_s`` / ``arrive_s`` and ``position_idx``;
+    its ``a_g`` and ``constants`` are not used. With thermal lag, ``element_temp_c`` may give the lagged temperature
+    computed on a continuous thermosensor series when the samples have gaps (default: the lag of ``ctx.temp_c``
+    over ``ctx.t_s``).
+    """
+    ext = load_extended(passport)
+    if ext is not None:
+        return ext.specific_force_g(u_v, ctx, element_temp_c)
+    k, u0 = load_model(passport).constants_at(np.asarray(ctx.temp_c, float))
+    return specific_force_g(k, u0, np.asarray(u_v, float))

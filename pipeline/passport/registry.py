@@ -49,6 +49,7 @@ from typing import Any, Iterator
 
 from pipeline.errors import RegistryError
 from pipeline.passport.canonical import canonical_json, content_sha256, sha256_bytes
+from pipeline.passport.diff import diff_passports
 from pipeline.passport.signing import TrustStore, sign_record, station_key, trusted_keys, verify_record
 
 __all__ = [
@@ -56,7 +57,6 @@ __all__ = [
     "canonical_json", "identity_key", "safe_unit_name", "sha256_bytes", "sha256_file", "content_sha256",
 ]
 
-AXES = "xyz"
 _VERSION_FILE = re.compile(r"^v(\d+)\.json$")
 _FIGURE_FILE = re.compile(r"^v(\d+)\.png$")
 _TEMP_PREFIX = ".tmp-"
@@ -820,144 +820,6 @@ class Registry:
     # -- comparison ---------------------------------------------------------------------------------------------
 
     def diff(self, unit: str, v1: int, v2: int) -> dict:
-        """What changed from version ``v1`` to ``v2`` of ``unit``, in the units of physics.md.
-
-        Returns {"unit", "v1", "v2", "constants", "thermal_model", "fields", "settings", "inputs"}; the lists hold
-        only what changed. A constant or thermal coefficient entry is {"name", "unit", "old", "new", "delta",
-        "delta_scaled", "scaled_unit"}: K (V/g) also as ppm of the row's gain |Kii|, U0 (V) as micro-g (delta/|Kii|),
-        alpha (V/C^n) as micro-g/C^n, beta and gamma (1/C^n) as ppm/C^n. ``fields`` are other changed values
-        (status, normal temperature, thermal-model kind/order/breakpoints, code version) as {"name", "old", "new"};
-        ``settings`` the same for each changed setting (dotted names); ``inputs`` {"added", "removed"}.
-        Constant and coefficient entries also carry ``uncertainty``, ``uncertainty_scaled`` and ``significant``
-        (:mod:`pipeline.passport.significance`; rule in ``significance``).
-        """
-        a, b = self.load(unit, v1), self.load(unit, v2)
-        gains = _gains_v_per_g(a) or _gains_v_per_g(b)
-        fields = [{"name": k, "old": a.get(k), "new": b.get(k)}
-                  for k in ("schema", "status", "normal_temp_c", "g_local_mps2") if a.get(k) != b.get(k)]
-        pa, pb = a.get("provenance") or {}, b.get("provenance") or {}
-        if pa.get("code_version") != pb.get("code_version"):
-            fields.append({"name": "provenance.code_version", "old": pa.get("code_version"),
-                           "new": pb.get("code_version")})
-        thermal, thermal_fields = _diff_thermal(a.get("thermal_model") or {}, b.get("thermal_model") or {}, gains)
-        old_in = {i["sha256"]: i for i in pa.get("inputs") or []}
-        new_in = {i["sha256"]: i for i in pb.get("inputs") or []}
-        from pipeline.passport.significance import annotate, significance_note
-
-        return {
-            "unit": unit, "v1": int(v1), "v2": int(v2),
-            "constants": annotate(_diff_constants(a.get("coefficients") or {}, b.get("coefficients") or {}, gains),
-                                  a, b),
-            "thermal_model": annotate(thermal, a, b),
-            "significance": significance_note(),
-            "fields": fields + thermal_fields,
-            "settings": [{"name": k, "old": o, "new": n}
-                         for k, (o, n) in _diff_flat(pa.get("settings") or {}, pb.get("settings") or {}).items()],
-            "inputs": {"added": [new_in[s] for s in new_in if s not in old_in],
-                       "removed": [old_in[s] for s in old_in if s not in new_in]},
-        }
-
-
-# ---------------------------------------------------------------------------------------------------------------
-# diff helpers
-
-
-def _gains_v_per_g(doc: dict) -> list[float] | None:
-    """|Kii| of a passport's normal-temperature K, or None if absent/zero."""
-    try:
-        k = doc["coefficients"]["K"]
-        gains = [abs(float(k[i][i])) for i in range(3)]
-    except (KeyError, IndexError, TypeError, ValueError):
-        return None
-    return gains if all(gains) else None
-
-
-def _entry(name: str, unit: str, old: Any, new: Any, scale: float | None, scaled_unit: str) -> dict:
-    """One changed number; delta_scaled = delta * scale (None when a side is missing or no scale is known)."""
-    numeric = isinstance(old, (int, float)) and isinstance(new, (int, float))
-    delta = new - old if numeric else None
-    return {"name": name, "unit": unit, "old": old, "new": new, "delta": delta,
-            "delta_scaled": delta * scale if numeric and scale is not None else None, "scaled_unit": scaled_unit}
-
-
-def _diff_constants(ca: dict, cb: dict, gains: list[float] | None) -> list[dict]:
-    out = []
-    ka, kb = ca.get("K"), cb.get("K")
-    ua, ub = ca.get("U0"), cb.get("U0")
-    for i, ai in enumerate(AXES):
-        ppm = 1e6 / gains[i] if gains else None
-        for j, aj in enumerate(AXES):
-            old, new = _at(ka, i, j), _at(kb, i, j)
-            if old != new:
-                out.append(_entry(f"K.{ai}{aj}", "V/g", old, new, ppm, "ppm of gain"))
-    for i, ai in enumerate(AXES):
-        old, new = _at(ua, i), _at(ub, i)
-        if old != new:
-            out.append(_entry(f"U0.{ai}", "V", old, new, 1e6 / gains[i] if gains else None, "micro-g"))
-    return out
-
-
-def _at(seq: Any, *index: int) -> Any:
-    try:
-        for i in index:
-            seq = seq[i]
-        return seq
-    except (IndexError, KeyError, TypeError):
-        return None
-
-
-def _coef_scale(group: str, key: str, gains: list[float] | None) -> tuple[float | None, str]:
-    """Scale of a thermal coefficient: alpha_i V/C^n -> micro-g/C^n (/|Kii|); beta, gamma 1/C^n -> ppm/C^n."""
-    if group == "alpha":
-        i = AXES.find(key[:1])
-        return (1e6 / gains[i] if gains and i >= 0 else None), "micro-g"
-    return 1e6, "ppm"
-
-
-def _diff_thermal(ta: dict, tb: dict, gains: list[float] | None) -> tuple[list[dict], list[dict]]:
-    """Changed thermal coefficients (element-wise when the two models have the same shape) and changed shape fields."""
-    fields = [{"name": f"thermal_model.{k}", "old": ta.get(k), "new": tb.get(k)}
-              for k in ("kind", "order", "breakpoints_c") if ta.get(k) != tb.get(k)]
-    if ta.get("kind") != tb.get("kind") or ta.get("breakpoints_c") != tb.get("breakpoints_c"):
-        return [], fields
-    out = []
-    if ta.get("kind") == "polynomial":
-        for group in ("alpha", "beta", "gamma"):
-            ga, gb = ta.get(group) or {}, tb.get(group) or {}
-            for key in sorted(set(ga) | set(gb)):
-                sa, sb = ga.get(key) or [], gb.get(key) or []
-                for n in range(max(len(sa), len(sb))):
-                    old, new = _at(sa, n), _at(sb, n)
-                    if old != new:
-                        scale, su = _coef_scale(group, key, gains)
-                        base = "V" if group == "alpha" else "1"
-                        out.append(_entry(f"{group}.{key}[{n + 1}]", f"{base}/C^{n + 1}", old, new, scale,
-                                          f"{su}/C^{n + 1}"))
-    elif ta.get("kind") == "piecewise_linear":
-        sa, sb = ta.get("segments") or [], tb.get("segments") or []
-        for s in range(max(len(sa), len(sb))):
-            seg_a, seg_b = _at(sa, s) or {}, _at(sb, s) or {}
-            for group in ("alpha", "beta", "gamma"):
-                ga, gb = seg_a.get(group) or {}, seg_b.get(group) or {}
-                for key in sorted(set(ga) | set(gb)):
-                    old, new = ga.get(key), gb.get(key)
-                    if old != new:
-                        scale, su = _coef_scale(group, key, gains)
-                        base = "V" if group == "alpha" else "1"
-                        out.append(_entry(f"segments[{s}].{group}.{key}", f"{base}/C", old, new, scale, f"{su}/C"))
-    return out, fields
-
-
-def _flatten(obj: Any, prefix: str = "") -> dict[str, Any]:
-    """Nested dicts as {"a.b.c": leaf}; an empty dict nested inside is a leaf."""
-    if isinstance(obj, dict) and (obj or not prefix):
-        flat: dict[str, Any] = {}
-        for k, v in obj.items():
-            flat.update(_flatten(v, f"{prefix}.{k}" if prefix else str(k)))
-        return flat
-    return {prefix: obj}
-
-
-def _diff_flat(a: dict, b: dict) -> dict[str, tuple[Any, Any]]:
-    fa, fb = _flatten(a), _flatten(b)
-    return {k: (fa.get(k), fb.get(k)) for k in sorted(set(fa) | set(fb)) if fa.get(k) != fb.get(k)}
+        """What changed from version ``v1`` to ``v2`` of ``unit``, in the units of physics.md
+        (:func:`pipeline.passport.diff.diff_passports`)."""
+        return diff_passports(self.load(unit, v1), self.load(unit, v2), unit=unit, v1=v1, v2=v2)

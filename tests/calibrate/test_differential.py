@@ -16,10 +16,10 @@ from pipeline.simulate import program
 from pipeline.calibrate import differential
 from pipeline.calibrate.tilt import fit_unit, observe_run, verify_unit
 from pipeline.calibrate.differential import (DifferentialModel, DifferentialSettings, block_data,
-                                   compensate_blocks, compensate_run, fit_differential, model_from_passport,
+                                   compensate_blocks, compensate_run, fit_differential,
                                    window_std_g)
 from pipeline.errors import CalibrationError
-from pipeline.passport.document import build_passport, load_model
+from pipeline.passport.document import build_passport, load_model, load_passport
 from pipeline.positions import TEST_POSITIONS
 from pipeline.passport.registry import Registry
 from pipeline.simulate.chamber import SimConfig, simulate
@@ -171,7 +171,8 @@ def test_rate_terms_round_trip_through_the_passport_form(base, fits):
     assert fit.model.rate.order == 2 and fit.model.lag_tau_s == 0.0
     doc = {"coefficients": {"K": K0.tolist(), "U0": U0.tolist()}, "normal_temp_c": T0,
            "thermal_model": fit.model.static.to_dict(), "rate_terms": fit.model.rate.to_dict()}
-    back = model_from_passport(json.loads(json.dumps(doc)))
+    back = load_passport(json.loads(json.dumps(doc))).compensation_model()
+    assert isinstance(back, DifferentialModel)
     temps, rates = np.array([-40.0, 0.0, 20.0, 70.0]), np.array([-1.0, 0.5, 0.0, 1.0])
     for x, y in zip(back.constants_at(temps, rates), fit.model.constants_at(temps, rates)):
         np.testing.assert_allclose(x, y, rtol=1e-12, atol=1e-15)

@@ -14,7 +14,8 @@ import pytest
 
 from flows.diagnose_cmd import diagnose_command, diagnose_text
 from pipeline.diagnose.diagnosis import diagnose_run, fit_passport
-from pipeline.diagnose.model import ExtendedModel, compensate_extended, load_extended
+from pipeline.diagnose.model import ExtendedModel
+from pipeline.passport.document import compensate_extended, load_extended
 from pipeline.diagnose.signal import make_blocks, segment_settings_for, static_record
 from pipeline.effects.catalogue import make_effect
 from pipeline.errors import ThermocalError
