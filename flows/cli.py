@@ -122,6 +122,10 @@ def simulate(out: Path = typer.Option(..., "--out", help="output .mcap file or P
              effect: List[str] = typer.Option([], "--effect", metavar="ID[:k=v,...]",
                                               help="add a physical effect from the catalogue, with its parameters "
                                                    "by name; repeat for several"),
+             disturbance: List[str] = typer.Option(
+                 [], "--disturbance", metavar="ID[:k=v,...]",
+                 help="add a mismatch outside the catalogue (constants_shift, bias_step, bias_random_walk, "
+                      "periodic), with its parameters by name; repeat for several"),
              program: str = typer.Option("standard", "--program",
                                          help="chamber program: standard (full temperature steps), short (a few "
                                               "plateaus, for quick tries) | differential (six orientations "
@@ -145,6 +149,8 @@ def simulate(out: Path = typer.Option(..., "--out", help="output .mcap file or P
     from pipeline.simulate.large import simulate_run
     from pipeline.simulate.program import PROGRAMS
 
+    from pipeline.simulate.disturbances import parse_disturbance_spec
+
     if program not in PROGRAMS:
         raise ThermocalError(f"unknown chamber program {program!r} ({', '.join(PROGRAMS)})", where="--program")
     if fmt not in ("mcap", "parquet"):
@@ -153,9 +159,13 @@ def simulate(out: Path = typer.Option(..., "--out", help="output .mcap file or P
         effects = [parse_effect_spec(e) for e in effect]
     except ValueError as e:
         raise ThermocalError(str(e), where="--effect") from None
+    try:
+        disturbances = [parse_disturbance_spec(d) for d in disturbance]
+    except ValueError as e:
+        raise ThermocalError(str(e), where="--disturbance") from None
     cfg = SimConfig(unit_serial=unit, seed=seed, unit_seed=unit_seed, program=program, rate_hz=rate_hz,
                     noise_v=noise_uv * 1e-6, case_lag_s=case_lag_s, effects=effects,
-                    with_fixture_log=not no_fixture_log)
+                    disturbances=disturbances,                    with_fixture_log=not no_fixture_log)
     res = simulate_run(cfg)
     opts = {"encoding": encoding} if fmt == "mcap" and encoding != "json" else {}
     path = write_run(res.run, out, fmt, **opts)

@@ -47,6 +47,11 @@ from pipeline.diagnose.model import (
     polynomial_reference,
     raise_order,
 )
+from pipeline.diagnose.shift import explain as explain_shift
+from pipeline.diagnose.shift import find_shift
+from pipeline.diagnose.unexplained import describe as describe_unexplained
+from pipeline.diagnose.unexplained import find_unexplained
+from pipeline.diagnose.unexplained import shares as unexplained_shares
 from pipeline.diagnose.signal import (
     Blocks,
     StaticRecord,
@@ -129,6 +134,7 @@ def _diagnose(run: Run, passport: dict | None, settings: DiagnoseSettings, passp
               ) -> Diagnosis:
     seg_settings = segment_settings_for(run)
     seg = segment_run(run, seg_settings)
+    given = passport is not None
     if passport is None:
         passport = fit_passport(run, seg, CalibrationSettings(segment=seg_settings))
         passport_source = "fitted from the run (default thermal model)"
@@ -142,15 +148,26 @@ def _diagnose(run: Run, passport: dict | None, settings: DiagnoseSettings, passp
     excluded = blocks.mean(rec.ramp_uncertain.astype(float)) > 0      # direction of the last ramp unknown there
     sigma[excluded] *= _EXCLUDE
     design = Design(rec, blocks, reference, sigma)
+    shift = None
+    if given:         # the passport as it is: its constants move only where the recording says they moved
+        design.set_base_mask(np.zeros_like(design.base_mask))
     design.set_sigma(design.sigma * block_noise_factor(design, design.fit(())))
+    if given:
+        shift = find_shift(design, passport, settings.selection.threshold)
+        design.set_base_mask(shift.mask)
     in_base = [e for e, c in EFFECTS.items()
                if c.in_base_from_order is not None and reference.order >= c.in_base_from_order]
     candidates = [e for e in EFFECTS if e not in in_base]
-    sel = select_terms(design, candidates, settings.selection)
-    factor = block_noise_factor(design, sel.final)
-    if sel.accepted and np.any(factor > 1.05):     # correlated residual the accepted effects leave: widen, redo
-        design.set_sigma(design.sigma * factor)
-        sel = select_terms(design, candidates, settings.selection)
+    sel = _select(design, candidates, settings)
+    if given and sel.accepted:    # does the shift still hold with the effects found? (they may explain it)
+        again = find_shift(design, passport, settings.selection.threshold, sel.state)
+        if again.level != shift.level or again.significant != shift.significant:
+            shift = again
+            design.set_base_mask(shift.mask)
+            sel = _select(design, candidates, settings)
+    unexplained = find_unexplained(design, sel.final, settings.locate_sigma)
+    if unexplained is not None:   # held in the model, the catalogue search is redone on top of it
+        sel = _select(design, candidates, settings, initial=((unexplained[0], None),))
 
     final_trials = _final_trials(sel)
     predicted = blocks.mean(output_v(*model.constants_at(rec.temp_c), rec.a_g))
@@ -162,6 +179,13 @@ def _diagnose(run: Run, passport: dict | None, settings: DiagnoseSettings, passp
     w = (blocks.n * ~excluded)[:, None] * np.ones(3)
     noise_sigma = design.sigma / np.where(excluded, _EXCLUDE, 1.0)[:, None]
     findings = [_finding(design, sel, t, before, after, seg, settings) for t in final_trials]
+    if shift is not None and shift.significant:
+        findings.insert(0, _shift_finding(design, shift, predicted, before, after, seg, settings))
+    elif shift is not None and shift.level is not None:
+        notes.append(f"the constants agree with the passport within its uncertainty (largest change "
+                     f"{shift.largest_z:.1f} sigma); {shift.level.name} refit to this run without a finding")
+    if unexplained is not None:
+        findings.append(_unexplained_finding(design, sel, unexplained, after, seg, settings))
     located = _where(design, np.abs(before) > settings.locate_sigma * design.sigma, seg, settings)
     vp = _vp_errors(seg, rec, model, extended)
     out_passport = copy.deepcopy(passport)
@@ -196,6 +220,7 @@ def _diagnose(run: Run, passport: dict | None, settings: DiagnoseSettings, passp
         "vp_max_abs_dg_after_g": max((abs(v["dg_after_g"]) for v in vp), default=None),
         "extended_model": out_passport["extended_model"],
         "candidates": sel.rounds,
+        "empirical_corrections": unexplained[3] if unexplained is not None else [],
         "blocks": blocks.size,
         "notes": notes,
     }
@@ -203,6 +228,64 @@ def _diagnose(run: Run, passport: dict | None, settings: DiagnoseSettings, passp
                      before_v=before, after_v=after, sigma_v=noise_sigma,
                      windows_h=_hours(rec, [w for f in findings for w in f["where"]["windows"]]),
                      located_h=_hours(rec, located["windows"]))
+
+
+def _select(design: Design, candidates: list[str], settings: DiagnoseSettings, initial: tuple = ()) -> Selection:
+    """The greedy catalogue search, redone with wider block sigmas when the accepted effects leave a correlated
+    residual, and without any effect whose final parameters are physically implausible."""
+    left = list(candidates)
+    for _ in range(4):
+        sel = select_terms(design, left, settings.selection, initial)
+        factor = block_noise_factor(design, sel.final)
+        if sel.accepted and np.any(factor > 1.05):     # correlated residual the accepted effects leave: widen, redo
+            design.set_sigma(design.sigma * factor)
+            sel = select_terms(design, left, settings.selection, initial)
+        bad = [t.effect for t in _final_trials(sel) if effect_class(t.effect).implausible(t.params)]
+        if not bad:
+            return sel
+        left = [e for e in left if e not in bad]
+    return sel
+
+
+def _shift_finding(design: Design, shift, predicted: np.ndarray, before: np.ndarray, after: np.ndarray,
+                   seg: Segmentation, settings: DiagnoseSettings) -> dict:
+    """``constants_shift``: which constants moved since the passport, by how much, where it shows."""
+    signature = shift.fit.fitted - predicted
+    z = np.abs(signature) / design.sigma
+    flagged = z >= np.minimum(settings.where_sigma, 0.5 * z.max(axis=0))[None, :]
+    where = _where(design, flagged, seg, settings)
+    w = design.blocks.n[:, None] * flagged
+    rb, ra = _rms(before, w), _rms(after, w)
+    return {"effect": "constants_shift",
+            "explanation": explain_shift(shift.parameters, rb * _UV, ra * _UV, shift.largest_z),
+            "where": where, "parameters": shift.parameters, "rms_before_v": rb, "rms_after_v": ra,
+            "delta_bic": round(shift.delta_bic, 1), "max_effect_v": float(np.abs(signature).max())}
+
+
+def _unexplained_finding(design: Design, sel: Selection, unexplained, after: np.ndarray, seg: Segmentation,
+                         settings: DiagnoseSettings) -> dict:
+    """``unexplained``: the located mismatch the catalogue leaves, its signature, and the empirical correction."""
+    fid, desc, dbic, _ = unexplained
+    desc = dict(desc, coef=sel.final.term_coef(fid).tolist())
+    without = design.fit(tuple(s for s in sel.state if s[0] != fid))
+    signature = sel.final.fitted - without.fitted
+    residual = design.y - without.fitted
+    z = np.abs(signature) / design.sigma
+    share_z = (z ** 2).sum(axis=0)
+    axes_on = share_z >= 0.05 * share_z.max()
+    level = np.minimum(settings.where_sigma, 0.5 * z.max(axis=0))
+    flagged = (z >= level[None, :]) & axes_on[None, :] & (z > 0)
+    where = _where(design, flagged, seg, settings)
+    w = design.blocks.n[:, None] * flagged
+    peak = float(np.abs(signature[flagged]).max()) if flagged.any() else 0.0
+    share = unexplained_shares(design, signature, axes_on)
+    text, numbers = describe_unexplained(fid, desc, residual, design, share, where, peak * _UV)
+    params = {"empirical_correction": fid.split(":", 1)[1], **{k: v for k, v in desc.items() if k != "coef"},
+              **numbers, "shares": share,
+              "peak_v": peak, "axes": where["axes"]}
+    return {"effect": "unexplained", "explanation": text, "where": where, "parameters": params,
+            "rms_before_v": _rms(residual, w), "rms_after_v": _rms(after, w), "delta_bic": dbic,
+            "max_effect_v": peak}
 
 
 def _hours(rec: StaticRecord, windows_ns: list[list[int]]) -> list[tuple[float, float]]:

@@ -76,6 +76,16 @@ class FitResult:
     tw: np.ndarray = field(repr=False)         # (B, 3, p) weighted unit-norm term columns
     evecs: np.ndarray = field(repr=False)
     evals: np.ndarray = field(repr=False)
+    scale: np.ndarray = field(repr=False, default=None)   # column norms (coef = normalised coef / scale)
+
+    def coef_sigma(self) -> np.ndarray:
+        """Standard uncertainty of every coefficient from the weighted normal matrix (the block sigmas as given;
+        a direction the data cannot determine gets inf)."""
+        var_n = np.einsum("ik,k,ik->i", self.evecs, 1.0 / self.evals, self.evecs) if self.evals.size else \
+            np.zeros(self.scale.size)
+        sig = np.sqrt(var_n) / self.scale
+        undetermined = np.abs(self.evecs).sum(axis=1) == 0 if self.evals.size else np.ones(self.scale.size, bool)
+        return np.where(undetermined, np.inf, sig)
 
     def term_coef(self, effect_id: str) -> np.ndarray:
         return self.coef[self.slices[effect_id]]
@@ -120,7 +130,7 @@ class Selection:
 
 def _moves_temperature(effect_id: str) -> bool:
     """The effect moves the temperature the base model is evaluated at (thermal lag) instead of adding columns."""
-    return effect_class(effect_id).acts_on == "temperature"
+    return not effect_id.startswith("empirical") and effect_class(effect_id).acts_on == "temperature"
 
 
 def _key(value: float | None) -> float | None:
@@ -144,7 +154,16 @@ class Design:
                                    axis=1)
         self._powers: dict[float | None, np.ndarray] = {}
         self._columns: dict[tuple[str, float | None], tuple[list[str], np.ndarray]] = {}
+        #: block-level columns of terms outside the catalogue (empirical corrections): id -> (labels, (B, 3, p))
+        self.extra: dict[str, tuple[list[str], np.ndarray]] = {}
+        self.base_mask = np.ones(4 * (self.order + 1), dtype=bool)
         self.set_sigma(sigma_v)
+
+    def set_base_mask(self, mask: np.ndarray) -> None:
+        """Which base columns (per channel: dT^n a_x, dT^n a_y, dT^n a_z, dT^n for n = 0..order) the fits may
+        change; the others stay the reference model's (a given passport is not refitted beyond them)."""
+        self.base_mask = np.asarray(mask, dtype=bool).reshape(-1)
+        self._powers.clear()
 
     def set_sigma(self, sigma_v: np.ndarray) -> None:
         """Block sigmas (B, 3) V; fits weigh by their inverse."""
@@ -177,7 +196,7 @@ class Design:
         """(B, nb) base columns of one channel: dT^n a_x, dT^n a_y, dT^n a_z, dT^n for n = 0..order."""
         p = self.powers(lag_tau_s)
         a1 = np.concatenate([self.blocks.a_g, np.ones((self.blocks.size, 1))], axis=1)
-        return (p[:, :, None] * a1[:, None, :]).reshape(self.blocks.size, -1)
+        return (p[:, :, None] * a1[:, None, :]).reshape(self.blocks.size, -1) * self.base_mask[None, :]
 
     def base_prediction(self, fit: FitResult, lag_tau_s: float | None) -> np.ndarray:
         """(B, 3) V: the fit's base model (reference + correction) at the thermosensor or element temperature."""
@@ -186,6 +205,8 @@ class Design:
 
     def term_columns(self, effect_id: str, value: float | None) -> tuple[list[str], np.ndarray]:
         """Labels and (B, 3, p) columns of a catalogue term (block means of its unit-parameter delta_u_v)."""
+        if effect_id in self.extra:
+            return self.extra[effect_id]
         key = (effect_id, _key(value))
         if key not in self._columns:
             labels, cols = effect_class(effect_id).fit_columns(self.ctx, key[1])
@@ -233,14 +254,15 @@ class Design:
         g[3 * nb:, 3 * nb:] = np.einsum("bip,biq->pq", tw, tw)
         rhs = np.concatenate([np.einsum("bik,bi->ik", fw, yw).reshape(-1), np.einsum("bip,bi->p", tw, yw)])
         evals, evecs = np.linalg.eigh(g)
-        keep = evals > _RANK_TOL * evals[-1]
+        keep = evals > _RANK_TOL * max(evals[-1], 1e-300)
         v, lam = evecs[:, keep], evals[keep]
         cn = v @ ((v.T @ rhs) / lam)
         pred = (np.einsum("bik,ik->bi", fw, cn[:3 * nb].reshape(3, nb)) + np.einsum("bip,p->bi", tw, cn[3 * nb:]))
         rw = yw - pred
         c = cn / np.concatenate([nf.reshape(-1), nt])
         return FitResult(state, c, float(np.sum(rw * rw)), int(keep.sum()), ref + pred / w, slices, labels,
-                         c[:3 * nb].reshape(3, self.order + 1, 4), rw, fw, tw, v, lam)
+                         c[:3 * nb].reshape(3, self.order + 1, 4), rw, fw, tw, v, lam,
+                         np.concatenate([nf.reshape(-1), nt]))
 
     def score(self, current: FitResult, effect_id: str, value: float | None
               ) -> tuple[float, int, np.ndarray, list[str], np.ndarray]:
@@ -296,13 +318,14 @@ class Design:
         return Trial(effect_id, value, chi2, added, float(dbic), params, reason, change)
 
 
-def select_terms(design: Design, candidates: list[str], settings: SelectionSettings = SelectionSettings()
-                 ) -> Selection:
-    """Greedy forward selection of catalogue terms (see the module doc)."""
+def select_terms(design: Design, candidates: list[str], settings: SelectionSettings = SelectionSettings(),
+                 initial: tuple = ()) -> Selection:
+    """Greedy forward selection of catalogue terms (see the module doc), on top of the terms of ``initial``
+    (e.g. an empirical correction held in the model)."""
     ln_n = float(np.log(design.n_values))
-    state: tuple = ()
-    base = design.fit(state)
-    current = base
+    state: tuple = tuple(initial)
+    base = design.fit(())
+    current = design.fit(state)
     accepted: list[Trial] = []
     confounded: dict[str, list[str]] = {}
     left = list(candidates)
@@ -343,7 +366,7 @@ def _refine(design: Design, state: tuple) -> tuple:
     if len(state) < 2:
         return tuple(state)
     for k, (effect_id, value) in enumerate(state):
-        if value is None:
+        if value is None or effect_id in design.extra:
             continue
         others = tuple(s for j, s in enumerate(state) if j != k)
         grid = np.asarray(effect_class(effect_id).grid)

@@ -7,7 +7,7 @@ Physics (physics.md):
   computed on a 1 Hz grid, exactly for inputs linear between samples;
 - the thermosensor reads the case temperature plus white noise ``temp_noise_c`` at 1 Hz; the chamber stream gives
   the setpoint and the air temperature (plus the same noise) at 1 Hz;
-- the voltmeter at ``rate_hz`` gives ``U = K(T) a + U0(T) + effects + noise`` with T the case temperature
+- the voltmeter at ``rate_hz`` gives ``U = K(T) a + U0(T) + effects + disturbances + noise`` with T the case temperature
   interpolated linearly from the 1 Hz grid (the same interpolation a reader applies to the thermosensor);
 - in a static position a is the position's vector (rotated by its face error if ``fixture_face_error`` is on);
   during a move the vector turns about a fixed axis with a minimum-jerk profile between the two, plus a vibration of
@@ -31,10 +31,11 @@ from scipy.spatial.transform import Rotation
 
 from pipeline.dynamics import first_order_lag
 from pipeline.effects.base import Effect, SignalContext
-from pipeline.effects.catalogue import make_effect
+from pipeline.effects.catalogue import EFFECTS, make_effect
 from pipeline.model import output_v
 from pipeline.positions import ALL_POSITIONS, POSITION_NAMES
 from pipeline.run import Run, RunMeta, make_frame
+from pipeline.simulate.disturbances import make_disturbance
 from pipeline.simulate.program import Timetable, get_program
 from pipeline.simulate.unit import UnitTruth, random_unit, seed000_unit
 
@@ -59,6 +60,8 @@ class SimConfig:
     temp_noise_c: float = 0.01
     case_lag_s: float | None = None
     effects: list[tuple[str, dict]] = field(default_factory=list)
+    #: mismatches outside the catalogue (:mod:`pipeline.simulate.disturbances`), same form as ``effects``
+    disturbances: list[tuple[str, dict]] = field(default_factory=list)
     with_fixture_log: bool = True
     with_chamber: bool = True
     normal_temp_c: float = 20.0
@@ -104,6 +107,7 @@ def simulate(config: SimConfig) -> SimResult:
     case_lag_s = program.case_lag_s if config.case_lag_s is None else float(config.case_lag_s)
     air_lag_s = program.air_lag_s if config.air_lag_s is None else float(config.air_lag_s)
     effects = [make_effect(eid, params) for eid, params in config.effects]
+    disturbances = [make_disturbance(did, params) for did, params in config.disturbances]
     unit = unit_for(config)
     start_ns = parse_utc_ns(config.started_utc)
     rng = np.random.default_rng(config.seed)
@@ -132,6 +136,8 @@ def simulate(config: SimConfig) -> SimResult:
     for e in effects:
         if e.acts_on != "specific_force":  # the face error is already in a_g
             u_v += e.delta_u_v(ctx)
+    for d in disturbances:
+        u_v += d.delta_u_v(ctx)
     if config.noise_v > 0:
         u_v += rng.normal(0.0, config.noise_v, u_v.shape)
     temp_noise_c = rng.normal(0.0, config.temp_noise_c, (2, t1_s.size))  # thermosensor, chamber air
@@ -145,7 +151,7 @@ def simulate(config: SimConfig) -> SimResult:
                  if config.with_chamber else None),
         fixture=_fixture_frame(timetable, start_ns) if config.with_fixture_log else None,
     )
-    truth = _truth(config, unit, effects, timetable, _position_vectors_g(face_rad), start_ns,
+    truth = _truth(config, unit, effects + disturbances, timetable, _position_vectors_g(face_rad), start_ns,
                    {"case_lag_s": case_lag_s, "air_lag_s": air_lag_s}, t1_s, case_c, run.meta)
     return SimResult(run=run, truth=truth, context=ctx)
 
@@ -279,7 +285,8 @@ def _truth(config: SimConfig, unit: UnitTruth, effects: list[Effect], timetable:
         "unit": unit.to_dict(),
         "unit_constants_at": [{"temp_c": t, "K": k[i].tolist(), "U0": u0[i].tolist()}
                               for i, t in enumerate(plateau_temps)],
-        "effects": [{"id": e.id, "params": e.params()} for e in effects],
+        "effects": [{"id": e.id, "params": e.params()} for e in effects if e.id in EFFECTS],
+        "disturbances": [{"id": e.id, "params": e.params()} for e in effects if e.id not in EFFECTS],
         "position_vectors_g": {p: vectors_g[i].tolist() for i, p in enumerate(POSITION_NAMES)},
         "holds": holds,
         "config": dataclasses.asdict(config),

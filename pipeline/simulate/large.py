@@ -31,6 +31,7 @@ from pipeline.simulate.chamber import (
     _specific_force_g,
     simulate,
 )
+from pipeline.simulate.disturbances import DISTURBANCES, make_disturbance
 from pipeline.simulate.program import get_program
 
 #: :func:`simulate_run` computes runs of more voltmeter samples than this in chunks (in one piece: ~200 B a sample)
@@ -43,7 +44,8 @@ def simulate_run(config: SimConfig, chunked_above_samples: int = CHUNKED_ABOVE_S
     an effect needs the whole record (not ``local``), which is then simulated in one piece."""
     _check(config)
     n = int(np.floor(get_program(config.program).timetable().duration_s * config.rate_hz)) + 1
-    local = all(effect_class(eid).local for eid, _ in config.effects)
+    local = (all(effect_class(eid).local for eid, _ in config.effects)
+             and all(DISTURBANCES[did].local for did, _ in config.disturbances))
     return simulate_chunked(config) if n > chunked_above_samples and local else simulate(config)
 
 
@@ -54,7 +56,8 @@ def simulate_chunked(config: SimConfig, chunk_samples: int = 1_000_000) -> SimRe
     ``context`` is the 1 Hz one (the per-sample context of a long run is what this function avoids building).
     """
     _check(config)
-    refused = [eid for eid, _ in config.effects if not effect_class(eid).local]
+    refused = ([eid for eid, _ in config.effects if not effect_class(eid).local]
+               + [did for did, _ in config.disturbances if not DISTURBANCES[did].local])
     if refused:
         raise ValueError(f"effects {refused} depend on other samples; use pipeline.simulate.chamber.simulate")
     if int(chunk_samples) < 1:
@@ -63,6 +66,7 @@ def simulate_chunked(config: SimConfig, chunk_samples: int = 1_000_000) -> SimRe
     ctx1 = base.context
     timetable = get_program(config.program).timetable()
     effects = [make_effect(eid, params) for eid, params in config.effects]
+    disturbances = [make_disturbance(did, params) for did, params in config.disturbances]
     face_rad = _face_rotations_rad(effects)
     noise = np.random.default_rng([config.seed, 1])
 
@@ -84,6 +88,8 @@ def simulate_chunked(config: SimConfig, chunk_samples: int = 1_000_000) -> SimRe
         for e in effects:
             if e.acts_on != "specific_force":  # the face error is already in a_g
                 u += e.delta_u_v(ctx)
+        for d in disturbances:
+            u += d.delta_u_v(ctx)
         if config.noise_v > 0:
             u += noise.normal(0.0, config.noise_v, u.shape)
         for c, name in enumerate(u_v):

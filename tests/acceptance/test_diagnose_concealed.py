@@ -157,9 +157,11 @@ def test_mcap_and_parquet_give_the_same_diagnosis(folder):
                                                                       rel=1e-9)
 
 
-def test_effects_the_program_cannot_tell_apart_are_reported_as_confounded(folder):
-    """Seed 003's differential program holds only TP1, TP3 and TP6: a second-order scale factor and face errors of
-    those three positions explain the same readings, so diagnose names them together instead of guessing."""
+def test_a_given_passport_is_held_so_k2_is_told_apart_from_face_errors(folder):
+    """Seed 003's differential program holds only TP1, TP3 and TP6: with the base constants refit to the run, a
+    second-order scale factor and face errors of those three positions explain the same readings (they were
+    reported as confounded). A given passport is no longer refit silently (issue 14): held, it pins K and U0, and
+    the K2 of the vertical channels is told apart from face errors (which move the horizontal channels)."""
     calib = simulate(SimConfig(seed=41, rate_hz=RATE_HZ))
     passport = fit_passport(calib.run, segment_run(calib.run, segment_settings_for(calib.run)))
     res = simulate(SimConfig(seed=42, rate_hz=RATE_HZ, program="differential",
@@ -167,6 +169,6 @@ def test_effects_the_program_cannot_tell_apart_are_reported_as_confounded(folder
     rep = diagnose_run(read_run(write_run(res.run, folder / "differential.mcap", "mcap")), passport).report
     assert rep["verdict"] == "mismatch" and len(rep["findings"]) == 1
     f = rep["findings"][0]
-    assert {f["effect"], *f["confounded_with"]} == {"scale_nonlinearity", "fixture_face_error"}
-    assert "cannot be told apart" in f["explanation"]
+    assert f["effect"] == "scale_nonlinearity" and not f.get("confounded_with")
+    np.testing.assert_allclose(f["parameters"]["k2_v_per_g2"], [30e-6, -20e-6, 25e-6], atol=1e-6)
     assert f["rms_after_v"] < 0.2 * f["rms_before_v"]
