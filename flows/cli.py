@@ -165,7 +165,7 @@ def simulate(out: Path = typer.Option(..., "--out", help="output .mcap file or P
         raise ThermocalError(str(e), where="--disturbance") from None
     cfg = SimConfig(unit_serial=unit, seed=seed, unit_seed=unit_seed, program=program, rate_hz=rate_hz,
                     noise_v=noise_uv * 1e-6, case_lag_s=case_lag_s, effects=effects,
-                    disturbances=disturbances,                    with_fixture_log=not no_fixture_log)
+                    disturbances=disturbances, with_fixture_log=not no_fixture_log)
     res = simulate_run(cfg)
     opts = {"encoding": encoding} if fmt == "mcap" and encoding != "json" else {}
     path = write_run(res.run, out, fmt, **opts)
@@ -341,6 +341,9 @@ def diagnose(run: Path = typer.Argument(..., metavar="RUN", help="an .mcap file 
              passport: Optional[Path] = typer.Option(None, "--passport",
                                                      help="the passport file to compare with (default: one fitted "
                                                           "from the run itself)"),
+             registry: Optional[Path] = typer.Option(None, "--registry",
+                                                     help="compare with the unit's current passport in this "
+                                                          "registry (its newest approved version, else its newest)"),
              png: Optional[Path] = typer.Option(None, "--png",
                                                 help="where to write the figure (default: RUN.diagnose.png "
                                                      "beside the run)"),
@@ -351,7 +354,7 @@ def diagnose(run: Path = typer.Argument(..., metavar="RUN", help="an .mcap file 
     """Compare the recording with the model its passport predicts: locate, name and model the mismatch."""
     from .diagnose_cmd import diagnose_command, diagnose_text
 
-    report = diagnose_command(run, passport, as_json, png, out_passport)
+    report = diagnose_command(run, passport, as_json, png, out_passport, registry)
     _emit(report, as_json, None if as_json else diagnose_text(report))
 
 

@@ -1,6 +1,7 @@
-"""``thermocal diagnose RUN [--passport FILE] [--json]``: the command behind the CLI (no Prefect).
+"""``thermocal diagnose RUN [--passport FILE | --registry DIR] [--json]``: the command behind the CLI (no Prefect).
 
-Reads the run (and the passport when given), runs :func:`pipeline.diagnose.diagnosis.diagnose_run`, writes the figure and the
+Reads the run (and the passport when given: a file, or the unit's current passport in a registry, see
+:func:`current_passport`), runs :func:`pipeline.diagnose.diagnosis.diagnose_run`, writes the figure and the
 passport extended with the fitted effects, and returns the report (contract.md's ``diagnose --json`` object plus
 ``figure`` and ``extended_passport`` paths). Both files go beside the run unless paths are given:
 ``<run>.diagnose.png`` and ``<run>.diagnose.passport.json``.
@@ -16,6 +17,7 @@ from pipeline.diagnose.diagnosis import diagnose_run
 from pipeline.errors import ThermocalError
 from pipeline.io.runs import read_run
 from pipeline.passport.document import read_passport
+from pipeline.passport.registry import Registry
 
 
 def _beside(run: Path, suffix: str) -> Path:
@@ -23,17 +25,39 @@ def _beside(run: Path, suffix: str) -> Path:
     return run.parent / f"{run.name.removesuffix('.mcap')}{suffix}"
 
 
+def current_passport(registry: Path, unit: str) -> tuple[dict, str]:
+    """The unit's current passport in ``registry`` (contract.md: the newest approved version, else the newest) and
+    a description of where it came from."""
+    reg = Registry(registry)
+    versions = reg.versions(unit)
+    approved = getattr(reg, "approved_versions", None)
+    chosen = None
+    if callable(approved):
+        ok = [int(v) for v in approved(unit)]
+        chosen = max(ok) if ok else None
+    if chosen is None:
+        chosen = max(v.version for v in versions) if versions else None
+    doc = reg.load(unit, chosen)
+    return doc, f"{registry} (unit {unit}, version {chosen})"
+
+
 def diagnose_command(run: Path, passport: Path | None, as_json: bool, out_png: Path | None,
-                     out_passport: Path | None = None) -> dict:
-    """Diagnose ``run`` against ``passport`` (fitted from the run when None); write the PNG to ``out_png`` and the
-    extended passport to ``out_passport`` (default: beside the run). ``as_json`` only silences the progress line
-    on stderr. Returns the report."""
+                     out_passport: Path | None = None, registry: Path | None = None) -> dict:
+    """Diagnose ``run`` against ``passport``, or the unit's current passport in ``registry``, or one fitted from
+    the run when neither is given; write the PNG to ``out_png`` and the extended passport to ``out_passport``
+    (default: beside the run). ``as_json`` only silences the progress line on stderr. Returns the report."""
     run = Path(run)
+    if passport is not None and registry is not None:
+        raise ThermocalError("give --passport or --registry, not both", where="diagnose")
     the_run = read_run(run)
-    doc = read_passport(passport) if passport is not None else None
+    doc, source = None, None
+    if passport is not None:
+        doc, source = read_passport(passport), str(passport)
+    elif registry is not None:
+        doc, source = current_passport(registry, the_run.meta.unit_serial)
     if not as_json:
         print(f"thermocal: diagnosing {run} ...", file=sys.stderr)
-    result = diagnose_run(the_run, doc, passport_source=str(passport) if passport is not None else None)
+    result = diagnose_run(the_run, doc, passport_source=source)
     png = Path(out_png) if out_png is not None else _beside(run, ".diagnose.png")
     ext = Path(out_passport) if out_passport is not None else _beside(run, ".diagnose.passport.json")
     try:

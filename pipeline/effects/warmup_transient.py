@@ -1,6 +1,7 @@
 """``warmup_transient``: bias settling after power-on (the recording start), U0 += A exp(-(t - t_start)/tau_w).
 
-Shows in the early part of the first plateau. The time-constant search runs from 10 s to 3 h.
+Shows in the early part of the first plateau. The time-constant search runs from 10 s to 24 h: a settling
+over a large part of the run is found inside the range (beyond it, it is a drift).
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ class WarmupTransient(Effect):
     order: ClassVar[int] = 4
     where: ClassVar[str] = "early part of the first plateau only"
     nonlinear: ClassVar[str | None] = "tau_s"
-    grid: ClassVar[tuple[float, ...]] = log_grid(10.0, 3 * 3600.0, 18)
+    grid: ClassVar[tuple[float, ...]] = log_grid(10.0, 24 * 3600.0, 26)
     a_v: Vec3 = (300e-6, -200e-6, 150e-6)
     tau_s: float = 900.0
 
