@@ -17,9 +17,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["UnitTypeRanges", "check_constants", "check_fit", "judged_status"]
+__all__ = ["IMPLAUSIBLE", "UnitTypeRanges", "assess", "check_constants", "check_fit", "judged_status",
+           "mirrored_axis"]
 
 AXES = "xyz"
+#: The prefix of a finding in a calibration's warnings (a warning that makes the status ``fail``).
+IMPLAUSIBLE = "implausible: "
 KELVIN_OFFSET_C = 273.15
 
 
@@ -116,13 +119,54 @@ def _unit_hint(r: float, what: str) -> str:
 
 def check_fit(fit, nominal_gain_v_per_g: float | None = None,
               ranges: UnitTypeRanges = UnitTypeRanges()) -> list[str]:
-    """:func:`check_constants` of a fit's per-plateau constants (anything with ``per_plateau`` items having
-    ``temp_c``, ``K``, ``U0``: the calibration recipes' ``UnitFit``)."""
+    """:func:`check_constants` of a calibration recipe's ``UnitFit``: its per-plateau constants, or (a method
+    without plateaus, e.g. the differential one) its thermal model at the ends of its valid range and at T0."""
     plateaus = list(getattr(fit, "per_plateau", []) or [])
-    if not plateaus:
+    if plateaus:
+        return check_constants([p.temp_c for p in plateaus], [p.K for p in plateaus], [p.U0 for p in plateaus],
+                               nominal_gain_v_per_g, ranges)
+    model = getattr(fit, "model", None)
+    if model is None or not hasattr(model, "constants_at"):
         return []
-    return check_constants([p.temp_c for p in plateaus], [p.K for p in plateaus], [p.U0 for p in plateaus],
-                           nominal_gain_v_per_g, ranges)
+    temps = [float(fit.normal_temp_c), *(getattr(fit, "valid_temp_c", None) or ())]
+    K, U0 = model.constants_at(np.asarray(temps, dtype=float))
+    return check_constants(temps, K, U0, nominal_gain_v_per_g, ranges)
+
+
+def mirrored_axis(labelled: list[tuple[str, str]]) -> str | None:
+    """A reversed axis seen in the naming of static positions: ``labelled`` holds (fixture log's position, position
+    the signal says) of the segments where the two disagree. When every such disagreement is the same single axis
+    with its sign flipped (TP2 <-> TP4, VP2 <-> VP5, ...), at least twice, the finding (one line); else None."""
+    from pipeline.positions import ALL_POSITIONS
+
+    hits: dict[int, set[tuple[str, str]]] = {}
+    for logged, signal in labelled:
+        if logged not in ALL_POSITIONS or signal not in ALL_POSITIONS:
+            return None
+        a, b = np.asarray(ALL_POSITIONS[logged], float), np.asarray(ALL_POSITIONS[signal], float)
+        flipped = np.isclose(a, -b) & ~np.isclose(a, 0.0)
+        if flipped.sum() != 1 or not np.all(flipped | np.isclose(a, b)):
+            return None
+        hits.setdefault(int(np.argmax(flipped)), set()).add((logged, signal))
+    if len(hits) != 1:
+        return None
+    (axis, pairs), = hits.items()
+    if sum(1 for _ in labelled) < 2:
+        return None
+    a = AXES[axis]
+    shown = ", ".join(f"{x}->{y}" for x, y in sorted(pairs)[:4])
+    return (f"every position the fixture log and the signal disagree on ({len(labelled)} segments: {shown}) differs "
+            f"by the sign of {a}: axis {a} reversed (wiring or mounting), or a fixture log mirrored in {a}?")
+
+
+def assess(fit, status: str, nominal_gain_v_per_g: float | None = None, run_warnings: list[str] = (),
+           ranges: UnitTypeRanges = UnitTypeRanges()) -> tuple[str, list[str]]:
+    """The calibration's status after the plausibility checks, and every finding (``implausible: ...`` lines: the
+    fit's, and those already among ``run_warnings`` from observing the runs): called by every recipe right after
+    the VP verification."""
+    problems = [w for w in run_warnings if w.startswith(IMPLAUSIBLE)]
+    problems += [f"{IMPLAUSIBLE}{p}" for p in check_fit(fit, nominal_gain_v_per_g, ranges)]
+    return judged_status(status, problems), problems
 
 
 def judged_status(status: str, problems: list[str]) -> str:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.plausibility import UnitTypeRanges, check_constants, judged_status
+from pipeline.plausibility import UnitTypeRanges, check_constants, judged_status, mirrored_axis
 
 
 @pytest.fixture(scope="module")
@@ -54,3 +54,12 @@ def test_cross_axis_offsets_and_gain_range(table):
     [gain] = check_constants(T, K * 3, U0 * 3, nominal_gain_v_per_g=-0.55)
     assert "factor 2" in gain and "about 2.99x" in gain and "mV" not in gain
     assert check_constants(T, K * 3, U0 * 3, -0.55, UnitTypeRanges(gain_factor=4)) == []
+
+
+def test_mirrored_axis_from_label_conflicts():
+    msg = mirrored_axis([("TP2", "TP4"), ("TP4", "TP2"), ("VP2", "VP5")])
+    assert "differs by the sign of y" in msg and "axis y reversed" in msg and "3 segments" in msg, msg
+    assert mirrored_axis([("TP2", "TP4")]) is None                        # once is not a pattern
+    assert mirrored_axis([("TP2", "TP4"), ("TP1", "TP3")]) is None        # not one axis
+    assert mirrored_axis([("TP2", "TP4"), ("TP1", "TP5")]) is None        # not a mirror
+    assert mirrored_axis([]) is None

@@ -54,6 +54,7 @@ from pipeline.calibrate.settings import CalibrationSettings
 from pipeline.dynamics import first_order_lag
 from pipeline.errors import CalibrationError
 from pipeline.passport.document import build_passport, load_passport
+from pipeline.plausibility import assess
 from pipeline.model import specific_force_g
 from pipeline.positions import AXES
 from pipeline.thermal import DifferentialModel, PolynomialModel, RateTerms, rate_basis
@@ -525,13 +526,17 @@ def calibrate_observed(observed: list[ObservedRun], settings: CalibrationSetting
                    round(max(w["temp_max_c"] for w in fit.windows), 1))
     unit_fit = UnitFit(unit=serial, normal_temp_c=t0, per_plateau=[], model=fit.model.static,
                        skipped=list(fit.notes), valid_temp_c=covered)
+    run_warnings = [w for r in observed for w in r.warnings]
+    status, implausible = assess(unit_fit, status, observed[0].meta.nominal_gain_v_per_g, run_warnings)
     plateaus = plateau_summary(observations)
     extra = {"differential": fit.summary(), "rate_terms": fit.model.rate.to_dict(),
-             "base_passport": {k: base_passport.get(k) for k in ("unit", "version", "method", "created_utc")}}
+             "base_passport": {k: base_passport.get(k) for k in ("unit", "version", "method", "created_utc")},
+             **({"implausible": implausible} if implausible else {})}
     doc = build_passport(unit_fit, rows, status, g_local_mps2=observed[0].meta.g_local_mps2, plateaus=plateaus,
                          method=METHOD, extra=extra)
     return CalibrationResult(passport=doc, fit=unit_fit, rows=rows, status=status, plateaus=plateaus,
-                             warnings=[w for r in observed for w in r.warnings] + list(fit.notes),
+                             warnings=run_warnings + list(fit.notes)
+                             + [p for p in implausible if p not in run_warnings],
                              settings_extra=base_reference(base_passport))
 
 

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.errors import CalibrationError
+from pipeline.plausibility import IMPLAUSIBLE, mirrored_axis
 from pipeline.positions import is_verification_position
 from pipeline.run import RunMeta
 from pipeline.segment import SegmentSettings, segment_run
@@ -91,6 +92,9 @@ def observe_run(run, settings: SegmentSettings = SegmentSettings()) -> tuple[lis
     warnings = list(run.warnings) + list(seg.warnings)
     if not any(o.plateau is not None for o in obs):
         raise _unusable_run(run, seg.plateaus, warnings, settings)
+    mirrored = mirrored_axis([(s.fixture_label, s.position) for s in seg.segments if s.label_conflict])
+    if mirrored:
+        warnings.append(f"{IMPLAUSIBLE}{run.source or run.meta.run_id}: {mirrored}")
     return obs, warnings
 
 

@@ -49,6 +49,7 @@ from pipeline.calibrate.settings import CalibrationSettings
 from pipeline.errors import CalibrationError
 from pipeline.model import gravity_module_error_g, specific_force_g
 from pipeline.passport.document import build_passport
+from pipeline.plausibility import assess
 from pipeline.segment import segment_run
 from pipeline.thermal import PolynomialModel
 from pipeline.uncertainty import ThermalSigma
@@ -409,11 +410,14 @@ def calibrate_observed(observed: list[ObservedRun], settings: CalibrationSetting
     unit_fit = UnitFit(unit=serial, normal_temp_c=t0, per_plateau=[plateau], model=thermal, skipped=notes,
                        valid_temp_c=(round(min(seg_temps), 1), round(max(seg_temps), 1)), uncertainty=sigma)
     rows, status = verify_unit(thermal, observations, t0, settings.tolerances)
+    run_warnings = [w for r in observed for w in r.warnings]
+    status, implausible = assess(unit_fit, status, meta.nominal_gain_v_per_g, run_warnings)
     plateaus = plateau_summary(observations)
     doc = build_passport(unit_fit, rows, status, g_local_mps2=meta.g_local_mps2, plateaus=plateaus,
-                         method=METHOD, extra={"scalar": fit_s.summary()})
+                         method=METHOD, extra={"scalar": fit_s.summary(),
+                                               **({"implausible": implausible} if implausible else {})})
     return CalibrationResult(passport=doc, fit=unit_fit, rows=rows, status=status, plateaus=plateaus,
-                             warnings=[w for r in observed for w in r.warnings] + notes)
+                             warnings=run_warnings + notes + [p for p in implausible if p not in run_warnings])
 
 
 def calibrate(runs, settings: CalibrationSettings = CalibrationSettings(), *, base_passport: dict | None = None,

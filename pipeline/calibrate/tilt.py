@@ -33,6 +33,7 @@ from pipeline.calibrate.settings import CalibrationSettings
 from pipeline.constants import fit_constants
 from pipeline.errors import CalibrationError
 from pipeline.passport.document import build_passport
+from pipeline.plausibility import assess
 from pipeline.positions import TEST_POSITIONS, gravity_vector_g, is_test_position
 from pipeline.thermal import ThermalModel, cluster_temperatures, fit_thermal_model
 from pipeline.uncertainty import (
@@ -68,10 +69,14 @@ def calibrate_observed(observed: list[ObservedRun], settings: CalibrationSetting
     observations = [o for r in observed for o in r.observations]
     fit = fit_unit(unit, observations, settings, meta.normal_temp_c)
     rows, status = verify_unit(fit.model, observations, meta.normal_temp_c, settings.tolerances)
+    run_warnings = [w for r in observed for w in r.warnings]
+    status, implausible = assess(fit, status, meta.nominal_gain_v_per_g, run_warnings)
     plateaus = plateau_summary(observations)
-    doc = build_passport(fit, rows, status, g_local_mps2=meta.g_local_mps2, plateaus=plateaus, method=METHOD)
+    doc = build_passport(fit, rows, status, g_local_mps2=meta.g_local_mps2, plateaus=plateaus, method=METHOD,
+                         extra={"implausible": implausible} if implausible else None)
     return CalibrationResult(passport=doc, fit=fit, rows=rows, status=status, plateaus=plateaus,
-                             warnings=[w for r in observed for w in r.warnings] + list(fit.skipped))
+                             warnings=run_warnings + list(fit.skipped)
+                             + [p for p in implausible if p not in run_warnings])
 
 
 def calibrate(runs, settings: CalibrationSettings = CalibrationSettings(), *, base_passport: dict | None = None

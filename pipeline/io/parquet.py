@@ -158,7 +158,8 @@ def _canonical_column(s: pl.Series, dtype: pl.DataType, *, path: str, stream: st
 # --- page checksums -----------------------------------------------------------------------------------------------
 # Thrift compact protocol, just enough to read a PageHeader's compressed_page_size (field 3) and crc (field 4) and
 # skip everything else (parquet.thrift). Field types of the compact protocol:
-_T_TRUE, _T_FALSE, _T_BYTE, _T_I16, _T_I32, _T_I64, _T_DOUBLE, _T_BINARY, _T_LIST, _T_SET, _T_MAP, _T_STRUCT = range(1, 13)
+(_T_TRUE, _T_FALSE, _T_BYTE, _T_I16, _T_I32, _T_I64, _T_DOUBLE, _T_BINARY, _T_LIST, _T_SET, _T_MAP,
+ _T_STRUCT) = range(1, 13)
 
 
 class _Corrupt(Exception):
