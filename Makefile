@@ -5,8 +5,8 @@ PYTHON ?= python3.11
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
-# Prefect: local ephemeral mode, a project-local home, no telemetry (no network here).
-export PREFECT_HOME ?= $(CURDIR)/.venv/prefect-home
+# Prefect: no telemetry (no network here). Its state lives where it does outside make: PREFECT_HOME if set, else
+# the per-user data folder (`thermocal server status` prints it; README, "Where Prefect records the runs").
 export PREFECT_SERVER_ANALYTICS_ENABLED := false
 export DO_NOT_TRACK := 1
 

@@ -123,8 +123,9 @@ def run_cli(folder: Path, registry: Path, workers: int, api_url: str | None, hom
     env = dict(os.environ, PREFECT_HOME=str(home))
     if api_url:
         env["PREFECT_API_URL"] = api_url
-    else:
+    else:  # Prefect's own per-process ephemeral API (thermocal's default is its local server: cli_latency.py)
         env.pop("PREFECT_API_URL", None)
+        env["THERMOCAL_PREFECT"] = "ephemeral"
     cmd = [str(Path(sys.executable).parent / "thermocal"), "fleet", str(folder), "--registry", str(registry),
            "--json", "--workers", str(workers)]
     t0 = time.perf_counter()
@@ -161,6 +162,7 @@ def cli_latency(run: str, repeats: int, workdir: Path, api_url: str | None) -> l
         env["PREFECT_API_URL"] = api_url
     else:
         env.pop("PREFECT_API_URL", None)
+        env["THERMOCAL_PREFECT"] = "ephemeral"
     times = []
     for k in range(repeats):
         reg = workdir / f"cli-reg-{'server' if api_url else 'ephemeral'}-{k}"
@@ -184,6 +186,7 @@ def start_local_api() -> tuple[str, float, int]:
     t0 = time.perf_counter()
     server = SubprocessASGIServer()
     server.start()
+    os.environ["PREFECT_API_URL"] = server.api_url  # the in-process flows record on it (not on a local server)
     return server.api_url, time.perf_counter() - t0, server.server_process.pid
 
 

@@ -11,7 +11,9 @@ the middle two:
 
 from __future__ import annotations
 
-from .runtime import prefect_defaults
+import os
+
+from .runtime import Steps, prefect_defaults
 
 prefect_defaults()
 
@@ -55,17 +57,27 @@ def calibrate_flow(paths: list[str], registry: str, settings: CalibrationSetting
     ``base_passport``'s normal-temperature constants). ``dry_run``: compute everything, write nothing to the
     registry."""
     logger = get_run_logger()
+    step = Steps("calibrate")               # progress lines on stderr when it is a terminal
     recipe(method)                          # an unknown method fails before any run is read
-    runs = [ingest(p) for p in paths]
+    runs = []
+    for p in paths:
+        step(f"ingest {os.path.basename(p)}")
+        runs.append(ingest(p))
     unit = unit_of(runs)
-    observed = [observe(run, method, settings, base_passport) for run in runs]
+    observed = []
+    for run, p in zip(runs, paths):
+        step(f"observe (segment, average) {os.path.basename(p)}")
+        observed.append(observe(run, method, settings, base_passport))
     del runs                                # the samples are not needed past the observations
+    step(f"fit ({method}: constants, thermal model, VP verification)")
     calibration = fit(observed, method, settings, base_passport)
     for w in calibration.warnings:
         logger.warning(w)
+    step("write" if not dry_run else "dry run (nothing written)")
     result = write(registry, calibration, list(paths), settings, dry_run)
     create_markdown_artifact(key=_artifact_key(unit), markdown=result_markdown(result),
                              description=f"thermocal calibration of {unit}")
+    step(f"done: {unit} v{result['version']} {result['status']}")
     return result
 
 
@@ -87,7 +99,8 @@ def result_markdown(result: dict) -> str:
 
 def run_calibrate(paths: list[str], registry: str, settings: CalibrationSettings,
                   method: str = "tilt", base_passport: dict | None = None, dry_run: bool = False) -> dict:
-    """Run the flow in this process (local ephemeral Prefect unless PREFECT_API_URL is set)."""
+    """Run the flow in this process, recorded on thermocal's local Prefect server
+    (:func:`flows.runtime.flow_settings`)."""
     from .runtime import flow_settings, quiet_task_failures
 
     with flow_settings(), quiet_task_failures():

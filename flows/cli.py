@@ -1,7 +1,9 @@
 """The ``thermocal`` command line (contract.md). Commands that take ``--json`` print one JSON object on stdout;
 logs and progress go to stderr; failures exit non-zero with a one-line reason on stderr.
 
-Prefect is imported only by the commands that run a flow (``calibrate``, ``fleet``, ``serve``).
+Prefect is imported only by the commands that run a flow (``calibrate``, ``fleet``, ``serve``). Without
+``PREFECT_API_URL``, ``calibrate`` and ``fleet`` run on the warm worker of thermocal's local Prefect server
+(:mod:`flows.localserver`, started on first use; ``thermocal server ...``), which records their flow runs.
 """
 
 from __future__ import annotations
@@ -20,6 +22,10 @@ app = typer.Typer(add_completion=False, pretty_exceptions_enable=False,
                   help="thermocal: thermal-chamber calibration of accelerometer units.")
 passport_app = typer.Typer(help="The passport audit trail: log, show, diff, approve, verify, head.")
 app.add_typer(passport_app, name="passport")
+server_app = typer.Typer(no_args_is_help=True, help="thermocal's local Prefect server: where flow runs are recorded.")
+app.add_typer(server_app, name="server")
+#: commands that run a Prefect flow: without PREFECT_API_URL they run on the local server's warm worker
+FLOW_COMMANDS = ("calibrate", "fleet")
 
 #: The help texts of options and arguments that several commands share.
 JSON_HELP = "print one JSON object on stdout instead of text"
@@ -439,6 +445,50 @@ def serve(inbox: Path = typer.Option(..., "--inbox", help="folder the chamber ru
                   dask_address=dask_address, workers=workers)
 
 
+# ----------------------------------------------------------------------------------------------------------- server
+@server_app.command("status")
+def server_status(as_json: bool = typer.Option(False, "--json", help="print one JSON object")):
+    """Where Prefect state lives (PREFECT_HOME) and the local server's API URL, if it is running."""
+    from .localserver import LOG, read_state, use_prefect_home
+
+    home = use_prefect_home()
+    st = read_state(home) or {}
+    obj = {"prefect_home": str(home), "running": bool(st), "api_url": st.get("api_url"), "ui_url": st.get("ui_url"),
+           "pid": st.get("pid"), "idle_timeout_s": st.get("idle_s"), "log": str(home / LOG),
+           "prefect_api_url_env": os.environ.get("PREFECT_API_URL")}
+    text = (f"PREFECT_HOME {home}\n" + (f"server running (pid {st['pid']}): API {st['api_url']}, UI {st['ui_url']}, "
+                                        f"exits after {st['idle_s']:.0f} s without a command" if st else
+                                        "server not running (starts with the next calibrate or fleet)")
+            + (f"\nPREFECT_API_URL is set: flows are recorded there instead" if os.environ.get("PREFECT_API_URL")
+               else ""))
+    _emit(obj, as_json, text)
+
+
+@server_app.command("start")
+def server_start():
+    """Start the local server now (else the next calibrate or fleet starts it); print its API URL."""
+    from .localserver import ensure_server
+
+    print(ensure_server()["api_url"])
+
+
+@server_app.command("url")
+def server_url():
+    """The local server's API URL (starting it if needed), for `PREFECT_API_URL=$(thermocal server url) prefect
+    flow-run ls` and the UI."""
+    from .localserver import ensure_server
+
+    print(ensure_server()["api_url"])
+
+
+@server_app.command("stop")
+def server_stop():
+    """Stop the local server (and its spare worker); commands running on it are interrupted."""
+    from .localserver import stop_server
+
+    print("stopped" if stop_server() else "not running")
+
+
 # --------------------------------------------------------------------------------------------------------- passport
 @passport_app.command("log")
 def passport_log(unit: str = typer.Argument(..., metavar="UNIT", help=UNIT_HELP),
@@ -584,9 +634,19 @@ def _usage_line(e: Exception) -> str:
 
 
 def main() -> None:
-    """Console entry point: one-line errors, no tracebacks (set THERMOCAL_DEBUG=1 to see them)."""
+    """Console entry point: one-line errors, no tracebacks (set THERMOCAL_DEBUG=1 to see them). Commands that run
+    a flow go to the local server's warm worker unless PREFECT_API_URL is set (:mod:`flows.localserver`)."""
     try:
-        rc = app(standalone_mode=False)
+        argv = sys.argv[1:]
+        if argv[:1] and argv[0] in FLOW_COMMANDS and "--help" not in argv:
+            from .localserver import run_on_server, use_prefect_home, uses_local_server
+
+            use_prefect_home()
+            if uses_local_server():
+                sys.exit(run_on_server(argv))
+        rc = app(standalone_mode=False, prog_name="thermocal")
+        if rc == 130:  # typer's answer to Ctrl-C (KeyboardInterrupt) in a command
+            raise KeyboardInterrupt
         sys.exit(rc if isinstance(rc, int) else 0)
     except _CLICK_ERRORS as e:  # usage: a missing or unknown command, option or value
         print(_usage_line(e), file=sys.stderr)

@@ -10,7 +10,6 @@ passport extended with the fitted effects, and returns the report (contract.md's
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 from pipeline.diagnose.diagnosis import diagnose_run
@@ -18,6 +17,8 @@ from pipeline.errors import ThermocalError
 from pipeline.io.runs import read_run
 from pipeline.passport.document import read_passport
 from pipeline.passport.registry import Registry
+
+from .runtime import Steps
 
 
 def _beside(run: Path, suffix: str) -> Path:
@@ -45,19 +46,22 @@ def diagnose_command(run: Path, passport: Path | None, as_json: bool, out_png: P
                      out_passport: Path | None = None, registry: Path | None = None) -> dict:
     """Diagnose ``run`` against ``passport``, or the unit's current passport in ``registry``, or one fitted from
     the run when neither is given; write the PNG to ``out_png`` and the extended passport to ``out_passport``
-    (default: beside the run). ``as_json`` only silences the progress line on stderr. Returns the report."""
+    (default: beside the run). Progress on stderr when it is a terminal (``as_json`` is not used). Returns the
+    report."""
     run = Path(run)
+    step = Steps("diagnose")
     if passport is not None and registry is not None:
         raise ThermocalError("give --passport or --registry, not both", where="diagnose")
+    step(f"ingest {run.name}")
     the_run = read_run(run)
     doc, source = None, None
     if passport is not None:
         doc, source = read_passport(passport), str(passport)
     elif registry is not None:
         doc, source = current_passport(registry, the_run.meta.unit_serial)
-    if not as_json:
-        print(f"thermocal: diagnosing {run} ...", file=sys.stderr)
+    step("segment, fit and search the residual" if doc is None else "segment and search the residual")
     result = diagnose_run(the_run, doc, passport_source=source)
+    step("write figure and extended passport")
     png = Path(out_png) if out_png is not None else _beside(run, ".diagnose.png")
     ext = Path(out_passport) if out_passport is not None else _beside(run, ".diagnose.passport.json")
     try:

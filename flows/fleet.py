@@ -14,7 +14,8 @@ Where the unit tasks run is a flow parameter, so that a deployment can choose it
   ``PREFECT_API_URL`` to it.
 - else a local pool of ``workers`` (default: the machine's CPU count). ``pool="process"``: the unit tasks run in
   Prefect's ThreadPoolTaskRunner and each hands its calibration to a process pool of the flow's own
-  (``concurrent.futures``, spawn, workers warmed by :func:`pipeline.calibrate.fleet.prepare_worker`), so the
+  (``concurrent.futures``, spawn, workers warmed by :func:`pipeline.calibrate.fleet.prepare_worker`, each leaving
+  when the flow's process is gone: :func:`flows.localserver.pool_worker_init`), so the
   computation runs in parallel past the GIL while Prefect's side of a task run (states, events) stays in the flow
   process. Prefect's ProcessPoolTaskRunner was dropped for this: it rebuilds Prefect's settings for every task
   run in the worker (~0.13 s of CPU per task, 15 % of a unit) and its workers import Prefect (~4 s to start).
@@ -38,7 +39,7 @@ import sys
 import time
 from concurrent.futures import Executor, ProcessPoolExecutor
 
-from .runtime import prefect_defaults
+from .runtime import Steps, prefect_defaults
 
 prefect_defaults()
 
@@ -112,8 +113,10 @@ def _compute_pool(processes: int):
     if not processes:
         yield
         return
+    from .localserver import pool_worker_init  # warms up, and leaves with this process (no orphans if killed)
+
     pool = ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("spawn"),
-                               initializer=fleet_plan.prepare_worker)
+                               initializer=pool_worker_init)
     token = _COMPUTE_POOL.set(pool)
     try:
         yield
@@ -186,7 +189,12 @@ def fleet_flow(root: str, registry: str, settings: CalibrationSettings = Calibra
     and ``timing`` (wall, planning and in-task compute seconds, the runner)."""
     logger = get_run_logger()
     t0 = time.perf_counter()
+    step = Steps("fleet")
+    step.on = step.on and progress
+    step(f"plan: find, read and hash the runs under {root}")
     plan = fleet_plan.plan_fleet(root, registry, settings, method)
+    step(f"{plan.runs_found} runs: {len(plan.groups)} units to calibrate, {len(plan.skipped)} runs skipped, "
+         f"{len(plan.failed)} unreadable")
     logger.info(f"{plan.runs_found} runs under {root}: {len(plan.groups)} units to calibrate, "
                 f"{len(plan.skipped)} runs skipped, {len(plan.failed)} unreadable")
     for f in plan.failed:
@@ -268,7 +276,8 @@ def summary_table(summary: dict) -> list[dict]:
 def run_fleet(root: str, registry: str, settings: CalibrationSettings = CalibrationSettings(), *,
               dask_address: str | None = None, workers: int | None = None, pool: str = "auto",
               figures: bool = True, progress: bool = False, method: str = "tilt") -> dict:
-    """Run the fleet flow in this process (local ephemeral Prefect unless PREFECT_API_URL is set)."""
+    """Run the fleet flow in this process, recorded on thermocal's local Prefect server
+    (:func:`flows.runtime.flow_settings`)."""
     from .runtime import flow_settings
 
     with flow_settings():

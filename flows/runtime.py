@@ -1,18 +1,21 @@
-"""Embedded Prefect defaults: local ephemeral mode with no server to set up, no telemetry, no heartbeat thread.
+"""Prefect defaults of thermocal: where flow runs are recorded, no telemetry, no heartbeat thread; progress lines.
 
-Call :func:`prefect_defaults` before importing prefect. When ``PREFECT_API_URL`` is set (a running server), it is
-used as is.
+Call :func:`prefect_defaults` before importing prefect. Flow runs are recorded on ``PREFECT_API_URL`` when it is
+set (a server of the user's), else on thermocal's local server (:mod:`flows.localserver`, started on first use),
+or with ``THERMOCAL_PREFECT=ephemeral`` in Prefect's own per-process ephemeral mode.
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
+import sys
+import time
 
 _DEFAULTS = {
     "PREFECT_SERVER_ANALYTICS_ENABLED": "false",
     "DO_NOT_TRACK": "1",
-    # the ephemeral server starts in ~8-13 s here; give slow machines room
+    # the ephemeral server (THERMOCAL_PREFECT=ephemeral) starts in ~8-13 s here; give slow machines room
     "PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS": "120",
     "PREFECT_LOGGING_LEVEL": "WARNING",
 }
@@ -29,11 +32,17 @@ def prefect_defaults() -> None:
 
 @contextlib.contextmanager
 def flow_settings():
-    """Settings in force while a flow runs: no heartbeat thread (it costs ~1 s per flow run)."""
+    """Settings in force while a flow runs: the API it is recorded on (see the module doc), no heartbeat thread
+    (it costs ~1 s per flow run)."""
     prefect_defaults()
-    from prefect.settings import PREFECT_FLOWS_HEARTBEAT_FREQUENCY, temporary_settings
+    from prefect.settings import PREFECT_API_URL, PREFECT_FLOWS_HEARTBEAT_FREQUENCY, temporary_settings
 
-    with temporary_settings({PREFECT_FLOWS_HEARTBEAT_FREQUENCY: None}):
+    from .localserver import ensure_server, uses_local_server
+
+    updates = {PREFECT_FLOWS_HEARTBEAT_FREQUENCY: None}
+    if uses_local_server() and not PREFECT_API_URL.value():
+        updates[PREFECT_API_URL] = ensure_server()["api_url"]
+    with temporary_settings(updates):
         yield
 
 
@@ -53,3 +62,24 @@ def quiet_task_failures():
     finally:
         for lg, lvl in zip(loggers, levels):
             lg.setLevel(lvl)
+
+
+class Steps:
+    """Progress of a long command on stderr, one line per step (``thermocal: calibrate: fit (1.2 s)``), only when
+    stderr is a terminal: nothing is added to a piped or ``--json`` command's output."""
+
+    def __init__(self, command: str, stream=None):
+        self.command = command
+        self.stream = stream
+        self.t0 = time.perf_counter()
+        out = self.stream or sys.stderr
+        try:
+            self.on = bool(out.isatty())
+        except (AttributeError, ValueError):
+            self.on = False
+
+    def __call__(self, step: str) -> None:
+        if self.on:
+            out = self.stream or sys.stderr
+            out.write(f"thermocal: {self.command}: {step} ({time.perf_counter() - self.t0:.1f} s)\n")
+            out.flush()

@@ -21,6 +21,24 @@ os.environ["DO_NOT_TRACK"] = "1"
 os.environ["THERMOCAL_KEY_DIR"] = tempfile.mkdtemp(prefix="thermocal-test-keys-")
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _stop_local_prefect_server():
+    """thermocal's local Prefect server for this session's PREFECT_HOME, if a test started it, is stopped at the
+    end (it would exit by itself after its idle timeout)."""
+    yield
+    import sys
+
+    if "prefect" in sys.modules:  # send this process's pending events and logs while the server is still up
+        from prefect.events.worker import EventsWorker
+        from prefect.logging.handlers import APILogWorker
+
+        EventsWorker.drain_all(timeout=30)
+        APILogWorker.drain_all(timeout=30)
+    from flows.localserver import stop_server
+
+    stop_server(Path(os.environ["PREFECT_HOME"]))
+
+
 @pytest.fixture(scope="session")
 def seed000():
     """The paper's Tables 1-3 (pipeline/simulate/data holds a copy of shared/reference/seed000_tables.json)."""

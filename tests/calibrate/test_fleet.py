@@ -139,25 +139,18 @@ def _by_unit(summary):
 
 
 def _api_filter(kind: str, body: dict) -> list[dict]:
-    """POST /api/<kind>/filter on the Prefect API the flows used (this client's own filter methods send null
-    fields the server refuses)."""
+    """POST /api/<kind>/filter on the Prefect API the flows used (this session's local server)."""
     import httpx
-    from prefect import get_client
 
-    with get_client(sync_client=True) as client:
-        return httpx.post(f"{client.api_url}{kind}/filter", json={"limit": 200, **body}, timeout=30).json()
+    return httpx.post(f"{_local_api_url()}/{kind}/filter", json={"limit": 200, **body}, timeout=30).json()
 
 
 def _local_api_url() -> str:
-    """The URL of the Prefect API this test session uses (its local temporary server, started if need be)."""
-    from prefect.server.api.server import SubprocessASGIServer
-    from prefect.settings import PREFECT_API_URL
+    """The URL of the Prefect API this test session's flows are recorded on (thermocal's local server for the
+    session's PREFECT_HOME, started if need be; stopped at the end of the session by conftest)."""
+    from flows.localserver import ensure_server
 
-    if PREFECT_API_URL.value():
-        return PREFECT_API_URL.value()
-    server = SubprocessASGIServer()
-    server.start()
-    return server.api_url
+    return os.environ.get("PREFECT_API_URL") or ensure_server()["api_url"]
 
 
 def _failed_reason(summary, name):
