@@ -27,19 +27,11 @@ def _beside(run: Path, suffix: str) -> Path:
 
 
 def current_passport(registry: Path, unit: str) -> tuple[dict, str]:
-    """The unit's current passport in ``registry`` (contract.md: the newest approved version, else the newest) and
-    a description of where it came from."""
-    reg = Registry(registry)
-    versions = reg.versions(unit)
-    approved = getattr(reg, "approved_versions", None)
-    chosen = None
-    if callable(approved):
-        ok = [int(v) for v in approved(unit)]
-        chosen = max(ok) if ok else None
-    if chosen is None:
-        chosen = max(v.version for v in versions) if versions else None
-    doc = reg.load(unit, chosen)
-    return doc, f"{registry} (unit {unit}, version {chosen})"
+    """The unit's current passport in ``registry`` (contract.md: the newest approved version, else the newest:
+    :meth:`pipeline.passport.registry.Registry.load_current`) and a description of where it came from."""
+    doc, approved = Registry(registry).load_current(unit)
+    state = "approved" if approved else "the newest, none approved"
+    return doc, f"{registry} (unit {unit}, version {doc.get('version')}, {state})"
 
 
 def diagnose_command(run: Path, passport: Path | None, as_json: bool, out_png: Path | None,

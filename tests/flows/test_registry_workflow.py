@@ -99,3 +99,14 @@ def test_cli_approve_and_differential_base_is_the_current_passport(calibrated, t
     reg2.publish(failing, inputs=[{"path": "other", "sha256": "e" * 64}], settings={}, code_version="t")
     with pytest.raises(ThermocalError, match="failed its verification"):
         _base_passport(run_path, tmp_path / "reg2", None)
+
+
+def test_diagnose_registry_compares_with_the_current_passport(calibrated, tmp_path):
+    """diagnose --registry: the unit's current passport (v2, approved above, though a newer v3 exists)."""
+    from flows.diagnose_cmd import diagnose_command
+
+    run_path, reg, _ = calibrated
+    assert Registry(reg).current("AU-0001") == 2 and len(Registry(reg).versions("AU-0001")) == 3
+    rep = diagnose_command(run_path, None, True, tmp_path / "d.png", tmp_path / "d.json", registry=reg)
+    assert "unit AU-0001, version 2, approved" in rep["passport_source"]
+    assert rep["verdict"] == "consistent" and rep["findings"] == []
