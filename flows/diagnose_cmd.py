@@ -57,12 +57,11 @@ def diagnose_command(run: Path, passport: Path | None, as_json: bool, out_png: P
     png = Path(out_png) if out_png is not None else _beside(run, ".diagnose.png")
     ext = Path(out_passport) if out_passport is not None else _beside(run, ".diagnose.passport.json")
     try:
-        from pipeline.diagnose.plot import plot_residuals
+        from pipeline.diagnose.plot import plot_diagnosis
 
         title = (f"{the_run.meta.unit_serial} {the_run.meta.run_id}: residual of 30 s blocks, "
                  f"{result.report['verdict']}")
-        plot_residuals(png, result.t_h, result.before_v, result.after_v, result.sigma_v, result.windows_h,
-                       result.located_h, title=title)
+        plot_diagnosis(png, result, the_run, title=title)
         ext.parent.mkdir(parents=True, exist_ok=True)
         ext.write_text(json.dumps(result.passport, indent=1, sort_keys=True) + "\n")
     except OSError as e:

@@ -9,14 +9,17 @@ import numpy as np
 
 from pipeline.thermal import cluster_temperatures
 
-#: The series of the verification figure: row attribute (g), legend label, matplotlib format, colour.
-_DG_SERIES = (("dg_uncompensated_g", "uncompensated", "o-", "C0"), ("dg_method1_g", "method 1", "s-", "C1"),
+#: The series of the verification figure: row field (g), legend label, matplotlib format, colour; the first on
+#: the upper axes (before compensation), the others on the lower axes (after).
+_DG_SERIES = (("dg_uncompensated_g", "uncompensated", "o-", "C0"), ("dg_method1_g", "method 1 (verdict)", "s-", "C1"),
               ("dg_method2_g", "method 2", "^--", "C2"))
 #: Width of one verification position on the x axis of the figure (in), and the margins around the axes (in):
 #: fixed, so no layout pass (``tight_layout`` measured every text once more: 40 % of the figure's time).
 _SLOT_IN = 0.42
 _MARGINS_IN = {"left": 0.85, "right": 0.15, "bottom": 0.35, "top": 0.95}
-_HEIGHT_IN = 3.6
+_PANEL_IN = 2.3          # height of each of the two axes (before, after)
+_GAP_IN = 0.75           # between them: the position names of the upper axes
+_HEIGHT_IN = _MARGINS_IN["top"] + _MARGINS_IN["bottom"] + 2 * _PANEL_IN + _GAP_IN
 _VERIFICATION_DPI = 100
 #: Fewest slots of a panel (its title needs them) and of the whole axes.
 _MIN_PANEL_SLOTS = 4
@@ -32,76 +35,224 @@ def new_figure(nrows: int, ncols: int, **subplots_kw):
 
 
 def plot_verification(rows, path: str | Path, *, title: str = "") -> Path:
-    """VP gravity-module errors before and after compensation, per verification temperature (like seed 000's
-    Fig. 6-7): dg in micro-g at each verification position, uncompensated, method 1 and method 2, over the
-    tolerance band. The temperatures are panels side by side in one axes (shared dg scale), each titled with its
-    temperature and tolerance and set apart by a vertical line.
+    """VP gravity-module errors before and after compensation (like seed 000's Fig. 6-7), in micro-g, in two axes
+    with scales of their own: above, uncompensated (the normal-temperature constants at every temperature); below,
+    compensated by method 1 (the verdict) and method 2. ``rows``: :class:`pipeline.verify.VerificationRow` or
+    their dicts (a passport's ``verification``).
 
-    Drawn for throughput (a fleet draws one per unit): one axes, fixed margins (no layout pass), the position
-    names as plain texts (no tick objects), one Agg draw straight to the PNG (fast zlib level), legend at a fixed
-    place (no "best" search): about 0.1 s, a quarter of the earlier figure (one axes per temperature,
-    ``tight_layout``, ``savefig``).
+    One panel per visit of a verification temperature, coldest first (a temperature visited twice has two panels,
+    told apart by "visit 1/2" in their titles), each titled with its temperature and limit, with the limit band
+    shaded where it fits the scale; points beyond their limit are circled in red (on the lower axes they failed
+    the calibration).
+
+    Drawn for throughput (a fleet draws one per unit): fixed margins (no layout pass), the position names as plain
+    texts (no tick objects), one Agg draw straight to the PNG (fast zlib level), legends at fixed places.
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
     from matplotlib.patches import Rectangle
 
     path = Path(path)
-    panels = _panels(rows)
+    panels = _panels([_row_dict(r) for r in rows])
     slots = sum(p["width"] for p in panels) + max(len(panels) - 1, 0)
     width_in = _MARGINS_IN["left"] + _MARGINS_IN["right"] + _SLOT_IN * max(slots, _MIN_SLOTS)
     fig = Figure(figsize=(width_in, _HEIGHT_IN), dpi=_VERIFICATION_DPI)
     fig.subplots_adjust(left=_MARGINS_IN["left"] / width_in, right=1 - _MARGINS_IN["right"] / width_in,
-                        bottom=_MARGINS_IN["bottom"] / _HEIGHT_IN, top=1 - _MARGINS_IN["top"] / _HEIGHT_IN)
-    ax = fig.add_subplot()
-    ax.set_xticks([])
+                        bottom=_MARGINS_IN["bottom"] / _HEIGHT_IN, top=1 - _MARGINS_IN["top"] / _HEIGHT_IN,
+                        hspace=_GAP_IN / _PANEL_IN)
+    before, after = fig.subplots(2, 1)
+    for ax in (before, after):
+        ax.set_xticks([])
     if not panels:
-        ax.text(0.5, 0.5, "no VP data", ha="center", transform=ax.transAxes)
+        before.text(0.5, 0.5, "no VP data", ha="center", transform=before.transAxes)
     else:
-        # the panels' points in one array each, a NaN between panels so that no line joins two temperatures
         x = np.concatenate([np.append(p["x"], np.nan) for p in panels])[:-1]
-        for attr, label, fmt, colour in _DG_SERIES:
-            dg_ug = np.concatenate([np.append([getattr(r, attr) for r in p["rows"]], np.nan) for p in panels])[:-1]
-            ax.plot(x, dg_ug * 1e6, fmt, color=colour, label=label, ms=4)
-        below = ax.get_xaxis_transform()  # x in data, y in axes fraction
-        for k, p in enumerate(panels):
-            lim_ug = p["rows"][0].tolerance_g * 1e6
-            band = ax.add_patch(Rectangle((p["x0"], -lim_ug), p["width"], 2 * lim_ug, color="0.9", zorder=0,
-                                          label="tolerance"))
-            ax.text(p["x0"] + p["width"] / 2, 1.02, f"{p['temp_c']:+.1f} C (+-{lim_ug:.0f} ug)", ha="center",
-                    va="bottom", fontsize=9, transform=below)
-            for xi, r in zip(p["x"], p["rows"]):
-                ax.text(xi, -0.02, r.position, ha="center", va="top", fontsize=7, transform=below)
-            if k:
-                ax.axvline(p["x0"] - 0.5, color="0.6", lw=0.8)
-        ax.axhline(0, color="k", lw=0.5)
-        ax.set_xlim(panels[0]["x0"], panels[-1]["x0"] + panels[-1]["width"])
-        handles = ax.get_lines()[:len(_DG_SERIES)] + [band]
-        # a row of its own under the title (left-aligned with the axes), above the panel titles
-        fig.legend(handles=handles, loc="upper left", ncols=len(handles), fontsize=7, frameon=False,
-                   bbox_to_anchor=(_MARGINS_IN["left"] / width_in, 1 - 0.38 / _HEIGHT_IN), borderaxespad=0)
-    ax.set_ylabel("dg = |a| - 1  [micro-g]")
-    fig.suptitle(title or "Gravity-module error at the verification positions", x=_MARGINS_IN["left"] / width_in,
-                 y=1 - 0.08 / _HEIGHT_IN, ha="left", va="top")
+        lim_ug = np.concatenate([np.append([r["tolerance_g"] for r in p["rows"]], np.nan) for p in panels])[:-1] * 1e6
+        for ax, series in ((before, _DG_SERIES[:1]), (after, _DG_SERIES[1:])):
+            peak = 0.0
+            for field, label, fmt, colour in series:
+                dg_ug = np.concatenate([np.append([r[field] for r in p["rows"]], np.nan)
+                                        for p in panels])[:-1] * 1e6
+                ax.plot(x, dg_ug, fmt, color=colour, label=label, ms=4)
+                bad = np.abs(dg_ug) > lim_ug
+                if bad.any():
+                    ax.plot(x[bad], dg_ug[bad], "o", ms=11, mfc="none", mec="red", mew=1.5,
+                            label="beyond the limit" if field == series[-1][0] else None)
+                peak = max(peak, float(np.nanmax(np.abs(dg_ug))))
+            _panel_decor(ax, panels, peak, Rectangle)
+        before.legend(loc="upper left", bbox_to_anchor=(0, 1.16), ncols=4, fontsize=7, frameon=False,
+                      borderaxespad=0)
+        after.legend(loc="upper left", bbox_to_anchor=(0, 1.16), ncols=4, fontsize=7, frameon=False,
+                     borderaxespad=0)
+    before.set_ylabel("before: dg  [micro-g]", fontsize=9)
+    after.set_ylabel("after: dg  [micro-g]", fontsize=9)
+    fig.suptitle(title or "Gravity-module error dg = |a| - 1 at the verification positions",
+                 x=_MARGINS_IN["left"] / width_in, y=1 - 0.08 / _HEIGHT_IN, ha="left", va="top")
     path.parent.mkdir(parents=True, exist_ok=True)
     FigureCanvasAgg(fig).print_png(path, pil_kwargs={"compress_level": 1})
     return path
 
 
-def _panels(rows) -> list[dict]:
-    """The verification rows by temperature cluster (coldest first; time order within), laid out on the x axis:
-    ``rows``, their ``x`` (one slot each, centred in the panel), the panel's left edge ``x0`` and ``width``
-    (slots: at least :data:`_MIN_PANEL_SLOTS`, room for the title), its mean temperature ``temp_c`` (C); one
-    empty slot between panels."""
+def _panel_decor(ax, panels: list[dict], peak_ug: float, Rectangle) -> None:
+    """Limit bands (where they fit the axes' scale), panel titles, position names and separators."""
+    span = max(peak_ug, 1.0) * 1.15
+    ax.set_ylim(-span, span)
+    below = ax.get_xaxis_transform()  # x in data, y in axes fraction
+    for k, p in enumerate(panels):
+        lim_ug = p["rows"][0]["tolerance_g"] * 1e6
+        if lim_ug < span:
+            ax.add_patch(Rectangle((p["x0"], -lim_ug), p["width"], 2 * lim_ug, color="0.9", zorder=0))
+        visit = f", visit {p['visit']}" if p["visits"] > 1 else ""
+        ax.text(p["x0"] + p["width"] / 2, 1.01, f"{p['temp_c']:+.1f} C{visit} (limit {lim_ug:.0f})", ha="center",
+                va="bottom", fontsize=7, transform=below)
+        for xi, r in zip(p["x"], p["rows"]):
+            ax.text(xi, -0.02, r["position"], ha="center", va="top", fontsize=7, transform=below)
+        if k:
+            ax.axvline(p["x0"] - 0.5, color="0.6", lw=0.8)
+    ax.axhline(0, color="k", lw=0.5)
+    ax.set_xlim(panels[0]["x0"], panels[-1]["x0"] + panels[-1]["width"])
+
+
+def _row_dict(r) -> dict:
+    """A verification row as a dict (rows come as VerificationRow objects or as a passport's dicts)."""
+    return r if isinstance(r, dict) else r.to_dict()
+
+
+def _panels(rows: list[dict]) -> list[dict]:
+    """The verification rows (dicts) by visit of a temperature: rows of one temperature cluster that follow each
+    other in time (in one run) make one visit. Panels coldest first, visits in time order; each panel has its
+    ``rows``, their ``x`` (one slot each, centred in the panel), its left edge ``x0`` and ``width`` (slots: at
+    least :data:`_MIN_PANEL_SLOTS`, room for the title), its mean temperature ``temp_c`` (C), ``visit`` (1, 2, ..)
+    of ``visits`` at that temperature; one empty slot between panels."""
     if not len(rows):
         return []
-    labels = cluster_temperatures(np.array([r.temp_c for r in rows], dtype=float))
+    rows = sorted(rows, key=lambda r: (r.get("run_id", ""), r.get("t_start_ns", 0)))
+    labels = cluster_temperatures(np.array([r["temp_c"] for r in rows], dtype=float))
+    visits: list[list[int]] = []   # row indices of each visit, in time order
+    for i, lab in enumerate(labels):
+        if i and lab == labels[i - 1] and rows[i].get("run_id") == rows[i - 1].get("run_id"):
+            visits[-1].append(i)
+        else:
+            visits.append([i])
+    cluster_temp = {c: float(np.mean([r["temp_c"] for r, lab in zip(rows, labels) if lab == c]))
+                    for c in set(labels.tolist())}
+    order = sorted(range(len(visits)), key=lambda v: (cluster_temp[labels[visits[v][0]]], v))
+    count = {c: sum(labels[v[0]] == c for v in visits) for c in set(labels.tolist())}
+    seen: dict[int, int] = {}
     panels, x0 = [], 0.0
-    for c in range(int(labels.max()) + 1):
-        sel = [r for r, lab in zip(rows, labels) if lab == c]
+    for v in order:
+        sel = [rows[i] for i in visits[v]]
+        c = int(labels[visits[v][0]])
+        seen[c] = seen.get(c, 0) + 1
         width = max(len(sel), _MIN_PANEL_SLOTS)
         x = x0 + (width - len(sel)) / 2 + 0.5 + np.arange(len(sel))
-        panels.append({"rows": sel, "x": x, "x0": x0, "width": width,
-                       "temp_c": float(np.mean([r.temp_c for r in sel]))})
+        panels.append({"rows": sel, "x": x, "x0": x0, "width": width, "visit": seen[c], "visits": count[c],
+                       "temp_c": float(np.mean([r["temp_c"] for r in sel]))})
         x0 += width + 1
     return panels
+
+
+#: Rows of the constants figure: (key, y label); each followed by the row of its residuals from the model.
+_CONSTANT_ROWS = (("gain", "gain K_ii\nchange [ppm]"), ("cross", "cross-axis K_ij\nchange [ppm of K_ii]"),
+                  ("offset", "offset U0_i\nchange [micro-g]"))
+
+
+def constant_changes(K: np.ndarray, U0: np.ndarray, K0: np.ndarray, U00: np.ndarray) -> dict[str, np.ndarray]:
+    """The constants ``K`` (n, 3, 3) V/g and ``U0`` (n, 3) V as changes from the normal-temperature ``K0``, ``U00``
+    in engineering units: ``gain`` (n, 3) in ppm of the axis gain, ``cross`` (n, 3, 2) the two cross-axis terms
+    of each row in ppm of its gain (columns in axis order, the diagonal left out), ``offset`` (n, 3) in micro-g
+    (the offset's change over the axis gain)."""
+    K, U0 = np.asarray(K, float), np.asarray(U0, float)
+    gain0 = np.diag(np.asarray(K0, float))
+    dK = (K - np.asarray(K0, float)) / gain0[None, :, None] * 1e6
+    off = ~np.eye(3, dtype=bool)
+    return {"gain": np.einsum("nii->ni", dK), "cross": dK[:, off].reshape(len(K), 3, 2),
+            "offset": (U0 - np.asarray(U00, float)) / gain0 * 1e6}
+
+
+def plot_constants(passport: dict, path: str | Path, *, title: str = "") -> Path:
+    """The core figure of a thermal calibration: the constants found on each plateau against temperature (points,
+    with their standard uncertainty as error bars where the passport has it), the fitted thermal model (line) and
+    its residuals (plateau minus model, the row under each), per axis (columns x, y, z): gain K_ii in ppm,
+    cross-axis K_ij in ppm of the gain, offset U0_i in micro-g, all as changes from the normal-temperature
+    constants. ``passport``: a passport document (``per_plateau``, ``coefficients``, ``thermal_model``,
+    ``uncertainty``)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from pipeline.passport.document import load_model
+
+    path = Path(path)
+    pp = passport.get("per_plateau") or []
+    K0 = np.asarray(passport["coefficients"]["K"], float)
+    U00 = np.asarray(passport["coefficients"]["U0"], float)
+    fig = Figure(figsize=(12, 10.5), dpi=90)
+    axes = fig.subplots(6, 3, sharex=True, gridspec_kw={"height_ratios": [3, 1.3] * 3})
+    fig.subplots_adjust(left=0.09, right=0.99, bottom=0.05, top=0.92, hspace=0.12, wspace=0.22)
+    if pp:
+        T = np.array([p["temp_c"] for p in pp], float)
+        points = constant_changes([p["K"] for p in pp], [p["U0"] for p in pp], K0, U00)
+        sig = _plateau_sigmas(passport, len(pp), K0)
+        grid = np.linspace(min(T.min(), float(passport.get("normal_temp_c", 20.0))), T.max(), 121)
+        model = load_model(passport)
+        at_grid = constant_changes(*model.constants_at(grid), K0, U00)
+        at_T = constant_changes(*model.constants_at(T), K0, U00)
+        axis = "xyz"
+        for r, (key, label) in enumerate(_CONSTANT_ROWS):
+            for i in range(3):
+                ax, res = axes[2 * r, i], axes[2 * r + 1, i]
+                others = [j for j in range(3) if j != i]
+                for k in range(points[key].shape[-1] if key == "cross" else 1):
+                    y = points[key][:, i, k] if key == "cross" else points[key][:, i]
+                    fit = at_grid[key][:, i, k] if key == "cross" else at_grid[key][:, i]
+                    yT = at_T[key][:, i, k] if key == "cross" else at_T[key][:, i]
+                    e = None if sig is None else (sig[key][:, i, k] if key == "cross" else sig[key][:, i])
+                    colour = f"C{k}" if key == "cross" else "C0"
+                    name = f"K{axis[i]}{axis[others[k]]}" if key == "cross" else None
+                    ax.errorbar(T, y, yerr=e, fmt="o", ms=4, color=colour, capsize=2, lw=1,
+                                label=f"{name} per plateau" if name else "per plateau")
+                    ax.plot(grid, fit, "-", color=colour, lw=1,
+                            label=f"{name} model" if name else "thermal model")
+                    res.errorbar(T, y - yT, yerr=e, fmt="o", ms=3, color=colour, capsize=2, lw=1)
+                res.axhline(0, color="k", lw=0.5)
+                ax.grid(alpha=0.3)
+                res.grid(alpha=0.3)
+                if i == 0:
+                    ax.set_ylabel(label, fontsize=8)
+                    res.set_ylabel("residual", fontsize=8)
+                if r == 0:
+                    ax.set_title(f"axis {axis[i]}", fontsize=10)
+                if key == "cross" or (r == 0 and i == 0):
+                    ax.legend(fontsize=6, loc="best", frameon=False)
+                ax.tick_params(labelsize=7)
+                res.tick_params(labelsize=7)
+        for ax in axes[-1]:
+            ax.set_xlabel("temperature [C]", fontsize=8)
+    else:
+        axes[0, 0].text(0.5, 0.5, "no plateau constants", ha="center", transform=axes[0, 0].transAxes)
+    kind = passport.get("thermal_model", {}).get("kind", "")
+    order = passport.get("thermal_model", {}).get("order")
+    model_name = f"polynomial of order {order}" if kind == "polynomial" else kind.replace("_", " ")
+    fig.suptitle(title or f"Constants per plateau against temperature, thermal model: {model_name}", fontsize=11)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    FigureCanvasAgg(fig).print_png(path, pil_kwargs={"compress_level": 1})
+    return path
+
+
+def _plateau_sigmas(passport: dict, n: int, K0: np.ndarray) -> dict[str, np.ndarray] | None:
+    """The per-plateau standard uncertainties of the passport in the units of :func:`constant_changes`, or None
+    when it has none (NaN where one plateau has none)."""
+    rows = ((passport.get("uncertainty") or {}).get("per_plateau")) or []
+    if len(rows) != n:
+        return None
+    K = np.array([r["K"] if r.get("K") is not None else np.full((3, 3), np.nan) for r in rows], float)
+    U0 = np.array([r["U0"] if r.get("U0") is not None else np.full(3, np.nan) for r in rows], float)
+    return _sigma_changes(K, U0, K0)
+
+
+def _sigma_changes(K_sigma: np.ndarray, U0_sigma: np.ndarray, K0: np.ndarray) -> dict[str, np.ndarray]:
+    gain0 = np.diag(np.asarray(K0, float))
+    s = K_sigma / np.abs(gain0)[None, :, None] * 1e6
+    off = ~np.eye(3, dtype=bool)
+    return {"gain": np.einsum("nii->ni", s), "cross": s[:, off].reshape(len(s), 3, 2),
+            "offset": U0_sigma / np.abs(gain0) * 1e6}

@@ -115,15 +115,33 @@ def _unusable_run(run, plateaus, warnings: list[str], settings: SegmentSettings)
 
 def verify_unit(model, observations: list[Observation], normal_temp_c: float,
                 tolerances: Tolerances = Tolerances()) -> tuple[list[VerificationRow], str]:
-    """dg at every VP observation on a plateau; returns the rows (by time) and the overall status."""
-    vp = sorted((o for o in observations if is_verification_position(o.position) and o.plateau is not None),
-                key=lambda o: (o.run_id, o.t_start_ns))
+    """dg at every VP observation on a plateau, except a soak hold (:func:`soak_holds`); returns the rows (by time)
+    and the overall status."""
+    held = soak_holds(observations)
+    vp = sorted((o for o in observations if is_verification_position(o.position) and o.plateau is not None
+                 and id(o) not in held), key=lambda o: (o.run_id, o.t_start_ns))
     if not vp:
         return [], "unverified"
     rows = verify_positions(model, [o.position for o in vp], np.array([o.u_v for o in vp]),
                             np.array([o.temp_c for o in vp]), normal_temp_c=normal_temp_c, tolerances=tolerances,
                             run_ids=[o.run_id for o in vp], spans_ns=[(o.t_start_ns, o.t_end_ns) for o in vp])
     return rows, overall_status(rows)
+
+
+def soak_holds(observations: list[Observation]) -> set[int]:
+    """``id()`` of the observations that are soak holds: the first observation on a plateau whose position is the
+    one the run held just before (the unit stayed there through the ramp and the soak). It was taken while the
+    unit settled, not as a visit of the position, so it is no verification result."""
+    by_run: dict[str, list[Observation]] = {}
+    for o in observations:
+        by_run.setdefault(o.run_id, []).append(o)
+    held = set()
+    for rows in by_run.values():
+        rows = sorted(rows, key=lambda o: o.t_start_ns)
+        for prev, o in zip(rows, rows[1:]):
+            if o.plateau is not None and o.plateau != prev.plateau and o.position == prev.position:
+                held.add(id(o))
+    return held
 
 
 def plateau_summary(observations: list[Observation]) -> list[dict]:

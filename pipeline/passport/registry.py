@@ -9,6 +9,7 @@ Layout (everything is plain files; nothing but this module writes there)::
           log.jsonl      append-only: one JSON line per version {version, sha256, created_utc, identity}
           v0001.json     passport version 1 (read-only, 0444)
           v0001.png      its verification figure (written after the version)
+          v0001.constants.png   its constants against temperature (written by ``calibrate``)
           v0002.json     passport version 2, "parent_sha256" = sha256 of v0001.json's bytes
           approvals.jsonl  append-only: one signed approval record per line (:meth:`Registry.approve`)
           .tmp-*.json    only while a writer holds the lock (a leftover is a killed writer's, cleaned at next publish)
@@ -58,7 +59,7 @@ __all__ = [
 ]
 
 _VERSION_FILE = re.compile(r"^v(\d+)\.json$")
-_FIGURE_FILE = re.compile(r"^v(\d+)\.png$")
+_FIGURE_FILE = re.compile(r"^v(\d+)(\.constants)?\.png$")
 _TEMP_PREFIX = ".tmp-"
 _UNIT_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$")
 _LOG_NAME = "log.jsonl"
