@@ -303,30 +303,16 @@ def _calibration_settings(thermal_model: str, constants_method: str, tol_normal_
                                tolerances=Tolerances(normal_g=tol_normal_g, operating_range_g=tol_range_g))
 
 
-def _runs_of(names: list[str]) -> str:
-    """``TP1 TP2 TP2 TP2`` -> ``TP1 TP2 x3``."""
-    import itertools
-
-    return " ".join(f"{k} x{n}" if n > 1 else k
-                    for k, n in ((k, len(list(g))) for k, g in itertools.groupby(names)))
-
-
 def _calibrate_text(r: dict) -> str:
-    if r.get("dry_run"):
-        head = (f"{r['unit']}: dry run, nothing written (same inputs and settings as v{r['version']})"
-                if r.get("existing") else f"{r['unit']}: dry run, nothing written (would be v{r['version']})")
-    else:
-        head = (f"{r['unit']}: passport v{r['version']} {'written' if r.get('created') else '(unchanged inputs)'}: "
-                f"{r['passport']}")
-    lines = [head, f"status: {r['status']}"]
-    for p in r["plateaus"]:
-        lines.append(f"  plateau {p['temp_c']:+7.2f} C  {_runs_of(p['positions'])}")
-    for v in r["verification"]:
-        lines.append(f"  VP {v['temp_c']:+7.2f} C {v['position']}: dg uncomp {v['dg_uncompensated_g'] * 1e6:8.1f} ug"
-                     f"  m1 {v['dg_method1_g'] * 1e6:8.1f} ug  m2 {v['dg_method2_g'] * 1e6:8.1f} ug")
-    for w in r.get("warnings", []):
-        lines.append(f"  warning: {w}")
-    return "\n".join(lines)
+    from pipeline.passport.text import calibrate_lines
+
+    doc = r.get("passport_content") if r.get("dry_run") else None
+    if doc is None and r.get("passport") and Path(r["passport"]).is_file():
+        try:
+            doc = json.loads(Path(r["passport"]).read_text())
+        except (OSError, ValueError):
+            doc = None
+    return "\n".join(calibrate_lines(r, doc))
 
 
 # ----------------------------------------------------------------------------------------------------------- export
@@ -518,23 +504,49 @@ def server_stop():
 def passport_log(unit: str = typer.Argument(..., metavar="UNIT", help=UNIT_HELP),
                  registry: Path = typer.Option(..., "--registry", help=REGISTRY_HELP),
                  as_json: bool = typer.Option(False, "--json", help=JSON_HELP)):
-    """Versions of a unit: number, date, status, inputs."""
+    """Versions of a unit: number, date, method, thermal model, status, largest error after compensation,
+    approval."""
     from pipeline.passport.registry import Registry
+    from pipeline.passport.text import log_lines
 
-    rows = Registry(registry).log(unit)
-    text = "\n".join(f"v{r['version']:<4} {r['created_utc']}  {str(r.get('status')):<10} {r['sha256'][:12]}  "
-                     + ", ".join(Path(p).name for p in r.get("inputs", [])) for r in rows)
-    _emit({"unit": unit, "versions": rows}, as_json, text or f"{unit}: no versions")
+    reg = Registry(registry)
+    rows = reg.log(unit)
+    if as_json:
+        _emit({"unit": unit, "versions": rows}, True)
+        return
+    docs = {}
+    for r in rows:
+        try:
+            docs[r["version"]] = reg.load(unit, r["version"])
+        except ThermocalError:
+            pass  # an unreadable version is listed with what the log knows
+    _emit(None, False, "\n".join(log_lines(rows, docs)) if rows else f"{unit}: no versions")
 
 
 @passport_app.command("show")
 def passport_show(unit: str = typer.Argument(..., metavar="UNIT", help=UNIT_HELP),
                   version: Optional[int] = typer.Argument(None, metavar="V", help="version number (default: the newest)"),
-                  registry: Path = typer.Option(..., "--registry", help=REGISTRY_HELP)):
-    """One version of a unit's passport (the newest when no version is given), as JSON."""
+                  registry: Path = typer.Option(..., "--registry", help=REGISTRY_HELP),
+                  as_json: bool = typer.Option(False, "--json", help="print the passport document itself (JSON)")):
+    """One version of a unit's passport (the newest when no version is given): a readable summary, or with --json
+    the document itself."""
     from pipeline.passport.registry import Registry
+    from pipeline.passport.text import passport_summary
 
-    _emit(Registry(registry).load(unit, version), True)
+    reg = Registry(registry)
+    doc = reg.load(unit, version)
+    if as_json:
+        _emit(doc, True)
+        return
+    approved = next((r.get("approved") for r in reg.log(unit) if r["version"] == doc.get("version")), None)
+    vdir = reg.unit_dir(unit) if hasattr(reg, "unit_dir") else None
+    figures = []
+    if vdir is not None:
+        for suffix in (".png", ".constants.png"):
+            f = vdir / f"v{int(doc.get('version') or 0):04d}{suffix}"
+            if f.exists():
+                figures.append(str(f))
+    _emit(None, False, passport_summary(doc, approved=approved, figures=figures))
 
 
 @passport_app.command("diff")
@@ -542,23 +554,16 @@ def passport_diff(unit: str = typer.Argument(..., metavar="UNIT", help=UNIT_HELP
                   v1: int = typer.Argument(..., metavar="V1", help="the older version number"),
                   v2: int = typer.Argument(..., metavar="V2", help="the newer version number"),
                   registry: Path = typer.Option(..., "--registry", help=REGISTRY_HELP),
+                  show_all: bool = typer.Option(False, "--all", help="list the changes within their uncertainty "
+                                                                     "too, one per line"),
                   as_json: bool = typer.Option(False, "--json", help=JSON_HELP)):
-    """Which constants changed between two versions, by how much (units of physics.md)."""
+    """What changed between two versions: fields, settings, inputs, and each constant and thermal coefficient in
+    ppm of the gain or micro-g, marked when it exceeds its combined uncertainty."""
     from pipeline.passport.registry import Registry
+    from pipeline.passport.text import diff_lines
 
     d = Registry(registry).diff(unit, v1, v2)
-    _emit(d, as_json, None if as_json else _diff_text(d))
-
-
-def _diff_text(d: dict) -> str:
-    lines = []
-    for key, val in d.items():
-        if isinstance(val, list):
-            lines.append(f"{key}:")
-            lines += [f"  {json.dumps(x, default=_json_default)}" for x in val]
-        else:
-            lines.append(f"{key}: {json.dumps(val, default=_json_default)}")
-    return "\n".join(lines)
+    _emit(d, as_json, None if as_json else "\n".join(diff_lines(d, show_all)))
 
 
 @passport_app.command("approve")

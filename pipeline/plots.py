@@ -7,7 +7,6 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.thermal import cluster_temperatures
 
 #: The series of the verification figure: row field (g), legend label, matplotlib format, colour; the first on
 #: the upper axes (before compensation), the others on the lower axes (after).
@@ -119,35 +118,18 @@ def _row_dict(r) -> dict:
 
 
 def _panels(rows: list[dict]) -> list[dict]:
-    """The verification rows (dicts) by visit of a temperature: rows of one temperature cluster that follow each
-    other in time (in one run) make one visit. Panels coldest first, visits in time order; each panel has its
-    ``rows``, their ``x`` (one slot each, centred in the panel), its left edge ``x0`` and ``width`` (slots: at
-    least :data:`_MIN_PANEL_SLOTS`, room for the title), its mean temperature ``temp_c`` (C), ``visit`` (1, 2, ..)
-    of ``visits`` at that temperature; one empty slot between panels."""
-    if not len(rows):
-        return []
-    rows = sorted(rows, key=lambda r: (r.get("run_id", ""), r.get("t_start_ns", 0)))
-    labels = cluster_temperatures(np.array([r["temp_c"] for r in rows], dtype=float))
-    visits: list[list[int]] = []   # row indices of each visit, in time order
-    for i, lab in enumerate(labels):
-        if i and lab == labels[i - 1] and rows[i].get("run_id") == rows[i - 1].get("run_id"):
-            visits[-1].append(i)
-        else:
-            visits.append([i])
-    cluster_temp = {c: float(np.mean([r["temp_c"] for r, lab in zip(rows, labels) if lab == c]))
-                    for c in set(labels.tolist())}
-    order = sorted(range(len(visits)), key=lambda v: (cluster_temp[labels[visits[v][0]]], v))
-    count = {c: sum(labels[v[0]] == c for v in visits) for c in set(labels.tolist())}
-    seen: dict[int, int] = {}
+    """The verification rows (dicts) by visit (:func:`pipeline.verify.verification_visits`: coldest first, the
+    visits of one temperature in time order), laid out on the x axis: each visit's ``rows``, their ``x`` (one slot
+    each, centred in the panel), the panel's left edge ``x0`` and ``width`` (slots: at least
+    :data:`_MIN_PANEL_SLOTS`, room for the title), ``temp_c``, ``visit`` and ``visits``; one empty slot between
+    panels."""
+    from pipeline.verify import verification_visits
+
     panels, x0 = [], 0.0
-    for v in order:
-        sel = [rows[i] for i in visits[v]]
-        c = int(labels[visits[v][0]])
-        seen[c] = seen.get(c, 0) + 1
-        width = max(len(sel), _MIN_PANEL_SLOTS)
-        x = x0 + (width - len(sel)) / 2 + 0.5 + np.arange(len(sel))
-        panels.append({"rows": sel, "x": x, "x0": x0, "width": width, "visit": seen[c], "visits": count[c],
-                       "temp_c": float(np.mean([r["temp_c"] for r in sel]))})
+    for v in verification_visits(rows):
+        width = max(len(v["rows"]), _MIN_PANEL_SLOTS)
+        x = x0 + (width - len(v["rows"])) / 2 + 0.5 + np.arange(len(v["rows"]))
+        panels.append({**v, "x": x, "x0": x0, "width": width})
         x0 += width + 1
     return panels
 

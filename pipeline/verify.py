@@ -93,3 +93,35 @@ def summary_by_temperature(rows: list[VerificationRow], cluster_tol_c: float = 3
             "max_abs_dg_method2_simplified_g": max(abs(r.dg_method2_simplified_g) for r in sel),
         })
     return out
+
+
+def verification_visits(rows: list[dict], cluster_tol_c: float = 3.0) -> list[dict]:
+    """The verification rows (dicts, as in a passport's ``verification``) by visit of a temperature: rows of one
+    temperature cluster that follow each other in time (in one run) make one visit. Visits coldest first, those
+    of one temperature in time order; each ``{"rows", "temp_c" (mean, C), "visit" (1, 2, ...), "visits" (at that
+    temperature)}``."""
+    from pipeline.thermal import cluster_temperatures
+
+    if not len(rows):
+        return []
+    rows = sorted(rows, key=lambda r: (r.get("run_id", ""), r.get("t_start_ns", 0)))
+    labels = cluster_temperatures(np.array([r["temp_c"] for r in rows], dtype=float), cluster_tol_c)
+    groups: list[list[int]] = []   # row indices of each visit, in time order
+    for i, lab in enumerate(labels):
+        if i and lab == labels[i - 1] and rows[i].get("run_id") == rows[i - 1].get("run_id"):
+            groups[-1].append(i)
+        else:
+            groups.append([i])
+    cluster_temp = {c: float(np.mean([r["temp_c"] for r, lab in zip(rows, labels) if lab == c]))
+                    for c in set(labels.tolist())}
+    order = sorted(range(len(groups)), key=lambda g: (cluster_temp[labels[groups[g][0]]], g))
+    count = {c: sum(labels[g[0]] == c for g in groups) for c in cluster_temp}
+    seen: dict[int, int] = {}
+    out = []
+    for g in order:
+        c = int(labels[groups[g][0]])
+        seen[c] = seen.get(c, 0) + 1
+        sel = [rows[i] for i in groups[g]]
+        out.append({"rows": sel, "temp_c": float(np.mean([r["temp_c"] for r in sel])), "visit": seen[c],
+                    "visits": count[c]})
+    return out

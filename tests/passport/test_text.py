@@ -1,0 +1,102 @@
+"""What a person reads (issue 16, item 6): calibrate's summary, passport log / show / diff, on a real registry."""
+
+from __future__ import annotations
+
+import json
+import re
+import sys
+
+import pytest
+
+from flows.cli import _calibrate_text, main
+from pipeline.passport.registry import Registry
+from pipeline.passport.text import diff_lines, verification_lines
+
+
+def run_main(monkeypatch, capsys, *args: str) -> tuple[int, str, str]:
+    monkeypatch.setattr(sys, "argv", ["thermocal", *args])
+    with pytest.raises(SystemExit) as info:
+        main()
+    out, err = capsys.readouterr()
+    return info.value.code, out, err
+
+
+def test_calibrate_summary_is_a_table_per_temperature(calibrated_registry):
+    res = calibrated_registry["results"][0]
+    doc = json.loads(open(res["passport"]).read())
+    text = _calibrate_text({**res, "constants_figure": "c.png"})
+    lines = text.splitlines()
+    assert len(lines) < 30, text
+    # one row per visit of a verification temperature, with its limit in micro-g
+    rows = [ln for ln in lines if re.match(r"^\s+[+-]\d+\.\d C", ln)]
+    temps = sorted({round(v["temp_c"]) for v in doc["verification"]})
+    assert len(rows) >= len(temps) and all(("1000" in r or "300" in r) for r in rows), text
+    m1_by_temp: dict[int, float] = {}   # the "after m1" column: the largest |dg| of the visit, in micro-g
+    for r in rows:
+        m = re.search(r"(\d+\.\d)\s+(\d+\.\d)\s+(\d+\.\d)\s+(\d+)\s+(pass|FAIL)", r)
+        assert m, r
+        t = round(float(r.split()[0]))
+        m1_by_temp[t] = max(m1_by_temp.get(t, 0.0), float(m.group(2)))
+    for t in temps:
+        worst = max(abs(v["dg_method1_g"]) for v in doc["verification"] if round(v["temp_c"]) == t) * 1e6
+        assert abs(m1_by_temp[t] - worst) < 0.051, (t, m1_by_temp, worst)
+    assert f"figure, VP errors: {res['figure']}" in text and "figure, constants: c.png" in text
+    assert "constants at T0 = +20.0 C" in text and "+-" in text and "ppm" in text and "ug" in text
+
+
+def test_failing_rows_are_marked():
+    rows = [{"temp_c": -10.0, "position": f"VP{k}", "run_id": "r", "t_start_ns": k, "dg_uncompensated_g": 5e-3,
+             "dg_method1_g": (1.4e-3 if k == 2 else 2e-6), "dg_method2_g": 1e-5, "tolerance_g": 1e-3,
+             "passed": k != 2} for k in range(1, 7)]
+    lines = verification_lines({"verification": rows})
+    row = next(ln for ln in lines if "-10.0 C" in ln)
+    assert "FAIL" in row and "5000.0" in row and "1400.0" in row and "1000" in row
+    assert any("FAIL VP2" in ln and "1400.0 > 1000" in ln for ln in lines)
+    assert not any("FAIL VP1" in ln for ln in lines)
+
+
+def test_passport_log_show_and_diff(monkeypatch, capsys, calibrated_registry):
+    reg, unit = str(calibrated_registry["registry"]), calibrated_registry["unit"]
+    code, out, err = run_main(monkeypatch, capsys, "passport", "log", unit, "--registry", reg)
+    assert code == 0 and err == ""
+    v1, v2 = [ln for ln in out.splitlines() if re.match(r"^ [ *] v\d", ln)]
+    assert "tilt_six_position" in v1 and "poly" in v1 and "ug" in v1
+    assert "piecewise" in v2
+    docs = [Registry(reg).load(unit, v) for v in (1, 2)]
+    for line, doc in zip((v1, v2), docs):
+        assert doc["status"] in line
+        worst = max(abs(r["dg_method1_g"]) for r in doc["verification"]) * 1e6
+        assert f"{worst:.1f}ug" in line
+    code, out, _ = run_main(monkeypatch, capsys, "passport", "show", unit, "1", "--registry", reg)
+    assert code == 0 and not out.lstrip().startswith("{") and len(out.splitlines()) < 40
+    for what in ("passport v1", "method: tilt_six_position", "thermal model: polynomial", "approval:",
+                 "constants at T0", "verification at the VP positions", "inputs (sha256)",
+                 docs[0]["provenance"]["inputs"][0]["sha256"][:16], "v0001.png"):
+        assert what in out, what
+    code, out, _ = run_main(monkeypatch, capsys, "passport", "show", unit, "1", "--registry", reg, "--json")
+    assert json.loads(out) == docs[0]
+    code, out, _ = run_main(monkeypatch, capsys, "passport", "diff", unit, "1", "2", "--registry", reg)
+    assert code == 0
+    assert "thermal_model.kind: polynomial -> piecewise_linear" in out
+    assert "thermal models of different forms" in out
+    assert "e-1" not in out                   # no 16-digit numbers: tiny deltas are counted, not listed
+    assert "within their uncertainty" in out or "constants and thermal coefficients: unchanged" in out
+
+
+def test_diff_prints_significant_changes_in_engineering_units():
+    d = {"unit": "U", "v1": 1, "v2": 2, "fields": [], "settings": [], "inputs": {},
+         "significance": {"coverage_factor": 2.0},
+         "constants": [{"name": "K.xx", "unit": "V/g", "delta": 5.5e-5, "delta_scaled": 100.0,
+                        "scaled_unit": "ppm of gain", "uncertainty": 1.1e-6, "uncertainty_scaled": 2.0,
+                        "significant": True},
+                       {"name": "U0.y", "unit": "V", "delta": 1e-16, "delta_scaled": 1.8e-10,
+                        "scaled_unit": "micro-g", "uncertainty": 1e-7, "uncertainty_scaled": 0.18,
+                        "significant": False}],
+         "thermal_model": [{"name": "alpha.x[1]", "unit": "V/C^1", "delta": 1e-6, "delta_scaled": 1.8,
+                            "scaled_unit": "micro-g/C^1", "uncertainty": 1e-8, "uncertainty_scaled": 0.018,
+                            "significant": True}]}
+    text = "\n".join(diff_lines(d))
+    assert re.search(r"K\.xx\s+\+100 ppm of gain \(\+-2, 50\.0 sigma\)\s+SIGNIFICANT", text), text
+    assert "U0.y" not in text and "1 more within their uncertainty" in text
+    assert "alpha.x[1]" in text and "micro-g/C^1" in text
+    assert "U0.y" in "\n".join(diff_lines(d, show_all=True))
