@@ -457,7 +457,7 @@ def serve(inbox: Path = typer.Option(..., "--inbox", help="folder the chamber ru
 
 # ----------------------------------------------------------------------------------------------------------- server
 @server_app.command("status")
-def server_status(as_json: bool = typer.Option(False, "--json", help="print one JSON object")):
+def server_status(as_json: bool = typer.Option(False, "--json", help=JSON_HELP)):
     """Where Prefect state lives (PREFECT_HOME) and the local server's API URL, if it is running."""
     from .localserver import LOG, read_state, use_prefect_home
 
@@ -497,6 +497,46 @@ def server_stop():
     from .localserver import stop_server
 
     print("stopped" if stop_server() else "not running")
+
+
+
+
+# ----------------------------------------------------------------------------------------------------------- report
+@app.command()
+def report(unit: str = typer.Argument(..., metavar="UNIT", help=UNIT_HELP),
+           version: Optional[int] = typer.Argument(None, metavar="V",
+                                                   help="version number (default: the unit's current passport: "
+                                                        "the newest approved version, else the newest)"),
+           registry: Path = typer.Option(..., "--registry", help=REGISTRY_HELP),
+           out: Path = typer.Option(..., "--out", help="where to write the certificate (an .html file)"),
+           pdf: Optional[Path] = typer.Option(None, "--pdf", help="also print it to this PDF file (needs Chromium)"),
+           as_json: bool = typer.Option(False, "--json", help=JSON_HELP)):
+    """A calibration certificate a person reads and signs: one HTML file that stands alone (figures embedded)."""
+    from pipeline.passport.registry import Registry
+    from pipeline.passport.report import certificate_html, print_pdf
+
+    reg = Registry(registry)
+    if version is None and hasattr(reg, "current"):
+        version = reg.current(unit)
+    doc = reg.load(unit, version)
+    approved = next((r.get("approved") for r in reg.log(unit) if r["version"] == doc.get("version")), None)
+    page = certificate_html(doc, approved=approved, registry=str(registry))
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = out.with_name(f".{out.name}.tmp")
+        tmp.write_text(page, encoding="utf-8")
+        os.replace(tmp, out)
+    except OSError as e:
+        raise ThermocalError(f"cannot write the certificate ({e.strerror or e})", path=str(out)) from None
+    pdf_path = str(print_pdf(out, pdf)) if pdf is not None else None
+    obj = {"unit": unit, "version": doc.get("version"), "status": doc.get("status"), "certificate": str(out),
+           "pdf": pdf_path, "approved": bool(approved), "valid_temp_c": doc.get("valid_temp_c")}
+    valid = doc.get("valid_temp_c")
+    text = (f"{unit} v{doc.get('version')} ({doc.get('status')}, "
+            + (f"valid {valid[0]:+.1f} .. {valid[1]:+.1f} C, " if valid else "")
+            + f"{'approved' if approved else 'not approved'}): certificate {out}"
+            + (f", PDF {pdf_path}" if pdf_path else ""))
+    _emit(obj, as_json, text)
 
 
 # --------------------------------------------------------------------------------------------------------- passport
