@@ -68,7 +68,7 @@ def plot_verification(rows, path: str | Path, *, title: str = "") -> Path:
         x = np.concatenate([np.append(p["x"], np.nan) for p in panels])[:-1]
         lim_ug = np.concatenate([np.append([r["tolerance_g"] for r in p["rows"]], np.nan) for p in panels])[:-1] * 1e6
         for ax, series in ((before, _DG_SERIES[:1]), (after, _DG_SERIES[1:])):
-            peak = 0.0
+            peak, ringed = 0.0, False
             for field, label, fmt, colour in series:
                 dg_ug = np.concatenate([np.append([r[field] for r in p["rows"]], np.nan)
                                         for p in panels])[:-1] * 1e6
@@ -76,7 +76,8 @@ def plot_verification(rows, path: str | Path, *, title: str = "") -> Path:
                 bad = np.abs(dg_ug) > lim_ug
                 if bad.any():
                     ax.plot(x[bad], dg_ug[bad], "o", ms=11, mfc="none", mec="red", mew=1.5,
-                            label="beyond the limit" if field == series[-1][0] else None)
+                            label=None if ringed else "beyond the limit")
+                    ringed = True
                 peak = max(peak, float(np.nanmax(np.abs(dg_ug))))
             _panel_decor(ax, panels, peak, Rectangle)
         before.legend(loc="upper left", bbox_to_anchor=(0, 1.16), ncols=4, fontsize=7, frameon=False,
