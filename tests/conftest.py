@@ -78,3 +78,16 @@ def run_in_child(fn, prepare, what: str) -> None:
         os._exit(code)
     _, status = os.waitpid(pid, 0)
     assert os.waitstatus_to_exitcode(status) == 0, f"{what} failed (traceback above)"
+
+
+def run_main(monkeypatch, capsys, *args: str) -> tuple[int, str, str]:
+    """The ``thermocal`` console entry point in this process: (exit code, stdout, stderr)."""
+    import sys
+
+    from flows.cli import main
+
+    monkeypatch.setattr(sys, "argv", ["thermocal", *args])
+    with pytest.raises(SystemExit) as info:
+        main()
+    out, err = capsys.readouterr()
+    return info.value.code, out, err

@@ -18,11 +18,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from flows.cli import main
 from pipeline.calibrate.tilt import CalibrationSettings, fit_unit, observe_run, verify_unit
 from pipeline.errors import CalibrationError, RunFormatError, ThermocalError
 from pipeline.io.runs import read_run
 from tests.acceptance.badcorpus import BLOCK_SAMPLES, CASES, Case, build_corpus, truth_at_normal_temp, valid
+from tests.conftest import run_main
 
 SHARED = Path(__file__).resolve().parents[3] / "shared"
 CONFORMANCE = SHARED / "reference" / "mcap-conformance"
@@ -59,15 +59,6 @@ def check_error_line(text: str, path: Path, case: Case) -> None:
     assert case.stream in text and case.where in text, text
     for fragment in case.says:
         assert fragment in text, text
-
-
-def run_main(monkeypatch, capsys, *args: str) -> tuple[int, str, str]:
-    """The console entry point in this process: (exit code, stdout, stderr)."""
-    monkeypatch.setattr(sys, "argv", ["thermocal", *args])
-    with pytest.raises(SystemExit) as info:
-        main()
-    out, err = capsys.readouterr()
-    return info.value.code, out, err
 
 
 def error_lines(stderr: str) -> list[str]:

@@ -11,18 +11,11 @@ from pathlib import Path
 import pytest
 import typer
 
-from flows.cli import app, main
+from flows.cli import app
 from pipeline.inspect import format_summary, utc_text
+from tests.conftest import run_main
 
 THERMOCAL = str(Path(sys.executable).parent / "thermocal")
-
-
-def run_main(monkeypatch, capsys, *args: str) -> tuple[int, str, str]:
-    monkeypatch.setattr(sys, "argv", ["thermocal", *args])
-    with pytest.raises(SystemExit) as info:
-        main()
-    out, err = capsys.readouterr()
-    return info.value.code, out, err
 
 
 @pytest.mark.parametrize("args, says", [

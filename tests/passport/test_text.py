@@ -4,21 +4,12 @@ from __future__ import annotations
 
 import json
 import re
-import sys
 
-import pytest
 
-from flows.cli import _calibrate_text, main
+from flows.cli import _calibrate_text
 from pipeline.passport.registry import Registry
 from pipeline.passport.text import diff_lines, verification_lines
-
-
-def run_main(monkeypatch, capsys, *args: str) -> tuple[int, str, str]:
-    monkeypatch.setattr(sys, "argv", ["thermocal", *args])
-    with pytest.raises(SystemExit) as info:
-        main()
-    out, err = capsys.readouterr()
-    return info.value.code, out, err
+from tests.conftest import run_main
 
 
 def test_calibrate_summary_is_a_table_per_temperature(calibrated_registry):
