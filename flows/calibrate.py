@@ -1,7 +1,7 @@
 """The calibration flow: ingest -> observe -> fit -> write, one Prefect task per step (per file for ingest and
 observe). Each task is a call of one library function; the method's recipe (``pipeline.calibrate.methods``:
-``tilt``, seed 000, the default; ``scalar``, seed 004; ``differential``, seed 003, from a base passport) supplies
-the middle two:
+``tilt``, seed 000, the default; ``scalar``, seed 004; ``differential``, seed 003, from a base passport or, on
+sweeps, from the orientations) supplies the middle two:
 
 - ingest:  ``pipeline.io.runs.read_run``
 - observe: ``<recipe>.observe`` (``pipeline.calibrate.observations``: segmentation and per-segment averages)

@@ -135,12 +135,17 @@ def simulate(out: Path = typer.Option(..., "--out", help="output .mcap file or P
              program: str = typer.Option("standard", "--program",
                                          help="chamber program: standard (full temperature steps), short (a few "
                                               "plateaus, for quick tries) | differential (six orientations "
-                                              "through a temperature cycle)"),
+                                              "through a temperature cycle) | handheld (36 hand-turned poses of "
+                                              "3 s at 20 C; use ~100 Hz and --jitter-ms) | sweep (three "
+                                              "orientations, the temperature drifting 5-25 C, no plateau)"),
              rate_hz: float = typer.Option(10.0, "--rate-hz", help="voltmeter sampling rate, Hz"),
              noise_uv: float = typer.Option(5.0, "--noise-uv", help="voltmeter noise per sample, micro-volts"),
              case_lag_s: Optional[float] = typer.Option(None, "--case-lag-s",
                                                         help="time constant of the unit's case temperature behind "
                                                              "the chamber air, s (default: the unit type's)"),
+             jitter_ms: float = typer.Option(0.0, "--jitter-ms",
+                                             help="voltmeter timestamp jitter (standard deviation), ms: a wireless "
+                                                  "logger's irregular stamps"),
              no_fixture_log: bool = typer.Option(False, "--no-fixture-log",
                                                  help="leave out the fixture's position log"),
              encoding: str = typer.Option("json", "--encoding", help="MCAP message encoding: json | protobuf"),
@@ -170,7 +175,7 @@ def simulate(out: Path = typer.Option(..., "--out", help="output .mcap file or P
     except ValueError as e:
         raise ThermocalError(str(e), where="--disturbance") from None
     cfg = SimConfig(unit_serial=unit, seed=seed, unit_seed=unit_seed, program=program, rate_hz=rate_hz,
-                    noise_v=noise_uv * 1e-6, case_lag_s=case_lag_s, effects=effects,
+                    noise_v=noise_uv * 1e-6, case_lag_s=case_lag_s, effects=effects, jitter_s=jitter_ms * 1e-3,
                     disturbances=disturbances, with_fixture_log=not no_fixture_log)
     res = simulate_run(cfg)
     opts = {"encoding": encoding} if fmt == "mcap" and encoding != "json" else {}
@@ -206,15 +211,18 @@ def calibrate(runs: List[Path] = typer.Argument(..., metavar="RUN",
                                                       "temperature, g"),
               tol_range_g: float = typer.Option(1e-3, "--tol-range-g",
                                                 help="pass limit of |dg| over the rest of the temperature range, g"),
-              method: str = typer.Option("tilt", "--method",
-                                         help="tilt (known fixture positions, default) | scalar (the positions "
-                                              "need not be known: only |a| = 1 g is used) | differential (a "
-                                              "temperature cycle in fixed orientations, starting from an earlier "
-                                              "passport)"),
+              method: str = typer.Option("auto", "--method",
+                                         help="auto (default: the method the recording supports, as inspect "
+                                              "says, and the result says which) | tilt (known fixture positions) | "
+                                              "scalar (the positions need not be known: only |a| = 1 g is used) | "
+                                              "differential (fixed orientations through a temperature cycle or "
+                                              "sweep)"),
               base_passport: Optional[Path] = typer.Option(
                   None, "--base-passport", help="differential: normal-temperature passport to start from "
                                                 "(default: the unit's current passport in the registry: its "
-                                                "newest approved version, else its newest that did not fail)"),
+                                                "newest approved version, else its newest that did not fail; "
+                                                "without one, the constants the orientations determine by "
+                                                "themselves)"),
               dry_run: bool = typer.Option(False, "--dry-run", help="compute and print everything, write nothing "
                                                                     "to the registry"),
               as_json: bool = typer.Option(False, "--json", help=JSON_HELP)):
@@ -222,21 +230,45 @@ def calibrate(runs: List[Path] = typer.Argument(..., metavar="RUN",
 
     Exit status 1 (with the result printed) when the calibration's status is fail."""
     settings = _calibration_settings(thermal_model, constants_method, tol_normal_g, tol_range_g)
-    _check_method(method)
+    if method != "auto":
+        _check_method(method)
     for r in runs:
         if not r.exists():
             raise ThermocalError("no such file or directory", path=str(r))
+    chosen = None
+    if method == "auto":
+        method, chosen = _auto_method(runs[0])
     base = _base_passport(runs[0], registry, base_passport) if _needs_base(method) else None
     from .calibrate import run_calibrate
 
     result = run_calibrate([str(r) for r in runs], str(registry), settings, method, base, dry_run)
     if not dry_run:
         result["constants_figure"] = _constants_figure(result)
+    if chosen:
+        result["method_auto"] = chosen
     _emit(result, as_json, None if as_json else _calibrate_text(result))
     if result.get("status") == "fail":
         print(f"thermocal: calibrate: {result['unit']}: status fail (the compensated gravity-module error "
               "exceeds its limit at a verification position)", file=sys.stderr)
         raise typer.Exit(1)
+
+
+def _auto_method(run: Path) -> tuple[str, str]:
+    """The method inspect says the recording supports (:func:`pipeline.inspect.describe_recording`), and a line
+    saying which and why; a recording no method fits is a one-line error."""
+    from pipeline.inspect import describe_recording
+    from pipeline.io.runs import read_run
+    from pipeline.segment import segment_run
+
+    r = read_run(run)
+    rec = describe_recording(r, segment_run(r))
+    chosen = rec["method_auto"]
+    if chosen is None:
+        why = "; ".join(f"{m['method']}: {m['why']}" for m in rec["methods"])
+        raise ThermocalError(f"no calibration method fits this recording ({rec['temperature']['kind']}; {why})",
+                             path=str(run))
+    m = next(m for m in rec["methods"] if m["method"] == chosen)
+    return chosen, f"{chosen} ({rec['temperature']['kind']}: {m['why']})"
 
 
 def _check_method(method: str) -> None:
@@ -274,7 +306,9 @@ def _constants_figure(result: dict) -> str | None:
     return str(fig)
 
 
-def _base_passport(run: Path, registry: Path, path: Path | None) -> dict:
+def _base_passport(run: Path, registry: Path, path: Path | None) -> dict | None:
+    """``--base-passport``, else the unit's newest non-differential version in the registry, else None: the
+    differential method then takes the constants at T0 from the orientations themselves."""
     from pipeline.calibrate.methods import base_passport_of
     from pipeline.io.runs import read_run_meta
     from pipeline.passport.document import read_passport
@@ -284,9 +318,8 @@ def _base_passport(run: Path, registry: Path, path: Path | None) -> dict:
     unit = read_run_meta(run).unit_serial
     try:
         return base_passport_of(registry, unit)
-    except ThermocalError as e:
-        raise ThermocalError(f"the differential method starts from a normal-temperature passport: give "
-                             f"--base-passport or calibrate {unit} first ({e.message})", path=str(run)) from None
+    except ThermocalError:
+        return None
 
 
 def _calibration_settings(thermal_model: str, constants_method: str, tol_normal_g: float, tol_range_g: float):
@@ -312,7 +345,10 @@ def _calibrate_text(r: dict) -> str:
             doc = json.loads(Path(r["passport"]).read_text())
         except (OSError, ValueError):
             doc = None
-    return "\n".join(calibrate_lines(r, doc))
+    lines = calibrate_lines(r, doc)
+    if r.get("method_auto"):
+        lines.insert(1, f"method: {r['method_auto']}")
+    return "\n".join(lines)
 
 
 # ----------------------------------------------------------------------------------------------------------- export
@@ -349,6 +385,33 @@ def export(unit: str = typer.Argument(..., metavar="UNIT", help=UNIT_HELP),
         tail = (f"; not held: scale/cross-axis temperature terms, worst {res['total_worst_ug']:.0f} micro-g over "
                 f"{exp.valid_temp_c[0]:g}..{exp.valid_temp_c[1]:g} C" if res else "")
         _emit(None, False, f"wrote {out} ({fmt}, {unit} v{exp.version}){tail}")
+
+
+# ------------------------------------------------------------------------------------------------------------ apply
+@app.command()
+def apply(passport: Path = typer.Argument(..., metavar="PASSPORT", help="passport JSON file"),
+          run: Path = typer.Argument(..., metavar="RUN", help="an .mcap file or a Parquet run directory"),
+          out: Path = typer.Option(..., "--out", help="output: a Parquet file, or MCAP when the name ends .mcap"),
+          as_json: bool = typer.Option(False, "--json", help=JSON_HELP)):
+    """The passport's model (thermal model included) applied to every voltmeter sample: specific force in g, one
+    row per input row, in_range per the passport's valid temperatures (a warning when some are outside)."""
+    from pipeline.apply import apply_passport, write_applied
+    from pipeline.io.runs import read_run
+    from pipeline.passport.document import read_passport
+
+    doc = read_passport(passport)
+    r = read_run(run)
+    applied = apply_passport(doc, r)
+    path = write_applied(applied, out, passport=doc, run=r)
+    for w in applied.warnings:
+        print(f"thermocal: warning: {w}", file=sys.stderr)
+    t = applied.table
+    inr = int(t["in_range"].sum())
+    obj = {"out": str(path), "rows": t.height, "in_range": inr, "out_of_range": t.height - inr,
+           "valid_temp_c": list(applied.valid_temp_c) if applied.valid_temp_c else None,
+           "passport": {"unit": doc.get("unit"), "version": doc.get("version"), "method": doc.get("method")},
+           "warnings": applied.warnings}
+    _emit(obj, as_json, f"wrote {path}: {t.height} rows, {t.height - inr} outside the valid temperature range")
 
 
 # --------------------------------------------------------------------------------------------------------- diagnose

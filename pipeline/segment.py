@@ -128,6 +128,10 @@ class Segmentation:
     #: the untrimmed static stretches (:func:`find_static`) as voltmeter sample index ranges [i0, i1), in the
     #: time-sorted order of the samples (the table's order when it is in time order)
     stretches: list[tuple[int, int]] = field(default_factory=list)
+    #: the static window (s) and shortest static stretch (s) the recording was segmented with (they adapt to the
+    #: rate and to the length of the poses)
+    static_window_s: float | None = None
+    static_min_s: float | None = None
 
     def on_plateau(self, i: int) -> list[StaticSegment]:
         """Segments on plateau ``i``, in time order."""
@@ -220,6 +224,71 @@ def _local_slope_c_per_s(t_s: np.ndarray, y: np.ndarray, window_s: float) -> np.
     with np.errstate(divide="ignore", invalid="ignore"):
         slope = (sxy - sx * sy / n) / var
     return np.where(var > 0, slope, 0.0)
+
+
+@dataclass(frozen=True)
+class TemperatureProgram:
+    """What the AU temperature did over a run: ``kind`` is ``plateaus`` (soaks separated by ramps), ``sweep`` (a
+    continuous drift or ramp that never holds: physics.md, "Real recordings") or ``constant`` (one temperature
+    throughout). ``range_c`` (lo, hi) C; ``max_rate_c_per_h`` the largest rate of the temperature smoothed over
+    ``rate_window_s``; ``plateaus`` the plateaus that are soaks (found plateaus chained into a drift are not);
+    ``drift_s`` the time spent in such chains."""
+
+    kind: str
+    range_c: tuple[float, float]
+    max_rate_c_per_h: float
+    plateaus: tuple[Plateau, ...]
+    drift_s: float
+    rate_window_s: float
+
+
+#: a temperature range below this (C) is one temperature, however long the record
+_CONSTANT_RANGE_C = 1.0
+#: a run that soaks for less than this fraction of its length is a sweep (the standard program: about half)
+_SOAK_FRACTION = 0.2
+#: the largest rate is of the temperature smoothed over this long (s)
+_RATE_WINDOW_S = 600.0
+
+
+def classify_temperature(t_ns: np.ndarray, temp_c: np.ndarray, plateaus: list[Plateau],
+                         settings: SegmentSettings = SegmentSettings()) -> TemperatureProgram:
+    """Plateau program, sweep or constant temperature, from the thermosensor (``t_ns``, ``temp_c`` in C) and the
+    plateaus :func:`find_plateaus` found in it.
+
+    A slow drift passes the plateau test piecewise: the temperature stays within ``plateau_band_c`` for
+    ``plateau_min_s`` again and again, giving a chain of "plateaus" each starting where (or before) the last one
+    ended and a band away from it. Plateaus chained like that (less than ``plateau_min_s`` apart and less than two
+    bands apart in temperature) are a drift, not soaks. The run is a sweep when it soaks for less than a fifth of
+    its length and its temperature spans more than 1 C.
+    """
+    t_ns = np.asarray(t_ns, dtype=np.int64)
+    temp_c = np.asarray(temp_c, dtype=np.float64)
+    ok = np.isfinite(temp_c)
+    t_ns, temp_c = t_ns[ok], temp_c[ok]
+    if temp_c.size == 0:
+        return TemperatureProgram("constant", (float("nan"), float("nan")), 0.0, tuple(plateaus), 0.0,
+                                  _RATE_WINDOW_S)
+    t_s = (t_ns - t_ns[0]) / _NS
+    rate = np.abs(_local_slope_c_per_s(t_s, temp_c, _RATE_WINDOW_S)) * 3600.0 if t_s.size > 2 else np.zeros(1)
+    lo, hi = float(np.min(temp_c)), float(np.max(temp_c))
+    chained = np.zeros(len(plateaus), dtype=bool)
+    for k in range(1, len(plateaus)):
+        a, b = plateaus[k - 1], plateaus[k]
+        if ((b.t_start_ns - a.t_end_ns) < settings.plateau_min_s * _NS
+                and abs(b.temp_c - a.temp_c) < 2 * settings.plateau_band_c):
+            chained[k - 1] = chained[k] = True
+    drift_s = sum(p.duration_s for p, c in zip(plateaus, chained) if c)
+    soaks = tuple(dataclasses.replace(p, index=i) for i, p in enumerate(p for p, c in zip(plateaus, chained)
+                                                                            if not c))
+    soak_s = sum(p.duration_s for p in soaks)
+    if hi - lo < _CONSTANT_RANGE_C:
+        kind = "constant"
+    elif soaks and soak_s >= _SOAK_FRACTION * float(t_s[-1]):
+        kind = "plateaus"
+    else:
+        kind = "sweep"
+    kept = {"constant": tuple(plateaus), "plateaus": soaks, "sweep": ()}[kind]
+    return TemperatureProgram(kind, (lo, hi), float(np.max(rate)), kept, float(drift_s), _RATE_WINDOW_S)
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -406,9 +475,54 @@ def find_static(t_ns: np.ndarray, u_v, settings: SegmentSettings = SegmentSettin
 
 def _static_and_bad(t_ns: np.ndarray, ch: Channels, settings: SegmentSettings
                     ) -> tuple[list[tuple[int, int]], np.ndarray]:
-    """:func:`find_static`'s stretches, and the indices of the non-finite samples."""
+    """:func:`find_static`'s stretches, and the indices of the non-finite samples.
+
+    The window adapts to the recording: ``static_window_s`` first; where the stretches it finds cover less than
+    :data:`STATIC_COVER` of the record (poses shorter than a few windows, as on a hand-turned fixture), windows of
+    1/2, 1/4 and 1/8 of it (never fewer than :data:`MIN_WINDOW_SAMPLES` samples, with ``static_min_s`` shortened to
+    :data:`POSE_WINDOWS` windows) are tried, and the first that covers as much is kept (else the one covering most).
+    """
+    return _adaptive_static(t_ns, ch, settings)[:2]
+
+
+#: stretches covering at least this fraction of the record: the static window suits the recording
+STATIC_COVER = 0.5
+#: with a shortened window, the shortest static stretch kept is this many windows
+POSE_WINDOWS = 3.0
+
+
+def _adaptive_static(t_ns: np.ndarray, ch: Channels, settings: SegmentSettings
+                     ) -> tuple[list[tuple[int, int]], np.ndarray, SegmentSettings]:
+    """(stretches, non-finite sample indices, the settings whose window found them): see :func:`_static_and_bad`."""
     if t_ns.size < 2:
-        return [], np.flatnonzero(~ch.finite())
+        return [], np.flatnonzero(~ch.finite()), settings
+    span_ns = float(t_ns[-1] - t_ns[0])
+    dt_s = median_interval_ns(t_ns) / _NS
+
+    def cover(runs):
+        return sum(float(t_ns[b - 1] - t_ns[a]) for a, b in runs) / span_ns if span_ns > 0 else 1.0
+
+    runs, bad = _static_at(t_ns, ch, settings)
+    best = (cover(runs), runs, settings)
+    window = settings.static_window_s
+    for _ in range(3):
+        if best[0] >= STATIC_COVER:
+            break
+        window /= 2
+        if not dt_s > 0 or window < MIN_WINDOW_SAMPLES * dt_s:
+            break
+        trial = dataclasses.replace(settings, static_window_s=window, static_min_s=max(
+            MIN_SEGMENT_SAMPLES * dt_s, min(settings.static_min_s, POSE_WINDOWS * window)))
+        r, _ = _static_at(t_ns, ch, trial)
+        c = cover(r)
+        if c > best[0] * 1.1:
+            best = (c, r, trial)
+    return best[1], bad, best[2]
+
+
+def _static_at(t_ns: np.ndarray, ch: Channels, settings: SegmentSettings
+               ) -> tuple[list[tuple[int, int]], np.ndarray]:
+    """Static stretches with the window of ``settings`` (no adaptation), and the non-finite sample indices."""
     stats = rolling_std_v(t_ns, ch, settings.static_window_s)
     thr = static_threshold_v(stats.std, ch)
     quiet_block = np.all(stats.std < thr, axis=1)          # NaN compares False
@@ -524,7 +638,7 @@ def segment_run(run: Run, settings: SegmentSettings = SegmentSettings()) -> Segm
         warnings.append("au_temperature: no temperature plateau found (the temperature never stays within "
                         f"{settings.plateau_rate_c_per_min} C/min for {settings.plateau_min_s:.0f} s)")
 
-    stretches, bad_u = _static_and_bad(t_ns, ch, settings)
+    stretches, bad_u, settings = _adaptive_static(t_ns, ch, settings)
     if bad_u.size:
         warnings.append(f"voltmeter: {bad_u.size} non-finite samples excluded (not static), first at "
                         f"t_ns={int(t_ns[bad_u[0]])}")
@@ -553,7 +667,8 @@ def segment_run(run: Run, settings: SegmentSettings = SegmentSettings()) -> Segm
             label_source=nm["source"], fixture_label=r["fixture_label"], label_conflict=nm["conflict"],
             plateau=r["plateau"], mean_v=_tuple3(r["mean_v"]), std_v=_tuple3(r["std_v"]), count=r["count"],
             temp_c=r["temp_c"], temp_std_c=r["temp_std_c"], direction_g=_tuple3(nm["direction"])))
-    return Segmentation(plateaus=plateaus, segments=segments, warnings=warnings, stretches=stretches)
+    return Segmentation(plateaus=plateaus, segments=segments, warnings=warnings, stretches=stretches,
+                        static_window_s=settings.static_window_s, static_min_s=settings.static_min_s)
 
 
 def _tuple3(v) -> tuple[float, float, float]:
@@ -728,6 +843,6 @@ def _refine_scale(mean_v: np.ndarray, gravity_names: list[str | None], fix: list
     return new_gain, new_offset
 
 
-__all__ = ["SegmentSettings", "Plateau", "StaticSegment", "Segmentation", "Channels", "BlockStats",
+__all__ = ["SegmentSettings", "Plateau", "TemperatureProgram", "classify_temperature", "StaticSegment", "Segmentation", "Channels", "BlockStats",
            "find_plateaus", "find_static", "rolling_std_v", "static_threshold_v", "finite_rows", "finite_columns",
            "segment_run"]

@@ -304,3 +304,60 @@ def test_naming_refined_with_opposite_pairs():
     assert [s.position for s in seg.segments] == order
     for s in seg.segments:
         assert nearest_position(np.array(s.direction_g))[1] < 5.0
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# static detection that adapts to the recording: hand-turned poses of 2-3 s, 90 Hz to 1 kHz, jittery timestamps
+
+
+@pytest.mark.parametrize("rate_hz, jitter_s, hold_s", [(100.0, 3e-3, 3.0), (90.0, 4e-3, 2.0), (1000.0, 2e-4, 3.0)])
+def test_short_hand_turned_poses_found(rate_hz, jitter_s, hold_s):
+    """The simulator's hand-turned program (36 poses, no fixture log): every pose is found once, named as the
+    program held it, and the window shrank from 2 s to fit the poses."""
+    import dataclasses as dc
+
+    from pipeline.simulate import program as prog
+    from pipeline.simulate.chamber import SimConfig, simulate
+
+    original = prog.PROGRAMS["handheld"]
+    prog.PROGRAMS["handheld"] = lambda: original(hold_s=hold_s)
+    try:
+        res = simulate(SimConfig(program="handheld", rate_hz=rate_hz, jitter_s=jitter_s, with_fixture_log=False))
+    finally:
+        prog.PROGRAMS["handheld"] = original
+    t = res.run.t_ns()
+    assert np.any(np.diff(t) != np.median(np.diff(t)))                     # the stamps are irregular
+    seg = segment_run(res.run)
+    holds = res.truth["holds"]
+    assert len(holds) == 36
+    assert len(seg.segments) == 36
+    assert [s.position for s in seg.segments] == [h["position"] for h in holds]
+    assert seg.static_window_s < 2.0 and seg.static_min_s < hold_s
+    for s, h in zip(seg.segments, holds):
+        assert s.duration_s > 0.3 * hold_s
+    assert dc.replace(SegmentSettings()).static_window_s == 2.0
+
+
+def test_long_holds_keep_the_default_window():
+    """A chamber run's holds cover most of the record: the window stays the rate's default (no adaptation)."""
+    from pipeline.simulate.chamber import SimConfig, simulate
+
+    res = simulate(SimConfig(program="short", rate_hz=10.0))
+    seg = segment_run(res.run)
+    assert seg.static_window_s == 2.0 and seg.static_min_s == 3.0
+
+
+def test_sweep_program_is_a_sweep():
+    """The simulator's sweep (three orientations, 5 -> 25 C drift) is a sweep with three long poses, not plateaus."""
+    from pipeline.inspect import describe_recording
+    from pipeline.simulate.chamber import SimConfig, simulate
+
+    res = simulate(SimConfig(program="sweep", rate_hz=0.5, with_fixture_log=False))
+    seg = segment_run(res.run)
+    rec = describe_recording(res.run, seg)
+    assert rec["temperature"]["kind"] == "sweep" and rec["_plateaus"] == []
+    lo, hi = rec["temperature"]["range_c"]
+    assert 4.0 < lo < 7.0 and 23.0 < hi < 26.0
+    long = [p for p in rec["poses"] if p["longest_hold_s"] > 5 * 3600]
+    assert [p["vertical_axis"] for p in long] == ["-z", "-x", "-y"]
+    assert rec["method_auto"] == "differential"

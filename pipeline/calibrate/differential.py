@@ -41,6 +41,7 @@ polynomial thermal model, and the rate terms and lag in an extra field ``rate_te
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -56,7 +57,7 @@ from pipeline.errors import CalibrationError
 from pipeline.passport.document import build_passport, load_passport
 from pipeline.plausibility import assess
 from pipeline.model import specific_force_g
-from pipeline.positions import AXES
+from pipeline.positions import AXES, is_verification_position
 from pipeline.thermal import DifferentialModel, PolynomialModel, RateTerms, rate_basis
 
 _NS = 1_000_000_000
@@ -164,14 +165,15 @@ class OrientationWindow:
 
 def orientation_windows(t_ns: np.ndarray, u_v: np.ndarray, temp_c: np.ndarray, K0: np.ndarray, U0: np.ndarray,
                         settings: DifferentialSettings = DifferentialSettings()) -> list[OrientationWindow]:
-    """The orientation windows of a run: static stretches (``pipeline.segment.find_static``) joined while the
+    """The orientation windows of a run: static stretches (``pipeline.segment.find_static``, windows for the rate)
+    joined while the
     gravity direction stays within ``max_turn_deg``, trimmed by ``trim_s`` at both ends, at least
     ``min_window_s`` long. ``temp_c`` (n,) is the temperature at the voltmeter samples."""
-    from pipeline.segment import find_static
+    from pipeline.segment import SegmentSettings, find_static, for_rate
 
     groups: list[list[int]] = []
     last_dir = None
-    for i0, i1 in find_static(t_ns, u_v):
+    for i0, i1 in find_static(t_ns, u_v, for_rate(SegmentSettings(), t_ns)):
         a = specific_force_g(K0, U0, np.nanmean(u_v[i0:i1], axis=0))
         d = a / np.linalg.norm(a)
         if last_dir is not None and np.degrees(np.arccos(np.clip(d @ last_dir, -1, 1))) <= settings.max_turn_deg:
@@ -203,6 +205,8 @@ class BlockData:
     windows: list[OrientationWindow]
     sensor: Thermosensor
     run_id: str = ""
+    #: the constants (K0 (3, 3) V/g, U0 (3,) V) the windows' specific force was computed with
+    constants: tuple[np.ndarray, np.ndarray] | None = None
 
     def a0_g(self) -> np.ndarray:
         """(n_windows, 3) mean specific force of each window with the normal-temperature constants."""
@@ -240,7 +244,7 @@ def block_data(run, K0: np.ndarray, U0: np.ndarray,
     u_b = np.add.reduceat(u_v[idx], bounds, axis=0) / counts[:, None]
     t_b = np.add.reduceat(t_s[idx], bounds) / counts
     return BlockData(t_s=t_b[full], u_v=u_b[full], window=win[bounds][full], windows=windows, sensor=sensor,
-                     run_id=run.meta.run_id)
+                     run_id=run.meta.run_id, constants=(np.asarray(K0, float), np.asarray(U0, float)))
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -465,6 +469,149 @@ def compensate_run(passport: dict, run) -> tuple[np.ndarray, np.ndarray]:
 
 
 # ---------------------------------------------------------------------------------------------------------------
+# Without a base passport: the constants at T0 from the orientations themselves (physics.md, "Real recordings")
+
+#: an axis within this angle (deg) of gravity is vertical in an orientation; within it of horizontal, horizontal
+AXIS_ROLE_DEG = 15.0
+#: the model fitted to sweeps without a base passport: cubics in T, no rate terms. On the real CATS recording the
+#: rate terms (fitted where the orientations saw fast changes) extrapolate badly to an orientation that did not
+#: (held-out mean 8.3 mm/s^2 with rate order 1, 6.3 without; benchmarks/cats_tag.py), and the lag search finds 0 s
+SWEEP_SETTINGS = DifferentialSettings(rate_order=0)
+
+
+@dataclass
+class OrientationBase:
+    """Constants at T0 found from the orientation windows of temperature sweeps, without a base passport.
+
+    ``K`` (3, 3) V/g (diagonal: the cross-axis sensitivities are not determined), ``U0`` (3,) V, ``std_K`` and
+    ``std_U0`` (3,) their standard uncertainty from the spread between orientations (NaN where a single
+    orientation gives the value, None-like where undetermined: see ``undetermined``), ``undetermined`` the
+    constants the orientations cannot separate (each kept at its nominal value: gain from the metadata, offset 0,
+    cross-axis 0) and ``roles`` per axis the windows in which it was vertical / horizontal.
+    """
+
+    K: np.ndarray
+    U0: np.ndarray
+    std_K: np.ndarray
+    std_U0: np.ndarray
+    undetermined: list[str]
+    roles: dict[str, dict[str, list[int]]]
+    nominal_gain_v_per_g: np.ndarray
+
+    def to_dict(self) -> dict:
+        def f(x):
+            return [None if not np.isfinite(v) else float(v) for v in x]
+
+        return {"K_diag_v_per_g": f(np.diag(self.K)), "U0_v": f(self.U0), "std_K_diag_v_per_g": f(self.std_K),
+                "std_U0_v": f(self.std_U0), "undetermined": list(self.undetermined), "roles": self.roles,
+                "nominal_gain_v_per_g": self.nominal_gain_v_per_g.tolist()}
+
+
+def nominal_gain_v_per_g(runs) -> np.ndarray:
+    """(3,) nominal gain (V/g) from the runs' metadata (``nominal_gain_v_per_g``); without it, the median modulus
+    of the outputs (the outputs are then taken to read +1 g on an axis pointing up)."""
+    for r in runs:
+        g = r.meta.nominal_gain_v_per_g
+        if g is not None and np.isfinite(g) and g != 0:
+            return np.full(3, float(g))
+    u = np.concatenate([r.u_v()[:: max(1, r.voltmeter.height // 100_000)] for r in runs])
+    u = u[np.isfinite(u).all(axis=1)]
+    if u.size == 0:
+        raise CalibrationError("no finite voltmeter sample to estimate the gain from", stream="voltmeter")
+    return np.full(3, float(np.median(np.linalg.norm(u, axis=1))))
+
+
+def constants_from_orientations(data: list[BlockData], model: DifferentialModel, gain_v_per_g: np.ndarray
+                                ) -> OrientationBase:
+    """K (diagonal) and U0 at T0 from orientation windows whose temperature terms ``model`` already describes.
+
+    Each window's outputs are brought to T0 with the model (U - dU0(T, r) - dK(T, r) a) and averaged. Axis c's
+    offset is the mean over the windows where c is horizontal (within :data:`AXIS_ROLE_DEG`), or the midpoint of
+    opposite vertical windows; its gain the vertical window's output less the offset, over the specific force
+    along c (|a| = 1 g, the other components from the other channels). An axis never horizontal (and not both up
+    and down) has an undetermined offset, one never vertical an undetermined gain: they stay at their nominal
+    values and are listed, not guessed.
+    """
+    K_nom, U_nom = model.K0, model.U00
+    means, dirs = [], []
+    for d in data:
+        temp, rate = d.temperature(model.lag_tau_s)
+        K, U0 = model.constants_at(temp, rate)
+        a0 = d.a0_g()
+        a_unit = a0 / np.linalg.norm(a0, axis=1, keepdims=True)
+        corrected = d.u_v - (U0 - U_nom) - np.einsum("mij,mj->mi", K - K_nom, a_unit[d.window])
+        for w in d.windows:
+            sel = d.window == w.index
+            if sel.any():
+                means.append(corrected[sel].mean(axis=0))
+                dirs.append(a_unit[w.index])
+    m, dirs = np.array(means), np.array(dirs)
+    vert = np.abs(dirs) >= np.cos(np.radians(AXIS_ROLE_DEG))
+    horiz = np.abs(dirs) <= np.sin(np.radians(AXIS_ROLE_DEG))
+    U0 = np.zeros(3)
+    std_U0 = np.full(3, np.nan)
+    gain = np.array(gain_v_per_g, dtype=float)
+    std_K = np.full(3, np.nan)
+    undetermined = [f"K_{a}{b}" for a in AXES for b in AXES if a != b]
+    known_u0 = np.zeros(3, dtype=bool)
+    for c in range(3):
+        h = np.flatnonzero(horiz[:, c])
+        up = np.flatnonzero(vert[:, c] & (dirs[:, c] > 0))
+        down = np.flatnonzero(vert[:, c] & (dirs[:, c] < 0))
+        if h.size:
+            U0[c] = m[h, c].mean()
+            std_U0[c] = m[h, c].std(ddof=1) / np.sqrt(h.size) if h.size > 1 else np.nan
+            known_u0[c] = True
+        elif up.size and down.size:
+            U0[c] = 0.5 * (m[up, c].mean() + m[down, c].mean())
+            known_u0[c] = True
+        else:
+            undetermined.append(f"U0_{AXES[c]}")
+    # the specific force along each axis in each window: |a| = 1 g, the horizontal components from their channels
+    K = np.diag(gain)
+    for _ in range(2):
+        a = (m - U0) / np.diag(K)
+        for c in range(3):
+            v = np.flatnonzero(vert[:, c])
+            if v.size == 0 or not known_u0[c]:
+                continue
+            others = [j for j in range(3) if j != c]
+            a_c = np.sign(dirs[v, c]) * np.sqrt(np.clip(1.0 - np.sum(a[np.ix_(v, others)] ** 2, axis=1), 0.0, 1.0))
+            k = (m[v, c] - U0[c]) / a_c
+            K[c, c] = k.mean()
+            std_K[c] = k.std(ddof=1) / np.sqrt(v.size) if v.size > 1 else np.nan
+    for c in range(3):
+        if not (vert[:, c].any() and known_u0[c]):
+            undetermined.append(f"K_{AXES[c]}{AXES[c]}")
+    roles = {AXES[c]: {"vertical": np.flatnonzero(vert[:, c]).tolist(),
+                       "horizontal": np.flatnonzero(horiz[:, c]).tolist()} for c in range(3)}
+    return OrientationBase(K, U0, std_K, std_U0, undetermined, roles, np.asarray(gain_v_per_g, dtype=float))
+
+
+def with_constants(data: BlockData, K0: np.ndarray, U0: np.ndarray) -> BlockData:
+    """``data`` with each window's specific force recomputed with the constants ``K0`` (3, 3) V/g, ``U0`` (3,) V
+    (from the window's block averages)."""
+    windows = []
+    for w in data.windows:
+        sel = data.window == w.index
+        a0 = specific_force_g(K0, U0, data.u_v[sel].mean(axis=0)) if sel.any() else np.array(w.a0_g)
+        windows.append(dataclasses.replace(w, a0_g=tuple(float(x) for x in a0)))
+    return dataclasses.replace(data, windows=windows, constants=(np.asarray(K0, float), np.asarray(U0, float)))
+
+
+def sweep_base(data: list[BlockData], settings: DifferentialSettings = SWEEP_SETTINGS, normal_temp_c: float = 20.0
+               ) -> OrientationBase:
+    """The constants at T0 of a unit from its sweeps alone (no base passport): a first differential fit from the
+    constants the block data were made with (the nominal gain, zero offsets: :func:`observe`) finds the temperature
+    terms, :func:`constants_from_orientations` the constants."""
+    K_nom, U_nom = data[0].constants if data[0].constants is not None else (None, None)
+    if K_nom is None:
+        raise CalibrationError("block data without the constants they were made with")
+    first = fit_differential(data, K_nom, U_nom, float(normal_temp_c), settings)
+    return constants_from_orientations(data, first.model, np.diag(K_nom))
+
+
+# ---------------------------------------------------------------------------------------------------------------
 # From runs to a passport
 
 
@@ -474,10 +621,7 @@ METHOD = "differential"
 
 def base_constants(base_passport: dict | None, unit: str) -> tuple[np.ndarray, np.ndarray, float]:
     """K0 (3, 3) V/g, U0 (3,) V and T0 (C) of the base passport the differential method starts from (any method;
-    its thermal model is not used); CalibrationError when there is none, it is of another unit or has no usable
-    constants."""
-    if base_passport is None:
-        raise CalibrationError("the differential method starts from a normal-temperature passport (none given)")
+    its thermal model is not used); CalibrationError when it is of another unit or has no usable constants."""
     if base_passport.get("unit") not in (None, unit):
         raise CalibrationError(f"the base passport is for unit {base_passport.get('unit')}, the runs for {unit}")
     try:
@@ -492,11 +636,15 @@ def base_constants(base_passport: dict | None, unit: str) -> tuple[np.ndarray, n
 
 
 def observe(run, settings: CalibrationSettings = CalibrationSettings(), *, base_passport: dict | None = None,
-            differential: DifferentialSettings = DifferentialSettings()) -> ObservedRun:
+            differential: DifferentialSettings | None = None) -> ObservedRun:
     """The run's orientation windows and block averages (``data``, :func:`block_data`, with the base passport's
-    normal-temperature constants) and its VP observations, if any (a run without plateaus simply has none)."""
-    K0, U0, _ = base_constants(base_passport, run.meta.unit_serial)
-    data = block_data(run, K0, U0, differential)
+    normal-temperature constants, or without one the nominal gain and zero offsets) and its VP observations, if
+    any (a run without plateaus simply has none)."""
+    if base_passport is None:
+        K0, U0 = np.diag(nominal_gain_v_per_g([run])), np.zeros(3)
+    else:
+        K0, U0, _ = base_constants(base_passport, run.meta.unit_serial)
+    data = block_data(run, K0, U0, differential or _settings_for(base_passport))
     try:
         observations = observe_run(run, settings.segment)[0]
     except CalibrationError:
@@ -505,46 +653,75 @@ def observe(run, settings: CalibrationSettings = CalibrationSettings(), *, base_
                        data=data)
 
 
+def _settings_for(base_passport: dict | None) -> DifferentialSettings:
+    return DifferentialSettings() if base_passport is not None else SWEEP_SETTINGS
+
+
 def calibrate_observed(observed: list[ObservedRun], settings: CalibrationSettings = CalibrationSettings(), *,
                        base_passport: dict | None = None,
-                       differential: DifferentialSettings = DifferentialSettings()) -> CalibrationResult:
+                       differential: DifferentialSettings | None = None) -> CalibrationResult:
     """Passport of method ``differential`` from one unit's observed runs and a normal-temperature passport.
 
     The passport's ``thermal_model`` is the polynomial of order ``differential.poly_order`` (alpha, beta, gamma),
     ``rate_terms`` holds the rate terms and lag (see :class:`RateTerms`), ``differential`` the fit's details and
     ``base_passport`` the starting passport's unit, version and method. VP segments in the runs, if any, verify it
     as usual (without rate terms).
+
+    Without ``base_passport`` (temperature sweeps, physics.md "Real recordings") the constants at T0 come from the
+    orientations themselves (:func:`sweep_base`, default model :data:`SWEEP_SETTINGS`): the passport's
+    ``orientation_base`` says how, and ``undetermined`` lists what the orientations cannot determine (kept at
+    nominal values, never guessed).
     """
     serial = unit_of(observed)
-    K0, U0, t0 = base_constants(base_passport, serial)
-    fit = fit_differential([r.data for r in observed], K0, U0, t0, differential)
+    differential = differential or _settings_for(base_passport)
+    data = [r.data for r in observed]
+    orientation_base = None
+    if base_passport is None:
+        t0 = float(observed[0].meta.normal_temp_c)
+        orientation_base = sweep_base(data, differential, t0)
+        K0, U0 = orientation_base.K, orientation_base.U0
+        data = [with_constants(d, K0, U0) for d in data]
+    else:
+        K0, U0, t0 = base_constants(base_passport, serial)
+    fit = fit_differential(data, K0, U0, t0, differential)
     observations = [o for r in observed for o in r.observations]
     rows, status = verify_unit(fit.model.static, observations, t0, settings.tolerances)
     covered = None
     if fit.windows:      # the temperatures the orientation windows went through
         covered = (round(min(w["temp_min_c"] for w in fit.windows), 1),
                    round(max(w["temp_max_c"] for w in fit.windows), 1))
+    notes = list(fit.notes)
+    if orientation_base is not None:
+        notes.append("no base passport: constants at T0 from the orientations; undetermined (kept at nominal "
+                     "values): " + ", ".join(orientation_base.undetermined))
     unit_fit = UnitFit(unit=serial, normal_temp_c=t0, per_plateau=[], model=fit.model.static,
-                       skipped=list(fit.notes), valid_temp_c=covered)
+                       skipped=notes, valid_temp_c=covered)
     run_warnings = [w for r in observed for w in r.warnings]
     status, implausible = assess(unit_fit, status, observed[0].meta.nominal_gain_v_per_g, run_warnings)
-    plateaus = plateau_summary(observations)
+    # the plateaus that verified the passport (the fit uses none; a sweep's drifting stretches are no plateaus)
+    plateaus = plateau_summary([o for o in observations if is_verification_position(o.position)])
     extra = {"differential": fit.summary(), "rate_terms": fit.model.rate.to_dict(),
-             "base_passport": {k: base_passport.get(k) for k in ("unit", "version", "method", "created_utc")},
+             "base_passport": ({k: base_passport.get(k) for k in ("unit", "version", "method", "created_utc")}
+                               if base_passport is not None else None),
              **({"implausible": implausible} if implausible else {})}
+    if orientation_base is not None:
+        extra["orientation_base"] = orientation_base.to_dict()
+        extra["undetermined"] = list(orientation_base.undetermined)
     doc = build_passport(unit_fit, rows, status, g_local_mps2=observed[0].meta.g_local_mps2, plateaus=plateaus,
                          method=METHOD, extra=extra)
     return CalibrationResult(passport=doc, fit=unit_fit, rows=rows, status=status, plateaus=plateaus,
-                             warnings=run_warnings + list(fit.notes)
-                             + [p for p in implausible if p not in run_warnings],
-                             settings_extra=base_reference(base_passport))
+                             warnings=run_warnings + notes + [p for p in implausible if p not in run_warnings],
+                             settings_extra=(base_reference(base_passport) if base_passport is not None
+                                             else {"base_passport_sha256": None}))
 
 
 def calibrate(runs, settings: CalibrationSettings = CalibrationSettings(), *, base_passport: dict | None = None,
-              differential: DifferentialSettings = DifferentialSettings()) -> CalibrationResult:
+              differential: DifferentialSettings | None = None) -> CalibrationResult:
     """The differential calibration of one unit from its temperature-cycle runs, starting from ``base_passport``'s
-    normal-temperature constants: :func:`observe` each run, then :func:`calibrate_observed`."""
+    normal-temperature constants (without one: from the constants the orientations determine): :func:`observe`
+    each run, then :func:`calibrate_observed`."""
     runs = list(runs)
-    base_constants(base_passport, unit_of(runs))
+    if base_passport is not None:
+        base_constants(base_passport, unit_of(runs))
     observed = [observe(r, settings, base_passport=base_passport, differential=differential) for r in runs]
     return calibrate_observed(observed, settings, base_passport=base_passport, differential=differential)

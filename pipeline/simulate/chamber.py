@@ -70,6 +70,9 @@ class SimConfig:
     nominal_gain_v_per_g: float = -0.55
     air_lag_s: float | None = None
     vibration_g: float = 3e-3
+    #: timestamp jitter (s, standard deviation, clipped to 0.45 of the sample interval so the order holds): a
+    #: wireless logger's stamps; the samples themselves are taken on the regular grid
+    jitter_s: float = 0.0
 
 
 @dataclass
@@ -123,6 +126,9 @@ def simulate(config: SimConfig) -> SimResult:
     k = np.arange(int(np.floor(duration_s * config.rate_hz)) + 1)
     tv_s = k / config.rate_hz
     tv_ns = start_ns + np.round(k * (1e9 / config.rate_hz)).astype(np.int64)
+    if config.jitter_s > 0:
+        lim = 0.45 / config.rate_hz
+        tv_ns += np.round(np.clip(rng.normal(0.0, config.jitter_s, k.size), -lim, lim) * 1e9).astype(np.int64)
     temp_v_c = np.interp(tv_s, t1_s, case_c)
     face_rad = _face_rotations_rad(effects)
     a_g, position_idx = _specific_force_g(timetable, tv_s, face_rad, config.vibration_g, rng)
@@ -167,7 +173,7 @@ def write_truth(truth: dict, path) -> None:
 def _check(config: SimConfig) -> None:
     if not config.rate_hz > 0:
         raise ValueError(f"rate_hz must be positive, got {config.rate_hz}")
-    for name in ("noise_v", "temp_noise_c", "vibration_g"):
+    for name in ("noise_v", "temp_noise_c", "vibration_g", "jitter_s"):
         if not getattr(config, name) >= 0:
             raise ValueError(f"{name} must not be negative, got {getattr(config, name)}")
     for name in ("case_lag_s", "air_lag_s"):

@@ -77,6 +77,9 @@ def simulate_chunked(config: SimConfig, chunk_samples: int = 1_000_000) -> SimRe
         k = np.arange(k0, min(k0 + int(chunk_samples), n))
         t_s = k / config.rate_hz
         t_ns[k] = ctx1.start_ns + np.round(k * (1e9 / config.rate_hz)).astype(np.int64)
+        if config.jitter_s > 0:
+            lim = 0.45 / config.rate_hz
+            t_ns[k] += np.round(np.clip(noise.normal(0.0, config.jitter_s, k.size), -lim, lim) * 1e9).astype(np.int64)
         # simulate() draws the vibration phases first from default_rng(seed): the same phases in every chunk
         a_g, position_idx = _specific_force_g(timetable, t_s, face_rad, config.vibration_g,
                                               np.random.default_rng(config.seed))

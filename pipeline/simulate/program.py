@@ -277,11 +277,37 @@ def differential_program(orientations=("TP1", "TP2", "TP3", "TP4", "TP5", "TP6")
                    air_lag_s=90.0)
 
 
-PROGRAMS = {"standard": standard_program, "short": short_program, "differential": differential_program}
+def handheld_program(rounds: int = 3, hold_s: float = 3.0, move_s: float = 1.5) -> Program:
+    """A hand-turned multi-face fixture at room temperature (physics.md, "Real recordings"): the unit is turned by
+    hand through the twelve positions (TP1..TP6, VP1..VP6) ``rounds`` times in a shuffled order, each pose held
+    ``hold_s`` (3 s) with ``move_s`` (1.5 s) turns between them; the setpoint stays at 20 C (no ramp). Default:
+    36 poses in about 2.7 min. Simulate it at ~100 Hz with timestamp jitter (``SimConfig.jitter_s``)."""
+    order = np.random.default_rng(13).permuted(np.tile(np.arange(len(POSITION_NAMES)), (rounds, 1)), axis=1)
+    names = [POSITION_NAMES[i] for i in order.ravel()]
+    names = [n for k, n in enumerate(names) if k == 0 or n != names[k - 1]]     # no pose repeated back to back
+    steps = (Hold(names[0], hold_s),) + visit(names[1:], hold_s, move_s)
+    return Program("handheld", (Stage("poses at 20 C", steps),), start_setpoint_c=20.0, start_position=names[0],
+                   case_lag_s=120.0, air_lag_s=30.0)
+
+
+def sweep_program(orientations=("TP3", "TP5", "TP2"), cold_c: float = 5.0, warm_c: float = 25.0,
+                  cool_c_per_min: float = 0.75, warm_c_per_min: float = 0.05) -> Program:
+    """A temperature sweep with few orientations (physics.md, "Real recordings"; the shape of a logger put in a
+    fridge): in each orientation (default three, one axis vertical in each, pointing down) the unit cools from
+    where it is to ``cold_c`` at ``cool_c_per_min`` and warms slowly to ``warm_c`` at ``warm_c_per_min``, never
+    holding a plateau. About 7.2 h per orientation with the defaults. Case lag 600 s."""
+    stages = tuple(Stage(f"sweep in {p}", (Move(p, 20.0), Ramp(cold_c, cool_c_per_min), Ramp(warm_c, warm_c_per_min)))
+                   for p in orientations)
+    return Program("sweep", stages, start_setpoint_c=20.0, start_position=orientations[0], case_lag_s=600.0,
+                   air_lag_s=90.0)
+
+
+PROGRAMS = {"standard": standard_program, "short": short_program, "differential": differential_program,
+            "handheld": handheld_program, "sweep": sweep_program}
 
 
 def get_program(name: str) -> Program:
-    """The program called ``name``: ``standard``, ``short`` or ``differential``."""
+    """The program called ``name``: ``standard``, ``short``, ``differential``, ``handheld`` or ``sweep``."""
     try:
         return PROGRAMS[name]()
     except KeyError:

@@ -1,0 +1,189 @@
+"""A passport applied to a recording: the compensated specific force at every voltmeter sample (contract.md,
+"apply output").
+
+The passport's full model is used, whatever the method that made it: the constants at T0, the thermal model
+(polynomial or piecewise linear, :mod:`pipeline.thermal`) and, for a passport of the differential method, its rate
+terms and the lag of the sensing element (:mod:`pipeline.calibrate.differential`). Method 1 of seed 000 inverts the
+model at each sample's temperature: ``a = K(T)^-1 (U - U0(T))`` in g.
+
+The temperature at a sample is the AU thermosensor interpolated at its time (smoothed as when the passport was made
+where the passport has rate terms). One output row per input row, in the input's order; a sample whose voltages or
+temperature are not finite gives NaN, never a dropped row. ``in_range`` says whether the temperature lies within
+the passport's ``valid_temp_c`` (the range its data covered); outside it the model is still applied and
+:func:`apply_passport` returns one warning.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import polars as pl
+
+from pipeline.errors import ThermocalError
+from pipeline.model import specific_force_g
+from pipeline.run import Run
+
+_NS = 1_000_000_000
+#: samples compensated at a time (the per-sample K(T) stack is 72 bytes a sample)
+_SLAB = 1 << 20
+APPLY_COLUMNS = ("t_ns", "ax_g", "ay_g", "az_g", "temp_c", "in_range")
+
+
+@dataclass
+class Applied:
+    """The compensated recording: ``table`` with :data:`APPLY_COLUMNS` (one row per voltmeter row), the validity
+    range used (C, or None when the passport states none), and warnings for the user."""
+
+    table: pl.DataFrame
+    valid_temp_c: tuple[float, float] | None
+    warnings: list[str] = field(default_factory=list)
+
+
+def valid_range_c(passport: dict) -> tuple[float, float] | None:
+    """The temperature range (C) the passport's data covered: ``valid_temp_c``; for passports written before that
+    field, the range of its plateaus or of its differential orientation windows; None when it states none."""
+    v = passport.get("valid_temp_c")
+    if isinstance(v, (list, tuple)) and len(v) == 2 and all(isinstance(x, (int, float)) for x in v):
+        return float(v[0]), float(v[1])
+    temps = [float(p["temp_c"]) for p in passport.get("per_plateau") or [] if "temp_c" in p]
+    if temps:
+        return min(temps), max(temps)
+    windows = (passport.get("differential") or {}).get("windows") or []
+    if windows:
+        return (min(float(w["temp_min_c"]) for w in windows), max(float(w["temp_max_c"]) for w in windows))
+    return None
+
+
+def _model(passport: dict):
+    """(model with constants_at(T[, rate]), lag tau s, smoothing window s or None, warnings) of a passport, from the
+    one passport loader (:func:`pipeline.passport.document.load_passport`)."""
+    from pipeline.passport.document import load_passport
+    from pipeline.thermal import DifferentialModel
+
+    p = load_passport(passport)
+    warnings = []
+    if p.extended is not None:
+        warnings.append("the passport's extended model (from diagnose) needs the fixture context and is not "
+                        "applied: its constants and thermal model are")
+    if p.rate_terms is not None:
+        return DifferentialModel(p.thermal_model, p.rate_terms), p.rate_terms.lag_tau_s, p.rate_terms.temp_smooth_s, \
+            warnings
+    return p.thermal_model, 0.0, None, warnings
+
+
+def _temperature_at(run: Run, t_ns: np.ndarray, lag_tau_s: float, smooth_s: float | None
+                    ) -> tuple[np.ndarray, np.ndarray | None]:
+    """AU temperature (C) and, with ``smooth_s``, its rate (C/min) at the times ``t_ns``; NaN outside the finite
+    thermosensor record."""
+    tt = run.au_temperature["t_ns"].to_numpy()
+    temp = run.au_temperature["temp_c"].to_numpy()
+    ok = np.isfinite(temp)
+    tt, temp = tt[ok], temp[ok]
+    order = np.argsort(tt, kind="stable")
+    tt, temp = tt[order], temp[order]
+    if tt.size == 0:
+        return np.full(t_ns.size, np.nan), None
+    t_ref = int(tt[0])
+    x = (t_ns - t_ref) / _NS
+    xs = (tt - t_ref) / _NS
+    outside = (t_ns < tt[0]) | (t_ns > tt[-1])
+    rate = None
+    if smooth_s is not None and tt.size >= 5:
+        from pipeline.calibrate.differential import Thermosensor, smooth_temperature
+
+        sm, rt = smooth_temperature(xs, temp, smooth_s)
+        values, rate = Thermosensor(xs, sm, rt, t_ref).at(x, lag_tau_s)
+    else:
+        values = np.interp(x, xs, temp)
+    values = np.where(outside, np.nan, values)
+    return values, rate
+
+
+def apply_passport(passport: dict, run: Run) -> Applied:
+    """The passport's model applied to every voltmeter sample of ``run`` (see the module doc): specific force in
+    g along the unit's axes, the AU temperature at each sample, ``in_range``."""
+    model, lag_s, smooth_s, warnings = _model(passport)
+    t_ns = run.voltmeter["t_ns"].to_numpy()
+    temp_c, rate = _temperature_at(run, t_ns, lag_s, smooth_s)
+    n = t_ns.size
+    a = np.empty((n, 3))
+    cols = [run.voltmeter[c].to_numpy() for c in ("ux", "uy", "uz")]
+    for s0 in range(0, n, _SLAB):
+        s1 = min(s0 + _SLAB, n)
+        u = np.column_stack([c[s0:s1] for c in cols])
+        tc = temp_c[s0:s1]
+        good = np.isfinite(tc)
+        tc_safe = np.where(good, tc, float(model.normal_temp_c))
+        if rate is not None:
+            K, U0 = model.constants_at(tc_safe, np.where(good, rate[s0:s1], 0.0))
+        else:
+            K, U0 = model.constants_at(tc_safe)
+        with np.errstate(invalid="ignore"):
+            out = specific_force_g(K, U0, u)
+        out[~good] = np.nan
+        a[s0:s1] = out
+    rng = valid_range_c(passport)
+    if rng is None:
+        in_range = np.isfinite(temp_c)
+        warnings.append("the passport states no valid temperature range: in_range only marks a known temperature")
+    else:
+        with np.errstate(invalid="ignore"):
+            in_range = (temp_c >= rng[0]) & (temp_c <= rng[1])
+        out_n = int(np.count_nonzero(~in_range))
+        if out_n:
+            first = int(t_ns[np.flatnonzero(~in_range)[0]])
+            warnings.append(f"{out_n} of {n} samples lie outside the passport's valid temperature range "
+                            f"{rng[0]:g} .. {rng[1]:g} C (first at t_ns={first}); the model is extrapolated there")
+    table = pl.DataFrame({"t_ns": pl.Series(t_ns, dtype=pl.Int64), "ax_g": a[:, 0], "ay_g": a[:, 1],
+                          "az_g": a[:, 2], "temp_c": temp_c, "in_range": pl.Series(in_range, dtype=pl.Boolean)})
+    return Applied(table=table, valid_temp_c=rng, warnings=warnings)
+
+
+def write_applied(applied: Applied, path: str | Path, *, passport: dict | None = None, run: Run | None = None
+                  ) -> Path:
+    """Write the compensated recording: Parquet (any name), or MCAP with ``.mcap`` (one JSON channel ``apply`` of
+    row blocks). The file is written beside and renamed into place, so a failure leaves no partial file."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.partial")
+    meta = {"passport_unit": str((passport or {}).get("unit", "")),
+            "passport_version": str((passport or {}).get("version", "")),
+            "run_id": run.meta.run_id if run is not None else "",
+            "valid_temp_c": "" if applied.valid_temp_c is None else
+            f"{applied.valid_temp_c[0]:g},{applied.valid_temp_c[1]:g}"}
+    try:
+        if path.suffix == ".mcap":
+            _write_mcap(applied.table, tmp, meta)
+        else:
+            applied.table.write_parquet(tmp)
+        tmp.replace(path)
+    except OSError as e:
+        tmp.unlink(missing_ok=True)
+        raise ThermocalError(f"cannot write the output ({e.strerror or e})", path=str(path)) from None
+    return path
+
+
+def _write_mcap(table: pl.DataFrame, path: Path, meta: dict[str, str], block_rows: int = 1000) -> None:
+    """MCAP: a ``thermocal.apply`` metadata record and one JSON message per block of rows (columns as lists)."""
+    import json
+
+    from mcap.writer import Writer
+
+    with open(path, "wb") as f:
+        w = Writer(f)
+        w.start(profile="", library="thermocal")
+        try:
+            w.add_metadata("thermocal.apply", meta)
+            schema = w.register_schema("thermocal.apply_block", "jsonschema", json.dumps(
+                {"type": "object", "properties": {c: {"type": "array"} for c in APPLY_COLUMNS}}).encode())
+            ch = w.register_channel("apply", "json", schema)
+            t = table["t_ns"].to_numpy()
+            for s0 in range(0, table.height, block_rows):
+                block = table.slice(s0, block_rows)
+                body = {c: [None if isinstance(v, float) and not np.isfinite(v) else v
+                            for v in block[c].to_list()] for c in APPLY_COLUMNS}
+                stamp = int(t[s0])
+                w.add_message(ch, log_time=stamp, publish_time=stamp, data=json.dumps(body).encode())
+        finally:
+            w.finish()
