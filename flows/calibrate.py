@@ -21,11 +21,15 @@ from prefect import flow, get_run_logger, task  # noqa: E402
 from prefect.artifacts import create_markdown_artifact  # noqa: E402
 from prefect.cache_policies import NO_CACHE  # noqa: E402  (no input hashing: a Run is large and never reused)
 
+from pipeline.calibrate.inputs import select_runs  # noqa: E402
 from pipeline.calibrate.methods import recipe  # noqa: E402
 from pipeline.calibrate.observations import unit_of  # noqa: E402
 from pipeline.calibrate.publish import publish  # noqa: E402
 from pipeline.calibrate.settings import CalibrationSettings  # noqa: E402
+from pipeline.errors import ThermocalError  # noqa: E402
 from pipeline.io import runs as runio  # noqa: E402
+from pipeline.passport.canonical import canonical_json  # noqa: E402
+from pipeline.passport.registry import Registry  # noqa: E402
 
 
 @task(name="ingest", cache_policy=NO_CACHE)
@@ -41,6 +45,23 @@ def observe(run, method: str, settings: CalibrationSettings, base_passport: dict
 @task(name="fit", cache_policy=NO_CACHE)
 def fit(observed, method: str, settings: CalibrationSettings, base_passport: dict | None):
     return recipe(method).calibrate_observed(observed, settings, base_passport=base_passport)
+
+
+@task(name="select", cache_policy=NO_CACHE)
+def select(runs):
+    return select_runs(runs)
+
+
+def record_head(registry: str) -> None:
+    """The registry's signed head statement (``passport head``) as a Prefect artifact, for a later ``passport
+    verify --against``; a registry that does not verify gets an artifact saying why instead. (Not a task: the
+    flows' task lists are their calibration steps.)"""
+    try:
+        text = "```json\n" + canonical_json(Registry(registry).head()).decode("ascii") + "```"
+    except ThermocalError as e:
+        text = f"no head statement: {e.one_line()}"
+    create_markdown_artifact(key="registry-head", markdown=text,
+                             description=f"thermocal: signed head statement of the registry {registry}")
 
 
 @task(name="write", cache_policy=NO_CACHE)
@@ -63,6 +84,9 @@ def calibrate_flow(paths: list[str], registry: str, settings: CalibrationSetting
     for p in paths:
         step(f"ingest {os.path.basename(p)}")
         runs.append(ingest(p))
+    path_of = {r.source: p for p, r in zip(paths, runs)}
+    runs, selection_warnings = select(runs)  # one file per run_id (a truncated copy is left out)
+    paths = [path_of[r.source] for r in runs]
     unit = unit_of(runs)
     observed = []
     for run, p in zip(runs, paths):
@@ -71,10 +95,13 @@ def calibrate_flow(paths: list[str], registry: str, settings: CalibrationSetting
     del runs                                # the samples are not needed past the observations
     step(f"fit ({method}: constants, thermal model, VP verification)")
     calibration = fit(observed, method, settings, base_passport)
+    calibration.warnings[:0] = selection_warnings
     for w in calibration.warnings:
         logger.warning(w)
     step("write" if not dry_run else "dry run (nothing written)")
     result = write(registry, calibration, list(paths), settings, dry_run)
+    if not dry_run:
+        record_head(registry)
     create_markdown_artifact(key=_artifact_key(unit), markdown=result_markdown(result),
                              description=f"thermocal calibration of {unit}")
     step(f"done: {unit} v{result['version']} {result['status']}")

@@ -51,6 +51,7 @@ from prefect.runtime import flow_run  # noqa: E402
 
 from pipeline.calibrate import fleet as fleet_plan  # noqa: E402
 from pipeline.calibrate.settings import CalibrationSettings  # noqa: E402
+from .calibrate import record_head  # noqa: E402
 
 POOLS = ("auto", "process", "thread")
 #: ``pool="auto"``: a process pool from this many units on (its start-up pays off), else threads.
@@ -199,6 +200,8 @@ def fleet_flow(root: str, registry: str, settings: CalibrationSettings = Calibra
                 f"{len(plan.skipped)} runs skipped, {len(plan.failed)} unreadable")
     for f in plan.failed:
         logger.warning(_failure_line(f))
+    for w in plan.warnings:
+        logger.warning(w["warning"])
     t_plan = time.perf_counter() - t0
     outcomes: list[fleet_plan.UnitOutcome] = []
     runner_name = "none"
@@ -229,6 +232,8 @@ def fleet_flow(root: str, registry: str, settings: CalibrationSettings = Calibra
     create_table_artifact(key=ARTIFACT_KEY, table=summary_table(summary),
                           description=f"thermocal fleet over {root}: {len(summary['done'])} units done, "
                                       f"{len(summary['failed'])} runs failed, {len(summary['skipped'])} skipped")
+    if outcomes:
+        record_head(str(registry))
     return summary
 
 
@@ -248,7 +253,7 @@ def _unit_line(o: fleet_plan.UnitOutcome, k: int, total: int) -> str:
 
 
 def fleet_summary(plan: fleet_plan.FleetPlan, outcomes: list[fleet_plan.UnitOutcome]) -> dict:
-    """The ``fleet --json`` object: done units (by serial), failed runs, skipped runs (by path)."""
+    """The ``fleet --json`` object: done units (by serial), failed runs, skipped runs, warnings (by path)."""
     done, failed = [], list(plan.failed)
     for o in sorted(outcomes, key=lambda o: o.unit):
         if o.result is not None:
@@ -258,7 +263,8 @@ def fleet_summary(plan: fleet_plan.FleetPlan, outcomes: list[fleet_plan.UnitOutc
                          "passport_sha256": r["passport_sha256"]})
         failed += [{**f, "unit": o.unit} for f in o.failed]
     return {"done": done, "failed": sorted(failed, key=lambda f: f["run"]),
-            "skipped": sorted(plan.skipped, key=lambda s: s["run"])}
+            "skipped": sorted(plan.skipped, key=lambda s: s["run"]),
+            "warnings": sorted(plan.warnings, key=lambda w: w["run"])}
 
 
 def summary_table(summary: dict) -> list[dict]:

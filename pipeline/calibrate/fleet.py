@@ -28,6 +28,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from pipeline.calibrate.inputs import RunInput, folder_warning, resolve_run_ids
 from pipeline.calibrate.methods import NEEDS_BASE_PASSPORT, base_passport_of, recipe
 from pipeline.calibrate.publish import publish, recorded_settings
 from pipeline.calibrate.result import base_reference
@@ -61,13 +62,15 @@ class UnitGroup:
 
 @dataclass
 class FleetPlan:
-    """What a fleet job will do: ``groups`` to calibrate, runs ``skipped`` ({run, why, ...}) and runs ``failed``
-    before calibration ({run, reason}: metadata or file unreadable)."""
+    """What a fleet job will do: ``groups`` to calibrate, runs ``skipped`` ({run, why, ...}), runs ``failed``
+    before calibration ({run, reason}: metadata or file unreadable, a second file with a run_id) and ``warnings``
+    ({run, warning}: a folder name naming another unit)."""
 
     root: str
     groups: list[UnitGroup] = field(default_factory=list)
     skipped: list[dict] = field(default_factory=list)
     failed: list[dict] = field(default_factory=list)
+    warnings: list[dict] = field(default_factory=list)
 
     @property
     def runs_found(self) -> int:
@@ -125,13 +128,13 @@ def discover_runs(root: str | os.PathLike) -> list[Path]:
     return sorted(found)
 
 
-def _unit_of(path: Path) -> str:
-    """The unit serial of a run: from its metadata alone, or, if that fails, from reading the whole run (which
-    raises the reader's precise one-line error for a bad run)."""
+def _meta_of(path: Path) -> RunMeta:
+    """A run's metadata: alone, or, if that fails, from reading the whole run (which raises the reader's precise
+    one-line error for a bad run)."""
     try:
-        return read_run_meta(path).unit_serial
+        return read_run_meta(path)
     except Exception:  # noqa: BLE001
-        return read_run(path).meta.unit_serial
+        return read_run(path).meta
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -143,7 +146,10 @@ def plan_fleet(root: str | os.PathLike, registry: str | os.PathLike | Registry,
     """Group the runs under ``root`` by unit and decide what to calibrate.
 
     A run whose metadata or bytes cannot be read is ``failed``; a second copy of a run (same content hash as
-    another run of the unit) is ``skipped`` as a duplicate; a unit whose group identity (its runs' content hashes +
+    another run of the unit) is ``skipped`` as a duplicate; two files with one run_id are never merged
+    (:func:`pipeline.calibrate.inputs.resolve_run_ids`: a truncated copy is ``failed`` and the complete file used,
+    else both ``failed``); a run whose folder names another unit is filed by its metadata, with a warning; a unit
+    whose group identity (its runs' content hashes +
     ``settings``) is already in ``registry`` has all its runs ``skipped`` as "already processed". Paths in the
     plan are absolute, as in the passports' provenance.
     """
@@ -153,11 +159,16 @@ def plan_fleet(root: str | os.PathLike, registry: str | os.PathLike | Registry,
     paths = [p.resolve() for p in discover_runs(root)]
     with ThreadPoolExecutor(max_workers=PLAN_THREADS) as pool:
         inspected = list(pool.map(_inspect_run, paths))
-    for path, (unit, digest) in zip(paths, inspected):
+    for path, (meta, digest) in zip(paths, inspected):
         if isinstance(digest, BaseException):  # one bad run must not stop the fleet
             plan.failed.append({"run": str(path), "reason": reason_of(digest)})
             continue
-        by_unit.setdefault(unit, []).append({"path": str(path), "sha256": digest.sha256, "digest": digest})
+        unit = meta.unit_serial
+        warning = folder_warning(path, unit, Path(root).resolve())
+        if warning:
+            plan.warnings.append({"run": str(path), "warning": warning})
+        by_unit.setdefault(unit, []).append({"path": str(path), "sha256": digest.sha256, "digest": digest,
+                                             "run_id": meta.run_id})
     rec = recipe(method)
     for unit, inputs in sorted(by_unit.items()):
         unique: dict[str, dict] = {}
@@ -166,6 +177,13 @@ def plan_fleet(root: str | os.PathLike, registry: str | os.PathLike | Registry,
             if first is not item:
                 plan.skipped.append({"run": item["path"], "why": f"duplicate of {first['path']}", "unit": unit})
         kept = list(unique.values())
+        usable, dropped = resolve_run_ids([RunInput(i["path"], unit, i["run_id"]) for i in kept], read_run)
+        if dropped:
+            plan.failed += [{**f, "unit": unit} for f in dropped]
+            paths_kept = {u.path for u in usable}
+            kept = [i for i in kept if i["path"] in paths_kept]
+            if not kept:
+                continue
         try:
             base = base_passport_of(reg, unit) if method in NEEDS_BASE_PASSPORT else None
             extra = base_reference(base) if base is not None else {}
@@ -183,10 +201,10 @@ def plan_fleet(root: str | os.PathLike, registry: str | os.PathLike | Registry,
     return plan
 
 
-def _inspect_run(path: Path) -> tuple[str | None, RunDigest | Exception]:
-    """A run's unit serial and :func:`pipeline.passport.provenance.hash_run`; or (None, the exception) if unreadable."""
+def _inspect_run(path: Path) -> tuple[RunMeta | None, RunDigest | Exception]:
+    """A run's metadata and :func:`pipeline.passport.provenance.hash_run`; or (None, the exception) if unreadable."""
     try:
-        return _unit_of(path), hash_run(path)
+        return _meta_of(path), hash_run(path)
     except Exception as exc:  # noqa: BLE001 - reported as the run's failure
         return None, exc
 

@@ -18,9 +18,10 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from pipeline.errors import CalibrationError
 from pipeline.run import Run
 
-__all__ = ["RunInput", "folder_warning", "is_prefix_of", "resolve_run_ids"]
+__all__ = ["RunInput", "folder_warning", "is_prefix_of", "resolve_run_ids", "select_runs"]
 
 
 @dataclass(frozen=True)
@@ -103,3 +104,19 @@ def folder_warning(path: str | Path, serial: str, root: str | Path | None = None
         return None
     return (f"{p}: its folder or file name says unit {named[0]} but its metadata says {serial}: filed under "
             f"{serial}")
+
+
+def select_runs(runs: Sequence[Run]) -> tuple[list[Run], list[str]]:
+    """The runs (already read) one calibration takes, and its warnings (``thermocal calibrate``): a truncated copy
+    of another run is left out with a warning; two runs with one run_id and other samples are a CalibrationError
+    naming both (neither can be used); a run whose folder or file name names another unit warns."""
+    by_path = {r.source or f"<run {k}>": r for k, r in enumerate(runs)}
+    items = [RunInput(p, r.meta.unit_serial, r.meta.run_id) for p, r in by_path.items()]
+    kept, dropped = resolve_run_ids(items, by_path.__getitem__)
+    conflicts = [d for d in dropped if "neither is used" in d["reason"]]
+    if conflicts:
+        raise CalibrationError(conflicts[0]["reason"].removeprefix(f"{conflicts[0]['run']}: "),
+                               path=conflicts[0]["run"], stream="metadata")
+    warnings = [d["reason"] for d in dropped]
+    warnings += [w for p, r in by_path.items() if r.source and (w := folder_warning(p, r.meta.unit_serial))]
+    return [by_path[i.path] for i in kept], warnings

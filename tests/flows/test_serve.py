@@ -101,8 +101,12 @@ def test_serve_nightly_deployment_processes_the_inbox(tmp_path):
         assert passport["status"] == "pass"
         assert [Path(i["path"]).name for i in passport["provenance"]["inputs"]] == ["AU-0301.mcap"]
         # the flow run's table artifact lists the calibrated unit and the broken run with its reason
-        (art,) = httpx.post(f"{api}/artifacts/filter", timeout=10, json={
-            "limit": 10, "flow_runs": {"id": {"any_": [flow_runs[0]["id"]]}}}).json()
+        arts = {a["key"]: a for a in httpx.post(f"{api}/artifacts/filter", timeout=10, json={
+            "limit": 10, "flow_runs": {"id": {"any_": [flow_runs[0]["id"]]}}}).json()}
+        assert sorted(arts) == ["registry-head", "thermocal-fleet"]
+        # the registry's signed head statement, for a later 'passport verify --against'
+        assert '"AU-0301"' in arts["registry-head"]["data"] and '"signature"' in arts["registry-head"]["data"]
+        art = arts["thermocal-fleet"]
         rows = json.loads(art["data"]) if isinstance(art["data"], str) else art["data"]
         assert {(r["unit"], r["outcome"]) for r in rows} == {("AU-0301", "done"), ("", "failed")}
         assert "not an MCAP file" in next(r["detail"] for r in rows if r["outcome"] == "failed")

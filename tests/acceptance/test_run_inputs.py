@@ -1,0 +1,83 @@
+"""Run inputs a fleet inbox really holds (issue 15): a truncated copy of a run (same run_id) is never merged, two
+recordings under one run_id are both refused, a folder naming another unit warns; calibrate does the same."""
+
+from __future__ import annotations
+
+import json
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+
+from flows.cli import main
+from pipeline.io.runs import write_run
+from pipeline.simulate.chamber import SimConfig
+from pipeline.simulate.large import simulate_run
+
+
+def sim(serial: str, seed: int):
+    return simulate_run(SimConfig(program="short", rate_hz=2.0, seed=seed, unit_serial=serial)).run
+
+
+def truncated_copy(src: Path, dst: Path, fraction: float = 0.6) -> Path:
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    data = src.read_bytes()
+    dst.write_bytes(data[:int(len(data) * fraction)])
+    return dst
+
+
+@pytest.fixture(scope="module")
+def inbox(tmp_path_factory):
+    root = tmp_path_factory.mktemp("inbox")
+    a = write_run(sim("AU-0201", 1), root / "AU-0201" / "tp.mcap", "mcap", chunk_size=1 << 15)
+    a_copy = truncated_copy(a, root / "usb-stick" / "AU-0201-tp.mcap")
+    b_run = sim("AU-0202", 2)
+    b1 = write_run(b_run, root / "AU-0202" / "tp.mcap", "mcap")
+    b2 = write_run(replace(sim("AU-0202", 3), meta=b_run.meta), root / "AU-0202" / "tp-again.mcap", "mcap")
+    c = write_run(sim("AU-0203", 4), root / "AU-0999" / "tp.mcap", "mcap")
+    return root, {"a": a, "a_copy": a_copy, "b1": b1, "b2": b2, "c": c}
+
+
+def test_fleet_never_merges_one_run_id(inbox, tmp_path):
+    from flows.fleet import run_fleet
+
+    root, p = inbox
+    summary = run_fleet(str(root), str(tmp_path / "reg"), pool="thread", workers=2)
+    done = {d["unit"]: d for d in summary["done"]}
+    failed = {Path(f["run"]): f["reason"] for f in summary["failed"]}
+    # the complete file is used, the truncated copy listed with why
+    assert done["AU-0201"]["runs"] == [str(p["a"].resolve())]
+    assert "a truncated copy of " + str(p["a"].resolve()) in failed[p["a_copy"].resolve()]
+    # two recordings under one run_id: neither is used, the unit is not calibrated
+    assert "AU-0202" not in done
+    assert "neither is used" in failed[p["b1"].resolve()] and str(p["b2"].resolve()) in failed[p["b1"].resolve()]
+    assert "neither is used" in failed[p["b2"].resolve()]
+    # filed by the metadata's serial, with a warning naming both
+    assert done["AU-0203"]["runs"] == [str(p["c"].resolve())]
+    [w] = summary["warnings"]
+    assert w["run"] == str(p["c"].resolve()) and "says unit AU-0999 but its metadata says AU-0203" in w["warning"]
+    assert all("\n" not in r for r in failed.values())
+
+
+def run_main(monkeypatch, capsys, *args):
+    monkeypatch.setattr(sys, "argv", ["thermocal", *args])
+    with pytest.raises(SystemExit) as info:
+        main()
+    out, err = capsys.readouterr()
+    return info.value.code, out, err
+
+
+def test_calibrate_drops_a_truncated_copy_and_refuses_two_recordings(inbox, tmp_path, monkeypatch, capsys):
+    _, p = inbox
+    code, out, err = run_main(monkeypatch, capsys, "calibrate", str(p["a_copy"]), str(p["a"]), "--registry",
+                              str(tmp_path / "reg"), "--json")
+    assert code == 0, err
+    result = json.loads(out)
+    assert [i["path"] for i in json.load(open(result["passport"]))["provenance"]["inputs"]] == [str(p["a"].resolve())]
+    assert any("a truncated copy of" in w for w in result["warnings"])
+    code, out, err = run_main(monkeypatch, capsys, "calibrate", str(p["b1"]), str(p["b2"]), "--registry",
+                              str(tmp_path / "reg"))
+    assert code == 2 and out == ""
+    [line] = [x for x in err.splitlines() if x.startswith("thermocal:")]
+    assert "neither is used" in line and str(p["b2"]) in line
