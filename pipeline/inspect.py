@@ -247,9 +247,12 @@ def _methods(program, poses, seg, on_soak: set[int], run: Run) -> list[dict[str,
                                ["gains and offsets at T0 (orthogonal axes assumed: too few poses for the "
                                 "cross-axis combinations)"] if k >= SCALAR_DIAGONAL_POSES else [])})
     # auto prefers tilt on a plateau program, the sweep method on a sweep, scalar on many poses at one temperature
+    # when no fixture log says where they are (poses named from gravity alone are not known to a fixture's
+    # precision: a hand-turned fixture), or when tilt cannot run
+    logged = run.fixture is not None and run.fixture.height > 0
     if program.kind == "sweep":
         out = [out[1], out[0], out[2]]
-    elif k >= SCALAR_DIAGONAL_POSES and not out[0]["supported"]:
+    elif (k >= SCALAR_FULL_POSES and not logged) or (k >= SCALAR_DIAGONAL_POSES and not out[0]["supported"]):
         out = [out[2], out[0], out[1]]
     return out
 
