@@ -20,8 +20,10 @@ temperature model left. Compared, per axis and period:
   temperature, linearly or piecewise-linearly with one breakpoint (chosen by least squares), and the signal
   standardised to a reference temperature (y - f(T) + f(T_ref)). Nine separate models (three per period);
 - thermocal: ``calibrate --method differential`` without a base passport (one model for the unit: per-axis bias and
-  scale factor as cubics in temperature plus rate terms, the constants at T0 from the orientations), then
-  ``apply`` (the passport's model at every sample), in g times g_local.
+  scale factor, and the cross-axis terms the orientations excite, as polynomials in temperature whose order, and
+  whether the cross-axis terms are fitted, are chosen by two-fold validation within the calibration blocks; the
+  constants at T0 from the orientations), then ``apply`` (the passport's model at every sample), in g times
+  g_local.
 
 Run: ``python benchmarks/cats_tag.py [RUN_DIR]``; prints the table and the averages.
 """
@@ -169,8 +171,14 @@ def main(argv: list[str]) -> None:
     res = compare(run_dir)
     print(format_table(res))
     d = res["passport"]["differential"]
-    print(f"thermocal: calibrate {res['calibrate_s']:.1f} s; terms {d['terms']['x']}; poly order {d['poly_order']}, "
-          f"rate order {d['rate_order']}; valid {res['passport']['valid_temp_c']} C")
+    print(f"thermocal: calibrate {res['calibrate_s']:.1f} s; terms x {d['terms']['x']}, y {d['terms']['y']}, "
+          f"z {d['terms']['z']}; poly order {d['poly_order']}, rate order {d['rate_order']}; valid "
+          f"{res['passport']['valid_temp_c']} C")
+    sel = d.get("model_selection")
+    if sel:
+        print("model chosen by two-fold validation within the calibration blocks (score: mm/s^2): " + ", ".join(
+            f"poly{c['poly_order']}{'+cross' if c['cross_axis'] else ''} {c['score_g'] * 9806.65:.2f}"
+            for c in sel["candidates"]))
 
 
 if __name__ == "__main__":

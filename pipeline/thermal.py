@@ -271,12 +271,15 @@ class RateTerms:
     """Temperature-rate terms and lag: ``alpha_rate`` (n, k+1, 3) in V/(C/min)^n/C^k for the bias and
     ``beta_rate`` (n, k+1, 3) in 1/(C/min)^n/C^k for the relative scale factors, index [n-1, k, axis] multiplying
     r^n dT^k; ``lag_tau_s`` the element lag (0: none). The rate r is the thermosensor's, smoothed over
-    ``temp_smooth_s``."""
+    ``temp_smooth_s``. ``cross_abs`` (m, 3, 3), V/g/C^m: cross-axis temperature terms dK_ij = sum_m cross_abs[m-1,
+    i, j] dT^m where the cross-axis constant K_ij itself is not known (a sweep calibrated without a base passport:
+    the polynomial model's gamma is relative to K_ij); None: none."""
 
     alpha_rate: np.ndarray
     beta_rate: np.ndarray
     temp_smooth_s: float
     lag_tau_s: float = 0.0
+    cross_abs: np.ndarray | None = None
 
     @property
     def order(self) -> int:
@@ -287,19 +290,30 @@ class RateTerms:
         return self.alpha_rate.shape[1] - 1
 
     def to_dict(self) -> dict:
-        return {"order": self.order, "dt_order": self.dt_order, "rate_unit": RATE_UNIT,
-                "temp_smooth_s": float(self.temp_smooth_s), "lag_tau_s": float(self.lag_tau_s),
-                "units": {"alpha_rate": "V/(C/min)^n/C^k", "beta_rate": "1/(C/min)^n/C^k"},
-                "index": "[n-1][k] multiplies r^n dT^k",
-                "alpha_rate": {AXES[i]: self.alpha_rate[..., i].tolist() for i in range(3)},
-                "beta_rate": {AXES[i] * 2: self.beta_rate[..., i].tolist() for i in range(3)}}
+        d = {"order": self.order, "dt_order": self.dt_order, "rate_unit": RATE_UNIT,
+             "temp_smooth_s": float(self.temp_smooth_s), "lag_tau_s": float(self.lag_tau_s),
+             "units": {"alpha_rate": "V/(C/min)^n/C^k", "beta_rate": "1/(C/min)^n/C^k"},
+             "index": "[n-1][k] multiplies r^n dT^k",
+             "alpha_rate": {AXES[i]: self.alpha_rate[..., i].tolist() for i in range(3)},
+             "beta_rate": {AXES[i] * 2: self.beta_rate[..., i].tolist() for i in range(3)}}
+        if self.cross_abs is not None:
+            d["units"]["cross_axis_abs"] = "V/g/C^m, [m-1] multiplies dT^m"
+            d["cross_axis_abs"] = {OFF_KEYS[k]: self.cross_abs[:, i, j].tolist()
+                                   for k, (i, j) in enumerate(OFF_DIAGONAL)}
+        return d
 
     @classmethod
     def from_dict(cls, d: dict) -> RateTerms:
         shape = (int(d["order"]), int(d["dt_order"]) + 1)
         a = np.stack([np.asarray(d["alpha_rate"][ax], dtype=float).reshape(shape) for ax in AXES], axis=-1)
         b = np.stack([np.asarray(d["beta_rate"][ax * 2], dtype=float).reshape(shape) for ax in AXES], axis=-1)
-        return cls(a, b, float(d["temp_smooth_s"]), float(d.get("lag_tau_s", 0.0)))
+        cross = None
+        if d.get("cross_axis_abs"):
+            m = len(next(iter(d["cross_axis_abs"].values())))
+            cross = np.zeros((m, 3, 3))
+            for k, (i, j) in enumerate(OFF_DIAGONAL):
+                cross[:, i, j] = np.asarray(d["cross_axis_abs"].get(OFF_KEYS[k], [0.0] * m), dtype=float)
+        return cls(a, b, float(d["temp_smooth_s"]), float(d.get("lag_tau_s", 0.0)), cross)
 
 
 def rate_basis(dt_c, rate, order: int, dt_order: int) -> np.ndarray:
@@ -339,6 +353,10 @@ class DifferentialModel:
                      ) -> tuple[np.ndarray, np.ndarray]:
         """K (m, 3, 3) V/g and U0 (m, 3) V at temperatures ``temp_c`` (m,) C and rates (m,) C/min."""
         K, U0 = self.static.constants_at(temp_c)
+        if self.rate is not None and self.rate.cross_abs is not None:
+            dT = np.atleast_1d(np.asarray(temp_c, dtype=float)) - self.normal_temp_c
+            powers = dT[:, None] ** np.arange(1, self.rate.cross_abs.shape[0] + 1)[None, :]
+            K = K + np.einsum("nm,mij->nij", powers, self.rate.cross_abs)
         if self.rate is None or rate_c_per_min is None or self.rate.order == 0:
             return K, U0
         g = rate_basis(np.atleast_1d(temp_c) - self.normal_temp_c, np.atleast_1d(rate_c_per_min),

@@ -80,6 +80,8 @@ class DifferentialSettings:
     max_turn_deg: float = 2.0       # static stretches closer than this in gravity direction are one orientation
     min_excitation: float = 0.2     # smallest singular value per sqrt(windows) of [1, a_c, a_j] to fit a term
     refine_passes: int = 1          # refits with each window's specific force from the previous fit's compensation
+    cross_axis_abs: bool = False    # cross-axis terms also where K0_cj is 0 (unknown), as absolute dK_cj (V/g/C^m)
+    select_model: bool = False      # choose poly_order (1..poly_order) and cross-axis terms by two-fold validation
 
     def __post_init__(self):
         if not 1 <= self.poly_order <= 3:
@@ -309,8 +311,8 @@ def _channel_terms(c: int, K0: np.ndarray, a_windows: np.ndarray, settings: Diff
         notes.append(f"channel {AXES[c]}: no orientation had gravity along it; its scale-factor temperature "
                      "terms are not determined (left at 0)")
     for j in range(3):
-        if settings.cross_axis and j != c and K0[c, j] != 0 and _excited(a_windows, axes + [j],
-                                                                          settings.min_excitation):
+        if settings.cross_axis and j != c and (K0[c, j] != 0 or settings.cross_axis_abs) and _excited(
+                a_windows, axes + [j], settings.min_excitation):
             names.append(f"cross_{AXES[j]}")
             axes.append(j)
     if settings.rate_order:
@@ -344,10 +346,16 @@ def _equations(data: list[BlockData], a_g: list[np.ndarray], normal_temp_c: floa
     return _Equations(*(np.concatenate([p[k] for p in parts]) for k in range(4)))
 
 
+def _cross_factor(K0: np.ndarray, c: int, j: int) -> float:
+    """The cross-axis column's factor: K0_cj / K0_cc (relative gamma) where K0_cj is known, 1 (absolute dK_cj in
+    units of K0_cc) where it is 0 (not determined: sweeps without a base passport)."""
+    return K0[c, j] / K0[c, c] if K0[c, j] != 0 else 1.0
+
+
 def _solve(eq: _Equations, c: int, names: list[str], K0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Least squares of channel c's differenced equation over the named terms: coefficients and residuals (g)."""
     cols = {"bias": eq.df, "scale": eq.a0[:, [c]] * eq.df, "bias_rate": eq.dg, "scale_rate": eq.a0[:, [c]] * eq.dg}
-    X = np.concatenate([cols[n] if n in cols else (K0[c, AXES.index(n[-1])] / K0[c, c])
+    X = np.concatenate([cols[n] if n in cols else _cross_factor(K0, c, AXES.index(n[-1]))
                         * eq.a0[:, [AXES.index(n[-1])]] * eq.df for n in names], axis=1)
     y = eq.du[:, c] / K0[c, c]
     scale = np.linalg.norm(X, axis=0)
@@ -404,6 +412,7 @@ def _fit_once(data, a_g, K0, U0, normal_temp_c, settings, names, tau) -> tuple[D
     alpha, rel = np.zeros((P, 3)), np.zeros((P, 3, 3))
     alpha_rate, beta_rate = np.zeros((R, Kx + 1, 3)), np.zeros((R, Kx + 1, 3))
     resid = np.zeros(3)
+    cross_abs = np.zeros((P, 3, 3))
     for c in range(3):
         coef, r = _solve(eq, c, names[c], K0)
         resid[c] = np.sqrt(np.mean(r ** 2))
@@ -417,13 +426,18 @@ def _fit_once(data, a_g, K0, U0, normal_temp_c, settings, names, tau) -> tuple[D
             elif name == "scale":
                 rel[:, c, c] = part
             elif name.startswith("cross_"):
-                rel[:, c, AXES.index(name[-1])] = part
+                j = AXES.index(name[-1])
+                if K0[c, j] != 0:
+                    rel[:, c, j] = part
+                else:
+                    cross_abs[:, c, j] = part * K0[c, c]
             elif name == "bias_rate":
                 alpha_rate[:, :, c] = part.reshape(R, Kx + 1) * K0[c, c]
             else:
                 beta_rate[:, :, c] = part.reshape(R, Kx + 1)
     static = PolynomialModel(K0, U0, float(normal_temp_c), P, alpha, rel)
-    rate = RateTerms(alpha_rate, beta_rate, settings.temp_smooth_s, tau)
+    rate = RateTerms(alpha_rate, beta_rate, settings.temp_smooth_s, tau,
+                     cross_abs if np.any(cross_abs) else None)
     return DifferentialModel(static, rate), resid, len(eq.du)
 
 
@@ -473,10 +487,64 @@ def compensate_run(passport: dict, run) -> tuple[np.ndarray, np.ndarray]:
 
 #: an axis within this angle (deg) of gravity is vertical in an orientation; within it of horizontal, horizontal
 AXIS_ROLE_DEG = 15.0
-#: the model fitted to sweeps without a base passport: cubics in T, no rate terms. On the real CATS recording the
-#: rate terms (fitted where the orientations saw fast changes) extrapolate badly to an orientation that did not
-#: (held-out mean 8.3 mm/s^2 with rate order 1, 6.3 without; benchmarks/cats_tag.py), and the lag search finds 0 s
-SWEEP_SETTINGS = DifferentialSettings(rate_order=0)
+#: the model fitted to sweeps without a base passport: polynomials in T of order 1..3 with or without the cross-axis
+#: terms the orientations excite, chosen by two-fold validation on the data (:func:`select_model`); no rate terms.
+#: On the real CATS recording the rate terms (fitted where the orientations saw fast changes) extrapolate badly to
+#: an orientation that did not (held-out mean 8.3 mm/s^2 with rate order 1, 6.3 without; benchmarks/cats_tag.py),
+#: and the lag search finds 0 s
+SWEEP_SETTINGS = DifferentialSettings(rate_order=0, cross_axis_abs=True, select_model=True)
+#: validation folds: alternate chunks of this length (s) of each window's blocks; scored on means over MEAN_S
+FOLD_S = 3600.0
+SCORE_MEAN_S = 600.0
+
+
+def _fold(data: BlockData, keep: np.ndarray) -> BlockData:
+    return dataclasses.replace(data, t_s=data.t_s[keep], u_v=data.u_v[keep], window=data.window[keep])
+
+
+def _spread_g(model: DifferentialModel, data: BlockData) -> float:
+    """Mean over windows and axes of the std of the compensated specific force's SCORE_MEAN_S means (g)."""
+    a = compensate_blocks(model, data)
+    out = []
+    for w in data.windows:
+        sel = np.flatnonzero(data.window == w.index)
+        if sel.size < 4:
+            continue
+        b = np.floor(data.t_s[sel] / SCORE_MEAN_S).astype(np.int64)
+        ids, start, counts = np.unique(b, return_index=True, return_counts=True)
+        means = np.add.reduceat(a[sel], start, axis=0) / counts[:, None]
+        if len(means) > 2:
+            out.append(means.std(axis=0, ddof=1))
+    return float(np.mean(out)) if out else float("inf")
+
+
+def select_model(data: list[BlockData], K0: np.ndarray, U0: np.ndarray, normal_temp_c: float,
+                 settings: DifferentialSettings) -> tuple[DifferentialSettings, list[dict]]:
+    """The polynomial order (1..``settings.poly_order``) and whether to fit cross-axis terms, chosen where the
+    data supports them: each candidate is fitted on alternate :data:`FOLD_S` chunks of the windows and scored on
+    the others (the spread of the compensated :data:`SCORE_MEAN_S` means, both ways round); the lowest score wins.
+    Returns the chosen settings (``select_model`` off) and every candidate's score (g)."""
+    folds = []
+    for d in data:
+        odd = (np.floor(d.t_s / FOLD_S).astype(np.int64) % 2).astype(bool)
+        folds.append((_fold(d, ~odd), _fold(d, odd)))
+    scores = []
+    for order in range(1, settings.poly_order + 1):
+        for cross in ((False, True) if settings.cross_axis else (False,)):
+            cand = dataclasses.replace(settings, poly_order=order, cross_axis=cross, select_model=False)
+            try:
+                total = 0.0
+                for k in (0, 1):
+                    fit = fit_differential([f[k] for f in folds], K0, U0, normal_temp_c, cand)
+                    total += np.mean([_spread_g(fit.model, f[1 - k]) for f in folds])
+                scores.append({"poly_order": order, "cross_axis": cross, "score_g": float(total / 2)})
+            except CalibrationError:
+                continue
+    if not scores:
+        return dataclasses.replace(settings, select_model=False), []
+    best = min(scores, key=lambda x: x["score_g"])
+    return (dataclasses.replace(settings, poly_order=best["poly_order"], cross_axis=best["cross_axis"],
+                                select_model=False), scores)
 
 
 @dataclass
@@ -678,11 +746,14 @@ def calibrate_observed(observed: list[ObservedRun], settings: CalibrationSetting
     orientation_base = None
     if base_passport is None:
         t0 = float(observed[0].meta.normal_temp_c)
-        orientation_base = sweep_base(data, differential, t0)
+        orientation_base = sweep_base(data, dataclasses.replace(differential, select_model=False), t0)
         K0, U0 = orientation_base.K, orientation_base.U0
         data = [with_constants(d, K0, U0) for d in data]
     else:
         K0, U0, t0 = base_constants(base_passport, serial)
+    scores = []
+    if differential.select_model:
+        differential, scores = select_model(data, K0, U0, t0, differential)
     fit = fit_differential(data, K0, U0, t0, differential)
     observations = [o for r in observed for o in r.observations]
     rows, status = verify_unit(fit.model.static, observations, t0, settings.tolerances)
@@ -700,7 +771,10 @@ def calibrate_observed(observed: list[ObservedRun], settings: CalibrationSetting
     status, implausible = assess(unit_fit, status, observed[0].meta.nominal_gain_v_per_g, run_warnings)
     # the plateaus that verified the passport (the fit uses none; a sweep's drifting stretches are no plateaus)
     plateaus = plateau_summary([o for o in observations if is_verification_position(o.position)])
-    extra = {"differential": fit.summary(), "rate_terms": fit.model.rate.to_dict(),
+    summary = fit.summary()
+    if scores:
+        summary["model_selection"] = {"folds_s": FOLD_S, "score_mean_s": SCORE_MEAN_S, "candidates": scores}
+    extra = {"differential": summary, "rate_terms": fit.model.rate.to_dict(),
              "base_passport": ({k: base_passport.get(k) for k in ("unit", "version", "method", "created_utc")}
                                if base_passport is not None else None),
              **({"implausible": implausible} if implausible else {})}

@@ -64,8 +64,9 @@ def test_constants_from_the_orientations(calibrated, sweeps):
 
 def test_held_out_sweep_is_flat(calibrated, sweeps):
     """On the held-out sweep the compensated output varies within each orientation (10-min means over the
-    5 -> 25 C drift) at least 5 times less than the raw output on every axis, and by less than 50 micro-g: what is
-    left is the cross-axis sensitivities' temperature change, which three orientations cannot pin down."""
+    5 -> 25 C drift) 100 times less than the raw output on every axis, down to the noise of a 10-min mean (about
+    0.5 micro-g): the cross-axis terms the orientations excite are fitted (as absolute changes: their constants at
+    T0 are not known), and the validation picked the simulated unit's quadratic order."""
     res = sweeps[1]
     run = res.run
     t = run.t_ns()
@@ -75,8 +76,13 @@ def test_held_out_sweep_is_flat(calibrated, sweeps):
     raw = _ten_minute_spread_g(t, run.u_v() / gain, holds)
     comp = _ten_minute_spread_g(t, a, holds)
     assert raw.shape == (3, 3) and np.all(raw > 9e-5)
-    assert np.all(comp < raw / 5), (raw, comp)
-    assert np.all(comp < 5e-5), comp
+    assert np.all(comp < raw / 100), (raw, comp)
+    assert np.all(comp < 2e-6), comp
+    d = calibrated.passport["differential"]
+    assert d["poly_order"] == 2 and all(any(t.startswith("cross_") for t in d["terms"][a]) for a in "xyz")
+    best = min(d["model_selection"]["candidates"], key=lambda c: c["score_g"])
+    assert (best["poly_order"], best["cross_axis"]) == (2, True)
+    assert calibrated.passport["rate_terms"]["cross_axis_abs"]
 
 
 def _hold_bounds(res):
