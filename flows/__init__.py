@@ -1,5 +1,6 @@
 """Prefect flows of thermocal (``calibrate``, ``fleet``) and the ``thermocal`` command line.
 
-Importing this package does not import Prefect; ``flows.runtime.prefect_defaults`` sets the embedded defaults
-(local ephemeral mode, no telemetry) before Prefect is imported.
+Importing this package does not import Prefect; ``flows.runtime.prefect_defaults`` sets the defaults (no
+telemetry) before Prefect is imported; flow runs are recorded on ``PREFECT_API_URL`` or on thermocal's local server
+(``flows.localserver``, whose warm worker ``flows.worker`` runs the commands).
 """

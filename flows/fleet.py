@@ -9,8 +9,8 @@ Where the unit tasks run is a flow parameter, so that a deployment can choose it
 
 - ``dask_address="tcp://host:8786"``: on an existing dask.distributed cluster, through prefect-dask's
   ``DaskTaskRunner(address=...)``. The workers need thermocal installed and must reach the Prefect API: with
-  ``PREFECT_API_URL`` unset the flow's local (ephemeral) API on 127.0.0.1 is handed to them, which serves workers on
-  this machine only; for workers on other machines run ``prefect server start --host 0.0.0.0`` and set
+  ``PREFECT_API_URL`` unset the flow's local API on 127.0.0.1 (thermocal's local server, or Prefect's ephemeral one
+  with ``THERMOCAL_PREFECT=ephemeral``) is handed to them, which serves workers on this machine only; for workers on other machines run ``prefect server start --host 0.0.0.0`` and set
   ``PREFECT_API_URL`` to it.
 - else a local pool of ``workers`` (default: the machine's CPU count). ``pool="process"``: the unit tasks run in
   Prefect's ThreadPoolTaskRunner and each hands its calibration to a process pool of the flow's own
@@ -128,8 +128,8 @@ def _compute_pool(processes: int):
 
 @contextlib.contextmanager
 def _api_for_workers():
-    """Tasks in other processes report to the Prefect API: in local ephemeral mode, hand them its URL (else each
-    worker would start a private temporary server)."""
+    """Tasks in other processes report to the Prefect API: in Prefect's ephemeral mode (``THERMOCAL_PREFECT=
+    ephemeral``), hand them its URL (else each worker would start a private temporary server)."""
     from prefect.settings import PREFECT_API_URL, temporary_settings
 
     if PREFECT_API_URL.value():

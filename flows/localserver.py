@@ -7,15 +7,15 @@ later commands reuse it:
 
 - a *supervisor* (``python -m flows.localserver supervise``, detached from the terminal, its own session) holds a
   lock in the Prefect home (one per home), runs ``prefect server start`` on a free loopback port (the real server:
-  API, UI, SQLite database under ``PREFECT_HOME``), and keeps one *warm worker* waiting (:mod:`flows.worker`): a
-  process that has imported Prefect, the flows and the pipeline, and waits on a loopback job port;
+  API, UI, SQLite database under ``PREFECT_HOME``), and keeps two *warm workers* waiting (:mod:`flows.worker`):
+  processes that have imported Prefect, the flows and the pipeline, and wait on a loopback job port;
 - the ``thermocal`` command sends its arguments, working directory and environment to that worker and relays what it
   writes (stdout, stderr) and its exit status: the command runs exactly as it would in-process, with the flow and
   its task runs and artifacts recorded on the server, but without paying Prefect's start-up. A worker runs one
-  command and exits; the supervisor starts the next one as soon as a worker is taken;
+  command and exits; the supervisor starts another as soon as a worker is taken;
 - lifecycle: the worker watches its client; when the client goes away (``kill -9``) it interrupts the flow and exits
   within seconds, and its own processes (the fleet's pool) follow it. Ctrl-C is passed on as an interrupt. The
-  server, the supervisor and its spare worker exit when no command has run for ``THERMOCAL_SERVER_IDLE_S`` seconds
+  server, the supervisor and its spare workers exit when no command has run for ``THERMOCAL_SERVER_IDLE_S`` seconds
   (default 600), on ``thermocal server stop``, or when the supervisor itself is killed (Linux: parent-death signal).
 
 The state file ``thermocal-server.json`` in the Prefect home (mode 0600) names the supervisor's pid, the API URL,
@@ -44,6 +44,8 @@ LOCK = "thermocal-server.lock"
 LOG = "thermocal-server.log"
 #: seconds without a command after which the server exits (``THERMOCAL_SERVER_IDLE_S``)
 DEFAULT_IDLE_S = 600.0
+#: warm workers kept waiting (``THERMOCAL_SERVER_SPARES``): two, so that commands run back to back find one warm
+DEFAULT_SPARES = 2
 #: seconds a worker whose client went away gets to wind its flow down before it exits anyway
 CLIENT_GONE_GRACE_S = 5.0
 START_TIMEOUT_S = 180.0
@@ -58,8 +60,10 @@ def prefect_home() -> Path:
     env = os.environ.get("PREFECT_HOME")
     if env:
         return Path(env).expanduser()
-    import platformdirs
-
+    try:
+        import platformdirs
+    except ImportError:  # an environment installed before thermocal depended on it: the XDG default
+        return Path(os.environ.get("XDG_DATA_HOME") or "~/.local/share").expanduser() / "thermocal" / "prefect"
     return Path(platformdirs.user_data_dir("thermocal", appauthor=False)) / "prefect"
 
 
@@ -257,23 +261,23 @@ def supervise(home: Path) -> int:
     listener = socket.create_server(("127.0.0.1", 0), backlog=64)
     token = secrets.token_hex(16)
     worker_env = {**env, "PREFECT_API_URL": api_url, "THERMOCAL_WORKER_TOKEN": token}
+    n_spares = max(1, int(os.environ.get("THERMOCAL_SERVER_SPARES", DEFAULT_SPARES)))
+
+    def new_worker() -> subprocess.Popen:
+        return subprocess.Popen([sys.executable, "-m", "flows.worker", str(listener.fileno())],
+                                env=worker_env, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                                pass_fds=(listener.fileno(),), preexec_fn=_die_with_parent)
+
     busy: list[subprocess.Popen] = []
-    spare = None
+    spares = [new_worker() for _ in range(n_spares)]  # they warm up while the server starts
     try:
         while not _health(api_url):
             if server.poll() is not None or stopping.is_set():
                 print(f"thermocal server: prefect server exited ({server.returncode})", file=sys.stderr)
                 return 1
             time.sleep(0.2)
-
-        def new_worker() -> subprocess.Popen:
-            return subprocess.Popen([sys.executable, "-m", "flows.worker", str(listener.fileno())],
-                                    env=worker_env, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                                    pass_fds=(listener.fileno(),), preexec_fn=_die_with_parent)
-
-        spare = new_worker()
         state = {"pid": os.getpid(), "api_url": api_url, "ui_url": api_url.removesuffix("/api"),
-                 "job_port": listener.getsockname()[1], "token": token, "idle_s": idle_s,
+                 "job_port": listener.getsockname()[1], "token": token, "idle_s": idle_s, "spares": n_spares,
                  "server_pid": server.pid, "home": str(home), "code": code_fingerprint()}
         tmp = home / f".{STATE}.tmp"
         tmp.write_text(json.dumps(state))
@@ -283,15 +287,16 @@ def supervise(home: Path) -> int:
         import select
 
         while not stopping.is_set():
-            ready, _, _ = select.select([spare.stdout], [], [], 0.25)
-            if ready:
-                if spare.stdout.readline():  # the spare took a job: keep one waiting
-                    busy.append(spare)
+            ready, _, _ = select.select([p.stdout for p in spares], [], [], 0.25)
+            for p in [p for p in spares if p.stdout in ready]:
+                spares.remove(p)
+                if p.stdout.readline():  # this spare took a job: keep n_spares waiting
+                    busy.append(p)
                 else:  # it died while waiting (a crash on import): try again, slowly
-                    spare.wait()
+                    p.wait()
                     time.sleep(1.0)
-                spare.stdout.close()
-                spare = new_worker()
+                p.stdout.close()
+                spares.append(new_worker())
             running = [p for p in busy if p.poll() is None]
             if len(running) != len(busy) or running:
                 last = time.monotonic()
@@ -307,15 +312,14 @@ def supervise(home: Path) -> int:
             if st.get("pid") == os.getpid():
                 (home / STATE).unlink()
         listener.close()
-        for p in [spare, *busy, server]:
-            if p is not None and p.poll() is None:
+        for p in [*spares, *busy, server]:
+            if p.poll() is None:
                 p.terminate()
-        for p in [spare, *busy, server]:
-            if p is not None:
-                try:
-                    p.wait(timeout=15)
-                except subprocess.TimeoutExpired:
-                    p.kill()
+        for p in [*spares, *busy, server]:
+            try:
+                p.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                p.kill()
     return 0
 
 

@@ -7,8 +7,9 @@ runs already processed are skipped by content hash, so the inbox may keep its ol
 
 It needs a Prefect server with its scheduler, reachable through ``PREFECT_API_URL``: ``prefect server start``
 (SQLite under ``PREFECT_HOME`` by default; for production set ``PREFECT_API_DATABASE_CONNECTION_URL`` to a
-``postgresql+asyncpg://...`` URL before starting the server). The ephemeral local mode of ``thermocal calibrate``
-and ``fleet`` has no scheduler, so ``serve`` refuses to start without ``PREFECT_API_URL``.
+``postgresql+asyncpg://...`` URL before starting the server). thermocal's local server (``flows.localserver``,
+where ``calibrate`` and ``fleet`` record their runs by default) runs without the scheduler, so ``serve`` refuses to
+start without ``PREFECT_API_URL``.
 """
 
 from __future__ import annotations
