@@ -104,7 +104,7 @@ def standard_run(tmp_path_factory):
 
 def test_commands_recorded_and_listed_by_prefects_cli(short_run, tmp_path):
     """`thermocal calibrate` without PREFECT_API_URL runs on the local server (started here on first use); its flow
-    run, its four task runs and its artifact are on that server, and `prefect flow-run ls`, `task-run ls`,
+    run, its task runs (ingest, observe, fit, write) and its artifact are on that server, and `prefect flow-run ls`, `task-run ls`,
     `artifact ls` and `deployment ls` (the nightly deployment registered against it) list them with the pinned
     prefect/fastapi/pydantic (fastapi >= 0.151 made the server answer 422 to these commands)."""
     env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}
@@ -125,9 +125,10 @@ def test_commands_recorded_and_listed_by_prefects_cli(short_run, tmp_path):
     def tasks():
         trs = httpx.post(f"{api}/task_runs/filter", timeout=30,
                          json={"flow_runs": {"id": {"any_": [fr["id"]]}}}).json()
-        return sorted(t["name"].rsplit("-", 1)[0] for t in trs) if len(trs) == 4 else None
+        names = {t["name"].rsplit("-", 1)[0] for t in trs if t["state"]["type"] == "COMPLETED"}
+        return names if names >= {"ingest", "observe", "fit", "write"} else None
 
-    assert _wait("task runs recorded", tasks, 30) == ["fit", "ingest", "observe", "write"]
+    _wait("task runs recorded (ingest, observe, fit, write)", tasks, 60)
     # the nightly deployment registered on the same server (as `thermocal serve` does, without serving it)
     reg = subprocess.run([sys.executable, "-c", "from flows.serve import nightly_deployment as d; "
                           f"d({str(tmp_path / 'inbox')!r}, {str(tmp_path / 'reg')!r}, name='i17').apply()"],
