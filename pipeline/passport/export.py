@@ -35,6 +35,7 @@ import numpy as np
 
 from pipeline.errors import ThermocalError
 from pipeline.passport.document import load_model
+from pipeline.passport.significance import sigma_of
 
 FORMATS = ("px4", "ardupilot", "csv")
 ARDUPILOT_TREF_C = 35.0          # fixed reference temperature of ArduPilot's tempcal (not a parameter)
@@ -216,9 +217,6 @@ def export_csv(passport: dict) -> Export:
     """Every number of the passport's model, one row each: ``quantity, key, order, t_lo_c, t_hi_c, value, unit,
     std_uncertainty`` (the uncertainty empty where the passport records none)."""
     lo, hi = valid_range_c(passport)
-    unc = passport.get("uncertainty") or {}
-    uc = unc.get("coefficients") or {}
-    ut = unc.get("thermal_model") or {}
     rows = [["quantity", "key", "order", "t_lo_c", "t_hi_c", "value", "unit", "std_uncertainty"],
             ["unit", passport.get("unit", ""), "", "", "", "", "", ""],
             ["version", "", "", "", "", passport.get("version", ""), "", ""],
@@ -228,9 +226,10 @@ def export_csv(passport: dict) -> Export:
     c = passport.get("coefficients") or {}
     for i in range(3):
         for j in range(3):
-            rows.append(["K", AXES[i] + AXES[j], "", "", "", c["K"][i][j], "V/g", _at(uc.get("K"), i, j)])
+            key = AXES[i] + AXES[j]
+            rows.append(["K", key, "", "", "", c["K"][i][j], "V/g", sigma_of(passport, f"K.{key}")])
     for i in range(3):
-        rows.append(["U0", AXES[i], "", "", "", c["U0"][i], "V", _at(uc.get("U0"), i)])
+        rows.append(["U0", AXES[i], "", "", "", c["U0"][i], "V", sigma_of(passport, f"U0.{AXES[i]}")])
     tm = passport.get("thermal_model") or {}
     units = {"alpha": "V/C^{n}", "beta": "1/C^{n}", "gamma": "1/C^{n}"}
     if tm.get("kind") == "polynomial":
@@ -238,14 +237,13 @@ def export_csv(passport: dict) -> Export:
             for key, values in sorted((tm.get(group) or {}).items()):
                 for n, v in enumerate(values, start=1):
                     rows.append([group, key, n, "", "", v, units[group].format(n=n),
-                                 _at((ut.get(group) or {}).get(key), n - 1)])
+                                 sigma_of(passport, f"{group}.{key}[{n}]")])
     else:
         for s, seg in enumerate(tm.get("segments") or []):
-            useg = _at(ut.get("segments"), s) or {}
             for group in ("alpha", "beta", "gamma"):
                 for key, v in sorted((seg.get(group) or {}).items()):
                     rows.append([group, key, 1, seg["t_lo_c"], seg["t_hi_c"], v, units[group].format(n=1),
-                                 _at(useg.get(group) or {}, key)])
+                                 sigma_of(passport, f"segments[{s}].{group}.{key}")])
     buf = io.StringIO()
     csv.writer(buf, lineterminator="\n").writerows([["" if x is None else x for x in r] for r in rows])
     return Export("csv", passport.get("unit", ""), passport.get("version"), (lo, hi), buf.getvalue(), [], {}, {})
@@ -259,15 +257,6 @@ def export_passport(passport: dict, fmt: str) -> Export:
         return {"px4": export_px4, "ardupilot": export_ardupilot, "csv": export_csv}[fmt](passport)
     except (KeyError, TypeError, ValueError, np.linalg.LinAlgError) as e:
         raise ThermocalError(f"the passport cannot be exported as {fmt} ({type(e).__name__}: {e})") from None
-
-
-def _at(seq, *index):
-    try:
-        for i in index:
-            seq = seq[i]
-        return seq
-    except (IndexError, KeyError, TypeError):
-        return None
 
 
 def _f32(value: float) -> str:
