@@ -28,7 +28,8 @@ Sub-packages:
 - ``calibrate``: one recipe per method (``tilt``, ``scalar``, ``differential``: observe each run, then fit and verify,
   into one result type), the observations they share, the settings, the one publish path, fleets
 - ``passport``: the passport document and its typed form with the one loader (the right compensation model for
-  every method), the registry (storage, integrity, signatures), the physics-unit diff of two versions, provenance,
+  every method), the registry (storage, integrity, signatures, approvals), the physics-unit diff of two versions
+  and which of its changes are significant, exports for flight software (PX4, ArduPilot) and CSV, provenance,
   the text people read (summaries, tables, log, diff) and the calibration certificate
 - ``effects``: the catalogue of left-out physics, one module per effect (its simulation, fit terms, explanation
   and properties), the catalogue by id
