@@ -17,6 +17,7 @@ from typing import List, Optional
 import typer
 
 from pipeline.errors import ThermocalError
+from pipeline.jsonable import json_default
 
 app = typer.Typer(add_completion=False, pretty_exceptions_enable=False,
                   help="thermocal: thermal-chamber calibration of accelerometer units.")
@@ -84,24 +85,10 @@ def _main_options(_version_flag: bool = typer.Option(False, "--version", callbac
 
 def _emit(obj, as_json: bool, text: str | None = None) -> None:
     if as_json:
-        sys.stdout.write(json.dumps(obj, indent=2, default=_json_default) + "\n")
+        sys.stdout.write(json.dumps(obj, indent=2, default=json_default) + "\n")
     else:
-        sys.stdout.write((text if text is not None else json.dumps(obj, indent=2, default=_json_default)) + "\n")
+        sys.stdout.write((text if text is not None else json.dumps(obj, indent=2, default=json_default)) + "\n")
     sys.stdout.flush()
-
-
-def _json_default(o):
-    import numpy as np
-
-    if isinstance(o, (np.integer,)):
-        return int(o)
-    if isinstance(o, (np.floating,)):
-        return float(o)
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
 # ---------------------------------------------------------------------------------------------------------- inspect
@@ -155,7 +142,7 @@ def simulate(out: Path = typer.Option(..., "--out", help="output .mcap file or P
              as_json: bool = typer.Option(False, "--json", help=JSON_HELP)):
     """Write one simulated run of a chamber program, and its ground truth as JSON beside it."""
     from pipeline.effects.catalogue import parse_effect_spec
-    from pipeline.io.runs import write_run
+    from pipeline.io.runs import FORMATS, write_run
     from pipeline.simulate.chamber import SimConfig, write_truth
     from pipeline.simulate.large import simulate_run
     from pipeline.simulate.program import PROGRAMS
@@ -164,8 +151,8 @@ def simulate(out: Path = typer.Option(..., "--out", help="output .mcap file or P
 
     if program not in PROGRAMS:
         raise ThermocalError(f"unknown chamber program {program!r} ({', '.join(PROGRAMS)})", where="--program")
-    if fmt not in ("mcap", "parquet"):
-        raise ThermocalError(f"unknown format {fmt!r} (mcap, parquet)", where="--format")
+    if fmt not in FORMATS:
+        raise ThermocalError(f"unknown format {fmt!r} ({', '.join(FORMATS)})", where="--format")
     try:
         effects = [parse_effect_spec(e) for e in effect]
     except ValueError as e:
@@ -324,13 +311,15 @@ def _base_passport(run: Path, registry: Path, path: Path | None) -> dict | None:
 
 def _calibration_settings(thermal_model: str, constants_method: str, tol_normal_g: float, tol_range_g: float):
     from pipeline.calibrate.settings import CalibrationSettings
+    from pipeline.constants import CONSTANTS_METHODS
+    from pipeline.thermal import THERMAL_MODELS
     from pipeline.verify import Tolerances
 
-    if thermal_model not in ("auto", "poly1", "poly2", "poly3", "piecewise"):
-        raise ThermocalError(f"unknown thermal model {thermal_model!r} (poly1, poly2, poly3, piecewise)",
+    if thermal_model not in THERMAL_MODELS:
+        raise ThermocalError(f"unknown thermal model {thermal_model!r} ({', '.join(THERMAL_MODELS[1:])})",
                              where="--thermal-model")
-    if constants_method not in ("auto", "six_position", "least_squares"):
-        raise ThermocalError(f"unknown constants method {constants_method!r} (auto, six_position, least_squares)",
+    if constants_method not in CONSTANTS_METHODS:
+        raise ThermocalError(f"unknown constants method {constants_method!r} ({', '.join(CONSTANTS_METHODS)})",
                              where="--constants-method")
     return CalibrationSettings(thermal_model=thermal_model, constants_method=constants_method,
                                tolerances=Tolerances(normal_g=tol_normal_g, operating_range_g=tol_range_g))
@@ -464,12 +453,12 @@ def fleet(folder: Path = typer.Argument(..., metavar="FOLDER", help="folder of r
     Runs already processed with the same settings are skipped; a bad run is reported and the rest go on.
     Exit status: 0 all done or skipped; 1 the fleet ran but some runs failed (listed); 2 it could not run.
     """
-    from pipeline.calibrate.fleet import discover_runs
+    from pipeline.calibrate.fleet import POOLS, discover_runs
 
     settings = _calibration_settings(thermal_model, constants_method, tol_normal_g, tol_range_g)
     _check_method(method)
-    if pool not in ("auto", "process", "thread"):
-        raise ThermocalError(f"unknown pool {pool!r} (auto, process, thread)", where="--pool")
+    if pool not in POOLS:
+        raise ThermocalError(f"unknown pool {pool!r} ({', '.join(POOLS)})", where="--pool")
     if workers is not None and workers < 1:
         raise ThermocalError("must be at least 1", where="--workers")
     discover_runs(folder)  # a missing folder fails here, in one line, before Prefect starts

@@ -53,7 +53,6 @@ from pipeline.calibrate import fleet as fleet_plan  # noqa: E402
 from pipeline.calibrate.settings import CalibrationSettings  # noqa: E402
 from .calibrate import record_head  # noqa: E402
 
-POOLS = ("auto", "process", "thread")
 #: ``pool="auto"``: a process pool from this many units on (its start-up pays off), else threads.
 AUTO_PROCESS_MIN_UNITS = 4
 ARTIFACT_KEY = "thermocal-fleet"
@@ -94,8 +93,8 @@ def make_task_runner(dask_address: str | None, workers: int | None, pool: str, n
         return DaskTaskRunner(address=dask_address), f"DaskTaskRunner({dask_address})", True, 0
     from prefect.task_runners import ThreadPoolTaskRunner
 
-    if pool not in POOLS:
-        raise ValueError(f"unknown pool {pool!r}; expected one of {', '.join(POOLS)}")
+    if pool not in fleet_plan.POOLS:
+        raise ValueError(f"unknown pool {pool!r}; expected one of {', '.join(fleet_plan.POOLS)}")
     n = max(1, min(workers or default_workers(), n_units))
     if pool == "auto":
         pool = "process" if n > 1 and n_units >= AUTO_PROCESS_MIN_UNITS else "thread"

@@ -60,6 +60,10 @@ def least_squares(a_g: np.ndarray, u_v: np.ndarray, weights: np.ndarray | None =
     return K, U0, u_v - (a_g @ K.T + U0)
 
 
+#: the methods ``fit_constants`` (and ``calibrate --constants-method``) takes
+CONSTANTS_METHODS = ("auto", "six_position", "least_squares")
+
+
 def fit_constants(positions: list[str], u_v: np.ndarray, *, method: str = "auto",
                   weights: np.ndarray | None = None) -> ConstantsFit:
     """Constants from named positions and their mean outputs.

@@ -13,6 +13,7 @@ import numpy as np
 
 from pipeline.errors import ThermocalError
 from pipeline.io.checks import GAP_FACTOR, gap_indices  # noqa: F401  (GAP_FACTOR: the gap definition, shared with the readers)
+from pipeline.jsonable import to_jsonable
 from pipeline.run import Run
 
 
@@ -77,7 +78,7 @@ def _segmentation_summary(run: Run) -> dict[str, Any]:
         return {"plateaus": [], "static_positions": [], "segmentation": f"failed: {exc}"}
     recording = describe_recording(run, result)
     plateaus = recording.pop("_plateaus")
-    return {"plateaus": _jsonable(plateaus), "static_positions": _jsonable(result.segments),
+    return {"plateaus": to_jsonable(plateaus), "static_positions": to_jsonable(result.segments),
             "segmentation": "ok", "segmentation_warnings": list(result.warnings), "recording": recording}
 
 
@@ -255,23 +256,6 @@ def _methods(program, poses, seg, on_soak: set[int], run: Run) -> list[dict[str,
     elif (k >= SCALAR_FULL_POSES and not logged) or (k >= SCALAR_DIAGONAL_POSES and not out[0]["supported"]):
         out = [out[2], out[0], out[1]]
     return out
-
-
-def _jsonable(value: Any) -> Any:
-    """Dataclasses, tuples and numpy values as JSON-ready data."""
-    import dataclasses
-
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return {f.name: _jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    return value
 
 
 def format_summary(summary: dict[str, Any]) -> str:

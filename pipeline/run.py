@@ -34,6 +34,20 @@ OPTIONAL_STREAMS = ("chamber", "fixture")
 
 #: Metadata keys that every run must carry (log-format.md); values are strings in the files.
 REQUIRED_META = ("unit_serial", "run_id")
+#: nanoseconds per second (times are Int64 ns since the Unix epoch)
+NS_PER_S = 1_000_000_000
+#: per-sample passes over a long run read it this many samples at a time (a slab's temporaries, not the record's)
+SLAB_SAMPLES = 1 << 20
+
+
+def slab_of(column, s0: int, s1: int) -> np.ndarray:
+    """Samples ``s0 .. s1 - 1`` of one column (a polars Series or a numpy array) as a numpy array.
+
+    The readers build long tables in chunks (no whole-record copy while reading); a slab inside one chunk is a
+    view of the table's memory, one across a chunk boundary a copy of the slab only."""
+    if isinstance(column, pl.Series):
+        return column.slice(s0, s1 - s0).to_numpy()
+    return column[s0:s1]
 
 
 @dataclass(frozen=True)
@@ -141,19 +155,23 @@ class Run:
         return self.voltmeter["t_ns"].to_numpy()
 
     def voltmeter_slab(self, s0: int, s1: int, columns: tuple[str, ...] = ("ux", "uy", "uz")) -> list[np.ndarray]:
-        """Voltmeter samples ``s0 .. s1 - 1`` of the named columns as 1-D numpy arrays.
-
-        The readers build long tables in chunks (no whole-record copy while reading); a slab inside one chunk is a
-        view of the table's memory, one across a chunk boundary a copy of the slab only. Per-sample passes over a
-        long run read it a slab (~1 M samples) at a time this way, so that their memory stays that of the table.
-        """
+        """Voltmeter samples ``s0 .. s1 - 1`` of the named columns as 1-D numpy arrays (:func:`slab_of`).
+        Per-sample passes over a long run read it :data:`SLAB_SAMPLES` at a time this way, so that their memory
+        stays that of the table."""
         df = self.voltmeter
-        return [df[c].slice(s0, s1 - s0).to_numpy() for c in columns]
+        return [slab_of(df[c], s0, s1) for c in columns]
 
     def u_v(self) -> np.ndarray:
         """Voltmeter samples as an (n, 3) float64 array of volts (a copy of all samples; see
         :meth:`voltmeter_slab`)."""
         return np.column_stack([self.voltmeter[c].to_numpy() for c in ("ux", "uy", "uz")])
+
+    def thermosensor(self) -> tuple[np.ndarray, np.ndarray]:
+        """The AU thermosensor's finite samples, as stored: times (n,) int64 ns and temperatures (n,) C."""
+        tt = self.au_temperature["t_ns"].to_numpy()
+        temp = self.au_temperature["temp_c"].to_numpy()
+        ok = np.isfinite(temp)
+        return tt[ok], temp[ok]
 
     def temperature_at(self, t_ns: np.ndarray) -> np.ndarray:
         """AU thermosensor temperature (C) linearly interpolated at ``t_ns``."""

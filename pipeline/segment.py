@@ -33,13 +33,12 @@ from pipeline.positions import (
     gravity_vector_g,
     nearest_position,
 )
-from pipeline.run import Run
+from pipeline.run import NS_PER_S as _NS
+from pipeline.run import SLAB_SAMPLES as _SLAB_SAMPLES
+from pipeline.run import Run, slab_of
 
-_NS = 1_000_000_000
 #: blocks per static window (the time resolution of static detection is static_window_s / this)
 _BLOCKS_PER_WINDOW = 10
-#: per-sample passes work on whole blocks of about this many samples at a time
-_SLAB_SAMPLES = 1 << 20
 #: the static threshold is this multiple of the low quantile below of the rolling standard deviation
 _NOISE_MULTIPLE = 4.0
 _NOISE_QUANTILE = 0.05
@@ -321,7 +320,7 @@ class Channels:
 
     def slab(self, s0: int, s1: int) -> list[np.ndarray]:
         """Samples ``s0 .. s1 - 1`` of each channel, as three float64 arrays."""
-        return [c.slice(s0, s1 - s0).to_numpy() if isinstance(c, pl.Series) else c[s0:s1] for c in self._cols]
+        return [slab_of(c, s0, s1) for c in self._cols]
 
     def every(self, step: int) -> np.ndarray:
         """Every ``step``-th sample, as a small (k, 3) array."""

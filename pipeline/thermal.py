@@ -234,6 +234,10 @@ def default_order(temps_c: np.ndarray, cluster_tol_c: float = 3.0) -> int:
     return max(0, min(3, n - 1))
 
 
+#: the thermal models ``fit_thermal_model`` (and ``calibrate --thermal-model``) takes; ``auto``: the default order
+THERMAL_MODELS = ("auto", "poly1", "poly2", "poly3", "piecewise")
+
+
 def fit_thermal_model(temps_c: np.ndarray, K: np.ndarray, U0: np.ndarray, kind: str = "auto",
                       normal_temp_c: float = 20.0, cluster_tol_c: float = 3.0) -> ThermalModel:
     """Fit the model named ``kind``: ``poly1`` | ``poly2`` | ``poly3`` | ``piecewise`` | ``auto`` (the default
@@ -245,7 +249,7 @@ def fit_thermal_model(temps_c: np.ndarray, K: np.ndarray, U0: np.ndarray, kind: 
     elif kind in ("poly0", "poly1", "poly2", "poly3"):
         order = int(kind[-1])
     else:
-        raise ValueError(f"unknown thermal model {kind!r} (poly1, poly2, poly3, piecewise)")
+        raise ValueError(f"unknown thermal model {kind!r} ({', '.join(THERMAL_MODELS[1:])})")
     return fit_polynomial(temps_c, K, U0, order, normal_temp_c)
 
 

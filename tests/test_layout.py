@@ -101,3 +101,15 @@ def test_docstring_and_readme_name_every_subpackage():
     for sub in subpackages:
         assert f"``{sub}``" in pipeline.__doc__, sub
         assert f"pipeline/{sub}/" in readme, sub
+
+
+def test_shared_constants_have_one_home():
+    """Nanoseconds per second and the slab size are defined once (pipeline.run), not per module."""
+    homes: dict[str, list[str]] = {"1_000_000_000": [], "1 << 20": []}
+    for path in sorted((REPO / "pipeline").rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Assign):
+                text = ast.get_source_segment(path.read_text(), node.value) or ""
+                if text in homes:
+                    homes[text].append(str(path.relative_to(REPO)))
+    assert homes == {"1_000_000_000": ["pipeline/run.py"], "1 << 20": ["pipeline/run.py"]}, homes

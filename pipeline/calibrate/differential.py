@@ -58,9 +58,8 @@ from pipeline.passport.document import build_passport, load_passport
 from pipeline.plausibility import assess
 from pipeline.model import specific_force_g
 from pipeline.positions import AXES, is_verification_position
+from pipeline.run import NS_PER_S as _NS
 from pipeline.thermal import DifferentialModel, PolynomialModel, RateTerms, rate_basis
-
-_NS = 1_000_000_000
 
 
 @dataclass(frozen=True)

@@ -44,6 +44,8 @@ from pipeline.run import RunMeta
 PARQUET_RUN_MARKERS = ("voltmeter.parquet", PARQUET_META_FILE)
 MCAP_SUFFIX = ".mcap"
 ALREADY_PROCESSED = "already processed"
+#: where a fleet's unit calibrations run locally (``fleet --pool``): ``auto`` picks by unit count
+POOLS = ("auto", "process", "thread")
 #: Threads reading runs' metadata and hashing them while planning.
 PLAN_THREADS = min(4, os.cpu_count() or 1)
 

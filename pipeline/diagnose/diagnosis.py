@@ -66,11 +66,11 @@ from pipeline.errors import CalibrationError
 from pipeline.model import gravity_module_error_g, output_v, specific_force_g
 from pipeline.passport.document import compensate_extended, load_model
 from pipeline.positions import AXES, POSITION_NAMES, is_verification_position
+from pipeline.run import NS_PER_S as _NS
 from pipeline.run import Run
 from pipeline.segment import Segmentation, segment_run
 from pipeline.thermal import default_order
 
-_NS = 1_000_000_000
 _UV = 1e6
 #: sigma factor of blocks left out of the fits (they keep their place in the figure)
 _EXCLUDE = 1e3

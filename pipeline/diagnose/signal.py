@@ -31,12 +31,10 @@ import polars as pl
 from pipeline.dynamics import first_order_lag, ramp_sign_from_temperature
 from pipeline.effects.base import SignalContext
 from pipeline.positions import ALL_POSITIONS, MOVING, POSITION_NAMES
-from pipeline.run import Run
+from pipeline.run import NS_PER_S as _NS
+from pipeline.run import SLAB_SAMPLES, Run
 from pipeline.segment import Segmentation, SegmentSettings, finite_columns, for_rate
 
-_NS = 1_000_000_000
-#: per-sample passes read the voltmeter this many samples at a time (a slab's temporaries, not the record's)
-SLAB_SAMPLES = 1 << 20
 #: the smallest per-sample noise assumed (a noise-free or coarsely quantised record still has a finite weight)
 _NOISE_FLOOR_V = 1e-9
 #: edges of the fine blocks at the start of every stretch, s after its first static sample
@@ -228,10 +226,8 @@ def _median_step(run: Run, slab: int) -> float:
 
 def _finite_thermosensor(run: Run) -> tuple[np.ndarray, np.ndarray]:
     """The AU thermosensor's finite samples: times (ns, as float64, for interpolation) and temperatures (C)."""
-    tt = run.au_temperature["t_ns"].to_numpy()
-    temp = run.au_temperature["temp_c"].to_numpy()
-    ok = np.isfinite(temp)
-    return tt[ok].astype(np.float64), temp[ok]
+    tt, temp = run.thermosensor()
+    return tt.astype(np.float64), temp
 
 
 def _micro_means(run: Run, kept: list[tuple[int, int]], t0_s: np.ndarray, start_ns: int, bin_s: float,
@@ -382,10 +378,8 @@ def _arrival_from_signal(run: Run, start_ns: int, before: tuple[int, int], after
 
 
 def _thermosensor(run: Run, start_ns: int) -> tuple[np.ndarray, np.ndarray]:
-    tt = (run.au_temperature["t_ns"].to_numpy() - start_ns) / _NS
-    temp = run.au_temperature["temp_c"].to_numpy()
-    ok = np.isfinite(temp)
-    return tt[ok], temp[ok]
+    tt, temp = run.thermosensor()
+    return (tt - start_ns) / _NS, temp
 
 
 def _ramp_sign(run: Run, t_s: np.ndarray, start_ns: int, before_s: float = 360.0, after_s: float = 60.0
@@ -520,10 +514,7 @@ def exact_medians(slabs, n: int, sample: list[np.ndarray]) -> np.ndarray:
 def temperature_noise_c(run: Run) -> tuple[float, float]:
     """White noise of the AU thermosensor (C, robust, from second differences, which cancel ramps) and its rate
     (Hz)."""
-    tt = run.au_temperature["t_ns"].to_numpy()
-    temp = run.au_temperature["temp_c"].to_numpy()
-    ok = np.isfinite(temp)
-    tt, temp = tt[ok], temp[ok]
+    tt, temp = run.thermosensor()
     if temp.size < 10:
         return 0.0, 1.0
     rate_hz = _NS / float(np.median(np.diff(tt)))

@@ -14,7 +14,7 @@ import polars as pl
 
 from pipeline.errors import RunFormatError
 from pipeline.positions import MOVING, POSITION_NAMES
-from pipeline.run import REQUIRED_STREAMS, STREAM_COLUMNS, Run, RunMeta
+from pipeline.run import REQUIRED_STREAMS, SLAB_SAMPLES, STREAM_COLUMNS, Run, RunMeta
 
 #: Labels a fixture event may carry (log-format.md).
 FIXTURE_LABELS: tuple[str, ...] = (*POSITION_NAMES, MOVING)
@@ -24,8 +24,6 @@ GAP_FACTOR = 5.0
 #: A sampled stream whose time jumps forward by more than this is refused: a clock error, or two recordings in one
 #: file (the segmenter works on the whole time span, so one sample stamped 1970 must not stretch it to decades).
 MAX_JUMP_S = 86_400.0
-#: time checks look at this many intervals at a time
-_SLICE = 1 << 20
 def check_stream(stream: str, df: pl.DataFrame, *, path: str, warnings: list[str]) -> pl.DataFrame:
     """Check a stream table read from a file; return it in time order.
 
@@ -59,10 +57,10 @@ def check_stream(stream: str, df: pl.DataFrame, *, path: str, warnings: list[str
 
 
 def _intervals(t_ns: np.ndarray):
-    """``(offset, np.diff(t_ns[offset:offset + _SLICE + 1]))`` over the whole array: no temporary the length of a
+    """``(offset, np.diff(t_ns[offset:offset + SLAB_SAMPLES + 1]))`` over the whole array: no temporary the length of a
     stream (at 1 kHz one is 0.5 GB, and every fresh one costs page faults)."""
-    for a in range(0, t_ns.size - 1, _SLICE):
-        yield a, np.diff(t_ns[a:a + _SLICE + 1])
+    for a in range(0, t_ns.size - 1, SLAB_SAMPLES):
+        yield a, np.diff(t_ns[a:a + SLAB_SAMPLES + 1])
 
 
 def gap_indices(t_ns: np.ndarray) -> np.ndarray:

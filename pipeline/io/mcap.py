@@ -49,7 +49,7 @@ from pipeline.errors import RunFormatError
 from pipeline.io.checks import assemble_run, writable_streams
 from pipeline.io.codec_protobuf import PROTOBUF_CODEC
 from pipeline.io.codecs import JSON_CODEC, SCHEMA_NAMES, BlockCodec, BlockMismatch
-from pipeline.run import REQUIRED_STREAMS, STREAM_COLUMNS, Run
+from pipeline.run import REQUIRED_STREAMS, SLAB_SAMPLES, STREAM_COLUMNS, Run
 
 MAGIC = b"\x89MCAP0\r\n"
 RUN_METADATA_NAME = "run"
@@ -78,7 +78,7 @@ _CHANNEL_HEAD = struct.Struct("<HH")  # channel id, schema id
 
 _CHUNKS_AHEAD = 4  # chunks decompressed ahead of decoding
 _DECOMPRESS_THREADS = 2  # worker threads decompressing and CRC-checking chunks (both release the GIL)
-_PIECE_SAMPLES = 1 << 20  # decoded blocks are copied into pieces of up to this many samples (one polars chunk each)
+_PIECE_SAMPLES = SLAB_SAMPLES  # decoded blocks are copied into pieces of up to this many samples (one polars chunk each)
 _FIRST_PIECE_SAMPLES = 1024  # pieces start this small and double (short streams stay small)
 _NUMPY_DTYPES = {pl.Int64: np.int64, pl.Float64: np.float64, pl.String: object}
 

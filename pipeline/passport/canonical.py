@@ -9,17 +9,13 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 from typing import Any
+
+from pipeline.jsonable import json_default
 
 #: Fields of a record that are not part of what is hashed and signed.
 SEAL_FIELDS = ("content_sha256", "signature")
-
-
-def _json_default(obj: Any) -> Any:
-    """numpy scalars and arrays (and anything else with ``tolist``) as plain JSON values."""
-    if hasattr(obj, "tolist"):
-        return obj.tolist()
-    raise TypeError(f"{type(obj).__name__} is not JSON serialisable")
 
 
 def canonical_json(obj: Any) -> bytes:
@@ -28,12 +24,21 @@ def canonical_json(obj: Any) -> bytes:
     Floats are written with Python's shortest round-trip repr, so load -> canonical_json gives the same bytes.
     Raises ValueError (non-finite number) or TypeError (not JSON-able).
     """
-    text = json.dumps(obj, sort_keys=True, indent=2, ensure_ascii=True, allow_nan=False, default=_json_default)
+    text = json.dumps(obj, sort_keys=True, indent=2, ensure_ascii=True, allow_nan=False, default=json_default)
     return (text + "\n").encode("ascii")
 
 
 def sha256_bytes(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
+
+
+def sha256_file(path: str | os.PathLike) -> str:
+    """Hex sha256 of a file's bytes, read in 1 MiB chunks."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while chunk := f.read(1 << 20):
+            h.update(chunk)
+    return h.hexdigest()
 
 
 def signed_body(record: dict) -> bytes:

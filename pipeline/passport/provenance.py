@@ -10,16 +10,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from pipeline import __version__
+from pipeline.passport.canonical import sha256_file
 
-_BUF = 1 << 20
-
-
-def sha256_of_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while chunk := f.read(_BUF):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 @dataclass(frozen=True)
@@ -62,10 +54,10 @@ def input_digest(path: str | Path, known: RunDigest | None = None) -> str:
     if known is not None and file_signature(p) == known.signature:
         return known.sha256
     if p.is_dir():
-        lines = [f"{f.relative_to(p).as_posix()} {sha256_of_file(f)}\n"
+        lines = [f"{f.relative_to(p).as_posix()} {sha256_file(f)}\n"
                  for f in sorted(p.rglob("*")) if f.is_file()]
         return hashlib.sha256("".join(lines).encode()).hexdigest()
-    return sha256_of_file(p)
+    return sha256_file(p)
 
 
 @functools.cache

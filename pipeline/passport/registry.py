@@ -38,7 +38,6 @@ from __future__ import annotations
 import contextlib
 import errno
 import fcntl
-import hashlib
 import json
 import os
 import re
@@ -49,7 +48,7 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from pipeline.errors import RegistryError
-from pipeline.passport.canonical import canonical_json, content_sha256, sha256_bytes
+from pipeline.passport.canonical import canonical_json, content_sha256, sha256_bytes, sha256_file
 from pipeline.passport.diff import diff_passports
 from pipeline.passport.signing import TrustStore, sign_record, station_key, trusted_keys, verify_record
 
@@ -83,15 +82,6 @@ _ERRNO_TEXT = {
 
 # ---------------------------------------------------------------------------------------------------------------
 # hashing and canonical serialisation
-
-
-def sha256_file(path: str | os.PathLike) -> str:
-    """Hex sha256 of a file's bytes, read in 1 MiB chunks."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def identity_key(inputs: list[dict], settings: dict) -> str:

@@ -32,6 +32,7 @@ from scipy.spatial.transform import Rotation
 from pipeline.dynamics import first_order_lag
 from pipeline.effects.base import Effect, SignalContext
 from pipeline.effects.catalogue import EFFECTS, make_effect
+from pipeline.jsonable import to_jsonable
 from pipeline.model import output_v
 from pipeline.positions import ALL_POSITIONS, POSITION_NAMES
 from pipeline.run import Run, RunMeta, make_frame
@@ -164,7 +165,7 @@ def simulate(config: SimConfig) -> SimResult:
 
 def write_truth(truth: dict, path) -> None:
     """Write the ground truth as JSON with sorted keys."""
-    Path(path).write_text(json.dumps(_jsonable(truth), sort_keys=True, indent=1) + "\n")
+    Path(path).write_text(json.dumps(to_jsonable(truth), sort_keys=True, indent=1) + "\n")
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -300,13 +301,3 @@ def _truth(config: SimConfig, unit: UnitTruth, effects: list[Effect], timetable:
     }
 
 
-def _jsonable(x: Any) -> Any:
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _jsonable(x.tolist())
-    if isinstance(x, np.generic):
-        return x.item()
-    return x
