@@ -23,11 +23,10 @@ import polars as pl
 
 from pipeline.errors import ThermocalError
 from pipeline.model import specific_force_g
+from pipeline.run import NS_PER_S as _NS
+from pipeline.run import SLAB_SAMPLES as _SLAB  # samples compensated at a time (the K(T) stack: 72 bytes a sample)
 from pipeline.run import Run
 
-_NS = 1_000_000_000
-#: samples compensated at a time (the per-sample K(T) stack is 72 bytes a sample)
-_SLAB = 1 << 20
 APPLY_COLUMNS = ("t_ns", "ax_g", "ay_g", "az_g", "temp_c", "in_range")
 
 
