@@ -106,3 +106,21 @@ def test_cli_fleet_unknown_method_is_one_line(tmp_path):
                            "sweep"], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and proc.stdout == ""
     assert len(proc.stderr.strip().splitlines()) == 1 and "unknown method 'sweep'" in proc.stderr
+
+
+def test_cli_fleet_method_tilt_then_differential(inboxes, tmp_path, monkeypatch, capsys):
+    """``thermocal fleet --method`` through the Prefect flow: a tilt fleet, then a differential fleet starting
+    from the tilt passports; each passport records its method, the fleet JSON lists the unit done."""
+    from tests.conftest import run_main
+
+    short, diff = inboxes
+    reg = str(tmp_path / "reg")
+    for inbox, method, version in ((short.parent, "tilt", 1), (diff.parent, "differential", 2)):
+        code, out, err = run_main(monkeypatch, capsys, "fleet", str(inbox), "--registry", reg, "--method", method,
+                                  "--no-figures", "--json")
+        assert code == 0, err
+        summary = json.loads(out)
+        assert [(d["unit"], d["version"]) for d in summary["done"]] == [("AU-0001", version)] and not summary["failed"]
+        doc = json.loads(Path(summary["done"][0]["passport"]).read_text())
+        assert doc["method"] == recipe(method).METHOD
+    assert doc["base_passport"]["version"] == 1 and doc["base_passport"]["method"] == "tilt_six_position"
