@@ -16,8 +16,8 @@ _DG_SERIES = (("dg_uncompensated_g", "uncompensated", "o-", "C0"), ("dg_method1_
 #: fixed, so no layout pass (``tight_layout`` measured every text once more: 40 % of the figure's time).
 _SLOT_IN = 0.42
 _MARGINS_IN = {"left": 0.85, "right": 0.15, "bottom": 0.35, "top": 0.95}
-_PANEL_IN = 2.3          # height of each of the two axes (before, after)
-_GAP_IN = 0.75           # between them: the position names of the upper axes
+_PANEL_IN = 2.0          # height of each of the two axes (before, after)
+_GAP_IN = 0.3            # between them: the legend of the lower axes
 _HEIGHT_IN = _MARGINS_IN["top"] + _MARGINS_IN["bottom"] + 2 * _PANEL_IN + _GAP_IN
 _VERIFICATION_DPI = 100
 #: Fewest slots of a panel (its title needs them) and of the whole axes.
@@ -79,10 +79,10 @@ def plot_verification(rows, path: str | Path, *, title: str = "") -> Path:
                             label=None if ringed else "beyond the limit")
                     ringed = True
                 peak = max(peak, float(np.nanmax(np.abs(dg_ug))))
-            _panel_decor(ax, panels, peak, Rectangle)
-        before.legend(loc="upper left", bbox_to_anchor=(0, 1.16), ncols=4, fontsize=7, frameon=False,
+            _panel_decor(ax, panels, peak, Rectangle, titles=ax is before, names=ax is after)
+        before.legend(loc="upper left", bbox_to_anchor=(0, 1.2), ncols=4, fontsize=7, frameon=False,
                       borderaxespad=0)
-        after.legend(loc="upper left", bbox_to_anchor=(0, 1.16), ncols=4, fontsize=7, frameon=False,
+        after.legend(loc="upper right", bbox_to_anchor=(1, 1.14), ncols=4, fontsize=7, frameon=False,
                      borderaxespad=0)
     before.set_ylabel("before: dg  [micro-g]", fontsize=9)
     after.set_ylabel("after: dg  [micro-g]", fontsize=9)
@@ -93,8 +93,9 @@ def plot_verification(rows, path: str | Path, *, title: str = "") -> Path:
     return path
 
 
-def _panel_decor(ax, panels: list[dict], peak_ug: float, Rectangle) -> None:
-    """Limit bands (where they fit the axes' scale), panel titles, position names and separators."""
+def _panel_decor(ax, panels: list[dict], peak_ug: float, Rectangle, *, titles: bool, names: bool) -> None:
+    """Limit bands (where they fit the axes' scale), separators, and the panel titles (temperature, visit, limit)
+    or the position names (the two axes share their x: titles above the upper, names under the lower)."""
     span = max(peak_ug, 1.0) * 1.15
     ax.set_ylim(-span, span)
     below = ax.get_xaxis_transform()  # x in data, y in axes fraction
@@ -103,9 +104,10 @@ def _panel_decor(ax, panels: list[dict], peak_ug: float, Rectangle) -> None:
         if lim_ug < span:
             ax.add_patch(Rectangle((p["x0"], -lim_ug), p["width"], 2 * lim_ug, color="0.9", zorder=0))
         visit = f", visit {p['visit']}" if p["visits"] > 1 else ""
-        ax.text(p["x0"] + p["width"] / 2, 1.01, f"{p['temp_c']:+.1f} C{visit} (limit {lim_ug:.0f})", ha="center",
-                va="bottom", fontsize=7, transform=below)
-        for xi, r in zip(p["x"], p["rows"]):
+        if titles:
+            ax.text(p["x0"] + p["width"] / 2, 1.01, f"{p['temp_c']:+.1f} C{visit} (limit {lim_ug:.0f})",
+                    ha="center", va="bottom", fontsize=7, transform=below)
+        for xi, r in zip(p["x"], p["rows"]) if names else ():
             ax.text(xi, -0.02, r["position"], ha="center", va="top", fontsize=7, transform=below)
         if k:
             ax.axvline(p["x0"] - 0.5, color="0.6", lw=0.8)
