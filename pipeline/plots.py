@@ -164,6 +164,7 @@ def plot_constants(passport: dict, path: str | Path, *, title: str = "") -> Path
     ``uncertainty``)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
+    from matplotlib.ticker import MaxNLocator
 
     from pipeline.passport.document import load_model
 
@@ -211,6 +212,10 @@ def plot_constants(passport: dict, path: str | Path, *, title: str = "") -> Path
                     ax.legend(fontsize=6, loc="best", frameon=False)
                 ax.tick_params(labelsize=7)
                 res.tick_params(labelsize=7)
+                # few ticks: 18 axes' tick objects are most of the drawing time
+                ax.yaxis.set_major_locator(MaxNLocator(5))
+                res.yaxis.set_major_locator(MaxNLocator(3))
+        axes[-1, 0].xaxis.set_major_locator(MaxNLocator(6))   # shared by every axes
         for ax in axes[-1]:
             ax.set_xlabel("temperature [C]", fontsize=8)
     else:
