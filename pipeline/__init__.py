@@ -11,6 +11,7 @@ Physics core (modules named for the physics, units in every docstring):
 - ``verify``: gravity-module error at the verification positions (g)
 - ``dynamics``: first-order lag (s) and the direction the temperature last came from
 - ``uncertainty``: standard uncertainties (1 sigma) of the constants per plateau, at T0 and of the thermal model
+- ``plausibility``: fitted constants against the unit type and the run's nominal gain (mV, kelvin, sign mistakes)
 
 Steps and data:
 
