@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import atexit
 import json
 import os
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -19,6 +21,7 @@ os.environ["PREFECT_SERVER_ANALYTICS_ENABLED"] = "false"
 os.environ["DO_NOT_TRACK"] = "1"
 # Signing keys: never the user's key folder; one station key for the session, created on first use.
 os.environ["THERMOCAL_KEY_DIR"] = tempfile.mkdtemp(prefix="thermocal-test-keys-")
+atexit.register(shutil.rmtree, os.environ["THERMOCAL_KEY_DIR"], True)
 
 
 @pytest.fixture(scope="session", autouse=True)
