@@ -175,11 +175,16 @@ def plot_constants(passport: dict, path: str | Path, *, title: str = "") -> Path
     fig = Figure(figsize=(12, 10.5), dpi=90)
     axes = fig.subplots(6, 3, sharex=True, gridspec_kw={"height_ratios": [3, 1.3] * 3})
     fig.subplots_adjust(left=0.09, right=0.99, bottom=0.05, top=0.92, hspace=0.12, wspace=0.22)
-    if pp:
+    T0 = float(passport.get("normal_temp_c", 20.0))
+    span = passport.get("valid_temp_c") or [T0, T0]
+    if pp or span[1] > span[0]:
+        # a method without plateau constants (differential) shows its model over the valid range, no points
         T = np.array([p["temp_c"] for p in pp], float)
-        points = constant_changes([p["K"] for p in pp], [p["U0"] for p in pp], K0, U00)
+        points = constant_changes([p["K"] for p in pp] or np.zeros((0, 3, 3)), [p["U0"] for p in pp]
+                                  or np.zeros((0, 3)), K0, U00)
         sig = _plateau_sigmas(passport, len(pp), K0)
-        grid = np.linspace(min(T.min(), float(passport.get("normal_temp_c", 20.0))), T.max(), 121)
+        lo, hi = min([T0, span[0], *T.tolist()]), max([T0, span[1], *T.tolist()])
+        grid = np.linspace(lo, hi, 121)
         model = load_model(passport)
         at_grid = constant_changes(*model.constants_at(grid), K0, U00)
         at_T = constant_changes(*model.constants_at(T), K0, U00)
@@ -219,11 +224,13 @@ def plot_constants(passport: dict, path: str | Path, *, title: str = "") -> Path
         for ax in axes[-1]:
             ax.set_xlabel("temperature [C]", fontsize=8)
     else:
-        axes[0, 0].text(0.5, 0.5, "no plateau constants", ha="center", transform=axes[0, 0].transAxes)
+        axes[0, 0].text(0.5, 0.5, "no plateau constants and no temperature range", ha="center",
+                        transform=axes[0, 0].transAxes)
     kind = passport.get("thermal_model", {}).get("kind", "")
     order = passport.get("thermal_model", {}).get("order")
     model_name = f"polynomial of order {order}" if kind == "polynomial" else kind.replace("_", " ")
-    fig.suptitle(title or f"Constants per plateau against temperature, thermal model: {model_name}", fontsize=11)
+    title = title or f"Constants per plateau against temperature, thermal model: {model_name}"
+    fig.suptitle(title + ("" if pp else " (no per-plateau constants: the model alone)"), fontsize=11)
     path.parent.mkdir(parents=True, exist_ok=True)
     FigureCanvasAgg(fig).print_png(path, pil_kwargs={"compress_level": 1})
     return path
@@ -233,7 +240,7 @@ def _plateau_sigmas(passport: dict, n: int, K0: np.ndarray) -> dict[str, np.ndar
     """The per-plateau standard uncertainties of the passport in the units of :func:`constant_changes`, or None
     when it has none (NaN where one plateau has none)."""
     rows = ((passport.get("uncertainty") or {}).get("per_plateau")) or []
-    if len(rows) != n:
+    if not n or len(rows) != n:
         return None
     K = np.array([r["K"] if r.get("K") is not None else np.full((3, 3), np.nan) for r in rows], float)
     U0 = np.array([r["U0"] if r.get("U0") is not None else np.full(3, np.nan) for r in rows], float)

@@ -113,5 +113,8 @@ def test_constants_figure_points_model_and_residuals(tmp_path):
     assert img.shape[0] > 800 and img.shape[1] > 1000
     blue = np.all(np.abs(img.astype(int) - [0x1F, 0x77, 0xB4]) < 30, axis=-1)
     assert blue.sum() > 3000
+    alone = plots.plot_constants({**passport, "per_plateau": [], "valid_temp_c": [-40.0, 70.0]}, tmp_path / "m.png")
+    img = np.asarray(Image.open(alone).convert("RGB"))        # a differential passport: its model curves alone
+    assert np.all(np.abs(img.astype(int) - [0x1F, 0x77, 0xB4]) < 30, axis=-1).sum() > 1000
     empty = plots.plot_constants({**passport, "per_plateau": []}, tmp_path / "e.png")
     assert Image.open(empty).size == Image.open(path).size
