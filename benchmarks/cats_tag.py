@@ -21,7 +21,7 @@ temperature model left. Compared, per axis and period:
   standardised to a reference temperature (y - f(T) + f(T_ref)). Nine separate models (three per period);
 - thermocal: ``calibrate --method differential`` without a base passport (one model for the unit: per-axis bias and
   scale factor, and the cross-axis terms the orientations excite, as polynomials in temperature whose order, and
-  whether the cross-axis terms are fitted, are chosen by two-fold validation within the calibration blocks; the
+  whether the cross-axis and rate terms are fitted, are chosen by two-fold validation within the calibration blocks; the
   constants at T0 from the orientations), then ``apply`` (the passport's model at every sample), in g times
   g_local.
 
@@ -177,7 +177,8 @@ def main(argv: list[str]) -> None:
     sel = d.get("model_selection")
     if sel:
         print("model chosen by two-fold validation within the calibration blocks (score: mm/s^2): " + ", ".join(
-            f"poly{c['poly_order']}{'+cross' if c['cross_axis'] else ''} {c['score_g'] * 9806.65:.2f}"
+            f"poly{c['poly_order']}{'+rate' + str(c['rate_order']) if c.get('rate_order') else ''}"
+            f"{'+cross' if c['cross_axis'] else ''} {c['score_g'] * 9806.65:.2f}"
             for c in sel["candidates"]))
 
 

@@ -486,12 +486,12 @@ def compensate_run(passport: dict, run) -> tuple[np.ndarray, np.ndarray]:
 
 #: an axis within this angle (deg) of gravity is vertical in an orientation; within it of horizontal, horizontal
 AXIS_ROLE_DEG = 15.0
-#: the model fitted to sweeps without a base passport: polynomials in T of order 1..3 with or without the cross-axis
-#: terms the orientations excite, chosen by two-fold validation on the data (:func:`select_model`); no rate terms.
-#: On the real CATS recording the rate terms (fitted where the orientations saw fast changes) extrapolate badly to
-#: an orientation that did not (held-out mean 8.3 mm/s^2 with rate order 1, 6.3 without; benchmarks/cats_tag.py),
-#: and the lag search finds 0 s
-SWEEP_SETTINGS = DifferentialSettings(rate_order=0, cross_axis_abs=True, select_model=True)
+#: the model fitted to sweeps without a base passport: polynomials in T of order 1..3, with or without the
+#: cross-axis terms the orientations excite and a first-order rate term, chosen by two-fold validation on the data
+#: (:func:`select_model`). On the real CATS recording the validation rejects the rate terms (validation score 20.5
+#: against 7.8 mm/s^2: fitted where the orientations saw fast changes, they extrapolate badly to an orientation
+#: that did not; held out 6.5 against 5.6), and the lag search finds 0 s (benchmarks/cats_tag.py)
+SWEEP_SETTINGS = DifferentialSettings(rate_order=1, cross_axis_abs=True, select_model=True)
 #: validation folds: alternate chunks of this length (s) of each window's blocks; scored on means over MEAN_S
 FOLD_S = 3600.0
 SCORE_MEAN_S = 600.0
@@ -519,31 +519,33 @@ def _spread_g(model: DifferentialModel, data: BlockData) -> float:
 
 def select_model(data: list[BlockData], K0: np.ndarray, U0: np.ndarray, normal_temp_c: float,
                  settings: DifferentialSettings) -> tuple[DifferentialSettings, list[dict]]:
-    """The polynomial order (1..``settings.poly_order``) and whether to fit cross-axis terms, chosen where the
-    data supports them: each candidate is fitted on alternate :data:`FOLD_S` chunks of the windows and scored on
-    the others (the spread of the compensated :data:`SCORE_MEAN_S` means, both ways round); the lowest score wins.
+    """The polynomial order (1..``settings.poly_order``), the rate order (0..``settings.rate_order``) and whether to
+    fit cross-axis terms, chosen where the data supports them: each candidate is fitted on alternate
+    :data:`FOLD_S` chunks of the windows and scored on the others (the spread of the compensated
+    :data:`SCORE_MEAN_S` means, both ways round); the lowest score wins.
     Returns the chosen settings (``select_model`` off) and every candidate's score (g)."""
     folds = []
     for d in data:
         odd = (np.floor(d.t_s / FOLD_S).astype(np.int64) % 2).astype(bool)
         folds.append((_fold(d, ~odd), _fold(d, odd)))
     scores = []
-    for order in range(1, settings.poly_order + 1):
-        for cross in ((False, True) if settings.cross_axis else (False,)):
-            cand = dataclasses.replace(settings, poly_order=order, cross_axis=cross, select_model=False)
-            try:
-                total = 0.0
-                for k in (0, 1):
-                    fit = fit_differential([f[k] for f in folds], K0, U0, normal_temp_c, cand)
-                    total += np.mean([_spread_g(fit.model, f[1 - k]) for f in folds])
-                scores.append({"poly_order": order, "cross_axis": cross, "score_g": float(total / 2)})
-            except CalibrationError:
-                continue
+    grid = [(o, r, c) for r in range(settings.rate_order + 1) for o in range(1, settings.poly_order + 1)
+            for c in ((False, True) if settings.cross_axis else (False,))]
+    for order, rate, cross in grid:
+        cand = dataclasses.replace(settings, poly_order=order, rate_order=rate, cross_axis=cross, select_model=False)
+        try:
+            total = 0.0
+            for k in (0, 1):
+                fit = fit_differential([f[k] for f in folds], K0, U0, normal_temp_c, cand)
+                total += np.mean([_spread_g(fit.model, f[1 - k]) for f in folds])
+        except CalibrationError:
+            continue
+        scores.append({"poly_order": order, "rate_order": rate, "cross_axis": cross, "score_g": float(total / 2)})
     if not scores:
         return dataclasses.replace(settings, select_model=False), []
     best = min(scores, key=lambda x: x["score_g"])
-    return (dataclasses.replace(settings, poly_order=best["poly_order"], cross_axis=best["cross_axis"],
-                                select_model=False), scores)
+    return (dataclasses.replace(settings, poly_order=best["poly_order"], rate_order=best["rate_order"],
+                                cross_axis=best["cross_axis"], select_model=False), scores)
 
 
 @dataclass
