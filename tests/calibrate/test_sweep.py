@@ -124,3 +124,23 @@ def test_cli_auto_picks_differential_and_apply_writes_every_row(sweeps, tmp_path
     import polars as pl
 
     assert pl.read_parquet(out).height == wide.voltmeter.height
+
+
+def test_auto_refuses_a_recording_no_method_fits(tmp_path, monkeypatch, capsys):
+    """Three poses at one temperature (the sweep program's orientations, no temperature change): ``calibrate``
+    (auto) exits 2 with one line saying why each method does not fit, before any flow runs."""
+    from pipeline.simulate.program import Move, Hold, Program, Stage
+    from pipeline.simulate import program as prog
+    from tests.conftest import run_main
+
+    flat = Program("flat3", (Stage("three poses", (Hold("TP3", 120.0), Move("TP5", 10.0), Hold("TP5", 120.0),
+                                                   Move("TP2", 10.0), Hold("TP2", 120.0))),), start_position="TP3")
+    monkeypatch.setitem(prog.PROGRAMS, "flat3", lambda: flat)
+    path = write_run(simulate(SimConfig(program="flat3", rate_hz=10.0, with_fixture_log=False)).run,
+                     tmp_path / "flat3.mcap", "mcap")
+    code, out, err = run_main(monkeypatch, capsys, "calibrate", str(path), "--registry", str(tmp_path / "reg"))
+    assert code == 2 and out == ""
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "no calibration method fits this recording" in lines[0] and "flat3.mcap" in lines[0]
+    assert "scalar: 3 distinct static poses" in lines[0]
+    assert not (tmp_path / "reg").exists()
