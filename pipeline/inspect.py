@@ -115,7 +115,7 @@ def describe_recording(run: Run, seg) -> dict[str, Any]:
     methods = _methods(program, poses, seg, on_soak, run)
     for p in poses:
         del p["_temps"]
-    auto = next((m["method"] for m in methods if m["supported"]), None)
+    auto = _auto(methods, program, run)
     lo, hi = program.range_c
     return {
         "temperature": {"kind": program.kind, "range_c": [_r(lo), _r(hi)],
@@ -247,15 +247,31 @@ def _methods(program, poses, seg, on_soak: set[int], run: Run) -> list[dict[str,
                                 "individual cross-axis terms are not determined)"] if k >= SCALAR_FULL_POSES else
                                ["gains and offsets at T0 (orthogonal axes assumed: too few poses for the "
                                 "cross-axis combinations)"] if k >= SCALAR_DIAGONAL_POSES else [])})
-    # auto prefers tilt on a plateau program, the sweep method on a sweep, scalar on many poses at one temperature
-    # when no fixture log says where they are (poses named from gravity alone are not known to a fixture's
-    # precision: a hand-turned fixture), or when tilt cannot run
-    logged = run.fixture is not None and run.fixture.height > 0
+    # in the order auto prefers them: tilt on a plateau program, the sweep method on a sweep, scalar on many poses
+    # at one temperature when no fixture log says where they are (poses named from gravity alone are not known to
+    # a fixture's precision: a hand-turned fixture), or when tilt cannot run
+    logged = _fixture_logged(run)
     if program.kind == "sweep":
         out = [out[1], out[0], out[2]]
     elif (k >= SCALAR_FULL_POSES and not logged) or (k >= SCALAR_DIAGONAL_POSES and not out[0]["supported"]):
         out = [out[2], out[0], out[1]]
     return out
+
+
+def _fixture_logged(run: Run) -> bool:
+    return run.fixture is not None and run.fixture.height > 0
+
+
+def _auto(methods: list[dict[str, Any]], program, run: Run) -> str | None:
+    """The method ``calibrate --method auto`` uses: the sweep method on a sweep it supports; tilt on a recording
+    whose tilt fixture logged its positions (even where the data fall short: the tilt method then says exactly
+    what is missing); otherwise the first supported method in the order of ``methods``; None when none is."""
+    by = {m["method"]: m for m in methods}
+    if program.kind == "sweep" and by["differential"]["supported"]:
+        return "differential"
+    if _fixture_logged(run):
+        return "tilt"
+    return next((m["method"] for m in methods if m["supported"]), None)
 
 
 def format_summary(summary: dict[str, Any]) -> str:
@@ -333,7 +349,10 @@ def _recording_lines(rec: dict[str, Any]) -> list[str]:
     for m in rec["methods"]:
         lines.append(f"  method {m['method']:<12} {'supported' if m['supported'] else 'not supported'}: {m['why']}")
         lines += [f"      {d}" for d in m["determines"]]
-    lines.append(f"  calibrate --method auto: {rec['method_auto'] or 'no method fits this recording'}")
+    auto = rec["method_auto"]
+    supported = any(m["method"] == auto and m["supported"] for m in rec["methods"])
+    lines.append(f"  calibrate --method auto: {auto or 'no method fits this recording'}"
+                 + ("" if auto is None or supported else " (the fixture log says tilt; it will say what is missing)"))
     return lines
 
 
