@@ -10,8 +10,8 @@ Where the unit tasks run is a flow parameter, so that a deployment can choose it
 - ``dask_address="tcp://host:8786"``: on an existing dask.distributed cluster, through prefect-dask's
   ``DaskTaskRunner(address=...)``. The workers need thermocal installed and must reach the Prefect API: with
   ``PREFECT_API_URL`` unset the flow's local API on 127.0.0.1 (thermocal's local server, or Prefect's ephemeral one
-  with ``THERMOCAL_PREFECT=ephemeral``) is handed to them, which serves workers on this machine only; for workers on other machines run ``prefect server start --host 0.0.0.0`` and set
-  ``PREFECT_API_URL`` to it.
+  with ``THERMOCAL_PREFECT=ephemeral``) is handed to them, which serves workers on this machine only; for workers
+  on other machines run ``prefect server start --host 0.0.0.0`` and set ``PREFECT_API_URL`` to it.
 - else a local pool of ``workers`` (default: the machine's CPU count). ``pool="process"``: the unit tasks run in
   Prefect's ThreadPoolTaskRunner and each hands its calibration to a process pool of the flow's own
   (``concurrent.futures``, spawn, workers warmed by :func:`pipeline.calibrate.fleet.prepare_worker`, each leaving

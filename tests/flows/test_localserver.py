@@ -104,9 +104,9 @@ def standard_run(tmp_path_factory):
 
 def test_commands_recorded_and_listed_by_prefects_cli(short_run, tmp_path):
     """`thermocal calibrate` without PREFECT_API_URL runs on the local server (started here on first use); its flow
-    run, its task runs (ingest, observe, fit, write) and its artifact are on that server, and `prefect flow-run ls`, `task-run ls`,
-    `artifact ls` and `deployment ls` (the nightly deployment registered against it) list them with the pinned
-    prefect/fastapi/pydantic (fastapi >= 0.151 made the server answer 422 to these commands)."""
+    run, its task runs (ingest, observe, fit, write) and its artifact are on that server, and `prefect flow-run
+    ls`, `task-run ls`, `artifact ls` and `deployment ls` (the nightly deployment registered against it) list them
+    with the pinned prefect/fastapi/pydantic (fastapi >= 0.151 made the server answer 422 to these commands)."""
     env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}
     out = subprocess.run([THERMOCAL, "calibrate", str(short_run), "--registry", str(tmp_path / "reg"), "--json"],
                          capture_output=True, text=True, env=env, timeout=300)
