@@ -9,8 +9,8 @@ later commands reuse it:
   lock in the Prefect home (one per home), runs ``prefect server start`` on a free loopback port (the real server:
   API, UI, SQLite database under ``PREFECT_HOME``), and keeps two *warm workers* waiting (:mod:`flows.worker`):
   processes that have imported Prefect, the flows and the pipeline, and wait on a loopback job port;
-- the ``thermocal`` command sends its arguments, working directory and environment to that worker and relays what it
-  writes (stdout, stderr) and its exit status: the command runs exactly as it would in-process, with the flow and
+- the ``thermocal`` command sends its arguments, working directory, umask and environment to a worker and relays
+  what it writes (stdout, stderr) and its exit status: the command runs exactly as it would in-process, with the flow and
   its task runs and artifacts recorded on the server, but without paying Prefect's start-up. A worker runs one
   command and exits; the supervisor starts another as soon as a worker is taken;
 - lifecycle: the worker watches its client; when the client goes away (``kill -9``) it interrupts the flow and exits
@@ -175,7 +175,9 @@ def run_on_server(argv: list[str]) -> int:
         raise ThermocalError(f"cannot reach the local Prefect server's worker ({e}); `thermocal server stop` and "
                              "try again") from None
     conn.settimeout(None)
-    request = {"token": st["token"], "argv": argv, "cwd": os.getcwd(), "env": dict(os.environ),
+    umask = os.umask(0o022)
+    os.umask(umask)
+    request = {"token": st["token"], "argv": argv, "cwd": os.getcwd(), "env": dict(os.environ), "umask": umask,
                "tty": {"stdout": _isatty(sys.stdout), "stderr": _isatty(sys.stderr)}}
     conn.sendall(json.dumps(request).encode() + b"\n")
     reader = conn.makefile("rb")

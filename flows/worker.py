@@ -84,6 +84,8 @@ def _run_job(conn: socket.socket, reader, req: dict) -> int:
     os.environ.pop("THERMOCAL_WORKER_TOKEN", None)
     with contextlib.suppress(OSError):
         os.chdir(req.get("cwd") or "/")
+    if isinstance(req.get("umask"), int):
+        os.umask(req["umask"])
     lock = threading.Lock()
     tty = req.get("tty", {})
     real_out, real_err = sys.stdout, sys.stderr
