@@ -141,7 +141,7 @@ def ensure_server(home: Path | None = None, timeout_s: float = START_TIMEOUT_S) 
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         st = read_state(home)
-        if st and st.get("code") == code:
+        if st and (st.get("code") == code or st.get("pid") == proc.pid):  # (the code may change meanwhile)
             return st
         if proc.poll() not in (None, 0):
             break
