@@ -171,8 +171,8 @@ def test_console_script_refuses_broken_runs(corpus, tmp_path):
         assert line.startswith(f"thermocal: error: {corpus[name]}")
         assert all(s in line for s in CASE_BY_NAME[name].says)
     path = corpus["temperature-never-stabilises"]
-    proc = subprocess.run([THERMOCAL, "calibrate", str(path), "--registry", str(tmp_path / "reg")],
-                          capture_output=True, text=True, timeout=600)
+    proc = subprocess.run([THERMOCAL, "calibrate", str(path), "--registry", str(tmp_path / "reg"), "--method",
+                           "tilt"], capture_output=True, text=True, timeout=600)
     assert proc.returncode == 2, proc.stderr
     [line] = error_lines(proc.stderr)
     assert line.startswith(f"thermocal: error: {path}: au_temperature: t_ns=")
