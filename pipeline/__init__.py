@@ -20,6 +20,7 @@ Steps and data:
 - ``inspect``: what a recording holds, before anything is fitted (plateau program or sweep, poses, methods)
 - ``apply``: a passport's full model applied to every voltmeter sample of a recording
 - ``plots``: figures (PNG)
+- ``jsonable``: the one coercion of results into plain JSON values
 - ``errors``: the one-line error types
 
 Sub-packages:
