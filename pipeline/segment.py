@@ -5,7 +5,10 @@ unit in a sequence of positions. This module finds both from the recorded signal
 
 - plateaus from the AU thermosensor: the local regression slope of the temperature stays below
   ``plateau_rate_c_per_min`` for at least ``plateau_min_s`` and the temperature stays within ``plateau_band_c`` of
-  the plateau's median (a run whose temperature is stable throughout is one plateau, however short);
+  the plateau's median (a run whose temperature is stable throughout is one plateau, however short); before each,
+  its settling (the unit still approaching the plateau after a short soak: slope below ``settle_rate_c_per_min``,
+  within ``settle_band_c``): positions held there belong to the plateau, each at its own temperature, where the
+  stable part lacks them;
 - static stretches from the voltages: the standard deviation of each channel over ``static_window_s`` stays below a
   threshold set by the run's own noise floor (a multiple of a low quantile of that rolling standard deviation);
 - each static stretch is cut at plateau boundaries (the unit stays in its last position through ramps and soaks),
@@ -62,6 +65,8 @@ class SegmentSettings:
     plateau_rate_c_per_min: float = 0.02   # |dT/dt| below this (smoothed) counts as stable
     plateau_min_s: float = 300.0           # a plateau lasts at least this long (unless the whole run is stable)
     plateau_band_c: float = 0.5            # ... and stays within this band around its median
+    settle_rate_c_per_min: float = 0.3     # before a plateau, the unit still settling towards it: |dT/dt| below
+    settle_band_c: float = 3.0             # ... this and within this of the plateau's temperature
     static_window_s: float = 2.0           # rolling window for voltage statistics
     static_min_s: float = 3.0              # shortest static segment kept
     settle_trim_s: float = 10.0            # trimmed from the start of each static segment (1/10 of it from the end),
@@ -78,6 +83,8 @@ class Plateau:
     t_end_ns: int
     temp_c: float
     temp_std_c: float
+    #: start of the settling before the stable part (the unit still approaching the plateau's temperature)
+    settle_start_ns: int | None = None
 
     @property
     def duration_s(self) -> float:
@@ -94,7 +101,8 @@ class StaticSegment:
     from gravity). ``plateau`` is the index of the plateau the segment lies on, None on a ramp. ``mean_v``,
     ``std_v`` and ``count`` are over the finite voltmeter samples of the segment (V); ``temp_c`` and ``temp_std_c``
     the AU temperature interpolated at those samples (C); ``direction_g`` the rough unit gravity vector (AU axes)
-    used for naming (NaN when it cannot be estimated).
+    used for naming (NaN when it cannot be estimated). ``settling`` is the plateau a segment off every plateau
+    lies before, wholly inside its settling (None otherwise).
     """
 
     index: int
@@ -111,6 +119,7 @@ class StaticSegment:
     temp_c: float
     temp_std_c: float
     direction_g: tuple[float, float, float]
+    settling: int | None = None
 
     @property
     def duration_s(self) -> float:
@@ -167,7 +176,8 @@ def find_plateaus(t_ns: np.ndarray, temp_c: np.ndarray,
     t_s = (t_ns - t_ns[0]) / _NS
     record_s = float(t_s[-1])
     window_s = settings.plateau_min_s * _SLOPE_WINDOW_FRACTION
-    stable = np.abs(_local_slope_c_per_s(t_s, temp_c, window_s)) * 60.0 < settings.plateau_rate_c_per_min
+    rate_c_per_min = np.abs(_local_slope_c_per_s(t_s, temp_c, window_s)) * 60.0
+    stable = rate_c_per_min < settings.plateau_rate_c_per_min
     min_s = min(settings.plateau_min_s, record_s)
     found: list[tuple[int, int]] = []
     for i0, i1 in _runs(stable):
@@ -181,8 +191,12 @@ def find_plateaus(t_ns: np.ndarray, temp_c: np.ndarray,
         lo = found[k - 1][1] if k > 0 else 0
         hi = found[k + 1][0] if k + 1 < len(found) else temp_c.size
         a, b = _extend_plateau(t_s, temp_c, a, b, lo, hi, window_s)
-        out.append(Plateau(k, int(t_ns[a]), int(t_ns[b - 1]), float(np.mean(temp_c[a:b])),
-                           float(np.std(temp_c[a:b]))))
+        mean_c = float(np.mean(temp_c[a:b]))
+        settling = ((rate_c_per_min[lo:a] < settings.settle_rate_c_per_min)
+                    & (np.abs(temp_c[lo:a] - mean_c) < settings.settle_band_c))[::-1]
+        n_settle = int(np.argmin(settling)) if not settling.all() else settling.size
+        out.append(Plateau(k, int(t_ns[a]), int(t_ns[b - 1]), mean_c, float(np.std(temp_c[a:b])),
+                           int(t_ns[a - n_settle]) if n_settle > 0 else None))
     return out
 
 
@@ -659,13 +673,16 @@ def segment_run(run: Run, settings: SegmentSettings = SegmentSettings()) -> Segm
                          temp_c=float(tc.mean()), temp_std_c=float(tc.std())))
 
     names = _name_segments(run, rows, settings, warnings)
+    settles = [(p.index, p.settle_start_ns, p.t_start_ns) for p in plateaus if p.settle_start_ns is not None]
     segments = []
     for k, (r, nm) in enumerate(zip(rows, names)):
         segments.append(StaticSegment(
             index=k, t_start_ns=r["t_start_ns"], t_end_ns=r["t_end_ns"], position=nm["position"],
             label_source=nm["source"], fixture_label=r["fixture_label"], label_conflict=nm["conflict"],
             plateau=r["plateau"], mean_v=_tuple3(r["mean_v"]), std_v=_tuple3(r["std_v"]), count=r["count"],
-            temp_c=r["temp_c"], temp_std_c=r["temp_std_c"], direction_g=_tuple3(nm["direction"])))
+            temp_c=r["temp_c"], temp_std_c=r["temp_std_c"], direction_g=_tuple3(nm["direction"]),
+            settling=(next((i for i, s0, s1 in settles if s0 <= r["t_start_ns"] and r["t_end_ns"] < s1), None)
+                      if r["plateau"] is None else None)))
     return Segmentation(plateaus=plateaus, segments=segments, warnings=warnings, stretches=stretches,
                         static_window_s=settings.static_window_s, static_min_s=settings.static_min_s)
 

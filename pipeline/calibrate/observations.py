@@ -40,6 +40,7 @@ class Observation:
     t_start_ns: int
     t_end_ns: int
     source: str = ""             # the file or directory the run was read from ("" for a run made in memory)
+    settling: bool = False       # held while the unit still settled towards the plateau (before its stable part)
 
 
 @dataclass
@@ -57,16 +58,19 @@ class ObservedRun:
 
 
 def observations_from_segmentation(run_id: str, segmentation, source: str = "") -> list[Observation]:
-    """Named static segments on plateaus (and VP segments anywhere) as observations (``source``: the run's file)."""
+    """Named static segments on plateaus, in the settling before a plateau (as that plateau's, ``settling``), and VP
+    segments anywhere, as observations (``source``: the run's file)."""
     out = []
     for s in segmentation.segments:
         if s.position is None or s.count == 0:
             continue
-        if s.plateau is None and not is_verification_position(s.position):
+        settling = s.plateau is None and getattr(s, "settling", None) is not None
+        if s.plateau is None and not settling and not is_verification_position(s.position):
             continue
-        out.append(Observation(run_id=run_id, plateau=s.plateau, position=s.position, u_v=tuple(s.mean_v),
-                               std_v=tuple(s.std_v), count=int(s.count), temp_c=float(s.temp_c),
-                               t_start_ns=int(s.t_start_ns), t_end_ns=int(s.t_end_ns), source=source))
+        out.append(Observation(run_id=run_id, plateau=s.settling if settling else s.plateau, position=s.position,
+                               u_v=tuple(s.mean_v), std_v=tuple(s.std_v), count=int(s.count),
+                               temp_c=float(s.temp_c), t_start_ns=int(s.t_start_ns), t_end_ns=int(s.t_end_ns),
+                               source=source, settling=settling))
     return out
 
 
@@ -125,7 +129,35 @@ def verify_unit(model, observations: list[Observation], normal_temp_c: float,
     rows = verify_positions(model, [o.position for o in vp], np.array([o.u_v for o in vp]),
                             np.array([o.temp_c for o in vp]), normal_temp_c=normal_temp_c, tolerances=tolerances,
                             run_ids=[o.run_id for o in vp], spans_ns=[(o.t_start_ns, o.t_end_ns) for o in vp])
-    return rows, overall_status(rows)
+    status = overall_status(rows)
+    if status == "pass" and verification_gap(observations, normal_temp_c) is not None:
+        status = "unverified"
+    return rows, status
+
+
+#: a side of T0 the calibration reaches by more than this (C) must be verified on that side too
+_VERIFY_REACH_C = 5.0
+
+
+def verification_gap(observations: list[Observation], normal_temp_c: float) -> str | None:
+    """What the VP data leave unverified of the thermal model's range, or None: the calibration's positions reach
+    below (above) T0 by more than 5 C and no VP observation on a plateau is below (above) T0 by more than 5 C. A
+    status is then never ``pass`` (say what was verified instead)."""
+    cal = [o.temp_c for o in observations if o.plateau is not None and not is_verification_position(o.position)]
+    vp = [o.temp_c for o in observations if o.plateau is not None and is_verification_position(o.position)]
+    if not cal:
+        return None
+    lo, hi = min(cal), max(cal)
+    gaps = []
+    if lo < normal_temp_c - _VERIFY_REACH_C and not any(t < normal_temp_c - _VERIFY_REACH_C for t in vp):
+        gaps.append(f"below T0 (the model reaches {lo:+.1f} C)")
+    if hi > normal_temp_c + _VERIFY_REACH_C and not any(t > normal_temp_c + _VERIFY_REACH_C for t in vp):
+        gaps.append(f"above T0 (the model reaches {hi:+.1f} C)")
+    if not gaps:
+        return None
+    where = ", ".join(f"{t:+.1f}" for t in sorted({round(t, 1) for t in vp})) or "none"
+    return (f"verification does not exercise the thermal model {' nor '.join(gaps)}: VP data only at {where} C, "
+            "so the status is not pass")
 
 
 def soak_holds(observations: list[Observation]) -> set[int]:

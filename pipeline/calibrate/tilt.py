@@ -26,6 +26,7 @@ from pipeline.calibrate.observations import (
     observe_run,
     plateau_summary,
     unit_of,
+    verification_gap,
     verify_unit,
 )
 from pipeline.calibrate.result import CalibrationResult, PlateauConstants, UnitFit
@@ -74,9 +75,10 @@ def calibrate_observed(observed: list[ObservedRun], settings: CalibrationSetting
     plateaus = plateau_summary(observations)
     doc = build_passport(fit, rows, status, g_local_mps2=meta.g_local_mps2, plateaus=plateaus, method=METHOD,
                          extra={"implausible": implausible} if implausible else None)
+    gap = verification_gap(observations, meta.normal_temp_c) if rows else None
     return CalibrationResult(passport=doc, fit=fit, rows=rows, status=status, plateaus=plateaus,
                              warnings=run_warnings + list(fit.skipped)
-                             + [p for p in implausible if p not in run_warnings])
+                             + [p for p in implausible if p not in run_warnings] + ([gap] if gap else []))
 
 
 def calibrate(runs, settings: CalibrationSettings = CalibrationSettings(), *, base_passport: dict | None = None
@@ -88,11 +90,23 @@ def calibrate(runs, settings: CalibrationSettings = CalibrationSettings(), *, ba
 
 
 def _group_plateaus(obs: list[Observation]) -> dict[tuple[str, int], list[Observation]]:
+    """Test-position observations per plateau; a position held while the unit still settled towards the plateau
+    counts only where the plateau's stable part lacks it (each at its own temperature: see ``fit_unit``)."""
     groups: dict[tuple[str, int], list[Observation]] = {}
     for o in obs:
         if o.plateau is not None and is_test_position(o.position):
             groups.setdefault((o.run_id, o.plateau), []).append(o)
+    for key, rows in groups.items():
+        stable = {o.position for o in rows if not o.settling}
+        groups[key] = [o for o in rows if not (o.settling and o.position in stable)]
     return groups
+
+
+def determines_constants(positions) -> bool:
+    """Whether static positions determine all 12 constants: U = K a + U0 has, per channel, four unknowns and the
+    positions' [a, 1] rows must have rank 4 (e.g. five of the six test positions do)."""
+    rows = np.array([[*gravity_vector_g(p), 1.0] for p in dict.fromkeys(positions)])
+    return rows.shape[0] >= 4 and np.linalg.matrix_rank(rows) == 4
 
 
 def _fit_plateaus(groups, shift_v: dict[int, np.ndarray], method: str, skipped: list[str] | None
@@ -101,17 +115,19 @@ def _fit_plateaus(groups, shift_v: dict[int, np.ndarray], method: str, skipped: 
     for (run_id, p), rows in groups.items():
         names = [o.position for o in rows]
         missing = [tp for tp in TEST_POSITIONS if tp not in names]
-        if missing:
+        if missing and not determines_constants(names):
             # a position carried through the ramp onto a VP plateau is not an attempt at calibration
             if skipped is not None and len(set(names)) > 1:
                 skipped.append(f"{run_id} plateau {p} at {np.mean([o.temp_c for o in rows]):.1f} C "
                                f"(t_ns={min(o.t_start_ns for o in rows)}..{max(o.t_end_ns for o in rows)}): "
-                               f"fewer than six test positions (missing {', '.join(missing)})")
+                               f"the test positions {', '.join(dict.fromkeys(names))} do not determine the 12 "
+                               f"constants (missing {', '.join(missing)})")
             continue
         u = np.array([np.asarray(o.u_v) - shift_v.get(id(o), 0.0) for o in rows])
         # one weight per segment: a position carried through a ramp and soak is a long segment taken while the
-        # unit settled; it should not outweigh the program's own hold of that position
-        cf = fit_constants(names, u, method=method)
+        # unit settled; it should not outweigh the program's own hold of that position. Positions missing: least
+        # squares over those there are (physics.md)
+        cf = fit_constants(names, u, method="least_squares" if missing else method)
         fits.append(PlateauConstants(
             run_id=run_id, plateau=p, temp_c=float(np.mean([o.temp_c for o in rows])), K=cf.K, U0=cf.U0,
             positions=tuple(dict.fromkeys(names)), method=cf.method,

@@ -37,7 +37,7 @@ from pipeline.model import output_v
 from pipeline.positions import ALL_POSITIONS, POSITION_NAMES
 from pipeline.run import Run, RunMeta, make_frame
 from pipeline.simulate.disturbances import make_disturbance
-from pipeline.simulate.program import Timetable, get_program
+from pipeline.simulate.program import Program, Timetable, get_program
 from pipeline.simulate.unit import UnitTruth, random_unit, seed000_unit
 
 #: Vibration tones during moves, Hz per axis (x, y, z).
@@ -55,7 +55,7 @@ class SimConfig:
     unit_serial: str = "AU-0001"
     seed: int = 0
     unit_seed: int | None = None
-    program: str = "standard"
+    program: str | Program = "standard"     # a name of pipeline.simulate.program.PROGRAMS, or a Program
     rate_hz: float = 10.0
     noise_v: float = 5e-6
     temp_noise_c: float = 0.01
@@ -265,7 +265,7 @@ def _meta(config: SimConfig) -> RunMeta:
         g_local_mps2=9.80665,
         started_utc=config.started_utc,
         nominal_gain_v_per_g=float(config.nominal_gain_v_per_g),
-        extra={"simulator": "thermocal", "program": config.program},
+        extra={"simulator": "thermocal", "program": get_program(config.program).name},
     )
 
 
@@ -286,7 +286,7 @@ def _truth(config: SimConfig, unit: UnitTruth, effects: list[Effect], timetable:
         "schema": "thermocal.sim_truth/1",
         "unit_serial": config.unit_serial,
         "run_id": meta.run_id,
-        "program": config.program,
+        "program": get_program(config.program).name,
         "duration_s": timetable.duration_s,
         **lags_s,
         "unit": unit.to_dict(),

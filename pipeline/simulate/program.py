@@ -306,8 +306,11 @@ PROGRAMS = {"standard": standard_program, "short": short_program, "differential"
             "handheld": handheld_program, "sweep": sweep_program}
 
 
-def get_program(name: str) -> Program:
-    """The program called ``name``: ``standard``, ``short``, ``differential``, ``handheld`` or ``sweep``."""
+def get_program(name: str | Program) -> Program:
+    """The program called ``name``: ``standard``, ``short``, ``differential``, ``handheld`` or ``sweep`` (a
+    :class:`Program` is itself)."""
+    if isinstance(name, Program):
+        return name
     try:
         return PROGRAMS[name]()
     except KeyError:
