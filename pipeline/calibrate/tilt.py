@@ -115,14 +115,17 @@ def _fit_plateaus(groups, shift_v: dict[int, np.ndarray], method: str, skipped: 
     for (run_id, p), rows in groups.items():
         names = [o.position for o in rows]
         missing = [tp for tp in TEST_POSITIONS if tp not in names]
+        where = (f"{run_id} plateau {p} at {np.mean([o.temp_c for o in rows]):.1f} C "
+                 f"(t_ns={min(o.t_start_ns for o in rows)}..{max(o.t_end_ns for o in rows)}): fewer than six test "
+                 f"positions (missing {', '.join(missing)})")
         if missing and not determines_constants(names):
             # a position carried through the ramp onto a VP plateau is not an attempt at calibration
             if skipped is not None and len(set(names)) > 1:
-                skipped.append(f"{run_id} plateau {p} at {np.mean([o.temp_c for o in rows]):.1f} C "
-                               f"(t_ns={min(o.t_start_ns for o in rows)}..{max(o.t_end_ns for o in rows)}): "
-                               f"the test positions {', '.join(dict.fromkeys(names))} do not determine the 12 "
-                               f"constants (missing {', '.join(missing)})")
+                skipped.append(f"{where}; {', '.join(dict.fromkeys(names))} do not determine the 12 constants")
             continue
+        if missing and skipped is not None:
+            skipped.append(f"{where}; the 12 constants fitted by least squares over "
+                           f"{', '.join(dict.fromkeys(names))}")
         u = np.array([np.asarray(o.u_v) - shift_v.get(id(o), 0.0) for o in rows])
         # one weight per segment: a position carried through a ramp and soak is a long segment taken while the
         # unit settled; it should not outweigh the program's own hold of that position. Positions missing: least
@@ -145,7 +148,8 @@ def fit_unit(unit: str, observations: list[Observation], settings: CalibrationSe
         on_plateaus = [o for rows in groups.values() for o in rows]
         where = (f"t_ns={min(o.t_start_ns for o in on_plateaus)}..{max(o.t_end_ns for o in on_plateaus)}"
                  if on_plateaus else None)
-        raise CalibrationError("no temperature plateau with the six test positions TP1..TP6"
+        raise CalibrationError("no temperature plateau with the six test positions TP1..TP6, nor with test "
+                               "positions that determine the 12 constants"
                                + (f" ({'; '.join(skipped)})" if skipped else ""),
                                path=", ".join(sorted({o.source for o in observations if o.source})) or None,
                                stream="voltmeter", where=where)

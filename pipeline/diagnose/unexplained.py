@@ -7,7 +7,8 @@ columns per axis, scored by BIC against the model with the accepted catalogue ef
 - ``step``: a step of the offsets at one time (the best split of the residual), per axis;
 - ``time`` / ``time_fine``: a piecewise-linear function of time (knots every :data:`KNOT_S` or a quarter of it),
   per axis: random walks, drifts of any shape;
-- ``periodic``: a sinusoid per axis at the period where the residual's periodogram peaks (2 min to 3 h);
+- ``periodic``: a sinusoid per axis at the period where the residual's periodogram peaks (2 min to 3 h, at most
+  a third of the record);
 - ``orientation``: an offset per position and axis;
 - ``temperature``: powers of dT beyond the base polynomial, per axis.
 
@@ -56,9 +57,13 @@ def time_basis(t_s: np.ndarray, knot_s: float = KNOT_S) -> np.ndarray:
     return np.stack([np.interp(t_s, knots, eye[j]) for j in range(knots.size)], axis=1)
 
 
-def best_period_s(t_s: np.ndarray, r: np.ndarray, w: np.ndarray) -> float:
-    """The period (s) where the weighted residual's Lomb-Scargle periodogram, summed over the axes, peaks."""
-    periods = np.geomspace(PERIODS_S[0], min(PERIODS_S[1], max(PERIODS_S[0] * 2, np.ptp(t_s) / 3)), 400)
+def best_period_s(t_s: np.ndarray, r: np.ndarray, w: np.ndarray) -> float | None:
+    """The period (s) where the weighted residual's Lomb-Scargle periodogram, summed over the axes, peaks (periods
+    from 2 min to 3 h and at most a third of the record); None for a record shorter than three of the shortest."""
+    longest = min(PERIODS_S[1], float(np.ptp(t_s)) / 3)
+    if longest <= PERIODS_S[0]:
+        return None
+    periods = np.geomspace(PERIODS_S[0], longest, 400)
     freqs = 2 * np.pi / periods
     power = np.zeros(periods.size)
     for i in range(3):
@@ -80,9 +85,10 @@ def families(design: Design, current: FitResult) -> dict[str, tuple[list[str], n
     out["empirical:step"] = (_labels("step", 1), _per_axis((b.t_s >= t_step).astype(float)[:, None]),
                              {"step_at_h": t_step / 3600.0})
     period = best_period_s(b.t_s, r, w)
-    ph = 2 * np.pi * b.t_s / period
-    out["empirical:periodic"] = (_labels("sc", 2), _per_axis(np.stack([np.sin(ph), np.cos(ph)], axis=1)),
-                                 {"period_s": period})
+    if period is not None:
+        ph = 2 * np.pi * b.t_s / period
+        out["empirical:periodic"] = (_labels("sc", 2), _per_axis(np.stack([np.sin(ph), np.cos(ph)], axis=1)),
+                                     {"period_s": period})
     present = [int(p) for p in np.unique(b.position_idx) if p >= 0]
     pb = np.stack([(b.position_idx == p).astype(float) for p in present], axis=1)
     out["empirical:orientation"] = (_labels("pos", len(present)), _per_axis(pb),

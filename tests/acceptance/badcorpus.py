@@ -419,8 +419,10 @@ CASES: tuple[Case, ...] = (
     # runs the segmenter and the fit cannot use (entirely or in part)
     Case("plateau-missing-a-position", _frames_case("shaken-once", "mcap", lambda: _shaken(holds("TP3", stage=0))),
          None, ("plateau 0 at 20.0 C (t_ns=", "fewer than six test positions (missing TP3)"), calibrates=True),
-    Case("no-plateau-with-six-positions", _frames_case("shaken-always", "mcap", lambda: _shaken(holds("TP3"))),
-         CalibrationError, ("no temperature plateau with the six test positions", "missing TP3"),
+    # (five of the six positions determine the 12 constants, issue 14: without the two y positions they do not)
+    Case("no-plateau-with-six-positions", _frames_case("shaken-always", "mcap",
+                                                       lambda: _shaken(holds("TP2") + holds("TP4"))),
+         CalibrationError, ("no temperature plateau with the six test positions", "missing TP2, TP4"),
          stream="voltmeter", where="t_ns="),
     Case("temperature-never-stabilises", _frames_case("drifting", "mcap", _drifting), CalibrationError,
          ("no temperature plateau: the AU temperature never stays within",), stream="au_temperature",
