@@ -113,6 +113,23 @@ def fit_passport(run: Run, segmentation: Segmentation, settings: CalibrationSett
     return tilt.calibrate_observed([observed], settings).passport
 
 
+#: order of the temperature polynomial fitted to a recording the tilt recipe cannot calibrate
+OWN_MODEL_ORDER = 3
+
+
+def own_model_passport(meta, order: int = OWN_MODEL_ORDER) -> dict:
+    """A passport document with nominal constants (K = nominal gain x I, U0 = 0) and a zero polynomial thermal
+    model of ``order``: the reference a diagnosis refits to the recording itself when nothing calibrates it."""
+    zeros = [0.0] * order
+    pairs = [a + b for a in AXES for b in AXES if a != b]
+    return {"schema": "thermocal.passport/1", "unit": meta.unit_serial, "normal_temp_c": float(meta.normal_temp_c),
+            "g_local_mps2": float(meta.g_local_mps2),
+            "coefficients": {"K": (float(meta.nominal_gain_v_per_g) * np.eye(3)).tolist(), "U0": [0.0, 0.0, 0.0]},
+            "thermal_model": {"kind": "polynomial", "order": order, "alpha": {a: zeros for a in AXES},
+                              "beta": {a + a: zeros for a in AXES}, "gamma": {p: zeros for p in pairs}},
+            "per_plateau": []}
+
+
 def diagnose_run(run: Run, passport: dict | None = None, settings: DiagnoseSettings = DiagnoseSettings(),
                  passport_source: str | None = None) -> Diagnosis:
     """Diagnose ``run`` against ``passport`` (fitted from the run when None). See the module doc."""
@@ -136,8 +153,14 @@ def _diagnose(run: Run, passport: dict | None, settings: DiagnoseSettings, passp
     seg = segment_run(run, seg_settings)
     given = passport is not None
     if passport is None:
-        passport = fit_passport(run, seg, CalibrationSettings(segment=seg_settings))
-        passport_source = "fitted from the run (default thermal model)"
+        try:
+            passport = fit_passport(run, seg, CalibrationSettings(segment=seg_settings))
+            passport_source = "fitted from the run (default thermal model)"
+        except CalibrationError as e:   # no plateau the tilt recipe calibrates (a sweep, few orientations)
+            passport = own_model_passport(run.meta, OWN_MODEL_ORDER)
+            passport_source = (f"none: the tilt recipe cannot calibrate this run ({e.message}); the base model "
+                               f"K(T) a + U0(T), a polynomial of order {OWN_MODEL_ORDER} in temperature, is fitted "
+                               "to the recording itself, as far as its orientations determine it")
     model, reference, notes = _base_model(passport)
     rec = static_record(run, seg, micro_s=settings.micro_s, settings=seg_settings)
     if rec.size < 10 or not np.all(np.isfinite(rec.sigma_sample_v)):

@@ -27,8 +27,9 @@ from scipy.signal import lombscargle
 from pipeline.diagnose.fit import Design, FitResult
 from pipeline.positions import AXES, POSITION_NAMES
 
-#: knot spacing of the empirical function of time, s
+#: knot spacing of the empirical function of time, s (wider on long records: at most MAX_KNOTS knots)
 KNOT_S = 1800.0
+MAX_KNOTS = 48
 #: dBIC beyond which an empirical correction shows a mismatch outside the catalogue
 THRESHOLD = 100.0
 #: periods searched for a periodic disturbance, s
@@ -76,7 +77,8 @@ def families(design: Design, current: FitResult) -> dict[str, tuple[list[str], n
     """The generic corrections: id -> (labels, (B, 3, p) columns, description)."""
     b = design.blocks
     out = {}
-    for fid, knot in (("empirical:time", KNOT_S), ("empirical:time_fine", KNOT_S / 4)):
+    coarse = max(KNOT_S, float(np.ptp(b.t_s)) / MAX_KNOTS)
+    for fid, knot in (("empirical:time", coarse), ("empirical:time_fine", coarse / 4)):
         tb = time_basis(b.t_s, knot)
         out[fid] = (_labels("t", tb.shape[1]), _per_axis(tb), {"knot_s": knot})
     r = design.y - current.fitted
