@@ -191,6 +191,12 @@ def _diagnose(run: Run, passport: dict | None, settings: DiagnoseSettings, passp
     unexplained = find_unexplained(design, sel.final, settings.locate_sigma)
     if unexplained is not None:   # held in the model, the catalogue search is redone on top of it
         sel = _select(design, candidates, settings, initial=((unexplained[0], None),))
+        forced = _forced_by_unexplained(design, sel, unexplained[0], settings)
+        if forced:
+            candidates = [e for e in candidates if e not in forced]
+            sel = _select(design, candidates, settings, initial=((unexplained[0], None),))
+            notes.append(f"{', '.join(forced)} would only absorb part of the unexplained mismatch (a generic "
+                         "function of time explains it as well): not named")
 
     final_trials = _final_trials(sel)
     predicted = blocks.mean(output_v(*model.constants_at(rec.temp_c), rec.a_g))
@@ -268,6 +274,31 @@ def _select(design: Design, candidates: list[str], settings: DiagnoseSettings, i
             return sel
         left = [e for e in left if e not in bad]
     return sel
+
+
+def _forced_by_unexplained(design: Design, sel: Selection, fid: str, settings: DiagnoseSettings) -> list[str]:
+    """Catalogue effects accepted beside an unexplained mismatch that a generic fine function of time (besides the
+    chosen empirical correction) explains as well: they are not explained to within the noise by their own
+    physics, only absorbing part of the mismatch."""
+    from pipeline.diagnose.unexplained import families
+
+    if not sel.accepted:
+        return []
+    fine = "empirical:time_fine"
+    if fine not in design.extra:
+        labels, cols, _ = families(design, sel.final)[fine]
+        design.extra[fine] = (labels, cols)
+    ln_n = float(np.log(design.n_values))
+    held = tuple(sel.state) + (((fine, None),) if fid != fine else ())
+    with_all = design.fit(held)
+    forced = []
+    for t in sel.accepted:
+        without = design.fit(tuple(s for s in held if s[0] != t.effect))
+        if with_all.chi2 - without.chi2 + (with_all.rank - without.rank) * ln_n > -settings.selection.threshold:
+            forced.append(t.effect)
+    if fid != fine:
+        del design.extra[fine]
+    return forced
 
 
 def _shift_finding(design: Design, shift, predicted: np.ndarray, before: np.ndarray, after: np.ndarray,
