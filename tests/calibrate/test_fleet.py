@@ -171,7 +171,10 @@ def test_fleet_flow_nightly_cycle(fleet, tmp_path):
     assert s1["timing"]["runner"] == "ThreadPoolTaskRunner(4) + ProcessPoolExecutor(2)"
     done = _by_unit(s1)
     assert sorted(done) == ["AU-0201", "AU-0202", "AU-0203", "AU-0204"]
-    assert all(d["version"] == 1 and d["created"] and d["status"] == "pass" for d in done.values())
+    assert all(d["version"] == 1 and d["created"] for d in done.values())
+    # AU-0203's TP-only runs verify only at +20 C: not a pass until VP data exercise the thermal model (issue 14)
+    assert {u: d["status"] for u, d in done.items()} == {"AU-0201": "pass", "AU-0202": "pass",
+                                                          "AU-0203": "unverified", "AU-0204": "pass"}
     assert [Path(r).name for r in done["AU-0203"]["runs"]] == ["AU-0203-tp-a.mcap", "AU-0203-tp-b.mcap"]
     assert [Path(r).name for r in done["AU-0204"]["runs"]] == ["AU-0204.mcap"]
     assert "corrupt chunk" in _failed_reason(s1, "AU-0204-s2-corrupt.mcap")
@@ -198,6 +201,7 @@ def test_fleet_flow_nightly_cycle(fleet, tmp_path):
     s2 = run_fleet(str(inbox), str(reg), pool="thread", workers=2)
     done2 = _by_unit(s2)
     assert done2["AU-0203"]["version"] == 2 and len(done2["AU-0203"]["runs"]) == 4
+    assert done2["AU-0203"]["status"] == "pass"
     passport = json.loads(Path(done2["AU-0203"]["passport"]).read_text())
     near = lambda temp: {v["run_id"] for v in passport["verification"] if abs(v["temp_c"] - temp) < 3}  # noqa: E731
     assert near(-10.0) == {"AU-0203-vp-0"} and "AU-0203-vp-1" in near(45.0)
@@ -270,7 +274,9 @@ def test_fleet_on_dask_localcluster(fleet, tmp_path):
     assert len(worker_pids) == 2 and os.getpid() not in worker_pids
     done = _by_unit(summary)
     assert sorted(done) == ["AU-0201", "AU-0202", "AU-0203", "AU-0204"]
-    assert all(d["status"] == "pass" and Path(d["passport"]).exists() for d in done.values())
+    assert all(Path(d["passport"]).exists() for d in done.values())
+    assert {u: d["status"] for u, d in done.items()} == {"AU-0201": "pass", "AU-0202": "pass",
+                                                          "AU-0203": "unverified", "AU-0204": "pass"}
     assert not list((tmp_path / "reg").rglob("*.png"))  # figures=False
     assert [Path(f["run"]).name for f in summary["failed"]] == ["junk.mcap"]
     assert summary["timing"]["runner"].startswith("DaskTaskRunner(tcp://127.0.0.1:")
