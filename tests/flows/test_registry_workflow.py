@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 
 from pipeline.calibrate import tilt
+from pipeline.calibrate.methods import base_passport_of
 from pipeline.calibrate.publish import publish
 from pipeline.errors import ThermocalError
 from pipeline.io.runs import read_run, write_run
@@ -94,11 +95,13 @@ def test_cli_approve_and_differential_base_is_the_current_passport(calibrated, t
     failing = {k: v for k, v in failing.items() if k not in ("signature", "content_sha256")}
     registry.publish(failing, inputs=[{"path": "other", "sha256": "e" * 64}], settings={}, code_version="t")
     assert registry.current("AU-0001") == 2 and _base_passport(run_path, reg, None)["version"] == 2
-    # unapproved registry whose newest version failed: refused with a one-line reason
+    # a registry whose only version failed, nothing approved: no base (the CLI then lets the differential method
+    # take the constants at T0 from the orientations themselves)
     reg2 = Registry(tmp_path / "reg2")
     reg2.publish(failing, inputs=[{"path": "other", "sha256": "e" * 64}], settings={}, code_version="t")
     with pytest.raises(ThermocalError, match="failed its verification"):
-        _base_passport(run_path, tmp_path / "reg2", None)
+        base_passport_of(reg2, "AU-0001")
+    assert _base_passport(run_path, tmp_path / "reg2", None) is None
 
 
 def test_diagnose_registry_compares_with_the_current_passport(calibrated, tmp_path):
