@@ -294,16 +294,19 @@ def _constants_figure(result: dict) -> str | None:
 
 
 def _base_passport(run: Path, registry: Path, path: Path | None) -> dict | None:
-    """``--base-passport``, else the unit's current non-differential passport in the registry, else (the unit has
-    none) None: the differential method then takes the constants at T0 from the orientations themselves. A unit
-    whose every version failed and none is approved is refused (one line)."""
+    """``--base-passport``, else the unit's newest non-differential version in the registry, else None: the
+    differential method then takes the constants at T0 from the orientations themselves."""
     from pipeline.calibrate.methods import base_passport_of
     from pipeline.io.runs import read_run_meta
     from pipeline.passport.document import read_passport
 
     if path is not None:
         return read_passport(path)
-    return base_passport_of(registry, read_run_meta(run).unit_serial, required=False)
+    unit = read_run_meta(run).unit_serial
+    try:
+        return base_passport_of(registry, unit)
+    except ThermocalError:
+        return None
 
 
 def _calibration_settings(thermal_model: str, constants_method: str, tol_normal_g: float, tol_range_g: float):

@@ -29,20 +29,16 @@ def recipe(method: str) -> ModuleType:
         raise CalibrationError(f"unknown method {method!r} ({', '.join(METHODS)})") from None
 
 
-def base_passport_of(registry, unit: str, *, required: bool = True) -> dict | None:
+def base_passport_of(registry, unit: str) -> dict:
     """The passport a differential calibration of ``unit`` starts from by default: the unit's current passport in
     ``registry`` (a folder or a :class:`pipeline.passport.registry.Registry`): its newest approved version, else
     its newest tilt version that did not fail its verification, else its newest other version that did not fail
     (a scalar one: K in a rotated gauge); never one made by the differential method itself (a
     differential passport's constants at T0 are its base's, so starting from it changes nothing but the identity).
-    When the unit has no such version (or is not in the registry): CalibrationError, or None when not ``required``
-    (a sweep then takes its constants at T0 from the orientations). When every such version failed its verification
-    and none is approved: CalibrationError either way."""
+    CalibrationError when the unit has none."""
     from pipeline.passport.registry import Registry
 
     reg = registry if isinstance(registry, Registry) else Registry(registry)
-    if not required and unit not in reg.units():
-        return None
     try:
         versions = [v.version for v in reg.versions(unit)]
         approved = {a["version"] for a in reg.approvals(unit)}
@@ -65,6 +61,4 @@ def base_passport_of(registry, unit: str, *, required: bool = True) -> dict | No
     if usable:
         raise CalibrationError(f"no normal-temperature passport of {unit} to start from: every version failed its "
                                "verification and none is approved ('thermocal passport approve')")
-    if not required:
-        return None
     raise CalibrationError(f"no normal-temperature passport of {unit} to start from (only differential versions)")
