@@ -33,7 +33,7 @@ from pipeline.calibrate.methods import NEEDS_BASE_PASSPORT, base_passport_of, re
 from pipeline.calibrate.publish import publish, recorded_settings
 from pipeline.calibrate.result import base_reference
 from pipeline.calibrate.settings import CalibrationSettings
-from pipeline.errors import CalibrationError, RunFormatError, ThermocalError
+from pipeline.errors import CalibrationError, ThermocalError
 from pipeline.io.parquet import META_FILE as PARQUET_META_FILE
 from pipeline.io.runs import read_run, read_run_meta, run_format  # noqa: F401  (read_run_meta: part of this API)
 from pipeline.passport.provenance import RunDigest, hash_run

@@ -126,10 +126,7 @@ def simulate(config: SimConfig) -> SimResult:
     # Voltmeter grid, true temperature and specific force.
     k = np.arange(int(np.floor(duration_s * config.rate_hz)) + 1)
     tv_s = k / config.rate_hz
-    tv_ns = start_ns + np.round(k * (1e9 / config.rate_hz)).astype(np.int64)
-    if config.jitter_s > 0:
-        lim = 0.45 / config.rate_hz
-        tv_ns += np.round(np.clip(rng.normal(0.0, config.jitter_s, k.size), -lim, lim) * 1e9).astype(np.int64)
+    tv_ns = voltmeter_t_ns(start_ns, k, config, rng)
     temp_v_c = np.interp(tv_s, t1_s, case_c)
     face_rad = _face_rotations_rad(effects)
     a_g, position_idx = _specific_force_g(timetable, tv_s, face_rad, config.vibration_g, rng)
@@ -138,15 +135,7 @@ def simulate(config: SimConfig) -> SimResult:
                         arrive_s=arrive_s, constants=unit, normal_temp_c=config.normal_temp_c,
                         ramp_sign=timetable.ramp_sign(tv_s), start_ns=start_ns)
 
-    k_v, u0_v = ctx.k_u0
-    u_v = output_v(k_v, u0_v, a_g)
-    for e in effects:
-        if e.acts_on != "specific_force":  # the face error is already in a_g
-            u_v += e.delta_u_v(ctx)
-    for d in disturbances:
-        u_v += d.delta_u_v(ctx)
-    if config.noise_v > 0:
-        u_v += rng.normal(0.0, config.noise_v, u_v.shape)
+    u_v = output_with_effects_v(ctx, effects, disturbances, config.noise_v, rng)
     temp_noise_c = rng.normal(0.0, config.temp_noise_c, (2, t1_s.size))  # thermosensor, chamber air
     t1_ns = start_ns + np.round(t1_s * 1e9).astype(np.int64)
 
@@ -301,3 +290,26 @@ def _truth(config: SimConfig, unit: UnitTruth, effects: list[Effect], timetable:
     }
 
 
+def voltmeter_t_ns(start_ns: int, k: np.ndarray, config: SimConfig, rng: np.random.Generator) -> np.ndarray:
+    """Voltmeter time stamps (ns) of sample numbers ``k``: the nominal grid at ``config.rate_hz`` plus, when
+    ``config.jitter_s`` > 0, Gaussian jitter (s) clipped to 0.45 of a sample interval so the order is kept."""
+    t_ns = start_ns + np.round(k * (1e9 / config.rate_hz)).astype(np.int64)
+    if config.jitter_s > 0:
+        lim = 0.45 / config.rate_hz
+        t_ns += np.round(np.clip(rng.normal(0.0, config.jitter_s, k.size), -lim, lim) * 1e9).astype(np.int64)
+    return t_ns
+
+
+def output_with_effects_v(ctx: SignalContext, effects: list, disturbances: list, noise_v: float,
+                          rng: np.random.Generator) -> np.ndarray:
+    """The unit's outputs (n, 3) in V: U = K a + U0 at each sample's temperature, plus every effect acting on the
+    output (a face error is already in ``ctx.a_g``), every disturbance, and white noise of ``noise_v`` V."""
+    u_v = output_v(*ctx.k_u0, ctx.a_g)
+    for e in effects:
+        if e.acts_on != "specific_force":
+            u_v += e.delta_u_v(ctx)
+    for d in disturbances:
+        u_v += d.delta_u_v(ctx)
+    if noise_v > 0:
+        u_v += rng.normal(0.0, noise_v, u_v.shape)
+    return u_v

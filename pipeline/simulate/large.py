@@ -20,7 +20,6 @@ import numpy as np
 
 from pipeline.effects.base import SignalContext
 from pipeline.effects.catalogue import effect_class, make_effect
-from pipeline.model import output_v
 from pipeline.run import Run, make_frame
 from pipeline.simulate.chamber import (
     THERMAL_RATE_HZ,
@@ -29,7 +28,9 @@ from pipeline.simulate.chamber import (
     _check,
     _face_rotations_rad,
     _specific_force_g,
+    output_with_effects_v,
     simulate,
+    voltmeter_t_ns,
 )
 from pipeline.simulate.disturbances import DISTURBANCES, make_disturbance
 from pipeline.simulate.program import get_program
@@ -76,10 +77,7 @@ def simulate_chunked(config: SimConfig, chunk_samples: int = 1_000_000) -> SimRe
     for k0 in range(0, n, int(chunk_samples)):
         k = np.arange(k0, min(k0 + int(chunk_samples), n))
         t_s = k / config.rate_hz
-        t_ns[k] = ctx1.start_ns + np.round(k * (1e9 / config.rate_hz)).astype(np.int64)
-        if config.jitter_s > 0:
-            lim = 0.45 / config.rate_hz
-            t_ns[k] += np.round(np.clip(noise.normal(0.0, config.jitter_s, k.size), -lim, lim) * 1e9).astype(np.int64)
+        t_ns[k] = voltmeter_t_ns(ctx1.start_ns, k, config, noise)
         # simulate() draws the vibration phases first from default_rng(seed): the same phases in every chunk
         a_g, position_idx = _specific_force_g(timetable, t_s, face_rad, config.vibration_g,
                                               np.random.default_rng(config.seed))
@@ -87,14 +85,7 @@ def simulate_chunked(config: SimConfig, chunk_samples: int = 1_000_000) -> SimRe
                             position_idx=position_idx, move_start_s=ctx1.move_start_s, arrive_s=ctx1.arrive_s,
                             constants=ctx1.constants, normal_temp_c=config.normal_temp_c,
                             ramp_sign=timetable.ramp_sign(t_s), start_ns=ctx1.start_ns)
-        u = output_v(*ctx.k_u0, a_g)
-        for e in effects:
-            if e.acts_on != "specific_force":  # the face error is already in a_g
-                u += e.delta_u_v(ctx)
-        for d in disturbances:
-            u += d.delta_u_v(ctx)
-        if config.noise_v > 0:
-            u += noise.normal(0.0, config.noise_v, u.shape)
+        u = output_with_effects_v(ctx, effects, disturbances, config.noise_v, noise)
         for c, name in enumerate(u_v):
             u_v[name][k] = u[:, c]
 

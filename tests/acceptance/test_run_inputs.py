@@ -4,16 +4,15 @@ recordings under one run_id are both refused, a folder naming another unit warns
 from __future__ import annotations
 
 import json
-import sys
 from dataclasses import replace
 from pathlib import Path
 
 import pytest
 
-from flows.cli import main
 from pipeline.io.runs import write_run
 from pipeline.simulate.chamber import SimConfig
 from pipeline.simulate.large import simulate_run
+from tests.conftest import run_main
 
 
 def sim(serial: str, seed: int):
@@ -59,13 +58,6 @@ def test_fleet_never_merges_one_run_id(inbox, tmp_path):
     assert w["run"] == str(p["c"].resolve()) and "says unit AU-0999 but its metadata says AU-0203" in w["warning"]
     assert all("\n" not in r for r in failed.values())
 
-
-def run_main(monkeypatch, capsys, *args):
-    monkeypatch.setattr(sys, "argv", ["thermocal", *args])
-    with pytest.raises(SystemExit) as info:
-        main()
-    out, err = capsys.readouterr()
-    return info.value.code, out, err
 
 
 def test_calibrate_drops_a_truncated_copy_and_refuses_two_recordings(inbox, tmp_path, monkeypatch, capsys):

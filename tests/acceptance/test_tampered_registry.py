@@ -6,18 +6,17 @@ from __future__ import annotations
 
 import json
 import shutil
-import sys
 from pathlib import Path
 
 import pytest
 
-from flows.cli import main
 from pipeline.errors import RegistryError
-from pipeline.passport.canonical import canonical_json, content_sha256
+from pipeline.passport.canonical import content_sha256
 from pipeline.passport.registry import Registry
 from pipeline.passport.signing import sign_record, station_key
 from tests.acceptance import tampered
 from tests.acceptance.tampered import ATTACKS, UNITS, Attack, build_base, snapshot
+from tests.conftest import run_main
 
 ATTACK_BY_NAME = {a.name: a for a in ATTACKS}
 
@@ -100,13 +99,6 @@ def test_head_statement_tampering_is_named(base, tmp_path):
     report = Registry(root).verify(against=sign_record(rehashed, station_key(tmp_path / "attacker")))
     assert any("which this station does not trust" in p for p in report.problems), report.problems
 
-
-def run_main(monkeypatch, capsys, *args: str) -> tuple[int, str, str]:
-    monkeypatch.setattr(sys, "argv", ["thermocal", *args])
-    with pytest.raises(SystemExit) as info:
-        main()
-    out, err = capsys.readouterr()
-    return info.value.code, out, err
 
 
 def test_cli_verify_head_and_against(base, tmp_path, monkeypatch, capsys):
