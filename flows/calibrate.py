@@ -66,7 +66,8 @@ def record_head(registry: str) -> None:
 
 @task(name="write", cache_policy=NO_CACHE)
 def write(registry: str, calibration, paths: list[str], settings: CalibrationSettings, dry_run: bool = False):
-    return publish(registry, calibration, input_paths=paths, settings=settings, dry_run=dry_run)
+    return publish(registry, calibration, input_paths=paths, settings=settings, constants_figure=True,
+                   dry_run=dry_run)
 
 
 @flow(name="thermocal-calibrate", log_prints=False)

@@ -229,8 +229,6 @@ def calibrate(runs: List[Path] = typer.Argument(..., metavar="RUN",
     from .calibrate import run_calibrate
 
     result = run_calibrate([str(r) for r in runs], str(registry), settings, method, base, dry_run)
-    if not dry_run:
-        result["constants_figure"] = _constants_figure(result)
     if chosen:
         result["method_auto"] = chosen
     _emit(result, as_json, None if as_json else _calibrate_text(result))
@@ -269,28 +267,6 @@ def _needs_base(method: str) -> bool:
     from pipeline.calibrate.methods import NEEDS_BASE_PASSPORT
 
     return method in NEEDS_BASE_PASSPORT
-
-
-def _constants_figure(result: dict) -> str | None:
-    """Draw the constants-against-temperature figure beside a written passport (``vNNNN.constants.png``, once);
-    its path, or None (no passport written, or the figure could not be drawn)."""
-    from pipeline.plots import plot_constants
-
-    passport = Path(result.get("passport") or "")
-    if not result.get("passport") or not passport.is_file():
-        return None
-    fig = passport.with_suffix(".constants.png")
-    if not fig.exists():
-        tmp = fig.with_name(f".tmp-{fig.name}")
-        try:
-            doc = json.loads(passport.read_text())
-            plot_constants(doc, tmp, title=f"{doc['unit']} v{doc['version']}: constants per plateau against "
-                                           "temperature, thermal model and residuals")
-            os.replace(tmp, fig)
-        except (OSError, ValueError, KeyError):
-            tmp.unlink(missing_ok=True)
-            return None
-    return str(fig)
 
 
 def _base_passport(run: Path, registry: Path, path: Path | None) -> dict | None:

@@ -4,6 +4,7 @@ verification figure beside it (:func:`publish`), and the ``calibrate --json`` ob
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 from collections.abc import Mapping
 from pathlib import Path
@@ -39,11 +40,13 @@ def calibration_json(result: CalibrationResult, published) -> dict:
 
 
 def publish(registry_root: str | Path, result: CalibrationResult, *, input_paths: list[str],
-            settings: CalibrationSettings, figure: bool = True,
+            settings: CalibrationSettings, figure: bool = True, constants_figure: bool = False,
             input_digests: Mapping[str, RunDigest] | None = None, dry_run: bool = False) -> dict:
     """Publish a calibration of any method as a new version (or find the identical existing one: same input hashes,
     same settings, same method) and, for a new version, write ``<passport>.png`` with the VP errors before and after
-    compensation. Returns the ``calibrate --json`` object (with ``method``, ``warnings`` and ``figure``).
+    compensation, and with ``constants_figure`` ``<passport>.constants.png``, the constants per plateau against
+    temperature with the thermal model (``thermocal calibrate`` draws it; the fleet does not). Returns the
+    ``calibrate --json`` object (with ``method``, ``warnings``, ``figure`` and, when asked, ``constants_figure``).
 
     ``input_digests``: hashes of the input paths made earlier (:func:`pipeline.passport.provenance.hash_run`, by the
     fleet's planning), reused for the runs not changed since (else the run is hashed again).
@@ -64,21 +67,35 @@ def publish(registry_root: str | Path, result: CalibrationResult, *, input_paths
                                                       code_version=code_version())
     out = calibration_json(result, published)
     out["method"] = result.method
-    fig = Path(published.path).with_suffix(".png")
-    if figure and (published.created or not fig.exists()):
-        from pipeline.plots import plot_verification
+    from pipeline.plots import plot_constants, plot_verification
 
-        # drawn under a temporary name, then renamed: a killed writer or a full disk leaves no partial figure
-        # (a leftover ".tmp-" file is removed by the registry at the unit's next publish)
-        tmp = fig.with_name(f".tmp-{fig.stem}-{os.getpid()}.png")
+    passport_path = Path(published.path)
+    fig = _figure(passport_path.with_suffix(".png"), figure, published.created,
+                  lambda tmp: plot_verification(result.rows, tmp,
+                                                title=f"{result.unit} v{published.version}: VP gravity-module error"))
+    out["figure"] = fig
+    if constants_figure:
+        out["constants_figure"] = _figure(
+            passport_path.with_suffix(".constants.png"), True, published.created,
+            lambda tmp: plot_constants(json.loads(passport_path.read_text()), tmp,
+                                       title=f"{result.unit} v{published.version}: constants per plateau against "
+                                             "temperature, thermal model and residuals"))
+    out["warnings"] = list(result.warnings)
+    return out
+
+
+def _figure(path: Path, wanted: bool, redraw: bool, draw) -> str | None:
+    """Draw a figure beside a passport with ``draw(tmp_path)`` when ``wanted``, for a new version (``redraw``) or
+    where it is missing; its path, or None when there is none. Drawn under a temporary name, then renamed: a killed writer or a full
+    disk leaves no partial figure (a leftover ".tmp-" file is removed by the registry at the unit's next publish)."""
+    if wanted and (redraw or not path.exists()):
+        tmp = path.with_name(f".tmp-{path.stem}-{os.getpid()}.png")
         try:
-            plot_verification(result.rows, tmp, title=f"{result.unit} v{published.version}: VP gravity-module error")
-            os.replace(tmp, fig)
-        except OSError:
-            pass  # the figure is a convenience; the passport is written
+            draw(tmp)
+            os.replace(tmp, path)
+        except (OSError, ValueError, KeyError):
+            pass  # a figure is a convenience; the passport is written
         finally:
             with contextlib.suppress(OSError):
                 tmp.unlink(missing_ok=True)
-    out["figure"] = str(fig) if fig.exists() else None
-    out["warnings"] = list(result.warnings)
-    return out
+    return str(path) if path.exists() else None
