@@ -31,7 +31,8 @@ def _run(cmd: list, cwd: Path, env: dict, timeout: float = 600) -> subprocess.Co
 
 @pytest.fixture(scope="module")
 def installed(tmp_path_factory):
-    """The wheel built from a copy of the sources, installed into a fresh venv; returns (venv, work dir, env)."""
+    """The wheel built from a copy of the sources, installed into a fresh venv; yields (venv, work dir, env,
+    site-packages), and stops the wheel's local Prefect server afterwards."""
     root = tmp_path_factory.mktemp("wheel")
     src = root / "src"
     src.mkdir()
@@ -54,7 +55,10 @@ def installed(tmp_path_factory):
     work.mkdir()
     env.update(PREFECT_HOME=str(root / "prefect-home"), PREFECT_SERVER_ANALYTICS_ENABLED="false", DO_NOT_TRACK="1",
                MPLBACKEND="Agg", THERMOCAL_KEY_DIR=str(root / "keys"), PATH=f"{venv / 'bin'}:{env.get('PATH', '')}")
-    return venv, work, env, purelib
+    yield venv, work, env, purelib
+    # the wheel's own local Prefect server (started by its first calibrate) must not outlive the tests
+    subprocess.run([str(venv / "bin" / "thermocal"), "server", "stop"], cwd=work, env=env, capture_output=True,
+                   timeout=120)
 
 
 def test_pipeline_comes_from_the_wheel(installed):
