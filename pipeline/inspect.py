@@ -249,11 +249,13 @@ def _methods(program, poses, seg, on_soak: set[int], run: Run) -> list[dict[str,
                                 "cross-axis combinations)"] if k >= SCALAR_DIAGONAL_POSES else [])})
     # in the order auto prefers them: tilt on a plateau program, the sweep method on a sweep, scalar on many poses
     # at one temperature when no fixture log says where they are (poses named from gravity alone are not known to
-    # a fixture's precision: a hand-turned fixture), or when tilt cannot run
+    # a fixture's precision: a hand-turned fixture) and tilt would not determine a thermal model (fewer than two
+    # plateaus with the six test positions), or when tilt cannot run
     logged = _fixture_logged(run)
     if program.kind == "sweep":
         out = [out[1], out[0], out[2]]
-    elif (k >= SCALAR_FULL_POSES and not logged) or (k >= SCALAR_DIAGONAL_POSES and not out[0]["supported"]):
+    elif ((k >= SCALAR_FULL_POSES and not logged and n < 2)
+          or (k >= SCALAR_DIAGONAL_POSES and not out[0]["supported"])):
         out = [out[2], out[0], out[1]]
     return out
 

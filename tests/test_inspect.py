@@ -78,3 +78,19 @@ def test_short_streams():
     assert stream_summary("chamber", np.array([], dtype=np.int64), 0)["samples"] == 0
     one = stream_summary("chamber", np.array([T0_NS]), 0)
     assert one["samples"] == 1 and one["rate_hz"] is None and one["duration_s"] == 0.0
+
+
+@pytest.mark.parametrize("sample", ["standard_short.mcap", "standard_short_parquet"])
+def test_auto_picks_tilt_on_a_plateau_program_with_or_without_a_fixture_log(sample):
+    """The Parquet sample has no fixture log; its poses are named from gravity, and five plateaus hold all six test
+    positions: tilt (which fits the thermal model) is chosen, not scalar (constants at T0 only, which left the
+    sample's VP errors uncompensated: status fail)."""
+    from pipeline.inspect import describe_recording
+    from pipeline.segment import segment_run
+    from tests.conftest import REPO
+
+    run = read_run(REPO / "sample_data" / sample)
+    rec = describe_recording(run, segment_run(run))
+    assert rec["temperature"]["kind"] == "plateaus"
+    assert rec["method_auto"] == "tilt"
+    assert rec["methods"][0]["method"] == "tilt" and rec["methods"][0]["supported"]
