@@ -497,7 +497,7 @@ def server_status(as_json: bool = typer.Option(False, "--json", help=JSON_HELP))
     text = (f"PREFECT_HOME {home}\n" + (f"server running (pid {st['pid']}): API {st['api_url']}, UI {st['ui_url']}, "
                                         f"exits after {st['idle_s']:.0f} s without a command" if st else
                                         "server not running (starts with the next calibrate or fleet)")
-            + (f"\nPREFECT_API_URL is set: flows are recorded there instead" if os.environ.get("PREFECT_API_URL")
+            + ("\nPREFECT_API_URL is set: flows are recorded there instead" if os.environ.get("PREFECT_API_URL")
                else ""))
     _emit(obj, as_json, text)
 
@@ -544,10 +544,10 @@ def report(unit: str = typer.Argument(..., metavar="UNIT", help=UNIT_HELP),
     from pipeline.passport.report import certificate_html, print_pdf
 
     reg = Registry(registry)
-    if version is None and hasattr(reg, "current"):
+    if version is None:
         version = reg.current(unit)
     doc = reg.load(unit, version)
-    approved = next((r.get("approved") for r in reg.log(unit) if r["version"] == doc.get("version")), None)
+    approved = _approval(reg, unit, doc)
     page = certificate_html(doc, approved=approved, registry=str(registry))
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
@@ -606,15 +606,16 @@ def passport_show(unit: str = typer.Argument(..., metavar="UNIT", help=UNIT_HELP
     if as_json:
         _emit(doc, True)
         return
-    approved = next((r.get("approved") for r in reg.log(unit) if r["version"] == doc.get("version")), None)
-    vdir = reg.unit_dir(unit) if hasattr(reg, "unit_dir") else None
-    figures = []
-    if vdir is not None:
-        for suffix in (".png", ".constants.png"):
-            f = vdir / f"v{int(doc.get('version') or 0):04d}{suffix}"
-            if f.exists():
-                figures.append(str(f))
+    approved = _approval(reg, unit, doc)
+    vdir = reg.unit_dir(unit)
+    figures = [str(f) for suffix in (".png", ".constants.png")
+               if (f := vdir / f"v{int(doc.get('version') or 0):04d}{suffix}").exists()]
     _emit(None, False, passport_summary(doc, approved=approved, figures=figures))
+
+
+def _approval(reg, unit: str, doc: dict):
+    """The approval records of the passport ``doc`` of ``unit`` (``passport log``'s ``approved``), or None."""
+    return next((r.get("approved") for r in reg.log(unit) if r["version"] == doc.get("version")), None)
 
 
 @passport_app.command("diff")
