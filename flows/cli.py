@@ -731,9 +731,60 @@ def _usage_line(e: Exception) -> str:
     return f"thermocal: usage error: {msg} (see `{cmd} --help`)"
 
 
+class _ClosedPipeQuiet:
+    """``sys.stdout`` while a command runs: when the reader of a pipe goes away (``thermocal ... | head -3``), the
+    rest of the output is dropped without a word and the command carries on to its end (registry writes included,
+    exit status unchanged); the file descriptor is pointed at the null device so that the interpreter's last flush
+    finds nothing to complain about."""
+
+    def __init__(self, stream):
+        self._stream = stream
+        self.reader_gone = False
+
+    def write(self, s: str) -> int:
+        if not self.reader_gone:
+            try:
+                return self._stream.write(s)
+            except BrokenPipeError:
+                self._drop()
+        return len(s)
+
+    def flush(self) -> None:
+        if not self.reader_gone:
+            try:
+                self._stream.flush()
+            except BrokenPipeError:
+                self._drop()
+
+    def _drop(self) -> None:
+        self.reader_gone = True
+        try:
+            fd = self._stream.fileno()
+        except (AttributeError, OSError, ValueError):  # not a file (a test's capture)
+            return
+        null = os.open(os.devnull, os.O_WRONLY)
+        try:
+            os.dup2(null, fd)
+        finally:
+            os.close(null)
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
+
+
 def main() -> None:
-    """Console entry point: one-line errors, no tracebacks (set THERMOCAL_DEBUG=1 to see them). Commands that run
-    a flow go to the local server's warm worker unless PREFECT_API_URL is set (:mod:`flows.localserver`)."""
+    """Console entry point: one-line errors, no tracebacks (set THERMOCAL_DEBUG=1 to see them); a closed stdout
+    (``| head``) ends the output quietly. Commands that run a flow go to the local server's warm worker unless
+    PREFECT_API_URL is set (:mod:`flows.localserver`)."""
+    stdout = sys.stdout
+    sys.stdout = _ClosedPipeQuiet(stdout)
+    try:
+        _main()
+    finally:
+        sys.stdout = stdout
+
+
+def _main() -> None:
     try:
         argv = sys.argv[1:]
         if argv[:1] and argv[0] in FLOW_COMMANDS and "--help" not in argv:

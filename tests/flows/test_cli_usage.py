@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import os
 import re
 import subprocess
 import sys
@@ -81,3 +82,23 @@ def test_inspect_prints_times_in_utc(tmp_path):
     assert "t_ns" not in text
     assert "from 2026-11-01 00:00:00.000 UTC to 2026-11-01 00:00:02.000 UTC" in text
     assert "at 2026-11-01 00:00:01.000 UTC" in text
+
+
+def _with_reader_gone(args: list[str], env: dict | None = None, cwd=None) -> subprocess.CompletedProcess:
+    """``thermocal ARGS | head -0``: the read end of stdout is closed before the command writes anything."""
+    r, w = os.pipe()
+    os.close(r)
+    try:
+        return subprocess.run([THERMOCAL, *args], stdout=w, stderr=subprocess.PIPE, text=True, timeout=300,
+                              env=env, cwd=cwd)
+    finally:
+        os.close(w)
+
+
+def test_output_into_a_closed_pipe_ends_quietly():
+    """`thermocal inspect RUN | head` and `export ... | head`: the reader gone is no error (exit 0, nothing on
+    stderr), where it was an internal error (BrokenPipeError, exit 3)."""
+    run = Path(__file__).resolve().parents[2] / "sample_data" / "standard_short.mcap"
+    for args in (["inspect", str(run)], ["inspect", str(run), "--json"]):
+        p = _with_reader_gone(args)
+        assert (p.returncode, p.stderr) == (0, ""), (args, p.returncode, p.stderr)

@@ -273,3 +273,19 @@ def test_failing_command_prints_one_line(short_run, tmp_path):
     err = _without_key_notice(out.stderr)
     assert len(err.splitlines()) == 1 and err.startswith("thermocal: error: "), out.stderr
     assert str(tmp_path / "reg") in out.stderr
+
+
+def test_calibrate_into_a_closed_pipe_ends_quietly_and_writes_its_passport(short_run, tmp_path):
+    """`thermocal calibrate RUN | head -3` (its output relayed from the warm worker): the reader gone ends the
+    output quietly (exit 0, nothing on stderr but the key notice) and the passport is written all the same."""
+    env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}
+    r, w = os.pipe()
+    os.close(r)
+    try:
+        p = subprocess.run([THERMOCAL, "calibrate", str(short_run), "--registry", str(tmp_path / "reg")], stdout=w,
+                           stderr=subprocess.PIPE, text=True, env=env, timeout=300)
+    finally:
+        os.close(w)
+    assert p.returncode == 0 and _without_key_notice(p.stderr) == "", (p.returncode, p.stderr)
+    assert (tmp_path / "reg" / "units" / "AU-0401" / "v0001.json").is_file()
+    assert (tmp_path / "reg" / "units" / "AU-0401" / "v0001.png").is_file()
