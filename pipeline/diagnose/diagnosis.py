@@ -47,6 +47,7 @@ from pipeline.diagnose.model import (
     polynomial_reference,
     raise_order,
 )
+from pipeline.diagnose.shift import RATE_U0
 from pipeline.diagnose.shift import explain as explain_shift
 from pipeline.diagnose.shift import find_shift
 from pipeline.diagnose.unexplained import describe as describe_unexplained
@@ -175,26 +176,31 @@ def _diagnose(run: Run, passport: dict | None, settings: DiagnoseSettings, passp
     if given:         # the passport as it is: its constants move only where the recording says they moved
         design.set_base_mask(np.zeros_like(design.base_mask))
     design.set_sigma(design.sigma * block_noise_factor(design, design.fit(())))
+    held: tuple = ()      # a drift of the constants within the recording, held in the model once found
     if given:
         shift = find_shift(design, passport, settings.selection.threshold)
         design.set_base_mask(shift.mask)
+        held = shift.terms
     in_base = [e for e, c in EFFECTS.items()
                if c.in_base_from_order is not None and reference.order >= c.in_base_from_order]
     candidates = [e for e in EFFECTS if e not in in_base]
-    sel = _select(design, candidates, settings)
+    sel = _select(design, candidates, settings, initial=held)
     if given and sel.accepted:    # does the shift still hold with the effects found? (they may explain it)
-        again = find_shift(design, passport, settings.selection.threshold, sel.state)
+        again = find_shift(design, passport, settings.selection.threshold,
+                           tuple(s for s in sel.state if s not in held))
         if again.level != shift.level or again.significant != shift.significant:
             shift = again
             design.set_base_mask(shift.mask)
-            sel = _select(design, candidates, settings)
+            held = shift.terms
+            sel = _select(design, candidates, settings, initial=held)
     unexplained = find_unexplained(design, sel.final, settings.locate_sigma)
     if unexplained is not None:   # held in the model, the catalogue search is redone on top of it
-        sel = _select(design, candidates, settings, initial=((unexplained[0], None),))
+        held = held + ((unexplained[0], None),)
+        sel = _select(design, candidates, settings, initial=held)
         forced = _forced_by_unexplained(design, sel, unexplained[0], settings)
         if forced:
             candidates = [e for e in candidates if e not in forced]
-            sel = _select(design, candidates, settings, initial=((unexplained[0], None),))
+            sel = _select(design, candidates, settings, initial=held)
             notes.append(f"{', '.join(forced)} would only absorb part of the unexplained mismatch (a generic "
                          "function of time explains it as well): not named")
 
@@ -203,7 +209,7 @@ def _diagnose(run: Run, passport: dict | None, settings: DiagnoseSettings, passp
     before = design.y - predicted
     after = design.y - sel.final.fitted
     extended = ExtendedModel(add_polynomial_correction(reference, sel.final.base_coef),
-                             [make_effect(t.effect, t.params) for t in final_trials],
+                             [make_effect(t.effect, t.params) for t in final_trials] + _drift_effects(sel),
                              source={"run_id": run.meta.run_id, "run": run.source, "method": "thermocal diagnose"})
     w = (blocks.n * ~excluded)[:, None] * np.ones(3)
     noise_sigma = design.sigma / np.where(excluded, _EXCLUDE, 1.0)[:, None]
@@ -340,6 +346,14 @@ def _unexplained_finding(design: Design, sel: Selection, unexplained, after: np.
     return {"effect": "unexplained", "explanation": text, "where": where, "parameters": params,
             "rms_before_v": _rms(residual, w), "rms_after_v": _rms(after, w), "delta_bic": dbic,
             "max_effect_v": peak}
+
+
+def _drift_effects(sel: Selection) -> list:
+    """The offsets' drift of a ``constants_shift`` in the extended model: the catalogue's forward model of that
+    signal (``time_drift``, U0 += r t). A drift of K has no term there: it is reported, not modelled."""
+    if RATE_U0 not in sel.final.slices:
+        return []
+    return [make_effect("time_drift", {"r_v_per_h": sel.final.term_coef(RATE_U0).tolist()})]
 
 
 def _hours(rec: StaticRecord, windows_ns: list[list[int]]) -> list[tuple[float, float]]:

@@ -87,6 +87,13 @@ class FitResult:
         undetermined = np.abs(self.evecs).sum(axis=1) == 0 if self.evals.size else np.ones(self.scale.size, bool)
         return np.where(undetermined, np.inf, sig)
 
+    def coef_covariance(self, idx: np.ndarray) -> np.ndarray:
+        """Covariance (k, k) of the coefficients at indices ``idx`` from the weighted normal matrix (the block
+        sigmas as given)."""
+        v = self.evecs[np.asarray(idx)]
+        s = self.scale[np.asarray(idx)]
+        return (v / self.evals[None, :]) @ v.T / np.outer(s, s)
+
     def term_coef(self, effect_id: str) -> np.ndarray:
         return self.coef[self.slices[effect_id]]
 
@@ -222,7 +229,7 @@ class Design:
         normal equations with unit columns; directions the data cannot tell apart are left out of the rank.
         The base columns are block-diagonal over the channels, which the products exploit."""
         state = tuple(state)
-        lag = next((v for e, v in state if _moves_temperature(e)), None)
+        lag = next((v for e, v in state if e not in self.extra and _moves_temperature(e)), None)
         slices, labels, mats = {}, {}, []
         nb = 4 * (self.order + 1)
         col = 3 * nb
@@ -268,7 +275,7 @@ class Design:
               ) -> tuple[float, int, np.ndarray, list[str], np.ndarray]:
         """chi2, added rank, coefficients, labels and weighted change (B, 3) of the fitted values when the term is
         added to ``current`` (thermal lag: refit with the lagged temperature)."""
-        if _moves_temperature(effect_id):
+        if effect_id not in self.extra and _moves_temperature(effect_id):
             fr = self.fit(current.state + ((effect_id, value),))
             return fr.chi2, fr.rank - current.rank, np.zeros(0), [], current.rw - fr.rw
         labels, cols = self.term_columns(effect_id, value)

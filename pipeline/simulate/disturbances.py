@@ -3,7 +3,9 @@ add to test that ``diagnose`` does not force a catalogue name onto them. They ar
 never fits them by name: it must report ``constants_shift`` for the first and ``unexplained`` for the others.
 
 - ``constants_shift``: the unit's constants moved since its passport was made, U += dK a + dU0 with
-  dK = diag(Kii) dgain_rel (a relative gain change per axis) and dU0 in V, for the whole recording;
+  dK = diag(Kii) dgain_rel (a relative gain change per axis) and dU0 in V at the start of the recording, and,
+  gradually, on from there: dU0 += du0_rate_v_per_h (t - t_start) and dgain_rel += dgain_rate_rel_per_h (t - t_start)
+  (rates per hour; ``diagnose`` given the passport reports both as ``constants_shift``);
 - ``bias_step``: a step of the zero offsets at ``t_h`` hours into the run (a shock), U += step_v for t >= t_h;
 - ``bias_random_walk``: the zero offsets wander, U += W(t) with W a random walk of ``sigma_v_per_sqrt_h``
   (V/sqrt(h)) per axis drawn on a ``step_s`` grid with ``seed`` and interpolated;
@@ -26,17 +28,23 @@ from pipeline.effects.catalogue import parse_spec
 
 @dataclass(frozen=True)
 class ConstantsShift(Effect):
-    """U += diag(Kii dgain_rel) a + du0_v: the constants moved since the passport (the whole recording)."""
+    """U += diag(Kii g(t)) a + u(t): the constants moved since the passport, with u(t) = du0_v + du0_rate_v_per_h
+    t_h and g(t) = dgain_rel + dgain_rate_rel_per_h t_h (t_h: hours since the start of the recording)."""
 
     id: ClassVar[str] = "constants_shift"
     where: ClassVar[str] = "everywhere: the passport's constants no longer hold"
     du0_v: Vec3 = (200e-6, -150e-6, 100e-6)
     dgain_rel: Vec3 = (0.0, 0.0, 0.0)
+    du0_rate_v_per_h: Vec3 = (0.0, 0.0, 0.0)
+    dgain_rate_rel_per_h: Vec3 = (0.0, 0.0, 0.0)
 
     def delta_u_v(self, ctx: SignalContext) -> np.ndarray:
         k, _ = ctx.k_u0
         kii = np.diagonal(k, axis1=1, axis2=2)
-        return np.asarray(self.du0_v) + kii * np.asarray(self.dgain_rel) * np.asarray(ctx.a_g)
+        t_h = (np.asarray(ctx.t_s, dtype=float) / 3600.0)[:, None]
+        u = np.asarray(self.du0_v) + t_h * np.asarray(self.du0_rate_v_per_h)
+        g = np.asarray(self.dgain_rel) + t_h * np.asarray(self.dgain_rate_rel_per_h)
+        return u + kii * g * np.asarray(ctx.a_g)
 
 
 @dataclass(frozen=True)

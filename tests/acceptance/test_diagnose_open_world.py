@@ -46,6 +46,13 @@ CASES = {  # name -> (catalogue effects, disturbances, noise seed, passport give
     "shift_u0:given": ([], [("constants_shift", {"du0_v": [20e-6, -15e-6, 10e-6]})], 3, True),
     "shift_gain:given": ([], [("constants_shift", {"du0_v": [0.0, 0.0, 0.0], "dgain_rel": [2e-4, 0.0, -1e-4]})],
                          4, True),
+    "drift_u0:given": ([], [("constants_shift", {"du0_v": [0.0, 0.0, 0.0], "du0_rate_v_per_h": [0.9e-6, 0.0, 0.0]})],
+                       21, True),
+    "drift_gain:given": ([], [("constants_shift", {"du0_v": [0.0, 0.0, 0.0],
+                                                    "dgain_rate_rel_per_h": [0.0, 0.0, 6e-6]})], 22, True),
+    "shift_and_drift:given": ([], [("constants_shift", {"du0_v": [20e-6, 0.0, -10e-6],
+                                                         "du0_rate_v_per_h": [0.0, -1e-6, 0.0]})], 23, True),
+    "drift_u0": ([("time_drift", {"r_v_per_h": [0.9e-6, 0.0, 0.0]})], [], 21, False),
     "hysteresis:given": ([("thermal_hysteresis", {"h_v": [10e-6, -8e-6, 6e-6]})], [], 5, True),
     "step": ([], [("bias_step", {"t_h": 8.0, "step_v": [20e-6, -10e-6, 0.0]})], 6, False),
     "periodic": ([], [("periodic", {"amp_v": [5e-6, 5e-6, 0.0], "period_s": 1200.0})], 7, False),
@@ -80,7 +87,7 @@ def test_shifted_offsets_are_a_constants_shift_with_their_amounts():
     rep = diagnosed("shift_u0:given")
     assert named(rep) == ["constants_shift"]
     p = rep["findings"][0]["parameters"]
-    assert p["constants"] == "U0"
+    assert p["constants"] == "U0" and p["change"] == "at one time"
     np.testing.assert_allclose(p["dU0_v"], [20e-6, -15e-6, 10e-6], atol=0.3 * UV)
     assert all(0 < s < 0.2 * UV for s in p["dU0_sigma_v"])
     assert rep["rms_before_v"] > 10 * UV and rep["rms_after_v"] < 1.1 * rep["rms_noise_v"]
@@ -107,6 +114,57 @@ def test_a_passport_whose_thermal_model_is_off_is_named_as_such_not_as_physics()
     np.testing.assert_allclose(p["thermal_model_change"]["power_1"]["dU0_v_per_c"], [-2e-6, 0.0, 0.0],
                                atol=0.02e-6)
     assert rep["rms_after_v"] < 1.1 * rep["rms_noise_v"]
+
+
+def test_offsets_drifting_within_the_recording_are_a_gradual_constants_shift():
+    """U0 of x drifts by +15 uV over the 16.7 h run, from the passport's value: against the passport that is the
+    constants moving (not the catalogue's time_drift), with the rate and the end value and their uncertainty."""
+    rep = diagnosed("drift_u0:given")
+    assert named(rep) == ["constants_shift"]
+    f = rep["findings"][0]
+    p = f["parameters"]
+    assert p["change"] == "gradual" and p["drifting"] == "U0" and p["constants"] == "U0"
+    assert not p["moved_before_the_recording"]
+    np.testing.assert_allclose(p["dU0_rate_v_per_h"], [0.9e-6, 0.0, 0.0], atol=0.03e-6)
+    assert all(0 < s < 0.03e-6 for s in p["dU0_rate_sigma_v_per_h"])
+    np.testing.assert_allclose(p["dU0_end_v"], np.array([0.9e-6, 0.0, 0.0]) * p["duration_h"], atol=0.5 * UV)
+    assert all(0 < s < 0.5 * UV for s in p["dU0_end_sigma_v"])
+    assert "time_drift" in f["explanation"] and "drift" in f["explanation"]
+    assert rep["rms_after_v"] < 1.1 * rep["rms_noise_v"]
+    # the extended model carries the drift as the catalogue's forward model of it
+    eff = {e["effect"]: e["parameters"] for e in rep["extended_model"]["effects"]}
+    np.testing.assert_allclose(eff["time_drift"]["r_v_per_h"], p["dU0_rate_v_per_h"])
+
+
+def test_without_a_passport_the_same_drift_is_the_catalogues_time_drift():
+    rep = diagnosed("drift_u0")
+    assert named(rep) == ["time_drift"]
+    np.testing.assert_allclose(rep["findings"][0]["parameters"]["r_v_per_h"], [0.9e-6, 0.0, 0.0], atol=0.03e-6)
+
+
+def test_a_gain_drifting_within_the_recording_is_a_gradual_shift_of_k():
+    """The z gain drifts by +100 ppm over the run (6 ppm/h): K and U0 drift, none moved before the recording."""
+    rep = diagnosed("drift_gain:given")
+    assert named(rep) == ["constants_shift"]
+    p = rep["findings"][0]["parameters"]
+    assert p["change"] == "gradual" and p["drifting"] == "K and U0"
+    ppm = np.asarray(p["gain_drift_ppm_over_run"])
+    np.testing.assert_allclose(ppm, [0.0, 0.0, 6.0 * p["duration_h"]], atol=5.0)
+    assert all(0 < s < 5.0 for s in p["gain_drift_sigma_ppm_over_run"])
+    kzz = np.diagonal(seed000_unit().constants_at(np.array([20.0]))[0][0])[2]
+    assert np.diagonal(p["dK_rate_v_per_g_per_h"])[2] == pytest.approx(6e-6 * kzz, rel=0.1)
+    assert rep["rms_after_v"] < 1.1 * rep["rms_noise_v"]
+
+
+def test_a_shift_before_the_recording_and_a_drift_within_it_are_told_apart():
+    rep = diagnosed("shift_and_drift:given")
+    assert named(rep) == ["constants_shift"]
+    p = rep["findings"][0]["parameters"]
+    assert p["change"] == "gradual" and p["moved_before_the_recording"] and p["constants"] == "U0"
+    np.testing.assert_allclose(p["dU0_v"], [20e-6, 0.0, -10e-6], atol=0.5 * UV)
+    np.testing.assert_allclose(p["dU0_rate_v_per_h"], [0.0, -1e-6, 0.0], atol=0.03e-6)
+    end = np.array([20e-6, 0.0, -10e-6]) + np.array([0.0, -1e-6, 0.0]) * p["duration_h"]
+    np.testing.assert_allclose(p["dU0_end_v"], end, atol=0.5 * UV)
 
 
 def test_left_out_physics_on_top_of_a_good_passport_is_not_a_shift():

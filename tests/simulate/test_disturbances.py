@@ -47,6 +47,12 @@ def test_what_each_disturbance_adds():
     kzz = seed000_unit().constants_at(np.array([20.0]))[0][0, 2, 2]
     shift = make_disturbance("constants_shift", {"du0_v": [1e-5, 0.0, 0.0], "dgain_rel": [0.0, 0.0, 1e-3]})
     np.testing.assert_allclose(shift.delta_u_v(c)[0], [1e-5, 0.0, kzz * 1e-3])
+    # gradually: rates per hour since the start of the recording, on top of the shift at the start
+    drift = make_disturbance("constants_shift", {"du0_v": [1e-5, 0.0, 0.0], "du0_rate_v_per_h": [0.0, 2e-6, 0.0],
+                                                 "dgain_rate_rel_per_h": [0.0, 0.0, 1e-4]}).delta_u_v(c)
+    t_h = c.t_s / 3600.0
+    np.testing.assert_allclose(drift, np.stack([np.full(t_h.size, 1e-5), 2e-6 * t_h, kzz * 1e-4 * t_h], axis=1),
+                               rtol=1e-12, atol=1e-18)
 
 
 def test_the_simulator_records_them_apart_from_the_catalogue_effects(tmp_path, monkeypatch, capsys):
