@@ -64,6 +64,8 @@ def test_the_simulator_records_them_apart_from_the_catalogue_effects(tmp_path, m
     assert np.allclose(d[t >= 3600], 2e-5) and np.allclose(d[t < 3600], 0.0)
     assert res.truth["effects"] == [] and res.truth["disturbances"][0]["id"] == "bias_step"
     assert parse_disturbance_spec("periodic:period_s=900,amp_v_y=0")[1]["amp_v"] == [20e-6, 0.0, 0.0]
+    assert parse_disturbance_spec("constants_shift:du0_v=0,du0_rate_v_per_h_x=1e-6")[1]["du0_rate_v_per_h"] == \
+        [1e-6, 0.0, 0.0]
     code, out, err = run_main(monkeypatch, capsys, "simulate", "--out", str(tmp_path / "r.mcap"), "--program",
                               "short", "--rate-hz", "0.5", "--disturbance", "bias_step:t_h=1,step_v=1e-5", "--json")
     assert code in (0, None), err
