@@ -15,8 +15,10 @@ from pathlib import Path
 from pipeline.diagnose.diagnosis import diagnose_run
 from pipeline.errors import ThermocalError
 from pipeline.io.runs import read_run
+from pipeline.model import OUTPUT_UNITS
 from pipeline.passport.document import read_passport
 from pipeline.passport.registry import Registry
+from pipeline.passport.text import output_unit_of
 
 from .runtime import Steps
 
@@ -61,26 +63,29 @@ def diagnose_command(run: Path, passport: Path | None, as_json: bool, out_png: P
 
         title = (f"{the_run.meta.unit_serial} {the_run.meta.run_id}: residual of 30 s blocks, "
                  f"{result.report['verdict']}")
-        plot_diagnosis(png, result, the_run, title=title)
+        plot_diagnosis(png, result, the_run, title=title, output_unit=output_unit_of(result.passport))
         ext.parent.mkdir(parents=True, exist_ok=True)
         ext.write_text(json.dumps(result.passport, indent=1, sort_keys=True) + "\n")
     except OSError as e:
         raise ThermocalError(f"cannot write: {e.strerror or e}", path=str(e.filename or png)) from None
     report = dict(result.report)
+    report["output_unit"] = output_unit_of(result.passport)
     report["figure"] = str(png)
     report["extended_passport"] = str(ext)
     return report
 
 
 def diagnose_text(report: dict) -> str:
-    """The report for a person: verdict, findings with their explanation, fit and VP errors before and after."""
-    uv = 1e6
+    """The report for a person: verdict, findings with their explanation, fit and VP errors before and after
+    (residuals in uV, or mm/s^2 for outputs in m/s^2: ``output_unit``)."""
+    small, uv = OUTPUT_UNITS.get(report.get("output_unit") or "V", OUTPUT_UNITS["V"])
     lines = [f"{report['unit']} {report['run_id']}: {report['verdict']}  (passport: {report['passport_source']})",
              f"  residual RMS of {report['noise_v']['block_s']:.0f} s blocks: before {report['rms_before_v'] * uv:.2f} "
-             f"uV, after {report['rms_after_v'] * uv:.2f} uV (noise {report['rms_noise_v'] * uv:.2f} uV)"]
+             f"{small}, after {report['rms_after_v'] * uv:.2f} {small} (noise {report['rms_noise_v'] * uv:.2f} "
+             f"{small})"]
     if report.get("vp_max_abs_dg_before_g") is not None:
-        lines.append(f"  VP max |dg|: before {report['vp_max_abs_dg_before_g'] * uv:.1f} ug, after "
-                     f"{report['vp_max_abs_dg_after_g'] * uv:.1f} ug")
+        lines.append(f"  VP max |dg|: before {report['vp_max_abs_dg_before_g'] * 1e6:.1f} micro-g, after "
+                     f"{report['vp_max_abs_dg_after_g'] * 1e6:.1f} micro-g")
     for k, f in enumerate(report["findings"], 1):
         w = f["where"]
         lines.append(f"  {k}. {f['effect']}" + (f" (confounded with {', '.join(f['confounded_with'])})"
@@ -89,7 +94,7 @@ def diagnose_text(report: dict) -> str:
         lines.append(f"     where: {len(w['windows'])} window(s), axes {'/'.join(w['axes'])}, temperatures "
                      f"{', '.join(f'{t:+.0f}' for t in w['temps_c']) or '-'} C, positions "
                      f"{' '.join(w['positions']) or '-'}; RMS there {f['rms_before_v'] * uv:.2f} -> "
-                     f"{f['rms_after_v'] * uv:.2f} uV")
+                     f"{f['rms_after_v'] * uv:.2f} {small}")
     for n in report.get("notes", []):
         lines.append(f"  note: {n}")
     lines.append(f"  figure: {report.get('figure')}")

@@ -3,6 +3,9 @@
 K is 3x3 in V/g (diagonal: gains, off-diagonal: cross-axis sensitivities), U0 the zero-g offsets in V, a the
 specific force along the AU axes in g. Functions take stacks: K of shape (n, 3, 3) or (3, 3), U0 and a of shape
 (n, 3) or (3,).
+
+The outputs may be in any linear unit (physics.md, "Real recordings"): volts as log-format.md says, or m/s^2 from a
+logger that records acceleration; K is then in that unit per g and U0 in that unit (:func:`output_unit`).
 """
 
 from __future__ import annotations
@@ -10,6 +13,23 @@ from __future__ import annotations
 from typing import Protocol
 
 import numpy as np
+
+
+#: the units an output U may be in, each with the smaller unit residuals and noise are printed in and its factor
+OUTPUT_UNITS = {"V": ("uV", 1e6), "m/s^2": ("mm/s^2", 1e3)}
+#: gains within this fraction of the local gravity (in m/s^2) mean outputs in m/s^2
+_MPS2_GAIN_TOLERANCE = 0.1
+
+
+def output_unit(gains, g_local_mps2: float = 9.80665) -> str:
+    """The unit of outputs whose gains |K_ii| (output unit per g) are ``gains`` (3,): ``"m/s^2"`` when every gain
+    lies within 10 % of the local gravity ``g_local_mps2`` (an axis pointing up reads about +9.8: a logger that
+    records acceleration; no voltage output has such gains, physics.md's plausible range being 0.05..5 V/g),
+    else ``"V"`` (log-format.md's unit)."""
+    g = np.abs(np.asarray(gains, dtype=float))
+    if g.size and np.all(np.abs(g / float(g_local_mps2) - 1.0) <= _MPS2_GAIN_TOLERANCE):
+        return "m/s^2"
+    return "V"
 
 
 class ConstantsModel(Protocol):

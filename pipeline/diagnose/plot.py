@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.model import OUTPUT_UNITS
 from pipeline.positions import AXES
 
 #: Colours of the findings, most important first (matplotlib's qualitative "tab" colours, red and blue left to the
@@ -19,9 +20,9 @@ def plot_residuals(path: str | Path, t_h: np.ndarray, before_v: np.ndarray, afte
                    sigma_v: np.ndarray, windows_h: list[tuple[float, float]],
                    located_h: list[tuple[float, float]] = (), title: str = "", *,
                    findings: list[tuple[str, list[tuple[float, float]]]] | None = None,
-                   temperature: tuple[np.ndarray, np.ndarray] | None = None) -> Path:
+                   temperature: tuple[np.ndarray, np.ndarray] | None = None, output_unit: str = "V") -> Path:
     """Write a PNG: the AU temperature (C) over time when ``temperature`` = (hours, C) is given; one panel per axis
-    with the block residuals (uV) against the passport (before) and the extended model (after), the +-3 sigma
+    with the block residuals (uV; mm/s^2 when ``output_unit`` is m/s^2) against the passport (before) and the extended model (after), the +-3 sigma
     noise band of the blocks and the windows where the residual before exceeds the noise (located, marked under
     each panel). ``findings``: (name, windows in hours) per finding, each in its own colour and lane (a band of
     the top panel, a strip along the top of each residual panel); without it, ``windows_h`` (all findings
@@ -29,6 +30,7 @@ def plot_residuals(path: str | Path, t_h: np.ndarray, before_v: np.ndarray, afte
     from pipeline.plots import new_figure
 
     path = Path(path)
+    small, scale = OUTPUT_UNITS.get(output_unit, OUTPUT_UNITS["V"])
     shaded = findings if findings is not None else ([("where the findings show", list(windows_h))]
                                                     if windows_h else [])
     n_top = 1 if temperature is not None else 0
@@ -54,11 +56,11 @@ def plot_residuals(path: str | Path, t_h: np.ndarray, before_v: np.ndarray, afte
         for k, (a, b) in enumerate(located_h):
             ax.axvspan(a, b, ymin=0.0, ymax=0.03, color="tab:red", lw=0,
                        label="located: residual beyond 5 sigma" if k == 0 else None)
-        ax.fill_between(t_h, -3e6 * sigma_v[:, i], 3e6 * sigma_v[:, i], color="0.85", lw=0, step="mid",
-                        label="3 sigma (noise)")
-        ax.plot(t_h, before_v[:, i] * 1e6, ".", ms=2, color="tab:red", label="before (passport)")
-        ax.plot(t_h, after_v[:, i] * 1e6, ".", ms=2, color="tab:blue", label="after (extended model)")
-        ax.set_ylabel(f"residual {AXES[i]} (uV)")
+        ax.fill_between(t_h, -3 * scale * sigma_v[:, i], 3 * scale * sigma_v[:, i], color="0.85", lw=0,
+                        step="mid", label="3 sigma (noise)")
+        ax.plot(t_h, before_v[:, i] * scale, ".", ms=2, color="tab:red", label="before (passport)")
+        ax.plot(t_h, after_v[:, i] * scale, ".", ms=2, color="tab:blue", label="after (extended model)")
+        ax.set_ylabel(f"residual {AXES[i]} ({small})")
         ax.grid(alpha=0.3)
     if shaded or n_top:
         axes[0].legend(loc="lower left", bbox_to_anchor=(0, 1.0), fontsize=8, frameon=False,
@@ -80,7 +82,7 @@ def _series_handles(ax):
     return [h for h, _ in keep], [lab for _, lab in keep]
 
 
-def plot_diagnosis(path: str | Path, diagnosis, run, title: str = "") -> Path:
+def plot_diagnosis(path: str | Path, diagnosis, run, title: str = "", *, output_unit: str = "V") -> Path:
     """The figure of :func:`pipeline.diagnose.diagnosis.diagnose_run`'s result ``diagnosis`` on ``run``: the AU
     temperature trace on top, one colour per finding (in the report's order). Times are hours since the first
     voltmeter sample, as the block times of the diagnosis."""
@@ -91,7 +93,7 @@ def plot_diagnosis(path: str | Path, diagnosis, run, title: str = "") -> Path:
                 for f in diagnosis.report["findings"]]
     return plot_residuals(path, diagnosis.t_h, diagnosis.before_v, diagnosis.after_v, diagnosis.sigma_v,
                           diagnosis.windows_h, diagnosis.located_h, title, findings=findings,
-                          temperature=(t_temp_h, temp["temp_c"].to_numpy()))
+                          temperature=(t_temp_h, temp["temp_c"].to_numpy()), output_unit=output_unit)
 
 
 __all__ = ["plot_diagnosis", "plot_residuals"]

@@ -7,6 +7,7 @@ from __future__ import annotations
 from typing import Any
 
 from pipeline.passport.significance import annotate, significance_note
+from pipeline.passport.text import output_unit_of, per
 from pipeline.positions import AXES
 
 
@@ -16,26 +17,30 @@ def diff_passports(a: dict, b: dict, *, unit: str, v1: int, v2: int) -> dict:
 
     Returns {"unit", "v1", "v2", "constants", "thermal_model", "fields", "settings", "inputs"}; the lists hold
     only what changed. A constant or thermal coefficient entry is {"name", "unit", "old", "new", "delta",
-    "delta_scaled", "scaled_unit"}: K (V/g) also as ppm of the row's gain |Kii|, U0 (V) as micro-g (delta/|Kii|),
-    alpha (V/C^n) as micro-g/C^n, beta and gamma (1/C^n) as ppm/C^n. ``fields`` are other changed values
-    (status, normal temperature, thermal-model kind/order/breakpoints, code version) as {"name", "old", "new"};
-    ``settings`` the same for each changed setting (dotted names); ``inputs`` {"added", "removed"}.
+    "delta_scaled", "scaled_unit"}: K (the output unit per g: V/g, or (m/s^2)/g) also as ppm of the row's gain
+    |Kii|, U0 (the output unit) as micro-g (delta/|Kii|), alpha (output unit/C^n) as micro-g/C^n, beta and gamma
+    (1/C^n) as ppm/C^n. ``fields`` are other changed values (status, normal temperature, output unit,
+    thermal-model kind/order/breakpoints, code version) as {"name", "old", "new"}; ``settings`` the same for each
+    changed setting (dotted names); ``inputs`` {"added", "removed"}.
     Constant and coefficient entries also carry ``uncertainty``, ``uncertainty_scaled`` and ``significant``
     (:mod:`pipeline.passport.significance`; rule in ``significance``).
     """
     gains = _gains_v_per_g(a) or _gains_v_per_g(b)
+    u = output_unit_of(b)
     fields = [{"name": k, "old": a.get(k), "new": b.get(k)}
               for k in ("schema", "status", "normal_temp_c", "g_local_mps2") if a.get(k) != b.get(k)]
+    if output_unit_of(a) != u:
+        fields.append({"name": "output_unit", "old": output_unit_of(a), "new": u})
     pa, pb = a.get("provenance") or {}, b.get("provenance") or {}
     if pa.get("code_version") != pb.get("code_version"):
         fields.append({"name": "provenance.code_version", "old": pa.get("code_version"),
                        "new": pb.get("code_version")})
-    thermal, thermal_fields = _diff_thermal(a.get("thermal_model") or {}, b.get("thermal_model") or {}, gains)
+    thermal, thermal_fields = _diff_thermal(a.get("thermal_model") or {}, b.get("thermal_model") or {}, gains, u)
     old_in = {i["sha256"]: i for i in pa.get("inputs") or []}
     new_in = {i["sha256"]: i for i in pb.get("inputs") or []}
     return {
         "unit": unit, "v1": int(v1), "v2": int(v2),
-        "constants": annotate(_diff_constants(a.get("coefficients") or {}, b.get("coefficients") or {}, gains),
+        "constants": annotate(_diff_constants(a.get("coefficients") or {}, b.get("coefficients") or {}, gains, u),
                               a, b),
         "thermal_model": annotate(thermal, a, b),
         "significance": significance_note(),
@@ -65,7 +70,7 @@ def _entry(name: str, unit: str, old: Any, new: Any, scale: float | None, scaled
             "delta_scaled": delta * scale if numeric and scale is not None else None, "scaled_unit": scaled_unit}
 
 
-def _diff_constants(ca: dict, cb: dict, gains: list[float] | None) -> list[dict]:
+def _diff_constants(ca: dict, cb: dict, gains: list[float] | None, u: str = "V") -> list[dict]:
     out = []
     ka, kb = ca.get("K"), cb.get("K")
     ua, ub = ca.get("U0"), cb.get("U0")
@@ -74,11 +79,11 @@ def _diff_constants(ca: dict, cb: dict, gains: list[float] | None) -> list[dict]
         for j, aj in enumerate(AXES):
             old, new = _at(ka, i, j), _at(kb, i, j)
             if old != new:
-                out.append(_entry(f"K.{ai}{aj}", "V/g", old, new, ppm, "ppm of gain"))
+                out.append(_entry(f"K.{ai}{aj}", per(u, "g"), old, new, ppm, "ppm of gain"))
     for i, ai in enumerate(AXES):
         old, new = _at(ua, i), _at(ub, i)
         if old != new:
-            out.append(_entry(f"U0.{ai}", "V", old, new, 1e6 / gains[i] if gains else None, "micro-g"))
+            out.append(_entry(f"U0.{ai}", u, old, new, 1e6 / gains[i] if gains else None, "micro-g"))
     return out
 
 
@@ -92,14 +97,15 @@ def _at(seq: Any, *index: int) -> Any:
 
 
 def _coef_scale(group: str, key: str, gains: list[float] | None) -> tuple[float | None, str]:
-    """Scale of a thermal coefficient: alpha_i V/C^n -> micro-g/C^n (/|Kii|); beta, gamma 1/C^n -> ppm/C^n."""
+    """Scale of a thermal coefficient: alpha_i (output unit)/C^n -> micro-g/C^n (/|Kii|); beta, gamma 1/C^n ->
+    ppm/C^n."""
     if group == "alpha":
         i = AXES.index(key[:1]) if key[:1] in AXES else -1
         return (1e6 / gains[i] if gains and i >= 0 else None), "micro-g"
     return 1e6, "ppm"
 
 
-def _diff_thermal(ta: dict, tb: dict, gains: list[float] | None) -> tuple[list[dict], list[dict]]:
+def _diff_thermal(ta: dict, tb: dict, gains: list[float] | None, u: str = "V") -> tuple[list[dict], list[dict]]:
     """Changed thermal coefficients (element-wise when the two models have the same shape) and changed shape fields."""
     fields = [{"name": f"thermal_model.{k}", "old": ta.get(k), "new": tb.get(k)}
               for k in ("kind", "order", "breakpoints_c") if ta.get(k) != tb.get(k)]
@@ -115,8 +121,8 @@ def _diff_thermal(ta: dict, tb: dict, gains: list[float] | None) -> tuple[list[d
                     old, new = _at(sa, n), _at(sb, n)
                     if old != new:
                         scale, su = _coef_scale(group, key, gains)
-                        base = "V" if group == "alpha" else "1"
-                        out.append(_entry(f"{group}.{key}[{n + 1}]", f"{base}/C^{n + 1}", old, new, scale,
+                        base = u if group == "alpha" else "1"
+                        out.append(_entry(f"{group}.{key}[{n + 1}]", per(base, f"C^{n + 1}"), old, new, scale,
                                           f"{su}/C^{n + 1}"))
     elif ta.get("kind") == "piecewise_linear":
         sa, sb = ta.get("segments") or [], tb.get("segments") or []
@@ -128,8 +134,8 @@ def _diff_thermal(ta: dict, tb: dict, gains: list[float] | None) -> tuple[list[d
                     old, new = ga.get(key), gb.get(key)
                     if old != new:
                         scale, su = _coef_scale(group, key, gains)
-                        base = "V" if group == "alpha" else "1"
-                        out.append(_entry(f"segments[{s}].{group}.{key}", f"{base}/C", old, new, scale, f"{su}/C"))
+                        base = u if group == "alpha" else "1"
+                        out.append(_entry(f"segments[{s}].{group}.{key}", per(base, "C"), old, new, scale, f"{su}/C"))
     return out, fields
 
 

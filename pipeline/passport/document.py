@@ -24,7 +24,7 @@ import numpy as np
 
 from pipeline.diagnose.model import ExtendedModel
 from pipeline.errors import ThermocalError
-from pipeline.model import specific_force_g
+from pipeline.model import output_unit, specific_force_g
 from pipeline.thermal import DifferentialModel, PolynomialModel, RateTerms, ThermalModel, thermal_model_from_dict
 from pipeline.verify import summary_by_temperature
 
@@ -40,7 +40,8 @@ def build_passport(fit, verification_rows, status: str, *, g_local_mps2: float, 
 
     ``method`` records the calibration method that made the passport: ``tilt_six_position`` (seed 000; the
     constants per plateau by the closed form or least squares, see ``per_plateau[].method``), ``scalar``,
-    ``differential``.
+    ``differential``. ``output_unit``: the unit the outputs were recorded in (:func:`pipeline.model.output_unit`),
+    K being in that unit per g and U0 in that unit.
     """
     model = fit.model
     doc = {
@@ -51,6 +52,7 @@ def build_passport(fit, verification_rows, status: str, *, g_local_mps2: float, 
         "created_utc": None,
         "normal_temp_c": float(fit.normal_temp_c),
         "g_local_mps2": float(g_local_mps2),
+        "output_unit": output_unit(np.abs(np.diag(np.asarray(model.K0, dtype=float))), g_local_mps2),
         "method": method,
         "coefficients": {"K": np.asarray(model.K0).tolist(), "U0": np.asarray(model.U00).tolist()},
         "per_plateau": [p.to_dict() for p in fit.per_plateau],

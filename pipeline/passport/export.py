@@ -36,6 +36,7 @@ import numpy as np
 from pipeline.errors import ThermocalError
 from pipeline.passport.document import load_model
 from pipeline.passport.significance import sigma_of
+from pipeline.passport.text import output_unit_of, per
 
 FORMATS = ("px4", "ardupilot", "csv")
 ARDUPILOT_TREF_C = 35.0          # fixed reference temperature of ArduPilot's tempcal (not a parameter)
@@ -224,14 +225,15 @@ def export_csv(passport: dict) -> Export:
             ["g_local_mps2", "", "", "", "", passport.get("g_local_mps2", ""), "m/s^2", ""],
             ["valid_temp_c", "", "", lo, hi, "", "C", ""]]
     c = passport.get("coefficients") or {}
+    u = output_unit_of(passport)
     for i in range(3):
         for j in range(3):
             key = AXES[i] + AXES[j]
-            rows.append(["K", key, "", "", "", c["K"][i][j], "V/g", sigma_of(passport, f"K.{key}")])
+            rows.append(["K", key, "", "", "", c["K"][i][j], per(u, "g"), sigma_of(passport, f"K.{key}")])
     for i in range(3):
-        rows.append(["U0", AXES[i], "", "", "", c["U0"][i], "V", sigma_of(passport, f"U0.{AXES[i]}")])
+        rows.append(["U0", AXES[i], "", "", "", c["U0"][i], u, sigma_of(passport, f"U0.{AXES[i]}")])
     tm = passport.get("thermal_model") or {}
-    units = {"alpha": "V/C^{n}", "beta": "1/C^{n}", "gamma": "1/C^{n}"}
+    units = {"alpha": per(u, "C^{n}"), "beta": "1/C^{n}", "gamma": "1/C^{n}"}
     if tm.get("kind") == "polynomial":
         for group in ("alpha", "beta", "gamma"):
             for key, values in sorted((tm.get(group) or {}).items()):

@@ -18,7 +18,8 @@ import tempfile
 from pathlib import Path
 
 from pipeline.errors import ThermocalError
-from pipeline.passport.text import approval_text, gains_v_per_g, max_error_g, model_text
+from pipeline.passport.text import (approval_text, gains_v_per_g, max_error_g, model_text, output_unit_of,
+                                    per)
 from pipeline.positions import AXES
 from pipeline.verify import verification_visits
 
@@ -145,8 +146,9 @@ def _constants_table(doc: dict) -> str:
     unc = (doc.get("uncertainty") or {}).get("coefficients") or {}
     sK, sU = unc.get("K"), unc.get("U0")
     gains = gains_v_per_g(doc) or [1.0, 1.0, 1.0]
-    rows = ["<table><tr><th>row i</th>" + "".join(f"<th>K<sub>i{a}</sub> (V/g)</th>" for a in AXES)
-            + "<th>U0<sub>i</sub> (V)</th></tr>"]
+    u = html.escape(output_unit_of(doc))
+    rows = ["<table><tr><th>row i</th>" + "".join(f"<th>K<sub>i{a}</sub> ({per(u, 'g')})</th>" for a in AXES)
+            + f"<th>U0<sub>i</sub> ({u})</th></tr>"]
     for i, ax in enumerate(AXES):
         cells = [_pm(K[i][j], None if sK is None else sK[i][j], 1e6 / gains[i], "ppm") for j in range(3)]
         cells.append(_pm(U0[i], None if sU is None else sU[i], 1e6 / gains[i], "micro-g"))
@@ -160,11 +162,12 @@ def _thermal_table(doc: dict) -> str:
     tm = doc.get("thermal_model") or {}
     sig = (doc.get("uncertainty") or {}).get("thermal_model") or {}
     gains = dict(zip(AXES, gains_v_per_g(doc) or [1.0, 1.0, 1.0]))
+    u = html.escape(output_unit_of(doc))
     rows = ["<table><tr><th>term</th><th>coefficient</th><th>value</th><th>in engineering units</th></tr>"]
 
     def add(term: str, group: str, key: str, value: float, sigma: float | None, power: str) -> None:
         if group == "alpha":
-            scale, unit, own = 1e6 / gains[key[0]], f"micro-g/C{power}", f"V/C{power}"
+            scale, unit, own = 1e6 / gains[key[0]], f"micro-g/C{power}", per(u, f"C{power}")
         else:
             scale, unit, own = 1e6, f"ppm/C{power}", f"1/C{power}"
         eng = f"{value * scale:+.4g} {unit}" + (f" &plusmn; {sigma * scale:.2g}" if sigma is not None else "")

@@ -1,6 +1,7 @@
 """A passport for people: the text of ``calibrate``'s summary, ``passport show``, ``passport log`` and
-``passport diff`` (plain lines, engineering units: V/g and V with their uncertainty in ppm of the gain and micro-g,
-gravity-module errors in micro-g against their limits, times in UTC).
+``passport diff`` (plain lines, engineering units: K in the output unit per g (V/g, or m/s^2 per g for a logger that
+records acceleration: :func:`output_unit_of`) and U0 in the output unit, with their uncertainty in ppm of the gain and
+micro-g, gravity-module errors in micro-g against their limits, times in UTC).
 
 Every function takes documents and rows as the registry stores them (dicts) and returns lines or text; nothing here
 reads or writes files.
@@ -8,6 +9,7 @@ reads or writes files.
 
 from __future__ import annotations
 
+from pipeline.model import output_unit
 from pipeline.positions import AXES
 from pipeline.verify import verification_visits
 
@@ -41,16 +43,30 @@ def max_error_g(doc: dict) -> float | None:
 
 
 def gains_v_per_g(doc: dict) -> list[float] | None:
-    """|K_ii| of the normal-temperature constants (V/g), for ppm of the gain and micro-g."""
+    """|K_ii| of the normal-temperature constants (output unit per g), for ppm of the gain and micro-g."""
     try:
         return [abs(float(doc["coefficients"]["K"][i][i])) for i in range(3)]
     except (KeyError, IndexError, TypeError, ValueError):
         return None
 
 
+def output_unit_of(doc: dict) -> str:
+    """The unit of the passport's outputs: its ``output_unit``, else (a passport written before it was recorded) the
+    one its gains say (:func:`pipeline.model.output_unit`)."""
+    if isinstance(doc.get("output_unit"), str) and doc["output_unit"]:
+        return doc["output_unit"]
+    gains = gains_v_per_g(doc)
+    return output_unit(gains, float(doc.get("g_local_mps2") or 9.80665)) if gains else "V"
+
+
+def per(unit: str, what: str) -> str:
+    """``V/g``, ``(m/s^2)/g``: ``unit`` per ``what``."""
+    return f"({unit})/{what}" if "/" in unit else f"{unit}/{what}"
+
+
 def constants_lines(doc: dict) -> list[str]:
-    """The normal-temperature constants K (V/g) and U0 (V), each with its standard uncertainty in ppm of the row's
-    gain (K) or micro-g (U0) when the passport has one."""
+    """The normal-temperature constants K (output unit per g) and U0 (output unit), each with its standard
+    uncertainty in ppm of the row's gain (K) or micro-g (U0) when the passport has one."""
     c = doc.get("coefficients") or {}
     K, U0 = c.get("K"), c.get("U0")
     if K is None or U0 is None:
@@ -58,9 +74,11 @@ def constants_lines(doc: dict) -> list[str]:
     unc = (doc.get("uncertainty") or {}).get("coefficients") or {}
     sK, sU = unc.get("K"), unc.get("U0")
     gains = gains_v_per_g(doc) or [1.0, 1.0, 1.0]
+    u = output_unit_of(doc)
     lines = [f"constants at T0 = {doc.get('normal_temp_c', 20.0):+.1f} C (+- one standard uncertainty: ppm of "
              "the row's gain for K, micro-g for U0)",
-             "        " + "".join(f"{h:<28}" for h in ("K_ix (V/g)", "K_iy (V/g)", "K_iz (V/g)", "U0_i (V)")).rstrip()]
+             "        " + "".join(f"{h:<28}" for h in (f"K_ix ({per(u, 'g')})", f"K_iy ({per(u, 'g')})",
+                                                          f"K_iz ({per(u, 'g')})", f"U0_i ({u})")).rstrip()]
     for i, ax in enumerate(AXES):
         cells = [_pm(K[i][j], None if sK is None else sK[i][j], gains[i], "ppm") for j in range(3)]
         cells.append(_pm(U0[i], None if sU is None else sU[i], gains[i], "ug"))

@@ -4,6 +4,7 @@ applied to the odd ones, against the raw signal and the peer tool's per-period r
 from __future__ import annotations
 
 import importlib.util
+import re
 
 import numpy as np
 import pytest
@@ -48,3 +49,26 @@ def test_passport_says_what_the_orientations_determined(result):
     assert np.all((K > 9.3) & (K < 10.3))                       # m/s^2 per g: the tag's outputs are in m/s^2
     lo, hi = doc["valid_temp_c"]
     assert 4.5 < lo < 5.5 and 23.0 < hi < 25.0
+
+
+def test_texts_state_the_tags_output_unit(result):
+    """The tag records m/s^2: the passport says so (``output_unit``) and every text that prints its constants
+    (calibrate's summary and passport show, the certificate, the CSV export, passport diff) says (m/s^2)/g and
+    m/s^2, never V/g or V."""
+    from pipeline.passport.diff import diff_passports
+    from pipeline.passport.export import export_passport
+    from pipeline.passport.report import certificate_html
+    from pipeline.passport.text import passport_summary
+
+    doc = result["passport"]
+    assert doc["output_unit"] == "m/s^2"
+    show = passport_summary(doc)
+    assert "K_ix ((m/s^2)/g)" in show and "U0_i (m/s^2)" in show and "(V" not in show
+    page = re.sub(r"base64,[A-Za-z0-9+/=]+", "", certificate_html(doc))     # the figures' bytes aside
+    assert "((m/s^2)/g)" in page and "(m/s^2)/C^1" in page and "V/g" not in page and "V/C" not in page
+    csv_rows = [r.split(",") for r in export_passport(doc, "csv").text.splitlines()]
+    units = {r[0]: r[6] for r in csv_rows[1:] if r[0] in ("K", "U0", "alpha")}
+    assert units == {"K": "(m/s^2)/g", "U0": "m/s^2", "alpha": "(m/s^2)/C^2"}
+    moved = {**doc, "coefficients": {**doc["coefficients"], "U0": [u + 0.01 for u in doc["coefficients"]["U0"]]}}
+    d = diff_passports(doc, moved, unit="CATS-TAG", v1=1, v2=2)
+    assert {e["unit"] for e in d["constants"]} == {"m/s^2"}

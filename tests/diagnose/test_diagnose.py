@@ -188,6 +188,9 @@ def test_command_writes_figure_and_extended_passport(tmp_path: Path):
     np.testing.assert_allclose(ext.effects[0].k2_v_per_g2, [20e-6, -15e-6, 10e-6], rtol=0.05)
     text = diagnose_text(rep)
     assert "scale_nonlinearity" in text and "mismatch" in text
+    assert rep["output_unit"] == "V" and f"before {rep['rms_before_v'] * 1e6:.2f} uV" in text
+    in_mps2 = diagnose_text({**rep, "output_unit": "m/s^2"})      # a logger recording m/s^2: no micro-volts
+    assert f"before {rep['rms_before_v'] * 1e3:.2f} mm/s^2" in in_mps2 and " uV" not in in_mps2.split("\n")[1]
 
 
 def test_command_refuses_bad_inputs_in_one_line(tmp_path: Path):

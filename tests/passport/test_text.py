@@ -91,3 +91,21 @@ def test_diff_prints_significant_changes_in_engineering_units():
     assert "U0.y" not in text and "1 more within their uncertainty" in text
     assert "alpha.x[1]" in text and "micro-g/C^1" in text
     assert "U0.y" in "\n".join(diff_lines(d, show_all=True))
+
+
+def test_output_unit_recorded_and_inferred_for_older_passports(calibrated_registry):
+    """A volt passport says V/g and V; one written before ``output_unit`` was recorded gets the unit its gains
+    say: gains of about 9.8 per g (a logger recording m/s^2) print as (m/s^2)/g, never V/g."""
+    from pipeline.passport.text import constants_lines, output_unit_of
+
+    doc = json.loads(open(calibrated_registry["results"][0]["passport"]).read())
+    assert doc["output_unit"] == "V" and output_unit_of(doc) == "V"
+    assert "K_ix (V/g)" in "\n".join(constants_lines(doc))
+    old = {k: v for k, v in doc.items() if k != "output_unit"}
+    assert output_unit_of(old) == "V"
+    scale = -9.80665 / 0.55
+    mps2 = {**old, "coefficients": {"K": [[k * scale for k in row] for row in doc["coefficients"]["K"]],
+                                    "U0": [u * scale for u in doc["coefficients"]["U0"]]}}
+    assert output_unit_of(mps2) == "m/s^2"
+    text = "\n".join(constants_lines(mps2))
+    assert "K_ix ((m/s^2)/g)" in text and "U0_i (m/s^2)" in text and "V/g" not in text
