@@ -18,6 +18,11 @@ Three steps, each linear propagation of independent errors:
    (:func:`thermal_sigma`).
 
 A value the data cannot determine (a relative coefficient of a zero constant) is ``None``, never a made-up number.
+
+The differential method (seed 003) fits its temperature coefficients by linear least squares over differenced block
+means; :func:`regression_sigma` gives their standard uncertainties from the fit's residuals (a sandwich estimator
+clustered in time, so slowly varying misfit counts as what it is: correlated error) and from the noise measured in
+the blocks, whichever is larger.
 """
 
 from __future__ import annotations
@@ -98,6 +103,12 @@ class ThermalSigma:
     thermal_model: dict
     birge_ratio: float        # sqrt(chi^2 / dof) of the plateau constants about the model (pooled), or nan
     dof: int
+    #: further fields of the passport's ``uncertainty`` block, e.g. ``rate_terms`` (the differential method's rate
+    #: terms, same layout as the passport's), ``undetermined`` ({field: why it has no uncertainty}) and
+    #: ``fixed_by_convention`` ({field: the convention that fixes it; its uncertainty is 0})
+    extra: dict | None = None
+    #: what the uncertainties rest on (the passport's ``uncertainty.basis``); None: the tilt method's basis
+    basis: dict | None = None
 
 
 def thermal_sigma(fit_model, temps_c: np.ndarray, K: np.ndarray, U0: np.ndarray, K_sigma: np.ndarray,
@@ -214,9 +225,48 @@ def _unflatten_model(model, sig: np.ndarray, layout) -> dict:
     return out
 
 
-def as_json_list(a: np.ndarray):
-    """A sigma array as nested lists with None for undetermined (nan) values."""
+def as_json_list(a):
+    """Sigmas as plain JSON: arrays as nested lists, dicts and lists recursively, every undetermined (non-finite)
+    value None."""
+    if isinstance(a, dict):
+        return {k: as_json_list(v) for k, v in a.items()}
+    if isinstance(a, (list, tuple)):
+        return [as_json_list(x) for x in a]
+    if isinstance(a, (str, bool, int)) or a is None:
+        return a
     a = np.asarray(a, dtype=float)
     if a.ndim == 0:
         return None if not np.isfinite(a) else float(a)
     return [as_json_list(x) for x in a]
+
+
+def regression_sigma(X: np.ndarray, resid: np.ndarray, noise_var: np.ndarray, clusters: np.ndarray) -> np.ndarray:
+    """Standard uncertainties (p,) of the coefficients of an unweighted least-squares fit ``y = X b`` (X (n, p)),
+    in the units of b; NaN for a column of zeros (a term the data does not hold).
+
+    Two estimates, the larger kept per coefficient:
+
+    - from the residuals ``resid`` (n,): the sandwich ``(X'X)^-1 (sum_g s_g s_g') (X'X)^-1`` with ``s_g`` the sum
+      of ``x_k r_k`` over the equations of cluster g (``clusters`` (n,), e.g. stretches of time), times
+      ``G/(G-1) (n-1)/(n-p)``: residuals that are correlated within a cluster (a misfit that drifts with the
+      temperature) count as correlated, not as independent noise;
+    - from the noise measured in the data: ``(X'X)^-1 X' diag(noise_var) X (X'X)^-1`` with ``noise_var`` (n,) the
+      variance of each equation's left side from the voltmeter noise alone.
+    """
+    X = np.asarray(X, dtype=float)
+    n, p = X.shape
+    scale = np.linalg.norm(X, axis=0)
+    empty = scale == 0
+    scale[empty] = 1.0
+    Xs = X / scale
+    bread = np.linalg.pinv(Xs.T @ Xs)
+    _, inv = np.unique(np.asarray(clusters), return_inverse=True)
+    G = int(inv.max()) + 1 if inv.size else 0
+    S = np.zeros((G, p))
+    np.add.at(S, inv, Xs * np.asarray(resid, dtype=float)[:, None])
+    factor = G / (G - 1) * (n - 1) / (n - p) if G > 1 and n > p else 1.0
+    var_r = np.diag(bread @ (S.T @ S) @ bread) * factor
+    var_n = np.diag(bread @ ((Xs.T * np.asarray(noise_var, dtype=float)) @ Xs) @ bread)
+    sig = np.sqrt(np.maximum(np.maximum(var_r, var_n), 0.0)) / scale
+    sig[empty] = np.nan
+    return sig

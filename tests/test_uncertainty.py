@@ -127,10 +127,15 @@ def test_scalar_method_records_sigma_of_its_constants():
         cal = scalar.calibrate([res.run])
         p = cal.fit.per_plateau[0]
         K, U0 = seed000_unit().constants_at(p.temp_c)
-        ok = np.isfinite(p.K_sigma)
-        assert ok.sum() == 6                                   # the upper entries are fixed by the gauge
-        z += list(((p.K - lower_gauge(K[0])) / p.K_sigma)[ok]) + list((p.U0 - U0[0]) / p.U0_sigma)
-        unc = cal.passport["uncertainty"]["coefficients"]
-        assert unc["K"][0][1] is None and unc["U0"][0] > 0
+        ok = p.K_sigma > 0
+        assert ok.sum() == 6 and np.all(p.K_sigma[~ok] == 0)  # the upper entries are fixed by the gauge: exactly 0
+        assert np.all(p.K[~ok] == 0.0)
+        z += list((p.K - lower_gauge(K[0]))[ok] / p.K_sigma[ok]) + list((p.U0 - U0[0]) / p.U0_sigma)
+        unc = cal.passport["uncertainty"]
+        assert unc["coefficients"]["K"][0][1] == 0.0 and unc["coefficients"]["U0"][0] > 0
+        # no silent zeros or nulls: the gauge-fixed entries are named with their convention, nothing is null
+        assert sorted(unc["fixed_by_convention"]) == ["K.xy", "K.xz", "K.yz"]
+        assert "gauge" in unc["fixed_by_convention"]["K.xy"] and unc["undetermined"] == {}
+        assert all(v is not None for row in unc["coefficients"]["K"] for v in row)
     z = np.abs(np.array(z))
     assert 0.55 <= np.mean(z < 1) <= 0.82 and 0.9 <= np.mean(z < 2) <= 1.0

@@ -60,6 +60,11 @@ from pipeline.model import specific_force_g
 from pipeline.positions import AXES, is_verification_position
 from pipeline.run import NS_PER_S as _NS
 from pipeline.thermal import DifferentialModel, PolynomialModel, RateTerms, rate_basis
+from pipeline.uncertainty import ThermalSigma, as_json_list, regression_sigma
+
+#: residuals of differenced pairs whose first blocks lie in one stretch of this length (s) of a window count as
+#: correlated when the coefficients' uncertainties are estimated (a misfit that follows the temperature cycle)
+CLUSTER_S = 1800.0
 
 
 @dataclass(frozen=True)
@@ -208,6 +213,8 @@ class BlockData:
     run_id: str = ""
     #: the constants (K0 (3, 3) V/g, U0 (3,) V) the windows' specific force was computed with
     constants: tuple[np.ndarray, np.ndarray] | None = None
+    #: (m, 3) V^2, the variance of each block mean from the voltmeter noise measured in the block (var / (n - 1))
+    u_var_v2: np.ndarray | None = None
 
     def a0_g(self) -> np.ndarray:
         """(n_windows, 3) mean specific force of each window with the normal-temperature constants."""
@@ -244,8 +251,16 @@ def block_data(run, K0: np.ndarray, U0: np.ndarray,
     full = counts >= 0.8 * settings.block_s / step_s
     u_b = np.add.reduceat(u_v[idx], bounds, axis=0) / counts[:, None]
     t_b = np.add.reduceat(t_s[idx], bounds) / counts
+    # the noise in each block: the scatter about a straight line in time (a ramp moves the output within a block)
+    dev = u_v[idx] - np.repeat(u_b, counts, axis=0)
+    tc = t_s[idx] - np.repeat(t_b, counts)
+    stt = np.add.reduceat(tc ** 2, bounds)
+    slope = np.add.reduceat(tc[:, None] * dev, bounds, axis=0) / np.where(stt > 0, stt, 1.0)[:, None]
+    dev = dev - np.repeat(slope, counts, axis=0) * tc[:, None]
+    var_b = np.add.reduceat(dev ** 2, bounds, axis=0) / np.maximum(counts - 2, 1)[:, None] / counts[:, None]
     return BlockData(t_s=t_b[full], u_v=u_b[full], window=win[bounds][full], windows=windows, sensor=sensor,
-                     run_id=run.meta.run_id, constants=(np.asarray(K0, float), np.asarray(U0, float)))
+                     run_id=run.meta.run_id, constants=(np.asarray(K0, float), np.asarray(U0, float)),
+                     u_var_v2=var_b[full])
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -268,6 +283,9 @@ class DifferentialFit:
     windows: list[dict]
     settings: DifferentialSettings
     notes: list[str] = field(default_factory=list)
+    #: the standard uncertainty of every coefficient of ``model`` in the same layout (NaN: not fitted; its K0, U00
+    #: are NaN too: they are the base's), conditional on the lag when it was fitted
+    sigma: DifferentialModel | None = None
 
     def summary(self) -> dict:
         st = self.settings
@@ -328,6 +346,8 @@ class _Equations:
     dg: np.ndarray      # (p, R*(Kx+1))
     a0: np.ndarray      # (p, 3)
     du: np.ndarray      # (p, 3)
+    var: np.ndarray     # (p, 3) V^2: variance of du from the noise measured in the two blocks
+    cluster: np.ndarray  # (p,) int: the stretch of time (run, window, CLUSTER_S) the pair's first block is in
 
 
 def _equations(data: list[BlockData], a_g: list[np.ndarray], normal_temp_c: float,
@@ -341,8 +361,12 @@ def _equations(data: list[BlockData], a_g: list[np.ndarray], normal_temp_c: floa
         dt = temp - normal_temp_c
         f = dt[:, None] ** np.arange(1, P + 1)[None, :]
         g = rate_basis(dt, rate, R, Kx).reshape(len(dt), -1)
-        parts.append((f[j] - f[i], g[j] - g[i], a[d.window[i]], d.u_v[j] - d.u_v[i]))
-    return _Equations(*(np.concatenate([p[k] for p in parts]) for k in range(4)))
+        var = d.u_var_v2[i] + d.u_var_v2[j] if d.u_var_v2 is not None else np.zeros((len(i), 3))
+        start = np.array([(w.t_start_ns - d.sensor.t_ref_ns) / _NS for w in d.windows])
+        chunk = np.floor((d.t_s[i] - start[d.window[i]]) / CLUSTER_S).astype(np.int64)
+        cluster = (len(parts) * 1_000_000 + d.window[i].astype(np.int64) * 10_000 + chunk)
+        parts.append((f[j] - f[i], g[j] - g[i], a[d.window[i]], d.u_v[j] - d.u_v[i], var, cluster))
+    return _Equations(*(np.concatenate([p[k] for p in parts]) for k in range(6)))
 
 
 def _cross_factor(K0: np.ndarray, c: int, j: int) -> float:
@@ -351,8 +375,9 @@ def _cross_factor(K0: np.ndarray, c: int, j: int) -> float:
     return K0[c, j] / K0[c, c] if K0[c, j] != 0 else 1.0
 
 
-def _solve(eq: _Equations, c: int, names: list[str], K0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Least squares of channel c's differenced equation over the named terms: coefficients and residuals (g)."""
+def _solve(eq: _Equations, c: int, names: list[str], K0: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Least squares of channel c's differenced equation over the named terms: coefficients, residuals (g) and the
+    design (pairs, terms)."""
     cols = {"bias": eq.df, "scale": eq.a0[:, [c]] * eq.df, "bias_rate": eq.dg, "scale_rate": eq.a0[:, [c]] * eq.dg}
     X = np.concatenate([cols[n] if n in cols else _cross_factor(K0, c, AXES.index(n[-1]))
                         * eq.a0[:, [AXES.index(n[-1])]] * eq.df for n in names], axis=1)
@@ -360,7 +385,7 @@ def _solve(eq: _Equations, c: int, names: list[str], K0: np.ndarray) -> tuple[np
     scale = np.linalg.norm(X, axis=0)
     scale[scale == 0] = 1.0
     coef = scipy_lstsq(X / scale, y, lapack_driver="gelsy", check_finite=False)[0] / scale
-    return coef, y - X @ coef
+    return coef, y - X @ coef, X
 
 
 def _best_lag(data, a_g, K0, normal_temp_c, settings, names) -> float:
@@ -394,50 +419,77 @@ def fit_differential(data: list[BlockData], K0: np.ndarray, U0: np.ndarray, norm
     a_g = [d.a0_g() for d in data]
     tau = _best_lag(data, a_g, K0, normal_temp_c, settings, names) if settings.lag_fit else 0.0
     for _ in range(1 + settings.refine_passes):
-        model, resid, n_pairs = _fit_once(data, a_g, K0, U0, normal_temp_c, settings, names, tau)
+        model, sigma, resid, n_pairs = _fit_once(data, a_g, K0, U0, normal_temp_c, settings, names, tau)
         # the windows' specific force, now compensated (the first pass used the normal-temperature estimate a0)
         a_g = [np.array([a[d.window == w.index].mean(axis=0) for w in d.windows])
                for d, a in ((d, compensate_blocks(model, d)) for d in data)]
     return DifferentialFit(model=model, terms=names, residual_rms_g=resid, n_pairs=n_pairs, windows=windows,
-                           settings=settings, notes=notes)
+                           settings=settings, notes=notes, sigma=sigma)
 
 
-def _fit_once(data, a_g, K0, U0, normal_temp_c, settings, names, tau) -> tuple[DifferentialModel, np.ndarray, int]:
-    """One linear fit with the windows' specific force ``a_g`` and the element lag ``tau`` (s)."""
+def _fit_once(data, a_g, K0, U0, normal_temp_c, settings, names, tau
+              ) -> tuple[DifferentialModel, DifferentialModel, np.ndarray, int]:
+    """One linear fit with the windows' specific force ``a_g`` and the element lag ``tau`` (s): the model, the
+    standard uncertainty of each of its coefficients in the same layout (NaN where a term was not fitted;
+    :func:`pipeline.uncertainty.regression_sigma`), the residual rms per channel (g) and the number of pairs."""
     P, R, Kx = settings.poly_order, settings.rate_order, settings.rate_dt_order
     eq = _equations(data, a_g, normal_temp_c, settings, tau)
     if len(eq.du) < 10 * max(len(n) for n in names) * max(P, R * (Kx + 1)):
         raise CalibrationError(f"too few differenced blocks ({len(eq.du)}) for the differential model")
-    alpha, rel = np.zeros((P, 3)), np.zeros((P, 3, 3))
-    alpha_rate, beta_rate = np.zeros((R, Kx + 1, 3)), np.zeros((R, Kx + 1, 3))
+    value, sigma = _Coefficients(P, R, Kx), _Coefficients(P, R, Kx, sigma=True)
     resid = np.zeros(3)
-    cross_abs = np.zeros((P, 3, 3))
     for c in range(3):
-        coef, r = _solve(eq, c, names[c], K0)
+        coef, r, X = _solve(eq, c, names[c], K0)
         resid[c] = np.sqrt(np.mean(r ** 2))
+        value.place(c, names[c], coef, K0)
+        sigma.place(c, names[c], regression_sigma(X, r, eq.var[:, c] / K0[c, c] ** 2, eq.cluster), K0)
+    fitted_abs = np.any(value.cross_abs != 0)
+    return (value.model(K0, U0, normal_temp_c, settings.temp_smooth_s, tau, fitted_abs),
+            sigma.model(np.full((3, 3), np.nan), np.full(3, np.nan), normal_temp_c, settings.temp_smooth_s, tau,
+                        fitted_abs), resid, len(eq.du))
+
+
+class _Coefficients:
+    """The coefficient arrays of a differential model (or their standard uncertainties), filled channel by
+    channel from the least-squares vector of :func:`_solve`. ``sigma``: standard uncertainties (NaN where a term is
+    not fitted, scaled by |K0_cc|) instead of values (0 where not fitted, scaled by K0_cc)."""
+
+    def __init__(self, P: int, R: int, Kx: int, sigma: bool = False):
+        self.P, self.R, self.Kx, self.sigma = P, R, Kx, sigma
+        fill = np.nan if sigma else 0.0
+        self.alpha, self.rel = np.full((P, 3), fill), np.full((P, 3, 3), fill)
+        self.alpha_rate, self.beta_rate = np.full((R, Kx + 1, 3), fill), np.full((R, Kx + 1, 3), fill)
+        self.cross_abs = np.full((P, 3, 3), fill)
+
+    def place(self, c: int, names: list[str], vec: np.ndarray, K0: np.ndarray) -> None:
+        """Channel c's fitted vector (terms ``names``, relative to K0_cc) into the model's units."""
+        P, R, Kx = self.P, self.R, self.Kx
+        gain = abs(K0[c, c]) if self.sigma else K0[c, c]
         k = 0
-        for name in names[c]:
+        for name in names:
             width = R * (Kx + 1) if name.endswith("_rate") else P
-            part = coef[k:k + width]
+            part = vec[k:k + width]
             k += width
             if name == "bias":
-                alpha[:, c] = part * K0[c, c]
+                self.alpha[:, c] = part * gain
             elif name == "scale":
-                rel[:, c, c] = part
+                self.rel[:, c, c] = part
             elif name.startswith("cross_"):
                 j = AXES.index(name[-1])
                 if K0[c, j] != 0:
-                    rel[:, c, j] = part
+                    self.rel[:, c, j] = part
                 else:
-                    cross_abs[:, c, j] = part * K0[c, c]
+                    self.cross_abs[:, c, j] = part * gain
             elif name == "bias_rate":
-                alpha_rate[:, :, c] = part.reshape(R, Kx + 1) * K0[c, c]
+                self.alpha_rate[:, :, c] = part.reshape(R, Kx + 1) * gain
             else:
-                beta_rate[:, :, c] = part.reshape(R, Kx + 1)
-    static = PolynomialModel(K0, U0, float(normal_temp_c), P, alpha, rel)
-    rate = RateTerms(alpha_rate, beta_rate, settings.temp_smooth_s, tau,
-                     cross_abs if np.any(cross_abs) else None)
-    return DifferentialModel(static, rate), resid, len(eq.du)
+                self.beta_rate[:, :, c] = part.reshape(R, Kx + 1)
+
+    def model(self, K0, U0, normal_temp_c, temp_smooth_s, tau, with_cross_abs: bool) -> DifferentialModel:
+        static = PolynomialModel(np.asarray(K0, float), np.asarray(U0, float), float(normal_temp_c), self.P,
+                                 self.alpha, self.rel)
+        return DifferentialModel(static, RateTerms(self.alpha_rate, self.beta_rate, temp_smooth_s, tau,
+                                                   self.cross_abs if with_cross_abs else None))
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -498,7 +550,8 @@ SCORE_MEAN_S = 600.0
 
 
 def _fold(data: BlockData, keep: np.ndarray) -> BlockData:
-    return dataclasses.replace(data, t_s=data.t_s[keep], u_v=data.u_v[keep], window=data.window[keep])
+    return dataclasses.replace(data, t_s=data.t_s[keep], u_v=data.u_v[keep], window=data.window[keep],
+                               u_var_v2=None if data.u_var_v2 is None else data.u_var_v2[keep])
 
 
 def _spread_g(model: DifferentialModel, data: BlockData) -> float:
@@ -767,7 +820,9 @@ def calibrate_observed(observed: list[ObservedRun], settings: CalibrationSetting
         notes.append("no base passport: constants at T0 from the orientations; undetermined (kept at nominal "
                      "values): " + ", ".join(orientation_base.undetermined))
     unit_fit = UnitFit(unit=serial, normal_temp_c=t0, per_plateau=[], model=fit.model.static,
-                       skipped=notes, valid_temp_c=covered)
+                       skipped=notes, valid_temp_c=covered,
+                       uncertainty=fit_uncertainty(fit, base_passport=base_passport,
+                                                   orientation_base=orientation_base))
     run_warnings = [w for r in observed for w in r.warnings]
     status, implausible = assess(unit_fit, status, observed[0].meta.nominal_gain_v_per_g, run_warnings)
     # the plateaus that verified the passport (the fit uses none; a sweep's drifting stretches are no plateaus)
@@ -788,6 +843,113 @@ def calibrate_observed(observed: list[ObservedRun], settings: CalibrationSetting
                              warnings=run_warnings + notes + [p for p in implausible if p not in run_warnings],
                              settings_extra=(base_reference(base_passport) if base_passport is not None
                                              else {"base_passport_sha256": None}))
+
+
+def fit_uncertainty(fit: DifferentialFit, *, base_passport: dict | None = None,
+                    orientation_base: OrientationBase | None = None) -> ThermalSigma:
+    """The passport's ``uncertainty`` of a differential calibration (standard uncertainties, 1 sigma, in the units
+    of the fields they qualify):
+
+    - ``coefficients`` (K, U0 at T0): the base passport's own uncertainties (the method takes its constants), or,
+      without a base, the spread of the constants between the orientations that give them (std / sqrt(n));
+    - ``thermal_model`` and ``rate_terms``: every fitted coefficient's :func:`pipeline.uncertainty.regression_sigma`
+      over the differenced pairs (residuals clustered in :data:`CLUSTER_S` stretches, or the block noise measured
+      in the data, whichever is larger), conditional on the lag when the lag was fitted.
+
+    A number without a measured uncertainty is null, and ``undetermined`` says why (a term the orientations do not
+    excite, a cross-axis constant the orientations cannot separate, a base passport without uncertainties, a
+    constant that one orientation alone gives)."""
+    undetermined: dict[str, str] = {}
+    if orientation_base is not None:
+        ob = orientation_base
+        K_sig = np.full((3, 3), np.nan)
+        K_sig[np.diag_indices(3)] = ob.std_K
+        U0_sig = np.asarray(ob.std_U0, dtype=float).copy()
+        for name in ob.undetermined:                  # "K_xy", "U0_x": kept at nominal values
+            kind, ax = name.split("_")
+            (K_sig.__setitem__((AXES.index(ax[0]), AXES.index(ax[1])), np.nan) if kind == "K"
+             else U0_sig.__setitem__(AXES.index(ax), np.nan))
+            undetermined[f"{kind}.{ax}"] = ("not determined by the orientations (no base passport): kept at its "
+                                            "nominal value")
+        for i in range(3):
+            for name, sig in ((f"K.{AXES[i] * 2}", K_sig[i, i]), (f"U0.{AXES[i]}", U0_sig[i])):
+                if not np.isfinite(sig) and name not in undetermined:
+                    undetermined[name] = ("one orientation alone gives it: no spread between orientations to "
+                                          "measure its uncertainty from")
+        source = "spread between the orientations that give each constant (std / sqrt(n)); no base passport"
+    else:
+        base_unc = ((base_passport or {}).get("uncertainty") or {}).get("coefficients") or {}
+        K_sig = _as_sigma(base_unc.get("K"), (3, 3))
+        U0_sig = _as_sigma(base_unc.get("U0"), (3,))
+        bp = base_passport or {}
+        ref = (f"base passport v{bp['version']}" if bp.get("version") is not None else "base passport") + \
+            f" ({bp.get('method', '-')})"
+        for i in range(3):
+            for j in range(3):
+                if not np.isfinite(K_sig[i, j]):
+                    undetermined[f"K.{AXES[i]}{AXES[j]}"] = f"taken from the {ref}, which records no uncertainty for it"
+            if not np.isfinite(U0_sig[i]):
+                undetermined[f"U0.{AXES[i]}"] = f"taken from the {ref}, which records no uncertainty for it"
+        source = f"the {ref}'s own uncertainties (the method takes its constants at T0)"
+    sig = fit.sigma
+    K0 = fit.model.K0
+    for c in range(3):
+        terms = fit.terms[c]
+        if "scale" not in terms:
+            undetermined[f"beta.{AXES[c] * 2}"] = (f"no orientation had gravity along {AXES[c]}: its scale-factor "
+                                                  "temperature terms are not determined (left at 0)")
+            if fit.settings.rate_order:
+                undetermined[f"rate_terms.beta_rate.{AXES[c] * 2}"] = undetermined[f"beta.{AXES[c] * 2}"]
+        for j in range(3):
+            if j == c:
+                continue
+            key = AXES[c] + AXES[j]
+            fitted = f"cross_{AXES[j]}" in terms
+            if K0[c, j] == 0:
+                undetermined[f"gamma.{key}"] = ("relative to K_" + key + " = 0 (not known): "
+                                                + ("fitted as the absolute rate_terms.cross_axis_abs." + key
+                                                   if fitted else "not fitted (left at 0)"))
+            elif not fitted:
+                undetermined[f"gamma.{key}"] = ("cross-axis temperature terms not fitted (cross_axis off)"
+                                                if not fit.settings.cross_axis else
+                                                f"the orientations do not excite axis {AXES[j]} for channel "
+                                                f"{AXES[c]}: not determined (left at 0)")
+            if (sig.rate is not None and sig.rate.cross_abs is not None and not fitted):
+                undetermined[f"rate_terms.cross_axis_abs.{key}"] = "not fitted (left at 0)"
+    rate = None
+    if sig.rate is not None:
+        rate = {k: v for k, v in as_json_list(sig.rate.to_dict()).items()
+                if k in ("order", "dt_order", "alpha_rate", "beta_rate", "cross_axis_abs")}
+        rate["lag_tau_s"] = None
+        undetermined["rate_terms.lag_tau_s"] = (
+            "the lag is found by a search, its uncertainty not estimated; the coefficients' uncertainties are "
+            "conditional on it" if fit.settings.lag_fit else "no lag fitted (lag_fit off): 0 by setting")
+    basis = {"level": "standard uncertainty (1 sigma)", "coefficients": source,
+             "thermal_model": "least squares over the differenced block means: the larger of the sandwich "
+                              "estimate from the residuals (clustered in stretches of cluster_s of each "
+                              "orientation window) and the voltmeter noise measured in the blocks",
+             "cluster_s": CLUSTER_S, "block_s": fit.settings.block_s,
+             "residual_rms_g": fit.residual_rms_g.tolist(), "n_pairs": int(fit.n_pairs)}
+    if orientation_base is not None:
+        basis["identification"] = (
+            "statistical uncertainties of the model the orientations identify: with few orientations, the "
+            "temperature change of a cross-axis term they do not excite is folded into the fitted bias and scale "
+            "terms, and the cross-axis constants left at 0 shift the offsets (and so the windows' specific force); "
+            "neither can be seen in the data, so neither is in these numbers")
+    return ThermalSigma(K0=K_sig, U00=U0_sig, thermal_model=as_json_list(sig.static.to_dict()),
+                        birge_ratio=float("nan"), dof=0,
+                        extra={"rate_terms": rate, "undetermined": undetermined}, basis=basis)
+
+
+def _as_sigma(values, shape) -> np.ndarray:
+    """A passport's sigma list (None: not determined) as a float array (NaN); all NaN when absent."""
+    if values is None:
+        return np.full(shape, np.nan)
+    try:
+        a = np.array(values, dtype=float)       # None -> nan
+    except (TypeError, ValueError):
+        return np.full(shape, np.nan)
+    return a if a.shape == shape else np.full(shape, np.nan)
 
 
 def calibrate(runs, settings: CalibrationSettings = CalibrationSettings(), *, base_passport: dict | None = None,

@@ -50,6 +50,7 @@ from pipeline.errors import CalibrationError
 from pipeline.model import gravity_module_error_g, specific_force_g
 from pipeline.passport.document import build_passport
 from pipeline.plausibility import assess
+from pipeline.positions import AXES
 from pipeline.segment import segment_run
 from pipeline.thermal import PolynomialModel
 from pipeline.uncertainty import ThermalSigma
@@ -318,14 +319,32 @@ def scalar_nonlinear(u_v: np.ndarray, k_prelim_v_per_g, u0_prelim_v, *, model: s
 
 def constants_sigma(fit: ScalarFit) -> tuple[np.ndarray, np.ndarray]:
     """Standard uncertainties of the scalar fit's K (3, 3) V/g and U0 (3,) V, from the fit's own parameter standard
-    errors (residual-scaled, :func:`_standard_errors`): K = diag(k_p) K_n and U0 = u0_p + k_p d0, so sigma(K_ii) =
-    |k_p_i| sigma(d1_i), sigma(K_ij, lower) = |k_p_i| sigma(psi), sigma(U0_i) = |k_p_i| sigma(d0_i). The upper
-    entries are zero by the gauge, and the diagonal model has no cross-axis terms: NaN (not determined)."""
+    errors (residual-scaled, :func:`_standard_errors`): K = diag(k_p) K_n and U0 = u0_p + k_p d0, so sigma(K_ij) =
+    |k_p_i| sigma(d1_i) on the diagonal and |k_p_i| sigma(psi) below it, sigma(U0_i) = |k_p_i| sigma(d0_i).
+    The upper entries are 0 exactly, by the rotation gauge (:func:`gauge_notes`): sigma 0. The diagonal model has no
+    cross-axis terms at all (orthogonal axes assumed): NaN (not determined)."""
     k = np.abs(np.asarray(fit.k_prelim_v_per_g, dtype=float))
     K_sig = np.full((3, 3), np.nan)
     K_sig[np.diag_indices(3)] = k * fit.std[3:6]
-    K_sig[_LOWER] = k[_LOWER[0]] * fit.std[6:9]
+    if fit.model == "full":
+        K_sig[_LOWER] = k[_LOWER[0]] * fit.std[6:9]
+        K_sig[np.triu_indices(3, 1)] = 0.0
     return K_sig, k * fit.std[0:3]
+
+
+def gauge_notes(fit: ScalarFit) -> tuple[dict[str, str], dict[str, str]]:
+    """The passport's ``uncertainty.fixed_by_convention`` and ``uncertainty.undetermined`` of a scalar fit: K's
+    upper entries are 0 by the rotation gauge (|a| = 1 cannot see a rotation of the triad: their uncertainty is 0,
+    the convention fixes them); with the diagonal model the cross-axis entries are not determined (0 by the
+    assumption of orthogonal axes; uncertainty null)."""
+    upper = [f"K.{AXES[i]}{AXES[j]}" for i, j in zip(*np.triu_indices(3, 1))]
+    if fit.model == "full":
+        return ({n: "0 by the rotation gauge: K lower-triangular (x along the x channel's sensitive axis, y in the "
+                    "x-y sensitive plane); a scalar calibration cannot see a rotation of the triad" for n in upper},
+                {})
+    lower = [f"K.{AXES[i]}{AXES[j]}" for i, j in zip(*_LOWER)]
+    return {}, {n: "diagonal scalar model: orthogonal axes assumed, cross-axis sensitivity not determined (0)"
+                for n in upper + lower}
 
 
 def lower_gauge(K: np.ndarray) -> np.ndarray:
@@ -404,9 +423,15 @@ def calibrate_observed(observed: list[ObservedRun], settings: CalibrationSetting
                                residual_rms_v=float(np.sqrt(np.mean(resid_v ** 2))), K_sigma=K_sig, U0_sigma=U0_sig)
     thermal = PolynomialModel(fit_s.K, fit_s.U0, t0, 0, np.zeros((0, 3)), np.zeros((0, 3, 3)))
     seg_temps = [s.temp_c for _, s in static]
+    fixed, undetermined = gauge_notes(fit_s)
     sigma = ThermalSigma(K0=K_sig, U00=U0_sig, thermal_model={"kind": "polynomial", "order": 0, "alpha": {},
                                                               "beta": {}, "gamma": {}},
-                         birge_ratio=float("nan"), dof=0)
+                         birge_ratio=float("nan"), dof=0,
+                         extra={"fixed_by_convention": fixed, "undetermined": undetermined},
+                         basis={"level": "standard uncertainty (1 sigma)",
+                                "coefficients": "the nonlinear fit's parameter covariance, scaled by its residuals "
+                                                "(the norm errors |a| - 1 over the positions)",
+                                "n_positions": int(fit_s.n_positions), "model": fit_s.model})
     unit_fit = UnitFit(unit=serial, normal_temp_c=t0, per_plateau=[plateau], model=thermal, skipped=notes,
                        valid_temp_c=(round(min(seg_temps), 1), round(max(seg_temps), 1)), uncertainty=sigma)
     rows, status = verify_unit(thermal, observations, t0, settings.tolerances)

@@ -72,13 +72,21 @@ def build_passport(fit, verification_rows, status: str, *, g_local_mps2: float, 
 
 def uncertainty_block(fit) -> dict | None:
     """The passport's ``uncertainty`` (contract.md): standard uncertainties (1 sigma, same units) mirroring
-    ``coefficients``, ``per_plateau`` and ``thermal_model``; None where the fit has none."""
+    ``coefficients``, ``per_plateau`` and ``thermal_model`` (and, for the differential method, ``rate_terms``), with
+    ``undetermined`` / ``fixed_by_convention`` naming the fields without a measured uncertainty and why, and
+    ``basis`` what the numbers rest on; None where the fit has none."""
     from pipeline.uncertainty import as_json_list
 
     sigma = getattr(fit, "uncertainty", None)
     if sigma is None:
         return None
     tau = getattr(fit, "excess_scatter_v", None)
+    basis = sigma.basis if sigma.basis is not None else {
+        "level": "standard uncertainty (1 sigma)",
+        "segment_noise": "voltmeter noise measured in each static segment (std / sqrt(n))",
+        "excess_scatter_v": as_json_list(tau) if tau is not None else None,
+        "thermal_fit_birge_ratio": sigma.birge_ratio if sigma.dof else None,
+        "thermal_fit_dof": sigma.dof}
     return {
         "coefficients": {"K": as_json_list(sigma.K0), "U0": as_json_list(sigma.U00)},
         "per_plateau": [{"temp_c": round(p.temp_c, 4), "run_id": p.run_id, "plateau": p.plateau,
@@ -86,11 +94,8 @@ def uncertainty_block(fit) -> dict | None:
                          "U0": as_json_list(p.U0_sigma) if p.U0_sigma is not None else None}
                         for p in fit.per_plateau],
         "thermal_model": sigma.thermal_model,
-        "basis": {"level": "standard uncertainty (1 sigma)",
-                  "segment_noise": "voltmeter noise measured in each static segment (std / sqrt(n))",
-                  "excess_scatter_v": as_json_list(tau) if tau is not None else None,
-                  "thermal_fit_birge_ratio": sigma.birge_ratio if sigma.dof else None,
-                  "thermal_fit_dof": sigma.dof},
+        **(sigma.extra or {}),
+        "basis": basis,
     }
 
 

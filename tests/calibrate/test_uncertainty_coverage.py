@@ -1,0 +1,238 @@
+"""Standard uncertainties of the differential method (seed 003) tested for coverage against the simulator's truth
+over many noise seeds, as tests/test_uncertainty.py does for the tilt method: the chamber differential (a base
+passport, six orientations with 1.5 degree face errors, one temperature cycle) and the sweep differential (no base,
+three orientations, the temperature drifting 5 -> 25 C). About 68 % of the errors within 1 sigma and 95 % within
+2 sigma, and the sigmas not absurdly wide (their median within a small factor of the scatter of the estimates
+between seeds); terms the orientations cannot determine have no uncertainty and the passport says why; ``passport
+diff`` of two differential passports marks a real change of a temperature coefficient and not the noise.
+
+Tolerances: the z-scores of one run's coefficients are correlated (the orders of one constant's polynomial share the
+same data), so a few hundred z-scores count as about a third as many independent ones; the binomial standard
+deviation of a within-1-sigma fraction over ~150 independent values is 0.04, of a within-2-sigma fraction 0.017. The
+bounds are about 2 of these standard deviations around 0.68 and 0.95."""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+
+import numpy as np
+import pytest
+
+from pipeline.calibrate import differential
+from pipeline.calibrate.tilt import fit_unit, observe_run
+from pipeline.passport.document import build_passport
+from pipeline.passport.registry import Registry
+from pipeline.passport.significance import significant_changes
+from pipeline.simulate import chamber, program
+from pipeline.simulate.chamber import SimConfig, simulate
+from pipeline.simulate.unit import UnitTruth, seed000_unit
+
+N_CHAMBER = 16          # chamber cycles at 1 Hz, about 1 s each to simulate and calibrate
+N_SWEEP = 16            # sweeps at 0.5 Hz, about 0.6 s each
+GROUPS = ("alpha", "beta", "gamma")
+
+
+def _within(z: np.ndarray) -> tuple[float, float, float]:
+    z = np.abs(np.asarray(z, dtype=float))
+    return float(np.mean(z < 1.0)), float(np.mean(z < 2.0)), float(np.median(z))
+
+
+@pytest.fixture(scope="module")
+def base() -> dict:
+    """The normal-temperature passport the chamber differential starts from (tilt, short program, 1 Hz)."""
+    run = simulate(SimConfig(program="short", seed=8, rate_hz=1.0)).run
+    obs, _ = observe_run(run)
+    return build_passport(fit_unit("AU-0001", obs), [], "unverified", g_local_mps2=9.80665, plateaus=[])
+
+
+def _cycle(seed: int, orientations=("TP1", "TP2", "TP3", "TP4", "TP5", "TP6"), rate_hz: float = 1.0):
+    name = "coverage_cycle_" + "_".join(orientations)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setitem(program.PROGRAMS, name, lambda: program.differential_program(orientations))
+        return simulate(SimConfig(program=name, seed=100 + seed, rate_hz=rate_hz, effects=[
+            ("fixture_face_error", {"sigma_deg": 1.5, "seed": 200 + seed})]))
+
+
+@pytest.fixture(scope="module")
+def chamber_runs(base) -> list[dict]:
+    """Differential passports of the seed 000 unit (quadratic in T; the fit is cubic with two rate terms), one per
+    noise and face-error seed. The simulated element follows the thermosensor: the true rate terms are 0."""
+    return [differential.calibrate([_cycle(s).run], base_passport=base).passport for s in range(N_CHAMBER)]
+
+
+def _thermal_errors(doc: dict, truth: dict) -> tuple[list[float], list[float], list[str]]:
+    """(estimate - truth) and sigma of every thermal coefficient with an uncertainty, and their names."""
+    tm, sig = doc["thermal_model"], doc["uncertainty"]["thermal_model"]
+    err, sd, names = [], [], []
+    for group in GROUPS:
+        for key, values in tm[group].items():
+            for n, v in enumerate(values):
+                if sig[group][key][n] is None:
+                    continue
+                want = truth[group][key]
+                err.append(v - (want[n] if n < len(want) else 0.0))
+                sd.append(sig[group][key][n])
+                names.append(f"{group}.{key}[{n + 1}]")
+    return err, sd, names
+
+
+def test_chamber_differential_thermal_coefficients_cover_the_truth(chamber_runs):
+    """Every alpha, beta and gamma coefficient (36 per run) against seed 000's unit: coverage and width."""
+    truth = seed000_unit().relative_coefficients()
+    per_run = [_thermal_errors(doc, truth) for doc in chamber_runs]
+    assert all(len(e) == 36 for e, _, _ in per_run)              # six orientations determine every term
+    err = np.array([e for e, _, _ in per_run])
+    sd = np.array([s for _, s, _ in per_run])
+    within1, within2, median = _within(err / sd)
+    assert 0.60 <= within1 <= 0.78, within1
+    assert 0.92 <= within2 <= 0.99, within2
+    assert 0.5 <= median <= 0.85, median
+    # not absurdly wide: per coefficient, the median sigma against the scatter of the estimates between seeds
+    ratio = np.median(sd, axis=0) / err.std(axis=0, ddof=1)
+    assert np.all((0.5 < ratio) & (ratio < 2.0)), dict(zip(per_run[0][2], ratio.round(2)))
+    assert 0.8 < np.median(ratio) < 1.4, np.median(ratio)
+
+
+def test_chamber_differential_rate_terms_cover_zero(chamber_runs):
+    """The rate terms (selected by default: two orders, bias and scale) have true value 0 here; their sigmas
+    cover it."""
+    z = []
+    for doc in chamber_runs:
+        rt, rs = doc["rate_terms"], doc["uncertainty"]["rate_terms"]
+        for group in ("alpha_rate", "beta_rate"):
+            for key in rt[group]:
+                z += list((np.array(rt[group][key]) / np.array(rs[group][key], dtype=float)).ravel())
+    assert len(z) == 12 * N_CHAMBER
+    within1, within2, median = _within(z)
+    assert 0.55 <= within1 <= 0.80 and 0.90 <= within2 <= 1.0 and 0.45 <= median <= 0.9, (within1, within2, median)
+
+
+def test_chamber_passport_constants_take_the_base_uncertainty(chamber_runs, base):
+    """K and U0 at T0 are the base passport's, and so are their uncertainties; the lag was not fitted, and the
+    passport says so rather than leaving a silent null."""
+    u = chamber_runs[0]["uncertainty"]
+    assert u["coefficients"] == base["uncertainty"]["coefficients"]
+    assert u["rate_terms"]["lag_tau_s"] is None and "rate_terms.lag_tau_s" in u["undetermined"]
+    assert set(u["undetermined"]) == {"rate_terms.lag_tau_s"}
+    assert u["basis"]["cluster_s"] == differential.CLUSTER_S and u["basis"]["n_pairs"] > 1000
+
+
+def test_terms_the_orientations_do_not_excite_have_no_uncertainty(base):
+    """With the unit held only x down and x up (TP5, TP6), the y and z scale-factor terms and the cross-axis terms
+    are not determined: their uncertainty is null and ``undetermined`` names each with its reason; what is fitted
+    has a positive sigma."""
+    doc = differential.calibrate([_cycle(0, ("TP5", "TP6"), rate_hz=0.5).run], base_passport=base).passport
+    u = doc["uncertainty"]
+    sig = u["thermal_model"]
+    for key in ("yy", "zz"):
+        assert sig["beta"][key] == [None] * 3
+        assert "no orientation had gravity along" in u["undetermined"][f"beta.{key}"]
+        assert u["rate_terms"]["beta_rate"][key] == [[None], [None]]
+    assert all(v > 0 for v in sig["beta"]["xx"]) and all(v > 0 for ax in "xyz" for v in sig["alpha"][ax])
+    for key, values in sig["gamma"].items():      # K_yx a_x and K_zx a_x are excited; the rest are not
+        if key in ("yx", "zx"):
+            assert all(v > 0 for v in values) and f"gamma.{key}" not in u["undetermined"]
+        else:
+            assert values == [None] * 3 and "do not excite" in u["undetermined"][f"gamma.{key}"]
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# The sweep differential (no base passport)
+
+
+def _identifiable_unit() -> UnitTruth:
+    """Seed 000's unit with its cross-axis sensitivities set to 0: three orientations cannot separate an offset
+    from the cross-axis constants, nor a cross-axis temperature term they do not excite from the bias (basis
+    ``identification``), so coverage is tested on a unit whose temperature dependence the sweep's model holds."""
+    u = seed000_unit()
+    k = u.k_coef.copy()
+    k[:, ~np.eye(3, dtype=bool)] = 0.0
+    return UnitTruth(u.normal_temp_c, k, u.u0_coef, "seed000-diagonal")
+
+
+@pytest.fixture(scope="module")
+def sweep_runs() -> list[dict]:
+    """Sweep passports (quadratic model, no rate terms, cross-axis terms the orientations excite), one per seed."""
+    settings = dataclasses.replace(differential.SWEEP_SETTINGS, select_model=False, poly_order=2, rate_order=0)
+    unit = _identifiable_unit()
+    with pytest.MonkeyPatch.context() as mp, np.errstate(invalid="ignore"):   # the truth's gamma: 0 / 0
+        mp.setattr(chamber, "unit_for", lambda config: unit)
+        runs = [simulate(SimConfig(program="sweep", seed=300 + s, rate_hz=0.5, with_fixture_log=False)).run
+                for s in range(N_SWEEP)]
+    return [differential.calibrate([r], differential=settings).passport for r in runs]
+
+
+def test_sweep_differential_thermal_coefficients_cover_the_truth(sweep_runs):
+    """alpha and beta of every axis, and the absolute cross-axis terms (true value 0), against the truth."""
+    with np.errstate(invalid="ignore"):             # gamma = 0 / 0 for the zeroed cross-axis terms: not used
+        truth = _identifiable_unit().relative_coefficients()
+    err, sd = [], []
+    for doc in sweep_runs:
+        e, s, names = _thermal_errors(doc, truth)
+        assert len(e) == 12 and not any(n.startswith("gamma") for n in names)
+        cross, cross_sd = doc["rate_terms"]["cross_axis_abs"], doc["uncertainty"]["rate_terms"]["cross_axis_abs"]
+        for key, values in cross.items():
+            for v, sv in zip(values, cross_sd[key]):
+                if sv is not None:
+                    e.append(v)
+                    s.append(sv)
+        assert len(e) == 18                                      # three cross-axis terms of order 2 excited
+        err.append(e)
+        sd.append(s)
+    err, sd = np.array(err), np.array(sd)
+    within1, within2, median = _within(err / sd)
+    assert 0.60 <= within1 <= 0.82, within1
+    assert 0.92 <= within2 <= 1.0, within2
+    assert 0.5 <= median <= 0.85, median
+    ratio = np.median(sd, axis=0) / err.std(axis=0, ddof=1)
+    assert 0.8 < np.median(ratio) < 1.5, ratio
+
+
+def test_sweep_passport_names_what_it_cannot_determine(sweep_runs):
+    """No base passport: the cross-axis constants are undetermined (null, with the reason), the relative gamma is
+    replaced by the absolute cross-axis terms, unexcited ones are named, and the basis states that the numbers are
+    statistical uncertainties of the model the orientations identify."""
+    u = sweep_runs[0]["uncertainty"]
+    for key in ("xy", "xz", "yx", "yz", "zx", "zy"):
+        i, j = "xyz".index(key[0]), "xyz".index(key[1])
+        assert u["coefficients"]["K"][i][j] is None
+        assert "not determined by the orientations" in u["undetermined"][f"K.{key}"]
+        assert f"gamma.{key}" in u["undetermined"]
+    assert sum(k.startswith("rate_terms.cross_axis_abs.") for k in u["undetermined"]) == 3
+    assert "identification" in u["basis"]
+    # every null in the document has a reason
+    K = u["coefficients"]["K"]
+    nulls = [f"K.{a}{b}" for i, a in enumerate("xyz") for j, b in enumerate("xyz") if K[i][j] is None]
+    nulls += [f"U0.{a}" for k, a in enumerate("xyz") if u["coefficients"]["U0"][k] is None]
+    assert set(nulls) <= set(u["undetermined"])
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# passport diff of two differential passports
+
+
+def test_diff_of_differential_passports_marks_real_changes(chamber_runs, tmp_path):
+    """Two calibrations from other noise and face-error seeds differ by noise: few of their 36 thermal coefficients
+    are marked significant; a third version with alpha.x[1] moved by 0.05 micro-g/C (about 10 of its sigmas) and
+    beta.yy[1] by 1 ppm/C is marked there, in micro-g/C and ppm/C, and nothing else is."""
+    reg = Registry(tmp_path / "reg")
+    a, b = chamber_runs[1], chamber_runs[2]
+    shifted = copy.deepcopy(b)
+    gain_x = abs(shifted["coefficients"]["K"][0][0])
+    shifted["thermal_model"]["alpha"]["x"][0] += 0.05e-6 * gain_x
+    shifted["thermal_model"]["beta"]["yy"][0] += 1e-6
+    for n, doc in enumerate((a, b, shifted)):
+        reg.publish(doc, inputs=[{"path": f"cycle{n}.mcap", "sha256": f"{n:064x}"}], settings={}, code_version="t")
+    noise = reg.diff("AU-0001", 1, 2)
+    entries = noise["thermal_model"]
+    assert len(entries) == 36 and all(e["significant"] is not None for e in entries)
+    assert sum(e["significant"] for e in entries) <= 4
+    d = reg.diff("AU-0001", 2, 3)
+    by_name = {e["name"]: e for e in d["thermal_model"]}
+    assert set(by_name) == {"alpha.x[1]", "beta.yy[1]"}
+    assert {e["name"] for e in significant_changes(d)} == {"alpha.x[1]", "beta.yy[1]"}
+    assert by_name["alpha.x[1]"]["scaled_unit"] == "micro-g/C^1"
+    assert by_name["alpha.x[1]"]["delta_scaled"] == pytest.approx(0.05, rel=1e-6)
+    assert by_name["beta.yy[1]"]["delta_scaled"] == pytest.approx(1.0, rel=1e-6)
+    assert by_name["alpha.x[1]"]["delta"] / by_name["alpha.x[1]"]["uncertainty"] > 5
