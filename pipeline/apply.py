@@ -6,6 +6,13 @@ The passport's full model is used, whatever the method that made it: the constan
 terms and the lag of the sensing element (:mod:`pipeline.calibrate.differential`). Method 1 of seed 000 inverts the
 model at each sample's temperature: ``a = K(T)^-1 (U - U0(T))`` in g.
 
+A passport extended by ``diagnose`` (``extended_model``: a refitted base thermal model plus catalogue effects) is
+applied with the extended model wherever its terms are functions of what the recording itself holds: time since the
+first voltmeter sample (drift, warm-up), temperature and its history (curvature, the element's lag, hysteresis by
+the direction the temperature last came from), the specific force (scale nonlinearity, solved iteratively). Terms
+that need the fixture's moves (``tilt_settling``) are left out, with one warning naming them; the fixture's face
+error is the fixture's, not the unit's, and is never compensated (:mod:`pipeline.diagnose.model`).
+
 The temperature at a sample is the AU thermosensor interpolated at its time (smoothed as when the passport was made
 where the passport has rate terms). One output row per input row, in the input's order; a sample whose voltages or
 temperature are not finite gives NaN, never a dropped row. ``in_range`` says whether the temperature lies within
@@ -21,6 +28,7 @@ from pathlib import Path
 import numpy as np
 import polars as pl
 
+from pipeline.diagnose.model import ExtendedModel
 from pipeline.errors import ThermocalError
 from pipeline.model import specific_force_g
 from pipeline.run import NS_PER_S as _NS
@@ -55,21 +63,63 @@ def valid_range_c(passport: dict) -> tuple[float, float] | None:
     return None
 
 
+#: extended-model terms apply cannot evaluate from a recording's own columns, and why
+_NEEDS_FIXTURE = {"tilt_settling": "the fixture's moves (when each turn started and ended)"}
+
+
 def _model(passport: dict):
     """(model with constants_at(T[, rate]), lag tau s, smoothing window s or None, warnings) of a passport, from the
-    one passport loader (:func:`pipeline.passport.document.load_passport`)."""
+    one passport loader (:func:`pipeline.passport.document.load_passport`); for a passport with an extended model,
+    the part of that model apply can evaluate (:func:`_applicable_extended`)."""
     from pipeline.passport.document import load_passport
     from pipeline.thermal import DifferentialModel
 
     p = load_passport(passport)
     warnings = []
     if p.extended is not None:
-        warnings.append("the passport's extended model (from diagnose) needs the fixture context and is not "
-                        "applied: its constants and thermal model are")
+        return _applicable_extended(p.extended, warnings), 0.0, None, warnings
     if p.rate_terms is not None:
         return DifferentialModel(p.thermal_model, p.rate_terms), p.rate_terms.lag_tau_s, p.rate_terms.temp_smooth_s, \
             warnings
     return p.thermal_model, 0.0, None, warnings
+
+
+def _applicable_extended(ext, warnings: list[str]):
+    """The extended model without the terms that need the fixture's moves, and one warning naming those."""
+    left = [e.id for e in ext.effects if e.id in _NEEDS_FIXTURE]
+    if left:
+        warnings.append("the passport's extended model is applied without " + "; ".join(
+            f"{i} (it needs {_NEEDS_FIXTURE[i]}, which apply does not locate in the recording)" for i in left))
+    return ExtendedModel(ext.base, [e for e in ext.effects if e.id not in _NEEDS_FIXTURE], ext.source)
+
+
+def _extended_context(run: Run, t_ns: np.ndarray, temp_c: np.ndarray, ext):
+    """What the extended model's terms read at the samples ``t_ns``: a function ``(s0, s1) -> (SignalContext,
+    element temperature C or None)`` for a slab of samples. Times are s since the first voltmeter sample (as in a
+    diagnosis), the direction of the last ramp and the element's lag come from the whole temperature record; no
+    position or move is known (the terms that need them are not in ``ext``)."""
+    from pipeline.diagnose.signal import ramp_direction
+    from pipeline.dynamics import first_order_lag
+    from pipeline.effects.base import SignalContext
+
+    start_ns = int(t_ns[0]) if t_ns.size else 0
+    tt, temp = run.thermosensor()
+    order = np.argsort(tt, kind="stable")
+    th_s, th_c = (tt[order] - start_ns) / _NS, temp[order]
+    lagged = first_order_lag(th_s, th_c, ext.lag_tau_s) if ext.lag_tau_s is not None and th_s.size >= 2 else None
+
+    def at(s0: int, s1: int):
+        t_s = (t_ns[s0:s1] - start_ns) / _NS
+        tc = np.where(np.isfinite(temp_c[s0:s1]), temp_c[s0:s1], float(ext.base.normal_temp_c))
+        element = None if lagged is None else np.interp(t_s, th_s, lagged)
+        ramp = ramp_direction(run, t_s, start_ns)
+        n = t_s.size
+        ctx = SignalContext(t_s=t_s, temp_c=tc, a_g=np.zeros((n, 3)), position_idx=np.full(n, -1),
+                            move_start_s=np.zeros(0), arrive_s=np.zeros(0), constants=ext.base,
+                            normal_temp_c=float(ext.base.normal_temp_c), ramp_sign=ramp, start_ns=start_ns)
+        return ctx, element
+
+    return at
 
 
 def _temperature_at(run: Run, t_ns: np.ndarray, lag_tau_s: float, smooth_s: float | None
@@ -109,18 +159,20 @@ def apply_passport(passport: dict, run: Run) -> Applied:
     n = t_ns.size
     a = np.empty((n, 3))
     cols = [run.voltmeter[c].to_numpy() for c in ("ux", "uy", "uz")]
+    extended = _extended_context(run, t_ns, temp_c, model) if isinstance(model, ExtendedModel) else None
     for s0 in range(0, n, _SLAB):
         s1 = min(s0 + _SLAB, n)
         u = np.column_stack([c[s0:s1] for c in cols])
-        tc = temp_c[s0:s1]
-        good = np.isfinite(tc)
-        tc_safe = np.where(good, tc, float(model.normal_temp_c))
-        if rate is not None:
-            K, U0 = model.constants_at(tc_safe, np.where(good, rate[s0:s1], 0.0))
+        good = np.isfinite(temp_c[s0:s1])
+        if extended is not None:
+            with np.errstate(invalid="ignore"):
+                out = model.specific_force_g(u, *extended(s0, s1))
         else:
-            K, U0 = model.constants_at(tc_safe)
-        with np.errstate(invalid="ignore"):
-            out = specific_force_g(K, U0, u)
+            tc = np.where(good, temp_c[s0:s1], float(model.normal_temp_c))
+            K, U0 = model.constants_at(tc) if rate is None else model.constants_at(tc, np.where(good, rate[s0:s1],
+                                                                                                  0.0))
+            with np.errstate(invalid="ignore"):
+                out = specific_force_g(K, U0, u)
         out[~good] = np.nan
         a[s0:s1] = out
     rng = valid_range_c(passport)

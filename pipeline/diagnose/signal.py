@@ -413,6 +413,13 @@ def _ramp_sign(run: Run, t_s: np.ndarray, start_ns: int, before_s: float = 360.0
     return _step_at(tt, sign, t_s), "AU thermosensor", near_next | near_prev
 
 
+def ramp_direction(run: Run, t_s: np.ndarray, start_ns: int) -> np.ndarray:
+    """The direction the temperature last came from (+1 / -1 / 0) at ``t_s`` (s since ``start_ns``), by the same
+    rule as a diagnosis (the chamber setpoint when recorded, else the AU thermosensor): for applying an extended
+    model to every sample of a recording."""
+    return _ramp_sign(run, np.asarray(t_s, dtype=float), start_ns)[0]
+
+
 def _step_at(t_src: np.ndarray, values: np.ndarray, t_s: np.ndarray) -> np.ndarray:
     """The value of a step function given at ``t_src`` (each value holds until the next) at ``t_s``."""
     i = np.clip(np.searchsorted(t_src, t_s, side="right") - 1, 0, t_src.size - 1)
