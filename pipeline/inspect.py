@@ -307,8 +307,9 @@ def format_summary(summary: dict[str, Any]) -> str:
     if rec:
         lines += _recording_lines(rec)
     plateaus, positions = summary.get("plateaus") or [], summary.get("static_positions") or []
-    lines.append(f"segmentation: {summary.get('segmentation', '-')}; {len(plateaus)} plateaus, "
-                 f"{len(positions)} static segments")
+    grouped = " (grouped into the poses above; --json lists each)" if rec and len(positions) > 24 else ""
+    lines.append(f"segmentation: {summary.get('segmentation', '-')}; {_count(len(plateaus), 'plateau')}, "
+                 f"{_count(len(positions), 'static segment')}{grouped}")
     t0 = min((p["t_start_ns"] for p in plateaus), default=0)
     for p in plateaus:
         names = [s["position"] or "?" for s in positions if s["plateau"] == p["index"]]
@@ -335,10 +336,10 @@ def _recording_lines(rec: dict[str, Any]) -> list[str]:
     """The recording's description (:func:`describe_recording`) as text."""
     t = rec["temperature"]
     lo, hi = t["range_c"]
-    kinds = {"plateaus": f"plateau program: {t['plateaus']} plateaus", "constant": "one temperature",
+    kinds = {"plateaus": f"plateau program: {_count(t['plateaus'], 'plateau')}", "constant": "one temperature",
              "sweep": "temperature sweep (continuous drift, no plateau held)"}
-    lines = [f"recording: {kinds.get(t['kind'], t['kind'])}; {lo} .. {hi} C, largest rate {t['max_rate_c_per_h']} "
-             f"C/h (over {t['rate_window_s']:.0f} s)"]
+    lines = [f"recording: {kinds.get(t['kind'], t['kind'])}; {lo:+.2f} .. {hi:+.2f} C, largest rate "
+             f"{t['max_rate_c_per_h']:.3g} C/h (over {t['rate_window_s']:.0f} s)"]
     st = rec["static"]
     lines.append(f"  {st['poses']} static poses in {st['segments']} segments (static window {st['window_s']:.3g} s, "
                  f"shortest {st['min_s']:.3g} s)")
@@ -346,8 +347,9 @@ def _recording_lines(rec: dict[str, Any]) -> list[str]:
         d = " ".join(f"{x:+.3f}" for x in p["direction_g"])
         lo_c, hi_c = p["temp_range_c"]
         lines.append(f"  pose {p['index']}: g along ({d})  vertical {p['vertical_axis'] or '-':<3} "
-                     f"{p['position'] or '?':<4} {p['holds']} hold(s), {_duration(p['duration_s'])} "
-                     f"(shortest {_duration(p['shortest_hold_s'])})  {lo_c} .. {hi_c} C")
+                     f"{p['position'] or '?':<4} {_count(p['holds'], 'hold')}, {_duration(p['duration_s'])}"
+                     + (f" (shortest {_duration(p['shortest_hold_s'])})" if p["holds"] > 1 else "")
+                     + f"  {lo_c:+.2f} .. {hi_c:+.2f} C")
     for m in rec["methods"]:
         lines.append(f"  method {m['method']:<12} {'supported' if m['supported'] else 'not supported'}: {m['why']}")
         lines += [f"      {d}" for d in m["determines"]]
@@ -356,6 +358,11 @@ def _recording_lines(rec: dict[str, Any]) -> list[str]:
     lines.append(f"  calibrate --method auto: {auto or 'no method fits this recording'}"
                  + ("" if auto is None or supported else " (the fixture log says tilt; it will say what is missing)"))
     return lines
+
+
+def _count(n: int, noun: str) -> str:
+    """``1 plateau``, ``7 plateaus``."""
+    return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
 
 
 def _duration(seconds: float) -> str:

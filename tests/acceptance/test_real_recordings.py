@@ -69,6 +69,21 @@ def test_cats_static_poses_cover_the_authors_periods(cats):
         assert all(sign * g["direction_g"][ax] > 0.98 for g in inside)
 
 
+def test_cats_listing_is_its_poses_not_its_segments(cats):
+    """The drift cuts the three day-long holds into 227 static segments: the text lists a line per pose (each
+    hold's pieces merged, one line per pose with its holds), says how many segments that groups, and --json keeps
+    every segment."""
+    _, s = cats
+    text = format_summary(s)
+    n = len(s["static_positions"])
+    assert n > 200 and len(text.splitlines()) < 30, len(text.splitlines())
+    poses = [ln for ln in text.splitlines() if ln.lstrip().startswith("pose ")]
+    assert len(poses) == len(s["recording"]["poses"]) <= 5
+    assert sum(int(ln.split(" hold")[0].rsplit(None, 1)[1]) for ln in poses) < 10
+    assert f"0 plateaus, {n} static segments (grouped into the poses above; --json lists each)" in text
+    assert "1 holds" not in text and "hold(s)" not in text
+
+
 def test_ferraris_poses_match_the_hand_labels(ferraris):
     """The six hand-marked orientations of imucal's session: one found static segment of the same position lies
     within each labelled range (its middle inside, covering at least 40 % of it), and inspect says tilt."""
