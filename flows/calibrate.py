@@ -1,9 +1,12 @@
-"""The calibration flow: ingest -> observe -> fit -> write, one Prefect task per step (per file for ingest and
-observe). Each task is a call of one library function; the method's recipe (``pipeline.calibrate.methods``:
-``tilt``, seed 000, the default; ``scalar``, seed 004; ``differential``, seed 003, from a base passport or, on
-sweeps, from the orientations) supplies the middle two:
+"""The calibration flow: ingest -> (choose) -> observe -> fit -> write, one Prefect task per step (per file for
+ingest and observe). Each task is a call of one library function; the method's recipe
+(``pipeline.calibrate.methods``: ``tilt``, seed 000; ``scalar``, seed 004; ``differential``, seed 003, from a base
+passport or, on sweeps, from the orientations) supplies observe and fit:
 
 - ingest:  ``pipeline.io.runs.read_run``
+- choose:  with ``method="auto"`` (the command line's default) the first run's segmentation
+  (``pipeline.segment.segment_run``) and ``pipeline.calibrate.methods.auto_method``: the method the recording
+  supports; observe reuses that segmentation (the run is read and segmented once)
 - observe: ``<recipe>.observe`` (``pipeline.calibrate.observations``: segmentation and per-segment averages)
 - fit:     ``<recipe>.calibrate_observed`` (constants, thermal model, VP verification, passport document)
 - write:   ``pipeline.calibrate.publish.publish`` (``pipeline.passport.registry``, ``pipeline.plots``)
@@ -22,7 +25,12 @@ from prefect.artifacts import create_markdown_artifact  # noqa: E402
 from prefect.cache_policies import NO_CACHE  # noqa: E402  (no input hashing: a Run is large and never reused)
 
 from pipeline.calibrate.inputs import select_runs  # noqa: E402
-from pipeline.calibrate.methods import recipe  # noqa: E402
+from pipeline.calibrate.methods import (  # noqa: E402
+    NEEDS_BASE_PASSPORT,
+    auto_method,
+    default_base_passport,
+    recipe,
+)
 from pipeline.calibrate.observations import unit_of  # noqa: E402
 from pipeline.calibrate.publish import publish  # noqa: E402
 from pipeline.calibrate.settings import CalibrationSettings  # noqa: E402
@@ -30,6 +38,7 @@ from pipeline.errors import ThermocalError  # noqa: E402
 from pipeline.io import runs as runio  # noqa: E402
 from pipeline.passport.canonical import canonical_json  # noqa: E402
 from pipeline.passport.registry import Registry  # noqa: E402
+from pipeline.segment import segment_run  # noqa: E402
 
 
 @task(name="ingest", cache_policy=NO_CACHE)
@@ -37,19 +46,21 @@ def ingest(path: str):
     return runio.read_run(path)
 
 
+@task(name="choose", cache_policy=NO_CACHE)
+def choose(run, settings: CalibrationSettings):
+    """``--method auto``: the run's segmentation, the method it supports and why."""
+    seg = segment_run(run, settings.segment)
+    return (*auto_method(run, seg), seg)
+
+
 @task(name="observe", cache_policy=NO_CACHE)
-def observe(run, method: str, settings: CalibrationSettings, base_passport: dict | None):
-    return recipe(method).observe(run, settings, base_passport=base_passport)
+def observe(run, method: str, settings: CalibrationSettings, base_passport: dict | None, segmentation=None):
+    return recipe(method).observe(run, settings, base_passport=base_passport, segmentation=segmentation)
 
 
 @task(name="fit", cache_policy=NO_CACHE)
 def fit(observed, method: str, settings: CalibrationSettings, base_passport: dict | None):
     return recipe(method).calibrate_observed(observed, settings, base_passport=base_passport)
-
-
-@task(name="select", cache_policy=NO_CACHE)
-def select(runs):
-    return select_runs(runs)
 
 
 def record_head(registry: str) -> None:
@@ -75,24 +86,35 @@ def calibrate_flow(paths: list[str], registry: str, settings: CalibrationSetting
                    method: str = "tilt", base_passport: dict | None = None, dry_run: bool = False) -> dict:
     """Calibrate one unit from one or more runs (TP runs, and runs with VP data that verify them).
 
-    ``method``: ``tilt`` (seed 000, default), ``scalar`` (seed 004) or ``differential`` (seed 003, starting from
-    ``base_passport``'s normal-temperature constants). ``dry_run``: compute everything, write nothing to the
-    registry."""
+    ``method``: ``tilt`` (seed 000, default), ``scalar`` (seed 004), ``differential`` (seed 003, starting from
+    ``base_passport``'s normal-temperature constants; without one, from the unit's current passport in the
+    registry, else from the orientations alone) or ``auto`` (the method the first run supports: the result's
+    ``method_auto`` says which and why). ``dry_run``: compute everything, write nothing to the registry."""
     logger = get_run_logger()
     step = Steps("calibrate")               # progress lines on stderr when it is a terminal
-    recipe(method)                          # an unknown method fails before any run is read
+    if method != "auto":
+        recipe(method)                      # an unknown method fails before any run is read
     runs = []
     for p in paths:
         step(f"ingest {os.path.basename(p)}")
         runs.append(ingest(p))
     path_of = {r.source: p for p, r in zip(paths, runs)}
-    runs, selection_warnings = select(runs)  # one file per run_id (a truncated copy is left out)
+    runs, selection_warnings = select_runs(runs)  # one file per run_id (a truncated copy is left out)
     paths = [path_of[r.source] for r in runs]
     unit = unit_of(runs)
+    segmentation, chosen = None, None       # the first run's, when made to choose the method
+    if method == "auto":
+        step(f"choose the method (segment {os.path.basename(paths[0])})")
+        method, chosen, segmentation = choose(runs[0], settings)
+    if method not in NEEDS_BASE_PASSPORT:
+        base_passport = None
+    elif base_passport is None:
+        base_passport = default_base_passport(registry, unit)
     observed = []
-    for run, p in zip(runs, paths):
-        step(f"observe (segment, average) {os.path.basename(p)}")
-        observed.append(observe(run, method, settings, base_passport))
+    for k, (run, p) in enumerate(zip(runs, paths)):
+        seg = segmentation if k == 0 else None
+        step(f"observe ({'average' if seg else 'segment, average'}) {os.path.basename(p)}")
+        observed.append(observe(run, method, settings, base_passport, seg))
     del runs                                # the samples are not needed past the observations
     step(f"fit ({method}: constants, thermal model, VP verification)")
     calibration = fit(observed, method, settings, base_passport)
@@ -105,6 +127,8 @@ def calibrate_flow(paths: list[str], registry: str, settings: CalibrationSetting
         record_head(registry)
     create_markdown_artifact(key=_artifact_key(unit), markdown=result_markdown(result),
                              description=f"thermocal calibration of {unit}")
+    if chosen:
+        result["method_auto"] = chosen
     step(f"done: {unit} v{result['version']} {result['status']}")
     return result
 

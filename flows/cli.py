@@ -222,38 +222,19 @@ def calibrate(runs: List[Path] = typer.Argument(..., metavar="RUN",
     for r in runs:
         if not r.exists():
             raise ThermocalError("no such file or directory", path=str(r))
-    chosen = None
-    if method == "auto":
-        method, chosen = _auto_method(runs[0])
-    base = _base_passport(runs[0], registry, base_passport) if _needs_base(method) else None
+    base = None  # the flow looks up the unit's current passport when the method needs one and none is named
+    if base_passport is not None and (method == "auto" or _needs_base(method)):
+        from pipeline.passport.document import read_passport
+
+        base = read_passport(base_passport)
     from .calibrate import run_calibrate
 
     result = run_calibrate([str(r) for r in runs], str(registry), settings, method, base, dry_run)
-    if chosen:
-        result["method_auto"] = chosen
     _emit(result, as_json, None if as_json else _calibrate_text(result))
     if result.get("status") == "fail":
         print(f"thermocal: calibrate: {result['unit']}: status fail (the compensated gravity-module error "
               "exceeds its limit at a verification position)", file=sys.stderr)
         raise typer.Exit(1)
-
-
-def _auto_method(run: Path) -> tuple[str, str]:
-    """The method inspect says the recording supports (:func:`pipeline.inspect.describe_recording`), and a line
-    saying which and why; a recording no method fits is a one-line error."""
-    from pipeline.inspect import describe_recording
-    from pipeline.io.runs import read_run
-    from pipeline.segment import segment_run
-
-    r = read_run(run)
-    rec = describe_recording(r, segment_run(r))
-    chosen = rec["method_auto"]
-    if chosen is None:
-        why = "; ".join(f"{m['method']}: {m['why']}" for m in rec["methods"])
-        raise ThermocalError(f"no calibration method fits this recording ({rec['temperature']['kind']}; {why})",
-                             path=str(run))
-    m = next(m for m in rec["methods"] if m["method"] == chosen)
-    return chosen, f"{chosen} ({rec['temperature']['kind']}: {m['why']})"
 
 
 def _check_method(method: str) -> None:
@@ -267,22 +248,6 @@ def _needs_base(method: str) -> bool:
     from pipeline.calibrate.methods import NEEDS_BASE_PASSPORT
 
     return method in NEEDS_BASE_PASSPORT
-
-
-def _base_passport(run: Path, registry: Path, path: Path | None) -> dict | None:
-    """``--base-passport``, else the unit's newest non-differential version in the registry, else None: the
-    differential method then takes the constants at T0 from the orientations themselves."""
-    from pipeline.calibrate.methods import base_passport_of
-    from pipeline.io.runs import read_run_meta
-    from pipeline.passport.document import read_passport
-
-    if path is not None:
-        return read_passport(path)
-    unit = read_run_meta(run).unit_serial
-    try:
-        return base_passport_of(registry, unit)
-    except ThermocalError:
-        return None
 
 
 def _calibration_settings(thermal_model: str, constants_method: str, tol_normal_g: float, tol_range_g: float):

@@ -758,17 +758,18 @@ def base_constants(base_passport: dict | None, unit: str) -> tuple[np.ndarray, n
 
 
 def observe(run, settings: CalibrationSettings = CalibrationSettings(), *, base_passport: dict | None = None,
-            differential: DifferentialSettings | None = None) -> ObservedRun:
+            differential: DifferentialSettings | None = None, segmentation=None) -> ObservedRun:
     """The run's orientation windows and block averages (``data``, :func:`block_data`, with the base passport's
     normal-temperature constants, or without one the nominal gain and zero offsets) and its VP observations, if
-    any (a run without plateaus simply has none)."""
+    any (a run without plateaus simply has none; ``segmentation``: the run's, if already made with
+    ``settings.segment``)."""
     if base_passport is None:
         K0, U0 = np.diag(nominal_gain_v_per_g([run])), np.zeros(3)
     else:
         K0, U0, _ = base_constants(base_passport, run.meta.unit_serial)
     data = block_data(run, K0, U0, differential or _settings_for(base_passport))
     try:
-        observations = observe_run(run, settings.segment)[0]
+        observations = observe_run(run, settings.segment, segmentation)[0]
     except CalibrationError:
         observations = []
     return ObservedRun(meta=run.meta, source=run.source, observations=observations, warnings=list(run.warnings),

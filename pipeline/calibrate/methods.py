@@ -1,7 +1,8 @@
 """The calibration methods by name: one recipe module per method, each with the same interface.
 
 A recipe module (``tilt``, ``scalar``, ``differential``) has ``METHOD`` (the passport's ``method``),
-``observe(run, settings, *, base_passport=None) -> ObservedRun`` (the per-run step: what a fleet isolates),
+``observe(run, settings, *, base_passport=None, segmentation=None) -> ObservedRun`` (the per-run step: what a
+fleet isolates; ``segmentation``: the run's, when already made, e.g. by :func:`auto_method`'s caller),
 ``calibrate_observed(observed, settings, *, base_passport=None) -> CalibrationResult`` and
 ``calibrate(runs, settings, *, base_passport=None) -> CalibrationResult`` (the two in a row).
 """
@@ -11,7 +12,7 @@ from __future__ import annotations
 from types import ModuleType
 
 from pipeline.calibrate import differential, scalar, tilt
-from pipeline.errors import CalibrationError
+from pipeline.errors import CalibrationError, ThermocalError
 
 #: recipe module by the name ``calibrate --method`` and ``fleet --method`` take
 RECIPES: dict[str, ModuleType] = {"tilt": tilt, "scalar": scalar, "differential": differential}
@@ -27,6 +28,32 @@ def recipe(method: str) -> ModuleType:
         return RECIPES[method]
     except KeyError:
         raise CalibrationError(f"unknown method {method!r} ({', '.join(METHODS)})") from None
+
+
+def auto_method(run, seg) -> tuple[str, str]:
+    """The method ``calibrate --method auto`` uses on ``run`` (segmented as ``seg``,
+    :func:`pipeline.segment.segment_run`): the one inspect says the recording supports
+    (:func:`pipeline.inspect.describe_recording`), and a line saying which and why. CalibrationError naming the
+    file when no method fits the recording."""
+    from pipeline.inspect import describe_recording
+
+    rec = describe_recording(run, seg)
+    chosen = rec["method_auto"]
+    if chosen is None:
+        why = "; ".join(f"{m['method']}: {m['why']}" for m in rec["methods"])
+        raise CalibrationError(f"no calibration method fits this recording ({rec['temperature']['kind']}; {why})",
+                               path=run.source)
+    m = next(m for m in rec["methods"] if m["method"] == chosen)
+    return chosen, f"{chosen} ({rec['temperature']['kind']}: {m['why']})"
+
+
+def default_base_passport(registry, unit: str) -> dict | None:
+    """:func:`base_passport_of`, or None when the unit has no passport to start from (the differential method then
+    takes the constants at T0 from the orientations themselves)."""
+    try:
+        return base_passport_of(registry, unit)
+    except ThermocalError:
+        return None
 
 
 def base_passport_of(registry, unit: str) -> dict:

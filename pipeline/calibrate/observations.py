@@ -85,13 +85,14 @@ def unit_of(runs) -> str:
     return serials[0]
 
 
-def observe_run(run, settings: SegmentSettings = SegmentSettings()) -> tuple[list[Observation], list[str]]:
-    """Segment a run and return its observations and the segmenter's and reader's warnings.
+def observe_run(run, settings: SegmentSettings = SegmentSettings(), seg=None) -> tuple[list[Observation], list[str]]:
+    """Segment a run (or take its segmentation ``seg``, made with ``settings``) and return its observations and the
+    segmenter's and reader's warnings.
 
     A run with no named static position on any temperature plateau is of no use to a calibration:
     :class:`CalibrationError` naming the file, the stream at fault and the time span.
     """
-    seg = segment_run(run, settings)
+    seg = seg if seg is not None else segment_run(run, settings)
     obs = observations_from_segmentation(run.meta.run_id, seg, run.source)
     warnings = list(run.warnings) + list(seg.warnings)
     if not any(o.plateau is not None for o in obs):

@@ -363,11 +363,12 @@ def lower_gauge(K: np.ndarray) -> np.ndarray:
 METHOD = "scalar"
 
 
-def observe(run, settings: CalibrationSettings = CalibrationSettings(), *, base_passport: dict | None = None
-            ) -> ObservedRun:
+def observe(run, settings: CalibrationSettings = CalibrationSettings(), *, base_passport: dict | None = None,
+            segmentation=None) -> ObservedRun:
     """The run's observations (named segments, for the verification and the plateau summary) and, as ``data``,
-    every static segment on a plateau with finite mean outputs, named or not (orientations are not used)."""
-    seg = segment_run(run, settings.segment)
+    every static segment on a plateau with finite mean outputs, named or not (orientations are not used).
+    ``segmentation``: the run's, if already made with ``settings.segment``."""
+    seg = segmentation if segmentation is not None else segment_run(run, settings.segment)
     static = [s for s in seg.segments if s.plateau is not None and s.count > 0 and np.all(np.isfinite(s.mean_v))]
     return ObservedRun(meta=run.meta, source=run.source, warnings=list(run.warnings), data=static,
                        observations=observations_from_segmentation(run.meta.run_id, seg, run.source))

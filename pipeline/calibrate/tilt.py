@@ -54,11 +54,12 @@ __all__ = ["METHOD", "CalibrationSettings", "Observation", "ObservedRun", "UnitF
            "unit_of", "verify_unit", "plateau_summary"]
 
 
-def observe(run, settings: CalibrationSettings = CalibrationSettings(), *, base_passport: dict | None = None
-            ) -> ObservedRun:
+def observe(run, settings: CalibrationSettings = CalibrationSettings(), *, base_passport: dict | None = None,
+            segmentation=None) -> ObservedRun:
     """The run's observations and warnings; CalibrationError for a run with no named static position on any
-    plateau (``base_passport`` is not used by this method)."""
-    obs, warnings = observe_run(run, settings.segment)
+    plateau (``base_passport`` is not used by this method; ``segmentation``: the run's, if already made with
+    ``settings.segment``)."""
+    obs, warnings = observe_run(run, settings.segment, segmentation)
     return ObservedRun(meta=run.meta, source=run.source, observations=obs, warnings=warnings)
 
 

@@ -242,13 +242,13 @@ def _with_terminal_stderr(cmd: list[str], env: dict) -> tuple[int, str, list[str
 
 
 def test_progress_on_a_terminal_json_alone_on_stdout(short_run, tmp_path):
-    """calibrate and diagnose with stderr on a terminal: progress lines (ingest, observe, fit, write)
-    there, stdout (a pipe, --json) the JSON alone; with stderr not a terminal, nothing on stderr."""
+    """calibrate and diagnose with stderr on a terminal: progress lines (ingest, choose the method, observe, fit,
+    write) there, stdout (a pipe, --json) the JSON alone; with stderr not a terminal, nothing on stderr."""
     env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}
     code, out, steps = _with_terminal_stderr(
         [THERMOCAL, "calibrate", str(short_run), "--registry", str(tmp_path / "reg"), "--json"], env)
     assert code == 0 and json.loads(out)["unit"] == "AU-0401"
-    assert steps == ["ingest", "observe", "fit", "write", "done"]
+    assert steps == ["ingest", "choose", "observe", "fit", "write", "done"]
     code, out, steps = _with_terminal_stderr(
         [THERMOCAL, "diagnose", str(short_run), "--json", "--png", str(tmp_path / "d.png"), "--out-passport",
          str(tmp_path / "d.json")], env)

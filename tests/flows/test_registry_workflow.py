@@ -75,12 +75,12 @@ def test_dry_run_names_the_existing_version(calibrated):
 
 
 def test_cli_approve_and_differential_base_is_the_current_passport(calibrated, tmp_path):
-    from flows.cli import _base_passport
+    from pipeline.calibrate.methods import default_base_passport
 
-    run_path, reg, _ = calibrated
+    _, reg, _ = calibrated
     registry = Registry(reg)
     # v2 (pass) is the newest: the base; a failed newest version with nothing approved is refused
-    assert _base_passport(run_path, reg, None)["version"] == 2
+    assert default_base_passport(reg, "AU-0001")["version"] == 2
     p = subprocess.run([EXE, "passport", "approve", "AU-0001", "1", "--by", "A. Metrologist", "--registry",
                         str(reg)], capture_output=True, text=True, env=dict(os.environ), timeout=120)
     assert p.returncode == 2 and len(p.stderr.strip().splitlines()) == 1 and "fail" in p.stderr
@@ -94,14 +94,14 @@ def test_cli_approve_and_differential_base_is_the_current_passport(calibrated, t
     failing = registry.load("AU-0001", 1)
     failing = {k: v for k, v in failing.items() if k not in ("signature", "content_sha256")}
     registry.publish(failing, inputs=[{"path": "other", "sha256": "e" * 64}], settings={}, code_version="t")
-    assert registry.current("AU-0001") == 2 and _base_passport(run_path, reg, None)["version"] == 2
+    assert registry.current("AU-0001") == 2 and default_base_passport(reg, "AU-0001")["version"] == 2
     # a registry whose only version failed, nothing approved: no base (the CLI then lets the differential method
-    # take the constants at T0 from the orientations themselves)
+    # take the constants at T0 from the orientations themselves: the flow's default)
     reg2 = Registry(tmp_path / "reg2")
     reg2.publish(failing, inputs=[{"path": "other", "sha256": "e" * 64}], settings={}, code_version="t")
     with pytest.raises(ThermocalError, match="failed its verification"):
         base_passport_of(reg2, "AU-0001")
-    assert _base_passport(run_path, tmp_path / "reg2", None) is None
+    assert default_base_passport(tmp_path / "reg2", "AU-0001") is None
 
 
 def test_diagnose_registry_compares_with_the_current_passport(calibrated, tmp_path):
