@@ -56,6 +56,7 @@ def worker(listen_fd: int) -> int:
     from pipeline.calibrate.fleet import prepare_worker
 
     prepare_worker()
+    _import_flow_run_modules()
     listener = socket.socket(fileno=listen_fd)
     token = os.environ.get("THERMOCAL_WORKER_TOKEN", "")
     while True:
@@ -73,6 +74,18 @@ def worker(listen_fd: int) -> int:
     sys.stdout.flush()
     os.dup2(os.open(os.devnull, os.O_WRONLY), 1)  # the supervisor reads no more from this pipe
     return _run_job(conn, reader, req)
+
+
+def _import_flow_run_modules() -> None:
+    """What Prefect imports on a process's first flow run, imported now: its flow and task engines, the encoder of
+    a flow run's parameters (FastAPI's), the run-graph tracker, anyio's asyncio backend (the API client's)."""
+    import encodings.idna  # noqa: F401
+
+    import anyio._backends._asyncio  # noqa: F401
+    import fastapi.encoders  # noqa: F401
+    import prefect.flow_engine  # noqa: F401
+    import prefect.task_engine  # noqa: F401
+    import prefect.utilities.visualization  # noqa: F401
 
 
 def _run_job(conn: socket.socket, reader, req: dict) -> int:

@@ -216,13 +216,22 @@ def _inspect_run(path: Path) -> tuple[RunMeta | None, RunDigest | Exception]:
 
 
 def prepare_worker() -> None:
-    """Import what calibrating a unit needs (both run readers, matplotlib's Agg canvas), so that a fresh worker
-    process (the initializer of the fleet's process pool) pays for it before its first unit, not in it."""
-    from matplotlib import figure, patches  # noqa: F401
-    from matplotlib.backends import backend_agg  # noqa: F401
+    """Import what calibrating a unit needs (both run readers, the description of a recording that ``--method
+    auto`` reads, matplotlib's Agg canvas) and draw one tiny figure to memory (matplotlib's fonts and Pillow's
+    image plugins load on the first figure), so that a fresh worker process (the initializer of the fleet's process
+    pool, the local server's warm worker) pays for it before its first unit, not in it."""
+    import io
 
-    from pipeline import plots  # noqa: F401
+    from matplotlib import patches  # noqa: F401
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from pipeline import inspect, plots  # noqa: F401
     from pipeline.io import mcap, parquet  # noqa: F401
+
+    fig = Figure(figsize=(1, 1), dpi=20)
+    fig.subplots().set_title("warm-up", fontsize=7)
+    FigureCanvasAgg(fig).print_png(io.BytesIO())
 
 
 def calibrate_group(unit: str, runs: list[str] | tuple[str, ...], registry: str | os.PathLike,
