@@ -164,7 +164,7 @@ def plot_constants(passport: dict, path: str | Path, *, title: str = "") -> Path
     ``uncertainty``)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
-    from matplotlib.ticker import MaxNLocator
+    from matplotlib.ticker import MaxNLocator, NullLocator
 
     from pipeline.passport.document import load_model
 
@@ -173,7 +173,9 @@ def plot_constants(passport: dict, path: str | Path, *, title: str = "") -> Path
     K0 = np.asarray(passport["coefficients"]["K"], float)
     U00 = np.asarray(passport["coefficients"]["U0"], float)
     fig = Figure(figsize=(12, 10.5), dpi=90)
-    axes = fig.subplots(6, 3, sharex=True, gridspec_kw={"height_ratios": [3, 1.3] * 3})
+    # not sharex: a shared x axis shares its tick locator, and every axes would make the bottom row's tick
+    # objects (18 axes' ticks were most of the drawing time); the rows above take the bottom row's limits instead
+    axes = fig.subplots(6, 3, gridspec_kw={"height_ratios": [3, 1.3] * 3})
     fig.subplots_adjust(left=0.09, right=0.99, bottom=0.05, top=0.92, hspace=0.12, wspace=0.22)
     T0 = float(passport.get("normal_temp_c", 20.0))
     span = passport.get("valid_temp_c") or [T0, T0]
@@ -189,6 +191,7 @@ def plot_constants(passport: dict, path: str | Path, *, title: str = "") -> Path
         at_grid = constant_changes(*model.constants_at(grid), K0, U00)
         at_T = constant_changes(*model.constants_at(T), K0, U00)
         axis = "xyz"
+        pad = 0.04 * (hi - lo) if hi > lo else 1.0
         for r, (key, label) in enumerate(_CONSTANT_ROWS):
             for i in range(3):
                 ax, res = axes[2 * r, i], axes[2 * r + 1, i]
@@ -200,14 +203,13 @@ def plot_constants(passport: dict, path: str | Path, *, title: str = "") -> Path
                     e = None if sig is None else (sig[key][:, i, k] if key == "cross" else sig[key][:, i])
                     colour = f"C{k}" if key == "cross" else "C0"
                     name = f"K{axis[i]}{axis[others[k]]}" if key == "cross" else None
-                    ax.errorbar(T, y, yerr=e, fmt="o", ms=4, color=colour, capsize=2, lw=1,
-                                label=f"{name} per plateau" if name else "per plateau")
+                    _points(ax, T, y, e, colour, 4, f"{name} per plateau" if name else "per plateau")
                     ax.plot(grid, fit, "-", color=colour, lw=1,
                             label=f"{name} model" if name else "thermal model")
-                    res.errorbar(T, y - yT, yerr=e, fmt="o", ms=3, color=colour, capsize=2, lw=1)
+                    _points(res, T, y - yT, e, colour, 3, None)
                 res.axhline(0, color="k", lw=0.5)
-                ax.grid(alpha=0.3)
-                res.grid(alpha=0.3)
+                ax.grid(axis="y", alpha=0.3)
+                res.grid(axis="y", alpha=0.3)
                 if i == 0:
                     ax.set_ylabel(label, fontsize=8)
                     res.set_ylabel("residual", fontsize=8)
@@ -217,11 +219,14 @@ def plot_constants(passport: dict, path: str | Path, *, title: str = "") -> Path
                     ax.legend(fontsize=6, loc="best", frameon=False)
                 ax.tick_params(labelsize=7)
                 res.tick_params(labelsize=7)
-                # few ticks: 18 axes' tick objects are most of the drawing time
                 ax.yaxis.set_major_locator(MaxNLocator(5))
                 res.yaxis.set_major_locator(MaxNLocator(3))
-        axes[-1, 0].xaxis.set_major_locator(MaxNLocator(6))   # shared by every axes
+        for ax in axes.flat:
+            ax.set_xlim(lo - pad, hi + pad)
+        for ax in axes[:-1].flat:             # temperature ticks and labels on the bottom row only
+            ax.xaxis.set_major_locator(NullLocator())
         for ax in axes[-1]:
+            ax.xaxis.set_major_locator(MaxNLocator(6))
             ax.set_xlabel("temperature [C]", fontsize=8)
     else:
         axes[0, 0].text(0.5, 0.5, "no plateau constants and no temperature range", ha="center",
@@ -234,6 +239,16 @@ def plot_constants(passport: dict, path: str | Path, *, title: str = "") -> Path
     path.parent.mkdir(parents=True, exist_ok=True)
     FigureCanvasAgg(fig).print_png(path, pil_kwargs={"compress_level": 1})
     return path
+
+
+def _points(ax, x: np.ndarray, y: np.ndarray, e: np.ndarray | None, colour: str, ms: float, label: str | None
+            ) -> None:
+    """Points ``y`` at ``x`` with error bars ``+-e`` (where finite) as one line of vertical strokes: two artists
+    where ``errorbar`` makes a line collection and caps per series (a figure of 18 axes draws ~50 series)."""
+    ax.plot(x, y, "o", ms=ms, color=colour, label=label)
+    if e is not None and np.isfinite(e).any():
+        bars = np.stack([y - e, y + e, np.full_like(y, np.nan)], axis=1).ravel()
+        ax.plot(np.repeat(x, 3), bars, "-", color=colour, lw=1)
 
 
 def _plateau_sigmas(passport: dict, n: int, K0: np.ndarray) -> dict[str, np.ndarray] | None:
