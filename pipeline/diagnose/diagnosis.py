@@ -193,6 +193,13 @@ def _diagnose(run: Run, passport: dict | None, settings: DiagnoseSettings, passp
             design.set_base_mask(shift.mask)
             held = shift.terms
             sel = _select(design, candidates, settings, initial=held)
+    if given and sel.accepted:    # an effect that only takes up the passport's own error is not named
+        absorbed = _passport_error_absorbed(design, sel, settings)
+        if absorbed:
+            candidates = [e for e in candidates if e not in absorbed]
+            sel = _select(design, candidates, settings, initial=held)
+            notes.append(f"{', '.join(absorbed)} would only take up the passport's own error (with its thermal "
+                         "model free to move, the recording does not need it): not named")
     unexplained = find_unexplained(design, sel.final, settings.locate_sigma)
     if unexplained is not None:   # held in the model, the catalogue search is redone on top of it
         held = held + ((unexplained[0], None),)
@@ -280,6 +287,31 @@ def _select(design: Design, candidates: list[str], settings: DiagnoseSettings, i
             return sel
         left = [e for e in left if e not in bad]
     return sel
+
+
+def _passport_error_absorbed(design: Design, sel: Selection, settings: DiagnoseSettings) -> list[str]:
+    """Catalogue effects accepted on top of a given, held passport that the recording no longer needs once the
+    passport's constants and thermal model are free to move (a passport's constants are not exact: a smooth
+    function of temperature such as ``temperature_curvature`` can take up their error at the calibration
+    temperatures). An effect the free base cannot tell apart from (rank 0) is kept: there the held passport is
+    what separates it."""
+    saved = design.base_mask.copy()
+    ln_n = float(np.log(design.n_values))
+    out = []
+    try:
+        design.set_base_mask(np.ones_like(saved))
+        with_all = design.fit(sel.state)
+        for t in sel.accepted:
+            without = design.fit(tuple(s for s in sel.state if s[0] != t.effect))
+            cls = effect_class(t.effect)
+            if with_all.rank == without.rank and cls.acts_on != "temperature":
+                continue
+            added = with_all.rank - without.rank + (cls.nonlinear is not None)
+            if with_all.chi2 - without.chi2 + added * ln_n > -settings.selection.threshold:
+                out.append(t.effect)
+    finally:
+        design.set_base_mask(saved)
+    return out
 
 
 def _forced_by_unexplained(design: Design, sel: Selection, fid: str, settings: DiagnoseSettings) -> list[str]:
