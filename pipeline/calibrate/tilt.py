@@ -168,20 +168,13 @@ def fit_unit(unit: str, observations: list[Observation], settings: CalibrationSe
     for _ in range(settings.temperature_referencing_passes):
         # Refer every segment average to its plateau's mean temperature. The local slopes come from the smooth
         # default polynomial (a piecewise model's slopes are chords, wrong at the breakpoints themselves).
-        local = thermal("auto")
-        shift = {}
-        plateau_temp = {(f.run_id, f.plateau): f.temp_c for f in fits}
-        for key, rows in groups.items():
-            if key not in plateau_temp:
-                continue
-            t_seg = np.array([o.temp_c for o in rows])
-            a = np.array([gravity_vector_g(o.position) for o in rows])
-            Ks, U0s = local.constants_at(t_seg)
-            Kp, U0p = local.constants_at(np.full(len(rows), plateau_temp[key]))
-            d = np.einsum("nij,nj->ni", Ks - Kp, a) + (U0s - U0p)
-            shift.update({id(o): d[k] for k, o in enumerate(rows)})
+        shift = _referral_shifts(thermal("auto"), groups, fits)
         fits = _fit_plateaus(groups, shift, settings.constants_method, None)
-    fits, tau_v = _with_uncertainty(fits, groups, shift if settings.temperature_referencing_passes else {})
+    if not settings.temperature_referencing_passes:
+        shift = {}
+    fits, tau_v = _with_uncertainty(fits, groups, shift)
+    if shift:
+        fits, tau_v = _with_uncertainty(fits, groups, shift, _referral_errors(thermal, groups, fits))
     nominal, K_nom, U0_nom = _at_calibration_temperatures(fits, thermal("auto"), normal_temp_c,
                                                           settings.cluster_tol_c)
     model = thermal(settings.thermal_model, nominal, K_nom, U0_nom)
@@ -194,10 +187,59 @@ def fit_unit(unit: str, observations: list[Observation], settings: CalibrationSe
                    excess_scatter_v=tau_v)
 
 
-def _with_uncertainty(fits: list[PlateauConstants], groups, shift_v: dict[int, np.ndarray]
+def _referral_shifts(local: ThermalModel, groups, fits: list[PlateauConstants]) -> dict[int, np.ndarray]:
+    """Per observation (by id), the change (3,) V of its mean output from its own temperature to its plateau's
+    mean temperature, by the ``local`` model: [K(T_seg) - K(T_plateau)] a + U0(T_seg) - U0(T_plateau)."""
+    shift = {}
+    plateau_temp = {(f.run_id, f.plateau): f.temp_c for f in fits}
+    for key, rows in groups.items():
+        if key not in plateau_temp:
+            continue
+        t_seg = np.array([o.temp_c for o in rows])
+        a = np.array([gravity_vector_g(o.position) for o in rows])
+        Ks, U0s = local.constants_at(t_seg)
+        Kp, U0p = local.constants_at(np.full(len(rows), plateau_temp[key]))
+        d = np.einsum("nij,nj->ni", Ks - Kp, a) + (U0s - U0p)
+        shift.update({id(o): d[k] for k, o in enumerate(rows)})
+    return shift
+
+
+def _referral_errors(thermal, groups, fits: list[PlateauConstants]) -> dict[int, np.ndarray]:
+    """Per observation (by id), the 1-sigma changes (n_moves, 3) V of its referral shift (:func:`_referral_shifts`)
+    when the local model is refitted with one plateau's K column j (j = x, y, z) or U0 moved by +-1 standard
+    uncertainty, one row per move. The moves are independent (a shift of channel i depends on K_ij and U0_i only),
+    and within one move the changes of all segments are fully correlated (one slope error): the error of
+    referring each segment to its plateau's temperature through the model's slope. The thermosensor's own noise,
+    averaged over a segment (0.01 C / sqrt(n) against temperature differences of tenths of a degree to degrees),
+    is negligible beside it and not included. Measured: with 20-min soaks (positions up to 1.1 C from their
+    plateau's mean) the referral error is about 0.005 micro-V against 0.3 micro-V of a segment mean's noise, so it
+    moves the stored sigmas by less than 0.1 % (tests/calibrate/test_uncertainty_coverage.py); it is included all
+    the same, so a program with longer excursions is covered too."""
+    temps = np.array([f.temp_c for f in fits])
+    K, U0 = np.array([f.K for f in fits]), np.array([f.U0 for f in fits])
+    changes: dict[int, list[np.ndarray]] = {}
+    for p, f in enumerate(fits):
+        for col in range(4):
+            moved = []
+            for sign in (1.0, -1.0):
+                Kp, Up = K.copy(), U0.copy()
+                if col < 3:
+                    Kp[p, :, col] += sign * f.K_sigma[:, col]
+                else:
+                    Up[p] += sign * f.U0_sigma
+                moved.append(_referral_shifts(thermal("auto", temps, Kp, Up), groups, fits))
+            for k, plus in moved[0].items():
+                changes.setdefault(k, []).append((plus - moved[1][k]) / 2.0)
+    return {k: np.array(v) for k, v in changes.items()}
+
+
+def _with_uncertainty(fits: list[PlateauConstants], groups, shift_v: dict[int, np.ndarray],
+                      referral_v: dict[int, np.ndarray] | None = None
                       ) -> tuple[list[PlateauConstants], np.ndarray]:
     """The plateau fits with the standard uncertainties of their constants (:mod:`pipeline.uncertainty`): the
-    noise measured in each segment plus the excess scatter of the fits' residuals, pooled over the plateaus."""
+    noise measured in each segment plus the excess scatter of the fits' residuals, pooled over the plateaus, and
+    the error of referring each segment to its plateau's temperature (``referral_v``: :func:`_referral_errors`,
+    propagated through the plateau's estimator with the segments' correlation)."""
     parts = []
     for f in fits:
         rows = groups[(f.run_id, f.plateau)]
@@ -212,6 +254,12 @@ def _with_uncertainty(fits: list[PlateauConstants], groups, shift_v: dict[int, n
     out = []
     for f, (W, _, _, var) in zip(fits, parts):
         K_sig, U0_sig = plateau_sigma(W, var + tau_v ** 2)
+        rows = groups[(f.run_id, f.plateau)]
+        if referral_v and all(id(o) in referral_v for o in rows):
+            moves = np.stack([referral_v[id(o)] for o in rows])          # (m, n_moves, 3)
+            extra = np.sum(np.einsum("rm,mni->nri", W, moves) ** 2, axis=0)     # (4, 3): [K_.x, K_.y, K_.z, U0]
+            K_sig = np.sqrt(K_sig ** 2 + extra[:3].T)
+            U0_sig = np.sqrt(U0_sig ** 2 + extra[3])
         out.append(replace(f, K_sigma=K_sig, U0_sigma=U0_sig))
     return out, tau_v
 

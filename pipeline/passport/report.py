@@ -19,7 +19,7 @@ from pathlib import Path
 
 from pipeline.errors import ThermocalError
 from pipeline.passport.text import (approval_text, gains_v_per_g, max_error_g, model_text, output_unit_of,
-                                    per)
+                                    per, reason_lines, sigma_reasons)
 from pipeline.positions import AXES
 from pipeline.verify import verification_visits
 
@@ -129,11 +129,14 @@ def _settings_text(settings: dict) -> str:
     return ", ".join(f"{k}={v}" for k, v in sorted(keep.items()))
 
 
-def _pm(value: float | None, sigma: float | None, scale: float, unit: str, fmt: str = "{:+.8f}") -> str:
+def _pm(value: float | None, sigma: float | None, scale: float, unit: str, fmt: str = "{:+.8f}",
+        tag: str | None = None) -> str:
     if value is None:
         return "-"
     text = fmt.format(value)
-    if sigma is not None:
+    if tag is not None and (sigma is None or sigma == 0):
+        text += f" {tag}"
+    elif sigma is not None:
         text += f" &plusmn; {sigma * scale:.2g} {unit}"
     return text
 
@@ -149,12 +152,19 @@ def _constants_table(doc: dict) -> str:
     u = html.escape(output_unit_of(doc))
     rows = ["<table><tr><th>row i</th>" + "".join(f"<th>K<sub>i{a}</sub> ({per(u, 'g')})</th>" for a in AXES)
             + f"<th>U0<sub>i</sub> ({u})</th></tr>"]
+    fixed, undetermined = sigma_reasons(doc)
+
+    def tag(name: str) -> str | None:
+        return "(by convention)" if name in fixed else "(undetermined)" if name in undetermined else None
+
     for i, ax in enumerate(AXES):
-        cells = [_pm(K[i][j], None if sK is None else sK[i][j], 1e6 / gains[i], "ppm") for j in range(3)]
-        cells.append(_pm(U0[i], None if sU is None else sU[i], 1e6 / gains[i], "micro-g"))
+        cells = [_pm(K[i][j], None if sK is None else sK[i][j], 1e6 / gains[i], "ppm", tag=tag(f"K.{ax}{AXES[j]}"))
+                 for j in range(3)]
+        cells.append(_pm(U0[i], None if sU is None else sU[i], 1e6 / gains[i], "micro-g", tag=tag(f"U0.{ax}")))
         rows.append(f"<tr><th>{ax}</th>" + "".join(f"<td class='num'>{x}</td>" for x in cells) + "</tr>")
     rows.append("</table><p class='note'>&plusmn; one standard uncertainty, in ppm of the row's gain |K<sub>ii</sub>| "
                 "for K and in micro-g for U0.</p>")
+    rows += [f"<p class='note'>{html.escape(line.strip())}</p>" for line in reason_lines(doc)]
     return "".join(rows)
 
 
@@ -163,6 +173,7 @@ def _thermal_table(doc: dict) -> str:
     sig = (doc.get("uncertainty") or {}).get("thermal_model") or {}
     gains = dict(zip(AXES, gains_v_per_g(doc) or [1.0, 1.0, 1.0]))
     u = html.escape(output_unit_of(doc))
+    undetermined = sigma_reasons(doc)[1]
     rows = ["<table><tr><th>term</th><th>coefficient</th><th>value</th><th>in engineering units</th></tr>"]
 
     def add(term: str, group: str, key: str, value: float, sigma: float | None, power: str) -> None:
@@ -170,7 +181,8 @@ def _thermal_table(doc: dict) -> str:
             scale, unit, own = 1e6 / gains[key[0]], f"micro-g/C{power}", per(u, f"C{power}")
         else:
             scale, unit, own = 1e6, f"ppm/C{power}", f"1/C{power}"
-        eng = f"{value * scale:+.4g} {unit}" + (f" &plusmn; {sigma * scale:.2g}" if sigma is not None else "")
+        eng = f"{value * scale:+.4g} {unit}" + (f" &plusmn; {sigma * scale:.2g}" if sigma is not None else
+                                                 " (undetermined)" if f"{group}.{key}" in undetermined else "")
         rows.append(f"<tr><td>{html.escape(term)}</td><td>{group} {key}</td>"
                     f"<td class='num'>{value:+.6e} {own}</td><td class='num'>{eng}</td></tr>")
 

@@ -79,15 +79,44 @@ def constants_lines(doc: dict) -> list[str]:
              "the row's gain for K, micro-g for U0)",
              "        " + "".join(f"{h:<28}" for h in (f"K_ix ({per(u, 'g')})", f"K_iy ({per(u, 'g')})",
                                                           f"K_iz ({per(u, 'g')})", f"U0_i ({u})")).rstrip()]
+    fixed, undetermined = sigma_reasons(doc)
     for i, ax in enumerate(AXES):
-        cells = [_pm(K[i][j], None if sK is None else sK[i][j], gains[i], "ppm") for j in range(3)]
-        cells.append(_pm(U0[i], None if sU is None else sU[i], gains[i], "ug"))
+        cells = [_pm(K[i][j], None if sK is None else sK[i][j], gains[i], "ppm",
+                     _tag(f"K.{ax}{AXES[j]}", fixed, undetermined)) for j in range(3)]
+        cells.append(_pm(U0[i], None if sU is None else sU[i], gains[i], "ug", _tag(f"U0.{ax}", fixed, undetermined)))
         lines.append(f"  i={ax}  " + "".join(f"{cell:<28}" for cell in cells).rstrip())
-    return lines
+    return lines + reason_lines(doc, ("K.", "U0."))
 
 
-def _pm(value: float, sigma: float | None, gain: float, unit: str) -> str:
+def sigma_reasons(doc: dict) -> tuple[dict[str, str], dict[str, str]]:
+    """The passport's ``uncertainty.fixed_by_convention`` and ``uncertainty.undetermined`` ({field: why}); empty
+    when it records none."""
+    unc = doc.get("uncertainty") or {}
+    return dict(unc.get("fixed_by_convention") or {}), dict(unc.get("undetermined") or {})
+
+
+def reason_lines(doc: dict, prefixes: tuple[str, ...] = ()) -> list[str]:
+    """One line per reason a field has no measured uncertainty (fields with the same reason on one line), for the
+    fields starting with one of ``prefixes`` (all when empty)."""
+    fixed, undetermined = sigma_reasons(doc)
+    out = []
+    for label, reasons in (("fixed by convention", fixed), ("no uncertainty", undetermined)):
+        by_reason: dict[str, list[str]] = {}
+        for name, why in reasons.items():
+            if not prefixes or name.startswith(prefixes):
+                by_reason.setdefault(why, []).append(name)
+        out += [f"  {label}: {', '.join(names)}: {why}" for why, names in by_reason.items()]
+    return out
+
+
+def _tag(name: str, fixed: dict, undetermined: dict) -> str | None:
+    return "(by convention)" if name in fixed else "(undetermined)" if name in undetermined else None
+
+
+def _pm(value: float, sigma: float | None, gain: float, unit: str, tag: str | None = None) -> str:
     text = f"{value:+.8f}"
+    if tag is not None and (sigma is None or sigma == 0):
+        return f"{text} {tag}"
     if sigma is None:
         return text
     return f"{text} +-{sigma / gain * 1e6:.2g} {unit}"

@@ -1,10 +1,12 @@
-"""Standard uncertainties of the differential method (seed 003) tested for coverage against the simulator's truth
+"""Standard uncertainties of the differential (seed 003) and scalar (seed 004) methods tested for coverage against the simulator's truth
 over many noise seeds, as tests/test_uncertainty.py does for the tilt method: the chamber differential (a base
 passport, six orientations with 1.5 degree face errors, one temperature cycle) and the sweep differential (no base,
 three orientations, the temperature drifting 5 -> 25 C). About 68 % of the errors within 1 sigma and 95 % within
 2 sigma, and the sigmas not absurdly wide (their median within a small factor of the scatter of the estimates
 between seeds); terms the orientations cannot determine have no uncertainty and the passport says why; ``passport
-diff`` of two differential passports marks a real change of a temperature coefficient and not the noise.
+diff`` of two differential passports marks a real change of a temperature coefficient and not the noise. The
+scalar method's constants likewise, with its gauge-fixed entries named; and the tilt method's referral of each
+position to its plateau's temperature is in its sigmas.
 
 Tolerances: the z-scores of one run's coefficients are correlated (the orders of one constant's polynomial share the
 same data), so a few hundred z-scores count as about a third as many independent ones; the binomial standard
@@ -19,7 +21,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from pipeline.calibrate import differential
+from pipeline.calibrate import differential, scalar, tilt
 from pipeline.calibrate.tilt import fit_unit, observe_run
 from pipeline.passport.document import build_passport
 from pipeline.passport.registry import Registry
@@ -27,9 +29,11 @@ from pipeline.passport.significance import significant_changes
 from pipeline.simulate import chamber, program
 from pipeline.simulate.chamber import SimConfig, simulate
 from pipeline.simulate.unit import UnitTruth, seed000_unit
+from tests.calibrate.test_short_soaks_and_missing_positions import program as soak_program
 
 N_CHAMBER = 16          # chamber cycles at 1 Hz, about 1 s each to simulate and calibrate
 N_SWEEP = 16            # sweeps at 0.5 Hz, about 0.6 s each
+N_SCALAR = 24           # short programs at 1 Hz, about 0.12 s each
 GROUPS = ("alpha", "beta", "gamma")
 
 
@@ -236,3 +240,94 @@ def test_diff_of_differential_passports_marks_real_changes(chamber_runs, tmp_pat
     assert by_name["alpha.x[1]"]["delta_scaled"] == pytest.approx(0.05, rel=1e-6)
     assert by_name["beta.yy[1]"]["delta_scaled"] == pytest.approx(1.0, rel=1e-6)
     assert by_name["alpha.x[1]"]["delta"] / by_name["alpha.x[1]"]["uncertainty"] > 5
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# The tilt method: referring each position to its plateau's temperature
+
+
+def test_referral_to_the_plateau_temperature_is_in_the_sigma_and_small(monkeypatch):
+    """20-min soaks: the unit still settles, each position is referred to its plateau's mean temperature across
+    about 1 C through the local model's slope. The slope's uncertainty, propagated to every segment
+    (tilt._referral_errors), is in the stored per-plateau sigmas: they grow, but by less than 1 % (the referral
+    error is ~0.005 micro-V against ~0.3 micro-V of a segment mean's noise), and the sigmas still cover the
+    truth."""
+    run = simulate(SimConfig(seed=603, rate_hz=1.0, program=soak_program(1200.0, 1200.0))).run
+    obs, _ = observe_run(run)
+    spread = [max(o.temp_c for o in rows) - min(o.temp_c for o in rows)
+              for rows in tilt._group_plateaus(obs).values()]
+    assert max(spread) > 0.8, spread
+    with_ref = fit_unit("AU-0001", obs)
+    monkeypatch.setattr(tilt, "_referral_errors", lambda *args: {})
+    without = fit_unit("AU-0001", obs)
+    s1 = np.concatenate([np.r_[p.K_sigma.ravel(), p.U0_sigma] for p in with_ref.per_plateau])
+    s0 = np.concatenate([np.r_[p.K_sigma.ravel(), p.U0_sigma] for p in without.per_plateau])
+    assert np.all(s1 >= s0) and np.any(s1 > s0 * (1 + 1e-7)), "the referral error is not included"
+    assert np.max(s1 / s0) < 1.01
+    truth = seed000_unit()
+    z = []
+    for p in with_ref.per_plateau:
+        K, U0 = truth.constants_at(p.temp_c)
+        z += list(((p.K - K[0]) / p.K_sigma).ravel()) + list((p.U0 - U0[0]) / p.U0_sigma)
+    assert np.mean(np.abs(z) < 2) >= 0.9
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# The scalar method
+
+
+def test_scalar_constants_cover_the_truth_and_name_the_gauge():
+    """K (lower-triangular gauge) and U0 of the scalar method (all static segments at +20 C of the short program,
+    orientation-free) against the truth in that gauge: coverage and width per entry; the three upper entries of K
+    are 0 by the rotation gauge, their uncertainty 0 and named in ``fixed_by_convention``; nothing is null."""
+    err, sd = [], []
+    for seed in range(N_SCALAR):
+        cal = scalar.calibrate([simulate(SimConfig(seed=300 + seed, program="short", rate_hz=1.0)).run])
+        p = cal.fit.per_plateau[0]
+        K, U0 = seed000_unit().constants_at(p.temp_c)
+        ok = p.K_sigma > 0
+        assert ok.sum() == 6 and np.all(p.K_sigma[~ok] == 0) and np.all(p.K[~ok] == 0.0)
+        err.append(np.r_[(p.K - scalar.lower_gauge(K[0]))[ok], p.U0 - U0[0]])
+        sd.append(np.r_[p.K_sigma[ok], p.U0_sigma])
+        unc = cal.passport["uncertainty"]
+        assert sorted(unc["fixed_by_convention"]) == ["K.xy", "K.xz", "K.yz"]
+        assert "gauge" in unc["fixed_by_convention"]["K.xy"] and unc["undetermined"] == {}
+        assert unc["coefficients"]["K"][0][1] == 0.0
+        assert all(v is not None for row in unc["coefficients"]["K"] for v in row)
+    err, sd = np.array(err), np.array(sd)
+    within1, within2, median = _within(err / sd)
+    assert 0.58 <= within1 <= 0.80 and 0.90 <= within2 <= 1.0 and 0.5 <= median <= 0.85, (within1, within2, median)
+    # not absurdly wide: median sigma against the rms error over the seeds, per entry (24 seeds: +-15 %)
+    ratio = np.median(sd, axis=0) / np.sqrt(np.mean(err ** 2, axis=0))
+    assert np.all((0.5 < ratio) & (ratio < 2.0)), ratio
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# What people read: passport show, the certificate, the CSV export
+
+
+def test_show_report_and_csv_print_the_differential_and_scalar_uncertainties(chamber_runs, sweep_runs):
+    """``passport show`` and the certificate print the differential method's constants and temperature
+    coefficients with their uncertainty, mark what has none (with the reason) and the scalar method's gauge-fixed
+    entries as fixed by convention; the CSV export carries the same sigmas, and the PX4 export is unchanged by
+    them."""
+    from pipeline.passport.export import export_csv, export_px4
+    from pipeline.passport.report import certificate_html
+    from pipeline.passport.text import passport_summary
+
+    chamber_doc, sweep_doc = chamber_runs[0], sweep_runs[0]
+    text = passport_summary(chamber_doc)
+    assert text.count("ppm") >= 9 and text.count(" ug") >= 3 and "(undetermined)" not in text
+    html = certificate_html(chamber_doc)
+    assert html.count("&plusmn;") >= 12 + 36            # constants and every alpha, beta, gamma coefficient
+    sweep_text = passport_summary(sweep_doc)
+    assert "(undetermined)" in sweep_text and "no uncertainty: K.xy, K.xz, K.yx, K.yz, K.zx, K.zy" in sweep_text
+    scalar_doc = scalar.calibrate([simulate(SimConfig(seed=3, program="short", rate_hz=1.0)).run]).passport
+    assert "fixed by convention: K.xy, K.xz, K.yz" in passport_summary(scalar_doc)
+    assert certificate_html(scalar_doc).count("(by convention)") == 3
+    rows = [r.split(",") for r in export_csv(chamber_doc).text.splitlines()]
+    alpha = [r for r in rows if r[0] == "alpha"]
+    assert len(alpha) == 9 and all(float(r[-1]) > 0 for r in alpha)
+    stripped = copy.deepcopy(chamber_doc)
+    stripped["uncertainty"] = None
+    assert export_px4(stripped).text == export_px4(chamber_doc).text
