@@ -37,7 +37,7 @@ UNIT_HELP = "the unit's serial number, e.g. AU-0001"
 def _plain_type_words() -> None:
     """Help shows an option's value as a plain word (``PATH``, ``NUMBER``, ...) or its ``metavar``, and nothing for
     a flag or an argument (its name is shown), where typer's default shows Python type tags (``<bool>``,
-    ``<list[Path]>``)."""
+    ``<list[Path]>``); arguments in the usage line as ``RUN`` and ``[V]``."""
     from typer import core
 
     words = {"float": "NUMBER", "int": "INTEGER", "str": "TEXT"}
@@ -57,6 +57,15 @@ def _plain_type_words() -> None:
     for cls in (getattr(core, "TyperArgument", None), getattr(core, "TyperOption", None)):
         if cls is not None and hasattr(cls, "display_type_rich"):
             cls.display_type_rich = display
+
+    def usage_name(self) -> str:
+        """``RUN`` (required), ``[V]`` (optional), ``RUN...`` in the usage line, where newer typer writes
+        ``{RUN}``, which reads as a set of choices."""
+        name = self.display_name_raw if self.required else f"[{self.display_name_raw}]"
+        return name + ("..." if self.nargs != 1 else "")
+
+    if hasattr(getattr(core, "TyperArgument", None), "_usage_display_name"):
+        core.TyperArgument._usage_display_name = usage_name
 
 
 _plain_type_words()

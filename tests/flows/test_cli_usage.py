@@ -70,6 +70,10 @@ def test_every_option_and_argument_has_plain_help(monkeypatch, capsys):
         code, out, err = run_main(monkeypatch, capsys, *path, "--help")
         assert code == 0 and err == "", err
         assert not jargon.search(out), f"{' '.join(path)} --help:\n{out}"
+        usage = next(ln for ln in out.splitlines() if "Usage:" in ln)
+        assert "{" not in usage, usage                      # RUN, not {RUN} (a set of choices to a reader)
+    code, out, _ = run_main(monkeypatch, capsys, "export", "--help")
+    assert code == 0 and "Usage: thermocal export [OPTIONS] UNIT [V]" in out
 
 
 def test_inspect_prints_times_in_utc(tmp_path):
