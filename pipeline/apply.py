@@ -184,9 +184,11 @@ def apply_passport(passport: dict, run: Run) -> Applied:
             in_range = (temp_c >= rng[0]) & (temp_c <= rng[1])
         out_n = int(np.count_nonzero(~in_range))
         if out_n:
-            first = int(t_ns[np.flatnonzero(~in_range)[0]])
+            from pipeline.inspect import utc_text
+
+            first = utc_text(int(t_ns[np.flatnonzero(~in_range)[0]]))
             warnings.append(f"{out_n} of {n} samples lie outside the passport's valid temperature range "
-                            f"{rng[0]:g} .. {rng[1]:g} C (first at t_ns={first}); the model is extrapolated there")
+                            f"{rng[0]:g} .. {rng[1]:g} C (the first at {first}); the model is extrapolated there")
     table = pl.DataFrame({"t_ns": pl.Series(t_ns, dtype=pl.Int64), "ax_g": a[:, 0], "ay_g": a[:, 1],
                           "az_g": a[:, 2], "temp_c": temp_c, "in_range": pl.Series(in_range, dtype=pl.Boolean)})
     return Applied(table=table, valid_temp_c=rng, warnings=warnings)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import numpy as np
 import polars as pl
 import pytest
@@ -77,6 +78,7 @@ def test_in_range_and_one_warning(passport, other):
     assert (out.table["in_range"].to_numpy() == ((temp >= 0.0) & (temp <= 30.0))).all()
     assert 0 < (~out.table["in_range"].to_numpy()).sum() < out.table.height
     assert len(out.warnings) == 1 and "outside the passport's valid temperature range 0 .. 30 C" in out.warnings[0]
+    assert re.search(r"the first at 2026-11-01 \d\d:\d\d:\d\d\.\d{3} UTC\)", out.warnings[0]), out.warnings[0]
     assert apply_passport(dict(passport, valid_temp_c=[-45.0, 75.0]), run).warnings == []
 
 

@@ -134,8 +134,8 @@ def _residual(bias: np.ndarray, held: np.ndarray, rel: np.ndarray, g: float, tem
 def _not_held(passport: dict, extra: list[str]) -> list[str]:
     tm = passport.get("thermal_model") or {}
     out = ["the scale-factor temperature terms (beta) and the cross-axis temperature terms (gamma): a bias-only "
-           "polynomial cannot hold terms that scale with the specific force (their error is in residual, "
-           "unheld_scale_cross_max_ug)",
+           "polynomial cannot hold terms that scale with the specific force (the error they leave is the residual's "
+           "unheld scale/cross-axis part)",
            "the normal-temperature gains, cross-axis sensitivities and offsets (K, U0 at T0): the vehicle's own "
            "accelerometer calibration holds those",
            "the standard uncertainties of the constants"]
