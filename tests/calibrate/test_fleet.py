@@ -308,7 +308,7 @@ def test_cli_fleet_json_and_exit_status(fleet, tmp_path):
     assert summary["done"][0]["runs"] == [str((inbox / "AU-0201.mcap").resolve())]
     assert [Path(f["run"]).name for f in summary["failed"]] == ["junk.mcap"]
     last = out.stderr.strip().splitlines()[-1]
-    assert last.startswith("thermocal: fleet: 1 run(s) failed:") and "junk.mcap" in last
+    assert last.startswith("thermocal: fleet: 1 run failed: ") and last.count("junk.mcap") == 1, last
     assert "AU-0201: v1 pass" in out.stderr  # the per-unit progress line
     (inbox / "junk.mcap").unlink()
     again = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env)
