@@ -177,7 +177,10 @@ def simulate(out: Path = typer.Option(..., "--out", help="output .mcap file or P
     opts = {"encoding": encoding} if fmt == "mcap" and encoding != "json" else {}
     path = write_run(res.run, out, fmt, **opts)
     truth_path = truth or _truth_path(path)
-    write_truth(res.truth, truth_path)
+    try:
+        write_truth(res.truth, truth_path)
+    except OSError as e:
+        raise ThermocalError(f"cannot write the ground truth ({e.strerror or e})", path=str(truth_path)) from None
     n = res.run.voltmeter.height
     _emit({"run": str(path), "truth": str(truth_path), "samples": n, "unit": unit}, as_json,
           f"wrote {path} ({n} voltmeter samples) and {truth_path}")

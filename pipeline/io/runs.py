@@ -15,7 +15,7 @@ from typing import Any
 import orjson
 from mcap.reader import make_reader
 
-from pipeline.errors import RunFormatError
+from pipeline.errors import RunFormatError, ThermocalError
 from pipeline.io.mcap import MAGIC, read_mcap, write_mcap
 from pipeline.io.parquet import META_FILE, read_parquet_run, write_parquet_run
 from pipeline.run import Run, RunMeta
@@ -51,17 +51,17 @@ def write_run(run: Run, path: str | Path, fmt: str = "mcap", **opts: Any) -> Pat
     """Write ``run`` as an MCAP file (``fmt="mcap"``) or a Parquet run directory (``fmt="parquet"``).
 
     ``opts`` go to :func:`pipeline.io.mcap.write_mcap` (block size, chunk size, compression, summary). Returns the
-    path written. The file or directory appears complete or not at all (written aside, then renamed).
+    path written. The file or directory appears complete or not at all (written aside, then renamed); a place it
+    cannot be written is a one-line :class:`ThermocalError`.
     """
-    if fmt == "mcap":
-
-        return write_mcap(run, path, **opts)
-    if fmt == "parquet":
-        if opts:
-            raise RunFormatError(f"options {sorted(opts)} do not apply to the parquet format", path=str(path))
-
-        return write_parquet_run(run, path)
-    raise RunFormatError(f"unknown run format {fmt!r}; expected one of {', '.join(FORMATS)}", path=str(path))
+    if fmt not in FORMATS:
+        raise RunFormatError(f"unknown run format {fmt!r}; expected one of {', '.join(FORMATS)}", path=str(path))
+    if fmt == "parquet" and opts:
+        raise RunFormatError(f"options {sorted(opts)} do not apply to the parquet format", path=str(path))
+    try:
+        return write_mcap(run, path, **opts) if fmt == "mcap" else write_parquet_run(run, path)
+    except OSError as e:
+        raise ThermocalError(f"cannot write the run ({e.strerror or e})", path=str(path)) from None
 
 
 # --- checks shared by the readers and writers -------------------------------------------------------------------

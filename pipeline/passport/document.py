@@ -174,9 +174,13 @@ def load_passport(source: dict | str | Path) -> Passport:
     if isinstance(source, dict):
         return Passport.from_dict(source)
     try:
-        doc = json.loads(Path(source).read_text())
-    except (OSError, ValueError) as e:
-        raise ThermocalError(f"cannot read passport: {e}", path=str(source)) from None
+        doc = json.loads(Path(source).read_bytes())
+    except OSError as e:
+        raise ThermocalError(f"cannot read passport ({e.strerror or e})", path=str(source)) from None
+    except UnicodeDecodeError:
+        raise ThermocalError("not a passport: the file is not JSON text", path=str(source)) from None
+    except ValueError as e:
+        raise ThermocalError(f"not a passport: the file is not JSON ({e})", path=str(source)) from None
     if not isinstance(doc, dict) or doc.get("schema") != SCHEMA_ID:
         raise ThermocalError(f"not a {SCHEMA_ID} document", path=str(source))
     return Passport.from_dict(doc, path=str(source))

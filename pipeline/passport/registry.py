@@ -287,6 +287,8 @@ class Registry:
     def _require_unit(self, unit: str) -> Path:
         udir = self.unit_dir(unit)
         if not udir.is_dir():
+            if not self.root.is_dir():
+                raise RegistryError("no registry here (not a directory)", path=str(self.root))
             raise RegistryError(f"unknown unit {unit!r}", path=str(self.root))
         return udir
 

@@ -121,3 +121,22 @@ def test_fleet_summary_names_each_failed_run_once():
     assert text.splitlines()[0] == "done: 1 unit, failed: 2 runs, skipped: 0 runs"
     assert "  FAILED  /in/bad.mcap: not an MCAP file" in text and text.count(bad) == 1
     assert "  FAILED  /in/x: no voltmeter" in text
+
+
+def test_unwritable_outputs_and_wrong_files_are_one_line_errors(monkeypatch, capsys, tmp_path):
+    """A place that cannot be written, a file that is not a passport, a registry that is not there: exit 2 and one
+    line naming the path (were: an internal error with exit 3; a decoder's message; 'unknown unit')."""
+    monkeypatch.chdir(tmp_path)
+    blocked = tmp_path / "a-file"
+    blocked.write_text("not a folder")
+    run = Path(__file__).resolve().parents[2] / "sample_data" / "standard_short.mcap"
+    cases = [(("simulate", "--out", str(blocked / "x.mcap"), "--program", "short", "--rate-hz", "0.2"),
+              f"{blocked / 'x.mcap'}: cannot write the run"),
+             (("apply", str(run), str(run), "--out", "x.parquet"), f"{run}: not a passport: the file is not JSON"),
+             (("diagnose", str(run), "--passport", str(blocked)), f"{blocked}: not a passport: the file is not JSON"),
+             (("passport", "show", "AU-0001", "--registry", "nothere"), "nothere: no registry here")]
+    for args, says in cases:
+        code, out, err = run_main(monkeypatch, capsys, *args)
+        assert (code, out) == (2, ""), (args, code, err)
+        assert err.count("\n") == 1 and err.startswith(f"thermocal: error: {says}"), err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a-file"]
