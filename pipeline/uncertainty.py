@@ -20,7 +20,7 @@ Three steps, each linear propagation of independent errors:
 A value the data cannot determine (a relative coefficient of a zero constant) is ``None``, never a made-up number.
 
 The differential method (seed 003) fits its temperature coefficients by linear least squares over differenced block
-means; :func:`regression_sigma` gives their standard uncertainties from the fit's residuals (a sandwich estimator
+means; :func:`regression_cov` gives their covariance from the fit's residuals (a sandwich estimator
 clustered in time, so slowly varying misfit counts as what it is: correlated error) and from the noise measured in
 the blocks, whichever is larger.
 """
@@ -240,11 +240,11 @@ def as_json_list(a):
     return [as_json_list(x) for x in a]
 
 
-def regression_sigma(X: np.ndarray, resid: np.ndarray, noise_var: np.ndarray, clusters: np.ndarray) -> np.ndarray:
-    """Standard uncertainties (p,) of the coefficients of an unweighted least-squares fit ``y = X b`` (X (n, p)),
-    in the units of b; NaN for a column of zeros (a term the data does not hold).
+def regression_cov(X: np.ndarray, resid: np.ndarray, noise_var: np.ndarray, clusters: np.ndarray) -> np.ndarray:
+    """Covariance (p, p) of the coefficients of an unweighted least-squares fit ``y = X b`` (X (n, p)), in the units
+    of b; NaN rows and columns for a column of zeros (a term the data does not hold).
 
-    Two estimates, the larger kept per coefficient:
+    Two estimates, the larger variance kept per coefficient (with the correlations of the first):
 
     - from the residuals ``resid`` (n,): the sandwich ``(X'X)^-1 (sum_g s_g s_g') (X'X)^-1`` with ``s_g`` the sum
       of ``x_k r_k`` over the equations of cluster g (``clusters`` (n,), e.g. stretches of time), times
@@ -265,8 +265,14 @@ def regression_sigma(X: np.ndarray, resid: np.ndarray, noise_var: np.ndarray, cl
     S = np.zeros((G, p))
     np.add.at(S, inv, Xs * np.asarray(resid, dtype=float)[:, None])
     factor = G / (G - 1) * (n - 1) / (n - p) if G > 1 and n > p else 1.0
-    var_r = np.diag(bread @ (S.T @ S) @ bread) * factor
+    cov_r = bread @ (S.T @ S) @ bread * factor
     var_n = np.diag(bread @ ((Xs.T * np.asarray(noise_var, dtype=float)) @ Xs) @ bread)
-    sig = np.sqrt(np.maximum(np.maximum(var_r, var_n), 0.0)) / scale
-    sig[empty] = np.nan
-    return sig
+    sd_r = np.sqrt(np.maximum(np.diag(cov_r), 0.0))
+    sd = np.sqrt(np.maximum(sd_r ** 2, np.maximum(var_n, 0.0)))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = np.where(np.outer(sd_r, sd_r) > 0, cov_r / np.outer(sd_r, sd_r), np.eye(p))
+    cov = corr * np.outer(sd, sd) / np.outer(scale, scale)
+    cov[empty, :] = np.nan
+    cov[:, empty] = np.nan
+    return cov
+

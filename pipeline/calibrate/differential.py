@@ -60,7 +60,7 @@ from pipeline.model import specific_force_g
 from pipeline.positions import AXES, is_verification_position
 from pipeline.run import NS_PER_S as _NS
 from pipeline.thermal import DifferentialModel, PolynomialModel, RateTerms, rate_basis
-from pipeline.uncertainty import ThermalSigma, as_json_list, regression_sigma
+from pipeline.uncertainty import ThermalSigma, as_json_list, regression_cov
 
 #: residuals of differenced pairs whose first blocks lie in one stretch of this length (s) of a window count as
 #: correlated when the coefficients' uncertainties are estimated (a misfit that follows the temperature cycle)
@@ -286,6 +286,8 @@ class DifferentialFit:
     #: the standard uncertainty of every coefficient of ``model`` in the same layout (NaN: not fitted; its K0, U00
     #: are NaN too: they are the base's), conditional on the lag when it was fitted
     sigma: DifferentialModel | None = None
+    #: per channel c, the covariance of its least-squares vector (terms ``terms[c]``, relative to K0_cc)
+    covariance: list[np.ndarray] | None = None
 
     def summary(self) -> dict:
         st = self.settings
@@ -375,12 +377,19 @@ def _cross_factor(K0: np.ndarray, c: int, j: int) -> float:
     return K0[c, j] / K0[c, c] if K0[c, j] != 0 else 1.0
 
 
+def _columns(f: np.ndarray, g: np.ndarray, a: np.ndarray, c: int, names: list[str], K0: np.ndarray) -> np.ndarray:
+    """Channel c's regressors over the named terms (rows, terms), in units of K0_cc: the temperature basis ``f``
+    (rows, P), the rate basis ``g`` (rows, R*(Kx+1)) and the specific force ``a`` (rows, 3) g. Differenced bases
+    give the fit's equations; plain ones give the model's change of the output from T0 (times K0_cc)."""
+    cols = {"bias": f, "scale": a[:, [c]] * f, "bias_rate": g, "scale_rate": a[:, [c]] * g}
+    return np.concatenate([cols[n] if n in cols else _cross_factor(K0, c, AXES.index(n[-1]))
+                           * a[:, [AXES.index(n[-1])]] * f for n in names], axis=1)
+
+
 def _solve(eq: _Equations, c: int, names: list[str], K0: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Least squares of channel c's differenced equation over the named terms: coefficients, residuals (g) and the
     design (pairs, terms)."""
-    cols = {"bias": eq.df, "scale": eq.a0[:, [c]] * eq.df, "bias_rate": eq.dg, "scale_rate": eq.a0[:, [c]] * eq.dg}
-    X = np.concatenate([cols[n] if n in cols else _cross_factor(K0, c, AXES.index(n[-1]))
-                        * eq.a0[:, [AXES.index(n[-1])]] * eq.df for n in names], axis=1)
+    X = _columns(eq.df, eq.dg, eq.a0, c, names, K0)
     y = eq.du[:, c] / K0[c, c]
     scale = np.linalg.norm(X, axis=0)
     scale[scale == 0] = 1.0
@@ -419,34 +428,38 @@ def fit_differential(data: list[BlockData], K0: np.ndarray, U0: np.ndarray, norm
     a_g = [d.a0_g() for d in data]
     tau = _best_lag(data, a_g, K0, normal_temp_c, settings, names) if settings.lag_fit else 0.0
     for _ in range(1 + settings.refine_passes):
-        model, sigma, resid, n_pairs = _fit_once(data, a_g, K0, U0, normal_temp_c, settings, names, tau)
+        model, sigma, resid, n_pairs, covs = _fit_once(data, a_g, K0, U0, normal_temp_c, settings, names, tau)
         # the windows' specific force, now compensated (the first pass used the normal-temperature estimate a0)
         a_g = [np.array([a[d.window == w.index].mean(axis=0) for w in d.windows])
                for d, a in ((d, compensate_blocks(model, d)) for d in data)]
     return DifferentialFit(model=model, terms=names, residual_rms_g=resid, n_pairs=n_pairs, windows=windows,
-                           settings=settings, notes=notes, sigma=sigma)
+                           settings=settings, notes=notes, sigma=sigma, covariance=covs)
 
 
 def _fit_once(data, a_g, K0, U0, normal_temp_c, settings, names, tau
-              ) -> tuple[DifferentialModel, DifferentialModel, np.ndarray, int]:
+              ) -> tuple[DifferentialModel, DifferentialModel, np.ndarray, int, list[np.ndarray]]:
     """One linear fit with the windows' specific force ``a_g`` and the element lag ``tau`` (s): the model, the
-    standard uncertainty of each of its coefficients in the same layout (NaN where a term was not fitted;
-    :func:`pipeline.uncertainty.regression_sigma`), the residual rms per channel (g) and the number of pairs."""
+    standard uncertainty of each of its coefficients in the same layout (NaN where a term was not fitted), the
+    residual rms per channel (g), the number of pairs, and per channel the covariance of its least-squares vector
+    (:func:`pipeline.uncertainty.regression_cov`, in the units of :func:`_solve`)."""
     P, R, Kx = settings.poly_order, settings.rate_order, settings.rate_dt_order
     eq = _equations(data, a_g, normal_temp_c, settings, tau)
     if len(eq.du) < 10 * max(len(n) for n in names) * max(P, R * (Kx + 1)):
         raise CalibrationError(f"too few differenced blocks ({len(eq.du)}) for the differential model")
     value, sigma = _Coefficients(P, R, Kx), _Coefficients(P, R, Kx, sigma=True)
     resid = np.zeros(3)
+    covs = []
     for c in range(3):
         coef, r, X = _solve(eq, c, names[c], K0)
         resid[c] = np.sqrt(np.mean(r ** 2))
         value.place(c, names[c], coef, K0)
-        sigma.place(c, names[c], regression_sigma(X, r, eq.var[:, c] / K0[c, c] ** 2, eq.cluster), K0)
+        cov = regression_cov(X, r, eq.var[:, c] / K0[c, c] ** 2, eq.cluster)
+        covs.append(cov)
+        sigma.place(c, names[c], np.sqrt(np.diag(cov)), K0)
     fitted_abs = np.any(value.cross_abs != 0)
     return (value.model(K0, U0, normal_temp_c, settings.temp_smooth_s, tau, fitted_abs),
             sigma.model(np.full((3, 3), np.nan), np.full(3, np.nan), normal_temp_c, settings.temp_smooth_s, tau,
-                        fitted_abs), resid, len(eq.du))
+                        fitted_abs), resid, len(eq.du), covs)
 
 
 class _Coefficients:
@@ -643,8 +656,8 @@ def nominal_gain_v_per_g(runs) -> np.ndarray:
     return np.full(3, float(np.median(np.linalg.norm(u, axis=1))))
 
 
-def constants_from_orientations(data: list[BlockData], model: DifferentialModel, gain_v_per_g: np.ndarray
-                                ) -> OrientationBase:
+def constants_from_orientations(data: list[BlockData], model: DifferentialModel, gain_v_per_g: np.ndarray,
+                                fit: DifferentialFit | None = None) -> OrientationBase:
     """K (diagonal) and U0 at T0 from orientation windows whose temperature terms ``model`` already describes.
 
     Each window's outputs are brought to T0 with the model (U - dU0(T, r) - dK(T, r) a) and averaged. Axis c's
@@ -653,21 +666,46 @@ def constants_from_orientations(data: list[BlockData], model: DifferentialModel,
     along c (|a| = 1 g, the other components from the other channels). An axis never horizontal (and not both up
     and down) has an undetermined offset, one never vertical an undetermined gain: they stay at their nominal
     values and are listed, not guessed.
+
+    Standard uncertainties (``std_K``, ``std_U0``): the spread between the orientations that give a constant
+    (std / sqrt(n), when there are two or more), plus, with ``fit`` (the fit that made ``model``, with its
+    coefficients' covariance), the error of bringing each window to T0 with the model (propagated with that
+    covariance) and the noise of the window means, added in quadrature. Not in them: the cross-axis constants
+    the orientations cannot separate from the offsets (basis ``identification`` of the passport). A gain that one
+    vertical window alone gives has none (NaN): on simulated sweeps such a gain is off by about 1 ppm against a
+    propagated 0.15 ppm, an error no second orientation shows, so a number would claim what the data do not.
     """
     K_nom, U_nom = model.K0, model.U00
-    means, dirs = [], []
+    means, dirs, grads, noise = [], [], [], []
     for d in data:
         temp, rate = d.temperature(model.lag_tau_s)
         K, U0 = model.constants_at(temp, rate)
         a0 = d.a0_g()
         a_unit = a0 / np.linalg.norm(a0, axis=1, keepdims=True)
         corrected = d.u_v - (U0 - U_nom) - np.einsum("mij,mj->mi", K - K_nom, a_unit[d.window])
+        if fit is not None:
+            st = fit.settings
+            dt = temp - model.normal_temp_c
+            f = dt[:, None] ** np.arange(1, st.poly_order + 1)[None, :]
+            g = rate_basis(dt, rate, st.rate_order, st.rate_dt_order).reshape(len(dt), -1)
+            rows = [_columns(f, g, a_unit[d.window], c, fit.terms[c], K_nom) * -K_nom[c, c] for c in range(3)]
         for w in d.windows:
             sel = d.window == w.index
             if sel.any():
                 means.append(corrected[sel].mean(axis=0))
                 dirs.append(a_unit[w.index])
-    m, dirs = np.array(means), np.array(dirs)
+                # d(window mean of channel c) / d(channel c's coefficients), V; the noise of the mean, V^2
+                grads.append([r[sel].mean(axis=0) for r in rows] if fit is not None else None)
+                noise.append(d.u_var_v2[sel].mean(axis=0) / sel.sum() if d.u_var_v2 is not None else np.zeros(3))
+    m, dirs, noise = np.array(means), np.array(dirs), np.array(noise)
+
+    def model_var(c: int, weights: np.ndarray) -> float:
+        """Variance (V^2) of sum_w weights[w] * (window w's mean of channel c) from the model's coefficients."""
+        if fit is None or fit.covariance is None:
+            return 0.0
+        gvec = sum(wt * grads[w][c] for w, wt in enumerate(weights) if wt)
+        cov = np.nan_to_num(fit.covariance[c])
+        return float(gvec @ cov @ gvec) if np.ndim(gvec) else 0.0
     vert = np.abs(dirs) >= np.cos(np.radians(AXIS_ROLE_DEG))
     horiz = np.abs(dirs) <= np.sin(np.radians(AXIS_ROLE_DEG))
     U0 = np.zeros(3)
@@ -676,19 +714,27 @@ def constants_from_orientations(data: list[BlockData], model: DifferentialModel,
     std_K = np.full(3, np.nan)
     undetermined = [f"K_{a}{b}" for a in AXES for b in AXES if a != b]
     known_u0 = np.zeros(3, dtype=bool)
+    u0_weights = np.zeros((3, len(m)))
     for c in range(3):
         h = np.flatnonzero(horiz[:, c])
         up = np.flatnonzero(vert[:, c] & (dirs[:, c] > 0))
         down = np.flatnonzero(vert[:, c] & (dirs[:, c] < 0))
         if h.size:
+            u0_weights[c, h] = 1.0 / h.size
             U0[c] = m[h, c].mean()
-            std_U0[c] = m[h, c].std(ddof=1) / np.sqrt(h.size) if h.size > 1 else np.nan
+            spread = m[h, c].var(ddof=1) / h.size if h.size > 1 else 0.0
             known_u0[c] = True
         elif up.size and down.size:
-            U0[c] = 0.5 * (m[up, c].mean() + m[down, c].mean())
+            u0_weights[c, up] = 0.5 / up.size
+            u0_weights[c, down] = 0.5 / down.size
+            U0[c] = u0_weights[c] @ m[:, c]
+            spread = 0.0
             known_u0[c] = True
         else:
             undetermined.append(f"U0_{AXES[c]}")
+            continue
+        var = spread + model_var(c, u0_weights[c]) + float(u0_weights[c] ** 2 @ noise[:, c])
+        std_U0[c] = np.sqrt(var) if (fit is not None or spread > 0) else np.nan
     # the specific force along each axis in each window: |a| = 1 g, the horizontal components from their channels
     K = np.diag(gain)
     for _ in range(2):
@@ -701,7 +747,14 @@ def constants_from_orientations(data: list[BlockData], model: DifferentialModel,
             a_c = np.sign(dirs[v, c]) * np.sqrt(np.clip(1.0 - np.sum(a[np.ix_(v, others)] ** 2, axis=1), 0.0, 1.0))
             k = (m[v, c] - U0[c]) / a_c
             K[c, c] = k.mean()
-            std_K[c] = k.std(ddof=1) / np.sqrt(v.size) if v.size > 1 else np.nan
+            # K_cc = mean over v of (m_v - U0) / a_v: its weights on the window means
+            weights = -u0_weights[c] * np.sum(1.0 / a_c) / v.size
+            weights[v] += 1.0 / (a_c * v.size)
+            spread = k.var(ddof=1) / v.size if v.size > 1 else 0.0
+            var = spread + model_var(c, weights) + float(weights ** 2 @ noise[:, c])
+            # one vertical window: nothing checks the estimate (on simulated sweeps it is off by about 1 ppm against
+            # a propagated 0.15 ppm), so no number is given
+            std_K[c] = np.sqrt(var) if v.size > 1 else np.nan
     for c in range(3):
         if not (vert[:, c].any() and known_u0[c]):
             undetermined.append(f"K_{AXES[c]}{AXES[c]}")
@@ -730,7 +783,7 @@ def sweep_base(data: list[BlockData], settings: DifferentialSettings = SWEEP_SET
     if K_nom is None:
         raise CalibrationError("block data without the constants they were made with")
     first = fit_differential(data, K_nom, U_nom, float(normal_temp_c), settings)
-    return constants_from_orientations(data, first.model, np.diag(K_nom))
+    return constants_from_orientations(data, first.model, np.diag(K_nom), first)
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -853,7 +906,7 @@ def fit_uncertainty(fit: DifferentialFit, *, base_passport: dict | None = None,
 
     - ``coefficients`` (K, U0 at T0): the base passport's own uncertainties (the method takes its constants), or,
       without a base, the spread of the constants between the orientations that give them (std / sqrt(n));
-    - ``thermal_model`` and ``rate_terms``: every fitted coefficient's :func:`pipeline.uncertainty.regression_sigma`
+    - ``thermal_model`` and ``rate_terms``: every fitted coefficient's standard uncertainty (:func:`pipeline.uncertainty.regression_cov`)
       over the differenced pairs (residuals clustered in :data:`CLUSTER_S` stretches, or the block noise measured
       in the data, whichever is larger), conditional on the lag when the lag was fitted.
 
@@ -875,9 +928,11 @@ def fit_uncertainty(fit: DifferentialFit, *, base_passport: dict | None = None,
         for i in range(3):
             for name, sig in ((f"K.{AXES[i] * 2}", K_sig[i, i]), (f"U0.{AXES[i]}", U0_sig[i])):
                 if not np.isfinite(sig) and name not in undetermined:
-                    undetermined[name] = ("one orientation alone gives it: no spread between orientations to "
-                                          "measure its uncertainty from")
-        source = "spread between the orientations that give each constant (std / sqrt(n)); no base passport"
+                    undetermined[name] = ("one orientation alone gives it: no second orientation checks it, and "
+                                          "its error is not covered by the noise and the model's uncertainty alone")
+        source = ("no base passport: the spread between the orientations that give each constant (std / sqrt(n)), "
+                  "the thermal model's error in bringing each window to T0 and the noise of the window means, "
+                  "in quadrature")
     else:
         base_unc = ((base_passport or {}).get("uncertainty") or {}).get("coefficients") or {}
         K_sig = _as_sigma(base_unc.get("K"), (3, 3))

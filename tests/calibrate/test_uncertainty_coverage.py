@@ -1,8 +1,8 @@
 """Standard uncertainties of the differential (seed 003) and scalar (seed 004) methods tested for coverage against the simulator's truth
 over many noise seeds, as tests/test_uncertainty.py does for the tilt method: the chamber differential (a base
 passport, six orientations with 1.5 degree face errors, one temperature cycle) and the sweep differential (no base,
-three orientations, the temperature drifting 5 -> 25 C). About 68 % of the errors within 1 sigma and 95 % within
-2 sigma, and the sigmas not absurdly wide (their median within a small factor of the scatter of the estimates
+three orientations, the temperature drifting 5 -> 25 C; its offsets at T0 from the orientations too). About 68 %
+of the errors within 1 sigma and 95 % within 2 sigma, and the sigmas not absurdly wide (their median within a small factor of the scatter of the estimates
 between seeds); terms the orientations cannot determine have no uncertainty and the passport says why; ``passport
 diff`` of two differential passports marks a real change of a temperature coefficient and not the noise. The
 scalar method's constants likewise, with its gauge-fixed entries named; and the tilt method's referral of each
@@ -191,6 +191,24 @@ def test_sweep_differential_thermal_coefficients_cover_the_truth(sweep_runs):
     assert 0.5 <= median <= 0.85, median
     ratio = np.median(sd, axis=0) / err.std(axis=0, ddof=1)
     assert 0.8 < np.median(ratio) < 1.5, ratio
+
+
+def test_sweep_offsets_at_t0_cover_the_truth(sweep_runs):
+    """Without a base passport the offsets at T0 come from the windows where the axis is horizontal (two per axis
+    here), brought to T0 with the model: their sigma (spread between the windows, the model's covariance at the
+    windows' temperatures, the noise of the window means) covers the truth. 48 values: tolerances of +-2.5
+    binomial standard deviations (0.067 at 68 %). The gains, each given by one vertical window here, have no
+    uncertainty and say why."""
+    truth = _identifiable_unit().u0_coef[0]
+    z = []
+    for doc in sweep_runs:
+        sig = doc["uncertainty"]["coefficients"]
+        z += [(doc["coefficients"]["U0"][i] - truth[i]) / sig["U0"][i] for i in range(3)]
+        assert all(sig["K"][i][i] is None for i in range(3))
+        assert all("one orientation alone gives it" in doc["uncertainty"]["undetermined"][f"K.{a * 2}"]
+                   for a in "xyz")
+    within1, within2, median = _within(z)
+    assert 0.5 <= within1 <= 0.85 and within2 >= 0.85 and 0.4 <= median <= 1.0, (within1, within2, median)
 
 
 def test_sweep_passport_names_what_it_cannot_determine(sweep_runs):
