@@ -92,15 +92,11 @@ def stop_process_group(proc: subprocess.Popen) -> None:
 
 
 def make_fleet_runs(n: int, program: str, rate_hz: float, out: Path) -> Path:
-    """``n`` simulated units (one run each) in a kept folder."""
-    from concurrent.futures import ProcessPoolExecutor
-
-    from fleet_throughput import _make_unit
+    """``n`` simulated units (one run each) in a kept folder, made on two spawned processes."""
+    from fleet_throughput import make_fleet
 
     folder = out / f"fleet_{program}_{rate_hz:g}hz_{n}"
-    folder.mkdir(parents=True, exist_ok=True)
-    with ProcessPoolExecutor(2) as pool:
-        list(pool.map(_make_unit, [(folder, k, rate_hz, program, "json") for k in range(1, n + 1)]))
+    make_fleet(folder, n, rate_hz, program, 2)
     return folder
 
 

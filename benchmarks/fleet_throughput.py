@@ -66,10 +66,21 @@ def _make_unit(args: tuple[Path, int, float, str, str]) -> str:
     return str(path)
 
 
+def process_pool(workers: int, **options) -> ProcessPoolExecutor:
+    """A pool of ``workers`` processes started by *spawn*, never *fork*: a child forked after polars, pyarrow or
+    numpy have started their thread pools in this process (any Parquet written or read before) can wait forever
+    on a lock one of those threads held at the fork."""
+    import multiprocessing
+
+    return ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), **options)
+
+
 def make_fleet(out: Path, units: int, rate_hz: float, program: str, workers: int, encoding: str = "json"
                ) -> list[str]:
+    """``units`` simulated units (one ``program`` run each at ``rate_hz``) in ``out``, made on ``workers``
+    spawned processes; a unit whose file exists is kept."""
     out.mkdir(parents=True, exist_ok=True)
-    with ProcessPoolExecutor(workers) as pool:
+    with process_pool(workers) as pool:
         return list(pool.map(_make_unit, [(out, k, rate_hz, program, encoding) for k in range(1, units + 1)]))
 
 
@@ -85,16 +96,13 @@ def run_plain(paths: list[str], registry: Path) -> dict:
 
 
 def run_pool(folder: Path, registry: Path, workers: int) -> dict:
-    import multiprocessing
-
     from pipeline.calibrate.settings import CalibrationSettings
     from pipeline.calibrate.fleet import calibrate_group, plan_fleet, prepare_worker
 
     t0 = time.perf_counter()
     plan = plan_fleet(folder, registry)
     t_plan = time.perf_counter() - t0
-    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
-                             initializer=prepare_worker) as pool:
+    with process_pool(workers, initializer=prepare_worker) as pool:
         futures = [pool.submit(calibrate_group, g.unit, g.runs, str(registry), CalibrationSettings(), True,
                                g.digests) for g in plan.groups]
         outcomes = [f.result() for f in futures]
