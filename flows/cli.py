@@ -421,8 +421,10 @@ def fleet(folder: Path = typer.Argument(..., metavar="FOLDER", help="folder of r
                         figures=figures, progress=True, method=method)
     _emit(summary, as_json, None if as_json else _fleet_text(summary))
     if summary["failed"]:
+        from .fleet import failure_line
+
         failed = summary["failed"]
-        print(f"thermocal: fleet: {_count(len(failed), 'run')} failed: {_failure(failed[0])}"
+        print(f"thermocal: fleet: {_count(len(failed), 'run')} failed: {failure_line(failed[0])}"
               + (" (and more, see the summary)" if len(failed) > 1 else ""), file=sys.stderr)
         raise typer.Exit(1)
 
@@ -431,17 +433,14 @@ def _count(n: int, noun: str) -> str:
     return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
 
 
-def _failure(f: dict) -> str:
-    """A failed run in one line: its reason, which names the file (else the run, then the reason)."""
-    return f["reason"] if str(f["reason"]).startswith(str(f["run"])) else f"{f['run']}: {f['reason']}"
-
-
 def _fleet_text(s: dict) -> str:
+    from .fleet import failure_line
+
     lines = [f"done: {_count(len(s['done']), 'unit')}, failed: {_count(len(s['failed']), 'run')}, skipped: "
              f"{_count(len(s['skipped']), 'run')}"]
     lines += [f"  {d['unit']:<12} v{d['version']:<4} {d['status']:<10} {'new' if d['created'] else 'existing':<8} "
               + ", ".join(Path(r).name for r in d["runs"]) for d in s["done"]]
-    lines += [f"  FAILED  {_failure(f)}" for f in s["failed"]]
+    lines += [f"  FAILED  {failure_line(f)}" for f in s["failed"]]
     lines += [f"  skipped {x['run']}: {x['why']}" for x in s["skipped"]]
     return "\n".join(lines)
 

@@ -143,7 +143,8 @@ def _api_for_workers():
 
 
 class _Progress:
-    """A rich progress bar and one line per unit on stderr (when ``show``); always a Prefect log line per unit."""
+    """A rich progress bar and one line per unit on stderr (when ``show``: progress asked for and stderr a
+    terminal, :class:`flows.runtime.Steps`); always a Prefect log line per unit."""
 
     def __init__(self, show: bool, total: int, logger):
         self.logger = logger
@@ -174,7 +175,7 @@ class _Progress:
     def unit_done(self, line: str, failures: list[dict]) -> None:
         self.logger.info(line)
         for f in failures:
-            self.logger.warning(_failure_line(f))
+            self.logger.warning(failure_line(f))
         if self.bar:
             self.bar.console.print(line, highlight=False)
             self.bar.advance(self.task)
@@ -189,7 +190,7 @@ def fleet_flow(root: str, registry: str, settings: CalibrationSettings = Calibra
     and ``timing`` (wall, planning and in-task compute seconds, the runner)."""
     logger = get_run_logger()
     t0 = time.perf_counter()
-    step = Steps("fleet")
+    step = Steps("fleet")                   # progress only when asked and stderr is a terminal
     step.on = step.on and progress
     step(f"plan: find, read and hash the runs under {root}")
     plan = fleet_plan.plan_fleet(root, registry, settings, method)
@@ -198,7 +199,7 @@ def fleet_flow(root: str, registry: str, settings: CalibrationSettings = Calibra
     logger.info(f"{plan.runs_found} runs under {root}: {len(plan.groups)} units to calibrate, "
                 f"{len(plan.skipped)} runs skipped, {len(plan.failed)} unreadable")
     for f in plan.failed:
-        logger.warning(_failure_line(f))
+        logger.warning(failure_line(f))
     for w in plan.warnings:
         logger.warning(w["warning"])
     t_plan = time.perf_counter() - t0
@@ -207,7 +208,7 @@ def fleet_flow(root: str, registry: str, settings: CalibrationSettings = Calibra
     if plan.groups:
         runner, runner_name, remote, processes = make_task_runner(dask_address, workers, pool, len(plan.groups))
         with (_api_for_workers() if remote else contextlib.nullcontext()), runner, _compute_pool(processes), \
-                _Progress(progress, len(plan.groups), logger) as bar:
+                _Progress(step.on, len(plan.groups), logger) as bar:
             futures = {runner.submit(calibrate_unit, {"unit": g.unit, "runs": list(g.runs), "registry": str(registry),
                                                       "settings": settings, "figure": figures,
                                                       "digests": g.digests, "method": method,
@@ -236,9 +237,9 @@ def fleet_flow(root: str, registry: str, settings: CalibrationSettings = Calibra
     return summary
 
 
-def _failure_line(f: dict) -> str:
+def failure_line(f: dict) -> str:
     """A failed run in one line: its reason, which names the file (else prefixed with it)."""
-    return f["reason"] if f["run"] in f["reason"] else f"{f['run']}: {f['reason']}"
+    return f["reason"] if str(f["run"]) in str(f["reason"]) else f"{f['run']}: {f['reason']}"
 
 
 def _unit_line(o: fleet_plan.UnitOutcome, k: int, total: int) -> str:
@@ -282,9 +283,10 @@ def run_fleet(root: str, registry: str, settings: CalibrationSettings = Calibrat
               dask_address: str | None = None, workers: int | None = None, pool: str = "auto",
               figures: bool = True, progress: bool = False, method: str = "tilt") -> dict:
     """Run the fleet flow in this process, recorded on thermocal's local Prefect server
-    (:func:`flows.runtime.flow_settings`)."""
-    from .runtime import flow_settings
+    (:func:`flows.runtime.flow_settings`). Progress (when asked for) and the flow's log lines reach stderr only
+    when it is a terminal; the flow run's logs in Prefect are kept either way."""
+    from .runtime import flow_settings, run_logs_off_console
 
-    with flow_settings():
+    with flow_settings(), run_logs_off_console(not Steps("fleet").on):
         return fleet_flow(str(root), str(registry), settings, dask_address=dask_address, workers=workers, pool=pool,
                           figures=figures, progress=progress and sys.stderr is not None, method=method)

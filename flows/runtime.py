@@ -64,6 +64,24 @@ def quiet_task_failures():
             lg.setLevel(lvl)
 
 
+@contextlib.contextmanager
+def run_logs_off_console(off: bool = True):
+    """While ``off``: the flow and task runs' log lines go to the Prefect API only (the run's logs in the UI), not
+    to the console handler on stderr, so that a command whose stderr is not a terminal writes nothing there but
+    its own result line. Call after importing prefect (its logging is set up then)."""
+    import logging
+
+    loggers = [logging.getLogger(n) for n in ("prefect.task_runs", "prefect.flow_runs")] if off else []
+    before = [lg.propagate for lg in loggers]
+    for lg in loggers:
+        lg.propagate = False
+    try:
+        yield
+    finally:
+        for lg, p in zip(loggers, before):
+            lg.propagate = p
+
+
 class Steps:
     """Progress of a long command on stderr, one line per step (``thermocal: calibrate: fit (1.2 s)``), only when
     stderr is a terminal: nothing is added to a piped or ``--json`` command's output."""
