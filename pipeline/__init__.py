@@ -21,6 +21,7 @@ Steps and data:
 - ``apply``: a passport's full model applied to every voltmeter sample of a recording
 - ``plots``: figures (PNG)
 - ``jsonable``: the one coercion of results into plain JSON values
+- ``utc``: times for people (``t_ns`` as UTC text)
 - ``errors``: the one-line error types
 
 Sub-packages:

@@ -34,6 +34,7 @@ from pipeline.model import specific_force_g
 from pipeline.run import NS_PER_S as _NS
 from pipeline.run import SLAB_SAMPLES as _SLAB  # samples compensated at a time (the K(T) stack: 72 bytes a sample)
 from pipeline.run import Run
+from pipeline.utc import utc_text
 
 APPLY_COLUMNS = ("t_ns", "ax_g", "ay_g", "az_g", "temp_c", "in_range")
 
@@ -184,8 +185,6 @@ def apply_passport(passport: dict, run: Run) -> Applied:
             in_range = (temp_c >= rng[0]) & (temp_c <= rng[1])
         out_n = int(np.count_nonzero(~in_range))
         if out_n:
-            from pipeline.inspect import utc_text
-
             first = utc_text(int(t_ns[np.flatnonzero(~in_range)[0]]))
             warnings.append(f"{out_n} of {n} samples lie outside the passport's valid temperature range "
                             f"{rng[0]:g} .. {rng[1]:g} C (the first at {first}); the model is extrapolated there")

@@ -15,6 +15,7 @@ from pipeline.errors import ThermocalError
 from pipeline.io.checks import GAP_FACTOR, gap_indices  # noqa: F401  (GAP_FACTOR: the gap definition, shared with the readers)
 from pipeline.jsonable import to_jsonable
 from pipeline.run import Run
+from pipeline.utc import utc_text
 
 
 def summarize_run(run: Run) -> dict[str, Any]:
@@ -321,15 +322,6 @@ def format_summary(summary: dict[str, Any]) -> str:
     for w in [*summary.get("warnings", []), *summary.get("segmentation_warnings", [])]:
         lines.append(f"warning: {w}")
     return "\n".join(lines)
-
-
-def utc_text(t_ns: int) -> str:
-    """``t_ns`` (ns since the Unix epoch) as a UTC time for people, to the millisecond:
-    ``2026-11-01 00:00:00.000 UTC``."""
-    from datetime import datetime, timedelta, timezone
-
-    t = datetime(1970, 1, 1, tzinfo=timezone.utc) + timedelta(microseconds=int(t_ns) // 1000)
-    return t.strftime("%Y-%m-%d %H:%M:%S.") + f"{t.microsecond // 1000:03d} UTC"
 
 
 def _recording_lines(rec: dict[str, Any]) -> list[str]:

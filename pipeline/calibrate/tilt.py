@@ -37,6 +37,7 @@ from pipeline.passport.document import build_passport
 from pipeline.plausibility import assess
 from pipeline.positions import TEST_POSITIONS, gravity_vector_g, is_test_position
 from pipeline.thermal import ThermalModel, cluster_temperatures, fit_thermal_model
+from pipeline.utc import utc_span
 from pipeline.uncertainty import (
     design_matrix,
     estimator_matrix,
@@ -117,8 +118,8 @@ def _fit_plateaus(groups, shift_v: dict[int, np.ndarray], method: str, skipped: 
         names = [o.position for o in rows]
         missing = [tp for tp in TEST_POSITIONS if tp not in names]
         where = (f"{run_id} plateau {p} at {np.mean([o.temp_c for o in rows]):.1f} C "
-                 f"(t_ns={min(o.t_start_ns for o in rows)}..{max(o.t_end_ns for o in rows)}): fewer than six test "
-                 f"positions (missing {', '.join(missing)})")
+                 f"({utc_span(min(o.t_start_ns for o in rows), max(o.t_end_ns for o in rows))}): fewer than six "
+                 f"test positions (missing {', '.join(missing)})")
         if missing and not determines_constants(names):
             # a position carried through the ramp onto a VP plateau is not an attempt at calibration
             if skipped is not None and len(set(names)) > 1:

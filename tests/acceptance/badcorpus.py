@@ -418,7 +418,7 @@ CASES: tuple[Case, ...] = (
          ("time jumps forward", "after t_ns=0"), stream="voltmeter", where="t_ns="),
     # runs the segmenter and the fit cannot use (entirely or in part)
     Case("plateau-missing-a-position", _frames_case("shaken-once", "mcap", lambda: _shaken(holds("TP3", stage=0))),
-         None, ("plateau 0 at 20.0 C (t_ns=", "fewer than six test positions (missing TP3)"), calibrates=True),
+         None, ("plateau 0 at 20.0 C (20", " UTC): fewer than six test positions (missing TP3)"), calibrates=True),
     # (five of the six positions determine the 12 constants, issue 14: without the two y positions they do not)
     Case("no-plateau-with-six-positions", _frames_case("shaken-always", "mcap",
                                                        lambda: _shaken(holds("TP2") + holds("TP4"))),
