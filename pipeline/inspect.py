@@ -210,7 +210,7 @@ def _methods(program, poses, seg, on_soak: set[int], run: Run) -> list[dict[str,
                 and seg.plateaus[s.plateau].t_start_ns == p.t_start_ns}.issuperset({f"TP{k}" for k in range(1, 7)})]
     n = len(full)
     out.append({"method": "tilt", "supported": n > 0,
-                "why": (f"{n} plateau(s) with all six test positions" if n else
+                "why": (f"{_count(n, 'plateau')} with all six test positions" if n else
                         "no temperature plateau holds the six test positions TP1..TP6"),
                 "determines": (["K (9) and U0 (3) at each plateau temperature",
                                 f"thermal model of order up to {min(n - 1, 3)}" if n > 1 else

@@ -181,8 +181,8 @@ def _thermal_table(doc: dict) -> str:
             scale, unit, own = 1e6 / gains[key[0]], f"micro-g/C{power}", per(u, f"C{power}")
         else:
             scale, unit, own = 1e6, f"ppm/C{power}", f"1/C{power}"
-        eng = f"{value * scale:+.4g} {unit}" + (f" &plusmn; {sigma * scale:.2g}" if sigma is not None else
-                                                 " (undetermined)" if f"{group}.{key}" in undetermined else "")
+        eng = (f"{value * scale:+.4g} &plusmn; {sigma * scale:.2g} {unit}" if sigma is not None else
+               f"{value * scale:+.4g} {unit}" + (" (undetermined)" if f"{group}.{key}" in undetermined else ""))
         rows.append(f"<tr><td>{html.escape(term)}</td><td>{group} {key}</td>"
                     f"<td class='num'>{value:+.6e} {own}</td><td class='num'>{eng}</td></tr>")
 

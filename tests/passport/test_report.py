@@ -65,6 +65,9 @@ def test_certificate_states_what_a_signer_needs(certificate):
     # the constants at T0 with their uncertainty, as the passport has them
     k_xx, s_xx = doc["coefficients"]["K"][0][0], doc["uncertainty"]["coefficients"]["K"][0][0]
     assert f"{k_xx:+.8f} &plusmn; {s_xx * 1e6 / abs(k_xx):.2g} ppm" in page
+    # a thermal coefficient in engineering units: value +- its uncertainty, then the unit
+    b1, sb1 = doc["thermal_model"]["beta"]["xx"][0], doc["uncertainty"]["thermal_model"]["beta"]["xx"][0]
+    assert f"{b1 * 1e6:+.4g} &plusmn; {sb1 * 1e6:.2g} ppm/C^1<" in page
     # every verification row, against its limit
     vp_rows = re.findall(r"<tr class='(?:failrow)?'><td>([+-]\d+\.\d\d) C.*?</td><td>(VP\d)</td>"
                          r"(?:<td class='num'>[^<]*</td>){3}<td class='num'>(\d+)</td>", page)
