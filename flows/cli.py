@@ -421,23 +421,23 @@ def fleet(folder: Path = typer.Argument(..., metavar="FOLDER", help="folder of r
                         figures=figures, progress=True, method=method)
     _emit(summary, as_json, None if as_json else _fleet_text(summary))
     if summary["failed"]:
+        from pipeline.inspect import count_words
+
         from .fleet import failure_line
 
         failed = summary["failed"]
-        print(f"thermocal: fleet: {_count(len(failed), 'run')} failed: {failure_line(failed[0])}"
+        print(f"thermocal: fleet: {count_words(len(failed), 'run')} failed: {failure_line(failed[0])}"
               + (" (and more, see the summary)" if len(failed) > 1 else ""), file=sys.stderr)
         raise typer.Exit(1)
 
 
-def _count(n: int, noun: str) -> str:
-    return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
-
-
 def _fleet_text(s: dict) -> str:
+    from pipeline.inspect import count_words
+
     from .fleet import failure_line
 
-    lines = [f"done: {_count(len(s['done']), 'unit')}, failed: {_count(len(s['failed']), 'run')}, skipped: "
-             f"{_count(len(s['skipped']), 'run')}"]
+    lines = [f"done: {count_words(len(s['done']), 'unit')}, failed: {count_words(len(s['failed']), 'run')}, "
+             f"skipped: {count_words(len(s['skipped']), 'run')}"]
     lines += [f"  {d['unit']:<12} v{d['version']:<4} {d['status']:<10} {'new' if d['created'] else 'existing':<8} "
               + ", ".join(Path(r).name for r in d["runs"]) for d in s["done"]]
     lines += [f"  FAILED  {failure_line(f)}" for f in s["failed"]]

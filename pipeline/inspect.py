@@ -210,7 +210,7 @@ def _methods(program, poses, seg, on_soak: set[int], run: Run) -> list[dict[str,
                 and seg.plateaus[s.plateau].t_start_ns == p.t_start_ns}.issuperset({f"TP{k}" for k in range(1, 7)})]
     n = len(full)
     out.append({"method": "tilt", "supported": n > 0,
-                "why": (f"{_count(n, 'plateau')} with all six test positions" if n else
+                "why": (f"{count_words(n, 'plateau')} with all six test positions" if n else
                         "no temperature plateau holds the six test positions TP1..TP6"),
                 "determines": (["K (9) and U0 (3) at each plateau temperature",
                                 f"thermal model of order up to {min(n - 1, 3)}" if n > 1 else
@@ -309,8 +309,8 @@ def format_summary(summary: dict[str, Any]) -> str:
         lines += _recording_lines(rec)
     plateaus, positions = summary.get("plateaus") or [], summary.get("static_positions") or []
     grouped = " (grouped into the poses above; --json lists each)" if rec and len(positions) > 24 else ""
-    lines.append(f"segmentation: {summary.get('segmentation', '-')}; {_count(len(plateaus), 'plateau')}, "
-                 f"{_count(len(positions), 'static segment')}{grouped}")
+    lines.append(f"segmentation: {summary.get('segmentation', '-')}; {count_words(len(plateaus), 'plateau')}, "
+                 f"{count_words(len(positions), 'static segment')}{grouped}")
     t0 = min((p["t_start_ns"] for p in plateaus), default=0)
     for p in plateaus:
         names = [s["position"] or "?" for s in positions if s["plateau"] == p["index"]]
@@ -328,7 +328,8 @@ def _recording_lines(rec: dict[str, Any]) -> list[str]:
     """The recording's description (:func:`describe_recording`) as text."""
     t = rec["temperature"]
     lo, hi = t["range_c"]
-    kinds = {"plateaus": f"plateau program: {_count(t['plateaus'], 'plateau')}", "constant": "one temperature",
+    kinds = {"plateaus": f"plateau program: {count_words(t['plateaus'], 'plateau')}",
+             "constant": "one temperature",
              "sweep": "temperature sweep (continuous drift, no plateau held)"}
     lines = [f"recording: {kinds.get(t['kind'], t['kind'])}; {lo:+.2f} .. {hi:+.2f} C, largest rate "
              f"{t['max_rate_c_per_h']:.3g} C/h (over {t['rate_window_s']:.0f} s)"]
@@ -339,7 +340,7 @@ def _recording_lines(rec: dict[str, Any]) -> list[str]:
         d = " ".join(f"{x:+.3f}" for x in p["direction_g"])
         lo_c, hi_c = p["temp_range_c"]
         lines.append(f"  pose {p['index']}: g along ({d})  vertical {p['vertical_axis'] or '-':<3} "
-                     f"{p['position'] or '?':<4} {_count(p['holds'], 'hold')}, {_duration(p['duration_s'])}"
+                     f"{p['position'] or '?':<4} {count_words(p['holds'], 'hold')}, {_duration(p['duration_s'])}"
                      + (f" (shortest {_duration(p['shortest_hold_s'])})" if p["holds"] > 1 else "")
                      + f"  {lo_c:+.2f} .. {hi_c:+.2f} C")
     for m in rec["methods"]:
@@ -352,7 +353,7 @@ def _recording_lines(rec: dict[str, Any]) -> list[str]:
     return lines
 
 
-def _count(n: int, noun: str) -> str:
+def count_words(n: int, noun: str) -> str:
     """``1 plateau``, ``7 plateaus``."""
     return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
 
