@@ -163,6 +163,7 @@ def _diagnose(run: Run, passport: dict | None, settings: DiagnoseSettings, passp
                                f"K(T) a + U0(T), a polynomial of order {OWN_MODEL_ORDER} in temperature, is fitted "
                                "to the recording itself, as far as its orientations determine it")
     model, reference, notes = _base_model(passport)
+    own_order = polynomial_reference(model).order
     rec = static_record(run, seg, micro_s=settings.micro_s, settings=seg_settings)
     if rec.size < 10 or not np.all(np.isfinite(rec.sigma_sample_v)):
         raise CalibrationError("too few named static samples to compare with the model and estimate the noise",
@@ -222,6 +223,10 @@ def _diagnose(run: Run, passport: dict | None, settings: DiagnoseSettings, passp
     noise_sigma = design.sigma / np.where(excluded, _EXCLUDE, 1.0)[:, None]
     findings = [_finding(design, sel, t, before, after, seg, settings) for t in final_trials]
     if shift is not None and shift.significant:
+        if shift.level is not None and shift.level.powers - 1 > own_order:
+            shift.parameters["thermal_model_note"] = (
+                f"The passport's thermal model is a polynomial of order {own_order}: the recording needs powers "
+                f"up to {shift.level.powers - 1}, which its calibration temperatures warrant.")
         findings.insert(0, _shift_finding(design, shift, predicted, before, after, seg, settings))
     elif shift is not None and shift.level is not None:
         notes.append(f"the constants agree with the passport within its uncertainty (largest change "

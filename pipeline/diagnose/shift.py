@@ -34,6 +34,9 @@ _UV = 1e6
 DEFAULT_PASSPORT_SIGMA = {"U0": 0.3e-6, "K": 0.6e-6}
 #: a shift is reported when some constant moved by more than this many combined standard uncertainties
 SIGNIFICANT_SIGMA = 5.0
+#: a departure of the passport's prediction larger than this many times the block noise (RMS) is a finding even
+#: when the passport's own stated uncertainty allows it: the passport as given does not explain the recording
+BEYOND_NOISE = 2.0
 
 
 #: the drift terms' ids in ``Design.extra``: the offsets' rate (V/h per channel), the gains' and cross-axis
@@ -158,7 +161,37 @@ def find_shift(design: Design, passport: dict, threshold: float, state: tuple = 
     if dbic >= -threshold:
         return ShiftResult(None, np.zeros_like(mask), none, 0.0, False, {}, 0.0)
     params, z = _amounts(fr, lv, passport, float(design.blocks.t_s.max()) / 3600.0)
-    return ShiftResult(lv, mask, fr, float(dbic), z >= SIGNIFICANT_SIGMA, params, z)
+    change = fr.fitted - none.fitted
+    z_joint = departure_sigma(design, passport, change, max(lv.powers, 1))
+    z = max(z, z_joint)
+    w = design.blocks.n[:, None] * _kept(design)
+    rms_change = float(np.sqrt(np.sum(w * change ** 2) / np.sum(w)))
+    rms_noise = float(np.sqrt(np.sum(w * design.sigma ** 2) / np.sum(w)))
+    params.update(departure_sigma=round(z_joint, 1), departure_rms_v=rms_change, noise_rms_v=rms_noise,
+                  within_passport_uncertainty=bool(z < SIGNIFICANT_SIGMA))
+    # beyond the noise, the passport as given does not explain the recording, whatever uncertainty it states
+    significant = z >= SIGNIFICANT_SIGMA or rms_change > BEYOND_NOISE * rms_noise
+    return ShiftResult(lv, mask, fr, float(dbic), significant, params, z)
+
+
+def _kept(design: Design) -> np.ndarray:
+    """(B, 1) blocks that count (those left out of the fits carry a huge sigma)."""
+    return (design.sigma < 100 * np.median(design.sigma, axis=0)).all(axis=1, keepdims=True)
+
+
+def departure_sigma(design: Design, passport: dict, change_v: np.ndarray, powers: int) -> float:
+    """How far the refit model departs from the passport's, in the data (the joint test of a change of many
+    correlated constants, which one by one may each look small): the RMS over blocks of the change ``change_v``
+    (B, 3) V over its uncertainty, the block sigma and the passport's own uncertainty of its prediction there
+    (K and U0 at T0, and each of the ``powers`` - 1 thermal coefficients that uncertainty over 30 C per power)."""
+    pk, pu = passport_sigma(passport)
+    a = design.blocks.a_g
+    at_t0 = np.sqrt(pu[None, :] ** 2 + np.einsum("ij,bj->bi", pk ** 2, a ** 2))
+    x = (design.blocks.temp_c - design.rec.normal_temp_c) / 30.0
+    spread = np.sqrt(np.sum(x[:, None] ** (2 * np.arange(powers))[None, :], axis=1))
+    sigma = np.sqrt(design.sigma ** 2 + (at_t0 * spread[:, None]) ** 2)
+    w = design.blocks.n[:, None] * _kept(design)
+    return float(np.sqrt(np.sum(w * (change_v / sigma) ** 2) / max(np.sum(w), 1)))
 
 
 def _amounts(fr: FitResult, lv: Level, passport: dict, duration_h: float) -> tuple[dict, float]:
@@ -176,31 +209,54 @@ def _amounts(fr: FitResult, lv: Level, passport: dict, duration_h: float) -> tup
     if lv.powers == 0:            # the passport's values at the start, held exactly
         du0_s, dk, dk_s = np.zeros(3), np.zeros((3, 3)), np.zeros((3, 3))
     pk, pu = passport_sigma(passport)
-    z_u = np.abs(du0) / np.sqrt(du0_s ** 2 + pu ** 2)
     params = {"constants": lv.name, "change": "gradual" if lv.drift else "at one time",
               "moved_before_the_recording": lv.powers > 0,
               "dU0_v": du0.tolist(), "dU0_sigma_v": du0_s.tolist()}
-    z = float(np.max(z_u))
+    moved, z = _entries(d, sig, lv, pu, pk)
+    params["moved"] = moved                      # against the fit's and the passport's uncertainty
+    params["beyond_fit_uncertainty"] = _entries(d, sig, lv, 0 * pu, 0 * pk)[0]
     if lv.drift:
         drift, z_d = _drift(fr, lv, passport, duration_h, nb, birge)
-        params.update(drift)
         z = max(z, z_d)
+        drifting = [f"{name[1:]} drift" for name, zz in drift.pop("_z").items() if zz >= SIGNIFICANT_SIGMA]
+        params.update(drift)
+        params["moved"] += drifting
+        params["beyond_fit_uncertainty"] += drifting
     if not lv.u0_only and lv.powers > 0:
-        z_k = np.abs(dk) / np.sqrt(np.where(np.isfinite(dk_s), dk_s, 0.0) ** 2 + pk ** 2)
-        z = max(z, float(np.max(z_k)))
         params["dK_v_per_g"] = dk.tolist()
         params["dK_sigma_v_per_g"] = np.where(np.isfinite(dk_s), dk_s, np.nan).tolist()
-    for n in range(1, lv.powers):     # the passport's thermal coefficients: its T0 uncertainty over 30 C per power
-        s_pass_u, s_pass_k = pu / 30.0 ** n, pk / 30.0 ** n
-        su, sk = sig[:, n, 3], np.where(np.isfinite(sig[:, n, :3]), sig[:, n, :3], 0.0)
-        z = max(z, float(np.max(np.abs(d[:, n, 3]) / np.sqrt(su ** 2 + s_pass_u ** 2))),
-                float(np.max(np.abs(d[:, n, :3]) / np.sqrt(sk ** 2 + s_pass_k ** 2))))
     if lv.powers > 1:
         params["thermal_model_change"] = {
             f"power_{n}": {"dK_v_per_g_per_c": d[:, n, :3].tolist(), "dU0_v_per_c": d[:, n, 3].tolist(),
                            "sigma_dU0_v_per_c": sig[:, n, 3].tolist()}
             for n in range(1, lv.powers)}
     return params, z
+
+
+def _entries(d: np.ndarray, sig: np.ndarray, lv: Level, pu: np.ndarray, pk: np.ndarray
+             ) -> tuple[list[str], float]:
+    """The entries of level ``lv`` that moved by :data:`SIGNIFICANT_SIGMA` or more, most significant first (K_ij,
+    U0_i at T0, their temperature coefficients "U0_x power 1", ...) and the largest change in sigmas: the fit's uncertainty
+    ``sig`` (3, order+1, 4) combined with the passport's at T0 (``pu`` V, ``pk`` V/g), over 30 C per power for
+    its thermal coefficients."""
+    if lv.powers == 0:
+        return [], 0.0
+    out: list[tuple[float, str]] = []
+    z = 0.0
+    for n in range(lv.powers):
+        scale = 30.0 ** n
+        su = sig[:, n, 3]
+        zu = np.abs(d[:, n, 3]) / np.sqrt(su ** 2 + (pu / scale) ** 2)
+        tail = f" power {n}" if n else ""
+        z = max(z, float(np.max(zu)))
+        if not lv.u0_only:
+            sk = np.where(np.isfinite(sig[:, n, :3]), sig[:, n, :3], 0.0)
+            zk = np.abs(d[:, n, :3]) / np.sqrt(sk ** 2 + (pk / scale) ** 2)
+            z = max(z, float(np.max(zk)))
+            out += [(zk[i, j], f"K_{a}{b}{tail}") for i, a in enumerate(AXES) for j, b in enumerate(AXES)
+                    if zk[i, j] >= SIGNIFICANT_SIGMA]
+        out += [(zz, f"U0_{a}{tail}") for a, zz in zip(AXES, zu) if zz >= SIGNIFICANT_SIGMA]
+    return [name for _, name in sorted(out, key=lambda p: -p[0])], z
 
 
 def _drift(fr: FitResult, lv: Level, passport: dict, duration_h: float, nb: int, birge: float
@@ -210,6 +266,7 @@ def _drift(fr: FitResult, lv: Level, passport: dict, duration_h: float, nb: int,
     sigmas."""
     out = {"duration_h": duration_h, "drifting": lv.drift}
     z = 0.0
+    zs: dict[str, float] = {}
     for name, term, unit in (("dU0", RATE_U0, "v"), ("dK", RATE_K, "v_per_g")):
         if term not in fr.slices:
             continue
@@ -231,42 +288,81 @@ def _drift(fr: FitResult, lv: Level, passport: dict, duration_h: float, nb: int,
         out[f"{name}_rate_sigma_{unit}_per_h"] = rate_s.reshape(shape).tolist()
         out[f"{name}_end_{unit}"] = end.reshape(shape).tolist()
         out[f"{name}_end_sigma_{unit}"] = np.sqrt(np.clip(end_var, 0.0, None)).reshape(shape).tolist()
-        z = max(z, float(np.max(np.abs(rate) / np.where(rate_s > 0, rate_s, np.inf))))
+        z_rate = np.abs(rate) / np.where(rate_s > 0, rate_s, np.inf)
+        z = max(z, float(np.max(z_rate)))
+        zs[name] = float(np.max(z_rate))
         if name == "dK":
             kii = np.diagonal(np.asarray(passport["coefficients"]["K"], dtype=float))
             r = np.diagonal(rate.reshape(3, 3))
             out["gain_drift_ppm_over_run"] = (r * duration_h / kii * 1e6).tolist()
             out["gain_drift_sigma_ppm_over_run"] = (np.diagonal(rate_s.reshape(3, 3)) * duration_h
                                                     / np.abs(kii) * 1e6).tolist()
+    out["_z"] = zs
     return out, z
 
 
+def _moved_text(params: dict, names: list[str], most: int = 4) -> str:
+    """The entries ``names`` with their amounts and uncertainty (uV, uV/g, uV/C^n); the first ``most`` of them,
+    and how many more."""
+    du0, su0 = np.asarray(params["dU0_v"]) * _UV, np.asarray(params["dU0_sigma_v"]) * _UV
+    dk = np.asarray(params.get("dK_v_per_g", np.zeros((3, 3)))) * _UV
+    sk = np.asarray(params.get("dK_sigma_v_per_g", np.zeros((3, 3))), dtype=float) * _UV
+    thermal = params.get("thermal_model_change", {})
+    parts = []
+    for name in names:
+        words = name.split()
+        if name.startswith("U0_") and len(words) == 1:
+            i = AXES.index(name[3])
+            parts.append(f"U0 {name[3]} by {du0[i]:+.2f} +/- {su0[i]:.2g} uV")
+        elif name.startswith("K_") and len(words) == 1:
+            i, j = AXES.index(name[2]), AXES.index(name[3])
+            parts.append(f"K {name[2:4]} by {dk[i, j]:+.2f} +/- {sk[i, j]:.2g} uV/g")
+        elif len(words) == 3 and words[1] == "power":
+            n = int(words[2])
+            ch = thermal.get(f"power_{n}", {})
+            if name.startswith("U0_"):
+                x = ch.get("dU0_v_per_c", [0.0] * 3)[AXES.index(name[3])] * _UV
+                parts.append(f"U0 {name[3]}'s temperature coefficient of power {n} by {x:+.4g} uV/C^{n}")
+            else:
+                x = ch.get("dK_v_per_g_per_c", [[0.0] * 3] * 3)[AXES.index(name[2])][AXES.index(name[3])] * _UV
+                parts.append(f"K {name[2:4]}'s temperature coefficient of power {n} by {x:+.4g} uV/g/C^{n}")
+        elif not name.endswith("drift"):
+            parts.append(name)
+    more = len(parts) - most
+    return "; ".join(parts[:most]) + (f"; and {more} more (the finding's parameters list them)" if more > 0 else "")
+
+
 def explain(params: dict, rms_before_uv: float, rms_after_uv: float, z: float) -> str:
-    """One or two sentences: which constants moved, by how much, how sure."""
-    du0 = np.asarray(params["dU0_v"]) * _UV
-    su0 = np.asarray(params["dU0_sigma_v"]) * _UV
+    """Two or three sentences: which constants moved significantly (only those), by how much, how sure; what
+    else was refit with them and agrees with the passport."""
     drift = params.get("drifting", "")
+    moved = _moved_text(params, params.get("moved", []))
+    fit_moved = _moved_text(params, params.get("beyond_fit_uncertainty", []))
     if not params.get("moved_before_the_recording", True):
         text = (f"The unit's constants ({params['constants']}) start the recording at the passport's values and "
                 "drift within it")
     else:
-        at = " at the start of the recording" if drift else ""
-        text = (f"The unit's constants moved since its passport ({params['constants']}"
-                + (f"; {drift} drifting within the recording" if drift else "") + f"): zero offsets{at} by "
-                + ", ".join(f"{a} {x:+.2f} +/- {s:.2g}" for a, x, s in zip(AXES, du0, su0)) + " uV")
-    if "dK_v_per_g" in params:
-        dk = np.asarray(params["dK_v_per_g"])
-        text += (", gains by " + ", ".join(f"{a} {x * _UV:+.1f}" for a, x in zip(AXES, np.diagonal(dk)))
-                 + " uV/g")
-    if "thermal_model_change" in params:
-        a1 = np.asarray(params["thermal_model_change"]["power_1"]["dU0_v_per_c"]) * _UV
-        text += (", and their temperature coefficients (offsets' first-order: "
-                 + ", ".join(f"{a} {x:+.3f}" for a, x in zip(AXES, a1)) + " uV/C)")
+        at = " (at the start of the recording)" if drift else ""
+        if params.get("within_passport_uncertainty"):
+            text = (f"The passport's constants do not hold for this recording{at}: refit ({params['constants']}), "
+                    f"they change its prediction by {params['departure_rms_v'] * _UV:.2f} uV RMS, "
+                    f"{params['departure_rms_v'] / params['noise_rms_v']:.0f} times the noise, although within "
+                    "the passport's own stated uncertainty (an imprecise or wrong passport, not necessarily a unit "
+                    "that moved)" + (f"; beyond the fit's uncertainty: {fit_moved}" if fit_moved else "") + ".")
+        else:
+            text = (f"The unit's constants moved since its passport{at}: " + (moved or "no single entry is "
+                    f"significant on its own, but together ({params['constants']}) they depart from the passport "
+                    f"by {params.get('departure_sigma', z):.0f} sigma of its prediction") + ".")
+        if moved and not params.get("within_passport_uncertainty"):
+            text += (f" Refit with them ({params['constants']}), the other entries agree with the passport within "
+                     f"{SIGNIFICANT_SIGMA:g} sigma.")
+    if params.get("thermal_model_note"):
+        text += " " + params["thermal_model_note"]
     if drift:
         end = np.asarray(params["dU0_end_v"]) * _UV
         s_end = np.asarray(params["dU0_end_sigma_v"]) * _UV
         rate = np.asarray(params["dU0_rate_v_per_h"]) * _UV
-        text += (f"; over the {params['duration_h']:.1f} h recording they drift at "
+        text += (f" Over the {params['duration_h']:.1f} h recording ({drift} drifting) the offsets drift at "
                  + ", ".join(f"{a} {x:+.3f}" for a, x in zip(AXES, rate)) + " uV/h to "
                  + ", ".join(f"{a} {x:+.2f} +/- {s:.2g}" for a, x, s in zip(AXES, end, s_end)) + " uV at its end")
         if "gain_drift_ppm_over_run" in params:
@@ -275,9 +371,9 @@ def explain(params: dict, rms_before_uv: float, rms_after_uv: float, z: float) -
                                                                  params["gain_drift_sigma_ppm_over_run"]))
                      + " ppm over it")
         text += (" (a drift of the offsets is what the catalogue calls time_drift; against a passport it is part "
-                 "of the constants' change)")
-    return (text + f" ({z:.0f} sigma, the passport's own uncertainty included): refitting them takes the residual "
-            f"from {rms_before_uv:.2f} to {rms_after_uv:.2f} uV RMS.")
+                 "of the constants' change).")
+    return (text + f" Largest change {z:.0f} sigma (the passport's own uncertainty included); refitting takes the "
+            f"residual from {rms_before_uv:.2f} to {rms_after_uv:.2f} uV RMS.")
 
 
 __all__ = ["Level", "ShiftResult", "levels", "level_mask", "find_shift", "passport_sigma", "explain",

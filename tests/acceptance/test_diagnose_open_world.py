@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from flows.diagnose_cmd import diagnose_command
+from pipeline.calibrate.settings import CalibrationSettings
 from pipeline.diagnose.diagnosis import diagnose_run, fit_passport
 from pipeline.diagnose.signal import segment_settings_for
 from pipeline.effects.catalogue import EFFECTS
@@ -116,6 +117,39 @@ def test_shifted_gains_are_a_constants_shift_of_k():
     kii = np.diagonal(seed000_unit().constants_at(np.array([20.0]))[0][0])
     np.testing.assert_allclose(np.diagonal(p["dK_v_per_g"]), kii * np.array([2e-4, 0.0, -1e-4]), atol=1 * UV)
     np.testing.assert_allclose(p["dU0_v"], 0.0, atol=0.3 * UV)
+
+
+def test_only_the_constants_that_moved_are_named():
+    """A gain shift of x alone (the test above): the report names K_xx, not "K, U0 and their thermal model"."""
+    f = diagnosed("shift_gain:given")["findings"][0]
+    assert f["parameters"]["moved"][:2] == ["K_xx", "K_zz"] and not any(m.startswith("U0") for m in
+                                                                          f["parameters"]["moved"])
+    assert "K xx by" in f["explanation"] and "K zz by" in f["explanation"] and "U0 x by" not in f["explanation"]
+
+
+@lru_cache(maxsize=None)
+def _poly1_passport() -> str:
+    calib = simulate(SimConfig(seed=41, rate_hz=RATE_HZ)).run
+    seg = segment_settings_for(calib)
+    return json.dumps(fit_passport(calib, segment_run(calib, seg),
+                                   CalibrationSettings(thermal_model="poly1", segment=seg)))
+
+
+def test_a_passport_of_too_low_an_order_is_a_finding_not_a_silent_refit():
+    """A passport whose thermal model is linear where the unit's is not (calibrate --thermal-model poly1; its
+    stated uncertainty is large, honestly): against a clean recording of the unit it is off by ~860 uV. That is a
+    constants_shift finding with the amounts (the power the passport lacks named), never `consistent` with the
+    departure only in a note."""
+    run = simulate(SimConfig(seed=2, rate_hz=RATE_HZ)).run
+    rep = diagnose_run(run, json.loads(_poly1_passport())).report
+    assert rep["verdict"] == "mismatch" and named(rep) == ["constants_shift"]
+    f = rep["findings"][0]
+    p = f["parameters"]
+    assert p["constants"] == "K, U0 and their thermal model" and "power_2" in p["thermal_model_change"]
+    assert p["within_passport_uncertainty"] and p["departure_rms_v"] > 100 * p["noise_rms_v"]
+    assert any(m.endswith("power 2") for m in p["beyond_fit_uncertainty"])
+    assert "polynomial of order 1" in f["explanation"] and "do not hold" in f["explanation"]
+    assert rep["rms_before_v"] > 300 * UV and rep["rms_after_v"] < 1.1 * rep["rms_noise_v"]
 
 
 def test_a_passport_whose_thermal_model_is_off_is_named_as_such_not_as_physics():
