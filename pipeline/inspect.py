@@ -328,8 +328,7 @@ def _recording_lines(rec: dict[str, Any]) -> list[str]:
     """The recording's description (:func:`describe_recording`) as text."""
     t = rec["temperature"]
     lo, hi = t["range_c"]
-    kinds = {"plateaus": f"plateau program: {count_words(t['plateaus'], 'plateau')}",
-             "constant": "one temperature",
+    kinds = {**KIND_WORDS, "plateaus": f"plateau program: {count_words(t['plateaus'], 'plateau')}",
              "sweep": "temperature sweep (continuous drift, no plateau held)"}
     lines = [f"recording: {kinds.get(t['kind'], t['kind'])}; {lo:+.2f} .. {hi:+.2f} C, largest rate "
              f"{t['max_rate_c_per_h']:.3g} C/h (over {t['rate_window_s']:.0f} s)"]
@@ -351,6 +350,10 @@ def _recording_lines(rec: dict[str, Any]) -> list[str]:
     lines.append(f"  calibrate --method auto: {auto or 'no method fits this recording'}"
                  + ("" if auto is None or supported else " (the fixture log says tilt; it will say what is missing)"))
     return lines
+
+
+#: the kinds of temperature record (``recording.temperature.kind``) in words
+KIND_WORDS = {"plateaus": "plateau program", "constant": "one temperature", "sweep": "temperature sweep"}
 
 
 def count_words(n: int, noun: str) -> str:

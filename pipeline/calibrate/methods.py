@@ -35,16 +35,16 @@ def auto_method(run, seg) -> tuple[str, str]:
     :func:`pipeline.segment.segment_run`): the one inspect says the recording supports
     (:func:`pipeline.inspect.describe_recording`), and a line saying which and why. CalibrationError naming the
     file when no method fits the recording."""
-    from pipeline.inspect import describe_recording
+    from pipeline.inspect import KIND_WORDS, describe_recording
 
     rec = describe_recording(run, seg)
     chosen = rec["method_auto"]
+    kind = KIND_WORDS.get(rec["temperature"]["kind"], rec["temperature"]["kind"])
     if chosen is None:
         why = "; ".join(f"{m['method']}: {m['why']}" for m in rec["methods"])
-        raise CalibrationError(f"no calibration method fits this recording ({rec['temperature']['kind']}; {why})",
-                               path=run.source)
+        raise CalibrationError(f"no calibration method fits this recording ({kind}; {why})", path=run.source)
     m = next(m for m in rec["methods"] if m["method"] == chosen)
-    return chosen, f"{chosen} ({rec['temperature']['kind']}: {m['why']})"
+    return chosen, f"{chosen} ({kind}: {m['why']})"
 
 
 def default_base_passport(registry, unit: str) -> dict | None:

@@ -19,7 +19,7 @@ from pathlib import Path
 
 from pipeline.errors import ThermocalError
 from pipeline.passport.text import (approval_text, gains_v_per_g, max_error_g, model_text, output_unit_of,
-                                    per, reason_lines, sigma_reasons)
+                                    per, reason_lines, sigma_reasons, signed)
 from pipeline.positions import AXES
 from pipeline.verify import verification_visits
 
@@ -129,11 +129,10 @@ def _settings_text(settings: dict) -> str:
     return ", ".join(f"{k}={v}" for k, v in sorted(keep.items()))
 
 
-def _pm(value: float | None, sigma: float | None, scale: float, unit: str, fmt: str = "{:+.8f}",
-        tag: str | None = None) -> str:
+def _pm(value: float | None, sigma: float | None, scale: float, unit: str, tag: str | None = None) -> str:
     if value is None:
         return "-"
-    text = fmt.format(value)
+    text = signed(value)
     if tag is not None and (sigma is None or sigma == 0):
         text += f" {tag}"
     elif sigma is not None:

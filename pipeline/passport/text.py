@@ -113,8 +113,14 @@ def _tag(name: str, fixed: dict, undetermined: dict) -> str | None:
     return "(by convention)" if name in fixed else "(undetermined)" if name in undetermined else None
 
 
+def signed(value: float, decimals: int = 8) -> str:
+    """``+0.55060846``; a value that rounds to zero reads ``+0.00000000``, never ``-0.00000000``."""
+    text = f"{value:+.{decimals}f}"
+    return text if float(text) != 0 else f"{0.0:+.{decimals}f}"
+
+
 def _pm(value: float, sigma: float | None, gain: float, unit: str, tag: str | None = None) -> str:
-    text = f"{value:+.8f}"
+    text = signed(value)
     if tag is not None and (sigma is None or sigma == 0):
         return f"{text} {tag}"
     if sigma is None:
@@ -281,7 +287,7 @@ def calibrate_lines(result: dict, doc: dict | None) -> list[str]:
     lines.append(f"  status: {str(result['status']).upper()}")
     plateaus = result.get("plateaus") or []
     if plateaus:
-        lines.append(f"  {len(plateaus)} plateaus: " + ", ".join(f"{p['temp_c']:+.1f}" for p in plateaus) + " C")
+        lines.append(f"  {len(plateaus)} plateau{'' if len(plateaus) == 1 else 's'}: " + ", ".join(f"{p['temp_c']:+.1f}" for p in plateaus) + " C")
     if doc is not None:
         lines += [""] + verification_lines(doc) + [""] + constants_lines(doc)
     for key, what in (("figure", "figure, VP errors"), ("constants_figure", "figure, constants")):

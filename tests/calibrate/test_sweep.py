@@ -110,7 +110,7 @@ def test_cli_auto_picks_differential_and_apply_writes_every_row(sweeps, tmp_path
                          capture_output=True, text=True, env=env, timeout=300)
     assert cal.returncode == 0, cal.stderr
     r = json.loads(cal.stdout)
-    assert r["method"] == "differential" and r["method_auto"].startswith("differential (sweep")
+    assert r["method"] == "differential" and r["method_auto"].startswith("differential (temperature sweep: ")
     assert r["plateaus"] == []
     out = tmp_path / "applied.parquet"
     wide = simulate(SimConfig(program="short", seed=3, rate_hz=0.5)).run

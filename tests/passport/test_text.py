@@ -109,3 +109,20 @@ def test_output_unit_recorded_and_inferred_for_older_passports(calibrated_regist
     assert output_unit_of(mps2) == "m/s^2"
     text = "\n".join(constants_lines(mps2))
     assert "K_ix ((m/s^2)/g)" in text and "U0_i (m/s^2)" in text and "V/g" not in text
+
+
+def test_one_plateau_and_a_zero_read_as_words_and_plus_zero(calibrated_registry):
+    """calibrate's summary of a one-temperature calibration says '1 plateau', and a constant fixed at zero (the
+    scalar method's gauge stores -0.0) reads +0.00000000, in the text and the certificate alike."""
+    from pipeline.passport.report import certificate_html
+    from pipeline.passport.text import calibrate_lines
+
+    res = calibrated_registry["results"][0]
+    doc = json.loads(open(res["passport"]).read())
+    K = [list(row) for row in doc["coefficients"]["K"]]
+    K[0][1] = -0.0
+    doc = {**doc, "coefficients": {**doc["coefficients"], "K": K}}
+    text = "\n".join(calibrate_lines({**res, "plateaus": res["plateaus"][:1]}, doc))
+    assert "  1 plateau: " in text and "-0.00000000" not in text and "+0.00000000" in text
+    page = certificate_html(doc, figures={})
+    assert "-0.00000000" not in page and "+0.00000000" in page
