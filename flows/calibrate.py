@@ -106,10 +106,11 @@ def calibrate_flow(paths: list[str], registry: str, settings: CalibrationSetting
     if method == "auto":
         step(f"choose the method (segment {os.path.basename(paths[0])})")
         method, chosen, segmentation = choose(runs[0], settings)
+    base_line = None                        # which version the differential method starts from, and its status
     if method not in NEEDS_BASE_PASSPORT:
         base_passport = None
     elif base_passport is None:
-        base_passport = default_base_passport(registry, unit)
+        base_passport, base_line = default_base_passport(registry, unit)
     observed = []
     for k, (run, p) in enumerate(zip(runs, paths)):
         seg = segmentation if k == 0 else None
@@ -118,7 +119,7 @@ def calibrate_flow(paths: list[str], registry: str, settings: CalibrationSetting
     del runs                                # the samples are not needed past the observations
     step(f"fit ({method}: constants, thermal model, VP verification)")
     calibration = fit(observed, method, settings, base_passport)
-    calibration.warnings[:0] = selection_warnings
+    calibration.warnings[:0] = selection_warnings + ([base_line] if base_line and base_passport is None else [])
     for w in calibration.warnings:
         logger.warning(w)
     step("write" if not dry_run else "dry run (nothing written)")
@@ -129,6 +130,8 @@ def calibrate_flow(paths: list[str], registry: str, settings: CalibrationSetting
                              description=f"thermocal calibration of {unit}")
     if chosen:
         result["method_auto"] = chosen
+    if base_line and base_passport is not None:
+        result["base_passport_used"] = base_line
     step(f"done: {unit} v{result['version']} {result['status']}")
     return result
 

@@ -290,6 +290,8 @@ def _calibrate_text(r: dict) -> str:
     lines = calibrate_lines(r, doc)
     if r.get("method_auto"):
         lines.insert(1, f"method: {r['method_auto']}")
+    if r.get("base_passport_used"):
+        lines.insert(1, r["base_passport_used"])
     return "\n".join(lines)
 
 
@@ -309,16 +311,18 @@ def export(unit: str = typer.Argument(..., metavar="UNIT", help=UNIT_HELP),
     from pipeline.passport.export import export_passport
     from pipeline.passport.registry import Registry
 
-    reg = Registry(registry)
-    doc = reg.load(unit, version) if version is not None else reg.load_current(unit)[0]
-    exp = export_passport(doc, fmt)
+    doc, state = Registry(registry).load_state(unit, version)
+    exp = export_passport(doc, fmt, state=state)
+    if state.warning():
+        print(f"thermocal: warning: export of {state.warning()}", file=sys.stderr)
     if out is not None:
         try:
             out.write_text(exp.text)
         except OSError as e:
             raise ThermocalError(f"cannot write the export ({e.strerror})", path=str(out)) from None
     if as_json:
-        _emit({**exp.summary(), "out": str(out) if out else None, "text": None if out else exp.text}, True)
+        _emit({**exp.summary(), "passport_used": state.as_dict(), "out": str(out) if out else None,
+               "text": None if out else exp.text}, True)
     elif out is None:
         sys.stdout.write(exp.text)
         sys.stdout.flush()
@@ -326,7 +330,7 @@ def export(unit: str = typer.Argument(..., metavar="UNIT", help=UNIT_HELP),
         res = exp.residual
         tail = (f"; not held: scale/cross-axis temperature terms, worst {res['total_worst_ug']:.0f} micro-g over "
                 f"{exp.valid_temp_c[0]:g}..{exp.valid_temp_c[1]:g} C" if res else "")
-        _emit(None, False, f"wrote {out} ({fmt}, {unit} v{exp.version}){tail}")
+        _emit(None, False, f"wrote {out} ({fmt}, {state.text()}){tail}")
 
 
 # ------------------------------------------------------------------------------------------------------------ apply
@@ -351,7 +355,8 @@ def apply(passport: Path = typer.Argument(..., metavar="PASSPORT", help="passpor
     inr = int(t["in_range"].sum())
     obj = {"out": str(path), "rows": t.height, "in_range": inr, "out_of_range": t.height - inr,
            "valid_temp_c": list(applied.valid_temp_c) if applied.valid_temp_c else None,
-           "passport": {"unit": doc.get("unit"), "version": doc.get("version"), "method": doc.get("method")},
+           "passport": {"unit": doc.get("unit"), "version": doc.get("version"), "method": doc.get("method"),
+                        "status": doc.get("status")},
            "warnings": applied.warnings}
     _emit(obj, as_json, f"wrote {path}: {t.height} rows, {t.height - inr} outside the valid temperature range")
 
@@ -376,6 +381,9 @@ def diagnose(run: Path = typer.Argument(..., metavar="RUN", help="an .mcap file 
     from .diagnose_cmd import diagnose_command, diagnose_text
 
     report = diagnose_command(run, passport, as_json, png, out_passport, registry)
+    if report.get("passport_used", {}).get("status") == "fail":
+        print(f"thermocal: warning: diagnose against {report['passport_source']}: it failed its verification",
+              file=sys.stderr)
     _emit(report, as_json, None if as_json else diagnose_text(report))
 
 
@@ -398,8 +406,9 @@ def fleet(folder: Path = typer.Argument(..., metavar="FOLDER", help="folder of r
           tol_normal_g: float = typer.Option(3e-4, "--tol-normal-g", help="as for calibrate"),
           tol_range_g: float = typer.Option(1e-3, "--tol-range-g", help="as for calibrate"),
           method: str = typer.Option("tilt", "--method",
-                                     help="tilt (default), scalar, or differential (starting from each unit's newest "
-                                          "tilt or scalar passport in the registry)"),
+                                     help="tilt (default), scalar, or differential (starting from each unit's current "
+                                          "passport in the registry: its newest approved, else newest, version "
+                                          "not made by the differential method)"),
           as_json: bool = typer.Option(False, "--json", help=JSON_HELP)):
     """Calibrate every run under FOLDER, one passport per unit (Prefect flow, one task per unit).
 
@@ -530,9 +539,9 @@ def report(unit: str = typer.Argument(..., metavar="UNIT", help=UNIT_HELP),
     from pipeline.passport.report import certificate_html, print_pdf
 
     reg = Registry(registry)
-    if version is None:
-        version = reg.current(unit)
-    doc = reg.load(unit, version)
+    doc, state = reg.load_state(unit, version)
+    if state.warning():
+        print(f"thermocal: warning: certificate of {state.warning()}", file=sys.stderr)
     approved = _approval(reg, unit, doc)
     page = certificate_html(doc, approved=approved, registry=str(registry))
     try:
@@ -544,7 +553,8 @@ def report(unit: str = typer.Argument(..., metavar="UNIT", help=UNIT_HELP),
         raise ThermocalError(f"cannot write the certificate ({e.strerror or e})", path=str(out)) from None
     pdf_path = str(print_pdf(out, pdf)) if pdf is not None else None
     obj = {"unit": unit, "version": doc.get("version"), "status": doc.get("status"), "certificate": str(out),
-           "pdf": pdf_path, "approved": bool(approved), "valid_temp_c": doc.get("valid_temp_c")}
+           "pdf": pdf_path, "approved": bool(approved), "current": state.current,
+           "valid_temp_c": doc.get("valid_temp_c")}
     valid = doc.get("valid_temp_c")
     text = (f"{unit} v{doc.get('version')} ({doc.get('status')}, "
             + (f"valid {valid[0]:+.1f} .. {valid[1]:+.1f} C, " if valid else "")

@@ -28,12 +28,12 @@ def _beside(run: Path, suffix: str) -> Path:
     return run.parent / f"{run.name.removesuffix('.mcap')}{suffix}"
 
 
-def current_passport(registry: Path, unit: str) -> tuple[dict, str]:
+def current_passport(registry: Path, unit: str):
     """The unit's current passport in ``registry`` (contract.md: the newest approved version, else the newest:
-    :meth:`pipeline.passport.registry.Registry.load_current`) and a description of where it came from."""
-    doc, approved = Registry(registry).load_current(unit)
-    state = "approved" if approved else "the newest, none approved"
-    return doc, f"{registry} (unit {unit}, version {doc.get('version')}, {state})"
+    :meth:`pipeline.passport.registry.Registry.load_state`), a description of it (version, status, approval) and
+    its :class:`pipeline.passport.registry.VersionState`."""
+    doc, st = Registry(registry).load_state(unit)
+    return doc, f"{registry}: {st.text()}", st
 
 
 def diagnose_command(run: Path, passport: Path | None, as_json: bool, out_png: Path | None,
@@ -48,11 +48,11 @@ def diagnose_command(run: Path, passport: Path | None, as_json: bool, out_png: P
         raise ThermocalError("give --passport or --registry, not both", where="diagnose")
     step(f"ingest {run.name}")
     the_run = read_run(run)
-    doc, source = None, None
+    doc, source, state = None, None, None
     if passport is not None:
         doc, source = read_passport(passport), str(passport)
     elif registry is not None:
-        doc, source = current_passport(registry, the_run.meta.unit_serial)
+        doc, source, state = current_passport(registry, the_run.meta.unit_serial)
     step("segment, fit and search the residual" if doc is None else "segment and search the residual")
     result = diagnose_run(the_run, doc, passport_source=source)
     step("write figure and extended passport")
@@ -69,6 +69,10 @@ def diagnose_command(run: Path, passport: Path | None, as_json: bool, out_png: P
     except OSError as e:
         raise ThermocalError(f"cannot write: {e.strerror or e}", path=str(e.filename or png)) from None
     report = dict(result.report)
+    if state is not None:                   # which version of the registry, its status and approval
+        report["passport_used"] = state.as_dict()
+        if state.warning():
+            report["notes"] = [*report.get("notes", []), state.warning()]
     report["output_unit"] = output_unit_of(result.passport)
     report["figure"] = str(png)
     report["extended_passport"] = str(ext)

@@ -176,6 +176,9 @@ def apply_passport(passport: dict, run: Run) -> Applied:
                 out = specific_force_g(K, U0, u)
         out[~good] = np.nan
         a[s0:s1] = out
+    if passport.get("status") == "fail":
+        warnings.append(f"the passport ({passport.get('unit')} v{passport.get('version')}) failed its verification "
+                        "(status fail): its compensated errors exceeded the limits")
     rng = valid_range_c(passport)
     if rng is None:
         in_range = np.isfinite(temp_c)

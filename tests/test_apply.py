@@ -81,6 +81,8 @@ def test_in_range_and_one_warning(passport, other):
     first = int(out.table.filter(~pl.col("in_range"))["t_ns"][0])     # the time for people: UTC, not raw t_ns
     assert f"(the first at {utc_text(first)})" in out.warnings[0] and "t_ns" not in out.warnings[0]
     assert apply_passport(dict(passport, valid_temp_c=[-45.0, 75.0]), run).warnings == []
+    failed = apply_passport(dict(passport, valid_temp_c=[-45.0, 75.0], status="fail"), run).warnings
+    assert len(failed) == 1 and "failed its verification (status fail)" in failed[0]
 
 
 def test_write_parquet_and_mcap(passport, other, tmp_path):

@@ -187,7 +187,7 @@ def plan_fleet(root: str | os.PathLike, registry: str | os.PathLike | Registry,
             if not kept:
                 continue
         try:
-            base = base_passport_of(reg, unit) if method in NEEDS_BASE_PASSPORT else None
+            base = base_passport_of(reg, unit)[0] if method in NEEDS_BASE_PASSPORT else None
             extra = base_reference(base) if base is not None else {}
             identity = identity_key(kept, recorded_settings(settings, rec.METHOD, extra))
             done = reg.find(unit, identity)

@@ -47,45 +47,40 @@ def auto_method(run, seg) -> tuple[str, str]:
     return chosen, f"{chosen} ({kind}: {m['why']})"
 
 
-def default_base_passport(registry, unit: str) -> dict | None:
-    """:func:`base_passport_of`, or None when the unit has no passport to start from (the differential method then
-    takes the constants at T0 from the orientations themselves)."""
+def default_base_passport(registry, unit: str) -> tuple[dict | None, str]:
+    """(:func:`base_passport_of`, a line saying which version and its status), or (None, a line saying why none)
+    when the unit has no passport to start from: the differential method then takes the constants at T0 from the
+    orientations themselves."""
     try:
-        return base_passport_of(registry, unit)
-    except ThermocalError:
-        return None
+        doc, st = base_passport_of(registry, unit)
+    except ThermocalError as e:
+        return None, (f"differential base: none ({e.message}); the constants at T0 are taken from the "
+                      "orientations themselves")
+    return doc, f"differential base: {st.text()}"
 
 
-def base_passport_of(registry, unit: str) -> dict:
-    """The passport a differential calibration of ``unit`` starts from by default: the unit's current passport in
-    ``registry`` (a folder or a :class:`pipeline.passport.registry.Registry`): its newest approved version, else
-    its newest tilt version that did not fail its verification, else its newest other version that did not fail
-    (a scalar one: K in a rotated gauge); never one made by the differential method itself (a
-    differential passport's constants at T0 are its base's, so starting from it changes nothing but the identity).
-    CalibrationError when the unit has none."""
+def base_passport_of(registry, unit: str):
+    """The passport a differential calibration of ``unit`` starts from by default, and its
+    :class:`pipeline.passport.registry.VersionState`: the unit's current passport in ``registry`` (a folder or a
+    :class:`pipeline.passport.registry.Registry`; the one rule, :meth:`~pipeline.passport.registry.Registry.current`)
+    among the versions not made by the differential method itself (a differential passport's constants at T0 are
+    its base's, so starting from it changes nothing but the identity). CalibrationError when the unit has none, or
+    when that version failed its verification (approve a passing version or name one with --base-passport)."""
     from pipeline.passport.registry import Registry
 
     reg = registry if isinstance(registry, Registry) else Registry(registry)
     try:
-        versions = [v.version for v in reg.versions(unit)]
-        approved = {a["version"] for a in reg.approvals(unit)}
+        st = reg.state(unit, exclude_methods=NEEDS_BASE_PASSPORT)
     except CalibrationError:
         raise
     except Exception as e:  # noqa: BLE001 - an unknown unit or unreadable registry: the reason, in one line
         raise CalibrationError(f"no normal-temperature passport of {unit} to start from "
                                f"({getattr(e, 'message', e)})") from None
-    docs = {v: reg.load(unit, v) for v in reversed(versions)}
-    usable = [v for v, d in docs.items() if d.get("method") not in NEEDS_BASE_PASSPORT]
-    for v in usable:
-        if v in approved:
-            return docs[v]
-    good = [v for v in usable if docs[v].get("status") != "fail"]
-    for v in good:            # unapproved: a tilt calibration (K in the unit's own axes) before a scalar one
-        if docs[v].get("method", "tilt_six_position") == "tilt_six_position":
-            return docs[v]
-    for v in good:
-        return docs[v]
-    if usable:
-        raise CalibrationError(f"no normal-temperature passport of {unit} to start from: every version failed its "
-                               "verification and none is approved ('thermocal passport approve')")
-    raise CalibrationError(f"no normal-temperature passport of {unit} to start from (only differential versions)")
+    if st is None:
+        raise CalibrationError(f"no normal-temperature passport of {unit} to start from (no version, or only "
+                               "differential ones)")
+    if st.status == "fail":
+        raise CalibrationError(f"{st.text()} failed its verification: not a base for the "
+                               "differential method (approve a passing version, 'thermocal passport approve', or "
+                               "name one with --base-passport)")
+    return reg.load(unit, st.version), st

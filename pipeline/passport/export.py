@@ -9,8 +9,11 @@ sensor's own axes (here the unit's axes x, y, z), evaluated at the clamped tempe
 - **ArduPilot** (``AP_InertialSensor_tempcal``, parameters ``INS_TCAL1_*``): a polynomial without constant term
   about the fixed reference 35 C, ``p(x) = (ACC1 x + ACC2 x^2 + ACC3 x^3) * 1e-6``, and the corrected reading
   ``v - p(T - 35) + p(T_cal - 35)``, T and T_cal (``INS_ACC1_CALTEMP``, the temperature of the vehicle's own
-  accelerometer calibration) clamped to [TMIN, TMAX]. Written as ``NAME VALUE`` lines (the form ArduPilot's own
-  tempcal tool writes; ``#`` lines are comments).
+  accelerometer calibration) clamped to [TMIN, TMAX]. The raw reading assumed here is calibrated at the passport's
+  T0, so ``INS_ACC1_CALTEMP`` is written as T0 (left at ArduPilot's default -300 C it would clamp to TMIN and
+  shift every reading by the bias change between TMIN and T0); a new accelerometer calibration on the vehicle
+  sets it again to its own temperature. Written as ``NAME VALUE`` lines (the form ArduPilot's own tempcal tool
+  writes; ``#`` lines are comments).
 
 What is exported: the reading those programs call raw is the unit's output with the passport's normal-temperature
 constants applied, ``r = g K0^-1 (U - U0(T0))`` (m/s^2, the vehicle's own accelerometer calibration plays that part).
@@ -23,6 +26,9 @@ axis the norm of its row).
 
 CSV holds everything: the normal-temperature constants, the thermal model's coefficients and their standard
 uncertainties, one row per number.
+
+Every file states the passport's status and approval (``pipeline.passport.registry.VersionState``): in its
+comment header (PX4, ArduPilot) or as rows ``status`` and ``approval`` (CSV).
 """
 
 from __future__ import annotations
@@ -149,7 +155,7 @@ def _not_held(passport: dict, extra: list[str]) -> list[str]:
     return out + extra
 
 
-def export_px4(passport: dict) -> Export:
+def export_px4(passport: dict, state=None) -> Export:
     """PX4 ``TC_A0_*`` parameters (accelerometer instance 0): TREF the passport's normal temperature, TMIN/TMAX its
     valid range, X0..X3 the offset cubic in m/s^2 per C^n. ``TC_A0_ID`` must be set to the accelerometer's device
     id on the vehicle (``CAL_ACC0_ID``); it is written as 0."""
@@ -170,7 +176,7 @@ def export_px4(passport: dict) -> Export:
                                     "to CAL_ACC0_ID before use"])
     ints = {"TC_A_ENABLE", "TC_A0_ID"}
     lines = _header(passport, "PX4 thermal compensation (TC_A0_*), QGroundControl parameter file", lo, hi,
-                    not_held, residual)
+                    not_held, residual, state)
     lines += ["# Vehicle-Id\tComponent-Id\tName\tValue\tType"]
     for name, value in params.items():
         lines.append(f"1\t1\t{name}\t{int(value) if name in ints else _f32(value)}\t{6 if name in ints else 9}")
@@ -178,10 +184,11 @@ def export_px4(passport: dict) -> Export:
                   not_held, residual, params)
 
 
-def export_ardupilot(passport: dict) -> Export:
+def export_ardupilot(passport: dict, state=None) -> Export:
     """ArduPilot ``INS_TCAL1_*`` parameters (first IMU): TMIN/TMAX the valid range (clipped to -70..80 C),
-    ACC1..ACC3 the cubic about 35 C without constant term, times 1e6. The correction is relative to the
-    temperature of the vehicle's own accelerometer calibration (``INS_ACC1_CALTEMP``), which is not written."""
+    ACC1..ACC3 the cubic about 35 C without constant term, times 1e6, and ``INS_ACC1_CALTEMP`` = T0: the
+    correction is relative to the temperature of the accelerometer calibration the raw reading carries, here the
+    passport's normal-temperature constants."""
     lo, hi = valid_range_c(passport)
     extra = []
     a_lo, a_hi = max(lo, ARDUPILOT_TEMP_RANGE_C[0]), min(hi, ARDUPILOT_TEMP_RANGE_C[1])
@@ -201,26 +208,31 @@ def export_ardupilot(passport: dict) -> Export:
     b0, _ = thermal_errors(passport, np.array([min(max(t0, a_lo), a_hi)]))
     held0 = _poly(p, np.array([min(max(t0, a_lo), a_hi)]) - ARDUPILOT_TREF_C)
     residual = _residual(bias - b0, held - held0, rel, g, temps)
-    params: dict[str, float] = {"INS_TCAL1_ENABLE": 1, "INS_TCAL1_TMIN": a_lo, "INS_TCAL1_TMAX": a_hi}
+    params: dict[str, float] = {"INS_TCAL1_ENABLE": 1, "INS_TCAL1_TMIN": a_lo, "INS_TCAL1_TMAX": a_hi,
+                                "INS_ACC1_CALTEMP": t0}
     for n in range(3):
         for i, ax in enumerate("XYZ"):
             params[f"INS_TCAL1_ACC{n + 1}_{ax}"] = float(coef[n, i])
     not_held = _not_held(passport, extra + ["gyroscope terms (INS_TCAL1_GYR*): the unit has no gyroscopes; "
                                             "not written, so a vehicle's own values stay"])
     lines = _header(passport, "ArduPilot IMU temperature calibration (INS_TCAL1_*), parameter file", a_lo, a_hi,
-                    not_held, residual)
+                    not_held, residual, state)
+    lines.append(f"# INS_ACC1_CALTEMP = T0 ({t0:g} C): the raw reading assumed carries the passport's "
+                 "normal-temperature constants; a new accelerometer calibration on the vehicle resets it")
     lines += [f"{name} {int(value) if name == 'INS_TCAL1_ENABLE' else _num(value)}" for name, value in params.items()]
     return Export("ardupilot", passport.get("unit", ""), passport.get("version"), (a_lo, a_hi),
                   "\n".join(lines) + "\n", not_held, residual, params)
 
 
-def export_csv(passport: dict) -> Export:
+def export_csv(passport: dict, state=None) -> Export:
     """Every number of the passport's model, one row each: ``quantity, key, order, t_lo_c, t_hi_c, value, unit,
     std_uncertainty`` (the uncertainty empty where the passport records none)."""
     lo, hi = valid_range_c(passport)
     rows = [["quantity", "key", "order", "t_lo_c", "t_hi_c", "value", "unit", "std_uncertainty"],
             ["unit", passport.get("unit", ""), "", "", "", "", "", ""],
             ["version", "", "", "", "", passport.get("version", ""), "", ""],
+            ["status", "", "", "", "", passport.get("status", ""), "", ""],
+            ["approval", "", "", "", "", _approval(passport, state), "", ""],
             ["normal_temp_c", "", "", "", "", passport.get("normal_temp_c", ""), "C", ""],
             ["g_local_mps2", "", "", "", "", passport.get("g_local_mps2", ""), "m/s^2", ""],
             ["valid_temp_c", "", "", lo, hi, "", "C", ""]]
@@ -251,12 +263,14 @@ def export_csv(passport: dict) -> Export:
     return Export("csv", passport.get("unit", ""), passport.get("version"), (lo, hi), buf.getvalue(), [], {}, {})
 
 
-def export_passport(passport: dict, fmt: str) -> Export:
-    """The passport in ``fmt``: ``px4``, ``ardupilot`` or ``csv``."""
+def export_passport(passport: dict, fmt: str, state=None) -> Export:
+    """The passport in ``fmt``: ``px4``, ``ardupilot`` or ``csv``. ``state``: its
+    :class:`pipeline.passport.registry.VersionState` when read from a registry (status and approval stated in the
+    file)."""
     if fmt not in FORMATS:
         raise ThermocalError(f"unknown export format {fmt!r} ({', '.join(FORMATS)})", where="--format")
     try:
-        return {"px4": export_px4, "ardupilot": export_ardupilot, "csv": export_csv}[fmt](passport)
+        return {"px4": export_px4, "ardupilot": export_ardupilot, "csv": export_csv}[fmt](passport, state)
     except (KeyError, TypeError, ValueError, np.linalg.LinAlgError) as e:
         raise ThermocalError(f"the passport cannot be exported as {fmt} ({type(e).__name__}: {e})") from None
 
@@ -270,14 +284,25 @@ def _num(value: float) -> str:
     return f"{value:.9f}".rstrip("0").rstrip(".") if value != 0 else "0"
 
 
-def _header(passport: dict, what: str, lo: float, hi: float, not_held: list[str], residual: dict) -> list[str]:
+def _approval(passport: dict, state) -> str:
+    """The approval as the file states it: from the registry's records, or unknown for a passport file alone."""
+    return state.approval_text() if state is not None else "approval unknown (not read from a registry)"
+
+
+def _header(passport: dict, what: str, lo: float, hi: float, not_held: list[str], residual: dict,
+            state=None) -> list[str]:
     unit, version = passport.get("unit", "?"), passport.get("version")
     lines = [f"# {what}",
              f"# thermocal export of {unit} passport v{version} (content_sha256 "
              f"{str(passport.get('content_sha256', ''))[:16]}), method {passport.get('method', 'tilt_six_position')}",
-             f"# valid temperature range {lo:g} .. {hi:g} C; accelerometer offsets in m/s^2 along the unit's x, y, z",
-             "# raw reading assumed: the unit's output with the passport's normal-temperature constants applied",
-             "# not held by this format:"]
+             f"# status {passport.get('status')}; {_approval(passport, state)}"]
+    if passport.get("status") == "fail":
+        lines.append("# WARNING: this passport failed its verification (its compensated errors exceeded the "
+                     "limits); review before loading it")
+    lines += [f"# valid temperature range {lo:g} .. {hi:g} C; accelerometer offsets in m/s^2 along the unit's x, "
+              "y, z",
+              "# raw reading assumed: the unit's output with the passport's normal-temperature constants applied",
+              "# not held by this format:"]
     lines += [f"#   - {t}" for t in not_held]
     if residual:
         lines.append("# residual error over the valid range (computed on a 0.1 C grid):")

@@ -181,6 +181,45 @@ class VersionInfo:
     created_utc: str | None
     status: str | None
     inputs: list[dict]
+    method: str | None = None
+
+
+@dataclass(frozen=True)
+class VersionState:
+    """What a person must know of the version a command uses: its status, who approved it, and whether it is the
+    unit's current passport (contract.md: the newest approved version, else the newest; :meth:`Registry.state`)."""
+    unit: str
+    version: int
+    status: str | None
+    approved_by: tuple[str, ...]
+    current: bool
+
+    @property
+    def approved(self) -> bool:
+        return bool(self.approved_by)
+
+    def approval_text(self) -> str:
+        """``approved by A. Metrologist`` or ``not approved`` (with, for the current passport, why it is current)."""
+        if self.approved_by:
+            return f"approved by {', '.join(self.approved_by)}"
+        return "not approved" + ("; the current passport: the newest version, none is approved" if self.current
+                                 else "")
+
+    def text(self) -> str:
+        """``AU-0001 v2 (status pass, approved by A. Metrologist)``, ``AU-0001 v3 (status fail, not approved; the
+        current passport: the newest version, none is approved)``."""
+        return f"{self.unit} v{self.version} (status {self.status}, {self.approval_text()})"
+
+    def warning(self) -> str | None:
+        """One line for stderr when the version failed its verification (a failed version is never approved)."""
+        if self.status != "fail":
+            return None
+        return (f"{self.unit} v{self.version} failed its verification (status fail) and is not approved: its "
+                "compensated errors exceeded the limits")
+
+    def as_dict(self) -> dict:
+        return {"unit": self.unit, "version": self.version, "status": self.status, "approved": self.approved,
+                "approved_by": list(self.approved_by), "current": self.current}
 
 
 @dataclass
@@ -308,7 +347,7 @@ class Registry:
                 continue
             inputs = (doc.get("provenance") or {}).get("inputs") or []
             out.append(VersionInfo(v, path, sha256_bytes(data), doc.get("created_utc"), doc.get("status"),
-                                   list(inputs)))
+                                   list(inputs), doc.get("method")))
         return out
 
     def load(self, unit: str, version: int | None = None) -> dict:
@@ -415,23 +454,50 @@ class Registry:
         trust = trust or trusted_keys()
         return [r for r in records if r.get("content_sha256") == content_sha256(r) and verify_record(r, trust).ok]
 
-    def current(self, unit: str) -> int | None:
-        """The unit's current passport version: the newest approved version (a valid approval record whose
-        sha256 is the version file's), else the newest version; None for a unit without versions."""
-        versions = {i.version: i.sha256 for i in self.versions(unit)}
+    def current(self, unit: str, *, exclude_methods: tuple[str, ...] = ()) -> int | None:
+        """The unit's current passport version, the one rule every command uses (contract.md): the newest approved
+        version (a valid approval record whose sha256 is the version file's), else the newest version, whatever
+        its status (say it: :meth:`state`); None for a unit without versions. ``exclude_methods``: leave out the
+        versions made by these methods (the differential method's base is never a differential passport)."""
+        return self._current(unit, self.versions(unit), self.approvals(unit), exclude_methods)
+
+    @staticmethod
+    def _current(unit: str, infos: list[VersionInfo], approvals: list[dict], exclude_methods: tuple[str, ...]
+                 ) -> int | None:
+        versions = {i.version: i.sha256 for i in infos if i.method not in exclude_methods}
         if not versions:
             return None
-        approved = [a["version"] for a in self.approvals(unit) if versions.get(a["version"]) == a["sha256"]]
+        approved = [a["version"] for a in approvals if versions.get(a["version"]) == a["sha256"]]
         return max(approved) if approved else max(versions)
+
+    def state(self, unit: str, version: int | None = None, *, exclude_methods: tuple[str, ...] = ()
+              ) -> VersionState | None:
+        """The state of ``version`` of ``unit`` (default: the current passport, :meth:`current`): its status, its
+        approvals, whether it is current. None when there is no such version (no current one)."""
+        infos, approvals = self.versions(unit), self.approvals(unit)
+        current = self._current(unit, infos, approvals, exclude_methods)
+        v = current if version is None else version
+        info = next((i for i in infos if i.version == v), None)
+        if info is None:
+            return None
+        by = tuple(a["by"] for a in approvals if a["version"] == v and a["sha256"] == info.sha256)
+        return VersionState(unit, v, info.status, by, v == self._current(unit, infos, approvals, ()))
+
+    def load_state(self, unit: str, version: int | None = None, *, exclude_methods: tuple[str, ...] = ()
+                   ) -> tuple[dict, VersionState]:
+        """The passport at ``version`` (default: the unit's current passport, :meth:`current`) and its
+        :class:`VersionState`. RegistryError when there is no such version."""
+        st = self.state(unit, version, exclude_methods=exclude_methods)
+        if st is None:
+            self.load(unit, version)          # no version at all, or not that one: its own error
+            raise RegistryError(f"unit {unit!r} has no version other than by the {', '.join(exclude_methods)} "
+                                "method", path=str(self.unit_dir(unit)))
+        return self.load(unit, st.version), st
 
     def load_current(self, unit: str) -> tuple[dict, bool]:
         """The unit's current passport (:meth:`current`) and whether it is approved."""
-        v = self.current(unit)
-        if v is None:
-            raise RegistryError(f"unit {unit!r} has no version", path=str(self.unit_dir(unit)))
-        doc = self.load(unit, v)
-        approved = any(a["version"] == v for a in self.approvals(unit))
-        return doc, approved
+        doc, st = self.load_state(unit)
+        return doc, st.approved
 
     def planned(self, passport: dict, *, inputs: list[dict], settings: dict) -> tuple[int, bool]:
         """What :meth:`publish` would do, writing nothing (``calibrate --dry-run``): (the version it would

@@ -271,6 +271,6 @@ def test_diagnose_with_registry_uses_the_units_current_passport(tmp_path: Path):
     run = simulate(SimConfig(seed=3, rate_hz=RATE_HZ)).run
     path = write_run(run, tmp_path / "run.mcap", "mcap")
     rep = diagnose_command(path, None, True, tmp_path / "d.png", tmp_path / "d.json", registry=tmp_path / "reg")
-    assert "version 2" in rep["passport_source"]
+    assert "AU-0001 v2 (status " in rep["passport_source"]
     assert named(rep) == ["constants_shift"]
     np.testing.assert_allclose(rep["findings"][0]["parameters"]["dU0_v"], [-20e-6, 15e-6, -10e-6], atol=0.3 * UV)

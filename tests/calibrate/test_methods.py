@@ -52,7 +52,7 @@ def test_recipes_share_one_interface():
 def test_fleet_runs_every_method(inboxes, tmp_path):
     """tilt, scalar, then differential over the same registry: each a new version with its method, the scalar and
     tilt passports equal to their recipes' (same constants), a second plan skips what is done; the differential
-    group starts from the current passport (the newest tilt version, none being approved), also on the next night."""
+    group starts from the current passport (the approved tilt version), also on the next night."""
     short, diff = inboxes
     reg = tmp_path / "reg"
     plan, _ = _fleet(short.parent, reg, "differential")           # nothing to start from yet
@@ -70,14 +70,22 @@ def test_fleet_runs_every_method(inboxes, tmp_path):
         plan, outcomes = _fleet(short.parent, reg, method)
         assert not outcomes and [s["why"] for s in plan.skipped] == [ALREADY_PROCESSED]
 
-    # the base is the unit's current passport: nothing approved, so the newest tilt version that did not fail (v1),
-    # not the newer scalar one
+    # the base is the unit's current passport among the non-differential versions: while nothing is approved the
+    # newest, v2 (scalar), which failed its verification: refused, saying so; v1 (tilt) once approved
+    with pytest.raises(CalibrationError, match=r"AU-0001 v2 \(status fail, not approved; the current passport: the "
+                                               r"newest version, none is approved\) failed its verification"):
+        base_passport_of(reg, "AU-0001")
+    plan, outcomes = _fleet(diff.parent, reg, "differential")
+    assert not outcomes and "failed its verification: not a base" in plan.failed[0]["reason"]
+    Registry(reg).approve("AU-0001", 1, "A. Metrologist")
     plan, (outcome,) = _fleet(diff.parent, reg, "differential")
     assert plan.groups[0].base_passport["version"] == 1 and not outcome.failed
     doc = json.loads(Path(outcome.result["passport"]).read_text())
     assert outcome.result["version"] == 3 and doc["method"] == "differential"
     assert doc["base_passport"]["version"] == 1 and doc["thermal_model"]["order"] == 3
-    assert base_passport_of(reg, "AU-0001")["version"] == 1
+    base, state = base_passport_of(reg, "AU-0001")
+    assert base["version"] == 1 and state.approved and state.text() == ("AU-0001 v1 (status pass, approved by "
+                                                                         "A. Metrologist)")
     plan, outcomes = _fleet(diff.parent, reg, "differential")     # the next night: nothing new
     assert not outcomes and [s["why"] for s in plan.skipped] == [ALREADY_PROCESSED]
     assert [v.version for v in Registry(reg).versions("AU-0001")] == [1, 2, 3]

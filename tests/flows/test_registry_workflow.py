@@ -80,7 +80,10 @@ def test_cli_approve_and_differential_base_is_the_current_passport(calibrated, t
     _, reg, _ = calibrated
     registry = Registry(reg)
     # v2 (pass) is the newest: the base; a failed newest version with nothing approved is refused
-    assert default_base_passport(reg, "AU-0001")["version"] == 2
+    base, line = default_base_passport(reg, "AU-0001")
+    assert base["version"] == 2
+    assert line == ("differential base: AU-0001 v2 (status pass, not approved; the current passport: the newest "
+                    "version, none is approved)")
     p = subprocess.run([EXE, "passport", "approve", "AU-0001", "1", "--by", "A. Metrologist", "--registry",
                         str(reg)], capture_output=True, text=True, env=dict(os.environ), timeout=120)
     assert p.returncode == 2 and len(p.stderr.strip().splitlines()) == 1 and "fail" in p.stderr
@@ -94,14 +97,19 @@ def test_cli_approve_and_differential_base_is_the_current_passport(calibrated, t
     failing = registry.load("AU-0001", 1)
     failing = {k: v for k, v in failing.items() if k not in ("signature", "content_sha256")}
     registry.publish(failing, inputs=[{"path": "other", "sha256": "e" * 64}], settings={}, code_version="t")
-    assert registry.current("AU-0001") == 2 and default_base_passport(reg, "AU-0001")["version"] == 2
-    # a registry whose only version failed, nothing approved: no base (the CLI then lets the differential method
-    # take the constants at T0 from the orientations themselves: the flow's default)
+    assert registry.current("AU-0001") == 2 and default_base_passport(reg, "AU-0001")[0]["version"] == 2
+    # a registry whose only version failed, nothing approved: that version is the current passport (one rule,
+    # contract.md), said with its status; it is no base (the differential method then takes the constants at T0
+    # from the orientations themselves, and says why)
     reg2 = Registry(tmp_path / "reg2")
     reg2.publish(failing, inputs=[{"path": "other", "sha256": "e" * 64}], settings={}, code_version="t")
+    state = reg2.state("AU-0001")
+    assert state.text() == ("AU-0001 v1 (status fail, not approved; the current passport: the newest version, "
+                            "none is approved)") and "failed its verification" in state.warning()
     with pytest.raises(ThermocalError, match="failed its verification"):
         base_passport_of(reg2, "AU-0001")
-    assert default_base_passport(tmp_path / "reg2", "AU-0001") is None
+    base, line = default_base_passport(tmp_path / "reg2", "AU-0001")
+    assert base is None and state.text() in line and "from the orientations themselves" in line
 
 
 def test_diagnose_registry_compares_with_the_current_passport(calibrated, tmp_path):
@@ -111,5 +119,17 @@ def test_diagnose_registry_compares_with_the_current_passport(calibrated, tmp_pa
     run_path, reg, _ = calibrated
     assert Registry(reg).current("AU-0001") == 2 and len(Registry(reg).versions("AU-0001")) == 3
     rep = diagnose_command(run_path, None, True, tmp_path / "d.png", tmp_path / "d.json", registry=reg)
-    assert "unit AU-0001, version 2, approved" in rep["passport_source"]
+    assert "AU-0001 v2 (status pass, approved by A. Metrologist)" in rep["passport_source"]
+    assert rep["passport_used"] == {"unit": "AU-0001", "version": 2, "status": "pass", "approved": True,
+                                    "approved_by": ["A. Metrologist"], "current": True}
     assert rep["verdict"] == "consistent" and rep["findings"] == []
+    # nothing approved and the newest version failed: that one is the current passport, and the report says so
+    reg3 = Registry(tmp_path / "reg3")
+    for v in (2, 1):
+        doc = Registry(reg).load("AU-0001", v)
+        reg3.publish({k: x for k, x in doc.items() if k not in ("signature", "content_sha256")},
+                     inputs=[{"path": f"r{v}", "sha256": str(v) * 64}], settings={}, code_version="t")
+    rep = diagnose_command(run_path, None, True, tmp_path / "d3.png", tmp_path / "d3.json", registry=reg3.root)
+    assert rep["passport_used"]["version"] == 2 and rep["passport_used"]["status"] == "fail"
+    assert "AU-0001 v2 (status fail, not approved; the current passport" in rep["passport_source"]
+    assert any("failed its verification" in n for n in rep["notes"])

@@ -77,11 +77,39 @@ def test_ardupilot_correction_reproduces_the_passport_bias(passports):
     exp = export_passport(doc, "ardupilot")
     p = {k: float(v) for k, v in (line.split() for line in exp.text.splitlines() if line and line[0] != "#")}
     assert p["INS_TCAL1_ENABLE"] == 1 and (p["INS_TCAL1_TMIN"], p["INS_TCAL1_TMAX"]) == (-40.0, 70.0)
+    # the raw reading carries the passport's T0 constants: ArduPilot must refer the correction to T0 (left at
+    # its default -300 C, the calibration temperature clamps to TMIN and every reading is off by the bias change
+    # between TMIN and T0)
+    assert p["INS_ACC1_CALTEMP"] == doc["normal_temp_c"] == 20.0
     temps = np.linspace(-40, 70, 221)
-    for t_cal in (20.0, 31.5):                     # the vehicle's own accelerometer calibration temperature
+    for t_cal in (p["INS_ACC1_CALTEMP"], 31.5):   # the file's, then a vehicle's own later calibration temperature
         corr = _ardupilot_poly(p, temps - 35.0) - _ardupilot_poly(p, np.array([t_cal - 35.0]))
         want = _bias_mps2(doc, temps) - _bias_mps2(doc, np.array([t_cal]))
         assert np.abs(corr - want).max() < 1e-8
+
+
+def test_ardupilot_correction_with_the_file_alone_leaves_only_the_unheld_terms(passports):
+    """ArduPilot's correction as it runs with the exported file alone (T and CALTEMP clamped to TMIN/TMAX),
+    applied to readings of the passport's full model at a = 0: the bias is removed to the fit's error."""
+    doc = passports["auto"]
+    exp = export_passport(doc, "ardupilot")
+    p = {k: float(v) for k, v in (line.split() for line in exp.text.splitlines() if line and line[0] != "#")}
+    temps = np.linspace(-40, 70, 111)
+    clamp = lambda t: np.clip(t, p["INS_TCAL1_TMIN"], p["INS_TCAL1_TMAX"])  # noqa: E731
+    corrected = (_bias_mps2(doc, temps) - _ardupilot_poly(p, clamp(temps) - 35.0)
+                 + _ardupilot_poly(p, clamp(np.array([p["INS_ACC1_CALTEMP"]])) - 35.0))
+    assert np.abs(corrected).max() < 1e-8 < np.abs(_bias_mps2(doc, temps)).max() * 1e-3
+    assert "# INS_ACC1_CALTEMP = T0 (20 C)" in exp.text
+
+
+def test_failed_passport_states_its_status_in_every_format(passports):
+    doc = dict(passports["auto"], status="fail")
+    for fmt in ("px4", "ardupilot"):
+        head = [line for line in export_passport(doc, fmt).text.splitlines() if line.startswith("#")]
+        assert "# status fail; approval unknown (not read from a registry)" in head
+        assert any(line.startswith("# WARNING: this passport failed its verification") for line in head)
+    rows = {r["quantity"]: r for r in csv.DictReader(io.StringIO(export_passport(doc, "csv").text))}
+    assert rows["status"]["value"] == "fail" and rows["approval"]["value"].startswith("approval unknown")
 
 
 def test_stated_residual_is_the_error_left_with_the_full_model_as_truth(passports):
@@ -146,7 +174,19 @@ def test_cli_export_current_passport(passports, tmp_path):
     assert r.returncode == 0, r.stderr
     summary = json.loads(r.stdout)
     assert summary["version"] == 1 and summary["valid_temp_c"] == [-40.0, 70.0]     # the approved one
-    assert "INS_TCAL1_ACC1_X" in out.read_text() and summary["residual"]["total_worst_ug"] > 100
+    assert summary["passport_used"]["approved_by"] == ["A. Metrologist"] and r.stderr == ""
+    text = out.read_text()
+    assert "INS_TCAL1_ACC1_X" in text and summary["residual"]["total_worst_ug"] > 100
+    assert "# status unverified; approved by A. Metrologist" in text
+    # a failed version, not approved: exported all the same, with one warning line and the status in the file
+    failed = dict(passports["auto"], status="fail")
+    reg.publish({k: v for k, v in failed.items() if k not in ("signature", "content_sha256")},
+                inputs=[{"path": "c", "sha256": "c" * 64}], settings={}, code_version="t")
+    r = subprocess.run([exe, "export", "AU-0001", "3", "--registry", str(reg.root), "--format", "px4"],
+                       capture_output=True, text=True, env=dict(os.environ), timeout=120)
+    assert r.returncode == 0 and r.stderr.count("\n") == 1, r.stderr
+    assert r.stderr.startswith("thermocal: warning: export of AU-0001 v3 failed its verification (status fail)")
+    assert "# status fail; not approved" in r.stdout and "# WARNING: this passport failed" in r.stdout
     bad = subprocess.run([exe, "export", "AU-0001", "--registry", str(reg.root), "--format", "betaflight"],
                          capture_output=True, text=True, env=dict(os.environ), timeout=120)
     assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1 and "--format" in bad.stderr
