@@ -258,8 +258,16 @@ def too_big(params: dict, name: str, limit: float, unit: str) -> str | None:
 
 
 def vec_uv(v, unit: str = "uV") -> str:
-    """A 3-vector in V as "x +1.0, y -2.0, z +0.5 uV"."""
-    return ", ".join(f"{a} {x * _UV:+.1f}" for a, x in zip(AXES, v)) + f" {unit}"
+    """A 3-vector in V as "x +1.25, y -2.00, z +0.50 uV" (``unit`` names the micro-volt unit, e.g. ``uV/h``): in
+    nV when every component is below 1 uV (``+0.0 uV/h`` says nothing), to three significant digits of the
+    largest."""
+    x = np.asarray(v, dtype=float) * _UV
+    finite = np.abs(x[np.isfinite(x)])
+    big = float(finite.max()) if finite.size else 0.0
+    if 0.0 < big < 1.0:
+        x, big, unit = x * 1e3, big * 1e3, unit.replace("uV", "nV", 1)
+    decimals = 0 if big >= 100 else 1 if big >= 10 else 2
+    return ", ".join(f"{a} {c:+.{decimals}f}" for a, c in zip(AXES, x)) + f" {unit}"
 
 
 __all__ = ["SignalContext", "Shown", "Effect", "Vec3", "finite", "log_grid", "axis_columns", "vector_columns",

@@ -106,3 +106,11 @@ def test_effects_are_effect_subclasses_with_properties():
     assert {e for e, c in EFFECTS.items() if not c.local} == {"thermal_lag", "tilt_settling"}
     assert {e for e, c in EFFECTS.items() if c.shown_by_refit} == {"temperature_curvature", "time_drift"}
     assert [e for e, c in EFFECTS.items() if c.in_base_from_order] == ["temperature_curvature"]
+
+
+def test_small_rates_are_not_printed_as_zero():
+    """time_drift of a few tens of nV/h (the reviewer saw "+0.0 uV/h"): said in nV/h, to three digits."""
+    text = effect_class("time_drift").explain({"r_v_per_h": [3.2e-8, -2.1e-8, 4.0e-9]},
+                                              Shown(peak_uv=1.0, axes="x", temps="", duration_h=16.5))
+    assert "x +32.0, y -21.0, z +4.0 nV/h" in text and "uV/h" not in text
+    assert "x +528, y -346, z +66 nV over the 16.5 h run" in text
