@@ -137,9 +137,11 @@ def _panels(rows: list[dict]) -> list[dict]:
     return panels
 
 
-#: Rows of the constants figure: (key, y label); each followed by the row of its residuals from the model.
-_CONSTANT_ROWS = (("gain", "gain K_ii\nchange [ppm]"), ("cross", "cross-axis K_ij\nchange [ppm of K_ii]"),
-                  ("offset", "offset U0_i\nchange [micro-g]"))
+#: Rows of the constants figure: (key, y label, unit); each followed by the row of its residuals from the model,
+#: in the same unit.
+_CONSTANT_ROWS = (("gain", "gain K_ii\nchange [ppm]", "ppm"),
+                  ("cross", "cross-axis K_ij\nchange [ppm of K_ii]", "ppm of K_ii"),
+                  ("offset", "offset U0_i\nchange [micro-g]", "micro-g"))
 
 
 def constant_changes(K: np.ndarray, U0: np.ndarray, K0: np.ndarray, U00: np.ndarray) -> dict[str, np.ndarray]:
@@ -156,19 +158,28 @@ def constant_changes(K: np.ndarray, U0: np.ndarray, K0: np.ndarray, U00: np.ndar
 
 
 def plot_constants(passport: dict, path: str | Path, *, title: str = "") -> Path:
+    """:func:`constants_figure` written to ``path`` (PNG)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    fig = constants_figure(passport, title=title)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    FigureCanvasAgg(fig).print_png(path, pil_kwargs={"compress_level": 1})
+    return path
+
+
+def constants_figure(passport: dict, *, title: str = ""):
     """The core figure of a thermal calibration: the constants found on each plateau against temperature (points,
     with their standard uncertainty as error bars where the passport has it), the fitted thermal model (line) and
     its residuals (plateau minus model, the row under each), per axis (columns x, y, z): gain K_ii in ppm,
     cross-axis K_ij in ppm of the gain, offset U0_i in micro-g, all as changes from the normal-temperature
     constants. ``passport``: a passport document (``per_plateau``, ``coefficients``, ``thermal_model``,
     ``uncertainty``)."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
     from matplotlib.ticker import MaxNLocator, NullLocator
 
     from pipeline.passport.document import load_model
 
-    path = Path(path)
     pp = passport.get("per_plateau") or []
     K0 = np.asarray(passport["coefficients"]["K"], float)
     U00 = np.asarray(passport["coefficients"]["U0"], float)
@@ -192,7 +203,7 @@ def plot_constants(passport: dict, path: str | Path, *, title: str = "") -> Path
         at_T = constant_changes(*model.constants_at(T), K0, U00)
         axis = "xyz"
         pad = 0.04 * (hi - lo) if hi > lo else 1.0
-        for r, (key, label) in enumerate(_CONSTANT_ROWS):
+        for r, (key, label, unit) in enumerate(_CONSTANT_ROWS):
             for i in range(3):
                 ax, res = axes[2 * r, i], axes[2 * r + 1, i]
                 others = [j for j in range(3) if j != i]
@@ -212,7 +223,7 @@ def plot_constants(passport: dict, path: str | Path, *, title: str = "") -> Path
                 res.grid(axis="y", alpha=0.3)
                 if i == 0:
                     ax.set_ylabel(label, fontsize=8)
-                    res.set_ylabel("residual", fontsize=8)
+                    res.set_ylabel(f"residual\n[{unit}]", fontsize=8)
                 if r == 0:
                     ax.set_title(f"axis {axis[i]}", fontsize=10)
                 if key == "cross" or (r == 0 and i == 0):
@@ -236,9 +247,7 @@ def plot_constants(passport: dict, path: str | Path, *, title: str = "") -> Path
     model_name = f"polynomial of order {order}" if kind == "polynomial" else kind.replace("_", " ")
     title = title or f"Constants per plateau against temperature, thermal model: {model_name}"
     fig.suptitle(title + ("" if pp else " (no per-plateau constants: the model alone)"), fontsize=11)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    FigureCanvasAgg(fig).print_png(path, pil_kwargs={"compress_level": 1})
-    return path
+    return fig
 
 
 def _points(ax, x: np.ndarray, y: np.ndarray, e: np.ndarray | None, colour: str, ms: float, label: str | None

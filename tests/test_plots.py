@@ -118,3 +118,7 @@ def test_constants_figure_points_model_and_residuals(tmp_path):
     assert np.all(np.abs(img.astype(int) - [0x1F, 0x77, 0xB4]) < 30, axis=-1).sum() > 1000
     empty = plots.plot_constants({**passport, "per_plateau": []}, tmp_path / "e.png")
     assert Image.open(empty).size == Image.open(path).size
+    # every y axis says its unit, the residual rows too
+    labels = [ax.get_ylabel() for ax in plots.constants_figure(passport).axes if ax.get_ylabel()]
+    assert labels == ["gain K_ii\nchange [ppm]", "residual\n[ppm]", "cross-axis K_ij\nchange [ppm of K_ii]",
+                      "residual\n[ppm of K_ii]", "offset U0_i\nchange [micro-g]", "residual\n[micro-g]"]
