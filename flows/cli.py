@@ -219,9 +219,9 @@ def calibrate(runs: List[Path] = typer.Argument(..., metavar="RUN",
               base_passport: Optional[Path] = typer.Option(
                   None, "--base-passport", help="differential: normal-temperature passport to start from "
                                                 "(default: the unit's current passport in the registry: its "
-                                                "newest approved version, else its newest that did not fail; "
-                                                "without one, the constants the orientations determine by "
-                                                "themselves)"),
+                                                "newest approved version, else its newest, not made by the "
+                                                "differential method and not failed; without one, the constants "
+                                                "the orientations determine by themselves)"),
               dry_run: bool = typer.Option(False, "--dry-run", help="compute and print everything, write nothing "
                                                                     "to the registry"),
               as_json: bool = typer.Option(False, "--json", help=JSON_HELP)):
