@@ -7,16 +7,18 @@ later commands reuse it:
 
 - a *supervisor* (``python -m flows.localserver supervise``, detached from the terminal, its own session) holds a
   lock in the Prefect home (one per home), runs ``prefect server start`` on a free loopback port (the real server:
-  API, UI, SQLite database under ``PREFECT_HOME``), and keeps two *warm workers* waiting (:mod:`flows.worker`):
-  processes that have imported Prefect, the flows and the pipeline, and wait on a loopback job port;
-- the ``thermocal`` command sends its arguments, working directory, umask and environment to a worker and relays
-  what it writes (stdout, stderr) and its exit status: the command runs exactly as it would in-process, with the flow and
-  its task runs and artifacts recorded on the server, but without paying Prefect's start-up. A worker runs one
-  command and exits; the supervisor starts another as soon as a worker is taken;
-- lifecycle: the worker watches its client; when the client goes away (``kill -9``) it interrupts the flow and exits
-  within seconds, and its own processes (the fleet's pool) follow it. Ctrl-C is passed on as an interrupt. The
-  server, the supervisor and its spare workers exit when no command has run for ``THERMOCAL_SERVER_IDLE_S`` seconds
-  (default 600), on ``thermocal server stop``, or when the supervisor itself is killed (Linux: parent-death signal).
+  API, UI, SQLite database under ``PREFECT_HOME``), and keeps one *warm worker* (:mod:`flows.worker`): a process
+  that has imported Prefect, the flows and the pipeline once and waits on a loopback job port;
+- the ``thermocal`` command sends its arguments, working directory, umask and environment to the worker, which
+  forks a *job process* for it (milliseconds: the fork is already warm); the job process runs the command exactly
+  as it would run in-process, with the flow and its task runs and artifacts recorded on the server, relays what it
+  writes (stdout, stderr) and its exit status, and exits. Commands run back to back or at once each get their own
+  job process, and no worker warms up while a command runs;
+- lifecycle: the job process watches its client; when the client goes away (``kill -9``) it interrupts the flow and
+  exits within seconds, and its own processes (the fleet's pool) follow it. Ctrl-C is passed on as an interrupt.
+  The server, the supervisor and the worker (and any job process) exit when no command has run for
+  ``THERMOCAL_SERVER_IDLE_S`` seconds (default 600), on ``thermocal server stop``, or when the supervisor itself is
+  killed (Linux: parent-death signal).
 
 The state file ``thermocal-server.json`` in the Prefect home (mode 0600) names the supervisor's pid, the API URL,
 the job port and a random token the worker checks. ``thermocal server url`` prints the API URL for Prefect's own
@@ -44,8 +46,6 @@ LOCK = "thermocal-server.lock"
 LOG = "thermocal-server.log"
 #: seconds without a command after which the server exits (``THERMOCAL_SERVER_IDLE_S``)
 DEFAULT_IDLE_S = 600.0
-#: warm workers kept waiting (``THERMOCAL_SERVER_SPARES``): two, so that commands run back to back find one warm
-DEFAULT_SPARES = 2
 #: seconds a worker whose client went away gets to wind its flow down before it exits anyway
 CLIENT_GONE_GRACE_S = 5.0
 START_TIMEOUT_S = 180.0
@@ -213,8 +213,9 @@ def _isatty(stream) -> bool:
 
 
 # ------------------------------------------------------------------------------------------------------ supervisor
-def _die_with_parent() -> None:
-    """In a child, before exec: receive SIGTERM when the parent dies (Linux; elsewhere the idle timeout)."""
+def die_with_parent() -> None:
+    """In a child (before exec, or after a fork): receive SIGTERM when the parent dies (Linux; elsewhere the idle
+    timeout)."""
     try:
         import ctypes
 
@@ -256,22 +257,21 @@ def supervise(home: Path) -> int:
     env.pop("PREFECT_API_URL", None)
     server = subprocess.Popen([sys.executable, "-m", "prefect", "server", "start", "--host", "127.0.0.1", "--port",
                                str(port), "--no-scheduler", "--no-late-runs"], env=env, stdin=subprocess.DEVNULL,
-                              preexec_fn=_die_with_parent)
+                              preexec_fn=die_with_parent)
     stopping = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stopping.set())
     signal.signal(signal.SIGINT, lambda *_: stopping.set())
     listener = socket.create_server(("127.0.0.1", 0), backlog=64)
     token = secrets.token_hex(16)
     worker_env = {**env, "PREFECT_API_URL": api_url, "THERMOCAL_WORKER_TOKEN": token}
-    n_spares = max(1, int(os.environ.get("THERMOCAL_SERVER_SPARES", DEFAULT_SPARES)))
 
     def new_worker() -> subprocess.Popen:
         return subprocess.Popen([sys.executable, "-m", "flows.worker", str(listener.fileno())],
                                 env=worker_env, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                                pass_fds=(listener.fileno(),), preexec_fn=_die_with_parent)
+                                pass_fds=(listener.fileno(),), preexec_fn=die_with_parent)
 
-    busy: list[subprocess.Popen] = []
-    spares = [new_worker() for _ in range(n_spares)]  # they warm up while the server starts
+    worker = new_worker()  # it warms up while the server starts
+    jobs: set[str] = set()  # the worker's job processes running (it says "start PID" and "end PID")
     try:
         while not _health(api_url):
             if server.poll() is not None or stopping.is_set():
@@ -279,7 +279,7 @@ def supervise(home: Path) -> int:
                 return 1
             time.sleep(0.2)
         state = {"pid": os.getpid(), "api_url": api_url, "ui_url": api_url.removesuffix("/api"),
-                 "job_port": listener.getsockname()[1], "token": token, "idle_s": idle_s, "spares": n_spares,
+                 "job_port": listener.getsockname()[1], "token": token, "idle_s": idle_s,
                  "server_pid": server.pid, "home": str(home), "code": code_fingerprint()}
         tmp = home / f".{STATE}.tmp"
         tmp.write_text(json.dumps(state))
@@ -289,24 +289,27 @@ def supervise(home: Path) -> int:
         import select
 
         while not stopping.is_set():
-            ready, _, _ = select.select([p.stdout for p in spares], [], [], 0.25)
-            for p in [p for p in spares if p.stdout in ready]:
-                spares.remove(p)
-                if p.stdout.readline():  # this spare took a job: keep n_spares waiting
-                    busy.append(p)
-                else:  # it died while waiting (a crash on import): try again, slowly
-                    p.wait()
+            if select.select([worker.stdout], [], [], 0.25)[0]:
+                line = worker.stdout.readline()
+                if line:
+                    kind, _, pid = line.decode(errors="replace").strip().partition(" ")
+                    if kind == "start":
+                        jobs.add(pid)
+                    else:
+                        jobs.discard(pid)
+                    last = time.monotonic()
+                else:  # the worker died (a crash on import, or killed; its jobs follow it): start another, slowly
+                    worker.wait()
+                    worker.stdout.close()
+                    jobs.clear()
                     time.sleep(1.0)
-                p.stdout.close()
-                spares.append(new_worker())
-            running = [p for p in busy if p.poll() is None]
-            if len(running) != len(busy) or running:
+                    worker = new_worker()
+            if jobs:
                 last = time.monotonic()
-            busy = running
             if server.poll() is not None:
                 print(f"thermocal server: prefect server exited ({server.returncode})", file=sys.stderr)
                 break
-            if not busy and time.monotonic() - last > idle_s:
+            if not jobs and time.monotonic() - last > idle_s:
                 break
     finally:
         with contextlib.suppress(OSError):
@@ -314,10 +317,10 @@ def supervise(home: Path) -> int:
             if st.get("pid") == os.getpid():
                 (home / STATE).unlink()
         listener.close()
-        for p in [*spares, *busy, server]:
+        for p in (worker, server):  # the worker terminates its jobs
             if p.poll() is None:
                 p.terminate()
-        for p in [*spares, *busy, server]:
+        for p in (worker, server):
             try:
                 p.wait(timeout=15)
             except subprocess.TimeoutExpired:

@@ -1,8 +1,16 @@
 """The warm worker of thermocal's local Prefect server (:mod:`flows.localserver`): started by the supervisor
 (``python -m flows.worker FD``) with the job socket, it imports the command line, the flows (Prefect) and the
-pipeline, takes one command from a ``thermocal`` client, runs it in-process with the client's arguments, working
-directory and environment (its Prefect settings are the server's), relays stdout and stderr, sends the exit status
-and exits. Nothing imports this module.
+pipeline once, then waits for ``thermocal`` clients. For each client (its token checked) it forks a *job process*
+that runs the command in-process with the client's arguments, working directory and environment (its Prefect
+settings are the server's), relays stdout and stderr, sends the exit status and exits; the worker goes back to
+waiting. A fork of the warmed process starts in milliseconds, so commands run back to back never wait for a worker
+to warm up, and no warm-up competes with a running command for the CPU. The worker tells the supervisor on its
+stdout when a job starts (``start PID``) and ends (``end PID``): the supervisor's idle timer. Nothing imports this
+module.
+
+Forking is safe here: when the worker forks, its only Python thread is the main one (the job's threads start in
+the job process) and the native threads the imports started (polars' allocator and clean-up threads) are not in a
+library call; polars' compute pool and Prefect's clients and event loops are first made in the job process.
 """
 
 from __future__ import annotations
@@ -50,30 +58,86 @@ class _Relay:
 
 
 def worker(listen_fd: int) -> int:
-    """A warm worker: import what the commands need, take one job from the supervisor's socket, run it, exit."""
+    """The warm worker: import what the commands need, then fork a job process per client (:func:`_serve`); in a
+    job process, run its command (:func:`_run_job`) and return its exit status."""
     from . import cli  # noqa: F401  (the command line and, below, the flows with Prefect and the pipeline)
     from . import calibrate, fleet  # noqa: F401
     from pipeline.calibrate.fleet import prepare_worker
 
     prepare_worker()
     _import_flow_run_modules()
-    listener = socket.socket(fileno=listen_fd)
-    token = os.environ.get("THERMOCAL_WORKER_TOKEN", "")
-    while True:
-        conn, _ = listener.accept()
-        reader = conn.makefile("rb")
-        try:
-            req = json.loads(reader.readline() or b"{}")
-        except ValueError:
-            req = {}
-        if req.get("token") == token and token:
-            break
-        conn.close()  # not a thermocal client: wait for the next
-    listener.close()
-    sys.stdout.write("taken\n")
-    sys.stdout.flush()
-    os.dup2(os.open(os.devnull, os.O_WRONLY), 1)  # the supervisor reads no more from this pipe
-    return _run_job(conn, reader, req)
+    job = _serve(socket.socket(fileno=listen_fd), os.environ.get("THERMOCAL_WORKER_TOKEN", ""))
+    if job is None:  # the worker itself, stopped
+        return 0
+    return _run_job(*job)
+
+
+def _serve(listener: socket.socket, token: str):
+    """Accept clients until SIGTERM; fork a job process for each one whose first line carries ``token``. Returns
+    in a job process only, with its (connection, reader, request); in the worker, None when stopped. Job processes
+    receive SIGTERM when the worker dies (Linux), and the worker terminates them when it is stopped."""
+    import select
+
+    from .localserver import die_with_parent
+
+    me = os.getpid()
+    stopping = []
+    signal.signal(signal.SIGTERM, lambda *_: stopping.append(1))
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the supervisor's session: only SIGTERM stops the worker
+    jobs: set[int] = set()
+
+    def tell(line: str) -> None:
+        with contextlib.suppress(OSError):
+            sys.stdout.write(line + "\n")
+            sys.stdout.flush()
+
+    try:
+        while not stopping:
+            while jobs:  # reap the jobs that ended
+                try:
+                    pid, _ = os.waitpid(-1, os.WNOHANG)
+                except ChildProcessError:
+                    jobs.clear()
+                    break
+                if not pid:
+                    break
+                jobs.discard(pid)
+                tell(f"end {pid}")
+            if not select.select([listener], [], [], 0.2)[0]:
+                continue
+            try:
+                conn, _ = listener.accept()
+            except OSError:
+                continue
+            conn.settimeout(10)  # a client that does not send its request does not hold the worker up
+            reader = conn.makefile("rb")
+            try:
+                req = json.loads(reader.readline() or b"{}")
+            except (OSError, ValueError):
+                req = {}
+            if not token or req.get("token") != token:
+                conn.close()  # not a thermocal client
+                continue
+            pid = os.fork()
+            if pid == 0:  # the job process
+                listener.close()
+                signal.signal(signal.SIGTERM, signal.SIG_DFL)
+                signal.signal(signal.SIGINT, signal.default_int_handler)
+                die_with_parent()
+                if os.getppid() != me:  # the worker died before that
+                    os._exit(1)
+                os.dup2(os.open(os.devnull, os.O_WRONLY), 1)  # the supervisor reads the worker's stdout, not ours
+                conn.settimeout(None)
+                return conn, reader, req
+            jobs.add(pid)
+            tell(f"start {pid}")
+            conn.close()
+    finally:
+        if os.getpid() == me:  # the worker (a job process returns through here too)
+            for pid in jobs:
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(pid, signal.SIGTERM)
+    return None
 
 
 def _import_flow_run_modules() -> None:

@@ -85,7 +85,14 @@ def _without_key_notice(stderr: str) -> str:
 
 
 def _workers(supervisor: int) -> list[int]:
+    """The supervisor's warm worker (one)."""
     return sorted(p for p in _children(supervisor).get(supervisor, []) if "flows.worker" in _cmdline(p))
+
+
+def _jobs(supervisor: int) -> list[int]:
+    """The job processes the warm worker forked (one per command running)."""
+    kids = _children(supervisor)
+    return sorted(j for w in _workers(supervisor) for j in kids.get(w, []))
 
 
 @pytest.fixture(scope="module")
@@ -149,8 +156,8 @@ def test_commands_recorded_and_listed_by_prefects_cli(short_run, tmp_path):
 
 
 def test_killed_fleet_leaves_no_process(tmp_path):
-    """kill -9 of `thermocal fleet` while its process pool calibrates: the worker that ran it and the pool's
-    processes are gone within seconds; the server and its spare workers stay for the next commands."""
+    """kill -9 of `thermocal fleet` while its process pool calibrates: the job process that ran it and the pool's
+    processes are gone within seconds; the server and its warm worker stay for the next commands."""
     inbox = tmp_path / "inbox"
     for k in range(4):
         res = simulate(SimConfig(unit_serial=f"AU-05{k:02d}", unit_seed=500 + k, program="standard", rate_hz=4.0))
@@ -158,22 +165,23 @@ def test_killed_fleet_leaves_no_process(tmp_path):
     env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}
     st = ensure_server()
     sup = st["pid"]
+    warm = _wait("the warm worker", lambda: _workers(sup), 60)
     cli = subprocess.Popen([THERMOCAL, "fleet", str(inbox), "--registry", str(tmp_path / "reg"), "--pool", "process",
                             "--workers", "2", "--json"], env=env, stdout=subprocess.DEVNULL,
                            stderr=subprocess.DEVNULL)
     try:
         def pool_running():
-            for w in _workers(sup):
-                kids = _descendants(w)
+            for job in _jobs(sup):
+                kids = _descendants(job)
                 if len([p for p in kids if "multiprocessing" in _cmdline(p)]) >= 2:
-                    return w, kids
+                    return job, kids
             return None
 
         busy, kids = _wait("the fleet's process pool running", pool_running, 120)
         cli.kill()
         cli.wait(timeout=10)
-        _wait("the killed command's worker and pool gone", lambda: not _alive({busy, *kids}), 15)
-        assert len(_workers(sup)) == st["spares"]  # the spares, waiting for the next commands
+        _wait("the killed command's job process and pool gone", lambda: not _alive({busy, *kids}), 15)
+        assert _workers(sup) == warm and not _jobs(sup)  # the warm worker, waiting for the next commands
         assert read_state(Path(os.environ["PREFECT_HOME"]))["pid"] == sup
     finally:
         if cli.poll() is None:
@@ -181,33 +189,58 @@ def test_killed_fleet_leaves_no_process(tmp_path):
 
 
 def test_ctrl_c_stops_cleanly(standard_run, tmp_path):
-    """SIGINT (Ctrl-C) to `thermocal calibrate` while it runs on the worker: exit 130, one line on stderr, the
-    worker gone."""
+    """SIGINT (Ctrl-C) to `thermocal calibrate` while it runs in a job process of the warm worker: exit 130, one
+    line on stderr, the job process gone, the warm worker still there."""
     env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}
     st = ensure_server()
-    sup, n = st["pid"], st["spares"]
-    _wait("the spare workers", lambda: len(_workers(sup)) == n, 60)
+    sup = st["pid"]
+    warm = _wait("the warm worker", lambda: _workers(sup), 60)
     cli = subprocess.Popen([THERMOCAL, "calibrate", str(standard_run), "--registry", str(tmp_path / "reg")],
                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    _wait("the command taken by a worker (another started)", lambda: len(_workers(sup)) == n + 1, 60)
+    (job,) = _wait("the command running in a job process", lambda: _jobs(sup), 60)
     cli.send_signal(signal.SIGINT)
     out, err = cli.communicate(timeout=60)
     assert cli.returncode == 130, err
     assert err.strip().splitlines() == ["thermocal: aborted"] and out == ""
-    _wait("the interrupted command's worker gone", lambda: len(_workers(sup)) == n, 15)
+    _wait("the interrupted command's job process gone", lambda: not _alive({job}), 15)
+    assert _workers(sup) == warm
+
+
+def test_commands_back_to_back_and_at_once_each_get_a_job_process(short_run, tmp_path):
+    """Three calibrates started at once, then one more: each runs in a job process of its own forked by the one
+    warm worker (no worker is started for them), each is recorded (versions 1 of three registries, one flow run
+    each), and no job process is left."""
+    env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}
+    st = ensure_server()
+    sup = st["pid"]
+    warm = _wait("the warm worker", lambda: _workers(sup), 60)
+    regs = [tmp_path / f"reg{k}" for k in range(3)]
+    procs = [subprocess.Popen([THERMOCAL, "calibrate", str(short_run), "--registry", str(r), "--json"], env=env,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for r in regs]
+    outs = [p.communicate(timeout=300) for p in procs]
+    assert [p.returncode for p in procs] == [0, 0, 0], [e for _, e in outs]
+    assert [json.loads(o)["version"] for o, _ in outs] == [1, 1, 1]
+    again = subprocess.run([THERMOCAL, "calibrate", str(short_run), "--registry", str(regs[0]), "--json"], env=env,
+                           capture_output=True, text=True, timeout=300)
+    assert again.returncode == 0 and json.loads(again.stdout)["created"] is False
+    flow_runs = httpx.post(f"{st['api_url']}/flow_runs/filter", json={"limit": 200}, timeout=30).json()
+    mine = [f for f in flow_runs if f["parameters"].get("registry") in {str(r) for r in regs}]
+    assert len(mine) == 4 and {f["state"]["type"] for f in mine} == {"COMPLETED"}
+    assert _workers(sup) == warm
+    _wait("no job process left", lambda: not _jobs(sup), 30)
 
 
 def test_server_exits_when_idle_and_with_its_supervisor(tmp_path):
-    """The supervisor killed (-9): its Prefect server and spare worker follow within seconds. Started again with
+    """The supervisor killed (-9): its Prefect server and warm worker follow within seconds. Started again with
     a 2 s idle timeout, it exits by itself, with everything it started, and removes its state file."""
     home = tmp_path / "home"
     env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}
     env["PREFECT_HOME"] = str(home)
     subprocess.run([THERMOCAL, "server", "start"], env=env, check=True, capture_output=True, timeout=240)
     st = read_state(home)
-    spare = _wait("a spare worker", lambda: _workers(st["pid"]), 60)
+    warm = _wait("the warm worker", lambda: _workers(st["pid"]), 60)
     family = _descendants(st["pid"])
-    assert st["server_pid"] in family and spare[0] in family
+    assert st["server_pid"] in family and warm[0] in family
     os.kill(st["pid"], signal.SIGKILL)
     _wait("the server and worker of a killed supervisor gone", lambda: not _alive(family), 15)
 
