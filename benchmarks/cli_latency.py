@@ -4,13 +4,18 @@ call on a fresh Prefect home, which starts the server, and later calls), ``calib
 ``prefect server`` (``PREFECT_API_URL``), ``calibrate`` in Prefect's own ephemeral mode (``THERMOCAL_PREFECT=
 ephemeral``: the default before the local server), and a no-op ``fleet`` of 200 runs (all already calibrated).
 
-    .venv/bin/python benchmarks/cli_latency.py [--repeat 3] [--fleet-runs 200] [--fleet-program short]
+    .venv/bin/python benchmarks/cli_latency.py [--repeat 5] [--fleet-runs 200] [--fleet-program short]
         [--fleet-rate-hz 2] [--no-ephemeral]
 
-Each figure is the least wall time of ``--repeat`` fresh processes (one for the first call and the ephemeral mode),
-started the way a user starts them (the ``thermocal`` console script). The script checks that every embedded
-calibrate and the fleet were recorded on the local server (its flow-run count), and stops every server it started.
-The runs are made by :mod:`make_runs` (``benchmarks/out/std_10hz_json.mcap``) and, for the fleet, simulated into
+``inspect`` and the warm embedded ``calibrate`` are timed in turn (inspect, calibrate, inspect, ...: the same load
+for both), ``--repeat`` times each after one warm-up call each; their rows give the median wall time (min-max), the
+ratio of the medians and the median of the pairwise ratios, and the CPU seconds of every process a call used: the
+command itself and, for ``calibrate``, its job process on the local server's warm worker and the Prefect server's
+share (from /proc: robust to other jobs on the machine, unlike wall time). ``calibrate`` back to back (no inspect
+between the calls) is timed too. The other rows are single or least-of-``--repeat`` figures, started the way a user
+starts them (the ``thermocal`` console script). The script checks that every embedded calibrate and the fleet were
+recorded on the local server (its flow-run count), and stops every server it started. The runs are made by
+:mod:`make_runs` (``benchmarks/out/std_10hz_json.mcap``) and, for the fleet, simulated into
 ``benchmarks/out/fleet_<program>_<rate>hz_<n>/`` (kept for the next time) and calibrated once before timing.
 Prints a markdown table.
 """
@@ -21,8 +26,10 @@ import argparse
 import json
 import os
 import shutil
+import resource
 import signal
 import socket
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -49,6 +56,82 @@ def timed(cmd: list[str], env: dict, repeat: int = 1, ok=(0,)) -> tuple[float, s
             raise SystemExit(f"{' '.join(cmd)} failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
         best, out = min(best, wall), proc.stdout
     return best, out
+
+
+def proc_cpu_s(pid: int, children: bool = False) -> float:
+    """CPU seconds (user + system) of a process from /proc, or of its reaped children with ``children``."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    ticks = int(fields[13]) + int(fields[14]) if children else int(fields[11]) + int(fields[12])
+    return ticks / os.sysconf("SC_CLK_TCK")
+
+
+def own_children_cpu_s() -> float:
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+class Sample:
+    """Wall and CPU seconds of calls of one command (``cpu_s``: every process the call used that can be counted)."""
+
+    def __init__(self):
+        self.wall_s: list[float] = []
+        self.cpu_s: list[float] = []
+
+    def line(self) -> str:
+        w = self.wall_s
+        return f"{statistics.median(w):.2f} ({min(w):.2f}-{max(w):.2f})"
+
+    @property
+    def median_s(self) -> float:
+        return statistics.median(self.wall_s)
+
+    @property
+    def cpu_median_s(self) -> float:
+        return statistics.median(self.cpu_s)
+
+
+def call(cmd: list[str], env: dict, sample: Sample, server: dict | None = None, ok=(0,)) -> str:
+    """One timed call of ``cmd``; ``server``: the local server's processes (``worker`` pid, ``server`` pid), whose
+    CPU spent meanwhile (the job process the worker forked and reaped, the Prefect server's) is counted too."""
+    c0 = own_children_cpu_s()
+    s0 = (proc_cpu_s(server["worker"], children=True) + proc_cpu_s(server["server"])) if server else 0.0
+    t = time.perf_counter()
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    wall = time.perf_counter() - t
+    if proc.returncode not in ok:
+        raise SystemExit(f"{' '.join(cmd)} failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
+    if server:  # the job process ends (and is reaped by the worker) a moment after the client has its answer
+        deadline = time.monotonic() + 60
+        while children_of(server["worker"]) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(0.25)
+    s1 = (proc_cpu_s(server["worker"], children=True) + proc_cpu_s(server["server"])) if server else 0.0
+    sample.wall_s.append(wall)
+    sample.cpu_s.append(own_children_cpu_s() - c0 + s1 - s0)
+    return proc.stdout
+
+
+def children_of(pid: int) -> list[int]:
+    kids = []
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                with open(f"/proc/{d}/stat") as f:
+                    if int(f.read().rsplit(")", 1)[1].split()[1]) == pid:
+                        kids.append(int(d))
+            except (OSError, ValueError, IndexError):
+                continue
+    return kids
+
+
+def local_server_processes(state: dict) -> dict:
+    """The pids of the local server's warm worker and Prefect server (children of its supervisor)."""
+    for pid in children_of(state["pid"]):
+        with open(f"/proc/{pid}/cmdline", "rb") as f:
+            if b"flows.worker" in f.read():
+                return {"worker": pid, "server": state["server_pid"]}
+    raise SystemExit("the local server has no warm worker")
 
 
 def free_port() -> int:
@@ -102,7 +185,7 @@ def make_fleet_runs(n: int, program: str, rate_hz: float, out: Path) -> Path:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--out", type=Path, default=OUT)
     ap.add_argument("--fleet-runs", type=int, default=200)
     ap.add_argument("--fleet-program", default="short")
@@ -116,6 +199,7 @@ def main() -> None:
     env = {k: v for k, v in os.environ.items() if k not in ("PREFECT_API_URL", "THERMOCAL_PREFECT")}
     env.update(PREFECT_HOME=str(home), PREFECT_SERVER_ANALYTICS_ENABLED="false", DO_NOT_TRACK="1")
     rows: list[tuple[str, float, str]] = []
+    load0 = os.getloadavg()[0]
     k = iter(range(10**6))
 
     def calibrate(env_: dict, repeat: int) -> tuple[float, str]:
@@ -128,18 +212,33 @@ def main() -> None:
     own = None
     try:
         add("python start-up", timed([sys.executable, "-c", "pass"], env, args.repeat)[0])
-        inspect_s = timed([THERMOCAL, "inspect", run, "--json"], env, args.repeat)[0]
-        add("thermocal inspect (no Prefect)", inspect_s)
         first = calibrate(env, 1)[0]
         from flows.localserver import read_state
 
         st = read_state(home)
+        local = local_server_processes(st)
+        ins, cal, b2b = Sample(), Sample(), Sample()
+        call([THERMOCAL, "inspect", run, "--json"], env, Sample())                      # warm-up calls
+        call([THERMOCAL, "calibrate", run, "--json", "--registry", str(work / f"reg{next(k)}")], env, Sample(), local)
+        for _ in range(args.repeat):                                                    # in turn: the same load
+            call([THERMOCAL, "inspect", run, "--json"], env, ins)
+            call([THERMOCAL, "calibrate", run, "--json", "--registry", str(work / f"reg{next(k)}")], env, cal, local)
+        for _ in range(args.repeat):
+            call([THERMOCAL, "calibrate", run, "--json", "--registry", str(work / f"reg{next(k)}")], env, b2b, local)
+        pair = statistics.median(c / i for c, i in zip(cal.wall_s, ins.wall_s))
+        inspect_s = ins.median_s
+        add("thermocal inspect (no Prefect)", inspect_s, f"median (min-max) {ins.line()}; CPU s "
+            f"{ins.cpu_median_s:.2f}")
         add("thermocal calibrate, embedded: first call (fresh PREFECT_HOME: starts the local server)", first,
             f"{first / inspect_s:.1f}x inspect")
-        later = calibrate(env, args.repeat)[0]
         n_flow_runs = api(st["api_url"], "/flow_runs/count", {})
-        add("thermocal calibrate, embedded: later calls (local server running)", later,
-            f"{later / inspect_s:.1f}x inspect; flow runs recorded on it: {n_flow_runs} of {1 + args.repeat}")
+        add("thermocal calibrate, embedded: later calls (local server running), in turn with inspect", cal.median_s,
+            f"median (min-max) {cal.line()}: **{cal.median_s / inspect_s:.2f}x inspect** (median of the pairwise "
+            f"ratios {pair:.2f}); CPU s {cal.cpu_median_s:.2f} (command, job process, Prefect server), "
+            f"{cal.cpu_median_s / ins.cpu_median_s:.2f}x inspect's")
+        add("thermocal calibrate, embedded: later calls back to back", b2b.median_s,
+            f"median (min-max) {b2b.line()}: {b2b.median_s / inspect_s:.2f}x inspect; CPU s {b2b.cpu_median_s:.2f}; "
+            f"flow runs recorded on the local server: {n_flow_runs} of {2 + 2 * args.repeat}")
         t0 = time.perf_counter()
         timed([THERMOCAL, "fleet", str(fleet_dir), "--registry", str(work / "fleet-reg"), "--json", "--no-figures"],
               env, 1, ok=(0, 1))
@@ -148,14 +247,14 @@ def main() -> None:
                           env, args.repeat, ok=(0, 1))
         s = json.loads(out)
         add(f"thermocal fleet, no-op over {args.fleet_runs} runs ({args.fleet_program} program, "
-            f"{args.fleet_rate_hz:g} Hz), embedded", wall,
+            f"{args.fleet_rate_hz:g} Hz), embedded, least of {args.repeat}", wall,
             f"{len(s['skipped'])} skipped, {len(s['done'])} done (calibrating them first took {first_fleet:.0f} s)")
         own_home = work / "own-server-home"
         own, url = start_prefect_server(env, own_home)
         before = api(url, "/flow_runs/count", {})
         wall = calibrate(dict(env, PREFECT_API_URL=url), args.repeat)[0]
         after = api(url, "/flow_runs/count", {})
-        add("thermocal calibrate, PREFECT_API_URL (a running prefect server, in-process)", wall,
+        add(f"thermocal calibrate, PREFECT_API_URL (a running prefect server, in-process), least of {args.repeat}", wall,
             f"{wall / inspect_s:.1f}x inspect; flow runs recorded on that server: {before} -> {after}")
         if not args.no_ephemeral:
             eph_home = work / "ephemeral-home"
@@ -170,7 +269,7 @@ def main() -> None:
         shutil.rmtree(work, ignore_errors=True)
 
     print(f"\n10 Hz standard run ({Path(run).name}); {os.cpu_count()} CPUs, 1-min load average "
-          f"{os.getloadavg()[0]:.1f}\n")
+          f"{load0:.1f} at the start, {os.getloadavg()[0]:.1f} at the end\n")
     print("| command | wall s | note |\n|---|---:|---|")
     for name, wall, note in rows:
         print(f"| {name} | {wall:.2f} | {note} |")
