@@ -25,8 +25,6 @@ passport_app = typer.Typer(help="The passport audit trail: log, show, diff, appr
 app.add_typer(passport_app, name="passport")
 server_app = typer.Typer(no_args_is_help=True, help="thermocal's local Prefect server: where flow runs are recorded.")
 app.add_typer(server_app, name="server")
-#: commands that run a Prefect flow: without PREFECT_API_URL they run on the local server's warm worker
-FLOW_COMMANDS = ("calibrate", "fleet")
 
 #: The help texts of options and arguments that several commands share.
 JSON_HELP = "print one JSON object on stdout instead of text"
@@ -727,53 +725,14 @@ def _usage_line(e: Exception) -> str:
     return f"thermocal: usage error: {msg} (see `{cmd} --help`)"
 
 
-class _ClosedPipeQuiet:
-    """``sys.stdout`` while a command runs: when the reader of a pipe goes away (``thermocal ... | head -3``), the
-    rest of the output is dropped without a word and the command carries on to its end (registry writes included,
-    exit status unchanged); the file descriptor is pointed at the null device so that the interpreter's last flush
-    finds nothing to complain about."""
-
-    def __init__(self, stream):
-        self._stream = stream
-        self.reader_gone = False
-
-    def write(self, s: str) -> int:
-        if not self.reader_gone:
-            try:
-                return self._stream.write(s)
-            except BrokenPipeError:
-                self._drop()
-        return len(s)
-
-    def flush(self) -> None:
-        if not self.reader_gone:
-            try:
-                self._stream.flush()
-            except BrokenPipeError:
-                self._drop()
-
-    def _drop(self) -> None:
-        self.reader_gone = True
-        try:
-            fd = self._stream.fileno()
-        except (AttributeError, OSError, ValueError):  # not a file (a test's capture)
-            return
-        null = os.open(os.devnull, os.O_WRONLY)
-        try:
-            os.dup2(null, fd)
-        finally:
-            os.close(null)
-
-    def __getattr__(self, name):
-        return getattr(self._stream, name)
-
-
 def main() -> None:
     """Console entry point: one-line errors, no tracebacks (set THERMOCAL_DEBUG=1 to see them); a closed stdout
     (``| head``) ends the output quietly. Commands that run a flow go to the local server's warm worker unless
     PREFECT_API_URL is set (:mod:`flows.localserver`)."""
+    from .runtime import ClosedPipeQuiet
+
     stdout = sys.stdout
-    sys.stdout = _ClosedPipeQuiet(stdout)
+    sys.stdout = ClosedPipeQuiet(stdout)
     try:
         _main()
     finally:
@@ -783,12 +742,10 @@ def main() -> None:
 def _main() -> None:
     try:
         argv = sys.argv[1:]
-        if argv[:1] and argv[0] in FLOW_COMMANDS and "--help" not in argv:
-            from .localserver import run_on_server, use_prefect_home, uses_local_server
+        from .localserver import run_on_server, runs_on_local_server
 
-            use_prefect_home()
-            if uses_local_server():
-                sys.exit(run_on_server(argv))
+        if runs_on_local_server(argv):
+            sys.exit(run_on_server(argv))
         rc = app(standalone_mode=False, prog_name="thermocal")
         if rc == 130:  # typer's answer to Ctrl-C (KeyboardInterrupt) in a command
             raise KeyboardInterrupt

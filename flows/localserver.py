@@ -74,6 +74,20 @@ def use_prefect_home() -> Path:
     return home
 
 
+#: commands that run a Prefect flow: without PREFECT_API_URL they run on the local server's warm worker
+FLOW_COMMANDS = ("calibrate", "fleet")
+
+
+def runs_on_local_server(argv: list[str]) -> bool:
+    """Whether the ``thermocal`` command ``argv`` (without the program name) runs on the local server's warm
+    worker: a command that runs a flow (not its ``--help``) while :func:`uses_local_server`. Sets ``PREFECT_HOME``
+    (:func:`use_prefect_home`) for such a command."""
+    if not (argv[:1] and argv[0] in FLOW_COMMANDS and "--help" not in argv):
+        return False
+    use_prefect_home()
+    return uses_local_server()
+
+
 def uses_local_server() -> bool:
     """Whether flows run on thermocal's local server: no ``PREFECT_API_URL`` of the user's, and not switched off
     with ``THERMOCAL_PREFECT=ephemeral`` (Prefect's own per-process mode)."""

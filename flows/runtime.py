@@ -39,11 +39,25 @@ def flow_settings():
 
     from .localserver import ensure_server, uses_local_server
 
-    updates = {PREFECT_FLOWS_HEARTBEAT_FREQUENCY: None}
+    updates = {}
+    if PREFECT_FLOWS_HEARTBEAT_FREQUENCY.value() is not None:
+        updates[PREFECT_FLOWS_HEARTBEAT_FREQUENCY] = None
     if uses_local_server() and not PREFECT_API_URL.value():
         updates[PREFECT_API_URL] = ensure_server()["api_url"]
+    if not updates:  # already in force (the local server's worker: :func:`no_heartbeat`); a new settings object
+        yield        # costs ~0.05 s
+        return
     with temporary_settings(updates):
         yield
+
+
+def no_heartbeat() -> None:
+    """For the rest of this process: no flow-run heartbeat thread (:func:`flow_settings` then has nothing to
+    change). The local server's warm worker calls it once, before it forks its job processes."""
+    prefect_defaults()
+    from prefect.settings import PREFECT_FLOWS_HEARTBEAT_FREQUENCY, temporary_settings
+
+    temporary_settings({PREFECT_FLOWS_HEARTBEAT_FREQUENCY: None}).__enter__()
 
 
 @contextlib.contextmanager
@@ -101,3 +115,44 @@ class Steps:
             out = self.stream or sys.stderr
             out.write(f"thermocal: {self.command}: {step} ({time.perf_counter() - self.t0:.1f} s)\n")
             out.flush()
+
+
+class ClosedPipeQuiet:
+    """``sys.stdout`` while a command runs: when the reader of a pipe goes away (``thermocal ... | head -3``), the
+    rest of the output is dropped without a word and the command carries on to its end (registry writes included,
+    exit status unchanged); the file descriptor is pointed at the null device so that the interpreter's last flush
+    finds nothing to complain about."""
+
+    def __init__(self, stream):
+        self._stream = stream
+        self.reader_gone = False
+
+    def write(self, s: str) -> int:
+        if not self.reader_gone:
+            try:
+                return self._stream.write(s)
+            except BrokenPipeError:
+                self._drop()
+        return len(s)
+
+    def flush(self) -> None:
+        if not self.reader_gone:
+            try:
+                self._stream.flush()
+            except BrokenPipeError:
+                self._drop()
+
+    def _drop(self) -> None:
+        self.reader_gone = True
+        try:
+            fd = self._stream.fileno()
+        except (AttributeError, OSError, ValueError):  # not a file (a test's capture)
+            return
+        null = os.open(os.devnull, os.O_WRONLY)
+        try:
+            os.dup2(null, fd)
+        finally:
+            os.close(null)
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)

@@ -64,8 +64,11 @@ def worker(listen_fd: int) -> int:
     from . import calibrate, fleet  # noqa: F401
     from pipeline.calibrate.fleet import prepare_worker
 
+    from .runtime import no_heartbeat
+
     prepare_worker()
     _import_flow_run_modules()
+    no_heartbeat()
     job = _serve(socket.socket(fileno=listen_fd), os.environ.get("THERMOCAL_WORKER_TOKEN", ""))
     if job is None:  # the worker itself, stopped
         return 0
