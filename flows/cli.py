@@ -132,6 +132,14 @@ def simulate(out: Path = typer.Option(..., "--out", help="output .mcap file or P
                                               "through a temperature cycle) | handheld (36 hand-turned poses of "
                                               "3 s at 20 C; use ~100 Hz and --jitter-ms) | sweep (three "
                                               "orientations, the temperature drifting 5-25 C, no plateau)"),
+             soak_min: Optional[float] = typer.Option(
+                 None, "--soak-min", metavar="MINUTES",
+                 help="make every soak of the program this many minutes (the standard program soaks 60 and 90 "
+                      "min); short soaks leave the unit still settling while the positions are held"),
+             drop: List[str] = typer.Option(
+                 [], "--drop", metavar="POS@TEMP[#K]",
+                 help="leave out the hold of a position at the stages of that setpoint, e.g. TP4@-40 (#2: only the "
+                      "second stage at that setpoint); repeat for several"),
              rate_hz: float = typer.Option(10.0, "--rate-hz", help="voltmeter sampling rate, Hz"),
              noise_uv: float = typer.Option(5.0, "--noise-uv", help="voltmeter noise per sample, micro-volts"),
              case_lag_s: Optional[float] = typer.Option(None, "--case-lag-s",
@@ -152,12 +160,24 @@ def simulate(out: Path = typer.Option(..., "--out", help="output .mcap file or P
     from pipeline.io.runs import FORMATS, write_run
     from pipeline.simulate.chamber import SimConfig, write_truth
     from pipeline.simulate.large import simulate_run
-    from pipeline.simulate.program import PROGRAMS
-
     from pipeline.simulate.disturbances import parse_disturbance_spec
+    from pipeline.simulate.program import PROGRAMS, get_program, parse_drop, variant
 
     if program not in PROGRAMS:
         raise ThermocalError(f"unknown chamber program {program!r} ({', '.join(PROGRAMS)})", where="--program")
+    chosen = program
+    if soak_min is not None or drop:
+        if soak_min is not None and not soak_min >= 0:
+            raise ThermocalError(f"soak must be 0 minutes or more, got {soak_min:g}", where="--soak-min")
+        for d in drop:
+            try:
+                parse_drop(d)
+            except ValueError as e:
+                raise ThermocalError(str(e), where="--drop") from None
+        try:
+            chosen = variant(get_program(program), None if soak_min is None else soak_min * 60.0, tuple(drop))
+        except ValueError as e:
+            raise ThermocalError(str(e), where="--drop") from None
     if fmt not in FORMATS:
         raise ThermocalError(f"unknown format {fmt!r} ({', '.join(FORMATS)})", where="--format")
     try:
@@ -168,7 +188,7 @@ def simulate(out: Path = typer.Option(..., "--out", help="output .mcap file or P
         disturbances = [parse_disturbance_spec(d) for d in disturbance]
     except ValueError as e:
         raise ThermocalError(str(e), where="--disturbance") from None
-    cfg = SimConfig(unit_serial=unit, seed=seed, unit_seed=unit_seed, program=program, rate_hz=rate_hz,
+    cfg = SimConfig(unit_serial=unit, seed=seed, unit_seed=unit_seed, program=chosen, rate_hz=rate_hz,
                     noise_v=noise_uv * 1e-6, case_lag_s=case_lag_s, effects=effects, jitter_s=jitter_ms * 1e-3,
                     disturbances=disturbances, with_fixture_log=not no_fixture_log)
     res = simulate_run(cfg)

@@ -203,17 +203,31 @@ def _axis_roles(poses: list[dict[str, Any]]) -> dict[str, tuple[bool, bool]]:
 
 def _methods(program, poses, seg, on_soak: set[int], run: Run) -> list[dict[str, Any]]:
     """Whether each method can run on this recording and what it determines (in the order ``auto`` prefers)."""
+    from pipeline.calibrate.observations import observations_from_segmentation
+    from pipeline.calibrate.tilt import calibration_plateaus
+    from pipeline.thermal import cluster_temperatures, default_order
+
     out = []
-    # tilt: six test positions on a soak
-    full = [p for p in program.plateaus
-            if {s.position for s in seg.segments if s.plateau is not None
-                and seg.plateaus[s.plateau].t_start_ns == p.t_start_ns}.issuperset({f"TP{k}" for k in range(1, 7)})]
-    n = len(full)
+    # tilt: the soaks whose test positions determine the 12 constants, as the tilt calibration takes them (the
+    # six, or fewer by least squares; held while the unit still settled too); the thermal model's order is what
+    # their distinct temperatures allow (calibrate --thermal-model refuses a higher one)
+    cal = [c for c in calibration_plateaus(observations_from_segmentation(run.meta.run_id, seg))
+           if c[1] in on_soak]
+    n = len(cal)
+    six = sum(set(c[3]) >= {f"TP{k}" for k in range(1, 7)} for c in cal)
+    temps = np.array([c[2] for c in cal])
+    labels = cluster_temperatures(temps) if n else np.zeros(0, dtype=int)
+    distinct = int(labels.max()) + 1 if n else 0
+    order = default_order(temps) if n else 0
+    at = ", ".join(f"{t:+.0f}" for t in sorted(float(np.mean(temps[labels == k])) for k in range(distinct)))
     out.append({"method": "tilt", "supported": n > 0,
-                "why": (f"{count_words(n, 'plateau')} with all six test positions" if n else
-                        "no temperature plateau holds the six test positions TP1..TP6"),
+                "why": (f"{count_words(n, 'plateau')} whose test positions determine the 12 constants ({six} with all "
+                        f"six), at {count_words(distinct, 'temperature')} ({at} C)" if n else
+                        "no temperature plateau holds test positions that determine the 12 constants (TP1..TP6, "
+                        "or five of them)"),
                 "determines": (["K (9) and U0 (3) at each plateau temperature",
-                                f"thermal model of order up to {min(n - 1, 3)}" if n > 1 else
+                                f"thermal model of order up to {order} (one less than the distinct temperatures, "
+                                "at most 3)" if distinct > 1 else
                                 "no thermal model (one temperature)"] if n else [])})
     # sweep (differential): orientations held through temperature excursions
     held = [p for p in poses if p["longest_hold_s"] >= SWEEP_MIN_HOLD_S and None not in p["temp_range_c"]
@@ -314,8 +328,10 @@ def format_summary(summary: dict[str, Any]) -> str:
     t0 = min((p["t_start_ns"] for p in plateaus), default=0)
     for p in plateaus:
         names = [s["position"] or "?" for s in positions if s["plateau"] == p["index"]]
+        settling = [s["position"] or "?" for s in positions if s.get("settling") == p["index"]]
+        before = f"  (held while still settling towards it: {' '.join(settling)})" if settling else ""
         lines.append(f"  plateau {p['index']}: {p['temp_c']:+7.2f} C  from {(p['t_start_ns'] - t0) / 3.6e12:5.2f} h, "
-                     f"{(p['t_end_ns'] - p['t_start_ns']) / 6e10:5.1f} min  {' '.join(names)}")
+                     f"{(p['t_end_ns'] - p['t_start_ns']) / 6e10:5.1f} min  {' '.join(names)}{before}")
     conflicts = [s for s in positions if s.get("label_conflict")]
     if conflicts:
         lines.append(f"  {len(conflicts)} segments whose fixture label disagrees with gravity (see warnings)")

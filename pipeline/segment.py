@@ -102,7 +102,8 @@ class StaticSegment:
     ``std_v`` and ``count`` are over the finite voltmeter samples of the segment (V); ``temp_c`` and ``temp_std_c``
     the AU temperature interpolated at those samples (C); ``direction_g`` the rough unit gravity vector (AU axes)
     used for naming (NaN when it cannot be estimated). ``settling`` is the plateau a segment off every plateau
-    lies before, wholly inside its settling (None otherwise).
+    begins in the settling of (None otherwise): a hold begun while the unit still settled is one segment, even
+    where it goes on into the stable part.
     """
 
     index: int
@@ -186,6 +187,7 @@ def find_plateaus(t_ns: np.ndarray, temp_c: np.ndarray,
         seg = temp_c[i0:i1]
         in_band = np.abs(seg - np.median(seg)) <= settings.plateau_band_c
         found += [(i0 + j0, i0 + j1) for j0, j1 in _runs(in_band) if t_s[i0 + j1 - 1] - t_s[i0 + j0] >= min_s]
+    found = _join_interrupted(found, t_s, temp_c, settings)
     out: list[Plateau] = []
     for k, (a, b) in enumerate(found):
         lo = found[k - 1][1] if k > 0 else 0
@@ -195,8 +197,29 @@ def find_plateaus(t_ns: np.ndarray, temp_c: np.ndarray,
         settling = ((rate_c_per_min[lo:a] < settings.settle_rate_c_per_min)
                     & (np.abs(temp_c[lo:a] - mean_c) < settings.settle_band_c))[::-1]
         n_settle = int(np.argmin(settling)) if not settling.all() else settling.size
+        if out:        # the settling starts after the previous plateau (whose end moved out)
+            n_settle = min(n_settle, max(0, a - int(np.searchsorted(t_ns, out[-1].t_end_ns, side="right"))))
         out.append(Plateau(k, int(t_ns[a]), int(t_ns[b - 1]), mean_c, float(np.std(temp_c[a:b])),
                            int(t_ns[a - n_settle]) if n_settle > 0 else None))
+    return out
+
+
+def _join_interrupted(found: list[tuple[int, int]], t_s: np.ndarray, temp_c: np.ndarray,
+                      settings: SegmentSettings) -> list[tuple[int, int]]:
+    """Join consecutive stable runs [a, b) less than ``plateau_min_s`` apart when all the samples from the first's
+    start to the second's end stay within ``plateau_band_c`` of their median: one soak whose slope hovered about
+    the plateau threshold for a while (the unit's last approach to the chamber's temperature after a short soak),
+    not two plateaus. A drift (a chain of plateaus a band apart) is not joined."""
+    out: list[tuple[int, int]] = []
+    for a, b in found:
+        if out:
+            a0, b0 = out[-1]
+            span = temp_c[a0:b]
+            if (t_s[a] - t_s[b0 - 1] < settings.plateau_min_s
+                    and np.max(np.abs(span - np.median(span))) <= settings.plateau_band_c):
+                out[-1] = (a0, b)
+                continue
+        out.append((a, b))
     return out
 
 
@@ -659,7 +682,7 @@ def segment_run(run: Run, settings: SegmentSettings = SegmentSettings()) -> Segm
     fixture = _fixture_labels(run, t_ns, pieces)
 
     rows = []
-    for (i0, i1, p), fix in zip(pieces, fixture):
+    for (i0, i1, p, settling), fix in zip(pieces, fixture):
         cols, tt = ch.slab(i0, i1), t_ns[i0:i1]
         fin = finite_columns(cols)
         if not fin.all():
@@ -670,10 +693,9 @@ def segment_run(run: Run, settings: SegmentSettings = SegmentSettings()) -> Segm
         rows.append(dict(t_start_ns=int(t_ns[i0]), t_end_ns=int(t_ns[i1 - 1]), plateau=p, fixture_label=fix,
                          mean_v=np.array([c.mean() for c in cols]),
                          std_v=np.array([c.std(ddof=ddof) for c in cols]), count=int(tt.size),
-                         temp_c=float(tc.mean()), temp_std_c=float(tc.std())))
+                         temp_c=float(tc.mean()), temp_std_c=float(tc.std()), settling=settling))
 
     names = _name_segments(run, rows, settings, warnings)
-    settles = [(p.index, p.settle_start_ns, p.t_start_ns) for p in plateaus if p.settle_start_ns is not None]
     segments = []
     for k, (r, nm) in enumerate(zip(rows, names)):
         segments.append(StaticSegment(
@@ -681,8 +703,7 @@ def segment_run(run: Run, settings: SegmentSettings = SegmentSettings()) -> Segm
             label_source=nm["source"], fixture_label=r["fixture_label"], label_conflict=nm["conflict"],
             plateau=r["plateau"], mean_v=_tuple3(r["mean_v"]), std_v=_tuple3(r["std_v"]), count=r["count"],
             temp_c=r["temp_c"], temp_std_c=r["temp_std_c"], direction_g=_tuple3(nm["direction"]),
-            settling=(next((i for i, s0, s1 in settles if s0 <= r["t_start_ns"] and r["t_end_ns"] < s1), None)
-                      if r["plateau"] is None else None)))
+            settling=r["settling"]))
     return Segmentation(plateaus=plateaus, segments=segments, warnings=warnings, stretches=stretches,
                         static_window_s=settings.static_window_s, static_min_s=settings.static_min_s)
 
@@ -692,35 +713,45 @@ def _tuple3(v) -> tuple[float, float, float]:
 
 
 def _cut_at_plateaus(t_ns: np.ndarray, stretches: list[tuple[int, int]], plateaus: list[Plateau],
-                     settings: SegmentSettings) -> list[tuple[int, int, int | None]]:
+                     settings: SegmentSettings) -> list[tuple[int, int, int | None, int | None]]:
     """Cut static stretches at plateau boundaries, drop pieces shorter than static_min_s, trim each piece.
 
-    Returns (i0, i1, plateau index or None) per piece, in time order.
+    A stretch is cut where each plateau begins and ends, except where it began in that plateau's settling: a hold
+    the program started while the unit still settled is one segment, even where it goes on into the stable part.
+    (A position carried through the ramp and the soak is cut where the plateau begins: its part on the plateau is
+    a segment of its own.) Returns (i0, i1, plateau index or None, settling) per piece, in time order: a piece
+    starting on a plateau is on it; one starting in the settling before it is off every plateau, ``settling`` the
+    plateau's index (None otherwise).
     """
     starts = np.array([p.t_start_ns for p in plateaus], dtype=np.int64)
+    fronts = np.array([p.t_start_ns if p.settle_start_ns is None else p.settle_start_ns for p in plateaus],
+                      dtype=np.int64)
     ends = np.array([p.t_end_ns for p in plateaus], dtype=np.int64)
-    # sample index boundaries: a plateau owns samples with start <= t <= end
-    cut_idx = np.sort(np.concatenate((np.searchsorted(t_ns, starts, side="left"),
-                                      np.searchsorted(t_ns, ends, side="right"))))
+    # sample index boundaries: a plateau owns the samples with start <= t <= end, its settling front <= t < start
+    start_idx = np.searchsorted(t_ns, starts, side="left")
+    end_idx = np.searchsorted(t_ns, ends, side="right")
     min_ns = settings.static_min_s * _NS
     out = []
     for i0, i1 in stretches:
-        inner = cut_idx[(cut_idx > i0) & (cut_idx < i1)]
+        cuts = np.concatenate((start_idx[fronts > t_ns[i0]], end_idx))
+        inner = np.sort(cuts[(cuts > i0) & (cuts < i1)])
         bounds = np.concatenate(([i0], inner, [i1]))
         for a, b in zip(bounds[:-1], bounds[1:]):
             a, b = int(a), int(b)
             if b <= a or t_ns[b - 1] - t_ns[a] < min_ns:
                 continue
             dur_ns = t_ns[b - 1] - t_ns[a]
-            mid = t_ns[(a + b) // 2]
-            on = np.flatnonzero((starts <= mid) & (mid <= ends))
+            first = t_ns[a]
+            on = np.flatnonzero((fronts <= first) & (first <= ends))
+            k = int(on[0]) if on.size else None
             trim0 = int(min(settings.settle_trim_s * _NS, _MAX_START_TRIM * dur_ns))
             trim1 = int(min(settings.settle_trim_s / 10 * _NS, _MAX_END_TRIM * dur_ns))
             # (search keys of the array's dtype: a float key would convert the whole array)
             a2 = a + int(np.searchsorted(t_ns[a:b], t_ns[a] + np.int64(trim0), side="left"))
             b2 = a + int(np.searchsorted(t_ns[a:b], t_ns[b - 1] - np.int64(trim1), side="right"))
             if b2 > a2:
-                out.append((a2, b2, int(on[0]) if on.size else None))
+                stable = k is not None and first >= starts[k]
+                out.append((a2, b2, k if stable else None, None if stable else k))
     return out
 
 
@@ -733,7 +764,7 @@ def _fixture_labels(run: Run, t_ns: np.ndarray, pieces) -> list[str | None]:
     order = np.argsort(ft, kind="stable")
     ft = ft[order]
     fp = np.asarray(fx["position"].to_list(), dtype=object)[order]
-    mids = np.array([(t_ns[a] + t_ns[b - 1]) // 2 for a, b, _ in pieces], dtype=np.int64)
+    mids = np.array([(t_ns[a] + t_ns[b - 1]) // 2 for a, b, *_ in pieces], dtype=np.int64)
     k = np.searchsorted(ft, mids, side="right") - 1
     out = []
     for j in k:

@@ -39,6 +39,9 @@ class VerificationRow:
     dg_method2_simplified_g: float
     tolerance_g: float
     passed: bool
+    #: index of the plateau (within its run) the segment lies on or settles towards; None where not known (rows of
+    #: passports written before it was recorded)
+    plateau: int | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -46,8 +49,10 @@ class VerificationRow:
 
 def verify_positions(model, positions: list[str], u_v: np.ndarray, temp_c: np.ndarray, *, normal_temp_c: float,
                      tolerances: Tolerances = Tolerances(), run_ids: list[str] | None = None,
-                     spans_ns: list[tuple[int, int]] | None = None) -> list[VerificationRow]:
-    """dg at each verification segment (mean outputs ``u_v`` (m, 3) V at mean temperatures ``temp_c`` (m,) C)."""
+                     spans_ns: list[tuple[int, int]] | None = None, plateaus: list[int | None] | None = None
+                     ) -> list[VerificationRow]:
+    """dg at each verification segment (mean outputs ``u_v`` (m, 3) V at mean temperatures ``temp_c`` (m,) C);
+    ``run_ids``, ``spans_ns`` (start, end ns) and ``plateaus`` (plateau index in its run) say where each is."""
     u_v = np.atleast_2d(np.asarray(u_v, dtype=float))
     temp_c = np.asarray(temp_c, dtype=float)
     dg0 = gravity_module_error_g(compensate.uncompensated(model, u_v))
@@ -62,7 +67,8 @@ def verify_positions(model, positions: list[str], u_v: np.ndarray, temp_c: np.nd
             temp_c=round(float(temp_c[k]), 3), position=pos, run_id=run_ids[k] if run_ids else "",
             t_start_ns=int(span[0]), t_end_ns=int(span[1]),
             dg_uncompensated_g=float(dg0[k]), dg_method1_g=float(dg1[k]), dg_method2_g=float(dg2[k]),
-            dg_method2_simplified_g=float(dg2s[k]), tolerance_g=lim, passed=bool(abs(dg1[k]) <= lim)))
+            dg_method2_simplified_g=float(dg2s[k]), tolerance_g=lim, passed=bool(abs(dg1[k]) <= lim),
+            plateau=None if plateaus is None or plateaus[k] is None else int(plateaus[k])))
     return rows
 
 
@@ -97,8 +103,9 @@ def summary_by_temperature(rows: list[VerificationRow], cluster_tol_c: float = 3
 
 def verification_visits(rows: list[dict], cluster_tol_c: float = 3.0) -> list[dict]:
     """The verification rows (dicts, as in a passport's ``verification``) by visit of a temperature: rows of one
-    temperature cluster that follow each other in time (in one run) make one visit. Visits coldest first, those
-    of one temperature in time order; each ``{"rows", "temp_c" (mean, C), "visit" (1, 2, ...), "visits" (at that
+    temperature cluster that follow each other in time (in one run) on one plateau make one visit (two plateaus
+    at one temperature are two visits, with nothing verified between them or not). Visits coldest first, those of
+    one temperature in time order; each ``{"rows", "temp_c" (mean, C), "visit" (1, 2, ...), "visits" (at that
     temperature)}``."""
     from pipeline.thermal import cluster_temperatures
 
@@ -108,7 +115,8 @@ def verification_visits(rows: list[dict], cluster_tol_c: float = 3.0) -> list[di
     labels = cluster_temperatures(np.array([r["temp_c"] for r in rows], dtype=float), cluster_tol_c)
     groups: list[list[int]] = []   # row indices of each visit, in time order
     for i, lab in enumerate(labels):
-        if i and lab == labels[i - 1] and rows[i].get("run_id") == rows[i - 1].get("run_id"):
+        if (i and lab == labels[i - 1] and rows[i].get("run_id") == rows[i - 1].get("run_id")
+                and rows[i].get("plateau") == rows[i - 1].get("plateau")):
             groups[-1].append(i)
         else:
             groups.append([i])

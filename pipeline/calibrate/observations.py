@@ -7,7 +7,9 @@ warnings, and the VP verification of a fitted model on them.
 - :class:`ObservedRun`: one run reduced for a calibration, the per-run step of every recipe (what a fleet isolates:
   a run that cannot be observed is dropped, the others are calibrated);
 - :func:`unit_of`: the one unit serial of a set of runs;
-- :func:`verify_unit`: dg at every VP observation on a plateau, uncompensated and by both compensation methods;
+- :func:`verification_observations`: the VP observations that are verification results (no soak holds);
+- :func:`verify_unit`: dg at each of them, uncompensated and by both compensation methods, and the status (never
+  ``pass`` where :func:`verification_gap` finds the thermal model's range unverified);
 - :func:`plateau_summary`: the plateaus and their positions, for ``calibrate --json``.
 """
 
@@ -122,14 +124,13 @@ def verify_unit(model, observations: list[Observation], normal_temp_c: float,
                 tolerances: Tolerances = Tolerances()) -> tuple[list[VerificationRow], str]:
     """dg at every VP observation on a plateau, except a soak hold (:func:`soak_holds`); returns the rows (by time)
     and the overall status."""
-    held = soak_holds(observations)
-    vp = sorted((o for o in observations if is_verification_position(o.position) and o.plateau is not None
-                 and id(o) not in held), key=lambda o: (o.run_id, o.t_start_ns))
+    vp = verification_observations(observations)
     if not vp:
         return [], "unverified"
     rows = verify_positions(model, [o.position for o in vp], np.array([o.u_v for o in vp]),
                             np.array([o.temp_c for o in vp]), normal_temp_c=normal_temp_c, tolerances=tolerances,
-                            run_ids=[o.run_id for o in vp], spans_ns=[(o.t_start_ns, o.t_end_ns) for o in vp])
+                            run_ids=[o.run_id for o in vp], spans_ns=[(o.t_start_ns, o.t_end_ns) for o in vp],
+                            plateaus=[o.plateau for o in vp])
     status = overall_status(rows)
     if status == "pass" and verification_gap(observations, normal_temp_c) is not None:
         status = "unverified"
@@ -140,12 +141,23 @@ def verify_unit(model, observations: list[Observation], normal_temp_c: float,
 _VERIFY_REACH_C = 5.0
 
 
+def verification_observations(observations: list[Observation]) -> list[Observation]:
+    """The observations that are verification results, by run and time: VP observations on a plateau (or in the
+    settling before it), except soak holds (:func:`soak_holds`)."""
+    held = soak_holds(observations)
+    return sorted((o for o in observations if is_verification_position(o.position) and o.plateau is not None
+                   and id(o) not in held), key=lambda o: (o.run_id, o.t_start_ns))
+
+
 def verification_gap(observations: list[Observation], normal_temp_c: float) -> str | None:
     """What the VP data leave unverified of the thermal model's range, or None: the calibration's positions reach
-    below (above) T0 by more than 5 C and no VP observation on a plateau is below (above) T0 by more than 5 C. A
-    status is then never ``pass`` (say what was verified instead)."""
-    cal = [o.temp_c for o in observations if o.plateau is not None and not is_verification_position(o.position)]
-    vp = [o.temp_c for o in observations if o.plateau is not None and is_verification_position(o.position)]
+    below (above) T0 by more than 5 C and no verification result (:func:`verification_observations`: a soak hold
+    is none) is below (above) T0 by more than 5 C. A status is then never ``pass`` (say what was verified
+    instead)."""
+    held = soak_holds(observations)
+    cal = [o.temp_c for o in observations if o.plateau is not None and not is_verification_position(o.position)
+           and id(o) not in held]
+    vp = [o.temp_c for o in verification_observations(observations)]
     if not cal:
         return None
     lo, hi = min(cal), max(cal)

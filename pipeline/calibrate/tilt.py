@@ -52,7 +52,7 @@ METHOD = "tilt_six_position"
 
 __all__ = ["METHOD", "CalibrationSettings", "Observation", "ObservedRun", "UnitFit", "PlateauConstants",
            "observe", "calibrate_observed", "calibrate", "fit_unit", "observe_run", "observations_from_segmentation",
-           "unit_of", "verify_unit", "plateau_summary"]
+           "unit_of", "verify_unit", "plateau_summary", "calibration_plateaus", "determines_constants"]
 
 
 def observe(run, settings: CalibrationSettings = CalibrationSettings(), *, base_passport: dict | None = None,
@@ -102,6 +102,18 @@ def _group_plateaus(obs: list[Observation]) -> dict[tuple[str, int], list[Observ
         stable = {o.position for o in rows if not o.settling}
         groups[key] = [o for o in rows if not (o.settling and o.position in stable)]
     return groups
+
+
+def calibration_plateaus(observations: list[Observation]) -> list[tuple[str, int, float, tuple[str, ...]]]:
+    """The plateaus the tilt method fits constants on: ``(run_id, plateau, mean temperature C, positions)`` for
+    each plateau whose test positions determine the 12 constants (:func:`determines_constants`), in the order
+    found. What ``inspect`` tells of a recording before calibrating it."""
+    out = []
+    for (run_id, p), rows in _group_plateaus(observations).items():
+        names = tuple(dict.fromkeys(o.position for o in rows))
+        if determines_constants(names):
+            out.append((run_id, p, float(np.mean([o.temp_c for o in rows])), names))
+    return out
 
 
 def determines_constants(positions) -> bool:

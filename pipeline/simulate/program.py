@@ -302,6 +302,69 @@ def sweep_program(orientations=("TP3", "TP5", "TP2"), cold_c: float = 5.0, warm_
                    air_lag_s=90.0)
 
 
+def parse_drop(spec: str) -> tuple[str, float, int | None]:
+    """``POS@T`` or ``POS@T#K`` (e.g. ``TP4@-40``, ``VP3@+20#2``): the position, the stage setpoint (C) and which
+    of the stages at that setpoint (1, 2, ...; None: every one). ValueError naming what is wrong."""
+    text = spec.strip()
+    pos, sep, rest = text.partition("@")
+    if not sep:
+        raise ValueError(f"expected POSITION@TEMPERATURE[#K] (e.g. TP4@-40), got {spec!r}")
+    pos = pos.strip().upper()
+    _check_position(pos)
+    temp, _, k = rest.partition("#")
+    try:
+        temp_c = float(temp.strip().removesuffix("C").removesuffix("c").strip())
+        nth = int(k) if k.strip() else None
+    except ValueError:
+        raise ValueError(f"expected POSITION@TEMPERATURE[#K] (e.g. TP4@-40), got {spec!r}") from None
+    if nth is not None and nth < 1:
+        raise ValueError(f"the stage number after # counts from 1, got {spec!r}")
+    return pos, temp_c, nth
+
+
+def variant(program: Program, soak_s: float | None = None, drop: tuple[str, ...] = ()) -> Program:
+    """``program`` with every soak lasting ``soak_s`` (None: as it is; 0: none, the positions follow the ramp at
+    once) and the hold of each position in ``drop`` (:func:`parse_drop` specs: ``TP4@-40``) left out of the stages
+    at that setpoint (with its move): short-soak and missing-position programs (issue 14), made from the standard
+    one or any other. ValueError when a soak is negative or a dropped position is not held at that setpoint."""
+    if soak_s is not None and not soak_s >= 0:
+        raise ValueError(f"soak must be >= 0 s, got {soak_s}")
+    drops = [(spec, *parse_drop(spec)) for spec in drop]
+    used = {spec: False for spec, *_ in drops}
+    seen: dict[float, int] = {}
+    sp = float(program.start_setpoint_c)
+    stages = []
+    for stage in program.stages:
+        for step in stage.steps:
+            if isinstance(step, Ramp):
+                sp = float(step.to_c)
+        seen[sp] = seen.get(sp, 0) + 1
+        gone = set()
+        for spec, pos, temp_c, nth in drops:
+            if abs(temp_c - sp) < 0.5 and nth in (None, seen[sp]) and any(
+                    isinstance(st, Hold) and st.position == pos for st in stage.steps):
+                gone.add(pos)
+                used[spec] = True
+        steps = []
+        for step in stage.steps:
+            if isinstance(step, Soak) and soak_s is not None:
+                if soak_s > 0:
+                    steps.append(Soak(float(soak_s)))
+            elif isinstance(step, (Move, Hold)) and (step.to_position if isinstance(step, Move) else step.position
+                                                      ) in gone:
+                continue
+            else:
+                steps.append(step)
+        stages.append(Stage(stage.label, tuple(steps)))
+    missing = [spec for spec, ok in used.items() if not ok]
+    if missing:
+        raise ValueError(f"program {program.name!r} holds no such position at that setpoint: {', '.join(missing)}")
+    name = program.name + (f"+soak{soak_s / 60:g}min" if soak_s is not None else "") + "".join(
+        f"-{spec.strip()}" for spec in drop)
+    return Program(name, tuple(stages), program.start_setpoint_c, program.start_position, program.case_lag_s,
+                   program.air_lag_s)
+
+
 PROGRAMS = {"standard": standard_program, "short": short_program, "differential": differential_program,
             "handheld": handheld_program, "sweep": sweep_program}
 
