@@ -164,9 +164,11 @@ def find_plateaus(t_ns: np.ndarray, temp_c: np.ndarray,
     """Plateaus of the AU temperature ``temp_c`` (C) sampled at ``t_ns``; non-finite samples are ignored.
 
     The slope is a local linear regression over ``plateau_min_s / 4`` centred on each sample; stable samples
-    (|slope| below ``plateau_rate_c_per_min``) form runs; a run lasting ``plateau_min_s`` (or the whole record) is
-    kept, restricted to the samples within ``plateau_band_c`` of its median, and split where they are not; its ends
-    are then moved out to where the temperature leaves its value by more than the sensor noise.
+    (|slope| below ``plateau_rate_c_per_min``) form runs, joined across gaps shorter than that window (the slope
+    flickering about the threshold); a run lasting ``plateau_min_s`` (or the whole record) is kept, restricted to
+    the samples within ``plateau_band_c`` of its median, and split where they are not; runs less than
+    ``plateau_min_s`` apart that stay within the band together are one plateau; its ends are then moved out to
+    where the temperature leaves its value by more than the sensor noise.
     """
     t_ns = np.asarray(t_ns, dtype=np.int64)
     temp_c = np.asarray(temp_c, dtype=np.float64)
@@ -178,7 +180,7 @@ def find_plateaus(t_ns: np.ndarray, temp_c: np.ndarray,
     record_s = float(t_s[-1])
     window_s = settings.plateau_min_s * _SLOPE_WINDOW_FRACTION
     rate_c_per_min = np.abs(_local_slope_c_per_s(t_s, temp_c, window_s)) * 60.0
-    stable = rate_c_per_min < settings.plateau_rate_c_per_min
+    stable = _bridge_flicker(rate_c_per_min < settings.plateau_rate_c_per_min, t_s, window_s)
     min_s = min(settings.plateau_min_s, record_s)
     found: list[tuple[int, int]] = []
     for i0, i1 in _runs(stable):
@@ -201,6 +203,20 @@ def find_plateaus(t_ns: np.ndarray, temp_c: np.ndarray,
             n_settle = min(n_settle, max(0, a - int(np.searchsorted(t_ns, out[-1].t_end_ns, side="right"))))
         out.append(Plateau(k, int(t_ns[a]), int(t_ns[b - 1]), mean_c, float(np.std(temp_c[a:b])),
                            int(t_ns[a - n_settle]) if n_settle > 0 else None))
+    return out
+
+
+def _bridge_flicker(stable: np.ndarray, t_s: np.ndarray, window_s: float) -> np.ndarray:
+    """``stable`` with the gaps between stable runs that last less than one slope window filled: at the end of a
+    short soak the slope hovers about the threshold, and noise cuts the unit's last approach into runs of a minute
+    or two, none long enough alone although together they are."""
+    runs = _runs(stable)
+    if len(runs) < 2:
+        return stable
+    gap_s = t_s[runs[1:, 0]] - t_s[runs[:-1, 1] - 1]
+    out = stable.copy()
+    for a, b in zip(runs[:-1, 1][gap_s < window_s], runs[1:, 0][gap_s < window_s]):
+        out[a:b] = True
     return out
 
 

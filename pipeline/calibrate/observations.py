@@ -153,7 +153,8 @@ def verification_gap(observations: list[Observation], normal_temp_c: float) -> s
     """What the VP data leave unverified of the thermal model's range, or None: the calibration's positions reach
     below (above) T0 by more than 5 C and no verification result (:func:`verification_observations`: a soak hold
     is none) is below (above) T0 by more than 5 C. A status is then never ``pass`` (say what was verified
-    instead)."""
+    instead). Nor is it when VP positions were held off every plateau found, more than 5 C outside the calibrated
+    temperatures (soaks too short for the plateau test: the run went where the calibration does not)."""
     held = soak_holds(observations)
     cal = [o.temp_c for o in observations if o.plateau is not None and not is_verification_position(o.position)
            and id(o) not in held]
@@ -166,11 +167,18 @@ def verification_gap(observations: list[Observation], normal_temp_c: float) -> s
         gaps.append(f"below T0 (the model reaches {lo:+.1f} C)")
     if hi > normal_temp_c + _VERIFY_REACH_C and not any(t > normal_temp_c + _VERIFY_REACH_C for t in vp):
         gaps.append(f"above T0 (the model reaches {hi:+.1f} C)")
-    if not gaps:
-        return None
     where = ", ".join(f"{t:+.1f}" for t in sorted({round(t, 1) for t in vp})) or "none"
-    return (f"verification does not exercise the thermal model {' nor '.join(gaps)}: VP data only at {where} C, "
-            "so the status is not pass")
+    said = ([f"verification does not exercise the thermal model {' nor '.join(gaps)}: VP data only at {where} C"]
+            if gaps else [])
+    off = [o.temp_c for o in observations if o.plateau is None and is_verification_position(o.position)
+           and not lo - _VERIFY_REACH_C <= o.temp_c <= hi + _VERIFY_REACH_C]
+    if off:
+        said.append(f"{len(off)} VP segments held between {min(off):+.1f} and {max(off):+.1f} C lie off every "
+                    f"temperature plateau found, outside the calibrated {lo:+.1f} .. {hi:+.1f} C (soaks too short "
+                    "for the plateau test?)")
+    if not said:
+        return None
+    return "; ".join(said) + ", so the status is not pass"
 
 
 def soak_holds(observations: list[Observation]) -> set[int]:
