@@ -164,11 +164,11 @@ def find_plateaus(t_ns: np.ndarray, temp_c: np.ndarray,
     """Plateaus of the AU temperature ``temp_c`` (C) sampled at ``t_ns``; non-finite samples are ignored.
 
     The slope is a local linear regression over ``plateau_min_s / 4`` centred on each sample; stable samples
-    (|slope| below ``plateau_rate_c_per_min``) form runs, joined across gaps shorter than that window (the slope
-    flickering about the threshold); a run lasting ``plateau_min_s`` (or the whole record) is kept, restricted to
-    the samples within ``plateau_band_c`` of its median, and split where they are not; runs less than
-    ``plateau_min_s`` apart that stay within the band together are one plateau; its ends are then moved out to
-    where the temperature leaves its value by more than the sensor noise.
+    (|slope| below ``plateau_rate_c_per_min``) form runs; a run lasting ``plateau_min_s`` (or the whole record) is
+    kept, restricted to the samples within ``plateau_band_c`` of its median, and split where they are not; runs
+    less than that window apart that stay within the band together are one plateau (the slope rose over the
+    threshold for a moment between them); its ends are then moved out to where the temperature leaves its value by
+    more than the sensor noise.
     """
     t_ns = np.asarray(t_ns, dtype=np.int64)
     temp_c = np.asarray(temp_c, dtype=np.float64)
@@ -180,7 +180,7 @@ def find_plateaus(t_ns: np.ndarray, temp_c: np.ndarray,
     record_s = float(t_s[-1])
     window_s = settings.plateau_min_s * _SLOPE_WINDOW_FRACTION
     rate_c_per_min = np.abs(_local_slope_c_per_s(t_s, temp_c, window_s)) * 60.0
-    stable = _bridge_flicker(rate_c_per_min < settings.plateau_rate_c_per_min, t_s, window_s)
+    stable = rate_c_per_min < settings.plateau_rate_c_per_min
     min_s = min(settings.plateau_min_s, record_s)
     found: list[tuple[int, int]] = []
     for i0, i1 in _runs(stable):
@@ -189,7 +189,7 @@ def find_plateaus(t_ns: np.ndarray, temp_c: np.ndarray,
         seg = temp_c[i0:i1]
         in_band = np.abs(seg - np.median(seg)) <= settings.plateau_band_c
         found += [(i0 + j0, i0 + j1) for j0, j1 in _runs(in_band) if t_s[i0 + j1 - 1] - t_s[i0 + j0] >= min_s]
-    found = _join_interrupted(found, t_s, temp_c, settings)
+    found = _join_interrupted(found, t_s, temp_c, settings, window_s)
     out: list[Plateau] = []
     for k, (a, b) in enumerate(found):
         lo = found[k - 1][1] if k > 0 else 0
@@ -206,32 +206,18 @@ def find_plateaus(t_ns: np.ndarray, temp_c: np.ndarray,
     return out
 
 
-def _bridge_flicker(stable: np.ndarray, t_s: np.ndarray, window_s: float) -> np.ndarray:
-    """``stable`` with the gaps between stable runs that last less than one slope window filled: at the end of a
-    short soak the slope hovers about the threshold, and noise cuts the unit's last approach into runs of a minute
-    or two, none long enough alone although together they are."""
-    runs = _runs(stable)
-    if len(runs) < 2:
-        return stable
-    gap_s = t_s[runs[1:, 0]] - t_s[runs[:-1, 1] - 1]
-    out = stable.copy()
-    for a, b in zip(runs[:-1, 1][gap_s < window_s], runs[1:, 0][gap_s < window_s]):
-        out[a:b] = True
-    return out
-
-
 def _join_interrupted(found: list[tuple[int, int]], t_s: np.ndarray, temp_c: np.ndarray,
-                      settings: SegmentSettings) -> list[tuple[int, int]]:
-    """Join consecutive stable runs [a, b) less than ``plateau_min_s`` apart when all the samples from the first's
-    start to the second's end stay within ``plateau_band_c`` of their median: one soak whose slope hovered about
-    the plateau threshold for a while (the unit's last approach to the chamber's temperature after a short soak),
-    not two plateaus. A drift (a chain of plateaus a band apart) is not joined."""
+                      settings: SegmentSettings, window_s: float) -> list[tuple[int, int]]:
+    """Join consecutive stable runs [a, b) less than one slope window (``window_s``) apart when all the samples
+    from the first's start to the second's end stay within ``plateau_band_c`` of their median: one soak whose
+    slope rose over the plateau threshold for a moment (the unit's last approach to the chamber's temperature),
+    not two plateaus. A drift (a chain of plateaus a band apart, or minutes apart) is not joined."""
     out: list[tuple[int, int]] = []
     for a, b in found:
         if out:
             a0, b0 = out[-1]
             span = temp_c[a0:b]
-            if (t_s[a] - t_s[b0 - 1] < settings.plateau_min_s
+            if (t_s[a] - t_s[b0 - 1] < window_s
                     and np.max(np.abs(span - np.median(span))) <= settings.plateau_band_c):
                 out[-1] = (a0, b)
                 continue

@@ -70,13 +70,13 @@ def test_cats_static_poses_cover_the_authors_periods(cats):
 
 
 def test_cats_listing_is_its_poses_not_its_segments(cats):
-    """The drift cuts the three day-long holds into 227 static segments: the text lists a line per pose (each
-    hold's pieces merged, one line per pose with its holds), says how many segments that groups, and --json keeps
-    every segment."""
+    """The drift cuts the three day-long holds into 184 static segments (227 before stable runs a moment apart
+    within the band were one plateau): the text lists a line per pose (each hold's pieces merged, one line per
+    pose with its holds), says how many segments that groups, and --json keeps every segment."""
     _, s = cats
     text = format_summary(s)
     n = len(s["static_positions"])
-    assert n > 200 and len(text.splitlines()) < 30, len(text.splitlines())
+    assert n > 150 and len(text.splitlines()) < 30, len(text.splitlines())
     poses = [ln for ln in text.splitlines() if ln.lstrip().startswith("pose ")]
     assert len(poses) == len(s["recording"]["poses"]) <= 5
     assert sum(int(ln.split(" hold")[0].rsplit(None, 1)[1]) for ln in poses) < 10
