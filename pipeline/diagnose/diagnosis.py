@@ -387,10 +387,12 @@ def _unexplained_finding(design: Design, sel: Selection, unexplained, after: np.
 
 def _drift_effects(sel: Selection) -> list:
     """The offsets' drift of a ``constants_shift`` in the extended model: the catalogue's forward model of that
-    signal (``time_drift``, U0 += r t). A drift of K has no term there: it is reported, not modelled."""
-    if RATE_U0 not in sel.final.slices:
+    signal (``time_drift``, U0 += r t: the effect with an ``offset_rate_param``). A drift of K has no term there:
+    it is reported, not modelled."""
+    cls = next((c for c in EFFECTS.values() if c.offset_rate_param), None)
+    if RATE_U0 not in sel.final.slices or cls is None:
         return []
-    return [make_effect("time_drift", {"r_v_per_h": sel.final.term_coef(RATE_U0).tolist()})]
+    return [cls.make({cls.offset_rate_param: sel.final.term_coef(RATE_U0).tolist()})]
 
 
 def _hours(rec: StaticRecord, windows_ns: list[list[int]]) -> list[tuple[float, float]]:

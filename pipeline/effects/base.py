@@ -103,6 +103,9 @@ class Effect:
     in_base_from_order: ClassVar[int | None] = None
     nonlinear: ClassVar[str | None] = None
     grid: ClassVar[tuple[float, ...]] = ()
+    #: the parameter (V/h per axis) when the effect is exactly a drift of the offsets linear in time since the
+    #: start of the recording (its forward model then also carries a drift of the constants a diagnosis finds)
+    offset_rate_param: ClassVar[str | None] = None
 
     # ---- simulation
     def delta_u_v(self, ctx: SignalContext) -> np.ndarray:  # pragma: no cover - every effect overrides it

@@ -23,6 +23,7 @@ class TimeDrift(Effect):
     order: ClassVar[int] = 3
     where: ClassVar[str] = "revisits of one temperature drift monotonically with time"
     shown_by_refit: ClassVar[bool] = True
+    offset_rate_param: ClassVar[str | None] = "r_v_per_h"
     r_v_per_h: Vec3 = (3e-6, -2e-6, 4e-6)
 
     def delta_u_v(self, ctx: SignalContext) -> np.ndarray:
