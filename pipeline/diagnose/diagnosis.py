@@ -75,6 +75,9 @@ from pipeline.thermal import default_order
 _UV = 1e6
 #: sigma factor of blocks left out of the fits (they keep their place in the figure)
 _EXCLUDE = 1e3
+#: beside an unexplained mismatch, a catalogue effect is kept only where, with it, the residual where it shows is
+#: within this factor of the noise there (RMS)
+WITHIN_NOISE = 1.5
 
 
 @dataclass(frozen=True)
@@ -211,6 +214,15 @@ def _diagnose(run: Run, passport: dict | None, settings: DiagnoseSettings, passp
             sel = _select(design, candidates, settings, initial=held)
             notes.append(f"{', '.join(forced)} would only absorb part of the unexplained mismatch (a generic "
                          "function of time explains it as well): not named")
+        for _ in range(3):
+            nibbling = _not_explained_to_noise(design, sel, settings)
+            if not nibbling:
+                break
+            candidates = [e for e in candidates if e not in nibbling]
+            sel = _select(design, candidates, settings, initial=held)
+            notes.append(", ".join(f"{e} (leaves {r:.1f} x the noise where it shows)" for e, r in nibbling.items())
+                         + ": not named, it does not explain the mismatch beside the unexplained one to within the "
+                         "noise")
 
     final_trials = _final_trials(sel)
     predicted = blocks.mean(output_v(*model.constants_at(rec.temp_c), rec.a_g))
@@ -375,11 +387,14 @@ def _unexplained_finding(design: Design, sel: Selection, unexplained, after: np.
     where = _where(design, flagged, seg, settings)
     w = design.blocks.n[:, None] * flagged
     peak = float(np.abs(signature[flagged]).max()) if flagged.any() else 0.0
-    share = unexplained_shares(design, signature, axes_on)
-    text, numbers = describe_unexplained(fid, desc, residual, design, share, where, peak * _UV)
+    share, features = unexplained_shares(design, residual, axes_on)
+    text, numbers = describe_unexplained(fid, desc, residual, design, share, where, peak * _UV,
+                                         features["dominant_period_s"] if features["periodic_share"] >= 0.5
+                                         else None)
     params = {"empirical_correction": fid.split(":", 1)[1], **{k: v for k, v in desc.items() if k != "coef"},
-              **numbers, "shares": share,
-              "peak_v": peak, "axes": where["axes"]}
+              **numbers, "shares": share, "shares_alone": features["alone"],
+              "dominant_period_s": features["dominant_period_s"],
+              "periodic_share": features["periodic_share"], "peak_v": peak, "axes": where["axes"]}
     return {"effect": "unexplained", "explanation": text, "where": where, "parameters": params,
             "rms_before_v": _rms(residual, w), "rms_after_v": _rms(after, w), "delta_bic": dbic,
             "max_effect_v": peak}
@@ -488,14 +503,7 @@ def _finding(design: Design, sel: Selection, trial, before: np.ndarray, after: n
     """One accepted effect as a contract finding: where its terms change the model, how much, in words."""
     effect = trial.effect
     signature = _shows(design, sel, effect)
-    z = np.abs(signature) / design.sigma
-    share = (z ** 2).sum(axis=0)
-    axes_on = share >= 0.05 * share.max()
-    # where the effect stands out of the noise and is at least a quarter of its largest size (a large effect
-    # spreads a little into the base refit everywhere; that is not where it shows); small effects: where largest
-    level = np.minimum(settings.where_sigma, 0.5 * z.max(axis=0))
-    big = np.abs(signature) >= 0.25 * np.abs(signature).max(axis=0)
-    flagged = (z >= level[None, :]) & big & axes_on[None, :] & (z > 0)
+    flagged = _shows_where(design, signature, settings)
     where = _where(design, flagged, seg, settings)
     w = design.blocks.n[:, None] * flagged
     confounded = sel.confounded.get(effect, [])
@@ -513,6 +521,35 @@ def _finding(design: Design, sel: Selection, trial, before: np.ndarray, after: n
     if confounded:
         finding["confounded_with"] = list(confounded)
     return finding
+
+
+def _shows_where(design: Design, signature: np.ndarray, settings: DiagnoseSettings) -> np.ndarray:
+    """(B, 3) bool: where an effect's ``signature`` (B, 3) V stands out of the noise and is at least a quarter of
+    its largest size (a large effect spreads a little into the base refit everywhere; that is not where it shows);
+    small effects: where largest."""
+    z = np.abs(signature) / design.sigma
+    share = (z ** 2).sum(axis=0)
+    axes_on = share >= 0.05 * share.max()
+    level = np.minimum(settings.where_sigma, 0.5 * z.max(axis=0))
+    big = np.abs(signature) >= 0.25 * np.abs(signature).max(axis=0)
+    return (z >= level[None, :]) & big & axes_on[None, :] & (z > 0)
+
+
+def _not_explained_to_noise(design: Design, sel: Selection, settings: DiagnoseSettings) -> dict[str, float]:
+    """Catalogue effects accepted beside an unexplained mismatch that do not explain the mismatch where they show
+    to within the noise (issue 14.3): effect -> the residual RMS there over the noise RMS there, for those beyond
+    :data:`WITHIN_NOISE`. Such an effect only nibbles at a signature it does not explain."""
+    after = design.y - sel.final.fitted
+    out = {}
+    for t in sel.accepted:
+        flagged = _shows_where(design, _shows(design, sel, t.effect), settings)
+        w = design.blocks.n[:, None] * flagged
+        if not flagged.any():
+            continue
+        ratio = _rms(after, w) / max(_rms(design.sigma, w), 1e-30)
+        if ratio > WITHIN_NOISE:
+            out[t.effect] = ratio
+    return out
 
 
 def _shows(design: Design, sel: Selection, effect: str) -> np.ndarray:

@@ -22,6 +22,7 @@ of the direction of temperature change, and of orientation.
 from __future__ import annotations
 
 import numpy as np
+from scipy.optimize import minimize_scalar
 from scipy.signal import lombscargle
 
 from pipeline.diagnose.fit import Design, FitResult
@@ -64,13 +65,18 @@ def best_period_s(t_s: np.ndarray, r: np.ndarray, w: np.ndarray) -> float | None
     longest = min(PERIODS_S[1], float(np.ptp(t_s)) / 3)
     if longest <= PERIODS_S[0]:
         return None
+    ys = [(r[:, i] - np.average(r[:, i], weights=w[:, i])) * np.sqrt(w[:, i] / w[:, i].mean()) for i in range(3)]
+
+    def peak(periods: np.ndarray) -> int:
+        freqs = 2 * np.pi / periods
+        return int(np.argmax(sum(lombscargle(t_s, y, freqs) for y in ys)))
+
     periods = np.geomspace(PERIODS_S[0], longest, 400)
-    freqs = 2 * np.pi / periods
-    power = np.zeros(periods.size)
-    for i in range(3):
-        y = (r[:, i] - np.average(r[:, i], weights=w[:, i])) * np.sqrt(w[:, i] / w[:, i].mean())
-        power += lombscargle(t_s, y, freqs)
-    return float(periods[int(np.argmax(power))])
+    k = peak(periods)
+    # refined to a small fraction of a cycle over the record: a period 1 % off drifts half a cycle in 50 cycles
+    step = periods[1] / periods[0]
+    fine = np.geomspace(periods[k] / step ** 1.5, periods[k] * step ** 1.5, 301)
+    return float(fine[peak(fine)])
 
 
 def families(design: Design, current: FitResult) -> dict[str, tuple[list[str], np.ndarray, dict]]:
@@ -88,9 +94,7 @@ def families(design: Design, current: FitResult) -> dict[str, tuple[list[str], n
                              {"step_at_h": t_step / 3600.0})
     period = best_period_s(b.t_s, r, w)
     if period is not None:
-        ph = 2 * np.pi * b.t_s / period
-        out["empirical:periodic"] = (_labels("sc", 2), _per_axis(np.stack([np.sin(ph), np.cos(ph)], axis=1)),
-                                     {"period_s": period})
+        out["empirical:periodic"] = _periodic_family(b.t_s, period)
     present = [int(p) for p in np.unique(b.position_idx) if p >= 0]
     pb = np.stack([(b.position_idx == p).astype(float) for p in present], axis=1)
     out["empirical:orientation"] = (_labels("pos", len(present)), _per_axis(pb),
@@ -113,6 +117,8 @@ def find_unexplained(design: Design, current: FitResult, locate_sigma: float,
     ln_n = float(np.log(design.n_values))
     scores = []
     fams = families(design, current)
+    if "empirical:periodic" in fams:
+        fams["empirical:periodic"] = _refined_periodic(design, current, fams["empirical:periodic"][2]["period_s"])
     for fid, (labels, cols, desc) in fams.items():
         design.extra[fid] = (labels, cols)
         chi2, added, _, _, _ = design.score(current, fid, None)
@@ -128,34 +134,93 @@ def find_unexplained(design: Design, current: FitResult, locate_sigma: float,
     return fid, desc, best["delta_bic"], scores
 
 
-def shares(design: Design, signature: np.ndarray, flagged_axes: np.ndarray) -> dict[str, float]:
+def _periodic_family(t_s: np.ndarray, period_s: float) -> tuple[list[str], np.ndarray, dict]:
+    ph = 2 * np.pi * t_s / period_s
+    return (_labels("sc", 2), _per_axis(np.stack([np.sin(ph), np.cos(ph)], axis=1)), {"period_s": period_s})
+
+
+def _refined_periodic(design: Design, current: FitResult, period_s: float) -> tuple[list[str], np.ndarray, dict]:
+    """The periodic family at the period that minimises chi2 jointly with the current model (the periodogram's
+    peak is of the residual alone), searched within 1 % of ``period_s``."""
+    fid = "empirical:periodic"
+
+    def chi2(log_p: float) -> float:
+        design.extra[fid] = _periodic_family(design.blocks.t_s, float(np.exp(log_p)))[:2]
+        try:
+            return design.score(current, fid, None)[0]
+        finally:
+            del design.extra[fid]
+
+    x0 = float(np.log(period_s))
+    res = minimize_scalar(chi2, bounds=(x0 - 0.01, x0 + 0.01), method="bounded", options={"xatol": 1e-5})
+    best = float(np.exp(res.x)) if res.fun < chi2(x0) else period_s
+    return _periodic_family(design.blocks.t_s, best)
+
+
+def shares(design: Design, signature: np.ndarray, flagged_axes: np.ndarray) -> tuple[dict[str, float], dict]:
     """Which share of the signature's weighted variance (on the axes where it shows) is a function of time, of
-    temperature, of the direction of temperature change, and of orientation (each a least-squares fit alone)."""
+    temperature, of the direction of temperature change, and of orientation; and the time features found.
+
+    Each is a least-squares fit of a basis: time, a slow piecewise-linear function (knots every :data:`KNOT_S`),
+    the best single step and a sinusoid (with its second harmonic) at the signature's dominant period, so that a
+    wander, a step and a periodic disturbance are all functions of time; temperature, powers 0..3 of dT;
+    direction, the sign of the last ramp; orientation, an offset per position. The bases overlap (a step is also
+    partly an offset per temperature), so the shares are sequential: the kind that explains most alone takes its
+    share, each next one only what it adds to those before (type-I sums of squares); they sum to at most 1. The
+    dominant period (s), the share the sinusoid at it explains alone, and the step's time (h) are returned with the
+    share each kind explains alone."""
     b = design.blocks
     w = 1.0 / design.sigma ** 2
+    axes = np.flatnonzero(flagged_axes)
     dt = b.temp_c - design.rec.normal_temp_c
     scale = max(float(np.max(np.abs(dt))), 1.0)
     ramp = design.blocks.mean(design.rec.ramp_sign.astype(float))
     present = [int(p) for p in np.unique(b.position_idx) if p >= 0]
+    t_step, _, step_share = best_step(b.t_s, signature[:, axes], w[:, axes])
+    period = best_period_s(b.t_s, signature, w) if axes.size else None
+    time_cols = [time_basis(b.t_s), (b.t_s >= t_step).astype(float)[:, None]]
+    periodic = None
+    if period is not None:
+        ph = 2 * np.pi * b.t_s / period
+        periodic = np.stack([np.sin(ph), np.cos(ph), np.sin(2 * ph), np.cos(2 * ph)], axis=1)
+        time_cols.append(periodic)
     bases = {
-        "time": time_basis(b.t_s),
+        "time": np.concatenate(time_cols, axis=1),
         "temperature": np.stack([(dt / scale) ** k for k in range(4)], axis=1),
         "direction of temperature change": np.stack([np.ones(b.size), ramp], axis=1),
         "orientation": np.stack([(b.position_idx == p).astype(float) for p in present], axis=1),
     }
-    out = {}
-    for name, basis in bases.items():
-        num = den = 0.0
-        for i in np.flatnonzero(flagged_axes):
-            sw = np.sqrt(w[:, i])
-            y = signature[:, i] * sw
-            coef, *_ = np.linalg.lstsq(basis * sw[:, None], y, rcond=None)
-            fit = (basis * sw[:, None]) @ coef
-            mean = np.sum(y * sw) / np.sum(sw * sw)
-            num += float(np.sum((fit - mean * sw) ** 2))
-            den += float(np.sum((y - mean * sw) ** 2))
-        out[name] = round(num / den, 3) if den > 0 else 0.0
-    return out
+    sw = np.sqrt(w[:, axes])                                  # (B, a)
+    y = signature[:, axes] * sw
+    mean = np.sum(y * sw, axis=0) / np.sum(sw * sw, axis=0)
+    yc = y - mean * sw
+    total = float(np.sum(yc ** 2))
+
+    def explained(names: list[str], extra: list[np.ndarray] = ()) -> float:
+        """Weighted sum of squares (about the mean) a joint fit of the bases ``names`` (and ``extra``) explains."""
+        if not (names or extra) or total <= 0:
+            return 0.0
+        basis = np.concatenate([np.ones((b.size, 1))] + [bases[n] for n in names] + list(extra), axis=1)
+        out = 0.0
+        for k in range(axes.size):
+            xw = basis * sw[:, k:k + 1]
+            coef, *_ = np.linalg.lstsq(xw, y[:, k], rcond=None)
+            res = y[:, k] - xw @ coef
+            out += float(np.sum(yc[:, k] ** 2) - np.sum(res ** 2))
+        return max(out, 0.0)
+
+    alone = {n: explained([n]) / total if total > 0 else 0.0 for n in bases}
+    out, taken, have = {}, [], 0.0
+    for n in sorted(bases, key=lambda n: -alone[n]):
+        taken.append(n)
+        now = explained(taken)
+        out[n] = round(max(now - have, 0.0) / total, 3) if total > 0 else 0.0
+        have = max(have, now)
+    features = {"alone": {n: round(v, 3) for n, v in alone.items()},
+                "dominant_period_s": period,
+                "periodic_share": round(explained([], [periodic]) / total, 3) if periodic is not None and total > 0
+                else 0.0, "step_at_h": t_step / 3600.0, "step_share": round(step_share, 3)}
+    return out, features
 
 
 def best_step(t_s: np.ndarray, r: np.ndarray, w: np.ndarray) -> tuple[float, np.ndarray, float]:
@@ -176,7 +241,7 @@ def best_step(t_s: np.ndarray, r: np.ndarray, w: np.ndarray) -> tuple[float, np.
 
 
 def describe(fid: str, desc: dict, residual: np.ndarray, design: Design, share: dict[str, float],
-             where: dict, peak_uv: float) -> tuple[str, dict]:
+             where: dict, peak_uv: float, period_s: float | None = None) -> tuple[str, dict]:
     """Sentences for a person (what the residual looks like, where, how large; labelled empirical) and the
     numbers behind them."""
     axes = "/".join(where["axes"]) or "no axis"
@@ -198,9 +263,13 @@ def describe(fid: str, desc: dict, residual: np.ndarray, design: Design, share: 
     else:
         shape = "a function of temperature beyond the base polynomial"
     temps = ", ".join(f"{t:+.0f}" for t in where["temps_c"]) or "-"
+    signature = f"Of its variance, {ranked[0][1]:.0%} is a function of {ranked[0][0]}"
+    if ranked[1][1] >= 0.05:
+        signature += f", {ranked[1][1]:.0%} more of {ranked[1][0]}"
+    if ranked[0][0] == "time" and period_s is not None and kind != "periodic":
+        signature += f" (its dominant period: {period_s / 60:.1f} min)"
     return (f"A mismatch no catalogue effect explains: {shape}, up to {peak_uv:.1f} uV on {axes} (temperatures "
-            f"{temps} C). Share of it that is a function of {ranked[0][0]}: {ranked[0][1]:.2f}, of {ranked[1][0]}: "
-            f"{ranked[1][1]:.2f}. An empirical correction ({kind}, not physics) takes it out."), extra
+            f"{temps} C). {signature}. An empirical correction ({kind}, not physics) takes it out."), extra
 
 
 __all__ = ["KNOT_S", "THRESHOLD", "families", "find_unexplained", "shares", "describe", "time_basis",
