@@ -76,8 +76,10 @@ _UV = 1e6
 #: sigma factor of blocks left out of the fits (they keep their place in the figure)
 _EXCLUDE = 1e3
 #: beside an unexplained mismatch, a catalogue effect is kept only where, with it, the residual where it shows is
-#: within this factor of the noise there (RMS)
+#: within this factor of the noise there (RMS) ...
 WITHIN_NOISE = 1.5
+#: ... or where, with it, the residual there is at most this share of the residual without it (RMS)
+LARGE_SHARE = 0.5
 
 
 @dataclass(frozen=True)
@@ -222,7 +224,7 @@ def _diagnose(run: Run, passport: dict | None, settings: DiagnoseSettings, passp
             sel = _select(design, candidates, settings, initial=held)
             notes.append(", ".join(f"{e} (leaves {r:.1f} x the noise where it shows)" for e, r in nibbling.items())
                          + ": not named, it does not explain the mismatch beside the unexplained one to within the "
-                         "noise")
+                         "noise, nor most of it")
 
     final_trials = _final_trials(sel)
     predicted = blocks.mean(output_v(*model.constants_at(rec.temp_c), rec.a_g))
@@ -536,9 +538,11 @@ def _shows_where(design: Design, signature: np.ndarray, settings: DiagnoseSettin
 
 
 def _not_explained_to_noise(design: Design, sel: Selection, settings: DiagnoseSettings) -> dict[str, float]:
-    """Catalogue effects accepted beside an unexplained mismatch that do not explain the mismatch where they show
-    to within the noise (issue 14.3): effect -> the residual RMS there over the noise RMS there, for those beyond
-    :data:`WITHIN_NOISE`. Such an effect only nibbles at a signature it does not explain."""
+    """Catalogue effects accepted beside an unexplained mismatch that neither explain the mismatch where they show
+    to within the noise (:data:`WITHIN_NOISE`) nor take out most of it there (the residual RMS there at most
+    :data:`LARGE_SHARE` of what the model refit without them leaves; the rest is then something else, located
+    there too): effect -> the residual RMS where it shows over the noise RMS there. Such an effect only nibbles at
+    a signature it does not explain (issue 14.3)."""
     after = design.y - sel.final.fitted
     out = {}
     for t in sel.accepted:
@@ -546,8 +550,10 @@ def _not_explained_to_noise(design: Design, sel: Selection, settings: DiagnoseSe
         w = design.blocks.n[:, None] * flagged
         if not flagged.any():
             continue
-        ratio = _rms(after, w) / max(_rms(design.sigma, w), 1e-30)
-        if ratio > WITHIN_NOISE:
+        without = design.fit(tuple(s for s in sel.state if s[0] != t.effect))
+        ra, rb = _rms(after, w), _rms(design.y - without.fitted, w)
+        ratio = ra / max(_rms(design.sigma, w), 1e-30)
+        if ratio > WITHIN_NOISE and ra > LARGE_SHARE * rb:
             out[t.effect] = ratio
     return out
 
