@@ -64,10 +64,6 @@ def valid_range_c(passport: dict) -> tuple[float, float] | None:
     return None
 
 
-#: extended-model terms apply cannot evaluate from a recording's own columns, and why
-_NEEDS_FIXTURE = {"tilt_settling": "the fixture's moves (when each turn started and ended)"}
-
-
 def _model(passport: dict):
     """(model with constants_at(T[, rate]), lag tau s, smoothing window s or None, warnings) of a passport, from the
     one passport loader (:func:`pipeline.passport.document.load_passport`); for a passport with an extended model,
@@ -86,12 +82,13 @@ def _model(passport: dict):
 
 
 def _applicable_extended(ext, warnings: list[str]):
-    """The extended model without the terms that need the fixture's moves, and one warning naming those."""
-    left = [e.id for e in ext.effects if e.id in _NEEDS_FIXTURE]
+    """The extended model without the terms that need the fixture (its moves: ``Effect.needs_fixture``), and one
+    warning naming those."""
+    left = [e for e in ext.effects if e.needs_fixture]
     if left:
         warnings.append("the passport's extended model is applied without " + "; ".join(
-            f"{i} (it needs {_NEEDS_FIXTURE[i]}, which apply does not locate in the recording)" for i in left))
-    return ExtendedModel(ext.base, [e for e in ext.effects if e.id not in _NEEDS_FIXTURE], ext.source)
+            f"{e.id} (it needs {e.needs_fixture}, which apply does not locate in the recording)" for e in left))
+    return ExtendedModel(ext.base, [e for e in ext.effects if not e.needs_fixture], ext.source)
 
 
 def _extended_context(run: Run, t_ns: np.ndarray, temp_c: np.ndarray, ext):

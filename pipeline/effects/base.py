@@ -106,6 +106,9 @@ class Effect:
     #: the parameter (V/h per axis) when the effect is exactly a drift of the offsets linear in time since the
     #: start of the recording (its forward model then also carries a drift of the constants a diagnosis finds)
     offset_rate_param: ClassVar[str | None] = None
+    #: what of the fixture the effect reads besides time, temperature and specific force (e.g. its moves), in
+    #: words; None: nothing, so it can be evaluated on any recording from its own columns (``thermocal apply``)
+    needs_fixture: ClassVar[str | None] = None
 
     # ---- simulation
     def delta_u_v(self, ctx: SignalContext) -> np.ndarray:  # pragma: no cover - every effect overrides it

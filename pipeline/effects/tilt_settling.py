@@ -23,6 +23,7 @@ class TiltSettling(Effect):
     order: ClassVar[int] = 8
     where: ClassVar[str] = "start of every static position, decaying"
     local: ClassVar[bool] = False
+    needs_fixture: ClassVar[str | None] = "the fixture's moves (when each turn started and ended)"
     nonlinear: ClassVar[str | None] = "tau_s"
     grid: ClassVar[tuple[float, ...]] = log_grid(1.0, 900.0, 18)
     f: float = 2e-4
