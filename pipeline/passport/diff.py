@@ -15,11 +15,14 @@ def diff_passports(a: dict, b: dict, *, unit: str, v1: int, v2: int) -> dict:
     """What changed from passport ``a`` (version ``v1`` of ``unit``) to ``b`` (version ``v2``), in the units of
     physics.md.
 
-    Returns {"unit", "v1", "v2", "constants", "thermal_model", "fields", "settings", "inputs"}; the lists hold
+    Returns {"unit", "v1", "v2", "constants", "thermal_model", "rate_terms", "fields", "settings", "inputs"}; the
+    lists hold
     only what changed. A constant or thermal coefficient entry is {"name", "unit", "old", "new", "delta",
     "delta_scaled", "scaled_unit"}: K (the output unit per g: V/g, or (m/s^2)/g) also as ppm of the row's gain
     |Kii|, U0 (the output unit) as micro-g (delta/|Kii|), alpha (output unit/C^n) as micro-g/C^n, beta and gamma
-    (1/C^n) as ppm/C^n. ``fields`` are other changed values (status, normal temperature, output unit,
+    (1/C^n) as ppm/C^n; the differential method's rate terms (``rate_terms``: alpha_rate as micro-g/(C/min)^n/C^k,
+    beta_rate as ppm/(C/min)^n/C^k, cross_axis_abs as ppm of the row's gain/C^m). ``fields`` are other changed
+    values (status, normal temperature, output unit,
     thermal-model kind/order/breakpoints, code version) as {"name", "old", "new"}; ``settings`` the same for each
     changed setting (dotted names); ``inputs`` {"added", "removed"}.
     Constant and coefficient entries also carry ``uncertainty``, ``uncertainty_scaled`` and ``significant``
@@ -36,6 +39,7 @@ def diff_passports(a: dict, b: dict, *, unit: str, v1: int, v2: int) -> dict:
         fields.append({"name": "provenance.code_version", "old": pa.get("code_version"),
                        "new": pb.get("code_version")})
     thermal, thermal_fields = _diff_thermal(a.get("thermal_model") or {}, b.get("thermal_model") or {}, gains, u)
+    rate, rate_fields = _diff_rate(a.get("rate_terms") or {}, b.get("rate_terms") or {}, gains, u)
     old_in = {i["sha256"]: i for i in pa.get("inputs") or []}
     new_in = {i["sha256"]: i for i in pb.get("inputs") or []}
     return {
@@ -43,8 +47,9 @@ def diff_passports(a: dict, b: dict, *, unit: str, v1: int, v2: int) -> dict:
         "constants": annotate(_diff_constants(a.get("coefficients") or {}, b.get("coefficients") or {}, gains, u),
                               a, b),
         "thermal_model": annotate(thermal, a, b),
+        "rate_terms": annotate(rate, a, b),
         "significance": significance_note(),
-        "fields": fields + thermal_fields,
+        "fields": fields + thermal_fields + rate_fields,
         "settings": [{"name": k, "old": o, "new": n}
                      for k, (o, n) in _diff_flat(pa.get("settings") or {}, pb.get("settings") or {}).items()],
         "inputs": {"added": [new_in[s] for s in new_in if s not in old_in],
@@ -103,6 +108,39 @@ def _coef_scale(group: str, key: str, gains: list[float] | None) -> tuple[float 
         i = AXES.index(key[:1]) if key[:1] in AXES else -1
         return (1e6 / gains[i] if gains and i >= 0 else None), "micro-g"
     return 1e6, "ppm"
+
+
+def _diff_rate(ra: dict, rb: dict, gains: list[float] | None, u: str = "V") -> tuple[list[dict], list[dict]]:
+    """Changed rate terms of two differential passports (element-wise when both have the same orders) and changed
+    orders, lag and smoothing. Entry names: ``rate_terms.alpha_rate.x[n][k]`` (multiplies r^n dT^k),
+    ``rate_terms.beta_rate.xx[n][k]``, ``rate_terms.cross_axis_abs.xy[m]`` (multiplies dT^m)."""
+    fields = [{"name": f"rate_terms.{k}", "old": ra.get(k), "new": rb.get(k)}
+              for k in ("order", "dt_order", "lag_tau_s", "temp_smooth_s") if ra.get(k) != rb.get(k)]
+    if not ra or not rb or ra.get("order") != rb.get("order") or ra.get("dt_order") != rb.get("dt_order"):
+        return [], fields
+    out = []
+    for group, base in (("alpha_rate", u), ("beta_rate", "1")):
+        ga, gb = ra.get(group) or {}, rb.get(group) or {}
+        for key in sorted(set(ga) | set(gb)):
+            rows_a, rows_b = ga.get(key) or [], gb.get(key) or []
+            for n in range(max(len(rows_a), len(rows_b))):
+                for k in range(max(len(_at(rows_a, n) or []), len(_at(rows_b, n) or []))):
+                    old, new = _at(rows_a, n, k), _at(rows_b, n, k)
+                    if old != new:
+                        scale, su = _coef_scale("alpha" if group == "alpha_rate" else "beta", key, gains)
+                        per_ = f"(C/min)^{n + 1}/C^{k}"
+                        out.append(_entry(f"rate_terms.{group}.{key}[{n + 1}][{k}]", f"{base}/{per_}", old, new,
+                                          scale, f"{su}/{per_}"))
+    ca, cb = ra.get("cross_axis_abs") or {}, rb.get("cross_axis_abs") or {}
+    for key in sorted(set(ca) | set(cb)):
+        sa, sb = ca.get(key) or [], cb.get(key) or []
+        i = AXES.index(key[0])
+        for m in range(max(len(sa), len(sb))):
+            old, new = _at(sa, m), _at(sb, m)
+            if old != new:
+                out.append(_entry(f"rate_terms.cross_axis_abs.{key}[{m + 1}]", f"{per(u, 'g')}/C^{m + 1}", old, new,
+                                  1e6 / gains[i] if gains else None, f"ppm of gain/C^{m + 1}"))
+    return out, fields
 
 
 def _diff_thermal(ta: dict, tb: dict, gains: list[float] | None, u: str = "V") -> tuple[list[dict], list[dict]]:

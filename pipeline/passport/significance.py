@@ -19,11 +19,14 @@ COVERAGE_FACTOR = 2.0
 _CONST = re.compile(r"^(K)\.([xyz])([xyz])$|^(U0)\.([xyz])$")
 _POLY = re.compile(r"^(alpha|beta|gamma)\.([xyz]{1,2})\[(\d+)\]$")
 _PIECE = re.compile(r"^segments\[(\d+)\]\.(alpha|beta|gamma)\.([xyz]{1,2})$")
+_RATE = re.compile(r"^rate_terms\.(alpha_rate|beta_rate)\.([xyz]{1,2})\[(\d+)\]\[(\d+)\]$")
+_CROSS_ABS = re.compile(r"^rate_terms\.cross_axis_abs\.([xyz]{2})\[(\d+)\]$")
 
 
 def sigma_of(passport: dict, name: str) -> float | None:
     """The standard uncertainty a passport records for the diff entry ``name`` (``K.xy``, ``U0.z``,
-    ``alpha.x[2]``, ``segments[0].beta.yy``), in the entry's own unit; None when it records none."""
+    ``alpha.x[2]``, ``segments[0].beta.yy``, ``rate_terms.alpha_rate.x[1][0]``, ``rate_terms.cross_axis_abs.xy[2]``),
+    in the entry's own unit; None when it records none."""
     unc = passport.get("uncertainty") or {}
     ax = "xyz"
     try:
@@ -35,6 +38,10 @@ def sigma_of(passport: dict, name: str) -> float | None:
             value = unc["thermal_model"][m.group(1)][m.group(2)][int(m.group(3)) - 1]
         elif (m := _PIECE.match(name)):
             value = unc["thermal_model"]["segments"][int(m.group(1))][m.group(2)][m.group(3)]
+        elif (m := _RATE.match(name)):
+            value = unc["rate_terms"][m.group(1)][m.group(2)][int(m.group(3)) - 1][int(m.group(4))]
+        elif (m := _CROSS_ABS.match(name)):
+            value = unc["rate_terms"]["cross_axis_abs"][m.group(1)][int(m.group(2)) - 1]
         else:
             return None
     except (KeyError, IndexError, TypeError, ValueError):
@@ -62,7 +69,8 @@ def annotate(entries: list[dict], old: dict, new: dict, k: float = COVERAGE_FACT
 def significant_changes(diff: dict) -> list[dict]:
     """The constants and thermal coefficients of a :meth:`Registry.diff` result whose change exceeds its expanded
     combined uncertainty, largest first (in sigmas); entries without an uncertainty are not among them."""
-    rows = [e for e in diff.get("constants", []) + diff.get("thermal_model", []) if e.get("significant")]
+    rows = [e for e in diff.get("constants", []) + diff.get("thermal_model", []) + diff.get("rate_terms", [])
+            if e.get("significant")]
     return sorted(rows, key=lambda e: -abs(e["delta"]) / e["uncertainty"] if e["uncertainty"] else 0.0)
 
 

@@ -220,7 +220,8 @@ def diff_lines(d: dict, show_all: bool = False) -> list[str]:
     for i in ins.get("removed", []):
         lines.append(f"  input removed: {i.get('path')} ({str(i.get('sha256'))[:12]})")
     k = (d.get("significance") or {}).get("coverage_factor", 2)
-    for title, key in (("constants at T0", "constants"), ("thermal model coefficients", "thermal_model")):
+    for title, key in (("constants at T0", "constants"), ("thermal model coefficients", "thermal_model"),
+                       ("rate terms", "rate_terms")):
         entries = d.get(key, [])
         if not entries:
             continue
@@ -234,7 +235,7 @@ def diff_lines(d: dict, show_all: bool = False) -> list[str]:
             worst = max(abs(e["delta"]) / e["uncertainty"] for e in quiet if e.get("uncertainty"))
             lines.append(f"  {len(quiet)} {'more ' if shown else ''}within their uncertainty (largest "
                          f"{worst:.1f} sigma; --all lists them)")
-    if not d.get("constants") and not d.get("thermal_model"):
+    if not d.get("constants") and not d.get("thermal_model") and not d.get("rate_terms"):
         lines.append("constants and thermal coefficients: unchanged")
     kinds = [f for f in d.get("fields", []) if f["name"] in ("thermal_model.kind", "thermal_model.breakpoints_c")]
     if kinds:

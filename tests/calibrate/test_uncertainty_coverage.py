@@ -26,6 +26,7 @@ from pipeline.calibrate.tilt import fit_unit, observe_run
 from pipeline.passport.document import build_passport
 from pipeline.passport.registry import Registry
 from pipeline.passport.significance import significant_changes
+from pipeline.passport.text import diff_lines
 from pipeline.simulate import chamber, program
 from pipeline.simulate.chamber import SimConfig, simulate
 from pipeline.simulate.unit import UnitTruth, seed000_unit
@@ -236,24 +237,34 @@ def test_sweep_passport_names_what_it_cannot_determine(sweep_runs):
 
 def test_diff_of_differential_passports_marks_real_changes(chamber_runs, tmp_path):
     """Two calibrations from other noise and face-error seeds differ by noise: few of their 36 thermal coefficients
-    are marked significant; a third version with alpha.x[1] moved by 0.05 micro-g/C (about 10 of its sigmas) and
-    beta.yy[1] by 1 ppm/C is marked there, in micro-g/C and ppm/C, and nothing else is."""
+    and 12 rate terms are marked significant; a third version with alpha.x[1] moved by 0.05 micro-g/C (about 10 of
+    its sigmas), beta.yy[1] by 1 ppm/C and the first bias rate term of z by 10 sigmas is marked there, in
+    micro-g/C, ppm/C and micro-g/(C/min), and nothing else is; the readable diff says so."""
     reg = Registry(tmp_path / "reg")
     a, b = chamber_runs[1], chamber_runs[2]
     shifted = copy.deepcopy(b)
     gain_x = abs(shifted["coefficients"]["K"][0][0])
     shifted["thermal_model"]["alpha"]["x"][0] += 0.05e-6 * gain_x
     shifted["thermal_model"]["beta"]["yy"][0] += 1e-6
+    rate_sigma = shifted["uncertainty"]["rate_terms"]["alpha_rate"]["z"][0][0]
+    shifted["rate_terms"]["alpha_rate"]["z"][0][0] += 10 * rate_sigma
     for n, doc in enumerate((a, b, shifted)):
         reg.publish(doc, inputs=[{"path": f"cycle{n}.mcap", "sha256": f"{n:064x}"}], settings={}, code_version="t")
     noise = reg.diff("AU-0001", 1, 2)
     entries = noise["thermal_model"]
     assert len(entries) == 36 and all(e["significant"] is not None for e in entries)
     assert sum(e["significant"] for e in entries) <= 4
+    rate = noise["rate_terms"]
+    assert len(rate) == 12 and all(e["significant"] is not None for e in rate)
+    assert sum(e["significant"] for e in rate) <= 2
     d = reg.diff("AU-0001", 2, 3)
-    by_name = {e["name"]: e for e in d["thermal_model"]}
-    assert set(by_name) == {"alpha.x[1]", "beta.yy[1]"}
-    assert {e["name"] for e in significant_changes(d)} == {"alpha.x[1]", "beta.yy[1]"}
+    by_name = {e["name"]: e for e in d["thermal_model"] + d["rate_terms"]}
+    assert set(by_name) == {"alpha.x[1]", "beta.yy[1]", "rate_terms.alpha_rate.z[1][0]"}
+    assert {e["name"] for e in significant_changes(d)} == set(by_name)
+    assert by_name["rate_terms.alpha_rate.z[1][0]"]["scaled_unit"] == "micro-g/(C/min)^1/C^0"
+    text = "\n".join(diff_lines(d))
+    assert "rate terms: 1 of 1 changes beyond 2 combined standard uncertainties" in text
+    assert "thermal model coefficients: 2 of 2" in text
     assert by_name["alpha.x[1]"]["scaled_unit"] == "micro-g/C^1"
     assert by_name["alpha.x[1]"]["delta_scaled"] == pytest.approx(0.05, rel=1e-6)
     assert by_name["beta.yy[1]"]["delta_scaled"] == pytest.approx(1.0, rel=1e-6)
