@@ -26,6 +26,7 @@ noise; per-sample RMS is dominated by the white noise.
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import copy
 from dataclasses import dataclass, field
 
@@ -64,15 +65,15 @@ from pipeline.diagnose.signal import (
 from pipeline.effects.base import Shown
 from pipeline.effects.catalogue import EFFECTS, effect_class, make_effect
 from pipeline.errors import CalibrationError
-from pipeline.model import gravity_module_error_g, output_v, specific_force_g
+from pipeline.model import gravity_module_error_g, output_v, reading_in, small, specific_force_g
 from pipeline.passport.document import compensate_extended, load_model
+from pipeline.passport.text import output_unit_of
 from pipeline.positions import AXES, POSITION_NAMES, is_verification_position
 from pipeline.run import NS_PER_S as _NS
 from pipeline.run import Run
 from pipeline.segment import Segmentation, segment_run
 from pipeline.thermal import default_order
 
-_UV = 1e6
 #: sigma factor of blocks left out of the fits (they keep their place in the figure)
 _EXCLUDE = 1e3
 #: beside an unexplained mismatch, a catalogue effect is kept only where, with it, the residual where it shows is
@@ -139,8 +140,8 @@ def own_model_passport(meta, order: int = OWN_MODEL_ORDER) -> dict:
 def diagnose_run(run: Run, passport: dict | None = None, settings: DiagnoseSettings = DiagnoseSettings(),
                  passport_source: str | None = None) -> Diagnosis:
     """Diagnose ``run`` against ``passport`` (fitted from the run when None). See the module doc."""
-    with _one_blas_thread():
-        return _diagnose(run, passport, settings, passport_source)
+    with _one_blas_thread():     # in a context of its own: the explanations' unit (reading_in) stays inside
+        return contextvars.copy_context().run(_diagnose, run, passport, settings, passport_source)
 
 
 def _one_blas_thread():
@@ -167,6 +168,7 @@ def _diagnose(run: Run, passport: dict | None, settings: DiagnoseSettings, passp
             passport_source = (f"none: the tilt recipe cannot calibrate this run ({e.message}); the base model "
                                f"K(T) a + U0(T), a polynomial of order {OWN_MODEL_ORDER} in temperature, is fitted "
                                "to the recording itself, as far as its orientations determine it")
+    reading_in(output_unit_of(passport))    # the explanations' amounts in its unit (uV, mm/s^2)
     model, reference, notes = _base_model(passport)
     own_order = polynomial_reference(model).order
     rec = static_record(run, seg, micro_s=settings.micro_s, settings=seg_settings)
@@ -257,9 +259,9 @@ def _diagnose(run: Run, passport: dict | None, settings: DiagnoseSettings, passp
                      "tested")
     rms_before, rms_refit = _rms(before, w), _rms(design.y - sel.base.fitted, w)
     if not findings and rms_before > 3 * rms_refit and rms_before > 2 * _rms(noise_sigma, w):
-        notes.append(f"the passport's own model departs from the recording by {rms_before * _UV:.2f} uV RMS where "
+        notes.append(f"the passport's own model departs from the recording by {small(rms_before, '.2f')} RMS where "
                      f"its base refit to this run (a polynomial of order {reference.order}) leaves "
-                     f"{rms_refit * _UV:.2f} uV: its constants or thermal model, not a left-out effect")
+                     f"{small(rms_refit, '.2f')}: its constants or thermal model, not a left-out effect")
     report = {
         "verdict": "mismatch" if findings else "consistent",
         "findings": findings,
@@ -368,7 +370,7 @@ def _shift_finding(design: Design, shift, predicted: np.ndarray, before: np.ndar
     w = design.blocks.n[:, None] * flagged
     rb, ra = _rms(before, w), _rms(after, w)
     return {"effect": "constants_shift",
-            "explanation": explain_shift(shift.parameters, rb * _UV, ra * _UV, shift.largest_z),
+            "explanation": explain_shift(shift.parameters, rb, ra, shift.largest_z),
             "where": where, "parameters": shift.parameters, "rms_before_v": rb, "rms_after_v": ra,
             "delta_bic": round(shift.delta_bic, 1), "max_effect_v": float(np.abs(signature).max())}
 
@@ -390,7 +392,7 @@ def _unexplained_finding(design: Design, sel: Selection, unexplained, after: np.
     w = design.blocks.n[:, None] * flagged
     peak = float(np.abs(signature[flagged]).max()) if flagged.any() else 0.0
     share, features = unexplained_shares(design, residual, axes_on)
-    text, numbers = describe_unexplained(fid, desc, residual, design, share, where, peak * _UV,
+    text, numbers = describe_unexplained(fid, desc, residual, design, share, where, peak,
                                          features["dominant_period_s"] if features["periodic_share"] >= 0.5
                                          else None)
     params = {"empirical_correction": fid.split(":", 1)[1], **{k: v for k, v in desc.items() if k != "coef"},
@@ -584,8 +586,8 @@ def _temps_text(where: dict) -> str:
 def _explain(effect: str, p: dict, signature: np.ndarray, flagged: np.ndarray, where: dict,
              confounded: list[str], duration_h: float) -> str:
     """The effect's own sentences (what, where, how big, with units), and what it cannot be told apart from."""
-    peak = float(np.abs(signature[flagged]).max()) * _UV if flagged.any() else 0.0
-    shown = Shown(peak_uv=peak, axes="/".join(where["axes"]) or "no axis", temps=_temps_text(where),
+    peak = float(np.abs(signature[flagged]).max()) if flagged.any() else 0.0
+    shown = Shown(peak=peak, axes="/".join(where["axes"]) or "no axis", temps=_temps_text(where),
                   duration_h=duration_h)
     text = effect_class(effect).explain(p, shown)
     if confounded:

@@ -27,9 +27,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.diagnose.fit import Design, FitResult
+from pipeline.model import small, small_name, small_number
 from pipeline.positions import AXES
 
-_UV = 1e6
 #: the passport's standard uncertainty when it states none: U0 (V) and K (V/g)
 DEFAULT_PASSPORT_SIGMA = {"U0": 0.3e-6, "K": 0.6e-6}
 #: a shift is reported when some constant moved by more than this many combined standard uncertainties
@@ -302,38 +302,39 @@ def _drift(fr: FitResult, lv: Level, passport: dict, duration_h: float, nb: int,
 
 
 def _moved_text(params: dict, names: list[str], most: int = 4) -> str:
-    """The entries ``names`` with their amounts and uncertainty (uV, uV/g, uV/C^n); the first ``most`` of them,
-    and how many more."""
-    du0, su0 = np.asarray(params["dU0_v"]) * _UV, np.asarray(params["dU0_sigma_v"]) * _UV
-    dk = np.asarray(params.get("dK_v_per_g", np.zeros((3, 3)))) * _UV
-    sk = np.asarray(params.get("dK_sigma_v_per_g", np.zeros((3, 3))), dtype=float) * _UV
+    """The entries ``names`` with their amounts and uncertainty (uV, uV/g, uV/C^n: :func:`pipeline.model.small`);
+    the first ``most`` of them, and how many more."""
+    du0, su0 = np.asarray(params["dU0_v"]), np.asarray(params["dU0_sigma_v"])
+    dk = np.asarray(params.get("dK_v_per_g", np.zeros((3, 3))))
+    sk = np.asarray(params.get("dK_sigma_v_per_g", np.zeros((3, 3))), dtype=float)
     thermal = params.get("thermal_model_change", {})
     parts = []
     for name in names:
         words = name.split()
         if name.startswith("U0_") and len(words) == 1:
             i = AXES.index(name[3])
-            parts.append(f"U0 {name[3]} by {du0[i]:+.2f} +/- {su0[i]:.2g} uV")
+            parts.append(f"U0 {name[3]} by {small_number(du0[i], '+.2f')} +/- {small(su0[i], '.2g')}")
         elif name.startswith("K_") and len(words) == 1:
             i, j = AXES.index(name[2]), AXES.index(name[3])
-            parts.append(f"K {name[2:4]} by {dk[i, j]:+.2f} +/- {sk[i, j]:.2g} uV/g")
+            parts.append(f"K {name[2:4]} by {small_number(dk[i, j], '+.2f')} +/- {small(sk[i, j], '.2g', '/g')}")
         elif len(words) == 3 and words[1] == "power":
             n = int(words[2])
             ch = thermal.get(f"power_{n}", {})
             if name.startswith("U0_"):
-                x = ch.get("dU0_v_per_c", [0.0] * 3)[AXES.index(name[3])] * _UV
-                parts.append(f"U0 {name[3]}'s temperature coefficient of power {n} by {x:+.4g} uV/C^{n}")
+                x = ch.get("dU0_v_per_c", [0.0] * 3)[AXES.index(name[3])]
+                parts.append(f"U0 {name[3]}'s temperature coefficient of power {n} by {small(x, '+.4g', f'/C^{n}')}")
             else:
-                x = ch.get("dK_v_per_g_per_c", [[0.0] * 3] * 3)[AXES.index(name[2])][AXES.index(name[3])] * _UV
-                parts.append(f"K {name[2:4]}'s temperature coefficient of power {n} by {x:+.4g} uV/g/C^{n}")
+                x = ch.get("dK_v_per_g_per_c", [[0.0] * 3] * 3)[AXES.index(name[2])][AXES.index(name[3])]
+                parts.append(f"K {name[2:4]}'s temperature coefficient of power {n} by "
+                             f"{small(x, '+.4g', f'/g/C^{n}')}")
         elif not name.endswith("drift"):
             parts.append(name)
     more = len(parts) - most
     return "; ".join(parts[:most]) + (f"; and {more} more (the finding's parameters list them)" if more > 0 else "")
 
 
-def explain(params: dict, rms_before_uv: float, rms_after_uv: float, z: float) -> str:
-    """Two or three sentences: which constants moved significantly (only those), by how much, how sure; what
+def explain(params: dict, rms_before: float, rms_after: float, z: float) -> str:
+    """Two or three sentences (``rms_before``, ``rms_after``: output unit, V or m/s^2): which constants moved significantly (only those), by how much, how sure; what
     else was refit with them and agrees with the passport."""
     drift = params.get("drifting", "")
     moved = _moved_text(params, params.get("moved", []))
@@ -345,7 +346,7 @@ def explain(params: dict, rms_before_uv: float, rms_after_uv: float, z: float) -
         at = " (at the start of the recording)" if drift else ""
         if params.get("within_passport_uncertainty"):
             text = (f"The passport's constants do not hold for this recording{at}: refit ({params['constants']}), "
-                    f"they change its prediction by {params['departure_rms_v'] * _UV:.2f} uV RMS, "
+                    f"they change its prediction by {small(params['departure_rms_v'], '.2f')} RMS, "
                     f"{params['departure_rms_v'] / params['noise_rms_v']:.0f} times the noise, although within "
                     "the passport's own stated uncertainty (an imprecise or wrong passport, not necessarily a unit "
                     "that moved)" + (f"; beyond the fit's uncertainty: {fit_moved}" if fit_moved else "") + ".")
@@ -359,12 +360,12 @@ def explain(params: dict, rms_before_uv: float, rms_after_uv: float, z: float) -
     if params.get("thermal_model_note"):
         text += " " + params["thermal_model_note"]
     if drift:
-        end = np.asarray(params["dU0_end_v"]) * _UV
-        s_end = np.asarray(params["dU0_end_sigma_v"]) * _UV
-        rate = np.asarray(params["dU0_rate_v_per_h"]) * _UV
+        end, s_end = np.asarray(params["dU0_end_v"]), np.asarray(params["dU0_end_sigma_v"])
+        rate = np.asarray(params["dU0_rate_v_per_h"])
         text += (f" Over the {params['duration_h']:.1f} h recording ({drift} drifting) the offsets drift at "
-                 + ", ".join(f"{a} {x:+.3f}" for a, x in zip(AXES, rate)) + " uV/h to "
-                 + ", ".join(f"{a} {x:+.2f} +/- {s:.2g}" for a, x, s in zip(AXES, end, s_end)) + " uV at its end")
+                 + ", ".join(f"{a} {small_number(x, '+.3f')}" for a, x in zip(AXES, rate)) + f" {small_name()}/h to "
+                 + ", ".join(f"{a} {small_number(x, '+.2f')} +/- {small_number(s, '.2g')}"
+                             for a, x, s in zip(AXES, end, s_end)) + f" {small_name()} at its end")
         if "gain_drift_ppm_over_run" in params:
             text += (", the gains by " + ", ".join(
                 f"{a} {x:+.1f} +/- {s:.2g}" for a, x, s in zip(AXES, params["gain_drift_ppm_over_run"],
@@ -373,7 +374,7 @@ def explain(params: dict, rms_before_uv: float, rms_after_uv: float, z: float) -
         text += (" (a drift of the offsets is what the catalogue calls time_drift; against a passport it is part "
                  "of the constants' change).")
     return (text + f" Largest change {z:.0f} sigma (the passport's own uncertainty included); refitting takes the "
-            f"residual from {rms_before_uv:.2f} to {rms_after_uv:.2f} uV RMS.")
+            f"residual from {small_number(rms_before, '.2f')} to {small(rms_after, '.2f')} RMS.")
 
 
 __all__ = ["Level", "ShiftResult", "levels", "level_mask", "find_shift", "passport_sigma", "explain",

@@ -26,6 +26,7 @@ from scipy.optimize import minimize_scalar
 from scipy.signal import lombscargle
 
 from pipeline.diagnose.fit import Design, FitResult
+from pipeline.model import small, small_name, small_number
 from pipeline.positions import AXES, POSITION_NAMES
 
 #: knot spacing of the empirical function of time, s (wider on long records: at most MAX_KNOTS knots)
@@ -35,7 +36,6 @@ MAX_KNOTS = 48
 THRESHOLD = 100.0
 #: periods searched for a periodic disturbance, s
 PERIODS_S = (120.0, 3 * 3600.0)
-_UV = 1e6
 
 
 def _per_axis(basis: np.ndarray) -> np.ndarray:
@@ -241,9 +241,9 @@ def best_step(t_s: np.ndarray, r: np.ndarray, w: np.ndarray) -> tuple[float, np.
 
 
 def describe(fid: str, desc: dict, residual: np.ndarray, design: Design, share: dict[str, float],
-             where: dict, peak_uv: float, period_s: float | None = None) -> tuple[str, dict]:
+             where: dict, peak: float, period_s: float | None = None) -> tuple[str, dict]:
     """Sentences for a person (what the residual looks like, where, how large; labelled empirical) and the
-    numbers behind them."""
+    numbers behind them. ``peak``: output unit (V or m/s^2)."""
     axes = "/".join(where["axes"]) or "no axis"
     ranked = sorted(share.items(), key=lambda kv: -kv[1])
     kind = fid.split(":", 1)[1]
@@ -252,7 +252,7 @@ def describe(fid: str, desc: dict, residual: np.ndarray, design: Design, share: 
         t_step = desc["step_at_h"] * 3600.0
         size = np.asarray(desc["coef"], dtype=float)[:3]
         shape = (f"a step at about {t_step / 3600:.2f} h into the run of "
-                 + ", ".join(f"{a} {x * _UV:+.1f}" for a, x in zip(AXES, size)) + " uV")
+                 + ", ".join(f"{a} {small_number(x, '+.1f')}" for a, x in zip(AXES, size)) + f" {small_name()}")
         extra = {"step_v": size.tolist()}
     elif kind.startswith("time"):
         shape = f"a wander over time (an empirical function of time with knots every {desc['knot_s'] / 60:.0f} min)"
@@ -268,7 +268,7 @@ def describe(fid: str, desc: dict, residual: np.ndarray, design: Design, share: 
         signature += f", {ranked[1][1]:.0%} more of {ranked[1][0]}"
     if ranked[0][0] == "time" and period_s is not None and kind != "periodic":
         signature += f" (its dominant period: {period_s / 60:.1f} min)"
-    return (f"A mismatch no catalogue effect explains: {shape}, up to {peak_uv:.1f} uV on {axes} (temperatures "
+    return (f"A mismatch no catalogue effect explains: {shape}, up to {small(peak)} on {axes} (temperatures "
             f"{temps} C). {signature}. An empirical correction ({kind}, not physics) takes it out."), extra
 
 

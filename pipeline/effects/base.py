@@ -30,11 +30,10 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from pipeline.model import ConstantsModel, output_v
+from pipeline.model import ConstantsModel, output_v, small, small_unit
 from pipeline.positions import AXES
 
 Vec3 = tuple[float, float, float]
-_UV = 1e6
 
 
 @dataclass(eq=False)
@@ -81,10 +80,10 @@ class SignalContext:
 @dataclass(frozen=True)
 class Shown:
     """Where and how large a fitted effect shows in a diagnosis, for its explanation: the largest change of the
-    model (uV), the axes ("x/z"), the temperatures in words (" at -40, +20 C and on the ramps"), the run's length
-    (h)."""
+    model (output unit: V, or m/s^2; printed by :func:`pipeline.model.small`), the axes ("x/z"), the temperatures in
+    words (" at -40, +20 C and on the ramps"), the run's length (h)."""
 
-    peak_uv: float
+    peak: float
     axes: str
     temps: str
     duration_h: float
@@ -215,7 +214,7 @@ class Effect:
     @classmethod
     def explain(cls, params: dict[str, Any], shown: Shown) -> str:
         """One or two plain sentences for a person: what, where, how big, with units."""
-        return f"{cls.id}: up to {shown.peak_uv:.1f} uV on {shown.axes}."
+        return f"{cls.id}: up to {small(shown.peak)} on {shown.axes}."
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -263,17 +262,19 @@ def too_big(params: dict, name: str, limit: float, unit: str) -> str | None:
     return f"{name} {v:.3g} {unit} is beyond {limit:.3g} {unit}" if v > limit else None
 
 
-def vec_uv(v, unit: str = "uV") -> str:
-    """A 3-vector in V as "x +1.25, y -2.00, z +0.50 uV" (``unit`` names the micro-volt unit, e.g. ``uV/h``): in
-    nV when every component is below 1 uV (``+0.0 uV/h`` says nothing), to three significant digits of the
-    largest."""
-    x = np.asarray(v, dtype=float) * _UV
+def vec_uv(v, per: str = "") -> str:
+    """A 3-vector in the output unit as "x +1.25, y -2.00, z +0.50 uV" (in the small unit of
+    :func:`pipeline.model.small_name`; ``per`` e.g. ``/h``): for volts in nV when every component is below 1 uV
+    (``+0.0 uV/h`` says nothing), to three significant digits of the largest."""
+    unit, scale = small_unit()
+    x = np.asarray(v, dtype=float) * scale
     finite = np.abs(x[np.isfinite(x)])
     big = float(finite.max()) if finite.size else 0.0
-    if 0.0 < big < 1.0:
-        x, big, unit = x * 1e3, big * 1e3, unit.replace("uV", "nV", 1)
-    decimals = 0 if big >= 100 else 1 if big >= 10 else 2
-    return ", ".join(f"{a} {c:+.{decimals}f}" for a, c in zip(AXES, x)) + f" {unit}"
+    if 0.0 < big < 1.0 and unit == "uV":
+        x, big, unit = x * 1e3, big * 1e3, "nV"
+    decimals = 0 if big >= 100 else 1 if big >= 10 else 2 if big >= 1 or big == 0.0 else \
+        min(6, 2 - int(np.floor(np.log10(big))))
+    return ", ".join(f"{a} {c:+.{decimals}f}" for a, c in zip(AXES, x)) + f" {unit}{per}"
 
 
 __all__ = ["SignalContext", "Shown", "Effect", "Vec3", "finite", "log_grid", "axis_columns", "vector_columns",

@@ -13,6 +13,7 @@ import numpy as np
 
 from pipeline.effects.base import Effect, Shown, SignalContext, Vec3, too_big, vec_uv, vector_columns, \
     vector_parameters
+from pipeline.model import small
 
 
 @dataclass(frozen=True)
@@ -41,6 +42,6 @@ class ScaleNonlinearity(Effect):
 
     @classmethod
     def explain(cls, p: dict[str, Any], shown: Shown) -> str:
-        return (f"The scale factors have a second-order part K2 = {vec_uv(p['k2_v_per_g2'], 'uV/g^2')}: a "
+        return (f"The scale factors have a second-order part K2 = {vec_uv(p['k2_v_per_g2'], '/g^2')}: a "
                 f"channel reads that much more when its own axis is vertical than the linear model says (up to "
-                f"{shown.peak_uv:.1f} uV in single positions), which also biases the VP gravity module.")
+                f"{small(shown.peak)} in single positions), which also biases the VP gravity module.")

@@ -44,6 +44,6 @@ class TimeDrift(Effect):
     @classmethod
     def explain(cls, p: dict[str, Any], shown: Shown) -> str:
         r = np.asarray(p["r_v_per_h"])
-        return (f"The zero offsets age at {vec_uv(r, 'uV/h')}, {vec_uv(r * shown.duration_h)} over the "
+        return (f"The zero offsets age at {vec_uv(r, '/h')}, {vec_uv(r * shown.duration_h)} over the "
                 f"{shown.duration_h:.1f} h run: revisits of one temperature{shown.temps} drift monotonically with "
                 "time.")

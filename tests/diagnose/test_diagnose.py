@@ -165,6 +165,54 @@ def test_finding_has_the_contract_fields():
     assert f["parameters"]["tau_s"] == pytest.approx(600.0, rel=0.05)
 
 
+def test_explanations_are_in_the_recordings_unit():
+    """A recording whose outputs are in m/s^2 (gains about 9.8 per g, as the real tag's) is explained in mm/s^2, not
+    uV: the same warm-up transient, its amounts written in the output unit's small unit (the V case: above)."""
+    import dataclasses
+
+    import polars as pl
+
+    from pipeline.run import Run
+
+    res = short([("warmup_transient", {"a_v": [60e-6, -40e-6, 30e-6], "tau_s": 600.0})], seed=4)
+    scale = 9.80665 / 0.55                  # the same recording (gains near -0.55 V/g), as a logger writing m/s^2
+    r = res.run
+    run = Run(meta=dataclasses.replace(r.meta, nominal_gain_v_per_g=r.meta.nominal_gain_v_per_g * scale),
+              voltmeter=r.voltmeter.with_columns([pl.col(c) * scale for c in ("ux", "uy", "uz")]),
+              au_temperature=r.au_temperature, chamber=r.chamber, fixture=r.fixture)
+    diag = diagnose_run(run)
+    assert diag.passport["output_unit"] == "m/s^2"
+    f = diag.report["findings"][0]
+    assert f["effect"] == "warmup_transient"
+    text = f["explanation"]
+    assert "uV" not in text and "mm/s^2" in text, text
+    a = f["parameters"]["a_v"]
+    assert "settle by " + ", ".join(f"{ax} {x * 1e3:+.2f}" for ax, x in zip("xyz", a)) + " mm/s^2" in text
+    peak = f["max_effect_v"] * 1e3
+    assert f"{peak:.3g}" in text or f"{peak:.2f}" in text or f"{peak:.1f}" in text
+    assert "uV" not in " ".join(diag.report["notes"])
+
+
+def test_small_amounts_in_either_unit():
+    """The one helper the sentences print amounts through: uV as before for volts; mm/s^2 with three significant
+    digits for m/s^2; the diagnosis' unit set inside a context of its own."""
+    import contextvars
+
+    from pipeline.effects.base import vec_uv
+    from pipeline.model import reading_in, small
+
+    assert small(12.34e-6) == "12.3 uV" and small(2e-6, ".2f", "/g") == "2.00 uV/g"
+    assert small(0.7122582, unit="m/s^2") == "712.3 mm/s^2"
+    assert small(5e-5, unit="m/s^2") == "0.0500 mm/s^2"
+
+    def in_mps2():
+        reading_in("m/s^2")
+        return small(0.0123), vec_uv([1.2e-3, -3e-4, 0.0], "/h")
+
+    assert contextvars.copy_context().run(in_mps2) == ("12.3 mm/s^2", "x +1.20, y -0.30, z +0.00 mm/s^2/h")
+    assert small(0.0123) == "12300.0 uV"              # the caller's context is left as it was
+
+
 # ---------------------------------------------------------------------------------------------- the command
 
 
