@@ -306,8 +306,6 @@ def _calibrate_text(r: dict) -> str:
         except (OSError, ValueError):
             doc = None
     lines = calibrate_lines(r, doc)
-    if r.get("method_auto"):
-        lines.insert(1, f"method: {r['method_auto']}")
     if r.get("base_passport_used"):
         lines.insert(1, r["base_passport_used"])
     return "\n".join(lines)

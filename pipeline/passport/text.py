@@ -268,6 +268,17 @@ def _short(v) -> str:
     return str(v)
 
 
+def _auto_reason(result: dict) -> str:
+    """`` (picked by --method auto: <why>)`` when ``--method auto`` chose the method (the result's ``method_auto``:
+    "<method> (<why>)"), else ``""``."""
+    auto = result.get("method_auto")
+    if not auto:
+        return ""
+    chosen = f"{result.get('method')} ("
+    why = auto[len(chosen):-1] if auto.startswith(chosen) and auto.endswith(")") else auto
+    return f" (picked by --method auto: {why})"
+
+
 def calibrate_lines(result: dict, doc: dict | None) -> list[str]:
     """``calibrate``'s summary: the version written (or found), method and model, then per temperature the largest
     |dg| against its limit with failing positions marked, the constants at T0 with their uncertainty, the figures,
@@ -280,11 +291,14 @@ def calibrate_lines(result: dict, doc: dict | None) -> list[str]:
     else:
         lines = [f"{result['unit']}: passport v{result['version']} "
                  f"{'written' if created else '(unchanged inputs: the existing version)'}: {result.get('passport')}"]
+    auto = _auto_reason(result)
     if doc is not None:
         valid = doc.get("valid_temp_c")
-        lines.append(f"  method {doc.get('method', result.get('method', '-'))}; thermal model "
+        lines.append(f"  method {doc.get('method', result.get('method', '-'))}{auto}; thermal model "
                      f"{model_text(doc.get('thermal_model'))}"
                      + (f"; valid {valid[0]:+.1f} .. {valid[1]:+.1f} C" if valid else ""))
+    elif auto:
+        lines.append(f"  method {result.get('method', '-')}{auto}")
     lines.append(f"  status: {str(result['status']).upper()}")
     plateaus = result.get("plateaus") or []
     if plateaus:

@@ -35,6 +35,21 @@ def test_calibrate_summary_is_a_table_per_temperature(calibrated_registry):
     assert "constants at T0 = +20.0 C" in text and "+-" in text and "ppm" in text and "ug" in text
 
 
+def test_calibrate_summary_names_the_method_once(calibrated_registry):
+    """``--method auto``: one method line, the passport's method with why auto picked it (it was printed twice:
+    ``method: tilt (...)`` above ``method tilt_six_position; ...``)."""
+    res = calibrated_registry["results"][0]
+    doc = json.loads(open(res["passport"]).read())
+    why = "plateaus with the six tilt positions: the 12 constants at each temperature"
+    text = _calibrate_text({**res, "method": "tilt", "method_auto": f"tilt ({why})"})
+    said = [ln for ln in text.splitlines() if ln.lstrip().startswith("method")]
+    assert said == [f"  method {doc['method']} (picked by --method auto: {why}); thermal model "
+                    + said[0].split("; thermal model ", 1)[1]], text
+    plain = _calibrate_text({k: v for k, v in res.items() if k != "method_auto"})
+    assert [ln for ln in plain.splitlines() if ln.lstrip().startswith("method")] == [
+        said[0].replace(f" (picked by --method auto: {why})", "")]
+
+
 def test_failing_rows_are_marked():
     rows = [{"temp_c": -10.0, "position": f"VP{k}", "run_id": "r", "t_start_ns": k, "dg_uncompensated_g": 5e-3,
              "dg_method1_g": (1.4e-3 if k == 2 else 2e-6), "dg_method2_g": 1e-5, "tolerance_g": 1e-3,
