@@ -421,10 +421,11 @@ def fleet(folder: Path = typer.Argument(..., metavar="FOLDER", help="folder of r
           constants_method: str = typer.Option("auto", "--constants-method", help="as for calibrate"),
           tol_normal_g: float = typer.Option(3e-4, "--tol-normal-g", help="as for calibrate"),
           tol_range_g: float = typer.Option(1e-3, "--tol-range-g", help="as for calibrate"),
-          method: str = typer.Option("tilt", "--method",
-                                     help="tilt (default), scalar, or differential (starting from each unit's current "
-                                          "passport in the registry: its newest approved, else newest, version "
-                                          "not made by the differential method)"),
+          method: str = typer.Option("auto", "--method",
+                                     help="auto (default: as for calibrate, the method each unit's first run "
+                                          "supports), tilt, scalar, or differential (starting from each unit's "
+                                          "current passport in the registry: its newest approved, else newest, "
+                                          "version not made by the differential method)"),
           as_json: bool = typer.Option(False, "--json", help=JSON_HELP)):
     """Calibrate every run under FOLDER, one passport per unit (Prefect flow, one task per unit).
 
@@ -434,7 +435,8 @@ def fleet(folder: Path = typer.Argument(..., metavar="FOLDER", help="folder of r
     from pipeline.calibrate.fleet import POOLS, discover_runs
 
     settings = _calibration_settings(thermal_model, constants_method, tol_normal_g, tol_range_g)
-    _check_method(method)
+    if method != "auto":
+        _check_method(method)
     if pool not in POOLS:
         raise ThermocalError(f"unknown pool {pool!r} ({', '.join(POOLS)})", where="--pool")
     if workers is not None and workers < 1:

@@ -29,7 +29,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from pipeline.calibrate.inputs import RunInput, folder_warning, resolve_run_ids
-from pipeline.calibrate.methods import NEEDS_BASE_PASSPORT, base_passport_of, recipe
+from pipeline.calibrate.methods import METHODS, NEEDS_BASE_PASSPORT, auto_method, base_passport_of, \
+    default_base_passport, recipe
 from pipeline.calibrate.publish import publish, recorded_settings
 from pipeline.calibrate.result import base_reference
 from pipeline.calibrate.settings import CalibrationSettings
@@ -39,6 +40,7 @@ from pipeline.io.runs import read_run, read_run_meta, run_format  # noqa: F401  
 from pipeline.passport.provenance import RunDigest, hash_run
 from pipeline.passport.registry import Registry, identity_key
 from pipeline.run import RunMeta
+from pipeline.segment import segment_run
 
 #: A directory holding one of these is a Parquet run directory (log-format.md).
 PARQUET_RUN_MARKERS = ("voltmeter.parquet", PARQUET_META_FILE)
@@ -145,7 +147,8 @@ def _meta_of(path: Path) -> RunMeta:
 
 def plan_fleet(root: str | os.PathLike, registry: str | os.PathLike | Registry,
                settings: CalibrationSettings = CalibrationSettings(), method: str = "tilt") -> FleetPlan:
-    """Group the runs under ``root`` by unit and decide what to calibrate.
+    """Group the runs under ``root`` by unit and decide what to calibrate (by ``method``; ``auto``: as
+    ``calibrate --method auto``, the method each unit's first run supports, chosen when it is calibrated).
 
     A run whose metadata or bytes cannot be read is ``failed``; a second copy of a run (same content hash as
     another run of the unit) is ``skipped`` as a duplicate; two files with one run_id are never merged
@@ -171,7 +174,7 @@ def plan_fleet(root: str | os.PathLike, registry: str | os.PathLike | Registry,
             plan.warnings.append({"run": str(path), "warning": warning})
         by_unit.setdefault(unit, []).append({"path": str(path), "sha256": digest.sha256, "digest": digest,
                                              "run_id": meta.run_id})
-    rec = recipe(method)
+    recs = [recipe(m) for m in METHODS] if method == "auto" else [recipe(method)]
     for unit, inputs in sorted(by_unit.items()):
         unique: dict[str, dict] = {}
         for item in inputs:
@@ -187,10 +190,13 @@ def plan_fleet(root: str | os.PathLike, registry: str | os.PathLike | Registry,
             if not kept:
                 continue
         try:
-            base = base_passport_of(reg, unit)[0] if method in NEEDS_BASE_PASSPORT else None
-            extra = base_reference(base) if base is not None else {}
-            identity = identity_key(kept, recorded_settings(settings, rec.METHOD, extra))
-            done = reg.find(unit, identity)
+            base = base_passport_of(reg, unit)[0] if method in NEEDS_BASE_PASSPORT else \
+                default_base_passport(reg, unit)[0] if method == "auto" else None
+            identities = [identity_key(kept, recorded_settings(   # auto: done by whichever method it picks
+                settings, rec.METHOD, base_reference(base) if base is not None and (
+                    method != "auto" or rec.METHOD in NEEDS_BASE_PASSPORT) else {})) for rec in recs]
+            identity = identities[0]
+            done = next((d for d in (reg.find(unit, i) for i in identities) if d is not None), None)
         except ThermocalError as exc:  # e.g. a unit serial that cannot be a registry name
             plan.failed += [{"run": i["path"], "reason": exc.one_line()} for i in kept]
             continue
@@ -255,7 +261,7 @@ def calibrate_group(unit: str, runs: list[str] | tuple[str, ...], registry: str 
     observed: list = []
     result = None
     try:
-        rec = recipe(method)
+        rec = recipe(method) if method != "auto" else None
     except CalibrationError as exc:
         return UnitOutcome(unit=unit, runs=runs, result=None, failed=[{"run": p, "reason": reason_of(exc)}
                                                                       for p in runs],
@@ -265,7 +271,12 @@ def calibrate_group(unit: str, runs: list[str] | tuple[str, ...], registry: str 
             run = read_run(path)
             if run.meta.unit_serial != unit:
                 raise CalibrationError(f"run is of unit {run.meta.unit_serial!r}, not {unit!r}", path=path)
-            observed.append(rec.observe(run, settings, base_passport=base_passport))
+            seg = None
+            if rec is None:        # --method auto: the method the unit's first readable run supports
+                seg = segment_run(run, settings.segment)
+                rec = recipe(auto_method(run, seg)[0])
+                base_passport = base_passport if rec.METHOD in NEEDS_BASE_PASSPORT else None
+            observed.append(rec.observe(run, settings, base_passport=base_passport, segmentation=seg))
         except Exception as exc:  # noqa: BLE001 - drop this run, calibrate the others
             failed.append({"run": path, "reason": reason_of(exc)})
             continue

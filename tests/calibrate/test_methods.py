@@ -132,3 +132,25 @@ def test_cli_fleet_method_tilt_then_differential(inboxes, tmp_path, monkeypatch,
         doc = json.loads(Path(summary["done"][0]["passport"]).read_text())
         assert doc["method"] == recipe(method).METHOD
     assert doc["base_passport"]["version"] == 1 and doc["base_passport"]["method"] == "tilt_six_position"
+
+
+def test_cli_fleet_defaults_to_auto(inboxes, tmp_path, monkeypatch, capsys):
+    """``thermocal fleet`` without ``--method`` picks each unit's method as ``calibrate`` does (``auto``, the same
+    default): the short program by tilt, the differential program by the differential method (starting from the
+    tilt passport); a second night skips what any method already made from the same runs."""
+    from tests.conftest import run_main
+
+    short, diff = inboxes
+    reg = str(tmp_path / "reg")
+    picked = {}
+    for inbox, version in ((short.parent, 1), (diff.parent, 2)):
+        code, out, err = run_main(monkeypatch, capsys, "fleet", str(inbox), "--registry", reg, "--no-figures",
+                                  "--json")
+        assert code == 0, err
+        summary = json.loads(out)
+        assert [(d["unit"], d["version"]) for d in summary["done"]] == [("AU-0001", version)] and not summary["failed"]
+        picked[inbox.name] = json.loads(Path(summary["done"][0]["passport"]).read_text())["method"]
+    assert picked == {"in1": "tilt_six_position", "in2": "differential"}
+    code, out, _ = run_main(monkeypatch, capsys, "fleet", str(short.parent), "--registry", reg, "--json")
+    summary = json.loads(out)
+    assert code == 0 and not summary["done"] and [s["why"] for s in summary["skipped"]] == [ALREADY_PROCESSED]
