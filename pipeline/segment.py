@@ -180,7 +180,7 @@ def find_plateaus(t_ns: np.ndarray, temp_c: np.ndarray,
     record_s = float(t_s[-1])
     window_s = settings.plateau_min_s * _SLOPE_WINDOW_FRACTION
     rate_c_per_min = np.abs(_local_slope_c_per_s(t_s, temp_c, window_s)) * 60.0
-    stable = rate_c_per_min < settings.plateau_rate_c_per_min
+    stable = _bridge_flicker(rate_c_per_min, t_s, window_s, settings)
     min_s = min(settings.plateau_min_s, record_s)
     found: list[tuple[int, int]] = []
     for i0, i1 in _runs(stable):
@@ -203,6 +203,38 @@ def find_plateaus(t_ns: np.ndarray, temp_c: np.ndarray,
             n_settle = min(n_settle, max(0, a - int(np.searchsorted(t_ns, out[-1].t_end_ns, side="right"))))
         out.append(Plateau(k, int(t_ns[a]), int(t_ns[b - 1]), mean_c, float(np.std(temp_c[a:b])),
                            int(t_ns[a - n_settle]) if n_settle > 0 else None))
+    return out
+
+
+#: a stable run ends a soak's approach when the slope one approach time before it was this many times the threshold
+_APPROACH_FACTOR = 3.0
+
+
+def _bridge_flicker(rate_c_per_min: np.ndarray, t_s: np.ndarray, window_s: float, settings: SegmentSettings
+                    ) -> np.ndarray:
+    """Stable samples (|slope| under ``plateau_rate_c_per_min``), with the gaps of less than a slope window
+    between stable runs filled where the runs end an approach: at the end of a short soak the slope hovers about
+    the threshold and noise cuts the unit's last approach into runs of a minute or two, none long enough alone.
+    An approach is told from a slow drift (which hovers about the threshold for hours) by the slope
+    2 ``plateau_min_s`` before the first run: over ``_APPROACH_FACTOR`` times the threshold (an exponential
+    approach with a time constant of 10 min is 2.7 times faster 10 min earlier; a drift is as slow), and by
+    its runs all being short (a group holding a run of ``plateau_min_s`` is a plateau, or a drift's piece,
+    already)."""
+    stable = rate_c_per_min < settings.plateau_rate_c_per_min
+    runs = _runs(stable)
+    if len(runs) < 2:
+        return stable
+    out = stable.copy()
+    gap_s = t_s[runs[1:, 0]] - t_s[runs[:-1, 1] - 1]
+    long_run = t_s[runs[:, 1] - 1] - t_s[runs[:, 0]] >= settings.plateau_min_s
+    # groups of runs less than a window apart
+    cut = np.concatenate(([0], np.flatnonzero(gap_s >= window_s) + 1, [len(runs)]))
+    for g0, g1 in zip(cut[:-1], cut[1:]):
+        if g1 - g0 < 2 or long_run[g0:g1].any():
+            continue
+        before = int(np.searchsorted(t_s, t_s[runs[g0, 0]] - 2 * settings.plateau_min_s, side="left"))
+        if rate_c_per_min[before] > _APPROACH_FACTOR * settings.plateau_rate_c_per_min:
+            out[runs[g0, 0]:runs[g1 - 1, 1]] = True
     return out
 
 
