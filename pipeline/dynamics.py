@@ -10,7 +10,6 @@ the temperature last came from.
 from __future__ import annotations
 
 import numpy as np
-from scipy.signal import lfilter, lfiltic
 
 
 def first_order_lag(t_s: np.ndarray, x: np.ndarray, tau_s: float, y0: float | None = None) -> np.ndarray:
@@ -33,6 +32,7 @@ def first_order_lag(t_s: np.ndarray, x: np.ndarray, tau_s: float, y0: float | No
     c = tau_s / h * (1.0 - a)
     b = [1.0 - c, c - a]
     den = [1.0, -a]
+    from scipy.signal import lfilter, lfiltic  # ~1 s to import: only where a lag is filtered
     rest, _ = lfilter(b, den, x[1:], zi=lfiltic(b, den, [y_start], [x[0]]))
     return np.concatenate([[y_start], rest])
 

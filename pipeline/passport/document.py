@@ -18,15 +18,17 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from pipeline.diagnose.model import ExtendedModel
 from pipeline.errors import ThermocalError
 from pipeline.model import output_unit, specific_force_g
 from pipeline.thermal import DifferentialModel, PolynomialModel, RateTerms, ThermalModel, thermal_model_from_dict
 from pipeline.verify import summary_by_temperature
+
+if TYPE_CHECKING:  # the extended model pulls in the effect catalogue (scipy.signal): imported where one is read
+    from pipeline.diagnose.model import ExtendedModel
 
 #: the passport's format version (its ``schema`` field)
 SCHEMA_ID = "thermocal.passport/1"
@@ -201,7 +203,10 @@ def load_model(passport: dict) -> ThermalModel:
 def load_extended(passport: dict) -> ExtendedModel | None:
     """The passport's extended model (written by ``diagnose``), or None when it has none."""
     d = passport.get("extended_model")
-    return None if d is None else ExtendedModel.from_dict(d)
+    if d is None:
+        return None
+    from pipeline.diagnose.model import ExtendedModel
+    return ExtendedModel.from_dict(d)
 
 
 def compensate_extended(passport: dict, u_v: np.ndarray, ctx, element_temp_c: np.ndarray | None = None
