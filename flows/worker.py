@@ -23,6 +23,7 @@ import socket
 import sys
 import threading
 import time
+from typing import NoReturn
 
 from .localserver import CLIENT_GONE_GRACE_S
 
@@ -76,15 +77,20 @@ def worker(listen_fd: int) -> int:
     _exit_job_process(code)
 
 
-def _exit_job_process(code: int) -> None:
+def _exit_job_process(code: int) -> NoReturn:
     """End a job process as the interpreter would, less its last step: threads' exit hooks (Prefect drains its
     event and log queues to the server there) and the joining of non-daemon threads, the ``atexit`` functions, the
     streams flushed; then ``os._exit``. The interpreter's own teardown (every module and object of the warm worker
-    freed, in a forked copy of its memory) cost ~1 s of CPU after the command had answered."""
+    freed, in a forked copy of its memory) cost ~1 s of CPU after the command had answered. The two hooks are
+    CPython's own (not a promised API): where either is missing, the process exits the ordinary way."""
     import atexit
 
-    threading._shutdown()  # noqa: SLF001 - what the interpreter calls at exit, before the atexit functions
-    atexit._run_exitfuncs()  # noqa: SLF001
+    shutdown_threads = getattr(threading, "_shutdown", None)
+    run_exit_functions = getattr(atexit, "_run_exitfuncs", None)
+    if shutdown_threads is None or run_exit_functions is None:
+        sys.exit(code)  # the interpreter's full teardown: slower, the same result
+    shutdown_threads()  # what the interpreter calls at exit, before the atexit functions
+    run_exit_functions()
     for stream in (sys.stdout, sys.stderr):
         with contextlib.suppress(Exception):
             stream.flush()

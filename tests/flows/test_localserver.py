@@ -322,3 +322,17 @@ def test_calibrate_into_a_closed_pipe_ends_quietly_and_writes_its_passport(short
     assert p.returncode == 0 and _without_key_notice(p.stderr) == "", (p.returncode, p.stderr)
     assert (tmp_path / "reg" / "units" / "AU-0401" / "v0001.json").is_file()
     assert (tmp_path / "reg" / "units" / "AU-0401" / "v0001.png").is_file()
+
+
+def test_a_job_process_exits_with_its_status_with_or_without_cpython_exit_hooks():
+    """The job process's fast exit uses CPython's own exit hooks; where they are missing it exits the ordinary way,
+    with the same status and its atexit functions run."""
+    import subprocess
+    import sys
+
+    for drop in ("", "del threading._shutdown; "):
+        code = ("import atexit, threading; from flows.worker import _exit_job_process; "
+                "atexit.register(lambda: print('atexit ran', flush=True)); " + drop + "_exit_job_process(3)")
+        done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+        assert done.returncode == 3, (drop, done.stderr)
+        assert done.stdout.strip() == "atexit ran", (drop, done.stdout, done.stderr)
