@@ -28,7 +28,6 @@ from pathlib import Path
 import numpy as np
 import polars as pl
 
-from pipeline.diagnose.model import ExtendedModel
 from pipeline.errors import ThermocalError
 from pipeline.model import specific_force_g
 from pipeline.run import NS_PER_S as _NS
@@ -65,25 +64,27 @@ def valid_range_c(passport: dict) -> tuple[float, float] | None:
 
 
 def _model(passport: dict):
-    """(model with constants_at(T[, rate]), lag tau s, smoothing window s or None, warnings) of a passport, from the
-    one passport loader (:func:`pipeline.passport.document.load_passport`); for a passport with an extended model,
-    the part of that model apply can evaluate (:func:`_applicable_extended`)."""
+    """(model with constants_at(T[, rate]), lag tau s, smoothing window s or None, warnings, extended) of a passport,
+    from the one passport loader (:func:`pipeline.passport.document.load_passport`); for a passport with an extended
+    model (``extended`` True), the part of that model apply can evaluate (:func:`_applicable_extended`)."""
     from pipeline.passport.document import load_passport
     from pipeline.thermal import DifferentialModel
 
     p = load_passport(passport)
     warnings = []
     if p.extended is not None:
-        return _applicable_extended(p.extended, warnings), 0.0, None, warnings
+        return _applicable_extended(p.extended, warnings), 0.0, None, warnings, True
     if p.rate_terms is not None:
         return DifferentialModel(p.thermal_model, p.rate_terms), p.rate_terms.lag_tau_s, p.rate_terms.temp_smooth_s, \
-            warnings
-    return p.thermal_model, 0.0, None, warnings
+            warnings, False
+    return p.thermal_model, 0.0, None, warnings, False
 
 
 def _applicable_extended(ext, warnings: list[str]):
     """The extended model without the terms that need the fixture (its moves: ``Effect.needs_fixture``), and one
     warning naming those."""
+    from pipeline.diagnose.model import ExtendedModel  # the effect catalogue (scipy.signal): only for such passports
+
     left = [e for e in ext.effects if e.needs_fixture]
     if left:
         warnings.append("the passport's extended model is applied without " + "; ".join(
@@ -151,13 +152,13 @@ def _temperature_at(run: Run, t_ns: np.ndarray, lag_tau_s: float, smooth_s: floa
 def apply_passport(passport: dict, run: Run) -> Applied:
     """The passport's model applied to every voltmeter sample of ``run`` (see the module doc): specific force in
     g along the unit's axes, the AU temperature at each sample, ``in_range``."""
-    model, lag_s, smooth_s, warnings = _model(passport)
+    model, lag_s, smooth_s, warnings, is_extended = _model(passport)
     t_ns = run.voltmeter["t_ns"].to_numpy()
     temp_c, rate = _temperature_at(run, t_ns, lag_s, smooth_s)
     n = t_ns.size
     a = np.empty((n, 3))
     cols = [run.voltmeter[c].to_numpy() for c in ("ux", "uy", "uz")]
-    extended = _extended_context(run, t_ns, temp_c, model) if isinstance(model, ExtendedModel) else None
+    extended = _extended_context(run, t_ns, temp_c, model) if is_extended else None
     for s0 in range(0, n, _SLAB):
         s1 = min(s0 + _SLAB, n)
         u = np.column_stack([c[s0:s1] for c in cols])
