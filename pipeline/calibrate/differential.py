@@ -213,7 +213,8 @@ class BlockData:
     run_id: str = ""
     #: the constants (K0 (3, 3) V/g, U0 (3,) V) the windows' specific force was computed with
     constants: tuple[np.ndarray, np.ndarray] | None = None
-    #: (m, 3) V^2, the variance of each block mean from the voltmeter noise measured in the block (var / (n - 1))
+    #: (m, 3) V^2, the variance of each block mean from the voltmeter noise measured in the block: the residual
+    #: sum of squares about the block's straight line in time over (n - 2), divided by n
     u_var_v2: np.ndarray | None = None
 
     def a0_g(self) -> np.ndarray:

@@ -129,7 +129,7 @@ def _diff_rate(ra: dict, rb: dict, gains: list[float] | None, u: str = "V") -> t
                     if old != new:
                         scale, su = _coef_scale("alpha" if group == "alpha_rate" else "beta", key, gains)
                         per_ = f"(C/min)^{n + 1}/C^{k}"
-                        out.append(_entry(f"rate_terms.{group}.{key}[{n + 1}][{k}]", f"{base}/{per_}", old, new,
+                        out.append(_entry(f"rate_terms.{group}.{key}[{n + 1}][{k}]", per(base, per_), old, new,
                                           scale, f"{su}/{per_}"))
     ca, cb = ra.get("cross_axis_abs") or {}, rb.get("cross_axis_abs") or {}
     for key in sorted(set(ca) | set(cb)):

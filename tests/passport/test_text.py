@@ -141,3 +141,20 @@ def test_one_plateau_and_a_zero_read_as_words_and_plus_zero(calibrated_registry)
     assert "  1 plateau: " in text and "-0.00000000" not in text and "+0.00000000" in text
     page = certificate_html(doc, figures={})
     assert "-0.00000000" not in page and "+0.00000000" in page
+
+
+def test_diff_prints_a_rate_term_in_the_recordings_unit_per_rate():
+    """A rate term of a passport in m/s^2 is printed per (C/min)^n/C^k with its unit bracketed, as the thermal
+    coefficients are: (m/s^2)/(C/min)^1/C^0, not m/s^2/(C/min)^1/C^0."""
+    from pipeline.passport.diff import diff_passports
+
+    def doc(value):
+        return {"unit": "AU-0001", "output_unit": "m/s^2",
+                "rate_terms": {"order": 1, "dt_order": 0, "alpha_rate": {"x": [[value]]}}}
+
+    d = diff_passports(doc(1.0), doc(3.0), unit="AU-0001", v1=1, v2=2)
+    (entry,) = d["rate_terms"]
+    assert entry["unit"] == "(m/s^2)/(C/min)^1/C^0" and entry["delta"] == 2.0
+    text = "\n".join(diff_lines(d))
+    assert "rate_terms.alpha_rate.x[1][0] +2 (m/s^2)/(C/min)^1/C^0" in " ".join(text.split()), text
+    assert "m/s^2/(C/min)" not in text
