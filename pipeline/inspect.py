@@ -16,6 +16,7 @@ from pipeline.io.checks import GAP_FACTOR, gap_indices  # noqa: F401  (GAP_FACTO
 from pipeline.jsonable import to_jsonable
 from pipeline.run import Run
 from pipeline.utc import utc_text
+from pipeline.words import count_words  # noqa: F401  (also imported from here by the CLI)
 
 
 def summarize_run(run: Run) -> dict[str, Any]:
@@ -370,11 +371,6 @@ def _recording_lines(rec: dict[str, Any]) -> list[str]:
 
 #: the kinds of temperature record (``recording.temperature.kind``) in words
 KIND_WORDS = {"plateaus": "plateau program", "constant": "one temperature", "sweep": "temperature sweep"}
-
-
-def count_words(n: int, noun: str) -> str:
-    """``1 plateau``, ``7 plateaus``."""
-    return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
 
 
 def _duration(seconds: float) -> str:

@@ -494,11 +494,6 @@ class Registry:
                                 "method", path=str(self.unit_dir(unit)))
         return self.load(unit, st.version), st
 
-    def load_current(self, unit: str) -> tuple[dict, bool]:
-        """The unit's current passport (:meth:`current`) and whether it is approved."""
-        doc, st = self.load_state(unit)
-        return doc, st.approved
-
     def planned(self, passport: dict, *, inputs: list[dict], settings: dict) -> tuple[int, bool]:
         """What :meth:`publish` would do, writing nothing (``calibrate --dry-run``): (the version it would
         write, False), or (the existing version with the same identity, True)."""

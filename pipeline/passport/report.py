@@ -19,7 +19,7 @@ from pathlib import Path
 
 from pipeline.errors import ThermocalError
 from pipeline.passport.text import (approval_text, gains_v_per_g, max_error_g, model_text, output_unit_of,
-                                    per, reason_lines, sigma_reasons, signed)
+                                    per, reason_lines, sigma_reasons, signed, tag)
 from pipeline.positions import AXES
 from pipeline.verify import verification_visits
 
@@ -152,14 +152,11 @@ def _constants_table(doc: dict) -> str:
     rows = ["<table><tr><th>row i</th>" + "".join(f"<th>K<sub>i{a}</sub> ({per(u, 'g')})</th>" for a in AXES)
             + f"<th>U0<sub>i</sub> ({u})</th></tr>"]
     fixed, undetermined = sigma_reasons(doc)
-
-    def tag(name: str) -> str | None:
-        return "(by convention)" if name in fixed else "(undetermined)" if name in undetermined else None
-
     for i, ax in enumerate(AXES):
-        cells = [_pm(K[i][j], None if sK is None else sK[i][j], 1e6 / gains[i], "ppm", tag=tag(f"K.{ax}{AXES[j]}"))
-                 for j in range(3)]
-        cells.append(_pm(U0[i], None if sU is None else sU[i], 1e6 / gains[i], "micro-g", tag=tag(f"U0.{ax}")))
+        cells = [_pm(K[i][j], None if sK is None else sK[i][j], 1e6 / gains[i], "ppm",
+                     tag=tag(f"K.{ax}{AXES[j]}", fixed, undetermined)) for j in range(3)]
+        cells.append(_pm(U0[i], None if sU is None else sU[i], 1e6 / gains[i], "micro-g",
+                         tag=tag(f"U0.{ax}", fixed, undetermined)))
         rows.append(f"<tr><th>{ax}</th>" + "".join(f"<td class='num'>{x}</td>" for x in cells) + "</tr>")
     rows.append("</table><p class='note'>&plusmn; one standard uncertainty, in ppm of the row's gain |K<sub>ii</sub>| "
                 "for K and in micro-g for U0.</p>")

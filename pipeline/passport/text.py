@@ -12,6 +12,7 @@ from __future__ import annotations
 from pipeline.model import output_unit
 from pipeline.positions import AXES
 from pipeline.verify import verification_visits
+from pipeline.words import count_words
 
 _UG = 1e6  # g -> micro-g
 
@@ -82,8 +83,8 @@ def constants_lines(doc: dict) -> list[str]:
     fixed, undetermined = sigma_reasons(doc)
     for i, ax in enumerate(AXES):
         cells = [_pm(K[i][j], None if sK is None else sK[i][j], gains[i], "ppm",
-                     _tag(f"K.{ax}{AXES[j]}", fixed, undetermined)) for j in range(3)]
-        cells.append(_pm(U0[i], None if sU is None else sU[i], gains[i], "ug", _tag(f"U0.{ax}", fixed, undetermined)))
+                     tag(f"K.{ax}{AXES[j]}", fixed, undetermined)) for j in range(3)]
+        cells.append(_pm(U0[i], None if sU is None else sU[i], gains[i], "ug", tag(f"U0.{ax}", fixed, undetermined)))
         lines.append(f"  i={ax}  " + "".join(f"{cell:<28}" for cell in cells).rstrip())
     return lines + reason_lines(doc, ("K.", "U0."))
 
@@ -109,7 +110,9 @@ def reason_lines(doc: dict, prefixes: tuple[str, ...] = ()) -> list[str]:
     return out
 
 
-def _tag(name: str, fixed: dict, undetermined: dict) -> str | None:
+def tag(name: str, fixed: dict, undetermined: dict) -> str | None:
+    """The mark of a constant without a standard uncertainty: ``(by convention)`` when fixed by a convention,
+    ``(undetermined)`` when the data do not determine it (:func:`sigma_reasons`), else None."""
     return "(by convention)" if name in fixed else "(undetermined)" if name in undetermined else None
 
 
@@ -302,7 +305,8 @@ def calibrate_lines(result: dict, doc: dict | None) -> list[str]:
     lines.append(f"  status: {str(result['status']).upper()}")
     plateaus = result.get("plateaus") or []
     if plateaus:
-        lines.append(f"  {len(plateaus)} plateau{'' if len(plateaus) == 1 else 's'}: " + ", ".join(f"{p['temp_c']:+.1f}" for p in plateaus) + " C")
+        lines.append(f"  {count_words(len(plateaus), 'plateau')}: "
+                     + ", ".join(f"{p['temp_c']:+.1f}" for p in plateaus) + " C")
     if doc is not None:
         lines += [""] + verification_lines(doc) + [""] + constants_lines(doc)
     for key, what in (("figure", "figure, VP errors"), ("constants_figure", "figure, constants")):

@@ -38,8 +38,8 @@ def test_current_is_newest_approved_else_newest(reg):
     assert rec["version"] == 1 and rec["by"] == "A. Metrologist" and rec["schema"] == "thermocal.approval/1"
     assert verify_record(rec).ok
     assert reg.current(UNIT) == 1
-    doc, approved = reg.load_current(UNIT)
-    assert doc["version"] == 1 and approved
+    doc, st = reg.load_state(UNIT)
+    assert doc["version"] == 1 and st.approved and st.version == 1
     reg.approve(UNIT, 2, "B. Checker")
     assert reg.current(UNIT) == 2
     assert reg.approve(UNIT, 2, "B. Checker") == reg.approvals(UNIT)[-1]      # idempotent: same record back
