@@ -106,12 +106,13 @@ def _extended_context(run: Run, t_ns: np.ndarray, temp_c: np.ndarray, ext):
     order = np.argsort(tt, kind="stable")
     th_s, th_c = (tt[order] - start_ns) / _NS, temp[order]
     lagged = first_order_lag(th_s, th_c, ext.lag_tau_s) if ext.lag_tau_s is not None and th_s.size >= 2 else None
+    ramp_at = ramp_direction(run, start_ns)       # from the whole record, once
 
     def at(s0: int, s1: int):
         t_s = (t_ns[s0:s1] - start_ns) / _NS
         tc = np.where(np.isfinite(temp_c[s0:s1]), temp_c[s0:s1], float(ext.base.normal_temp_c))
         element = None if lagged is None else np.interp(t_s, th_s, lagged)
-        ramp = ramp_direction(run, t_s, start_ns)
+        ramp = ramp_at(t_s)
         n = t_s.size
         ctx = SignalContext(t_s=t_s, temp_c=tc, a_g=np.zeros((n, 3)), position_idx=np.full(n, -1),
                             move_start_s=np.zeros(0), arrive_s=np.zeros(0), constants=ext.base,

@@ -23,6 +23,7 @@ sample step is the median of the whole record's steps, found the same way.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -382,6 +383,24 @@ def _thermosensor(run: Run, start_ns: int) -> tuple[np.ndarray, np.ndarray]:
     return (tt - start_ns) / _NS, temp
 
 
+def _ramp_steps(run: Run, start_ns: int) -> tuple[np.ndarray, np.ndarray, str]:
+    """The direction the temperature last came from as a step function of the whole record: its times (s since
+    ``start_ns``), its values (+1 / -1 / 0, each holding until the next) and where it came from. From the chamber
+    setpoint when it is recorded, else from the AU thermosensor; no steps ("none") with neither."""
+    ch = run.chamber
+    if ch is not None and ch.height > 2:
+        ts = (ch["t_ns"].to_numpy() - start_ns) / _NS
+        sp = ch["setpoint_c"].to_numpy()
+        ok = np.isfinite(sp)
+        if ok.sum() > 2:
+            step = float(np.median(np.diff(ts[ok])))
+            return ts[ok], ramp_sign_from_temperature(ts[ok], sp[ok], window_s=4.0 * step), "chamber setpoint"
+    tt, temp = _thermosensor(run, start_ns)
+    if tt.size < 3:
+        return np.zeros(0), np.zeros(0), "none"
+    return tt, ramp_sign_from_temperature(tt, temp), "AU thermosensor"
+
+
 def _ramp_sign(run: Run, t_s: np.ndarray, start_ns: int, before_s: float = 360.0, after_s: float = 60.0
                ) -> tuple[np.ndarray, str, np.ndarray]:
     """The direction the temperature last came from at ``t_s``, where it came from, and where it is uncertain.
@@ -391,33 +410,28 @@ def _ramp_sign(run: Run, t_s: np.ndarray, start_ns: int, before_s: float = 360.0
     direction found there, the direction is marked uncertain.
     """
     none = np.zeros(t_s.size, dtype=bool)
-    ch = run.chamber
-    if ch is not None and ch.height > 2:
-        ts = (ch["t_ns"].to_numpy() - start_ns) / _NS
-        sp = ch["setpoint_c"].to_numpy()
-        ok = np.isfinite(sp)
-        if ok.sum() > 2:
-            step = float(np.median(np.diff(ts[ok])))
-            sign = ramp_sign_from_temperature(ts[ok], sp[ok], window_s=4.0 * step)
-            return _step_at(ts[ok], sign, t_s), "chamber setpoint", none
-    tt, temp = _thermosensor(run, start_ns)
-    if tt.size < 3:
-        return np.zeros(t_s.size), "none", none
-    sign = ramp_sign_from_temperature(tt, temp)
-    switch = tt[1:][np.diff(sign) != 0]
+    t_src, sign, source = _ramp_steps(run, start_ns)
+    if source == "none":
+        return np.zeros(t_s.size), source, none
+    if source == "chamber setpoint":
+        return _step_at(t_src, sign, t_s), source, none
+    switch = t_src[1:][np.diff(sign) != 0]
     if switch.size == 0:
-        return _step_at(tt, sign, t_s), "AU thermosensor", none
+        return _step_at(t_src, sign, t_s), source, none
     k = np.searchsorted(switch, t_s)
     near_next = (k < switch.size) & (switch[np.minimum(k, switch.size - 1)] - t_s <= before_s)
     near_prev = (k > 0) & (t_s - switch[np.maximum(k - 1, 0)] <= after_s)
-    return _step_at(tt, sign, t_s), "AU thermosensor", near_next | near_prev
+    return _step_at(t_src, sign, t_s), source, near_next | near_prev
 
 
-def ramp_direction(run: Run, t_s: np.ndarray, start_ns: int) -> np.ndarray:
-    """The direction the temperature last came from (+1 / -1 / 0) at ``t_s`` (s since ``start_ns``), by the same
-    rule as a diagnosis (the chamber setpoint when recorded, else the AU thermosensor): for applying an extended
-    model to every sample of a recording."""
-    return _ramp_sign(run, np.asarray(t_s, dtype=float), start_ns)[0]
+def ramp_direction(run: Run, start_ns: int) -> Callable[[np.ndarray], np.ndarray]:
+    """The direction the temperature last came from (+1 / -1 / 0) as a function of ``t_s`` (s since ``start_ns``),
+    by the same rule as a diagnosis (the chamber setpoint when recorded, else the AU thermosensor), found once from
+    the whole record: for applying an extended model to a recording a slab of samples at a time."""
+    t_src, sign, _ = _ramp_steps(run, start_ns)
+    if t_src.size == 0:
+        return lambda t_s: np.zeros(np.asarray(t_s).size)
+    return lambda t_s: _step_at(t_src, sign, np.asarray(t_s, dtype=float))
 
 
 def _step_at(t_src: np.ndarray, values: np.ndarray, t_s: np.ndarray) -> np.ndarray:
