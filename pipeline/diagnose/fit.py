@@ -135,11 +135,6 @@ class Selection:
     rounds: list[list[dict]] = field(default_factory=list)
 
 
-def _moves_temperature(effect_id: str) -> bool:
-    """The effect moves the temperature the base model is evaluated at (thermal lag) instead of adding columns."""
-    return not effect_id.startswith("empirical") and effect_class(effect_id).acts_on == "temperature"
-
-
 def _key(value: float | None) -> float | None:
     return None if value is None else round(float(value), 9)
 
@@ -181,6 +176,12 @@ class Design:
         return int(self.y.size)
 
     # ---- columns
+    def moves_temperature(self, effect_id: str) -> bool:
+        """The term moves the temperature the base model is evaluated at (thermal lag) instead of adding columns;
+        a term outside the catalogue (:attr:`extra`, an empirical correction) never does."""
+        return (effect_id not in self.extra and not effect_id.startswith("empirical")
+                and effect_class(effect_id).acts_on == "temperature")
+
     def element_temperature_c(self, lag_tau_s: float | None) -> np.ndarray:
         return self.rec.element_temperature_c(lag_tau_s)
 
@@ -229,7 +230,7 @@ class Design:
         normal equations with unit columns; directions the data cannot tell apart are left out of the rank.
         The base columns are block-diagonal over the channels, which the products exploit."""
         state = tuple(state)
-        lag = next((v for e, v in state if e not in self.extra and _moves_temperature(e)), None)
+        lag = next((v for e, v in state if self.moves_temperature(e)), None)
         slices, labels, mats = {}, {}, []
         nb = 4 * (self.order + 1)
         col = 3 * nb
@@ -275,7 +276,7 @@ class Design:
               ) -> tuple[float, int, np.ndarray, list[str], np.ndarray]:
         """chi2, added rank, coefficients, labels and weighted change (B, 3) of the fitted values when the term is
         added to ``current`` (thermal lag: refit with the lagged temperature)."""
-        if effect_id not in self.extra and _moves_temperature(effect_id):
+        if self.moves_temperature(effect_id):
             fr = self.fit(current.state + ((effect_id, value),))
             return fr.chi2, fr.rank - current.rank, np.zeros(0), [], current.rw - fr.rw
         labels, cols = self.term_columns(effect_id, value)
