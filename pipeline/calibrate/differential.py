@@ -353,6 +353,15 @@ class _Equations:
     cluster: np.ndarray  # (p,) int: the stretch of time (run, window, CLUSTER_S) the pair's first block is in
 
 
+def _bases(dt: np.ndarray, rate: np.ndarray, poly_order: int, rate_order: int, rate_dt_order: int
+           ) -> tuple[np.ndarray, np.ndarray]:
+    """The temperature basis dT^n, n = 1..poly_order (m, P), and the rate basis (m, R * (rate_dt_order + 1),
+    :func:`pipeline.thermal.rate_basis`) at temperature offsets ``dt`` (C from the normal temperature) and rates
+    ``rate`` (C/min)."""
+    f = dt[:, None] ** np.arange(1, poly_order + 1)[None, :]
+    return f, rate_basis(dt, rate, rate_order, rate_dt_order).reshape(len(dt), -1)
+
+
 def _equations(data: list[BlockData], a_g: list[np.ndarray], normal_temp_c: float,
                settings: DifferentialSettings, lag_tau_s: float) -> _Equations:
     """The differenced equations; ``a_g`` holds each run's specific force per window (n_windows, 3)."""
@@ -361,9 +370,7 @@ def _equations(data: list[BlockData], a_g: list[np.ndarray], normal_temp_c: floa
     for d, a in zip(data, a_g):
         i, j = _half_pairs(d.window)
         temp, rate = d.temperature(lag_tau_s)
-        dt = temp - normal_temp_c
-        f = dt[:, None] ** np.arange(1, P + 1)[None, :]
-        g = rate_basis(dt, rate, R, Kx).reshape(len(dt), -1)
+        f, g = _bases(temp - normal_temp_c, rate, P, R, Kx)
         var = d.u_var_v2[i] + d.u_var_v2[j] if d.u_var_v2 is not None else np.zeros((len(i), 3))
         start = np.array([(w.t_start_ns - d.sensor.t_ref_ns) / _NS for w in d.windows])
         chunk = np.floor((d.t_s[i] - start[d.window[i]]) / CLUSTER_S).astype(np.int64)
@@ -686,9 +693,7 @@ def constants_from_orientations(data: list[BlockData], model: DifferentialModel,
         corrected = d.u_v - (U0 - U_nom) - np.einsum("mij,mj->mi", K - K_nom, a_unit[d.window])
         if fit is not None:
             st = fit.settings
-            dt = temp - model.normal_temp_c
-            f = dt[:, None] ** np.arange(1, st.poly_order + 1)[None, :]
-            g = rate_basis(dt, rate, st.rate_order, st.rate_dt_order).reshape(len(dt), -1)
+            f, g = _bases(temp - model.normal_temp_c, rate, st.poly_order, st.rate_order, st.rate_dt_order)
             rows = [_columns(f, g, a_unit[d.window], c, fit.terms[c], K_nom) * -K_nom[c, c] for c in range(3)]
         for w in d.windows:
             sel = d.window == w.index
@@ -922,8 +927,10 @@ def fit_uncertainty(fit: DifferentialFit, *, base_passport: dict | None = None,
         U0_sig = np.asarray(ob.std_U0, dtype=float).copy()
         for name in ob.undetermined:                  # "K_xy", "U0_x": kept at nominal values
             kind, ax = name.split("_")
-            (K_sig.__setitem__((AXES.index(ax[0]), AXES.index(ax[1])), np.nan) if kind == "K"
-             else U0_sig.__setitem__(AXES.index(ax), np.nan))
+            if kind == "K":
+                K_sig[AXES.index(ax[0]), AXES.index(ax[1])] = np.nan
+            else:
+                U0_sig[AXES.index(ax)] = np.nan
             undetermined[f"{kind}.{ax}"] = ("not determined by the orientations (no base passport): kept at its "
                                             "nominal value")
         for i in range(3):
