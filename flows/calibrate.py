@@ -5,8 +5,8 @@ passport or, on sweeps, from the orientations) supplies observe and fit:
 
 - ingest:  ``pipeline.io.runs.read_run``
 - choose:  with ``method="auto"`` (the command line's default) the first run's segmentation
-  (``pipeline.segment.segment_run``) and ``pipeline.calibrate.methods.auto_method``: the method the recording
-  supports; observe reuses that segmentation (the run is read and segmented once)
+  and the method the recording supports (``pipeline.calibrate.methods.resolve_auto``, shared with the fleet);
+  observe reuses that segmentation (the run is read and segmented once)
 - observe: ``<recipe>.observe`` (``pipeline.calibrate.observations``: segmentation and per-segment averages)
 - fit:     ``<recipe>.calibrate_observed`` (constants, thermal model, VP verification, passport document)
 - write:   ``pipeline.calibrate.publish.publish`` (``pipeline.passport.registry``, ``pipeline.plots``)
@@ -27,9 +27,9 @@ from prefect.cache_policies import NO_CACHE  # noqa: E402  (no input hashing: a 
 from pipeline.calibrate.inputs import select_runs  # noqa: E402
 from pipeline.calibrate.methods import (  # noqa: E402
     NEEDS_BASE_PASSPORT,
-    auto_method,
     default_base_passport,
     recipe,
+    resolve_auto,
 )
 from pipeline.calibrate.observations import unit_of  # noqa: E402
 from pipeline.calibrate.publish import publish  # noqa: E402
@@ -38,7 +38,6 @@ from pipeline.errors import ThermocalError  # noqa: E402
 from pipeline.io import runs as runio  # noqa: E402
 from pipeline.passport.canonical import canonical_json  # noqa: E402
 from pipeline.passport.registry import Registry  # noqa: E402
-from pipeline.segment import segment_run  # noqa: E402
 
 
 @task(name="ingest", cache_policy=NO_CACHE)
@@ -47,10 +46,10 @@ def ingest(path: str):
 
 
 @task(name="choose", cache_policy=NO_CACHE)
-def choose(run, settings: CalibrationSettings):
-    """``--method auto``: the run's segmentation, the method it supports and why."""
-    seg = segment_run(run, settings.segment)
-    return (*auto_method(run, seg), seg)
+def choose(run, settings: CalibrationSettings, base_passport: dict | None):
+    """``--method auto``: the method the run supports, the base passport if it needs one, the run's segmentation
+    and why (``pipeline.calibrate.methods.resolve_auto``)."""
+    return resolve_auto(run, settings, base_passport)
 
 
 @task(name="observe", cache_policy=NO_CACHE)
@@ -105,7 +104,7 @@ def calibrate_flow(paths: list[str], registry: str, settings: CalibrationSetting
     segmentation, chosen = None, None       # the first run's, when made to choose the method
     if method == "auto":
         step(f"choose the method (segment {os.path.basename(paths[0])})")
-        method, chosen, segmentation = choose(runs[0], settings)
+        method, base_passport, segmentation, chosen = choose(runs[0], settings, base_passport)
     base_line = None                        # which version the differential method starts from, and its status
     if method not in NEEDS_BASE_PASSPORT:
         base_passport = None

@@ -29,8 +29,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from pipeline.calibrate.inputs import RunInput, folder_warning, resolve_run_ids
-from pipeline.calibrate.methods import METHODS, NEEDS_BASE_PASSPORT, auto_method, base_passport_of, \
-    default_base_passport, recipe
+from pipeline.calibrate.methods import METHODS, NEEDS_BASE_PASSPORT, base_passport_of, default_base_passport, \
+    recipe, resolve_auto
 from pipeline.calibrate.publish import publish, recorded_settings
 from pipeline.calibrate.result import base_reference
 from pipeline.calibrate.settings import CalibrationSettings
@@ -40,7 +40,6 @@ from pipeline.io.runs import read_run, read_run_meta, run_format  # noqa: F401  
 from pipeline.passport.provenance import RunDigest, hash_run
 from pipeline.passport.registry import Registry, identity_key
 from pipeline.run import RunMeta
-from pipeline.segment import segment_run
 
 #: A directory holding one of these is a Parquet run directory (log-format.md).
 PARQUET_RUN_MARKERS = ("voltmeter.parquet", PARQUET_META_FILE)
@@ -273,9 +272,8 @@ def calibrate_group(unit: str, runs: list[str] | tuple[str, ...], registry: str 
                 raise CalibrationError(f"run is of unit {run.meta.unit_serial!r}, not {unit!r}", path=path)
             seg = None
             if rec is None:        # --method auto: the method the unit's first readable run supports
-                seg = segment_run(run, settings.segment)
-                rec = recipe(auto_method(run, seg)[0])
-                base_passport = base_passport if rec.METHOD in NEEDS_BASE_PASSPORT else None
+                method, base_passport, seg, _ = resolve_auto(run, settings, base_passport)
+                rec = recipe(method)
             observed.append(rec.observe(run, settings, base_passport=base_passport, segmentation=seg))
         except Exception as exc:  # noqa: BLE001 - drop this run, calibrate the others
             failed.append({"run": path, "reason": reason_of(exc)})

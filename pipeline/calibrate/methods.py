@@ -47,6 +47,18 @@ def auto_method(run, seg) -> tuple[str, str]:
     return chosen, f"{chosen} ({kind}: {m['why']})"
 
 
+def resolve_auto(run, settings, base_passport: dict | None = None):
+    """The ``--method auto`` steps on a unit's first run, for the calibrate flow and the fleet alike: segment
+    ``run`` (``settings.segment``), choose the method it supports (:func:`auto_method`) and keep ``base_passport``
+    only when that method starts from one. Returns (the method's name, for :func:`recipe`; the base passport or
+    None; the segmentation for the recipe's ``observe``; the line saying which method and why)."""
+    from pipeline.segment import segment_run
+
+    seg = segment_run(run, settings.segment)
+    method, why = auto_method(run, seg)
+    return method, (base_passport if method in NEEDS_BASE_PASSPORT else None), seg, why
+
+
 def default_base_passport(registry, unit: str) -> tuple[dict | None, str]:
     """(:func:`base_passport_of`, a line saying which version and its status), or (None, a line saying why none)
     when the unit has no passport to start from: the differential method then takes the constants at T0 from the
