@@ -30,6 +30,7 @@ import polars as pl
 
 from pipeline.errors import ThermocalError
 from pipeline.model import specific_force_g
+from pipeline.passport.document import failed_verification
 from pipeline.run import NS_PER_S as _NS
 from pipeline.run import SLAB_SAMPLES as _SLAB  # samples compensated at a time (the K(T) stack: 72 bytes a sample)
 from pipeline.run import Run
@@ -176,8 +177,7 @@ def apply_passport(passport: dict, run: Run) -> Applied:
         out[~good] = np.nan
         a[s0:s1] = out
     if passport.get("status") == "fail":
-        warnings.append(f"the passport ({passport.get('unit')} v{passport.get('version')}) failed its verification "
-                        "(status fail): its compensated errors exceeded the limits")
+        warnings.append(failed_verification(f"the passport ({passport.get('unit')} v{passport.get('version')})"))
     rng = valid_range_c(passport)
     if rng is None:
         in_range = np.isfinite(temp_c)

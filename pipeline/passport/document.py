@@ -36,6 +36,13 @@ SCHEMA_ID = "thermocal.passport/1"
 DEFAULT_METHOD = "tilt_six_position"
 
 
+def failed_verification(subject: str) -> str:
+    """The one wording of a passport that failed its verification (``status`` fail), for any command that uses one
+    (apply, export, diagnose, certificate, the differential base): ``AU-0001 v3 failed its verification (status
+    fail): its compensated errors exceeded the limits``."""
+    return f"{subject} failed its verification (status fail): its compensated errors exceeded the limits"
+
+
 def build_passport(fit, verification_rows, status: str, *, g_local_mps2: float, plateaus: list[dict],
                    method: str = "tilt_six_position", extra: dict | None = None) -> dict:
     """Passport content (without version/parent/provenance, which the registry sets).

@@ -40,7 +40,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pipeline.errors import ThermocalError
-from pipeline.passport.document import load_model
+from pipeline.passport.document import failed_verification, load_model
 from pipeline.passport.significance import sigma_of
 from pipeline.passport.text import output_unit_of, per
 
@@ -297,8 +297,7 @@ def _header(passport: dict, what: str, lo: float, hi: float, not_held: list[str]
              f"{str(passport.get('content_sha256', ''))[:16]}), method {passport.get('method', 'tilt_six_position')}",
              f"# status {passport.get('status')}; {_approval(passport, state)}"]
     if passport.get("status") == "fail":
-        lines.append("# WARNING: this passport failed its verification (its compensated errors exceeded the "
-                     "limits); review before loading it")
+        lines.append(f"# WARNING: {failed_verification('this passport')}; review before loading it")
     lines += [f"# valid temperature range {lo:g} .. {hi:g} C; accelerometer offsets in m/s^2 along the unit's x, "
               "y, z",
               "# raw reading assumed: the unit's output with the passport's normal-temperature constants applied",

@@ -50,6 +50,7 @@ from typing import Any, Iterator
 from pipeline.errors import RegistryError
 from pipeline.passport.canonical import canonical_json, content_sha256, sha256_bytes, sha256_file
 from pipeline.passport.diff import diff_passports
+from pipeline.passport.document import failed_verification
 from pipeline.passport.signing import TrustStore, sign_record, station_key, trusted_keys, verify_record
 
 __all__ = [
@@ -214,8 +215,7 @@ class VersionState:
         """One line for stderr when the version failed its verification (a failed version is never approved)."""
         if self.status != "fail":
             return None
-        return (f"{self.unit} v{self.version} failed its verification (status fail) and is not approved: its "
-                "compensated errors exceeded the limits")
+        return failed_verification(f"{self.unit} v{self.version}") + "; it is not approved"
 
     def as_dict(self) -> dict:
         return {"unit": self.unit, "version": self.version, "status": self.status, "approved": self.approved,
