@@ -742,49 +742,36 @@ def _usage_line(e: Exception) -> str:
     return f"thermocal: usage error: {msg} (see `{cmd} --help`)"
 
 
-def main() -> None:
+def main(server_checked: bool = False) -> None:
     """Console entry point: one-line errors, no tracebacks (set THERMOCAL_DEBUG=1 to see them); a closed stdout
-    (``| head``) ends the output quietly. Commands that run a flow go to the local server's warm worker unless
-    PREFECT_API_URL is set (:mod:`flows.localserver`)."""
-    from .runtime import ClosedPipeQuiet
+    (``| head``) ends the output quietly (:func:`flows.runtime.exit_guarded`). Commands that run a flow go to the
+    local server's warm worker unless PREFECT_API_URL is set (:mod:`flows.localserver`; ``server_checked``: the
+    caller, :func:`flows.console.main`, has already found that this command is not one of them)."""
+    from .runtime import exit_guarded
 
-    stdout = sys.stdout
-    sys.stdout = ClosedPipeQuiet(stdout)
-    try:
-        _main()
-    finally:
-        sys.stdout = stdout
+    exit_guarded(lambda: _main(server_checked))
 
 
-def _main() -> None:
+def _main(server_checked: bool) -> int:
+    """The command's exit status (usage errors: their one line and 2)."""
     try:
         argv = sys.argv[1:]
-        from .localserver import run_on_server, runs_on_local_server
+        if not server_checked:
+            from .localserver import run_on_server, runs_on_local_server
 
-        if runs_on_local_server(argv):
-            sys.exit(run_on_server(argv))
+            if runs_on_local_server(argv):
+                return run_on_server(argv)
         rc = app(standalone_mode=False, prog_name="thermocal")
         if rc == 130:  # typer's answer to Ctrl-C (KeyboardInterrupt) in a command
             raise KeyboardInterrupt
-        sys.exit(rc if isinstance(rc, int) else 0)
+        return rc if isinstance(rc, int) else 0
     except _CLICK_ERRORS as e:  # usage: a missing or unknown command, option or value
         print(_usage_line(e), file=sys.stderr)
-        sys.exit(2 if getattr(e, "exit_code", 2) in (None, 2) else e.exit_code)
-    except ThermocalError as e:
-        print(f"thermocal: error: {e.one_line()}", file=sys.stderr)
-        sys.exit(2)
+        return 2 if getattr(e, "exit_code", 2) in (None, 2) else e.exit_code
     except typer.Exit as e:
-        sys.exit(e.exit_code)
-    except (typer.Abort, KeyboardInterrupt):
-        print("thermocal: aborted", file=sys.stderr)
-        sys.exit(130)
-    except SystemExit:
-        raise
-    except Exception as e:  # noqa: BLE001 - the last line of defence: one line, not a traceback
-        if os.environ.get("THERMOCAL_DEBUG"):
-            raise
-        print(f"thermocal: internal error: {type(e).__name__}: {' '.join(str(e).split())}", file=sys.stderr)
-        sys.exit(3)
+        return e.exit_code
+    except typer.Abort:
+        raise KeyboardInterrupt from None
 
 
 if __name__ == "__main__":

@@ -12,31 +12,18 @@ import sys
 
 def main() -> None:
     """Console entry point (pyproject's ``thermocal``): one-line errors, a closed stdout ends the output quietly,
-    as :func:`flows.cli.main`."""
+    as :func:`flows.cli.main` (the same guard, :func:`flows.runtime.exit_guarded`)."""
     from .localserver import run_on_server, runs_on_local_server
-    from .runtime import ClosedPipeQuiet
 
     argv = sys.argv[1:]
     if not runs_on_local_server(argv):
         from .cli import main as cli_main
 
-        cli_main()
+        cli_main(server_checked=True)
         return
-    from pipeline.errors import ThermocalError
+    from .runtime import exit_guarded
 
-    stdout = sys.stdout
-    sys.stdout = ClosedPipeQuiet(stdout)
-    try:
-        code = run_on_server(argv)
-    except ThermocalError as e:
-        print(f"thermocal: error: {e.one_line()}", file=sys.stderr)
-        code = 2
-    except KeyboardInterrupt:
-        print("thermocal: aborted", file=sys.stderr)
-        code = 130
-    finally:
-        sys.stdout = stdout
-    sys.exit(code)
+    exit_guarded(lambda: run_on_server(argv))
 
 
 if __name__ == "__main__":

@@ -156,3 +156,33 @@ class ClosedPipeQuiet:
 
     def __getattr__(self, name):
         return getattr(self._stream, name)
+
+
+def exit_guarded(body) -> None:
+    """Run ``body()`` (a command; returns its exit status) as the console script does and exit with its status:
+    ``sys.stdout`` is :class:`ClosedPipeQuiet` meanwhile; a :class:`pipeline.errors.ThermocalError` is one line on
+    stderr and exit 2, Ctrl-C ``thermocal: aborted`` and 130, any other exception one line (``internal error``,
+    the traceback with THERMOCAL_DEBUG=1) and 3. The one guard of :func:`flows.cli.main` and
+    :func:`flows.console.main`."""
+    from pipeline.errors import ThermocalError
+
+    stdout = sys.stdout
+    sys.stdout = ClosedPipeQuiet(stdout)
+    try:
+        code = body()
+    except ThermocalError as e:
+        print(f"thermocal: error: {e.one_line()}", file=sys.stderr)
+        code = 2
+    except KeyboardInterrupt:
+        print("thermocal: aborted", file=sys.stderr)
+        code = 130
+    except SystemExit:
+        raise
+    except Exception as e:  # noqa: BLE001 - the last line of defence: one line, not a traceback
+        if os.environ.get("THERMOCAL_DEBUG"):
+            raise
+        print(f"thermocal: internal error: {type(e).__name__}: {' '.join(str(e).split())}", file=sys.stderr)
+        code = 3
+    finally:
+        sys.stdout = stdout
+    sys.exit(code)
