@@ -188,14 +188,24 @@ def plan_fleet(root: str | os.PathLike, registry: str | os.PathLike | Registry,
             kept = [i for i in kept if i["path"] in paths_kept]
             if not kept:
                 continue
+
+        def identities(base: dict | None, needs_base: bool) -> list[str]:
+            return [identity_key(kept, recorded_settings(settings, rec.METHOD, base_reference(base)
+                                                         if base is not None else {}))
+                    for rec in recs if (rec.METHOD in NEEDS_BASE_PASSPORT) == needs_base]
+
         try:
-            base = base_passport_of(reg, unit)[0] if method in NEEDS_BASE_PASSPORT else \
-                default_base_passport(reg, unit)[0] if method == "auto" else None
-            identities = [identity_key(kept, recorded_settings(   # auto: done by whichever method it picks
-                settings, rec.METHOD, base_reference(base) if base is not None and (
-                    method != "auto" or rec.METHOD in NEEDS_BASE_PASSPORT) else {})) for rec in recs]
-            identity = identities[0]
-            done = next((d for d in (reg.find(unit, i) for i in identities) if d is not None), None)
+            if method != "auto":
+                base = base_passport_of(reg, unit)[0] if method in NEEDS_BASE_PASSPORT else None
+                identity = identities(base, method in NEEDS_BASE_PASSPORT)[0]
+                done = reg.find(unit, identity)
+            else:                   # done by whichever method it picks; the base only for a unit not done yet
+                plain = identities(None, False)
+                identity, base = plain[0], None
+                done = reg.find(unit, *plain)
+                if done is None:
+                    base = default_base_passport(reg, unit)[0]
+                    done = reg.find(unit, *identities(base, True))
         except ThermocalError as exc:  # e.g. a unit serial that cannot be a registry name
             plan.failed += [{"run": i["path"], "reason": exc.one_line()} for i in kept]
             continue

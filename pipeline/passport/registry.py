@@ -510,16 +510,18 @@ class Registry:
             return found.version, True
         return self._scan(unit).latest + 1, False
 
-    def find(self, unit: str, identity: str) -> VersionInfo | None:
-        """The latest version of ``unit`` published with this identity key (see :func:`identity_key`), if any."""
+    def find(self, unit: str, identity: str, *more: str) -> VersionInfo | None:
+        """The latest version of ``unit`` published with this identity key (see :func:`identity_key`), if any; with
+        ``more`` keys, that of the first key (in the order given) that has one. One scan of the unit's folder."""
         if not self.unit_dir(unit).is_dir():
             return None
         rows = self._scan(unit).log_rows
-        hits = [v for v, row in rows.items() if row.get("identity") == identity]
-        if not hits:
-            return None
-        v = max(hits)
-        return next((i for i in self.versions(unit) if i.version == v), None)
+        for key in (identity, *more):
+            hits = [v for v, row in rows.items() if row.get("identity") == key]
+            if hits:
+                v = max(hits)
+                return next((i for i in self.versions(unit) if i.version == v), None)
+        return None
 
     # -- writing ------------------------------------------------------------------------------------------------
 
