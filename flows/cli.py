@@ -445,7 +445,7 @@ def fleet(folder: Path = typer.Argument(..., metavar="FOLDER", help="folder of r
                         figures=figures, progress=True, method=method)
     _emit(summary, as_json, None if as_json else _fleet_text(summary))
     if summary["failed"]:
-        from pipeline.inspect import count_words
+        from pipeline.words import count_words
 
         from .fleet import failure_line
 
@@ -456,7 +456,7 @@ def fleet(folder: Path = typer.Argument(..., metavar="FOLDER", help="folder of r
 
 
 def _fleet_text(s: dict) -> str:
-    from pipeline.inspect import count_words
+    from pipeline.words import count_words
 
     from .fleet import failure_line
 

@@ -16,7 +16,7 @@ from pipeline.io.checks import GAP_FACTOR, gap_indices  # noqa: F401  (GAP_FACTO
 from pipeline.jsonable import to_jsonable
 from pipeline.run import Run
 from pipeline.utc import utc_text
-from pipeline.words import count_words  # noqa: F401  (also imported from here by the CLI)
+from pipeline.words import count_words
 
 
 def summarize_run(run: Run) -> dict[str, Any]:
