@@ -51,15 +51,40 @@ def bins(run_dir: Path) -> list[dict]:
     for a, b in period_bounds_ns():
         m = (t_ns >= a) & (t_ns <= b)
         ts = t_s[m]
-        df = pl.DataFrame({"bin": ((ts - ts[0]) // MEAN_S).astype(np.int64), "t": ts, "T": temp_c[m],
-                           "ux": u[m, 0], "uy": u[m, 1], "uz": u[m, 2]})
-        g = (df.group_by("bin").agg(pl.len().alias("n"), pl.col("t").mean(), pl.col("T").mean(),
-                                    pl.col("ux").mean(), pl.col("uy").mean(), pl.col("uz").mean(),
-                                    (pl.cov("t", "T") / pl.col("t").var()).alias("rate"))
-             .filter(pl.col("n") >= 0.9 * MEAN_S).sort("bin"))
+        df = pl.DataFrame(
+            {
+                "bin": ((ts - ts[0]) // MEAN_S).astype(np.int64),
+                "t": ts,
+                "T": temp_c[m],
+                "ux": u[m, 0],
+                "uy": u[m, 1],
+                "uz": u[m, 2],
+            }
+        )
+        g = (
+            df.group_by("bin")
+            .agg(
+                pl.len().alias("n"),
+                pl.col("t").mean(),
+                pl.col("T").mean(),
+                pl.col("ux").mean(),
+                pl.col("uy").mean(),
+                pl.col("uz").mean(),
+                (pl.cov("t", "T") / pl.col("t").var()).alias("rate"),
+            )
+            .filter(pl.col("n") >= 0.9 * MEAN_S)
+            .sort("bin")
+        )
         tb = g["t"].to_numpy()
-        out.append({"t_s": tb, "temp_c": g["T"].to_numpy(), "rate_c_per_h": g["rate"].to_numpy() * 3600.0,
-                    "u": g.select(["ux", "uy", "uz"]).to_numpy(), "even": (tb // SPLIT_S) % 2 == 0})
+        out.append(
+            {
+                "t_s": tb,
+                "temp_c": g["T"].to_numpy(),
+                "rate_c_per_h": g["rate"].to_numpy() * 3600.0,
+                "u": g.select(["ux", "uy", "uz"]).to_numpy(),
+                "even": (tb // SPLIT_S) % 2 == 0,
+            }
+        )
     return out
 
 
@@ -68,7 +93,7 @@ def heldout_mm(p: dict, axis: int, tau_s: float, drift: bool) -> tuple[float, fl
     held-out (odd) bins, and on the calibration bins."""
     te = p["temp_c"] - tau_s * p["rate_c_per_h"] / 3600.0
     x = (te - te.mean()) / 10.0
-    cols = [x ** k for k in range(4)] + ([p["t_s"] / 86400.0] if drift else [])
+    cols = [x**k for k in range(4)] + ([p["t_s"] / 86400.0] if drift else [])
     a = np.stack(cols, axis=1)
     y = p["u"][:, axis]
     c, *_ = np.linalg.lstsq(a[p["even"]], y[p["even"]], rcond=None)
@@ -83,14 +108,22 @@ def analyse(run_dir: Path = DEFAULT_RUN) -> dict:
     for k, p in enumerate(periods):
         for i in range(3):
             span = float(np.ptp(p["u"][:, i]) * 1e3)
-            row = {"period": k, "axis": "xyz"[i], "span_mm": span,
-                   "max_rate_c_per_h": float(np.abs(p["rate_c_per_h"]).max())}
+            row = {
+                "period": k,
+                "axis": "xyz"[i],
+                "span_mm": span,
+                "max_rate_c_per_h": float(np.abs(p["rate_c_per_h"]).max()),
+            }
             for drift in (False, True):
                 prof = np.array([heldout_mm(p, i, tau, drift) for tau in TAUS_S])
-                best = int(np.argmin(prof[:, 1]))            # chosen on the calibration bins
+                best = int(np.argmin(prof[:, 1]))  # chosen on the calibration bins
                 key = "drift" if drift else "plain"
-                row[key] = {"heldout_tau0_mm": float(prof[TAUS_S == 0.0, 0][0]), "best_tau_s": float(TAUS_S[best]),
-                            "heldout_best_mm": float(prof[best, 0]), "profile_heldout": prof[:, 0]}
+                row[key] = {
+                    "heldout_tau0_mm": float(prof[TAUS_S == 0.0, 0][0]),
+                    "best_tau_s": float(TAUS_S[best]),
+                    "heldout_best_mm": float(prof[best, 0]),
+                    "profile_heldout": prof[:, 0],
+                }
             rows.append(row)
             if span > STRONG_MM:
                 strong.append(row)
@@ -98,28 +131,37 @@ def analyse(run_dir: Path = DEFAULT_RUN) -> dict:
     for key in ("plain", "drift"):
         ss = np.sum([r[key]["profile_heldout"] ** 2 for r in strong], axis=0)
         j = int(np.argmin(ss))
-        joint[key] = {"tau_s": float(TAUS_S[j]), "rms_heldout_mm": float(np.sqrt(ss[j] / len(strong))),
-                      "rms_heldout_tau0_mm": float(np.sqrt(ss[TAUS_S == 0.0][0] / len(strong))),
-                      "rms_heldout_60s_mm": float(np.sqrt(ss[TAUS_S == 60.0][0] / len(strong))),
-                      "rms_heldout_300s_mm": float(np.sqrt(ss[TAUS_S == 300.0][0] / len(strong)))}
+        joint[key] = {
+            "tau_s": float(TAUS_S[j]),
+            "rms_heldout_mm": float(np.sqrt(ss[j] / len(strong))),
+            "rms_heldout_tau0_mm": float(np.sqrt(ss[TAUS_S == 0.0][0] / len(strong))),
+            "rms_heldout_60s_mm": float(np.sqrt(ss[TAUS_S == 60.0][0] / len(strong))),
+            "rms_heldout_300s_mm": float(np.sqrt(ss[TAUS_S == 300.0][0] / len(strong))),
+        }
     return {"rows": rows, "strong": [(r["period"], r["axis"]) for r in strong], "joint": joint}
 
 
 def main(argv: list[str]) -> None:
     res = analyse(Path(argv[0]) if argv else DEFAULT_RUN)
-    print("| period | axis | span of 10-min means (mm/s^2) | max rate (C/h) | held-out, tau 0 | best tau on cal. (s) "
-          "| held-out there | + drift: tau 0 | + drift: best tau (s) | held-out there |")
+    print(
+        "| period | axis | span of 10-min means (mm/s^2) | max rate (C/h) | held-out, tau 0 | best tau on cal. (s) "
+        "| held-out there | + drift: tau 0 | + drift: best tau (s) | held-out there |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|")
     for r in res["rows"]:
         p, d = r["plain"], r["drift"]
-        print(f"| {r['period']} | {r['axis']} | {r['span_mm']:.0f} | {r['max_rate_c_per_h']:.1f} | "
-              f"{p['heldout_tau0_mm']:.2f} | {p['best_tau_s']:+.0f} | {p['heldout_best_mm']:.2f} | "
-              f"{d['heldout_tau0_mm']:.2f} | {d['best_tau_s']:+.0f} | {d['heldout_best_mm']:.2f} |")
+        print(
+            f"| {r['period']} | {r['axis']} | {r['span_mm']:.0f} | {r['max_rate_c_per_h']:.1f} | "
+            f"{p['heldout_tau0_mm']:.2f} | {p['best_tau_s']:+.0f} | {p['heldout_best_mm']:.2f} | "
+            f"{d['heldout_tau0_mm']:.2f} | {d['best_tau_s']:+.0f} | {d['heldout_best_mm']:.2f} |"
+        )
     print(f"\nAxes moving by more than {STRONG_MM:.0f} mm/s^2: {res['strong']}")
     for key, j in res["joint"].items():
-        print(f"joint ({key}): best tau {j['tau_s']:+.0f} s, held-out RMS {j['rms_heldout_mm']:.2f} mm/s^2 "
-              f"(tau 0: {j['rms_heldout_tau0_mm']:.2f}, 60 s: {j['rms_heldout_60s_mm']:.2f}, "
-              f"300 s: {j['rms_heldout_300s_mm']:.2f})")
+        print(
+            f"joint ({key}): best tau {j['tau_s']:+.0f} s, held-out RMS {j['rms_heldout_mm']:.2f} mm/s^2 "
+            f"(tau 0: {j['rms_heldout_tau0_mm']:.2f}, 60 s: {j['rms_heldout_60s_mm']:.2f}, "
+            f"300 s: {j['rms_heldout_300s_mm']:.2f})"
+        )
 
 
 if __name__ == "__main__":

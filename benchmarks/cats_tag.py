@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import sys
 import time
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -42,14 +42,17 @@ from scipy.signal import savgol_filter
 SPLIT_S = 7200.0
 MEAN_S = 600.0
 SAVGOL = (99, 2)
-PERIODS = [("2021-09-20T09:00", "2021-09-21T10:33", "-z"), ("2021-09-21T10:40", "2021-09-22T11:55", "-x"),
-           ("2021-09-22T12:14", "2021-09-23T11:19", "-y")]
+PERIODS = [
+    ("2021-09-20T09:00", "2021-09-21T10:33", "-z"),
+    ("2021-09-21T10:40", "2021-09-22T11:55", "-x"),
+    ("2021-09-22T12:14", "2021-09-23T11:19", "-y"),
+]
 DEFAULT_RUN = Path(__file__).resolve().parents[2] / "shared" / "reference" / "real" / "cats_tag" / "run"
 _NS = 1_000_000_000
 
 
 def _ns(text: str) -> int:
-    return int(datetime.fromisoformat(text).replace(tzinfo=timezone.utc).timestamp()) * _NS
+    return int(datetime.fromisoformat(text).replace(tzinfo=UTC).timestamp()) * _NS
 
 
 def period_bounds_ns() -> list[tuple[int, int]]:
@@ -65,10 +68,17 @@ def calibration_run(run, keep: np.ndarray):
     """The run with the voltmeter rows not in ``keep`` set to NaN (rows kept, so times stay whole)."""
     from pipeline.run import Run
 
-    v = run.voltmeter.with_columns([pl.when(pl.Series(keep)).then(pl.col(c)).otherwise(float("nan")).alias(c)
-                                    for c in ("ux", "uy", "uz")])
-    return Run(meta=run.meta, voltmeter=v, au_temperature=run.au_temperature, chamber=run.chamber,
-               fixture=run.fixture, source=run.source)
+    v = run.voltmeter.with_columns(
+        [pl.when(pl.Series(keep)).then(pl.col(c)).otherwise(float("nan")).alias(c) for c in ("ux", "uy", "uz")]
+    )
+    return Run(
+        meta=run.meta,
+        voltmeter=v,
+        au_temperature=run.au_temperature,
+        chamber=run.chamber,
+        fixture=run.fixture,
+        source=run.source,
+    )
 
 
 def ten_minute_spread(t_ns: np.ndarray, x: np.ndarray, held_out: np.ndarray) -> np.ndarray:
@@ -102,8 +112,15 @@ def _hinge_fit(temp: np.ndarray, y: np.ndarray):
     return lambda T: coef[0] + coef[1] * T + coef[2] * np.maximum(T - tb, 0.0)
 
 
-def peer_compensation(t_ns: np.ndarray, u: np.ndarray, temp_c: np.ndarray, fit_mask: np.ndarray, *,
-                      piecewise: bool, ref_temp_c: float = 20.0) -> np.ndarray:
+def peer_compensation(
+    t_ns: np.ndarray,
+    u: np.ndarray,
+    temp_c: np.ndarray,
+    fit_mask: np.ndarray,
+    *,
+    piecewise: bool,
+    ref_temp_c: float = 20.0,
+) -> np.ndarray:
     """The peer's per-period, per-axis standardisation (module doc), fitted on the ``fit_mask`` samples: (n, 3)
     with NaN outside the periods."""
     out = np.full_like(u, np.nan)
@@ -138,8 +155,9 @@ def compare(run_dir: str | Path = DEFAULT_RUN) -> dict:
     run = read_run(run_dir)
     t_ns = run.t_ns()
     u = run.u_v()
-    temp = np.interp(t_ns.astype(float), run.au_temperature["t_ns"].to_numpy().astype(float),
-                     run.au_temperature["temp_c"].to_numpy())
+    temp = np.interp(
+        t_ns.astype(float), run.au_temperature["t_ns"].to_numpy().astype(float), run.au_temperature["temp_c"].to_numpy()
+    )
     cal = calibration_mask(t_ns)
     held = ~cal
     t = time.perf_counter()
@@ -158,8 +176,11 @@ def compare(run_dir: str | Path = DEFAULT_RUN) -> dict:
 
 def format_table(result: dict) -> str:
     tab = result["table"]
-    head = f"{'method':<16}" + "".join(f"{f'P{p + 1}({PERIODS[p][2]}) {ax}':>12}" for p in range(3)
-                                       for ax in "xyz") + f"{'mean':>9}"
+    head = (
+        f"{'method':<16}"
+        + "".join(f"{f'P{p + 1}({PERIODS[p][2]}) {ax}':>12}" for p in range(3) for ax in "xyz")
+        + f"{'mean':>9}"
+    )
     lines = ["CATS tag, held-out 2-h blocks: std of 10-min means within each period, mm/s^2", head]
     for k, v in tab.items():
         lines.append(f"{k:<16}" + "".join(f"{x:12.2f}" for x in v.ravel()) + f"{v.mean():9.2f}")
@@ -171,15 +192,21 @@ def main(argv: list[str]) -> None:
     res = compare(run_dir)
     print(format_table(res))
     d = res["passport"]["differential"]
-    print(f"thermocal: calibrate {res['calibrate_s']:.1f} s; terms x {d['terms']['x']}, y {d['terms']['y']}, "
-          f"z {d['terms']['z']}; poly order {d['poly_order']}, rate order {d['rate_order']}; valid "
-          f"{res['passport']['valid_temp_c']} C")
+    print(
+        f"thermocal: calibrate {res['calibrate_s']:.1f} s; terms x {d['terms']['x']}, y {d['terms']['y']}, "
+        f"z {d['terms']['z']}; poly order {d['poly_order']}, rate order {d['rate_order']}; valid "
+        f"{res['passport']['valid_temp_c']} C"
+    )
     sel = d.get("model_selection")
     if sel:
-        print("model chosen by two-fold validation within the calibration blocks (score: mm/s^2): " + ", ".join(
-            f"poly{c['poly_order']}{'+rate' + str(c['rate_order']) if c.get('rate_order') else ''}"
-            f"{'+cross' if c['cross_axis'] else ''} {c['score_g'] * 9806.65:.2f}"
-            for c in sel["candidates"]))
+        print(
+            "model chosen by two-fold validation within the calibration blocks (score: mm/s^2): "
+            + ", ".join(
+                f"poly{c['poly_order']}{'+rate' + str(c['rate_order']) if c.get('rate_order') else ''}"
+                f"{'+cross' if c['cross_axis'] else ''} {c['score_g'] * 9806.65:.2f}"
+                for c in sel["candidates"]
+            )
+        )
 
 
 if __name__ == "__main__":

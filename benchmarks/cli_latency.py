@@ -25,8 +25,8 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import shutil
 import resource
+import shutil
 import signal
 import socket
 import statistics
@@ -142,8 +142,9 @@ def free_port() -> int:
 
 def api(url: str, path: str, body: dict | None = None) -> object:
     data = None if body is None else json.dumps(body).encode()
-    req = urllib.request.Request(url + path, data=data, headers={"Content-Type": "application/json"},
-                                 method="GET" if body is None else "POST")
+    req = urllib.request.Request(
+        url + path, data=data, headers={"Content-Type": "application/json"}, method="GET" if body is None else "POST"
+    )
     with urllib.request.urlopen(req, timeout=30) as resp:
         return json.loads(resp.read())
 
@@ -152,9 +153,13 @@ def start_prefect_server(env: dict, home: Path) -> tuple[subprocess.Popen, str]:
     """A user's own ``prefect server start`` on a free loopback port (its own session)."""
     port = free_port()
     url = f"http://127.0.0.1:{port}/api"
-    proc = subprocess.Popen([sys.executable, "-m", "prefect", "server", "start", "--host", "127.0.0.1", "--port",
-                             str(port)], env=dict(env, PREFECT_HOME=str(home)), stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL, start_new_session=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "prefect", "server", "start", "--host", "127.0.0.1", "--port", str(port)],
+        env=dict(env, PREFECT_HOME=str(home)),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
     deadline = time.monotonic() + 180
     while time.monotonic() < deadline:
         try:
@@ -218,58 +223,85 @@ def main() -> None:
         st = read_state(home)
         local = local_server_processes(st)
         ins, cal, b2b = Sample(), Sample(), Sample()
-        call([THERMOCAL, "inspect", run, "--json"], env, Sample())                      # warm-up calls
+        call([THERMOCAL, "inspect", run, "--json"], env, Sample())  # warm-up calls
         call([THERMOCAL, "calibrate", run, "--json", "--registry", str(work / f"reg{next(k)}")], env, Sample(), local)
-        for _ in range(args.repeat):                                                    # in turn: the same load
+        for _ in range(args.repeat):  # in turn: the same load
             call([THERMOCAL, "inspect", run, "--json"], env, ins)
             call([THERMOCAL, "calibrate", run, "--json", "--registry", str(work / f"reg{next(k)}")], env, cal, local)
         for _ in range(args.repeat):
             call([THERMOCAL, "calibrate", run, "--json", "--registry", str(work / f"reg{next(k)}")], env, b2b, local)
         pair = statistics.median(c / i for c, i in zip(cal.wall_s, ins.wall_s))
         inspect_s = ins.median_s
-        add("thermocal inspect (no Prefect)", inspect_s, f"median (min-max) {ins.line()}; CPU s "
-            f"{ins.cpu_median_s:.2f}")
-        add("thermocal calibrate, embedded: first call (fresh PREFECT_HOME: starts the local server)", first,
-            f"{first / inspect_s:.1f}x inspect")
+        add("thermocal inspect (no Prefect)", inspect_s, f"median (min-max) {ins.line()}; CPU s {ins.cpu_median_s:.2f}")
+        add(
+            "thermocal calibrate, embedded: first call (fresh PREFECT_HOME: starts the local server)",
+            first,
+            f"{first / inspect_s:.1f}x inspect",
+        )
         n_flow_runs = api(st["api_url"], "/flow_runs/count", {})
-        add("thermocal calibrate, embedded: later calls (local server running), in turn with inspect", cal.median_s,
+        add(
+            "thermocal calibrate, embedded: later calls (local server running), in turn with inspect",
+            cal.median_s,
             f"median (min-max) {cal.line()}: **{cal.median_s / inspect_s:.2f}x inspect** (median of the pairwise "
             f"ratios {pair:.2f}); CPU s {cal.cpu_median_s:.2f} (command, job process, Prefect server), "
-            f"{cal.cpu_median_s / ins.cpu_median_s:.2f}x inspect's")
-        add("thermocal calibrate, embedded: later calls back to back", b2b.median_s,
+            f"{cal.cpu_median_s / ins.cpu_median_s:.2f}x inspect's",
+        )
+        add(
+            "thermocal calibrate, embedded: later calls back to back",
+            b2b.median_s,
             f"median (min-max) {b2b.line()}: {b2b.median_s / inspect_s:.2f}x inspect; CPU s {b2b.cpu_median_s:.2f}; "
-            f"flow runs recorded on the local server: {n_flow_runs} of {2 + 2 * args.repeat}")
+            f"flow runs recorded on the local server: {n_flow_runs} of {2 + 2 * args.repeat}",
+        )
         t0 = time.perf_counter()
-        timed([THERMOCAL, "fleet", str(fleet_dir), "--registry", str(work / "fleet-reg"), "--json", "--no-figures"],
-              env, 1, ok=(0, 1))
+        timed(
+            [THERMOCAL, "fleet", str(fleet_dir), "--registry", str(work / "fleet-reg"), "--json", "--no-figures"],
+            env,
+            1,
+            ok=(0, 1),
+        )
         first_fleet = time.perf_counter() - t0
-        wall, out = timed([THERMOCAL, "fleet", str(fleet_dir), "--registry", str(work / "fleet-reg"), "--json"],
-                          env, args.repeat, ok=(0, 1))
+        wall, out = timed(
+            [THERMOCAL, "fleet", str(fleet_dir), "--registry", str(work / "fleet-reg"), "--json"],
+            env,
+            args.repeat,
+            ok=(0, 1),
+        )
         s = json.loads(out)
-        add(f"thermocal fleet, no-op over {args.fleet_runs} runs ({args.fleet_program} program, "
-            f"{args.fleet_rate_hz:g} Hz), embedded, least of {args.repeat}", wall,
-            f"{len(s['skipped'])} skipped, {len(s['done'])} done (calibrating them first took {first_fleet:.0f} s)")
+        add(
+            f"thermocal fleet, no-op over {args.fleet_runs} runs ({args.fleet_program} program, "
+            f"{args.fleet_rate_hz:g} Hz), embedded, least of {args.repeat}",
+            wall,
+            f"{len(s['skipped'])} skipped, {len(s['done'])} done (calibrating them first took {first_fleet:.0f} s)",
+        )
         own_home = work / "own-server-home"
         own, url = start_prefect_server(env, own_home)
         before = api(url, "/flow_runs/count", {})
         wall = calibrate(dict(env, PREFECT_API_URL=url), args.repeat)[0]
         after = api(url, "/flow_runs/count", {})
-        add(f"thermocal calibrate, PREFECT_API_URL (a running prefect server, in-process), least of {args.repeat}", wall,
-            f"{wall / inspect_s:.1f}x inspect; flow runs recorded on that server: {before} -> {after}")
+        add(
+            f"thermocal calibrate, PREFECT_API_URL (a running prefect server, in-process), least of {args.repeat}",
+            wall,
+            f"{wall / inspect_s:.1f}x inspect; flow runs recorded on that server: {before} -> {after}",
+        )
         if not args.no_ephemeral:
             eph_home = work / "ephemeral-home"
             calibrate(dict(env, PREFECT_HOME=str(eph_home), THERMOCAL_PREFECT="ephemeral"), 1)  # creates its DB
             wall = calibrate(dict(env, PREFECT_HOME=str(eph_home), THERMOCAL_PREFECT="ephemeral"), 1)[0]
-            add("thermocal calibrate, THERMOCAL_PREFECT=ephemeral (Prefect's per-process server: the old default)",
-                wall, f"{wall / inspect_s:.1f}x inspect")
+            add(
+                "thermocal calibrate, THERMOCAL_PREFECT=ephemeral (Prefect's per-process server: the old default)",
+                wall,
+                f"{wall / inspect_s:.1f}x inspect",
+            )
     finally:
         if own is not None:
             stop_process_group(own)
         subprocess.run([THERMOCAL, "server", "stop"], env=env, capture_output=True, timeout=60)
         shutil.rmtree(work, ignore_errors=True)
 
-    print(f"\n10 Hz standard run ({Path(run).name}); {os.cpu_count()} CPUs, 1-min load average "
-          f"{load0:.1f} at the start, {os.getloadavg()[0]:.1f} at the end\n")
+    print(
+        f"\n10 Hz standard run ({Path(run).name}); {os.cpu_count()} CPUs, 1-min load average "
+        f"{load0:.1f} at the start, {os.getloadavg()[0]:.1f} at the end\n"
+    )
     print("| command | wall s | note |\n|---|---:|---|")
     for name, wall, note in rows:
         print(f"| {name} | {wall:.2f} | {note} |")

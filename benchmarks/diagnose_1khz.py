@@ -68,6 +68,7 @@ def child(path: Path) -> None:
             prev = stages.get(name, [0.0, 0.0])
             stages[name] = [round(prev[0] + wall, 2), round(rss, 2)]
             return out
+
         return wrapper
 
     for name in ("segment_settings_for", "segment_run", "fit_passport", "static_record"):
@@ -79,18 +80,40 @@ def child(path: Path) -> None:
     samples = run.voltmeter.height
     result = timed("diagnose_run", diagnose.diagnose_run)(run)
     with tempfile.TemporaryDirectory() as tmp:
-        timed("plot", plot_residuals)(Path(tmp) / "r.png", result.t_h, result.before_v, result.after_v,
-                                      result.sigma_v, result.windows_h, result.located_h, title="benchmark")
+        timed("plot", plot_residuals)(
+            Path(tmp) / "r.png",
+            result.t_h,
+            result.before_v,
+            result.after_v,
+            result.sigma_v,
+            result.windows_h,
+            result.located_h,
+            title="benchmark",
+        )
     usage1 = resource.getrusage(resource.RUSAGE_SELF)
     rep = result.report
-    print(json.dumps({
-        "samples": samples, "numbers": numbers, "wall_s": round(time.perf_counter() - wall0, 2),
-        "cpu_s": round(usage1.ru_utime + usage1.ru_stime - usage0.ru_utime - usage0.ru_stime, 2),
-        "peak_gb": round(_peak_gb(), 3), "load_start": round(load0, 1), "stages": stages, "verdict": rep["verdict"],
-        "findings": [f["effect"] + (f"(~{'/'.join(f['confounded_with'])})" if f.get("confounded_with") else "")
-                     for f in rep["findings"]],
-        "parameters": {f["effect"]: _rounded(f["parameters"]) for f in rep["findings"]},
-        "noise_v": rep["noise_v"]["per_sample"], "blocks": rep["blocks"], "rms_after_v": rep["rms_after_v"]}))
+    print(
+        json.dumps(
+            {
+                "samples": samples,
+                "numbers": numbers,
+                "wall_s": round(time.perf_counter() - wall0, 2),
+                "cpu_s": round(usage1.ru_utime + usage1.ru_stime - usage0.ru_utime - usage0.ru_stime, 2),
+                "peak_gb": round(_peak_gb(), 3),
+                "load_start": round(load0, 1),
+                "stages": stages,
+                "verdict": rep["verdict"],
+                "findings": [
+                    f["effect"] + (f"(~{'/'.join(f['confounded_with'])})" if f.get("confounded_with") else "")
+                    for f in rep["findings"]
+                ],
+                "parameters": {f["effect"]: _rounded(f["parameters"]) for f in rep["findings"]},
+                "noise_v": rep["noise_v"]["per_sample"],
+                "blocks": rep["blocks"],
+                "rms_after_v": rep["rms_after_v"],
+            }
+        )
+    )
 
 
 def _rounded(value):
@@ -103,7 +126,7 @@ def _rounded(value):
 
 
 def _peak_gb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20      # KiB on Linux
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # KiB on Linux
 
 
 # --- the driver -------------------------------------------------------------------------------------------------
@@ -130,10 +153,12 @@ def effect_runs(effect: str, seed: int, rates: list[int], out: Path) -> dict[int
     for rate in rates:
         path = out / f"eff_{effect}_s{seed}_{rate}hz_parquet"
         if not path.exists():
-            code = ("import sys; from pipeline.simulate.chamber import SimConfig; "
-                    "from pipeline.simulate.large import simulate_chunked; from pipeline.io.runs import write_run; "
-                    f"res = simulate_chunked(SimConfig(rate_hz={float(rate)}, seed={seed}, "
-                    f"effects=[({effect!r}, {EFFECTS[effect]!r})])); write_run(res.run, sys.argv[1], 'parquet')")
+            code = (
+                "import sys; from pipeline.simulate.chamber import SimConfig; "
+                "from pipeline.simulate.large import simulate_chunked; from pipeline.io.runs import write_run; "
+                f"res = simulate_chunked(SimConfig(rate_hz={float(rate)}, seed={seed}, "
+                f"effects=[({effect!r}, {EFFECTS[effect]!r})])); write_run(res.run, sys.argv[1], 'parquet')"
+            )
             t = time.perf_counter()
             subprocess.run(["flock", str(LOCK), sys.executable, "-c", code, str(path)], check=True)
             print(f"made {path} in {time.perf_counter() - t:.0f} s", file=sys.stderr)
@@ -142,17 +167,24 @@ def effect_runs(effect: str, seed: int, rates: list[int], out: Path) -> dict[int
 
 
 def row(name: str, rate: int, r: dict) -> str:
-    decoded = r["peak_gb"] * 2 ** 30 / (8 * r["numbers"])
+    decoded = r["peak_gb"] * 2**30 / (8 * r["numbers"])
     st = dict(r["stages"])
     total = st.pop("diagnose_run")
     inner = ("segment_settings_for", "segment_run", "fit_passport", "static_record")
-    st = {**{k: v for k, v in st.items() if k != "plot"},
-          "fits": [total[0] - sum(st[k][0] for k in inner if k in st), total[1]], "plot": st["plot"]}
-    stages = ", ".join(f"{k.replace('_run', '').replace('segment_settings_for', 'settings')} {v[0]:.1f} s"
-                       f"/{v[1]:.2f} GB" for k, v in st.items())
-    return (f"| {name} | {rate} | {r['samples'] / 1e6:.2f} | {r['wall_s']:.1f} | {r['cpu_s']:.1f} | "
-            f"{r['peak_gb']:.2f} | {decoded:.2f} | {r['load_start']}-{r['load_end']} | {r['verdict']}: "
-            f"{', '.join(r['findings']) or '-'} | {stages} |")
+    st = {
+        **{k: v for k, v in st.items() if k != "plot"},
+        "fits": [total[0] - sum(st[k][0] for k in inner if k in st), total[1]],
+        "plot": st["plot"],
+    }
+    stages = ", ".join(
+        f"{k.replace('_run', '').replace('segment_settings_for', 'settings')} {v[0]:.1f} s/{v[1]:.2f} GB"
+        for k, v in st.items()
+    )
+    return (
+        f"| {name} | {rate} | {r['samples'] / 1e6:.2f} | {r['wall_s']:.1f} | {r['cpu_s']:.1f} | "
+        f"{r['peak_gb']:.2f} | {decoded:.2f} | {r['load_start']}-{r['load_end']} | {r['verdict']}: "
+        f"{', '.join(r['findings']) or '-'} | {stages} |"
+    )
 
 
 def main() -> None:
@@ -174,18 +206,25 @@ def main() -> None:
         paths = make_runs(rate, args.out)
         runs += [(layout, rate, paths[layout]) for layout in args.layouts.split(",")]
     if not args.no_effect:
-        runs += [(f"parquet, {args.effect}, seed {args.seed}", rate, path)
-                 for rate, path in effect_runs(args.effect, args.seed, rates, args.out).items()]
+        runs += [
+            (f"parquet, {args.effect}, seed {args.seed}", rate, path)
+            for rate, path in effect_runs(args.effect, args.seed, rates, args.out).items()
+        ]
     fitted = []
-    lines = ["| run | Hz | M samples | wall s | CPU s | peak RSS GB | peak / decoded | load | verdict: findings "
-             "| stages: wall / peak RSS by its end |", "|---|---:|---:|---:|---:|---:|---:|---:|---|---|"]
+    lines = [
+        "| run | Hz | M samples | wall s | CPU s | peak RSS GB | peak / decoded | load | verdict: findings "
+        "| stages: wall / peak RSS by its end |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---|---|",
+    ]
     for name, rate, path in sorted(runs, key=lambda r: (r[0], r[1])):
         res = measure(path)
         print(f"  {name} {rate} Hz: {res}", file=sys.stderr, flush=True)
         lines.append(row(name, rate, res))
         fitted += [f"- {name}, {rate} Hz: {effect} {params}" for effect, params in res["parameters"].items()]
-    print(f"\n{os.cpu_count()} CPUs; each row one fresh process under {LOCK}; load = 1-min load average at its "
-          "start and end\n")
+    print(
+        f"\n{os.cpu_count()} CPUs; each row one fresh process under {LOCK}; load = 1-min load average at its "
+        "start and end\n"
+    )
     print("\n".join(lines))
     if fitted:
         print("\nFitted parameters of the findings:\n\n" + "\n".join(fitted))

@@ -37,14 +37,22 @@ def scaled_params(effect_id: str, s: float) -> dict:
     if effect_id == "fixture_face_error":
         return {"sigma_deg": d["sigma_deg"] * s, "seed": d["seed"]}
     keep = {"tau_s"}
-    return {k: (np.asarray(v) * s).tolist() if k not in keep and isinstance(v, (list, float)) else v
-            for k, v in d.items()}
+    return {
+        k: (np.asarray(v) * s).tolist() if k not in keep and isinstance(v, (list, float)) else v for k, v in d.items()
+    }
 
 
 #: how each parameter is shown: scale to the unit, unit
-_SHOWN = {"tau_s": (1.0, "s"), "h_v": (1e6, "uV"), "r_v_per_h": (1e9, "nV/h"), "a_v": (1e6, "uV"),
-          "c_v_per_c3": (1e12, "pV/C^3"), "c_rel_per_c3": (1e12, "1e-12/C^3"), "k2_v_per_g2": (1e6, "uV/g^2"),
-          "f": (1e6, "ppm")}
+_SHOWN = {
+    "tau_s": (1.0, "s"),
+    "h_v": (1e6, "uV"),
+    "r_v_per_h": (1e9, "nV/h"),
+    "a_v": (1e6, "uV"),
+    "c_v_per_c3": (1e12, "pV/C^3"),
+    "c_rel_per_c3": (1e12, "1e-12/C^3"),
+    "k2_v_per_g2": (1e6, "uV/g^2"),
+    "f": (1e6, "ppm"),
+}
 
 
 def describe(effect_id: str, p: dict) -> str:
@@ -69,8 +77,9 @@ def named(effect_id: str, s: float, seeds: list[int], rate_hz: float, tmp: Path)
         res = simulate(SimConfig(seed=seed, rate_hz=rate_hz, effects=[(effect_id, scaled_params(effect_id, s))]))
         ctx = res.context
         static = ctx.position_idx >= 0
-        peak = max(peak, float(np.abs(make_effect(effect_id, scaled_params(effect_id, s))
-                                      .delta_u_v(ctx)[static]).max()))
+        peak = max(
+            peak, float(np.abs(make_effect(effect_id, scaled_params(effect_id, s)).delta_u_v(ctx)[static]).max())
+        )
         path = write_run(res.run, tmp / f"{effect_id}-{seed}.mcap", "mcap")
         t0 = time.process_time()
         rep = diagnose_run(read_run(path)).report
@@ -127,13 +136,17 @@ def main(argv=None) -> None:
             r = smallest(effect_id, seeds, args.rate_hz, args.steps, Path(d))
             print(f"{effect_id}: scale {r['scale']:.3g} ({time.time() - t0:.0f} s)", file=sys.stderr, flush=True)
             rows.append(r)
-    print(f"Standard program, {args.rate_hz:g} Hz, 5 uV per-sample noise, seeds {seeds}; smallest size named first "
-          f"on every seed (x default of pipeline/effects/):\n")
+    print(
+        f"Standard program, {args.rate_hz:g} Hz, 5 uV per-sample noise, seeds {seeds}; smallest size named first "
+        f"on every seed (x default of pipeline/effects/):\n"
+    )
     print("| effect | smallest size named | x default | peak effect (uV) | / sample noise | / 30 s block noise |")
     print("|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| `{r['effect']}` | {describe(r['effect'], r['params'])} | {r['scale']:.3g} | "
-              f"{r['peak_v'] * 1e6:.2f} | {r['peak_v'] / noise_v:.2f} | {r['peak_v'] / block_v:.1f} |")
+        print(
+            f"| `{r['effect']}` | {describe(r['effect'], r['params'])} | {r['scale']:.3g} | "
+            f"{r['peak_v'] * 1e6:.2f} | {r['peak_v'] / noise_v:.2f} | {r['peak_v'] / block_v:.1f} |"
+        )
 
 
 if __name__ == "__main__":

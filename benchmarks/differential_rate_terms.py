@@ -25,11 +25,17 @@ import time
 
 import numpy as np
 
-from pipeline.simulate import program
+from pipeline.calibrate.differential import (
+    DifferentialModel,
+    DifferentialSettings,
+    block_data,
+    compensate_blocks,
+    fit_differential,
+    window_std_g,
+)
 from pipeline.calibrate.tilt import fit_unit, observe_run
-from pipeline.calibrate.differential import (DifferentialModel, DifferentialSettings, block_data, compensate_blocks,
-                                   fit_differential, window_std_g)
 from pipeline.positions import TEST_POSITIONS
+from pipeline.simulate import program
 from pipeline.simulate.chamber import SimConfig, simulate, unit_for
 from pipeline.thermal import PolynomialModel
 
@@ -62,8 +68,7 @@ def main() -> None:
     program.PROGRAMS[PROGRAM] = lambda: program.differential_program(tuple(TEST_POSITIONS))
     temps = np.linspace(-40.0, 70.0, 111)
     print("10 s standard deviation over the full cycle, held-out run: max / median over orientations and axes, ug")
-    print(f"{'unit':>9} {'tau s':>6} | {'uncomp':>13} | " + " | ".join(f"{m:>13}" for m in MODELS)
-          + " | fitted tau s")
+    print(f"{'unit':>9} {'tau s':>6} | {'uncomp':>13} | " + " | ".join(f"{m:>13}" for m in MODELS) + " | fitted tau s")
     coef_rows = []
     for unit_seed, taus in ((None, (0.0, 60.0, 120.0, 300.0)), (3, (120.0,))):
         K0, U0 = base_constants(unit_seed)
@@ -79,10 +84,10 @@ def main() -> None:
                 s = window_std_g(held, compensate_blocks(model, held)) * 1e6
                 cells.append(f"{s.max():6.1f} /{np.median(s):5.1f}")
                 Kf, Uf = model.constants_at(temps)
-                coef_rows.append((label, tau, len(cells) - 1, np.abs(Uf - Ut).max() * 1e6,
-                                  np.abs(Kf - Kt).max() / 0.55))
-            print(f"{label:>9} {tau:6.0f} | " + " | ".join(f"{c:>13}" for c in cells)
-                  + f" | {model.lag_tau_s:6.1f}")
+                coef_rows.append(
+                    (label, tau, len(cells) - 1, np.abs(Uf - Ut).max() * 1e6, np.abs(Kf - Kt).max() / 0.55)
+                )
+            print(f"{label:>9} {tau:6.0f} | " + " | ".join(f"{c:>13}" for c in cells) + f" | {model.lag_tau_s:6.1f}")
     print("\nrecovered constants against the truth over -40..+70 C: max |U0 err| uV, max |K err| / 0.55")
     names = ["uncomp"] + list(MODELS)
     print(f"{'unit':>9} {'tau s':>6} | " + " | ".join(f"{m:>16}" for m in names))

@@ -60,8 +60,9 @@ def _make_unit(args: tuple[Path, int, float, str, str]) -> str:
 
     path = out / f"AU-{k:04d}.mcap"
     if not path.exists():
-        res = simulate(SimConfig(unit_serial=f"AU-{k:04d}", unit_seed=1000 + k, seed=k, program=program,
-                                 rate_hz=rate_hz))
+        res = simulate(
+            SimConfig(unit_serial=f"AU-{k:04d}", unit_seed=1000 + k, seed=k, program=program, rate_hz=rate_hz)
+        )
         write_run(res.run, path, "mcap", encoding=encoding)
     return str(path)
 
@@ -75,8 +76,7 @@ def process_pool(workers: int, **options) -> ProcessPoolExecutor:
     return ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), **options)
 
 
-def make_fleet(out: Path, units: int, rate_hz: float, program: str, workers: int, encoding: str = "json"
-               ) -> list[str]:
+def make_fleet(out: Path, units: int, rate_hz: float, program: str, workers: int, encoding: str = "json") -> list[str]:
     """``units`` simulated units (one ``program`` run each at ``rate_hz``) in ``out``, made on ``workers``
     spawned processes; a unit whose file exists is kept."""
     out.mkdir(parents=True, exist_ok=True)
@@ -91,26 +91,42 @@ def run_plain(paths: list[str], registry: Path) -> dict:
     outcomes = [calibrate_group(read_run_meta(p).unit_serial, [p], registry) for p in paths]
     wall = time.perf_counter() - t0
     failed = [f for o in outcomes for f in o.failed]
-    return {"wall_s": wall, "compute_s": sum(o.compute_s for o in outcomes), "workers": 1, "units": len(outcomes),
-            "done": sum(o.result is not None for o in outcomes), "failed": len(failed), "runner": "none (no Prefect)"}
+    return {
+        "wall_s": wall,
+        "compute_s": sum(o.compute_s for o in outcomes),
+        "workers": 1,
+        "units": len(outcomes),
+        "done": sum(o.result is not None for o in outcomes),
+        "failed": len(failed),
+        "runner": "none (no Prefect)",
+    }
 
 
 def run_pool(folder: Path, registry: Path, workers: int) -> dict:
-    from pipeline.calibrate.settings import CalibrationSettings
     from pipeline.calibrate.fleet import calibrate_group, plan_fleet, prepare_worker
+    from pipeline.calibrate.settings import CalibrationSettings
 
     t0 = time.perf_counter()
     plan = plan_fleet(folder, registry)
     t_plan = time.perf_counter() - t0
     with process_pool(workers, initializer=prepare_worker) as pool:
-        futures = [pool.submit(calibrate_group, g.unit, g.runs, str(registry), CalibrationSettings(), True,
-                               g.digests) for g in plan.groups]
+        futures = [
+            pool.submit(calibrate_group, g.unit, g.runs, str(registry), CalibrationSettings(), True, g.digests)
+            for g in plan.groups
+        ]
         outcomes = [f.result() for f in futures]
     wall = time.perf_counter() - t0
     failed = [f for o in outcomes for f in o.failed]
-    return {"wall_s": wall, "compute_s": sum(o.compute_s for o in outcomes), "workers": workers,
-            "units": len(outcomes), "done": sum(o.result is not None for o in outcomes), "failed": len(failed),
-            "runner": f"ProcessPoolExecutor({workers}), no Prefect", "plan_s": t_plan}
+    return {
+        "wall_s": wall,
+        "compute_s": sum(o.compute_s for o in outcomes),
+        "workers": workers,
+        "units": len(outcomes),
+        "done": sum(o.result is not None for o in outcomes),
+        "failed": len(failed),
+        "runner": f"ProcessPoolExecutor({workers}), no Prefect",
+        "plan_s": t_plan,
+    }
 
 
 def run_flow(folder: Path, registry: Path, workers: int, **options) -> dict:
@@ -120,9 +136,17 @@ def run_flow(folder: Path, registry: Path, workers: int, **options) -> dict:
     summary = run_fleet(str(folder), str(registry), workers=workers, **options)
     wall = time.perf_counter() - t0
     t = summary["timing"]
-    return {"wall_s": wall, "compute_s": t["compute_s"], "workers": workers, "units": t["units"],
-            "done": len(summary["done"]), "failed": len(summary["failed"]), "runner": t["runner"],
-            "flow_wall_s": t["wall_s"], "plan_s": t["plan_s"]}
+    return {
+        "wall_s": wall,
+        "compute_s": t["compute_s"],
+        "workers": workers,
+        "units": t["units"],
+        "done": len(summary["done"]),
+        "failed": len(summary["failed"]),
+        "runner": t["runner"],
+        "flow_wall_s": t["wall_s"],
+        "plan_s": t["plan_s"],
+    }
 
 
 def run_cli(folder: Path, registry: Path, workers: int, api_url: str | None, home: Path) -> dict:
@@ -134,8 +158,16 @@ def run_cli(folder: Path, registry: Path, workers: int, api_url: str | None, hom
     else:  # Prefect's own per-process ephemeral API (thermocal's default is its local server: cli_latency.py)
         env.pop("PREFECT_API_URL", None)
         env["THERMOCAL_PREFECT"] = "ephemeral"
-    cmd = [str(Path(sys.executable).parent / "thermocal"), "fleet", str(folder), "--registry", str(registry),
-           "--json", "--workers", str(workers)]
+    cmd = [
+        str(Path(sys.executable).parent / "thermocal"),
+        "fleet",
+        str(folder),
+        "--registry",
+        str(registry),
+        "--json",
+        "--workers",
+        str(workers),
+    ]
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=3600)
     wall = time.perf_counter() - t0
@@ -143,18 +175,34 @@ def run_cli(folder: Path, registry: Path, workers: int, api_url: str | None, hom
         raise RuntimeError(f"thermocal fleet failed: {proc.stderr.strip()[-2000:]}")
     summary = json.loads(proc.stdout)
     t = summary["timing"]
-    return {"wall_s": wall, "compute_s": t["compute_s"], "workers": workers, "units": t["units"],
-            "done": len(summary["done"]), "failed": len(summary["failed"]),
-            "runner": f"thermocal fleet, {'PREFECT_API_URL' if api_url else 'own temporary API'}: {t['runner']}",
-            "flow_wall_s": t["wall_s"], "plan_s": t["plan_s"]}
+    return {
+        "wall_s": wall,
+        "compute_s": t["compute_s"],
+        "workers": workers,
+        "units": t["units"],
+        "done": len(summary["done"]),
+        "failed": len(summary["failed"]),
+        "runner": f"thermocal fleet, {'PREFECT_API_URL' if api_url else 'own temporary API'}: {t['runner']}",
+        "flow_wall_s": t["wall_s"],
+        "plan_s": t["plan_s"],
+    }
 
 
 def run_dask(folder: Path, registry: Path, workers: int) -> dict:
     from distributed import Client, LocalCluster
 
     t0 = time.perf_counter()
-    with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
-                      dashboard_address=None, silence_logs=40) as cluster, Client(cluster) as client:
+    with (
+        LocalCluster(
+            n_workers=workers,
+            threads_per_worker=1,
+            processes=True,
+            host="127.0.0.1",
+            dashboard_address=None,
+            silence_logs=40,
+        ) as cluster,
+        Client(cluster) as client,
+    ):
         client.wait_for_workers(workers, timeout=120)
         start_s = time.perf_counter() - t0
         out = run_flow(folder, registry, workers, dask_address=cluster.scheduler_address)
@@ -175,8 +223,13 @@ def cli_latency(run: str, repeats: int, workdir: Path, api_url: str | None) -> l
     for k in range(repeats):
         reg = workdir / f"cli-reg-{'server' if api_url else 'ephemeral'}-{k}"
         t0 = time.perf_counter()
-        proc = subprocess.run([exe, "calibrate", run, "--registry", str(reg), "--json"], env=env,
-                              capture_output=True, text=True, timeout=600)
+        proc = subprocess.run(
+            [exe, "calibrate", run, "--registry", str(reg), "--json"],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
         times.append(time.perf_counter() - t0)
         if proc.returncode != 0:
             raise RuntimeError(f"thermocal calibrate failed: {proc.stderr.strip()}")
@@ -229,18 +282,22 @@ class CpuClock:
 
 
 def table(results: dict[str, dict]) -> str:
-    lines = ["| mode | runner | units | wall s | units/min | compute s/unit (in task) | overhead s/unit | "
-             "overhead % of wall | CPU s/unit (workers + flow + API) | failed |",
-             "|---|---|---:|---:|---:|---:|---:|---:|---|---:|"]
+    lines = [
+        "| mode | runner | units | wall s | units/min | compute s/unit (in task) | overhead s/unit | "
+        "overhead % of wall | CPU s/unit (workers + flow + API) | failed |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---|---:|",
+    ]
     for mode, r in results.items():
         n = max(r["units"], 1)
         overhead = (r["workers"] * r["wall_s"] - r["compute_s"]) / n
         c = r["cpu"]
-        lines.append(f"| {mode} | {r['runner']} | {r['units']} | {r['wall_s']:.1f} | "
-                     f"{60 * r['done'] / r['wall_s']:.1f} | {r['compute_s'] / n:.2f} | {overhead:.2f} | "
-                     f"{100 * overhead * n / (r['workers'] * r['wall_s']):.0f} | "
-                     f"{r['cpu_s'] / n:.2f} ({c['workers'] / n:.2f} + {c['flow'] / n:.2f} + {c['api'] / n:.2f}) | "
-                     f"{r['failed']} |")
+        lines.append(
+            f"| {mode} | {r['runner']} | {r['units']} | {r['wall_s']:.1f} | "
+            f"{60 * r['done'] / r['wall_s']:.1f} | {r['compute_s'] / n:.2f} | {overhead:.2f} | "
+            f"{100 * overhead * n / (r['workers'] * r['wall_s']):.0f} | "
+            f"{r['cpu_s'] / n:.2f} ({c['workers'] / n:.2f} + {c['flow'] / n:.2f} + {c['api'] / n:.2f}) | "
+            f"{r['failed']} |"
+        )
     return "\n".join(lines)
 
 
@@ -266,14 +323,18 @@ def main() -> None:
     workers = args.workers or default_workers()
     work = Path(tempfile.mkdtemp(prefix="thermocal-fleet-bench-"))
     runs_dir = args.keep or work / "runs"
-    print(f"# fleet throughput: {args.units} units, {args.program} program at {args.rate_hz:g} Hz, "
-          f"{workers} workers, {os.cpu_count()} CPUs; load average at start {os.getloadavg()[0]:.2f}", flush=True)
+    print(
+        f"# fleet throughput: {args.units} units, {args.program} program at {args.rate_hz:g} Hz, "
+        f"{workers} workers, {os.cpu_count()} CPUs; load average at start {os.getloadavg()[0]:.2f}",
+        flush=True,
+    )
     try:
         t0 = time.perf_counter()
         paths = make_fleet(runs_dir, args.units, args.rate_hz, args.program, workers, args.encoding)
         size_mb = sum(Path(p).stat().st_size for p in paths) / 1e6
-        print(f"simulated and wrote {len(paths)} runs ({size_mb:.0f} MB) in {time.perf_counter() - t0:.1f} s",
-              flush=True)
+        print(
+            f"simulated and wrote {len(paths)} runs ({size_mb:.0f} MB) in {time.perf_counter() - t0:.1f} s", flush=True
+        )
         api_url, api_s, api_pid = start_local_api()
         cpu = CpuClock(api_pid)
         print(f"local Prefect API started in {api_s:.1f} s ({api_url})", flush=True)
@@ -307,33 +368,51 @@ def main() -> None:
             extra = f", cluster start {r['cluster_start_s']:.1f} s" if "cluster_start_s" in r else ""
             if "flow_wall_s" in r:
                 extra += f"; inside the flow {r['flow_wall_s']:.1f} s, of which planning {r['plan_s']:.1f} s"
-            print(f"{mode}: {r['done']} units in {r['wall_s']:.1f} s ({time.perf_counter() - t_mode:.1f} s with "
-                  f"set-up{extra}); load {os.getloadavg()[0]:.2f}", flush=True)
+            print(
+                f"{mode}: {r['done']} units in {r['wall_s']:.1f} s ({time.perf_counter() - t_mode:.1f} s with "
+                f"set-up{extra}); load {os.getloadavg()[0]:.2f}",
+                flush=True,
+            )
         print()
         print(table(results))
         if "pool" in results and "process" in results:
             p, f = results["pool"], results["process"]
-            print(f"\nPrefect's share of the process mode's wall time (1 - pool wall / process wall): "
-                  f"{100 * (1 - p['wall_s'] / f['wall_s']):.1f} %")
+            print(
+                f"\nPrefect's share of the process mode's wall time (1 - pool wall / process wall): "
+                f"{100 * (1 - p['wall_s'] / f['wall_s']):.1f} %"
+            )
         if "plain" in results and "thread1" in results:
             p, f1 = results["plain"], results["thread1"]
-            print(f"\nPrefect overhead per unit (thread1 wall - its in-task compute, / units): "
-                  f"{(f1['wall_s'] - f1['compute_s']) / f1['units'] * 1000:.0f} ms; "
-                  f"(thread1 wall - plain wall) / units: {(f1['wall_s'] - p['wall_s']) / f1['units'] * 1000:.0f} ms")
+            print(
+                f"\nPrefect overhead per unit (thread1 wall - its in-task compute, / units): "
+                f"{(f1['wall_s'] - f1['compute_s']) / f1['units'] * 1000:.0f} ms; "
+                f"(thread1 wall - plain wall) / units: {(f1['wall_s'] - p['wall_s']) / f1['units'] * 1000:.0f} ms"
+            )
         cli = {}
         if args.cli_runs:
             cli["ephemeral"] = cli_latency(paths[0], args.cli_runs, work, None)
             cli["server"] = cli_latency(paths[0], args.cli_runs, work, api_url)
-            print(f"\n`thermocal calibrate` on one {args.rate_hz:g} Hz {args.program} run (fresh registry), median of "
-                  f"{args.cli_runs}: {statistics.median(cli['ephemeral']):.1f} s with the local temporary API "
-                  f"(started by the command), {statistics.median(cli['server']):.1f} s with PREFECT_API_URL set to "
-                  f"a running server; plain compute of that unit: "
-                  f"{results.get('plain', {}).get('compute_s', float('nan')) / max(args.units, 1):.1f} s (mean)")
+            print(
+                f"\n`thermocal calibrate` on one {args.rate_hz:g} Hz {args.program} run (fresh registry), median of "
+                f"{args.cli_runs}: {statistics.median(cli['ephemeral']):.1f} s with the local temporary API "
+                f"(started by the command), {statistics.median(cli['server']):.1f} s with PREFECT_API_URL set to "
+                f"a running server; plain compute of that unit: "
+                f"{results.get('plain', {}).get('compute_s', float('nan')) / max(args.units, 1):.1f} s (mean)"
+            )
         print(f"load average at end {os.getloadavg()[0]:.2f}")
         if args.json_out:
-            args.json_out.write_text(json.dumps({"args": {k: str(v) for k, v in vars(args).items()},
-                                                 "workers": workers, "api_start_s": api_s, "results": results,
-                                                 "cli_s": cli}, indent=2))
+            args.json_out.write_text(
+                json.dumps(
+                    {
+                        "args": {k: str(v) for k, v in vars(args).items()},
+                        "workers": workers,
+                        "api_start_s": api_s,
+                        "results": results,
+                        "cli_s": cli,
+                    },
+                    indent=2,
+                )
+            )
     finally:
         shutil.rmtree(work, ignore_errors=True)
 

@@ -48,8 +48,10 @@ def floor_parquet(path: Path) -> dict:
     import pyarrow.parquet as pq
 
     tables = {f.stem: pq.read_table(f) for f in sorted(path.glob("*.parquet"))}
-    return {"samples": tables["voltmeter"].num_rows, "numbers": _numbers(
-        {s: (t.num_rows, t.num_columns) for s, t in tables.items()})}
+    return {
+        "samples": tables["voltmeter"].num_rows,
+        "numbers": _numbers({s: (t.num_rows, t.num_columns) for s, t in tables.items()}),
+    }
 
 
 def floor_mcap(path: Path) -> dict:
@@ -126,9 +128,10 @@ def calibrate(path: Path) -> dict:
 
 def flow(path: Path) -> dict:
     """The Prefect calibrate flow on the run, timed after a trivial warm-up flow has started Prefect."""
+    from prefect import flow as prefect_flow
+
     from flows.calibrate import run_calibrate
     from pipeline.calibrate.settings import CalibrationSettings
-    from prefect import flow as prefect_flow
 
     t = time.perf_counter()
     prefect_flow(name="warm-up")(lambda: None)()
@@ -171,9 +174,13 @@ def child(step: str, layout: str, path: Path) -> None:
         out = STEPS[step](path)
     wall = time.perf_counter() - _CLOCK["wall"]
     r0, r1 = _CLOCK["usage"], resource.getrusage(resource.RUSAGE_SELF)
-    out.update(wall_s=round(wall, 3), cpu_s=round(r1.ru_utime + r1.ru_stime - r0.ru_utime - r0.ru_stime, 2),
-               sys_s=round(r1.ru_stime - r0.ru_stime, 2), peak_rss_mb=r1.ru_maxrss // 1024,
-               base_rss_mb=base_rss // 1024)
+    out.update(
+        wall_s=round(wall, 3),
+        cpu_s=round(r1.ru_utime + r1.ru_stime - r0.ru_utime - r0.ru_stime, 2),
+        sys_s=round(r1.ru_stime - r0.ru_stime, 2),
+        peak_rss_mb=r1.ru_maxrss // 1024,
+        base_rss_mb=base_rss // 1024,
+    )
     print(json.dumps(out))
 
 
@@ -182,8 +189,9 @@ def child(step: str, layout: str, path: Path) -> None:
 
 def measure(step: str, layout: str, path: Path, env: dict) -> dict:
     """One fresh-process run of one step."""
-    proc = subprocess.run([sys.executable, __file__, "--child", step, layout, str(path)], env=env,
-                          capture_output=True, text=True)
+    proc = subprocess.run(
+        [sys.executable, __file__, "--child", step, layout, str(path)], env=env, capture_output=True, text=True
+    )
     if proc.returncode:
         raise SystemExit(f"{step} {layout} failed:\n{proc.stderr[-3000:]}")
     return json.loads(proc.stdout.strip().splitlines()[-1])
@@ -191,8 +199,10 @@ def measure(step: str, layout: str, path: Path, env: dict) -> dict:
 
 def table(results: list[tuple[str, str, dict]]) -> str:
     floors = {layout: r for step, layout, r in results if step == "floor"}
-    lines = ["| layout | step | wall s | CPU s (sys) | M samples/s | peak RSS GB | peak / decoded | wall / floor |",
-             "|---|---|---:|---:|---:|---:|---:|---:|"]
+    lines = [
+        "| layout | step | wall s | CPU s (sys) | M samples/s | peak RSS GB | peak / decoded | wall / floor |",
+        "|---|---|---:|---:|---:|---:|---:|---:|",
+    ]
     for step, layout, r in results:
         floor = floors.get(layout)
         numbers = r.get("numbers") or (floor or {}).get("numbers")
@@ -200,13 +210,22 @@ def table(results: list[tuple[str, str, dict]]) -> str:
         rate = f"{samples / r['wall_s'] / 1e6:.1f}" if samples else ""
         decoded = f"{r['peak_rss_mb'] * 2**20 / (8 * numbers):.2f}" if numbers else ""
         ratio = f"{r['wall_s'] / floor['wall_s']:.2f}" if floor and step != "floor" else ""
-        name = {"floor": "floor", "ingest": "ingest (read_run)", "calibrate": "calibration, no Prefect",
-                "flow": "calibrate flow (Prefect warm)"}[step]
-        lines.append(f"| {layout} | {name} | {r['wall_s']:.1f} | {r['cpu_s']:.1f} ({r['sys_s']:.1f}) | {rate} | "
-                     f"{r['peak_rss_mb'] / 1024:.2f} | {decoded} | {ratio} |")
+        name = {
+            "floor": "floor",
+            "ingest": "ingest (read_run)",
+            "calibrate": "calibration, no Prefect",
+            "flow": "calibrate flow (Prefect warm)",
+        }[step]
+        lines.append(
+            f"| {layout} | {name} | {r['wall_s']:.1f} | {r['cpu_s']:.1f} ({r['sys_s']:.1f}) | {rate} | "
+            f"{r['peak_rss_mb'] / 1024:.2f} | {decoded} | {ratio} |"
+        )
         if "stages" in r:
-            lines.append(f"| | &nbsp;&nbsp;stages | " + ", ".join(f"{k} {v:.1f}" for k, v in r["stages"].items())
-                         + " | | | | | |")
+            lines.append(
+                "| | &nbsp;&nbsp;stages | "
+                + ", ".join(f"{k} {v:.1f}" for k, v in r["stages"].items())
+                + " | | | | | |"
+            )
     return "\n".join(lines)
 
 
@@ -215,8 +234,9 @@ def main() -> None:
     ap.add_argument("--child", nargs=3, metavar=("STEP", "LAYOUT", "PATH"), help=argparse.SUPPRESS)
     ap.add_argument("--rate-hz", type=int, default=1000)
     ap.add_argument("--out", type=Path, default=OUT)
-    ap.add_argument("--repeat", type=int, default=2,
-                    help="runs of floor and ingest, alternating (the fastest of each is shown)")
+    ap.add_argument(
+        "--repeat", type=int, default=2, help="runs of floor and ingest, alternating (the fastest of each is shown)"
+    )
     ap.add_argument("--only", default="parquet,mcap-json,mcap-protobuf,mcap-protobuf-lz4", help="layouts to measure")
     ap.add_argument("--steps", default="floor,ingest,calibrate", help="steps to measure (also: flow)")
     ap.add_argument("--flow", action="store_true", help="also measure the Prefect flow (Parquet only)")
@@ -226,8 +246,12 @@ def main() -> None:
         child(step, layout, Path(path))
         return
     paths = make_runs(args.rate_hz, args.out)
-    env = dict(os.environ, PREFECT_HOME=os.environ.get("PREFECT_HOME", str(args.out / "prefect-home")),
-               PREFECT_SERVER_ANALYTICS_ENABLED="false", DO_NOT_TRACK="1")
+    env = dict(
+        os.environ,
+        PREFECT_HOME=os.environ.get("PREFECT_HOME", str(args.out / "prefect-home")),
+        PREFECT_SERVER_ANALYTICS_ENABLED="false",
+        DO_NOT_TRACK="1",
+    )
     steps = args.steps.split(",")
     results = []
     load = [os.getloadavg()[0]]
@@ -248,8 +272,10 @@ def main() -> None:
         results.append(("flow", "parquet", measure("flow", "parquet", paths["parquet"], env)))
         load.append(os.getloadavg()[0])
     samples = max(r.get("samples") or 0 for _, _, r in results)
-    print(f"\n{args.rate_hz} Hz standard run, {samples:,} voltmeter samples; "
-          f"{os.cpu_count()} CPUs, 1-min load average during the runs {min(load):.1f}-{max(load):.1f}\n")
+    print(
+        f"\n{args.rate_hz} Hz standard run, {samples:,} voltmeter samples; "
+        f"{os.cpu_count()} CPUs, 1-min load average during the runs {min(load):.1f}-{max(load):.1f}\n"
+    )
     print(table(results))
 
 

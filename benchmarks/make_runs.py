@@ -16,11 +16,12 @@ from pathlib import Path
 
 OUT = Path(__file__).resolve().parent / "out"
 #: file name (name.format(rate=...)), format and write_run options of each layout
-LAYOUTS = {"parquet": ("std_{rate}hz_parquet", "parquet", {}),
-           "mcap-json": ("std_{rate}hz_json.mcap", "mcap", {"encoding": "json"}),
-           "mcap-protobuf": ("std_{rate}hz_protobuf.mcap", "mcap", {"encoding": "protobuf"}),
-           "mcap-protobuf-lz4": ("std_{rate}hz_protobuf_lz4.mcap", "mcap", {"encoding": "protobuf",
-                                                                            "compression": "lz4"})}
+LAYOUTS = {
+    "parquet": ("std_{rate}hz_parquet", "parquet", {}),
+    "mcap-json": ("std_{rate}hz_json.mcap", "mcap", {"encoding": "json"}),
+    "mcap-protobuf": ("std_{rate}hz_protobuf.mcap", "mcap", {"encoding": "protobuf"}),
+    "mcap-protobuf-lz4": ("std_{rate}hz_protobuf_lz4.mcap", "mcap", {"encoding": "protobuf", "compression": "lz4"}),
+}
 
 
 def run_paths(rate_hz: int, out: Path = OUT) -> dict[str, Path]:

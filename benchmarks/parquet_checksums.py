@@ -60,10 +60,14 @@ def main() -> None:
             for k, x in enumerate((*v, *r, *p)):
                 total[k] += x
             mb = f.stat().st_size / 1e6
-            print(f"| {f.name} | {mb:.1f} | {pages} | {v[0]:.3f} ({v[1]:.3f}) | {r[0]:.3f} ({r[1]:.3f}) | "
-                  f"{v[0] / r[0]:.2f} | {p[0]:.3f} ({p[1]:.3f}) |")
-        print(f"| all | | | {total[0]:.3f} ({total[1]:.3f}) | {total[2]:.3f} ({total[3]:.3f}) | "
-              f"{total[0] / total[2]:.2f} | {total[4]:.3f} ({total[5]:.3f}) |")
+            print(
+                f"| {f.name} | {mb:.1f} | {pages} | {v[0]:.3f} ({v[1]:.3f}) | {r[0]:.3f} ({r[1]:.3f}) | "
+                f"{v[0] / r[0]:.2f} | {p[0]:.3f} ({p[1]:.3f}) |"
+            )
+        print(
+            f"| all | | | {total[0]:.3f} ({total[1]:.3f}) | {total[2]:.3f} ({total[3]:.3f}) | "
+            f"{total[0] / total[2]:.2f} | {total[4]:.3f} ({total[5]:.3f}) |"
+        )
 
 
 if __name__ == "__main__":

@@ -32,9 +32,9 @@ import time
 
 import numpy as np
 
-from pipeline.positions import ALL_POSITIONS
-from pipeline.model import gravity_module_error_g, specific_force_g
 from pipeline.calibrate.scalar import lower_gauge, scalar_first_order, scalar_nonlinear
+from pipeline.model import gravity_module_error_g, specific_force_g
+from pipeline.positions import ALL_POSITIONS
 
 G_MPS2 = 9.81
 M_POSITIONS = 24
@@ -73,13 +73,12 @@ def one_trial(rng, d0, d1, M, noise_g, test_a, program):
     out = {}
     for name, fn in (("first", scalar_first_order), ("nonlin", scalar_nonlinear)):
         f = fn(B, np.ones(3), np.zeros(3))
-        est = np.concatenate([f.d0, f.d1, f.psi])        # lower gauge: psi below the diagonal, zeros above
+        est = np.concatenate([f.d0, f.d1, f.psi])  # lower gauge: psi below the diagonal, zeros above
         with np.errstate(divide="ignore", invalid="ignore"):
             rel_p = np.abs(est - truth_paper) / np.abs(truth_paper)
             rel_i = np.abs(est - truth_ident) / np.abs(truth_ident)
         dg = gravity_module_error_g(specific_force_g(f.K, f.U0, d0 + test_a @ kn.T))
-        out[name] = (np.nanmax(rel_p[np.isfinite(rel_p)]), np.nanmax(rel_i[np.isfinite(rel_i)]),
-                     np.max(np.abs(dg)))
+        out[name] = (np.nanmax(rel_p[np.isfinite(rel_p)]), np.nanmax(rel_i[np.isfinite(rel_i)]), np.max(np.abs(dg)))
     return out
 
 
@@ -88,8 +87,10 @@ def sweep(label: str, points, make, trials: int, seed: int = 1, program: np.ndar
     rng = np.random.default_rng(seed)
     test_a = random_directions(rng, 200)
     print(f"\n{label}")
-    print(f"{'value':>10} | {'first order: paper':>18} {'ident':>7} {'p95':>6} {'|dg| ug':>8} | "
-          f"{'nonlinear: paper':>16} {'ident':>7} {'p95':>6} {'|dg| ug':>8}")
+    print(
+        f"{'value':>10} | {'first order: paper':>18} {'ident':>7} {'p95':>6} {'|dg| ug':>8} | "
+        f"{'nonlinear: paper':>16} {'ident':>7} {'p95':>6} {'|dg| ug':>8}"
+    )
     for v in points:
         d0, d1, M, noise_g = make(v)
         res = [one_trial(rng, d0, d1, M, noise_g, test_a, program) for _ in range(trials)]
@@ -107,20 +108,37 @@ def main() -> None:
     M_ak6 = misalignment_matrix(AK6_MIS)
     print("scalar calibration Monte Carlo: random orientations, medians over trials")
     noise = [1e-6, 1e-5, 3e-5, 1e-4, 3e-4, 1e-3]
-    sweep(f"1) noise, m/s^2 (1 sigma per reading), AK-6 errors, {M_POSITIONS} positions", noise,
-          lambda s: (AK6_D0, AK6_D1, M_ak6, s / G_MPS2), trials=300)
-    sweep("1') the same with the 12 positions TP1..TP6 + VP1..VP6 (the standard program at +20 C)", noise,
-          lambda s: (AK6_D0, AK6_D1, M_ak6, s / G_MPS2), trials=300,
-          program=np.array(list(ALL_POSITIONS.values())))
-    sweep("2) offset and scale errors D0_i = D1_i = value, AK-6 misalignments, no noise",
-          [1e-4, 1e-3, 3e-3, 1e-2, 2e-2, 5e-2], lambda s: (np.full(3, s), np.full(3, s), M_ak6, 0.0), trials=40)
-    sweep("3a) one misalignment a_xz = value (others AK-6), no noise",
-          [1e-3, 2.5e-3, 5e-3, 1e-2, 2e-2], lambda s: (AK6_D0, AK6_D1, misalignment_matrix({**AK6_MIS, "xz": s}),
-                                                         0.0), trials=40)
-    sweep("3b) all six misalignments = +-value together (signs of AK-6), no noise",
-          [1e-3, 2.5e-3, 5e-3, 1e-2, 2e-2],
-          lambda s: (AK6_D0, AK6_D1, misalignment_matrix({k: s * np.sign(v) for k, v in AK6_MIS.items()}), 0.0),
-          trials=40)
+    sweep(
+        f"1) noise, m/s^2 (1 sigma per reading), AK-6 errors, {M_POSITIONS} positions",
+        noise,
+        lambda s: (AK6_D0, AK6_D1, M_ak6, s / G_MPS2),
+        trials=300,
+    )
+    sweep(
+        "1') the same with the 12 positions TP1..TP6 + VP1..VP6 (the standard program at +20 C)",
+        noise,
+        lambda s: (AK6_D0, AK6_D1, M_ak6, s / G_MPS2),
+        trials=300,
+        program=np.array(list(ALL_POSITIONS.values())),
+    )
+    sweep(
+        "2) offset and scale errors D0_i = D1_i = value, AK-6 misalignments, no noise",
+        [1e-4, 1e-3, 3e-3, 1e-2, 2e-2, 5e-2],
+        lambda s: (np.full(3, s), np.full(3, s), M_ak6, 0.0),
+        trials=40,
+    )
+    sweep(
+        "3a) one misalignment a_xz = value (others AK-6), no noise",
+        [1e-3, 2.5e-3, 5e-3, 1e-2, 2e-2],
+        lambda s: (AK6_D0, AK6_D1, misalignment_matrix({**AK6_MIS, "xz": s}), 0.0),
+        trials=40,
+    )
+    sweep(
+        "3b) all six misalignments = +-value together (signs of AK-6), no noise",
+        [1e-3, 2.5e-3, 5e-3, 1e-2, 2e-2],
+        lambda s: (AK6_D0, AK6_D1, misalignment_matrix({k: s * np.sign(v) for k, v in AK6_MIS.items()}), 0.0),
+        trials=40,
+    )
     print(f"\n(took {time.perf_counter() - t:.1f} s)")
 
 

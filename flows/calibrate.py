@@ -70,19 +70,25 @@ def record_head(registry: str) -> None:
         text = "```json\n" + canonical_json(Registry(registry).head()).decode("ascii") + "```"
     except ThermocalError as e:
         text = f"no head statement: {e.one_line()}"
-    create_markdown_artifact(key="registry-head", markdown=text,
-                             description=f"thermocal: signed head statement of the registry {registry}")
+    create_markdown_artifact(
+        key="registry-head", markdown=text, description=f"thermocal: signed head statement of the registry {registry}"
+    )
 
 
 @task(name="write", cache_policy=NO_CACHE)
 def write(registry: str, calibration, paths: list[str], settings: CalibrationSettings, dry_run: bool = False):
-    return publish(registry, calibration, input_paths=paths, settings=settings, constants_figure=True,
-                   dry_run=dry_run)
+    return publish(registry, calibration, input_paths=paths, settings=settings, constants_figure=True, dry_run=dry_run)
 
 
 @flow(name="thermocal-calibrate", log_prints=False)
-def calibrate_flow(paths: list[str], registry: str, settings: CalibrationSettings = CalibrationSettings(),
-                   method: str = "tilt", base_passport: dict | None = None, dry_run: bool = False) -> dict:
+def calibrate_flow(
+    paths: list[str],
+    registry: str,
+    settings: CalibrationSettings = CalibrationSettings(),
+    method: str = "tilt",
+    base_passport: dict | None = None,
+    dry_run: bool = False,
+) -> dict:
     """Calibrate one unit from one or more runs (TP runs, and runs with VP data that verify them).
 
     ``method``: ``tilt`` (seed 000, default), ``scalar`` (seed 004), ``differential`` (seed 003, starting from
@@ -90,9 +96,9 @@ def calibrate_flow(paths: list[str], registry: str, settings: CalibrationSetting
     registry, else from the orientations alone) or ``auto`` (the method the first run supports: the result's
     ``method_auto`` says which and why). ``dry_run``: compute everything, write nothing to the registry."""
     logger = get_run_logger()
-    step = Steps("calibrate")               # progress lines on stderr when it is a terminal
+    step = Steps("calibrate")  # progress lines on stderr when it is a terminal
     if method != "auto":
-        recipe(method)                      # an unknown method fails before any run is read
+        recipe(method)  # an unknown method fails before any run is read
     runs = []
     for p in paths:
         step(f"ingest {os.path.basename(p)}")
@@ -101,11 +107,11 @@ def calibrate_flow(paths: list[str], registry: str, settings: CalibrationSetting
     runs, selection_warnings = select_runs(runs)  # one file per run_id (a truncated copy is left out)
     paths = [path_of[r.source] for r in runs]
     unit = unit_of(runs)
-    segmentation, chosen = None, None       # the first run's, when made to choose the method
+    segmentation, chosen = None, None  # the first run's, when made to choose the method
     if method == "auto":
         step(f"choose the method (segment {os.path.basename(paths[0])})")
         method, base_passport, segmentation, chosen = choose(runs[0], settings, base_passport)
-    base_line = None                        # which version the differential method starts from, and its status
+    base_line = None  # which version the differential method starts from, and its status
     if method not in NEEDS_BASE_PASSPORT:
         base_passport = None
     elif base_passport is None:
@@ -115,7 +121,7 @@ def calibrate_flow(paths: list[str], registry: str, settings: CalibrationSetting
         seg = segmentation if k == 0 else None
         step(f"observe ({'average' if seg else 'segment, average'}) {os.path.basename(p)}")
         observed.append(observe(run, method, settings, base_passport, seg))
-    del runs                                # the samples are not needed past the observations
+    del runs  # the samples are not needed past the observations
     step(f"fit ({method}: constants, thermal model, VP verification)")
     calibration = fit(observed, method, settings, base_passport)
     calibration.warnings[:0] = selection_warnings + ([base_line] if base_line and base_passport is None else [])
@@ -125,8 +131,9 @@ def calibrate_flow(paths: list[str], registry: str, settings: CalibrationSetting
     result = write(registry, calibration, list(paths), settings, dry_run)
     if not dry_run:
         record_head(registry)
-    create_markdown_artifact(key=_artifact_key(unit), markdown=result_markdown(result),
-                             description=f"thermocal calibration of {unit}")
+    create_markdown_artifact(
+        key=_artifact_key(unit), markdown=result_markdown(result), description=f"thermocal calibration of {unit}"
+    )
     if chosen:
         result["method_auto"] = chosen
     if base_line and base_passport is not None:
@@ -141,18 +148,33 @@ def _artifact_key(unit: str) -> str:
 
 
 def result_markdown(result: dict) -> str:
-    lines = [f"# {result['unit']}: passport v{result['version']} ({result['status']})", "",
-             f"`{result['passport']}`", "", "| plateau C | positions |", "|---:|---|"]
+    lines = [
+        f"# {result['unit']}: passport v{result['version']} ({result['status']})",
+        "",
+        f"`{result['passport']}`",
+        "",
+        "| plateau C | positions |",
+        "|---:|---|",
+    ]
     lines += [f"| {p['temp_c']:+.2f} | {' '.join(p['positions'])} |" for p in result["plateaus"]]
     if result["verification"]:
         lines += ["", "| T C | VP | dg uncomp. ug | dg m1 ug | dg m2 ug |", "|---:|---|---:|---:|---:|"]
-        lines += [f"| {v['temp_c']:+.1f} | {v['position']} | {v['dg_uncompensated_g'] * 1e6:.1f} | "
-                  f"{v['dg_method1_g'] * 1e6:.1f} | {v['dg_method2_g'] * 1e6:.1f} |" for v in result["verification"]]
+        lines += [
+            f"| {v['temp_c']:+.1f} | {v['position']} | {v['dg_uncompensated_g'] * 1e6:.1f} | "
+            f"{v['dg_method1_g'] * 1e6:.1f} | {v['dg_method2_g'] * 1e6:.1f} |"
+            for v in result["verification"]
+        ]
     return "\n".join(lines)
 
 
-def run_calibrate(paths: list[str], registry: str, settings: CalibrationSettings,
-                  method: str = "tilt", base_passport: dict | None = None, dry_run: bool = False) -> dict:
+def run_calibrate(
+    paths: list[str],
+    registry: str,
+    settings: CalibrationSettings,
+    method: str = "tilt",
+    base_passport: dict | None = None,
+    dry_run: bool = False,
+) -> dict:
     """Run the flow in this process, recorded on thermocal's local Prefect server
     (:func:`flows.runtime.flow_settings`)."""
     from .runtime import flow_settings, quiet_task_failures

@@ -36,8 +36,14 @@ def current_passport(registry: Path, unit: str):
     return doc, f"{registry}: {st.text()}", st
 
 
-def diagnose_command(run: Path, passport: Path | None, as_json: bool, out_png: Path | None,
-                     out_passport: Path | None = None, registry: Path | None = None) -> dict:
+def diagnose_command(
+    run: Path,
+    passport: Path | None,
+    as_json: bool,
+    out_png: Path | None,
+    out_passport: Path | None = None,
+    registry: Path | None = None,
+) -> dict:
     """Diagnose ``run`` against ``passport``, or the unit's current passport in ``registry``, or one fitted from
     the run when neither is given; write the PNG to ``out_png`` and the extended passport to ``out_passport``
     (default: beside the run). Progress on stderr when it is a terminal (``as_json`` is not used). Returns the
@@ -61,15 +67,14 @@ def diagnose_command(run: Path, passport: Path | None, as_json: bool, out_png: P
     try:
         from pipeline.diagnose.plot import plot_diagnosis
 
-        title = (f"{the_run.meta.unit_serial} {the_run.meta.run_id}: residual of 30 s blocks, "
-                 f"{result.report['verdict']}")
+        title = f"{the_run.meta.unit_serial} {the_run.meta.run_id}: residual of 30 s blocks, {result.report['verdict']}"
         plot_diagnosis(png, result, the_run, title=title, output_unit=output_unit_of(result.passport))
         ext.parent.mkdir(parents=True, exist_ok=True)
         ext.write_text(json.dumps(result.passport, indent=1, sort_keys=True) + "\n")
     except OSError as e:
         raise ThermocalError(f"cannot write: {e.strerror or e}", path=str(e.filename or png)) from None
     report = dict(result.report)
-    if state is not None:                   # which version of the registry, its status and approval
+    if state is not None:  # which version of the registry, its status and approval
         report["passport_used"] = state.as_dict()
         if state.warning():
             report["notes"] = [*report.get("notes", []), state.warning()]
@@ -83,22 +88,30 @@ def diagnose_text(report: dict) -> str:
     """The report for a person: verdict, findings with their explanation, fit and VP errors before and after
     (residuals in uV, or mm/s^2 for outputs in m/s^2: ``output_unit``)."""
     small, uv = OUTPUT_UNITS.get(report.get("output_unit") or "V", OUTPUT_UNITS["V"])
-    lines = [f"{report['unit']} {report['run_id']}: {report['verdict']}  (passport: {report['passport_source']})",
-             f"  residual RMS of {report['noise_v']['block_s']:.0f} s blocks: before {report['rms_before_v'] * uv:.2f} "
-             f"{small}, after {report['rms_after_v'] * uv:.2f} {small} (noise {report['rms_noise_v'] * uv:.2f} "
-             f"{small})"]
+    lines = [
+        f"{report['unit']} {report['run_id']}: {report['verdict']}  (passport: {report['passport_source']})",
+        f"  residual RMS of {report['noise_v']['block_s']:.0f} s blocks: before {report['rms_before_v'] * uv:.2f} "
+        f"{small}, after {report['rms_after_v'] * uv:.2f} {small} (noise {report['rms_noise_v'] * uv:.2f} "
+        f"{small})",
+    ]
     if report.get("vp_max_abs_dg_before_g") is not None:
-        lines.append(f"  VP max |dg|: before {report['vp_max_abs_dg_before_g'] * 1e6:.1f} micro-g, after "
-                     f"{report['vp_max_abs_dg_after_g'] * 1e6:.1f} micro-g")
+        lines.append(
+            f"  VP max |dg|: before {report['vp_max_abs_dg_before_g'] * 1e6:.1f} micro-g, after "
+            f"{report['vp_max_abs_dg_after_g'] * 1e6:.1f} micro-g"
+        )
     for k, f in enumerate(report["findings"], 1):
         w = f["where"]
-        lines.append(f"  {k}. {f['effect']}" + (f" (confounded with {', '.join(f['confounded_with'])})"
-                                                if f.get("confounded_with") else ""))
+        lines.append(
+            f"  {k}. {f['effect']}"
+            + (f" (confounded with {', '.join(f['confounded_with'])})" if f.get("confounded_with") else "")
+        )
         lines.append(f"     {f['explanation']}")
-        lines.append(f"     where: {len(w['windows'])} window(s), axes {'/'.join(w['axes'])}, temperatures "
-                     f"{', '.join(f'{t:+.0f}' for t in w['temps_c']) or '-'} C, positions "
-                     f"{' '.join(w['positions']) or '-'}; RMS there {f['rms_before_v'] * uv:.2f} -> "
-                     f"{f['rms_after_v'] * uv:.2f} {small}")
+        lines.append(
+            f"     where: {len(w['windows'])} window(s), axes {'/'.join(w['axes'])}, temperatures "
+            f"{', '.join(f'{t:+.0f}' for t in w['temps_c']) or '-'} C, positions "
+            f"{' '.join(w['positions']) or '-'}; RMS there {f['rms_before_v'] * uv:.2f} -> "
+            f"{f['rms_after_v'] * uv:.2f} {small}"
+        )
     for n in report.get("notes", []):
         lines.append(f"  note: {n}")
     lines.append(f"  figure: {report.get('figure')}")

@@ -51,20 +51,27 @@ from prefect.runtime import flow_run  # noqa: E402
 
 from pipeline.calibrate import fleet as fleet_plan  # noqa: E402
 from pipeline.calibrate.settings import CalibrationSettings  # noqa: E402
+
 from .calibrate import record_head  # noqa: E402
 
 #: ``pool="auto"``: a process pool from this many units on (its start-up pays off), else threads.
 AUTO_PROCESS_MIN_UNITS = 4
 ARTIFACT_KEY = "thermocal-fleet"
 #: The flow's process pool, if any, to which the unit tasks (threads of the flow process) hand their calibration.
-_COMPUTE_POOL: contextvars.ContextVar[Executor | None] = contextvars.ContextVar("thermocal_compute_pool",
-                                                                                default=None)
+_COMPUTE_POOL: contextvars.ContextVar[Executor | None] = contextvars.ContextVar("thermocal_compute_pool", default=None)
 
 
 @task(name="calibrate-unit", task_run_name="calibrate-{unit}", cache_policy=NO_CACHE)
-def calibrate_unit(unit: str, runs: list[str], registry: str, settings: CalibrationSettings,
-                   figure: bool = True, digests: dict | None = None, method: str = "tilt",
-                   base_passport: dict | None = None) -> fleet_plan.UnitOutcome:
+def calibrate_unit(
+    unit: str,
+    runs: list[str],
+    registry: str,
+    settings: CalibrationSettings,
+    figure: bool = True,
+    digests: dict | None = None,
+    method: str = "tilt",
+    base_passport: dict | None = None,
+) -> fleet_plan.UnitOutcome:
     """:func:`pipeline.calibrate.fleet.calibrate_group`, in the flow's process pool when it has one."""
     return _calibrate_group(unit, runs, registry, settings, figure, digests, method, base_passport)
 
@@ -102,8 +109,12 @@ def make_task_runner(dask_address: str | None, workers: int | None, pool: str, n
         # twice as many task threads as processes: while a thread does Prefect's bookkeeping of a finished unit,
         # the next unit is already queued for the process that computed it (no process waits for a thread)
         threads = min(2 * n, n_units)
-        return (ThreadPoolTaskRunner(max_workers=threads),
-                f"ThreadPoolTaskRunner({threads}) + ProcessPoolExecutor({n})", False, n)
+        return (
+            ThreadPoolTaskRunner(max_workers=threads),
+            f"ThreadPoolTaskRunner({threads}) + ProcessPoolExecutor({n})",
+            False,
+            n,
+        )
     return ThreadPoolTaskRunner(max_workers=n), f"ThreadPoolTaskRunner({n})", False, 0
 
 
@@ -115,8 +126,7 @@ def _compute_pool(processes: int):
         return
     from .localserver import pool_worker_init  # warms up, and leaves with this process (no orphans if killed)
 
-    pool = ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("spawn"),
-                               initializer=pool_worker_init)
+    pool = ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("spawn"), initializer=pool_worker_init)
     token = _COMPUTE_POOL.set(pool)
     try:
         yield
@@ -159,8 +169,14 @@ class _Progress:
                 TimeElapsedColumn,
             )
 
-            self.bar = Progress(TextColumn("fleet"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                                console=Console(stderr=True), transient=False)
+            self.bar = Progress(
+                TextColumn("fleet"),
+                BarColumn(),
+                MofNCompleteColumn(),
+                TimeElapsedColumn(),
+                console=Console(stderr=True),
+                transient=False,
+            )
             self.task = self.bar.add_task("units", total=total)
 
     def __enter__(self):
@@ -182,22 +198,34 @@ class _Progress:
 
 
 @flow(name="thermocal-fleet", log_prints=False)
-def fleet_flow(root: str, registry: str, settings: CalibrationSettings = CalibrationSettings(),
-               dask_address: str | None = None, workers: int | None = None, pool: str = "auto",
-               figures: bool = True, progress: bool = False, method: str = "tilt") -> dict:
+def fleet_flow(
+    root: str,
+    registry: str,
+    settings: CalibrationSettings = CalibrationSettings(),
+    dask_address: str | None = None,
+    workers: int | None = None,
+    pool: str = "auto",
+    figures: bool = True,
+    progress: bool = False,
+    method: str = "tilt",
+) -> dict:
     """Calibrate every run under ``root`` into ``registry`` by ``method`` (``pipeline.calibrate.methods``): one
     task per unit, bad runs reported, done units skipped. Returns the ``fleet --json`` object: ``done``, ``failed``, ``skipped`` (contract.md), ``flow_run_id``
     and ``timing`` (wall, planning and in-task compute seconds, the runner)."""
     logger = get_run_logger()
     t0 = time.perf_counter()
-    step = Steps("fleet")                   # progress only when asked and stderr is a terminal
+    step = Steps("fleet")  # progress only when asked and stderr is a terminal
     step.on = step.on and progress
     step(f"plan: find, read and hash the runs under {root}")
     plan = fleet_plan.plan_fleet(root, registry, settings, method)
-    step(f"{plan.runs_found} runs: {len(plan.groups)} units to calibrate, {len(plan.skipped)} runs skipped, "
-         f"{len(plan.failed)} unreadable")
-    logger.info(f"{plan.runs_found} runs under {root}: {len(plan.groups)} units to calibrate, "
-                f"{len(plan.skipped)} runs skipped, {len(plan.failed)} unreadable")
+    step(
+        f"{plan.runs_found} runs: {len(plan.groups)} units to calibrate, {len(plan.skipped)} runs skipped, "
+        f"{len(plan.failed)} unreadable"
+    )
+    logger.info(
+        f"{plan.runs_found} runs under {root}: {len(plan.groups)} units to calibrate, "
+        f"{len(plan.skipped)} runs skipped, {len(plan.failed)} unreadable"
+    )
     for f in plan.failed:
         logger.warning(failure_line(f))
     for w in plan.warnings:
@@ -207,31 +235,54 @@ def fleet_flow(root: str, registry: str, settings: CalibrationSettings = Calibra
     runner_name = "none"
     if plan.groups:
         runner, runner_name, remote, processes = make_task_runner(dask_address, workers, pool, len(plan.groups))
-        with (_api_for_workers() if remote else contextlib.nullcontext()), runner, _compute_pool(processes), \
-                _Progress(step.on, len(plan.groups), logger) as bar:
-            futures = {runner.submit(calibrate_unit, {"unit": g.unit, "runs": list(g.runs), "registry": str(registry),
-                                                      "settings": settings, "figure": figures,
-                                                      "digests": g.digests, "method": method,
-                                                      "base_passport": g.base_passport}): g
-                       for g in plan.groups}
+        with (
+            _api_for_workers() if remote else contextlib.nullcontext(),
+            runner,
+            _compute_pool(processes),
+            _Progress(step.on, len(plan.groups), logger) as bar,
+        ):
+            futures = {
+                runner.submit(
+                    calibrate_unit,
+                    {
+                        "unit": g.unit,
+                        "runs": list(g.runs),
+                        "registry": str(registry),
+                        "settings": settings,
+                        "figure": figures,
+                        "digests": g.digests,
+                        "method": method,
+                        "base_passport": g.base_passport,
+                    },
+                ): g
+                for g in plan.groups
+            }
             for fut in as_completed(list(futures)):
                 group = futures[fut]
                 try:
                     outcome = fut.result()
-                except Exception as exc:  # noqa: BLE001 - a worker lost or killed: this unit fails, not the fleet
+                except Exception as exc:
                     reason = fleet_plan.reason_of(exc)
-                    outcome = fleet_plan.UnitOutcome(group.unit, list(group.runs), None,
-                                                     [{"run": r, "reason": reason} for r in group.runs], 0.0)
+                    outcome = fleet_plan.UnitOutcome(
+                        group.unit, list(group.runs), None, [{"run": r, "reason": reason} for r in group.runs], 0.0
+                    )
                 outcomes.append(outcome)
                 bar.unit_done(_unit_line(outcome, len(outcomes), len(plan.groups)), outcome.failed)
     summary = fleet_summary(plan, outcomes)
     summary["flow_run_id"] = str(flow_run.id)
-    summary["timing"] = {"wall_s": time.perf_counter() - t0, "plan_s": t_plan,
-                         "compute_s": sum(o.compute_s for o in outcomes), "units": len(outcomes),
-                         "runner": runner_name}
-    create_table_artifact(key=ARTIFACT_KEY, table=summary_table(summary),
-                          description=f"thermocal fleet over {root}: {len(summary['done'])} units done, "
-                                      f"{len(summary['failed'])} runs failed, {len(summary['skipped'])} skipped")
+    summary["timing"] = {
+        "wall_s": time.perf_counter() - t0,
+        "plan_s": t_plan,
+        "compute_s": sum(o.compute_s for o in outcomes),
+        "units": len(outcomes),
+        "runner": runner_name,
+    }
+    create_table_artifact(
+        key=ARTIFACT_KEY,
+        table=summary_table(summary),
+        description=f"thermocal fleet over {root}: {len(summary['done'])} units done, "
+        f"{len(summary['failed'])} runs failed, {len(summary['skipped'])} skipped",
+    )
     if outcomes:
         record_head(str(registry))
     return summary
@@ -247,8 +298,10 @@ def _unit_line(o: fleet_plan.UnitOutcome, k: int, total: int) -> str:
         head = f"{o.unit}: FAILED ({o.failed[0]['reason'] if o.failed else 'no runs'})"
     else:
         r = o.result
-        head = (f"{o.unit}: v{r['version']} {r['status']}{'' if r.get('created', True) else ' (existing)'}, "
-                f"{len(o.used_runs)} run(s)" + (f", {len(o.failed)} dropped" if o.failed else ""))
+        head = (
+            f"{o.unit}: v{r['version']} {r['status']}{'' if r.get('created', True) else ' (existing)'}, "
+            f"{len(o.used_runs)} run(s)" + (f", {len(o.failed)} dropped" if o.failed else "")
+        )
     return f"[{k}/{total}] {head} ({o.compute_s:.1f} s)"
 
 
@@ -258,35 +311,90 @@ def fleet_summary(plan: fleet_plan.FleetPlan, outcomes: list[fleet_plan.UnitOutc
     for o in sorted(outcomes, key=lambda o: o.unit):
         if o.result is not None:
             r = o.result
-            done.append({"unit": o.unit, "version": r["version"], "status": r["status"], "runs": o.used_runs,
-                         "created": bool(r.get("created", True)), "passport": r["passport"],
-                         "passport_sha256": r["passport_sha256"]})
+            done.append(
+                {
+                    "unit": o.unit,
+                    "version": r["version"],
+                    "status": r["status"],
+                    "runs": o.used_runs,
+                    "created": bool(r.get("created", True)),
+                    "passport": r["passport"],
+                    "passport_sha256": r["passport_sha256"],
+                }
+            )
         failed += [{**f, "unit": o.unit} for f in o.failed]
-    return {"done": done, "failed": sorted(failed, key=lambda f: f["run"]),
-            "skipped": sorted(plan.skipped, key=lambda s: s["run"]),
-            "warnings": sorted(plan.warnings, key=lambda w: w["run"])}
+    return {
+        "done": done,
+        "failed": sorted(failed, key=lambda f: f["run"]),
+        "skipped": sorted(plan.skipped, key=lambda s: s["run"]),
+        "warnings": sorted(plan.warnings, key=lambda w: w["run"]),
+    }
 
 
 def summary_table(summary: dict) -> list[dict]:
     """Rows of the table artifact: one per done unit, failed run, skipped run."""
-    rows = [{"unit": d["unit"], "outcome": "done", "version": d["version"], "status": d["status"],
-             "runs": ", ".join(os.path.basename(r) for r in d["runs"]), "detail": "" if d["created"] else "existing"}
-            for d in summary["done"]]
-    rows += [{"unit": f.get("unit", ""), "outcome": "failed", "version": "", "status": "",
-              "runs": os.path.basename(f["run"]), "detail": f["reason"]} for f in summary["failed"]]
-    rows += [{"unit": s.get("unit", ""), "outcome": "skipped", "version": s.get("version", ""), "status": "",
-              "runs": os.path.basename(s["run"]), "detail": s["why"]} for s in summary["skipped"]]
+    rows = [
+        {
+            "unit": d["unit"],
+            "outcome": "done",
+            "version": d["version"],
+            "status": d["status"],
+            "runs": ", ".join(os.path.basename(r) for r in d["runs"]),
+            "detail": "" if d["created"] else "existing",
+        }
+        for d in summary["done"]
+    ]
+    rows += [
+        {
+            "unit": f.get("unit", ""),
+            "outcome": "failed",
+            "version": "",
+            "status": "",
+            "runs": os.path.basename(f["run"]),
+            "detail": f["reason"],
+        }
+        for f in summary["failed"]
+    ]
+    rows += [
+        {
+            "unit": s.get("unit", ""),
+            "outcome": "skipped",
+            "version": s.get("version", ""),
+            "status": "",
+            "runs": os.path.basename(s["run"]),
+            "detail": s["why"],
+        }
+        for s in summary["skipped"]
+    ]
     return rows
 
 
-def run_fleet(root: str, registry: str, settings: CalibrationSettings = CalibrationSettings(), *,
-              dask_address: str | None = None, workers: int | None = None, pool: str = "auto",
-              figures: bool = True, progress: bool = False, method: str = "tilt") -> dict:
+def run_fleet(
+    root: str,
+    registry: str,
+    settings: CalibrationSettings = CalibrationSettings(),
+    *,
+    dask_address: str | None = None,
+    workers: int | None = None,
+    pool: str = "auto",
+    figures: bool = True,
+    progress: bool = False,
+    method: str = "tilt",
+) -> dict:
     """Run the fleet flow in this process, recorded on thermocal's local Prefect server
     (:func:`flows.runtime.flow_settings`). Progress (when asked for) and the flow's log lines reach stderr only
     when it is a terminal; the flow run's logs in Prefect are kept either way."""
     from .runtime import flow_settings, run_logs_off_console
 
     with flow_settings(), run_logs_off_console(not Steps("fleet").on):
-        return fleet_flow(str(root), str(registry), settings, dask_address=dask_address, workers=workers, pool=pool,
-                          figures=figures, progress=progress and sys.stderr is not None, method=method)
+        return fleet_flow(
+            str(root),
+            str(registry),
+            settings,
+            dask_address=dask_address,
+            workers=workers,
+            pool=pool,
+            figures=figures,
+            progress=progress and sys.stderr is not None,
+            method=method,
+        )

@@ -149,9 +149,16 @@ def ensure_server(home: Path | None = None, timeout_s: float = START_TIMEOUT_S) 
     env = {**os.environ, **_QUIET, "PREFECT_HOME": str(home)}
     env.pop("PREFECT_API_URL", None)
     with open(home / LOG, "ab") as log:
-        proc = subprocess.Popen([sys.executable, "-m", "flows.localserver", "supervise", str(home)], env=env,
-                                stdin=subprocess.DEVNULL, stdout=log, stderr=log, start_new_session=True,
-                                close_fds=True, cwd=str(home))
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "flows.localserver", "supervise", str(home)],
+            env=env,
+            stdin=subprocess.DEVNULL,
+            stdout=log,
+            stderr=log,
+            start_new_session=True,
+            close_fds=True,
+            cwd=str(home),
+        )
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         st = read_state(home)
@@ -160,8 +167,10 @@ def ensure_server(home: Path | None = None, timeout_s: float = START_TIMEOUT_S) 
         if proc.poll() not in (None, 0):
             break
         time.sleep(0.05)
-    raise ThermocalError(f"the local Prefect server did not start (its log: {home / LOG}); set PREFECT_API_URL to "
-                         "a running server or THERMOCAL_PREFECT=ephemeral")
+    raise ThermocalError(
+        f"the local Prefect server did not start (its log: {home / LOG}); set PREFECT_API_URL to "
+        "a running server or THERMOCAL_PREFECT=ephemeral"
+    )
 
 
 def stop_server(home: Path | None = None, timeout_s: float = 30.0) -> bool:
@@ -186,13 +195,20 @@ def run_on_server(argv: list[str]) -> int:
     try:
         conn = socket.create_connection(("127.0.0.1", st["job_port"]), timeout=30)
     except OSError as e:
-        raise ThermocalError(f"cannot reach the local Prefect server's worker ({e}); `thermocal server stop` and "
-                             "try again") from None
+        raise ThermocalError(
+            f"cannot reach the local Prefect server's worker ({e}); `thermocal server stop` and try again"
+        ) from None
     conn.settimeout(None)
     umask = os.umask(0o022)
     os.umask(umask)
-    request = {"token": st["token"], "argv": argv, "cwd": os.getcwd(), "env": dict(os.environ), "umask": umask,
-               "tty": {"stdout": _isatty(sys.stdout), "stderr": _isatty(sys.stderr)}}
+    request = {
+        "token": st["token"],
+        "argv": argv,
+        "cwd": os.getcwd(),
+        "env": dict(os.environ),
+        "umask": umask,
+        "tty": {"stdout": _isatty(sys.stdout), "stderr": _isatty(sys.stderr)},
+    }
     conn.sendall(json.dumps(request).encode() + b"\n")
     reader = conn.makefile("rb")
     outs = {1: sys.stdout, 2: sys.stderr}
@@ -208,8 +224,9 @@ def run_on_server(argv: list[str]) -> int:
                 conn.sendall(b'{"signal": "INT"}\n')
             continue
         if not line:
-            raise ThermocalError("the local Prefect server's worker ended without an answer (its log: "
-                                 f"{prefect_home() / LOG})")
+            raise ThermocalError(
+                f"the local Prefect server's worker ended without an answer (its log: {prefect_home() / LOG})"
+            )
         msg = json.loads(line)
         if "exit" in msg:
             return int(msg["exit"])
@@ -269,9 +286,24 @@ def supervise(home: Path) -> int:
     api_url = f"http://127.0.0.1:{port}/api"
     env = {**os.environ, **_QUIET, "PREFECT_HOME": str(home), "PREFECT_UI_API_URL": api_url}
     env.pop("PREFECT_API_URL", None)
-    server = subprocess.Popen([sys.executable, "-m", "prefect", "server", "start", "--host", "127.0.0.1", "--port",
-                               str(port), "--no-scheduler", "--no-late-runs"], env=env, stdin=subprocess.DEVNULL,
-                              preexec_fn=die_with_parent)
+    server = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "prefect",
+            "server",
+            "start",
+            "--host",
+            "127.0.0.1",
+            "--port",
+            str(port),
+            "--no-scheduler",
+            "--no-late-runs",
+        ],
+        env=env,
+        stdin=subprocess.DEVNULL,
+        preexec_fn=die_with_parent,
+    )
     stopping = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stopping.set())
     signal.signal(signal.SIGINT, lambda *_: stopping.set())
@@ -280,9 +312,14 @@ def supervise(home: Path) -> int:
     worker_env = {**env, "PREFECT_API_URL": api_url, "THERMOCAL_WORKER_TOKEN": token}
 
     def new_worker() -> subprocess.Popen:
-        return subprocess.Popen([sys.executable, "-m", "flows.worker", str(listener.fileno())],
-                                env=worker_env, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                                pass_fds=(listener.fileno(),), preexec_fn=die_with_parent)
+        return subprocess.Popen(
+            [sys.executable, "-m", "flows.worker", str(listener.fileno())],
+            env=worker_env,
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.PIPE,
+            pass_fds=(listener.fileno(),),
+            preexec_fn=die_with_parent,
+        )
 
     worker = new_worker()  # it warms up while the server starts
     jobs: set[str] = set()  # the worker's job processes running (it says "start PID" and "end PID")
@@ -292,9 +329,17 @@ def supervise(home: Path) -> int:
                 print(f"thermocal server: prefect server exited ({server.returncode})", file=sys.stderr)
                 return 1
             time.sleep(0.2)
-        state = {"pid": os.getpid(), "api_url": api_url, "ui_url": api_url.removesuffix("/api"),
-                 "job_port": listener.getsockname()[1], "token": token, "idle_s": idle_s,
-                 "server_pid": server.pid, "home": str(home), "code": code_fingerprint()}
+        state = {
+            "pid": os.getpid(),
+            "api_url": api_url,
+            "ui_url": api_url.removesuffix("/api"),
+            "job_port": listener.getsockname()[1],
+            "token": token,
+            "idle_s": idle_s,
+            "server_pid": server.pid,
+            "home": str(home),
+            "code": code_fingerprint(),
+        }
         tmp = home / f".{STATE}.tmp"
         tmp.write_text(json.dumps(state))
         tmp.chmod(0o600)

@@ -45,7 +45,7 @@ def flow_settings():
     if uses_local_server() and not PREFECT_API_URL.value():
         updates[PREFECT_API_URL] = ensure_server()["api_url"]
     if not updates:  # already in force (the local server's worker: :func:`no_heartbeat`); a new settings object
-        yield        # costs ~0.05 s
+        yield  # costs ~0.05 s
         return
     with temporary_settings(updates):
         yield
@@ -178,7 +178,7 @@ def exit_guarded(body) -> None:
         code = 130
     except SystemExit:
         raise
-    except Exception as e:  # noqa: BLE001 - the last line of defence: one line, not a traceback
+    except Exception as e:
         if os.environ.get("THERMOCAL_DEBUG"):
             raise
         print(f"thermocal: internal error: {type(e).__name__}: {' '.join(str(e).split())}", file=sys.stderr)

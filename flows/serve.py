@@ -35,21 +35,32 @@ def require_server() -> str:
 
         url = PREFECT_API_URL.value() or ""
     if not url:
-        raise ThermocalError("serve needs a running Prefect server: start one with `prefect server start` and set "
-                             "PREFECT_API_URL=http://127.0.0.1:4200/api (see README, nightly)")
+        raise ThermocalError(
+            "serve needs a running Prefect server: start one with `prefect server start` and set "
+            "PREFECT_API_URL=http://127.0.0.1:4200/api (see README, nightly)"
+        )
     import httpx
 
     try:
         httpx.get(f"{url.rstrip('/')}/health", timeout=10).raise_for_status()
     except httpx.HTTPError as exc:
-        raise ThermocalError(f"cannot reach the Prefect server at PREFECT_API_URL={url} ({exc}); is "
-                             "`prefect server start` running?") from None
+        raise ThermocalError(
+            f"cannot reach the Prefect server at PREFECT_API_URL={url} ({exc}); is `prefect server start` running?"
+        ) from None
     return url
 
 
-def nightly_deployment(inbox: str, registry: str, *, cron: str = "0 2 * * *", timezone: str = "UTC",
-                       name: str = DEPLOYMENT_NAME, settings: CalibrationSettings = CalibrationSettings(),
-                       dask_address: str | None = None, workers: int | None = None):
+def nightly_deployment(
+    inbox: str,
+    registry: str,
+    *,
+    cron: str = "0 2 * * *",
+    timezone: str = "UTC",
+    name: str = DEPLOYMENT_NAME,
+    settings: CalibrationSettings = CalibrationSettings(),
+    dask_address: str | None = None,
+    workers: int | None = None,
+):
     """The deployment object: the fleet flow over ``inbox`` on a cron schedule, one run at a time."""
     from prefect.deployments.runner import EntrypointType
     from prefect.schedules import Cron
@@ -59,19 +70,29 @@ def nightly_deployment(inbox: str, registry: str, *, cron: str = "0 2 * * *", ti
     try:
         ZoneInfo(timezone)
     except (ValueError, ZoneInfoNotFoundError):
-        raise ThermocalError(f"unknown time zone {timezone!r} (IANA name, e.g. Europe/Berlin)",
-                             where="--timezone") from None
+        raise ThermocalError(
+            f"unknown time zone {timezone!r} (IANA name, e.g. Europe/Berlin)", where="--timezone"
+        ) from None
     try:
         schedule = Cron(cron, timezone=timezone)
     except ValueError as exc:
         raise ThermocalError(f"not a valid cron schedule: {' '.join(str(exc).split())[:200]}", where="--cron") from None
-    parameters = {"root": str(Path(inbox).resolve()), "registry": str(Path(registry).resolve()),
-                  "settings": settings.to_dict(), "dask_address": dask_address, "workers": workers}
+    parameters = {
+        "root": str(Path(inbox).resolve()),
+        "registry": str(Path(registry).resolve()),
+        "settings": settings.to_dict(),
+        "dask_address": dask_address,
+        "workers": workers,
+    }
     return fleet_flow.to_deployment(
-        name=name, schedule=schedule, parameters=parameters, concurrency_limit=1,
-        description=f"thermocal fleet over the inbox {inbox} into the registry {registry}, cron {cron!r} "
-                    f"({timezone})",
-        tags=["thermocal", "nightly"], entrypoint_type=EntrypointType.MODULE_PATH)
+        name=name,
+        schedule=schedule,
+        parameters=parameters,
+        concurrency_limit=1,
+        description=f"thermocal fleet over the inbox {inbox} into the registry {registry}, cron {cron!r} ({timezone})",
+        tags=["thermocal", "nightly"],
+        entrypoint_type=EntrypointType.MODULE_PATH,
+    )
 
 
 def serve_nightly(inbox: str, registry: str, **options) -> None:

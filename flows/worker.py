@@ -61,10 +61,13 @@ class _Relay:
 def worker(listen_fd: int) -> int:
     """The warm worker: import what the commands need, then fork a job process per client (:func:`_serve`); in a
     job process, run its command (:func:`_run_job`) and exit with its status (:func:`_exit_job_process`)."""
-    from . import cli  # noqa: F401  (the command line and, below, the flows with Prefect and the pipeline)
-    from . import calibrate, fleet  # noqa: F401
     from pipeline.calibrate.fleet import prepare_worker
 
+    from . import (  # noqa: F401
+        calibrate,
+        cli,
+        fleet,
+    )
     from .runtime import no_heartbeat
 
     prepare_worker()
@@ -172,8 +175,8 @@ def _import_flow_run_modules() -> None:
 
     import anyio._backends._asyncio  # noqa: F401
     import fastapi.encoders  # noqa: F401
-    import prefect.flow_engine  # noqa: F401
-    import prefect.task_engine  # noqa: F401
+    import prefect.flow_engine
+    import prefect.task_engine
     import prefect.utilities.visualization  # noqa: F401
 
 
@@ -225,7 +228,6 @@ def _run_job(conn: socket.socket, reader, req: dict) -> int:
         conn.shutdown(socket.SHUT_RDWR)
     sys.stdout, sys.stderr = real_out, real_err
     return code
-
 
 
 if __name__ == "__main__":

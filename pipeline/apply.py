@@ -76,8 +76,13 @@ def _model(passport: dict):
     if p.extended is not None:
         return _applicable_extended(p.extended, warnings), 0.0, None, warnings, True
     if p.rate_terms is not None:
-        return DifferentialModel(p.thermal_model, p.rate_terms), p.rate_terms.lag_tau_s, p.rate_terms.temp_smooth_s, \
-            warnings, False
+        return (
+            DifferentialModel(p.thermal_model, p.rate_terms),
+            p.rate_terms.lag_tau_s,
+            p.rate_terms.temp_smooth_s,
+            warnings,
+            False,
+        )
     return p.thermal_model, 0.0, None, warnings, False
 
 
@@ -88,8 +93,12 @@ def _applicable_extended(ext, warnings: list[str]):
 
     left = [e for e in ext.effects if e.needs_fixture]
     if left:
-        warnings.append("the passport's extended model is applied without " + "; ".join(
-            f"{e.id} (it needs {e.needs_fixture}, which apply does not locate in the recording)" for e in left))
+        warnings.append(
+            "the passport's extended model is applied without "
+            + "; ".join(
+                f"{e.id} (it needs {e.needs_fixture}, which apply does not locate in the recording)" for e in left
+            )
+        )
     return ExtendedModel(ext.base, [e for e in ext.effects if not e.needs_fixture], ext.source)
 
 
@@ -107,7 +116,7 @@ def _extended_context(run: Run, t_ns: np.ndarray, temp_c: np.ndarray, ext):
     order = np.argsort(tt, kind="stable")
     th_s, th_c = (tt[order] - start_ns) / _NS, temp[order]
     lagged = first_order_lag(th_s, th_c, ext.lag_tau_s) if ext.lag_tau_s is not None and th_s.size >= 2 else None
-    ramp_at = ramp_direction(run, start_ns)       # from the whole record, once
+    ramp_at = ramp_direction(run, start_ns)  # from the whole record, once
 
     def at(s0: int, s1: int):
         t_s = (t_ns[s0:s1] - start_ns) / _NS
@@ -115,16 +124,26 @@ def _extended_context(run: Run, t_ns: np.ndarray, temp_c: np.ndarray, ext):
         element = None if lagged is None else np.interp(t_s, th_s, lagged)
         ramp = ramp_at(t_s)
         n = t_s.size
-        ctx = SignalContext(t_s=t_s, temp_c=tc, a_g=np.zeros((n, 3)), position_idx=np.full(n, -1),
-                            move_start_s=np.zeros(0), arrive_s=np.zeros(0), constants=ext.base,
-                            normal_temp_c=float(ext.base.normal_temp_c), ramp_sign=ramp, start_ns=start_ns)
+        ctx = SignalContext(
+            t_s=t_s,
+            temp_c=tc,
+            a_g=np.zeros((n, 3)),
+            position_idx=np.full(n, -1),
+            move_start_s=np.zeros(0),
+            arrive_s=np.zeros(0),
+            constants=ext.base,
+            normal_temp_c=float(ext.base.normal_temp_c),
+            ramp_sign=ramp,
+            start_ns=start_ns,
+        )
         return ctx, element
 
     return at
 
 
-def _temperature_at(run: Run, t_ns: np.ndarray, lag_tau_s: float, smooth_s: float | None
-                    ) -> tuple[np.ndarray, np.ndarray | None]:
+def _temperature_at(
+    run: Run, t_ns: np.ndarray, lag_tau_s: float, smooth_s: float | None
+) -> tuple[np.ndarray, np.ndarray | None]:
     """AU temperature (C) and, with ``smooth_s``, its rate (C/min) at the times ``t_ns``; NaN outside the finite
     thermosensor record."""
     tt = run.au_temperature["t_ns"].to_numpy()
@@ -170,8 +189,7 @@ def apply_passport(passport: dict, run: Run) -> Applied:
                 out = model.specific_force_g(u, *extended(s0, s1))
         else:
             tc = np.where(good, temp_c[s0:s1], float(model.normal_temp_c))
-            K, U0 = model.constants_at(tc) if rate is None else model.constants_at(tc, np.where(good, rate[s0:s1],
-                                                                                                  0.0))
+            K, U0 = model.constants_at(tc) if rate is None else model.constants_at(tc, np.where(good, rate[s0:s1], 0.0))
             with np.errstate(invalid="ignore"):
                 out = specific_force_g(K, U0, u)
         out[~good] = np.nan
@@ -188,24 +206,36 @@ def apply_passport(passport: dict, run: Run) -> Applied:
         out_n = int(np.count_nonzero(~in_range))
         if out_n:
             first = utc_text(int(t_ns[np.flatnonzero(~in_range)[0]]))
-            warnings.append(f"{out_n} of {n} samples lie outside the passport's valid temperature range "
-                            f"{rng[0]:g} .. {rng[1]:g} C (the first at {first}); the model is extrapolated there")
-    table = pl.DataFrame({"t_ns": pl.Series(t_ns, dtype=pl.Int64), "ax_g": a[:, 0], "ay_g": a[:, 1],
-                          "az_g": a[:, 2], "temp_c": temp_c, "in_range": pl.Series(in_range, dtype=pl.Boolean)})
+            warnings.append(
+                f"{out_n} of {n} samples lie outside the passport's valid temperature range "
+                f"{rng[0]:g} .. {rng[1]:g} C (the first at {first}); the model is extrapolated there"
+            )
+    table = pl.DataFrame(
+        {
+            "t_ns": pl.Series(t_ns, dtype=pl.Int64),
+            "ax_g": a[:, 0],
+            "ay_g": a[:, 1],
+            "az_g": a[:, 2],
+            "temp_c": temp_c,
+            "in_range": pl.Series(in_range, dtype=pl.Boolean),
+        }
+    )
     return Applied(table=table, valid_temp_c=rng, warnings=warnings)
 
 
-def write_applied(applied: Applied, path: str | Path, *, passport: dict | None = None, run: Run | None = None
-                  ) -> Path:
+def write_applied(applied: Applied, path: str | Path, *, passport: dict | None = None, run: Run | None = None) -> Path:
     """Write the compensated recording: Parquet (any name), or MCAP with ``.mcap`` (one JSON channel ``apply`` of
     row blocks). The file is written beside and renamed into place, so a failure leaves no partial file."""
     path = Path(path)
     tmp = path.with_name(f".{path.name}.partial")
-    meta = {"passport_unit": str((passport or {}).get("unit", "")),
-            "passport_version": str((passport or {}).get("version", "")),
-            "run_id": run.meta.run_id if run is not None else "",
-            "valid_temp_c": "" if applied.valid_temp_c is None else
-            f"{applied.valid_temp_c[0]:g},{applied.valid_temp_c[1]:g}"}
+    meta = {
+        "passport_unit": str((passport or {}).get("unit", "")),
+        "passport_version": str((passport or {}).get("version", "")),
+        "run_id": run.meta.run_id if run is not None else "",
+        "valid_temp_c": ""
+        if applied.valid_temp_c is None
+        else f"{applied.valid_temp_c[0]:g},{applied.valid_temp_c[1]:g}",
+    }
     try:
         if path.suffix == ".mcap":
             _write_mcap(applied.table, tmp, meta)
@@ -229,14 +259,19 @@ def _write_mcap(table: pl.DataFrame, path: Path, meta: dict[str, str], block_row
         w.start(profile="", library="thermocal")
         try:
             w.add_metadata("thermocal.apply", meta)
-            schema = w.register_schema("thermocal.apply_block", "jsonschema", json.dumps(
-                {"type": "object", "properties": {c: {"type": "array"} for c in APPLY_COLUMNS}}).encode())
+            schema = w.register_schema(
+                "thermocal.apply_block",
+                "jsonschema",
+                json.dumps({"type": "object", "properties": {c: {"type": "array"} for c in APPLY_COLUMNS}}).encode(),
+            )
             ch = w.register_channel("apply", "json", schema)
             t = table["t_ns"].to_numpy()
             for s0 in range(0, table.height, block_rows):
                 block = table.slice(s0, block_rows)
-                body = {c: [None if isinstance(v, float) and not np.isfinite(v) else v
-                            for v in block[c].to_list()] for c in APPLY_COLUMNS}
+                body = {
+                    c: [None if isinstance(v, float) and not np.isfinite(v) else v for v in block[c].to_list()]
+                    for c in APPLY_COLUMNS
+                }
                 stamp = int(t[s0])
                 w.add_message(ch, log_time=stamp, publish_time=stamp, data=json.dumps(body).encode())
         finally:

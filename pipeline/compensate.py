@@ -31,16 +31,16 @@ def temperature_correction_g(model, u_v: np.ndarray, temp_c: np.ndarray, *, full
     u_v = np.atleast_2d(u_v)
     dK, dU0 = model.deltas(np.atleast_1d(temp_c))
     K0, U00 = model.K0, model.U00
-    d = np.diag(K0)                                   # (3,) gains, V/g
-    x = u_v - U00                                     # (n, 3) V
-    dd = np.outer(d, d)                               # K_ii K_jj
+    d = np.diag(K0)  # (3,) gains, V/g
+    x = u_v - U00  # (n, 3) V
+    dd = np.outer(d, d)  # K_ii K_jj
     if full:
         term_k = -np.einsum("nij,nj->ni", dK / dd, x)
         cas = K0 / dd
         np.fill_diagonal(cas, 0.0)
         term_u = -dU0 / d + dU0 @ cas.T
     else:
-        dK_diag = np.diagonal(dK, axis1=1, axis2=2)   # (n, 3)
+        dK_diag = np.diagonal(dK, axis1=1, axis2=2)  # (n, 3)
         term_k = -dK_diag * x / d**2
         term_u = -dU0 / d
     return term_k + term_u

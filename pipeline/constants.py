@@ -17,11 +17,11 @@ from pipeline.positions import TEST_POSITIONS
 class ConstantsFit:
     """Constants at one temperature and how well they fit the positions used."""
 
-    K: np.ndarray            # (3, 3) V/g
-    U0: np.ndarray           # (3,) V
-    residual_v: np.ndarray   # (m, 3) U - (K a + U0) at the positions used, V
+    K: np.ndarray  # (3, 3) V/g
+    U0: np.ndarray  # (3,) V
+    residual_v: np.ndarray  # (m, 3) U - (K a + U0) at the positions used, V
     positions: tuple[str, ...]
-    method: str              # "six_position" | "least_squares"
+    method: str  # "six_position" | "least_squares"
 
 
 def six_position(u_by_position_v: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
@@ -39,8 +39,9 @@ def six_position(u_by_position_v: dict[str, np.ndarray]) -> tuple[np.ndarray, np
     return K, U0
 
 
-def least_squares(a_g: np.ndarray, u_v: np.ndarray, weights: np.ndarray | None = None
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def least_squares(
+    a_g: np.ndarray, u_v: np.ndarray, weights: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Solve U = K a + U0 for K (3, 3) V/g and U0 (3,) V over m >= 4 positions by (weighted) least squares.
 
     Each channel is an independent linear regression on [a_x, a_y, a_z, 1]. Returns K, U0 and the residuals (m, 3) V.
@@ -50,11 +51,13 @@ def least_squares(a_g: np.ndarray, u_v: np.ndarray, weights: np.ndarray | None =
     u_v = np.asarray(u_v, dtype=float)
     A = np.column_stack([a_g, np.ones(len(a_g))])
     if np.linalg.matrix_rank(A) < 4:
-        raise ValueError("positions do not determine the 12 constants (need gravity along three independent axes "
-                         "with both signs or an offset reference)")
+        raise ValueError(
+            "positions do not determine the 12 constants (need gravity along three independent axes "
+            "with both signs or an offset reference)"
+        )
     w = np.ones(len(a_g)) if weights is None else np.asarray(weights, dtype=float)
     sw = np.sqrt(w)[:, None]
-    coef, *_ = np.linalg.lstsq(A * sw, u_v * sw, rcond=None)   # (4, 3): rows a_x, a_y, a_z, 1; cols channel
+    coef, *_ = np.linalg.lstsq(A * sw, u_v * sw, rcond=None)  # (4, 3): rows a_x, a_y, a_z, 1; cols channel
     K = coef[:3].T
     U0 = coef[3]
     return K, U0, u_v - (a_g @ K.T + U0)
@@ -64,8 +67,9 @@ def least_squares(a_g: np.ndarray, u_v: np.ndarray, weights: np.ndarray | None =
 CONSTANTS_METHODS = ("auto", "six_position", "least_squares")
 
 
-def fit_constants(positions: list[str], u_v: np.ndarray, *, method: str = "auto",
-                  weights: np.ndarray | None = None) -> ConstantsFit:
+def fit_constants(
+    positions: list[str], u_v: np.ndarray, *, method: str = "auto", weights: np.ndarray | None = None
+) -> ConstantsFit:
     """Constants from named positions and their mean outputs.
 
     ``method``: ``"six_position"`` (needs TP1..TP6, each once; repeats are averaged), ``"least_squares"`` (all

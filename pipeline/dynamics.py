@@ -33,12 +33,14 @@ def first_order_lag(t_s: np.ndarray, x: np.ndarray, tau_s: float, y0: float | No
     b = [1.0 - c, c - a]
     den = [1.0, -a]
     from scipy.signal import lfilter, lfiltic  # ~1 s to import: only where a lag is filtered
+
     rest, _ = lfilter(b, den, x[1:], zi=lfiltic(b, den, [y_start], [x[0]]))
     return np.concatenate([[y_start], rest])
 
 
-def ramp_sign_from_temperature(t_s: np.ndarray, temp_c: np.ndarray, threshold_c_per_min: float = 0.2,
-                               window_s: float = 120.0) -> np.ndarray:
+def ramp_sign_from_temperature(
+    t_s: np.ndarray, temp_c: np.ndarray, threshold_c_per_min: float = 0.2, window_s: float = 120.0
+) -> np.ndarray:
     """The direction the temperature last came from, per sample: +1 after heating, -1 after cooling, 0 before the
     first ramp (for a signal context's ``ramp_sign`` built from a recording).
 

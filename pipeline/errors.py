@@ -10,8 +10,7 @@ class ThermocalError(Exception):
     (``t_ns=...``) or row (``row 12``) or byte offset where it was found. Any of them may be empty.
     """
 
-    def __init__(self, message: str, *, path: str | None = None, stream: str | None = None,
-                 where: str | None = None):
+    def __init__(self, message: str, *, path: str | None = None, stream: str | None = None, where: str | None = None):
         self.message = message
         self.path = path
         self.stream = stream

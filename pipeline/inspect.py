@@ -24,8 +24,9 @@ def summarize_run(run: Run) -> dict[str, Any]:
     summary: dict[str, Any] = {
         "source": run.source,
         "metadata": run.meta.to_strings(),
-        "streams": {name: stream_summary(name, df["t_ns"].to_numpy(), _non_finite(df))
-                    for name, df in run.streams().items()},
+        "streams": {
+            name: stream_summary(name, df["t_ns"].to_numpy(), _non_finite(df)) for name, df in run.streams().items()
+        },
         "warnings": list(run.warnings),
     }
     if run.fixture is not None:
@@ -41,8 +42,15 @@ def stream_summary(name: str, t_ns: np.ndarray, non_finite: int) -> dict[str, An
     the interval is. The fixture log is a list of events, so it has no rate and no gaps.
     """
     n = int(len(t_ns))
-    out: dict[str, Any] = {"samples": n, "rate_hz": None, "t_start_ns": None, "t_end_ns": None, "duration_s": 0.0,
-                           "gaps": [], "non_finite": int(non_finite)}
+    out: dict[str, Any] = {
+        "samples": n,
+        "rate_hz": None,
+        "t_start_ns": None,
+        "t_end_ns": None,
+        "duration_s": 0.0,
+        "gaps": [],
+        "non_finite": int(non_finite),
+    }
     if n == 0:
         return out
     out["t_start_ns"] = int(t_ns[0])
@@ -80,8 +88,13 @@ def _segmentation_summary(run: Run) -> dict[str, Any]:
         return {"plateaus": [], "static_positions": [], "segmentation": f"failed: {exc}"}
     recording = describe_recording(run, result)
     plateaus = recording.pop("_plateaus")
-    return {"plateaus": to_jsonable(plateaus), "static_positions": to_jsonable(result.segments),
-            "segmentation": "ok", "segmentation_warnings": list(result.warnings), "recording": recording}
+    return {
+        "plateaus": to_jsonable(plateaus),
+        "static_positions": to_jsonable(result.segments),
+        "segmentation": "ok",
+        "segmentation_warnings": list(result.warnings),
+        "recording": recording,
+    }
 
 
 #: static segments whose gravity directions lie within this angle (deg) are one pose
@@ -120,12 +133,20 @@ def describe_recording(run: Run, seg) -> dict[str, Any]:
     auto = _auto(methods, program, run)
     lo, hi = program.range_c
     return {
-        "temperature": {"kind": program.kind, "range_c": [_r(lo), _r(hi)],
-                        "max_rate_c_per_h": _r(program.max_rate_c_per_h),
-                        "rate_window_s": program.rate_window_s, "plateaus": len(program.plateaus),
-                        "drift_s": round(program.drift_s, 1)},
-        "static": {"window_s": seg.static_window_s, "min_s": seg.static_min_s, "segments": len(seg.segments),
-                   "poses": len(poses)},
+        "temperature": {
+            "kind": program.kind,
+            "range_c": [_r(lo), _r(hi)],
+            "max_rate_c_per_h": _r(program.max_rate_c_per_h),
+            "rate_window_s": program.rate_window_s,
+            "plateaus": len(program.plateaus),
+            "drift_s": round(program.drift_s, 1),
+        },
+        "static": {
+            "window_s": seg.static_window_s,
+            "min_s": seg.static_min_s,
+            "segments": len(seg.segments),
+            "poses": len(poses),
+        },
         "poses": poses,
         "methods": methods,
         "method_auto": auto,
@@ -145,7 +166,7 @@ def _poses(seg) -> list[dict[str, Any]]:
     if not segs:
         return []
     d = np.array([s.direction_g for s in segs], dtype=float)
-    if not np.all(np.isfinite(d)):             # no gain known: the direction of the raw outputs (sign unknown)
+    if not np.all(np.isfinite(d)):  # no gain known: the direction of the raw outputs (sign unknown)
         m = np.array([s.mean_v for s in segs], dtype=float)
         d = m / np.linalg.norm(m, axis=1, keepdims=True)
     cos_max = np.cos(np.radians(POSE_ANGLE_DEG))
@@ -171,16 +192,26 @@ def _poses(seg) -> list[dict[str, Any]]:
         v = np.average(d[idx], axis=0, weights=w)
         v = v / np.linalg.norm(v)
         big = int(np.argmax(np.abs(v)))
-        vertical = (("+" if v[big] > 0 else "-") + "xyz"[big]
-                    if abs(v[big]) >= np.cos(np.radians(AXIS_ANGLE_DEG)) else None)
+        vertical = (
+            ("+" if v[big] > 0 else "-") + "xyz"[big] if abs(v[big]) >= np.cos(np.radians(AXIS_ANGLE_DEG)) else None
+        )
         temps = [segs[k].temp_c for k in idx]
         names = sorted({segs[k].position for k in idx if segs[k].position})
-        out.append({"index": j, "direction_g": [round(float(x), 4) for x in v], "vertical_axis": vertical,
-                    "position": names[0] if len(names) == 1 else None, "holds": len(holds),
-                    "duration_s": round(float(sum(durations)), 2), "shortest_hold_s": round(float(min(durations)), 2),
-                    "longest_hold_s": round(float(max(durations)), 2),
-                    "temp_range_c": [_r(min(temps), 2), _r(max(temps), 2)],
-                    "first_t_ns": int(segs[idx[0]].t_start_ns), "_temps": temps})
+        out.append(
+            {
+                "index": j,
+                "direction_g": [round(float(x), 4) for x in v],
+                "vertical_axis": vertical,
+                "position": names[0] if len(names) == 1 else None,
+                "holds": len(holds),
+                "duration_s": round(float(sum(durations)), 2),
+                "shortest_hold_s": round(float(min(durations)), 2),
+                "longest_hold_s": round(float(max(durations)), 2),
+                "temp_range_c": [_r(min(temps), 2), _r(max(temps), 2)],
+                "first_t_ns": int(segs[idx[0]].t_start_ns),
+                "_temps": temps,
+            }
+        )
     out.sort(key=lambda p: p["first_t_ns"])
     for k, p in enumerate(out):
         p["index"] = k
@@ -212,8 +243,7 @@ def _methods(program, poses, seg, on_soak: set[int], run: Run) -> list[dict[str,
     # tilt: the soaks whose test positions determine the 12 constants, as the tilt calibration takes them (the
     # six, or fewer by least squares; held while the unit still settled too); the thermal model's order is what
     # their distinct temperatures allow (calibrate --thermal-model refuses a higher one)
-    cal = [c for c in calibration_plateaus(observations_from_segmentation(run.meta.run_id, seg))
-           if c[1] in on_soak]
+    cal = [c for c in calibration_plateaus(observations_from_segmentation(run.meta.run_id, seg)) if c[1] in on_soak]
     n = len(cal)
     six = sum(set(c[3]) >= {f"TP{k}" for k in range(1, 7)} for c in cal)
     temps = np.array([c[2] for c in cal])
@@ -221,48 +251,96 @@ def _methods(program, poses, seg, on_soak: set[int], run: Run) -> list[dict[str,
     distinct = int(labels.max()) + 1 if n else 0
     order = default_order(temps) if n else 0
     at = ", ".join(f"{t:+.0f}" for t in sorted(float(np.mean(temps[labels == k])) for k in range(distinct)))
-    out.append({"method": "tilt", "supported": n > 0,
-                "why": (f"{count_words(n, 'plateau')} whose test positions determine the 12 constants ({six} with all "
-                        f"six), at {count_words(distinct, 'temperature')} ({at} C)" if n else
-                        "no temperature plateau holds test positions that determine the 12 constants (TP1..TP6, "
-                        "or five of them)"),
-                "determines": (["K (9) and U0 (3) at each plateau temperature",
-                                f"thermal model of order up to {order} (one less than the distinct temperatures, "
-                                "at most 3)" if distinct > 1 else
-                                "no thermal model (one temperature)"] if n else [])})
+    out.append(
+        {
+            "method": "tilt",
+            "supported": n > 0,
+            "why": (
+                f"{count_words(n, 'plateau')} whose test positions determine the 12 constants ({six} with all "
+                f"six), at {count_words(distinct, 'temperature')} ({at} C)"
+                if n
+                else "no temperature plateau holds test positions that determine the 12 constants (TP1..TP6, "
+                "or five of them)"
+            ),
+            "determines": (
+                [
+                    "K (9) and U0 (3) at each plateau temperature",
+                    f"thermal model of order up to {order} (one less than the distinct temperatures, at most 3)"
+                    if distinct > 1
+                    else "no thermal model (one temperature)",
+                ]
+                if n
+                else []
+            ),
+        }
+    )
     # sweep (differential): orientations held through temperature excursions
-    held = [p for p in poses if p["longest_hold_s"] >= SWEEP_MIN_HOLD_S and None not in p["temp_range_c"]
-            and p["temp_range_c"][1] - p["temp_range_c"][0] >= SWEEP_MIN_SPAN_C]
+    held = [
+        p
+        for p in poses
+        if p["longest_hold_s"] >= SWEEP_MIN_HOLD_S
+        and None not in p["temp_range_c"]
+        and p["temp_range_c"][1] - p["temp_range_c"][0] >= SWEEP_MIN_SPAN_C
+    ]
     roles = _axis_roles(held)
     both = [ax for ax, (v, h) in roles.items() if v and h]
     sweep_ok = len(held) >= 2
     det = []
     if sweep_ok:
         det.append("per axis: bias temperature terms (polynomial in T, rate terms)")
-        det += [f"axis {ax}: bias and scale factor separated (vertical in one orientation, horizontal in another)"
-                for ax in both]
-        det += [f"axis {ax}: scale factor and its temperature terms undetermined without --base-passport "
-                "(never vertical)" if not roles[ax][0] else
-                f"axis {ax}: bias at T0 undetermined without --base-passport (never horizontal)"
-                for ax in "xyz" if ax not in both]
-        det.append("cross-axis constants: undetermined without --base-passport (only their temperature terms, "
-                   "where the orientations excite them)")
-    out.append({"method": "differential", "supported": sweep_ok,
-                "why": (f"{len(held)} orientations held {SWEEP_MIN_HOLD_S / 3600:.0f} h or more through "
-                        f"{SWEEP_MIN_SPAN_C:.0f} C or more" if sweep_ok else
-                        f"needs two or more orientations each held {SWEEP_MIN_HOLD_S / 3600:.0f} h or more through "
-                        f"{SWEEP_MIN_SPAN_C:.0f} C or more; found {len(held)}"),
-                "determines": det})
+        det += [
+            f"axis {ax}: bias and scale factor separated (vertical in one orientation, horizontal in another)"
+            for ax in both
+        ]
+        det += [
+            f"axis {ax}: scale factor and its temperature terms undetermined without --base-passport (never vertical)"
+            if not roles[ax][0]
+            else f"axis {ax}: bias at T0 undetermined without --base-passport (never horizontal)"
+            for ax in "xyz"
+            if ax not in both
+        ]
+        det.append(
+            "cross-axis constants: undetermined without --base-passport (only their temperature terms, "
+            "where the orientations excite them)"
+        )
+    out.append(
+        {
+            "method": "differential",
+            "supported": sweep_ok,
+            "why": (
+                f"{len(held)} orientations held {SWEEP_MIN_HOLD_S / 3600:.0f} h or more through "
+                f"{SWEEP_MIN_SPAN_C:.0f} C or more"
+                if sweep_ok
+                else f"needs two or more orientations each held {SWEEP_MIN_HOLD_S / 3600:.0f} h or more through "
+                f"{SWEEP_MIN_SPAN_C:.0f} C or more; found {len(held)}"
+            ),
+            "determines": det,
+        }
+    )
     # scalar: many distinct poses at one temperature
     t0 = float(run.meta.normal_temp_c)
     near = [p for p in poses if _near(p, t0)]
     k = len(near)
-    out.append({"method": "scalar", "supported": k >= SCALAR_DIAGONAL_POSES,
-                "why": f"{k} distinct static poses within 3 C of T0 ({t0:g} C)",
-                "determines": (["gains and offsets at T0", "psi_xy, psi_xz, psi_yz (sums of cross-axis pairs; the "
-                                "individual cross-axis terms are not determined)"] if k >= SCALAR_FULL_POSES else
-                               ["gains and offsets at T0 (orthogonal axes assumed: too few poses for the "
-                                "cross-axis combinations)"] if k >= SCALAR_DIAGONAL_POSES else [])})
+    out.append(
+        {
+            "method": "scalar",
+            "supported": k >= SCALAR_DIAGONAL_POSES,
+            "why": f"{k} distinct static poses within 3 C of T0 ({t0:g} C)",
+            "determines": (
+                [
+                    "gains and offsets at T0",
+                    "psi_xy, psi_xz, psi_yz (sums of cross-axis pairs; the "
+                    "individual cross-axis terms are not determined)",
+                ]
+                if k >= SCALAR_FULL_POSES
+                else [
+                    "gains and offsets at T0 (orthogonal axes assumed: too few poses for the cross-axis combinations)"
+                ]
+                if k >= SCALAR_DIAGONAL_POSES
+                else []
+            ),
+        }
+    )
     # in the order auto prefers them: tilt on a plateau program, the sweep method on a sweep, scalar on many poses
     # at one temperature when no fixture log says where they are (poses named from gravity alone are not known to
     # a fixture's precision: a hand-turned fixture) and tilt would not determine a thermal model (fewer than two
@@ -270,8 +348,7 @@ def _methods(program, poses, seg, on_soak: set[int], run: Run) -> list[dict[str,
     logged = _fixture_logged(run)
     if program.kind == "sweep":
         out = [out[1], out[0], out[2]]
-    elif ((k >= SCALAR_FULL_POSES and not logged and n < 2)
-          or (k >= SCALAR_DIAGONAL_POSES and not out[0]["supported"])):
+    elif (k >= SCALAR_FULL_POSES and not logged and n < 2) or (k >= SCALAR_DIAGONAL_POSES and not out[0]["supported"]):
         out = [out[2], out[0], out[1]]
     return out
 
@@ -295,9 +372,11 @@ def _auto(methods: list[dict[str, Any]], program, run: Run) -> str | None:
 def format_summary(summary: dict[str, Any]) -> str:
     """Human-readable text of :func:`summarize_run`'s result, a few lines per stream."""
     meta = summary["metadata"]
-    lines = [f"run {meta.get('run_id', '?')}  unit {meta.get('unit_serial', '?')}  station {meta.get('station') or '-'}"
-             f"  fixture {meta.get('fixture') or '-'}  T0 {meta.get('normal_temp_c', '?')} C"
-             f"  started {meta.get('started_utc') or '-'}"]
+    lines = [
+        f"run {meta.get('run_id', '?')}  unit {meta.get('unit_serial', '?')}  station {meta.get('station') or '-'}"
+        f"  fixture {meta.get('fixture') or '-'}  T0 {meta.get('normal_temp_c', '?')} C"
+        f"  started {meta.get('started_utc') or '-'}"
+    ]
     if summary.get("source"):
         lines.append(f"  source: {summary['source']}")
     for name, s in summary["streams"].items():
@@ -306,13 +385,17 @@ def format_summary(summary: dict[str, Any]) -> str:
             continue
         rate = f", {s['rate_hz']:.4g} Hz" if s["rate_hz"] else ""
         unit = "events" if name == "fixture" else "samples"
-        lines.append(f"{name}: {s['samples']} {unit}{rate}, {_duration(s['duration_s'])} "
-                     f"from {utc_text(s['t_start_ns'])} to {utc_text(s['t_end_ns'])}")
+        lines.append(
+            f"{name}: {s['samples']} {unit}{rate}, {_duration(s['duration_s'])} "
+            f"from {utc_text(s['t_start_ns'])} to {utc_text(s['t_end_ns'])}"
+        )
         details = []
         if s["gaps"]:
             longest = max(g[1] for g in s["gaps"])
-            details.append(f"{len(s['gaps'])} gaps (longest {_duration(longest)} at "
-                           f"{utc_text(max(s['gaps'], key=lambda g: g[1])[0])})")
+            details.append(
+                f"{len(s['gaps'])} gaps (longest {_duration(longest)} at "
+                f"{utc_text(max(s['gaps'], key=lambda g: g[1])[0])})"
+            )
         if s["non_finite"]:
             details.append(f"{s['non_finite']} non-finite values")
         if "positions" in s:
@@ -324,15 +407,19 @@ def format_summary(summary: dict[str, Any]) -> str:
         lines += _recording_lines(rec)
     plateaus, positions = summary.get("plateaus") or [], summary.get("static_positions") or []
     grouped = " (grouped into the poses above; --json lists each)" if rec and len(positions) > 24 else ""
-    lines.append(f"segmentation: {summary.get('segmentation', '-')}; {count_words(len(plateaus), 'plateau')}, "
-                 f"{count_words(len(positions), 'static segment')}{grouped}")
+    lines.append(
+        f"segmentation: {summary.get('segmentation', '-')}; {count_words(len(plateaus), 'plateau')}, "
+        f"{count_words(len(positions), 'static segment')}{grouped}"
+    )
     t0 = min((p["t_start_ns"] for p in plateaus), default=0)
     for p in plateaus:
         names = [s["position"] or "?" for s in positions if s["plateau"] == p["index"]]
         settling = [s["position"] or "?" for s in positions if s.get("settling") == p["index"]]
         before = f"  (held while still settling towards it: {' '.join(settling)})" if settling else ""
-        lines.append(f"  plateau {p['index']}: {p['temp_c']:+7.2f} C  from {(p['t_start_ns'] - t0) / 3.6e12:5.2f} h, "
-                     f"{(p['t_end_ns'] - p['t_start_ns']) / 6e10:5.1f} min  {' '.join(names)}{before}")
+        lines.append(
+            f"  plateau {p['index']}: {p['temp_c']:+7.2f} C  from {(p['t_start_ns'] - t0) / 3.6e12:5.2f} h, "
+            f"{(p['t_end_ns'] - p['t_start_ns']) / 6e10:5.1f} min  {' '.join(names)}{before}"
+        )
     conflicts = [s for s in positions if s.get("label_conflict")]
     if conflicts:
         lines.append(f"  {len(conflicts)} segments whose fixture label disagrees with gravity (see warnings)")
@@ -345,27 +432,38 @@ def _recording_lines(rec: dict[str, Any]) -> list[str]:
     """The recording's description (:func:`describe_recording`) as text."""
     t = rec["temperature"]
     lo, hi = t["range_c"]
-    kinds = {**KIND_WORDS, "plateaus": f"plateau program: {count_words(t['plateaus'], 'plateau')}",
-             "sweep": "temperature sweep (continuous drift, no plateau held)"}
-    lines = [f"recording: {kinds.get(t['kind'], t['kind'])}; {lo:+.2f} .. {hi:+.2f} C, largest rate "
-             f"{t['max_rate_c_per_h']:.3g} C/h (over {t['rate_window_s']:.0f} s)"]
+    kinds = {
+        **KIND_WORDS,
+        "plateaus": f"plateau program: {count_words(t['plateaus'], 'plateau')}",
+        "sweep": "temperature sweep (continuous drift, no plateau held)",
+    }
+    lines = [
+        f"recording: {kinds.get(t['kind'], t['kind'])}; {lo:+.2f} .. {hi:+.2f} C, largest rate "
+        f"{t['max_rate_c_per_h']:.3g} C/h (over {t['rate_window_s']:.0f} s)"
+    ]
     st = rec["static"]
-    lines.append(f"  {st['poses']} static poses in {st['segments']} segments (static window {st['window_s']:.3g} s, "
-                 f"shortest {st['min_s']:.3g} s)")
+    lines.append(
+        f"  {st['poses']} static poses in {st['segments']} segments (static window {st['window_s']:.3g} s, "
+        f"shortest {st['min_s']:.3g} s)"
+    )
     for p in rec["poses"]:
         d = " ".join(f"{x:+.3f}" for x in p["direction_g"])
         lo_c, hi_c = p["temp_range_c"]
-        lines.append(f"  pose {p['index']}: g along ({d})  vertical {p['vertical_axis'] or '-':<3} "
-                     f"{p['position'] or '?':<4} {count_words(p['holds'], 'hold')}, {_duration(p['duration_s'])}"
-                     + (f" (shortest {_duration(p['shortest_hold_s'])})" if p["holds"] > 1 else "")
-                     + f"  {lo_c:+.2f} .. {hi_c:+.2f} C")
+        lines.append(
+            f"  pose {p['index']}: g along ({d})  vertical {p['vertical_axis'] or '-':<3} "
+            f"{p['position'] or '?':<4} {count_words(p['holds'], 'hold')}, {_duration(p['duration_s'])}"
+            + (f" (shortest {_duration(p['shortest_hold_s'])})" if p["holds"] > 1 else "")
+            + f"  {lo_c:+.2f} .. {hi_c:+.2f} C"
+        )
     for m in rec["methods"]:
         lines.append(f"  method {m['method']:<12} {'supported' if m['supported'] else 'not supported'}: {m['why']}")
         lines += [f"      {d}" for d in m["determines"]]
     auto = rec["method_auto"]
     supported = any(m["method"] == auto and m["supported"] for m in rec["methods"])
-    lines.append(f"  calibrate --method auto: {auto or 'no method fits this recording'}"
-                 + ("" if auto is None or supported else " (the fixture log says tilt; it will say what is missing)"))
+    lines.append(
+        f"  calibrate --method auto: {auto or 'no method fits this recording'}"
+        + ("" if auto is None or supported else " (the fixture log says tilt; it will say what is missing)")
+    )
     return lines
 
 

@@ -17,7 +17,6 @@ from typing import Protocol
 
 import numpy as np
 
-
 #: the units an output U may be in, each with the smaller unit residuals and noise are printed in and its factor
 OUTPUT_UNITS = {"V": ("uV", 1e6), "m/s^2": ("mm/s^2", 1e3)}
 #: gains within this fraction of the local gravity (in m/s^2) mean outputs in m/s^2

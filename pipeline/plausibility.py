@@ -17,8 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["IMPLAUSIBLE", "UnitTypeRanges", "assess", "check_constants", "check_fit", "judged_status",
-           "mirrored_axis"]
+__all__ = ["IMPLAUSIBLE", "UnitTypeRanges", "assess", "check_constants", "check_fit", "judged_status", "mirrored_axis"]
 
 AXES = "xyz"
 #: The prefix of a finding in a calibration's warnings (a warning that makes the status ``fail``).
@@ -41,8 +40,9 @@ class UnitTypeRanges:
     temp_c: tuple[float, float] = (-60.0, 150.0)
 
 
-def check_constants(temps_c, K, U0, nominal_gain_v_per_g: float | None = None,
-                    ranges: UnitTypeRanges = UnitTypeRanges()) -> list[str]:
+def check_constants(
+    temps_c, K, U0, nominal_gain_v_per_g: float | None = None, ranges: UnitTypeRanges = UnitTypeRanges()
+) -> list[str]:
     """What looks wrong with per-plateau constants: ``temps_c`` (n,) C, ``K`` (n, 3, 3) V/g, ``U0`` (n, 3) V.
     Returns one line per finding (empty: plausible)."""
     temps = np.asarray(temps_c, dtype=float).reshape(-1)
@@ -52,16 +52,18 @@ def check_constants(temps_c, K, U0, nominal_gain_v_per_g: float | None = None,
     if temps.size:
         lo, hi = float(np.nanmin(temps)), float(np.nanmax(temps))
         if lo < ranges.temp_c[0] or hi > ranges.temp_c[1]:
-            msg = (f"calibration temperatures {lo:.1f}..{hi:.1f} C lie outside the unit type's "
-                   f"{ranges.temp_c[0]:+.0f}..{ranges.temp_c[1]:+.0f} C")
+            msg = (
+                f"calibration temperatures {lo:.1f}..{hi:.1f} C lie outside the unit type's "
+                f"{ranges.temp_c[0]:+.0f}..{ranges.temp_c[1]:+.0f} C"
+            )
             k_lo, k_hi = lo - KELVIN_OFFSET_C, hi - KELVIN_OFFSET_C
             if ranges.temp_c[0] <= k_lo and k_hi <= ranges.temp_c[1]:
                 msg += f": AU temperature recorded in kelvin? (as C: {k_lo:.1f}..{k_hi:.1f})"
             out.append(msg)
     if not K.size:
         return out
-    gains = np.abs(np.diagonal(K, axis1=1, axis2=2))             # (n, 3)
-    gain = np.nanmedian(gains, axis=0)                            # (3,)
+    gains = np.abs(np.diagonal(K, axis1=1, axis2=2))  # (n, 3)
+    gain = np.nanmedian(gains, axis=0)  # (3,)
     names = ", ".join(f"|K_{a}{a}|" for a in AXES)
     values = ", ".join(f"{g:.4g}" for g in gain)
     if nominal_gain_v_per_g is not None and nominal_gain_v_per_g != 0:
@@ -69,36 +71,46 @@ def check_constants(temps_c, K, U0, nominal_gain_v_per_g: float | None = None,
         ratio = gain / nominal
         if np.any(ratio > ranges.gain_factor) or np.any(ratio < 1 / ranges.gain_factor):
             r = float(np.nanmedian(ratio))
-            out.append(f"gains {names} = {values} V/g are not within a factor {ranges.gain_factor:g} of the nominal "
-                       f"{nominal:g} V/g (about {_times(r)}){_unit_hint(r, 'voltages')}")
+            out.append(
+                f"gains {names} = {values} V/g are not within a factor {ranges.gain_factor:g} of the nominal "
+                f"{nominal:g} V/g (about {_times(r)}){_unit_hint(r, 'voltages')}"
+            )
         sign = np.sign(float(nominal_gain_v_per_g))
         diag = np.nanmedian(np.diagonal(K, axis1=1, axis2=2), axis=0)
         for i, a in enumerate(AXES):
             if np.sign(diag[i]) == -sign:
-                out.append(f"gain K_{a}{a} = {diag[i]:+.4g} V/g has the opposite sign of the nominal "
-                           f"{float(nominal_gain_v_per_g):+g} V/g: axis {a} reversed (wiring, mounting or position "
-                           "labels)?")
+                out.append(
+                    f"gain K_{a}{a} = {diag[i]:+.4g} V/g has the opposite sign of the nominal "
+                    f"{float(nominal_gain_v_per_g):+g} V/g: axis {a} reversed (wiring, mounting or position "
+                    "labels)?"
+                )
     else:
         g_lo, g_hi = ranges.gain_v_per_g
         if np.any(gain < g_lo) or np.any(gain > g_hi):
             mid = float(np.sqrt(g_lo * g_hi))
             r = float(np.nanmedian(gain)) / mid
-            out.append(f"gains {names} = {values} V/g lie outside the unit type's {g_lo:g}..{g_hi:g} V/g"
-                       f"{_unit_hint(r, 'voltages')}")
+            out.append(
+                f"gains {names} = {values} V/g lie outside the unit type's {g_lo:g}..{g_hi:g} V/g"
+                f"{_unit_hint(r, 'voltages')}"
+            )
     safe = np.where(gains > 0, gains, np.nan)
-    cross = np.abs(K) / safe[:, :, None]                          # row i divided by |K_ii|
+    cross = np.abs(K) / safe[:, :, None]  # row i divided by |K_ii|
     for i, a in enumerate(AXES):
         for j, b in enumerate(AXES):
             if i != j and np.nanmax(cross[:, i, j]) > ranges.max_cross_axis:
-                out.append(f"cross-axis sensitivity |K_{a}{b}| / |K_{a}{a}| = {np.nanmax(cross[:, i, j]):.3g} exceeds "
-                           f"the unit type's {ranges.max_cross_axis:g}: misaligned mounting or mislabelled "
-                           "positions?")
-    offset_g = np.abs(U0) / safe                                  # (n, 3)
+                out.append(
+                    f"cross-axis sensitivity |K_{a}{b}| / |K_{a}{a}| = {np.nanmax(cross[:, i, j]):.3g} exceeds "
+                    f"the unit type's {ranges.max_cross_axis:g}: misaligned mounting or mislabelled "
+                    "positions?"
+                )
+    offset_g = np.abs(U0) / safe  # (n, 3)
     for i, a in enumerate(AXES):
         worst = float(np.nanmax(offset_g[:, i])) if np.any(np.isfinite(offset_g[:, i])) else 0.0
         if worst > ranges.max_offset_g:
-            out.append(f"zero-g offset U0_{a} is {worst:.3g} g (|U0_{a}| / |K_{a}{a}|), beyond the unit type's "
-                       f"{ranges.max_offset_g:g} g")
+            out.append(
+                f"zero-g offset U0_{a} is {worst:.3g} g (|U0_{a}| / |K_{a}{a}|), beyond the unit type's "
+                f"{ranges.max_offset_g:g} g"
+            )
     if not np.all(np.isfinite(K)) or not np.all(np.isfinite(U0)):
         out.append("fitted constants are not all finite")
     return out
@@ -117,14 +129,18 @@ def _unit_hint(r: float, what: str) -> str:
     return ""
 
 
-def check_fit(fit, nominal_gain_v_per_g: float | None = None,
-              ranges: UnitTypeRanges = UnitTypeRanges()) -> list[str]:
+def check_fit(fit, nominal_gain_v_per_g: float | None = None, ranges: UnitTypeRanges = UnitTypeRanges()) -> list[str]:
     """:func:`check_constants` of a calibration recipe's ``UnitFit``: its per-plateau constants, or (a method
     without plateaus, e.g. the differential one) its thermal model at the ends of its valid range and at T0."""
     plateaus = list(getattr(fit, "per_plateau", []) or [])
     if plateaus:
-        return check_constants([p.temp_c for p in plateaus], [p.K for p in plateaus], [p.U0 for p in plateaus],
-                               nominal_gain_v_per_g, ranges)
+        return check_constants(
+            [p.temp_c for p in plateaus],
+            [p.K for p in plateaus],
+            [p.U0 for p in plateaus],
+            nominal_gain_v_per_g,
+            ranges,
+        )
     model = getattr(fit, "model", None)
     if model is None or not hasattr(model, "constants_at"):
         return []
@@ -150,17 +166,24 @@ def mirrored_axis(labelled: list[tuple[str, str]]) -> str | None:
         hits.setdefault(int(np.argmax(flipped)), set()).add((logged, signal))
     if len(hits) != 1:
         return None
-    (axis, pairs), = hits.items()
+    ((axis, pairs),) = hits.items()
     if sum(1 for _ in labelled) < 2:
         return None
     a = AXES[axis]
     shown = ", ".join(f"{x}->{y}" for x, y in sorted(pairs)[:4])
-    return (f"every position the fixture log and the signal disagree on ({len(labelled)} segments: {shown}) differs "
-            f"by the sign of {a}: axis {a} reversed (wiring or mounting), or a fixture log mirrored in {a}?")
+    return (
+        f"every position the fixture log and the signal disagree on ({len(labelled)} segments: {shown}) differs "
+        f"by the sign of {a}: axis {a} reversed (wiring or mounting), or a fixture log mirrored in {a}?"
+    )
 
 
-def assess(fit, status: str, nominal_gain_v_per_g: float | None = None, run_warnings: list[str] = (),
-           ranges: UnitTypeRanges = UnitTypeRanges()) -> tuple[str, list[str]]:
+def assess(
+    fit,
+    status: str,
+    nominal_gain_v_per_g: float | None = None,
+    run_warnings: list[str] = (),
+    ranges: UnitTypeRanges = UnitTypeRanges(),
+) -> tuple[str, list[str]]:
     """The calibration's status after the plausibility checks, and every finding (``implausible: ...`` lines: the
     fit's, and those already among ``run_warnings`` from observing the runs): called by every recipe right after
     the VP verification."""

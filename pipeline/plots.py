@@ -7,17 +7,19 @@ from pathlib import Path
 
 import numpy as np
 
-
 #: The series of the verification figure: row field (g), legend label, matplotlib format, colour; the first on
 #: the upper axes (before compensation), the others on the lower axes (after).
-_DG_SERIES = (("dg_uncompensated_g", "uncompensated", "o-", "C0"), ("dg_method1_g", "method 1 (verdict)", "s-", "C1"),
-              ("dg_method2_g", "method 2", "^--", "C2"))
+_DG_SERIES = (
+    ("dg_uncompensated_g", "uncompensated", "o-", "C0"),
+    ("dg_method1_g", "method 1 (verdict)", "s-", "C1"),
+    ("dg_method2_g", "method 2", "^--", "C2"),
+)
 #: Width of one verification position on the x axis of the figure (in), and the margins around the axes (in):
 #: fixed, so no layout pass (``tight_layout`` measured every text once more: 40 % of the figure's time).
 _SLOT_IN = 0.42
 _MARGINS_IN = {"left": 0.85, "right": 0.15, "bottom": 0.35, "top": 0.95}
-_PANEL_IN = 2.0          # height of each of the two axes (before, after)
-_GAP_IN = 0.3            # between them: the legend of the lower axes
+_PANEL_IN = 2.0  # height of each of the two axes (before, after)
+_GAP_IN = 0.3  # between them: the legend of the lower axes
 _HEIGHT_IN = _MARGINS_IN["top"] + _MARGINS_IN["bottom"] + 2 * _PANEL_IN + _GAP_IN
 _VERIFICATION_DPI = 100
 #: Fewest slots of a panel (its title needs them) and of the whole axes.
@@ -56,9 +58,13 @@ def plot_verification(rows, path: str | Path, *, title: str = "") -> Path:
     slots = sum(p["width"] for p in panels) + max(len(panels) - 1, 0)
     width_in = _MARGINS_IN["left"] + _MARGINS_IN["right"] + _SLOT_IN * max(slots, _MIN_SLOTS)
     fig = Figure(figsize=(width_in, _HEIGHT_IN), dpi=_VERIFICATION_DPI)
-    fig.subplots_adjust(left=_MARGINS_IN["left"] / width_in, right=1 - _MARGINS_IN["right"] / width_in,
-                        bottom=_MARGINS_IN["bottom"] / _HEIGHT_IN, top=1 - _MARGINS_IN["top"] / _HEIGHT_IN,
-                        hspace=_GAP_IN / _PANEL_IN)
+    fig.subplots_adjust(
+        left=_MARGINS_IN["left"] / width_in,
+        right=1 - _MARGINS_IN["right"] / width_in,
+        bottom=_MARGINS_IN["bottom"] / _HEIGHT_IN,
+        top=1 - _MARGINS_IN["top"] / _HEIGHT_IN,
+        hspace=_GAP_IN / _PANEL_IN,
+    )
     before, after = fig.subplots(2, 1)
     for ax in (before, after):
         ax.set_xticks([])
@@ -70,24 +76,34 @@ def plot_verification(rows, path: str | Path, *, title: str = "") -> Path:
         for ax, series in ((before, _DG_SERIES[:1]), (after, _DG_SERIES[1:])):
             peak, ringed = 0.0, False
             for field, label, fmt, colour in series:
-                dg_ug = np.concatenate([np.append([r[field] for r in p["rows"]], np.nan)
-                                        for p in panels])[:-1] * 1e6
+                dg_ug = np.concatenate([np.append([r[field] for r in p["rows"]], np.nan) for p in panels])[:-1] * 1e6
                 ax.plot(x, dg_ug, fmt, color=colour, label=label, ms=4)
                 bad = np.abs(dg_ug) > lim_ug
                 if bad.any():
-                    ax.plot(x[bad], dg_ug[bad], "o", ms=11, mfc="none", mec="red", mew=1.5,
-                            label=None if ringed else "beyond the limit")
+                    ax.plot(
+                        x[bad],
+                        dg_ug[bad],
+                        "o",
+                        ms=11,
+                        mfc="none",
+                        mec="red",
+                        mew=1.5,
+                        label=None if ringed else "beyond the limit",
+                    )
                     ringed = True
                 peak = max(peak, float(np.nanmax(np.abs(dg_ug))))
             _panel_decor(ax, panels, peak, Rectangle, titles=ax is before, names=ax is after)
-        before.legend(loc="upper left", bbox_to_anchor=(0, 1.2), ncols=4, fontsize=7, frameon=False,
-                      borderaxespad=0)
-        after.legend(loc="upper right", bbox_to_anchor=(1, 1.14), ncols=4, fontsize=7, frameon=False,
-                     borderaxespad=0)
+        before.legend(loc="upper left", bbox_to_anchor=(0, 1.2), ncols=4, fontsize=7, frameon=False, borderaxespad=0)
+        after.legend(loc="upper right", bbox_to_anchor=(1, 1.14), ncols=4, fontsize=7, frameon=False, borderaxespad=0)
     before.set_ylabel("before: dg  [micro-g]", fontsize=9)
     after.set_ylabel("after: dg  [micro-g]", fontsize=9)
-    fig.suptitle(title or "Gravity-module error dg = |a| - 1 at the verification positions",
-                 x=_MARGINS_IN["left"] / width_in, y=1 - 0.08 / _HEIGHT_IN, ha="left", va="top")
+    fig.suptitle(
+        title or "Gravity-module error dg = |a| - 1 at the verification positions",
+        x=_MARGINS_IN["left"] / width_in,
+        y=1 - 0.08 / _HEIGHT_IN,
+        ha="left",
+        va="top",
+    )
     path.parent.mkdir(parents=True, exist_ok=True)
     FigureCanvasAgg(fig).print_png(path, pil_kwargs={"compress_level": 1})
     return path
@@ -105,8 +121,15 @@ def _panel_decor(ax, panels: list[dict], peak_ug: float, Rectangle, *, titles: b
             ax.add_patch(Rectangle((p["x0"], -lim_ug), p["width"], 2 * lim_ug, color="0.9", zorder=0))
         visit = f", visit {p['visit']}" if p["visits"] > 1 else ""
         if titles:
-            ax.text(p["x0"] + p["width"] / 2, 1.01, f"{p['temp_c']:+.1f} C{visit} (limit {lim_ug:.0f})",
-                    ha="center", va="bottom", fontsize=7, transform=below)
+            ax.text(
+                p["x0"] + p["width"] / 2,
+                1.01,
+                f"{p['temp_c']:+.1f} C{visit} (limit {lim_ug:.0f})",
+                ha="center",
+                va="bottom",
+                fontsize=7,
+                transform=below,
+            )
         for xi, r in zip(p["x"], p["rows"]) if names else ():
             ax.text(xi, -0.02, r["position"], ha="center", va="top", fontsize=7, transform=below)
         if k:
@@ -139,9 +162,11 @@ def _panels(rows: list[dict]) -> list[dict]:
 
 #: Rows of the constants figure: (key, y label, unit); each followed by the row of its residuals from the model,
 #: in the same unit.
-_CONSTANT_ROWS = (("gain", "gain K_ii\nchange [ppm]", "ppm"),
-                  ("cross", "cross-axis K_ij\nchange [ppm of K_ii]", "ppm of K_ii"),
-                  ("offset", "offset U0_i\nchange [micro-g]", "micro-g"))
+_CONSTANT_ROWS = (
+    ("gain", "gain K_ii\nchange [ppm]", "ppm"),
+    ("cross", "cross-axis K_ij\nchange [ppm of K_ii]", "ppm of K_ii"),
+    ("offset", "offset U0_i\nchange [micro-g]", "micro-g"),
+)
 
 
 def constant_changes(K: np.ndarray, U0: np.ndarray, K0: np.ndarray, U00: np.ndarray) -> dict[str, np.ndarray]:
@@ -153,8 +178,11 @@ def constant_changes(K: np.ndarray, U0: np.ndarray, K0: np.ndarray, U00: np.ndar
     gain0 = np.diag(np.asarray(K0, float))
     dK = (K - np.asarray(K0, float)) / gain0[None, :, None] * 1e6
     off = ~np.eye(3, dtype=bool)
-    return {"gain": np.einsum("nii->ni", dK), "cross": dK[:, off].reshape(len(K), 3, 2),
-            "offset": (U0 - np.asarray(U00, float)) / gain0 * 1e6}
+    return {
+        "gain": np.einsum("nii->ni", dK),
+        "cross": dK[:, off].reshape(len(K), 3, 2),
+        "offset": (U0 - np.asarray(U00, float)) / gain0 * 1e6,
+    }
 
 
 def plot_constants(passport: dict, path: str | Path, *, title: str = "") -> Path:
@@ -193,8 +221,9 @@ def constants_figure(passport: dict, *, title: str = ""):
     if pp or span[1] > span[0]:
         # a method without plateau constants (differential) shows its model over the valid range, no points
         T = np.array([p["temp_c"] for p in pp], float)
-        points = constant_changes([p["K"] for p in pp] or np.zeros((0, 3, 3)), [p["U0"] for p in pp]
-                                  or np.zeros((0, 3)), K0, U00)
+        points = constant_changes(
+            [p["K"] for p in pp] or np.zeros((0, 3, 3)), [p["U0"] for p in pp] or np.zeros((0, 3)), K0, U00
+        )
         sig = _plateau_sigmas(passport, len(pp), K0)
         lo, hi = min([T0, span[0], *T.tolist()]), max([T0, span[1], *T.tolist()])
         grid = np.linspace(lo, hi, 121)
@@ -215,8 +244,7 @@ def constants_figure(passport: dict, *, title: str = ""):
                     colour = f"C{k}" if key == "cross" else "C0"
                     name = f"K{axis[i]}{axis[others[k]]}" if key == "cross" else None
                     _points(ax, T, y, e, colour, 4, f"{name} per plateau" if name else "per plateau")
-                    ax.plot(grid, fit, "-", color=colour, lw=1,
-                            label=f"{name} model" if name else "thermal model")
+                    ax.plot(grid, fit, "-", color=colour, lw=1, label=f"{name} model" if name else "thermal model")
                     _points(res, T, y - yT, e, colour, 3, None)
                 res.axhline(0, color="k", lw=0.5)
                 ax.grid(axis="y", alpha=0.3)
@@ -234,14 +262,15 @@ def constants_figure(passport: dict, *, title: str = ""):
                 res.yaxis.set_major_locator(MaxNLocator(3))
         for ax in axes.flat:
             ax.set_xlim(lo - pad, hi + pad)
-        for ax in axes[:-1].flat:             # temperature ticks and labels on the bottom row only
+        for ax in axes[:-1].flat:  # temperature ticks and labels on the bottom row only
             ax.xaxis.set_major_locator(NullLocator())
         for ax in axes[-1]:
             ax.xaxis.set_major_locator(MaxNLocator(6))
             ax.set_xlabel("temperature [C]", fontsize=8)
     else:
-        axes[0, 0].text(0.5, 0.5, "no plateau constants and no temperature range", ha="center",
-                        transform=axes[0, 0].transAxes)
+        axes[0, 0].text(
+            0.5, 0.5, "no plateau constants and no temperature range", ha="center", transform=axes[0, 0].transAxes
+        )
     kind = passport.get("thermal_model", {}).get("kind", "")
     order = passport.get("thermal_model", {}).get("order")
     model_name = f"polynomial of order {order}" if kind == "polynomial" else kind.replace("_", " ")
@@ -250,8 +279,7 @@ def constants_figure(passport: dict, *, title: str = ""):
     return fig
 
 
-def _points(ax, x: np.ndarray, y: np.ndarray, e: np.ndarray | None, colour: str, ms: float, label: str | None
-            ) -> None:
+def _points(ax, x: np.ndarray, y: np.ndarray, e: np.ndarray | None, colour: str, ms: float, label: str | None) -> None:
     """Points ``y`` at ``x`` with error bars ``+-e`` (where finite) as one line of vertical strokes: two artists
     where ``errorbar`` makes a line collection and caps per series (a figure of 18 axes draws ~50 series)."""
     ax.plot(x, y, "o", ms=ms, color=colour, label=label)
@@ -275,5 +303,8 @@ def _sigma_changes(K_sigma: np.ndarray, U0_sigma: np.ndarray, K0: np.ndarray) ->
     gain0 = np.diag(np.asarray(K0, float))
     s = K_sigma / np.abs(gain0)[None, :, None] * 1e6
     off = ~np.eye(3, dtype=bool)
-    return {"gain": np.einsum("nii->ni", s), "cross": s[:, off].reshape(len(s), 3, 2),
-            "offset": U0_sigma / np.abs(gain0) * 1e6}
+    return {
+        "gain": np.einsum("nii->ni", s),
+        "cross": s[:, off].reshape(len(s), 3, 2),
+        "offset": U0_sigma / np.abs(gain0) * 1e6,
+    }

@@ -97,14 +97,23 @@ class RunMeta:
             try:
                 x = float(v)
             except (TypeError, ValueError):
-                raise RunFormatError(f"metadata key {key!r} is not a number: {v!r}", path=path,
-                                     stream="metadata") from None
+                raise RunFormatError(
+                    f"metadata key {key!r} is not a number: {v!r}", path=path, stream="metadata"
+                ) from None
             if not math.isfinite(x):
                 raise RunFormatError(f"metadata key {key!r} is not finite: {v!r}", path=path, stream="metadata")
             return x
 
-        known = {"unit_serial", "run_id", "station", "fixture", "normal_temp_c", "g_local_mps2", "started_utc",
-                 "nominal_gain_v_per_g"}
+        known = {
+            "unit_serial",
+            "run_id",
+            "station",
+            "fixture",
+            "normal_temp_c",
+            "g_local_mps2",
+            "started_utc",
+            "nominal_gain_v_per_g",
+        }
         return cls(
             unit_serial=str(values["unit_serial"]).strip(),
             run_id=str(values["run_id"]).strip(),
@@ -176,8 +185,9 @@ class Run:
     def temperature_at(self, t_ns: np.ndarray) -> np.ndarray:
         """AU thermosensor temperature (C) linearly interpolated at ``t_ns``."""
         tt = self.au_temperature["t_ns"].to_numpy()
-        return np.interp(np.asarray(t_ns, dtype=np.float64), tt.astype(np.float64),
-                         self.au_temperature["temp_c"].to_numpy())
+        return np.interp(
+            np.asarray(t_ns, dtype=np.float64), tt.astype(np.float64), self.au_temperature["temp_c"].to_numpy()
+        )
 
 
 def make_frame(stream: str, columns: dict[str, Any]) -> pl.DataFrame:

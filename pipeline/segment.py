@@ -62,16 +62,16 @@ _OPPOSITE_TP = {0: ("TP6", "TP5"), 1: ("TP4", "TP2"), 2: ("TP1", "TP3")}
 class SegmentSettings:
     """Thresholds of plateau and static-position detection."""
 
-    plateau_rate_c_per_min: float = 0.02   # |dT/dt| below this (smoothed) counts as stable
-    plateau_min_s: float = 300.0           # a plateau lasts at least this long (unless the whole run is stable)
-    plateau_band_c: float = 0.5            # ... and stays within this band around its median
-    settle_rate_c_per_min: float = 0.3     # before a plateau, the unit still settling towards it: |dT/dt| below
-    settle_band_c: float = 3.0             # ... this and within this of the plateau's temperature
-    static_window_s: float = 2.0           # rolling window for voltage statistics
-    static_min_s: float = 3.0              # shortest static segment kept
-    settle_trim_s: float = 10.0            # trimmed from the start of each static segment (1/10 of it from the end),
-                                           # never more than 25 % (start) + 5 % (end) of a segment
-    max_label_angle_deg: float = 15.0      # a gravity direction further than this from every position: unnamed
+    plateau_rate_c_per_min: float = 0.02  # |dT/dt| below this (smoothed) counts as stable
+    plateau_min_s: float = 300.0  # a plateau lasts at least this long (unless the whole run is stable)
+    plateau_band_c: float = 0.5  # ... and stays within this band around its median
+    settle_rate_c_per_min: float = 0.3  # before a plateau, the unit still settling towards it: |dT/dt| below
+    settle_band_c: float = 3.0  # ... this and within this of the plateau's temperature
+    static_window_s: float = 2.0  # rolling window for voltage statistics
+    static_min_s: float = 3.0  # shortest static segment kept
+    settle_trim_s: float = 10.0  # trimmed from the start of each static segment (1/10 of it from the end),
+    # never more than 25 % (start) + 5 % (end) of a segment
+    max_label_angle_deg: float = 15.0  # a gravity direction further than this from every position: unnamed
 
 
 @dataclass(frozen=True)
@@ -159,8 +159,7 @@ class Segmentation:
 # plateaus
 
 
-def find_plateaus(t_ns: np.ndarray, temp_c: np.ndarray,
-                  settings: SegmentSettings = SegmentSettings()) -> list[Plateau]:
+def find_plateaus(t_ns: np.ndarray, temp_c: np.ndarray, settings: SegmentSettings = SegmentSettings()) -> list[Plateau]:
     """Plateaus of the AU temperature ``temp_c`` (C) sampled at ``t_ns``; non-finite samples are ignored.
 
     The slope is a local linear regression over ``plateau_min_s / 4`` centred on each sample; stable samples
@@ -196,13 +195,23 @@ def find_plateaus(t_ns: np.ndarray, temp_c: np.ndarray,
         hi = found[k + 1][0] if k + 1 < len(found) else temp_c.size
         a, b = _extend_plateau(t_s, temp_c, a, b, lo, hi, window_s)
         mean_c = float(np.mean(temp_c[a:b]))
-        settling = ((rate_c_per_min[lo:a] < settings.settle_rate_c_per_min)
-                    & (np.abs(temp_c[lo:a] - mean_c) < settings.settle_band_c))[::-1]
+        settling = (
+            (rate_c_per_min[lo:a] < settings.settle_rate_c_per_min)
+            & (np.abs(temp_c[lo:a] - mean_c) < settings.settle_band_c)
+        )[::-1]
         n_settle = int(np.argmin(settling)) if not settling.all() else settling.size
-        if out:        # the settling starts after the previous plateau (whose end moved out)
+        if out:  # the settling starts after the previous plateau (whose end moved out)
             n_settle = min(n_settle, max(0, a - int(np.searchsorted(t_ns, out[-1].t_end_ns, side="right"))))
-        out.append(Plateau(k, int(t_ns[a]), int(t_ns[b - 1]), mean_c, float(np.std(temp_c[a:b])),
-                           int(t_ns[a - n_settle]) if n_settle > 0 else None))
+        out.append(
+            Plateau(
+                k,
+                int(t_ns[a]),
+                int(t_ns[b - 1]),
+                mean_c,
+                float(np.std(temp_c[a:b])),
+                int(t_ns[a - n_settle]) if n_settle > 0 else None,
+            )
+        )
     return out
 
 
@@ -210,8 +219,9 @@ def find_plateaus(t_ns: np.ndarray, temp_c: np.ndarray,
 _APPROACH_FACTOR = 3.0
 
 
-def _bridge_flicker(rate_c_per_min: np.ndarray, t_s: np.ndarray, window_s: float, settings: SegmentSettings
-                    ) -> np.ndarray:
+def _bridge_flicker(
+    rate_c_per_min: np.ndarray, t_s: np.ndarray, window_s: float, settings: SegmentSettings
+) -> np.ndarray:
     """Stable samples (|slope| under ``plateau_rate_c_per_min``), with the gaps of less than a slope window
     between stable runs filled where the runs end an approach: at the end of a short soak the slope hovers about
     the threshold and noise cuts the unit's last approach into runs of a minute or two, none long enough alone.
@@ -234,12 +244,13 @@ def _bridge_flicker(rate_c_per_min: np.ndarray, t_s: np.ndarray, window_s: float
             continue
         before = int(np.searchsorted(t_s, t_s[runs[g0, 0]] - 2 * settings.plateau_min_s, side="left"))
         if rate_c_per_min[before] > _APPROACH_FACTOR * settings.plateau_rate_c_per_min:
-            out[runs[g0, 0]:runs[g1 - 1, 1]] = True
+            out[runs[g0, 0] : runs[g1 - 1, 1]] = True
     return out
 
 
-def _join_interrupted(found: list[tuple[int, int]], t_s: np.ndarray, temp_c: np.ndarray,
-                      settings: SegmentSettings, window_s: float) -> list[tuple[int, int]]:
+def _join_interrupted(
+    found: list[tuple[int, int]], t_s: np.ndarray, temp_c: np.ndarray, settings: SegmentSettings, window_s: float
+) -> list[tuple[int, int]]:
     """Join consecutive stable runs [a, b) less than one slope window (``window_s``) apart when all the samples
     from the first's start to the second's end stay within ``plateau_band_c`` of their median: one soak whose
     slope rose over the plateau threshold for a moment (the unit's last approach to the chamber's temperature),
@@ -249,16 +260,16 @@ def _join_interrupted(found: list[tuple[int, int]], t_s: np.ndarray, temp_c: np.
         if out:
             a0, b0 = out[-1]
             span = temp_c[a0:b]
-            if (t_s[a] - t_s[b0 - 1] < window_s
-                    and np.max(np.abs(span - np.median(span))) <= settings.plateau_band_c):
+            if t_s[a] - t_s[b0 - 1] < window_s and np.max(np.abs(span - np.median(span))) <= settings.plateau_band_c:
                 out[-1] = (a0, b)
                 continue
         out.append((a, b))
     return out
 
 
-def _extend_plateau(t_s: np.ndarray, temp_c: np.ndarray, a: int, b: int, lo: int, hi: int, window_s: float
-                    ) -> tuple[int, int]:
+def _extend_plateau(
+    t_s: np.ndarray, temp_c: np.ndarray, a: int, b: int, lo: int, hi: int, window_s: float
+) -> tuple[int, int]:
     """Move a plateau's ends [a, b) outwards (not past lo / hi) while the temperature stays within the noise of
     the plateau's value at that end.
 
@@ -268,8 +279,8 @@ def _extend_plateau(t_s: np.ndarray, temp_c: np.ndarray, a: int, b: int, lo: int
     """
     noise = float(np.std(np.diff(temp_c[a:b]))) / np.sqrt(2.0) if b - a > 2 else 0.0
     tol = max(4.0 * noise, _PLATEAU_TOL_FLOOR_C)
-    head = temp_c[a:np.searchsorted(t_s, t_s[a] + window_s / 2, side="right")].mean()
-    tail = temp_c[np.searchsorted(t_s, t_s[b - 1] - window_s / 2, side="left"):b].mean()
+    head = temp_c[a : np.searchsorted(t_s, t_s[a] + window_s / 2, side="right")].mean()
+    tail = temp_c[np.searchsorted(t_s, t_s[b - 1] - window_s / 2, side="left") : b].mean()
     after = np.abs(temp_c[b:hi] - tail) > tol
     b = b + (int(np.argmax(after)) if after.any() else after.size)
     before = np.abs(temp_c[lo:a][::-1] - head) > tol
@@ -320,8 +331,9 @@ _SOAK_FRACTION = 0.2
 _RATE_WINDOW_S = 600.0
 
 
-def classify_temperature(t_ns: np.ndarray, temp_c: np.ndarray, plateaus: list[Plateau],
-                         settings: SegmentSettings = SegmentSettings()) -> TemperatureProgram:
+def classify_temperature(
+    t_ns: np.ndarray, temp_c: np.ndarray, plateaus: list[Plateau], settings: SegmentSettings = SegmentSettings()
+) -> TemperatureProgram:
     """Plateau program, sweep or constant temperature, from the thermosensor (``t_ns``, ``temp_c`` in C) and the
     plateaus :func:`find_plateaus` found in it.
 
@@ -336,20 +348,19 @@ def classify_temperature(t_ns: np.ndarray, temp_c: np.ndarray, plateaus: list[Pl
     ok = np.isfinite(temp_c)
     t_ns, temp_c = t_ns[ok], temp_c[ok]
     if temp_c.size == 0:
-        return TemperatureProgram("constant", (float("nan"), float("nan")), 0.0, tuple(plateaus), 0.0,
-                                  _RATE_WINDOW_S)
+        return TemperatureProgram("constant", (float("nan"), float("nan")), 0.0, tuple(plateaus), 0.0, _RATE_WINDOW_S)
     t_s = (t_ns - t_ns[0]) / _NS
     rate = np.abs(_local_slope_c_per_s(t_s, temp_c, _RATE_WINDOW_S)) * 3600.0 if t_s.size > 2 else np.zeros(1)
     lo, hi = float(np.min(temp_c)), float(np.max(temp_c))
     chained = np.zeros(len(plateaus), dtype=bool)
     for k in range(1, len(plateaus)):
         a, b = plateaus[k - 1], plateaus[k]
-        if ((b.t_start_ns - a.t_end_ns) < settings.plateau_min_s * _NS
-                and abs(b.temp_c - a.temp_c) < 2 * settings.plateau_band_c):
+        if (b.t_start_ns - a.t_end_ns) < settings.plateau_min_s * _NS and abs(
+            b.temp_c - a.temp_c
+        ) < 2 * settings.plateau_band_c:
             chained[k - 1] = chained[k] = True
     drift_s = sum(p.duration_s for p, c in zip(plateaus, chained) if c)
-    soaks = tuple(dataclasses.replace(p, index=i) for i, p in enumerate(p for p, c in zip(plateaus, chained)
-                                                                            if not c))
+    soaks = tuple(dataclasses.replace(p, index=i) for i, p in enumerate(p for p, c in zip(plateaus, chained) if not c))
     soak_s = sum(p.duration_s for p in soaks)
     if hi - lo < _CONSTANT_RANGE_C:
         kind = "constant"
@@ -395,8 +406,9 @@ class Channels:
 
     def every(self, step: int) -> np.ndarray:
         """Every ``step``-th sample, as a small (k, 3) array."""
-        return np.column_stack([c.gather_every(step).to_numpy() if isinstance(c, pl.Series) else c[::step]
-                                for c in self._cols])
+        return np.column_stack(
+            [c.gather_every(step).to_numpy() if isinstance(c, pl.Series) else c[::step] for c in self._cols]
+        )
 
     def finite(self) -> np.ndarray:
         """True (n,) where all three channels are finite (one byte per sample)."""
@@ -438,7 +450,7 @@ def _block_starts(t_ns: np.ndarray, block_ns: int) -> tuple[np.ndarray, np.ndarr
     starts, numbers = [], []
     last = -1
     for s0 in range(0, t_ns.size, _SLAB_SAMPLES):
-        b = t_ns[s0:s0 + _SLAB_SAMPLES] - t0
+        b = t_ns[s0 : s0 + _SLAB_SAMPLES] - t0
         b //= block_ns
         new = np.flatnonzero(np.diff(b)) + 1
         if b[0] != last:
@@ -497,13 +509,13 @@ def rolling_std_v(t_ns: np.ndarray, u_v, window_s: float) -> BlockStats:
     def roll(v):
         p = np.pad(v, pad + ((0, 0),) * (v.ndim - 1))
         out = p[:m].copy()
-        for j in range(1, k):          # k shifted slices: the same short sums, 6x faster than a window view's sum
-            out += p[j:j + m]
+        for j in range(1, k):  # k shifted slices: the same short sums, 6x faster than a window view's sum
+            out += p[j : j + m]
         return out
 
     n_w = roll(n_b)
     s1 = roll(n_b[:, None] * mean_b)
-    s2 = roll(m2_b + n_b[:, None] * mean_b ** 2)
+    s2 = roll(m2_b + n_b[:, None] * mean_b**2)
     with np.errstate(invalid="ignore", divide="ignore"):
         var = (s2 - s1 * s1 / n_w[:, None]) / (n_w[:, None] - 1)
     std = np.sqrt(np.clip(var, 0.0, None))
@@ -539,12 +551,14 @@ def find_static(t_ns: np.ndarray, u_v, settings: SegmentSettings = SegmentSettin
     non-finite samples for less than a window are joined; stretches shorter than ``static_min_s`` are dropped. Not
     trimmed, not cut at plateaus.
     """
-    return _static_and_bad(np.asarray(t_ns, dtype=np.int64), u_v if isinstance(u_v, Channels) else Channels(u_v),
-                           settings)[0]
+    return _static_and_bad(
+        np.asarray(t_ns, dtype=np.int64), u_v if isinstance(u_v, Channels) else Channels(u_v), settings
+    )[0]
 
 
-def _static_and_bad(t_ns: np.ndarray, ch: Channels, settings: SegmentSettings
-                    ) -> tuple[list[tuple[int, int]], np.ndarray]:
+def _static_and_bad(
+    t_ns: np.ndarray, ch: Channels, settings: SegmentSettings
+) -> tuple[list[tuple[int, int]], np.ndarray]:
     """:func:`find_static`'s stretches, and the indices of the non-finite samples.
 
     The window adapts to the recording: ``static_window_s`` first; where the stretches it finds cover less than
@@ -561,8 +575,9 @@ STATIC_COVER = 0.5
 POSE_WINDOWS = 3.0
 
 
-def _adaptive_static(t_ns: np.ndarray, ch: Channels, settings: SegmentSettings
-                     ) -> tuple[list[tuple[int, int]], np.ndarray, SegmentSettings]:
+def _adaptive_static(
+    t_ns: np.ndarray, ch: Channels, settings: SegmentSettings
+) -> tuple[list[tuple[int, int]], np.ndarray, SegmentSettings]:
     """(stretches, non-finite sample indices, the settings whose window found them): see :func:`_static_and_bad`."""
     if t_ns.size < 2:
         return [], np.flatnonzero(~ch.finite()), settings
@@ -581,8 +596,11 @@ def _adaptive_static(t_ns: np.ndarray, ch: Channels, settings: SegmentSettings
         window /= 2
         if not dt_s > 0 or window < MIN_WINDOW_SAMPLES * dt_s:
             break
-        trial = dataclasses.replace(settings, static_window_s=window, static_min_s=max(
-            MIN_SEGMENT_SAMPLES * dt_s, min(settings.static_min_s, POSE_WINDOWS * window)))
+        trial = dataclasses.replace(
+            settings,
+            static_window_s=window,
+            static_min_s=max(MIN_SEGMENT_SAMPLES * dt_s, min(settings.static_min_s, POSE_WINDOWS * window)),
+        )
         r, _ = _static_at(t_ns, ch, trial)
         c = cover(r)
         if c > best[0] * 1.1:
@@ -590,12 +608,11 @@ def _adaptive_static(t_ns: np.ndarray, ch: Channels, settings: SegmentSettings
     return best[1], bad, best[2]
 
 
-def _static_at(t_ns: np.ndarray, ch: Channels, settings: SegmentSettings
-               ) -> tuple[list[tuple[int, int]], np.ndarray]:
+def _static_at(t_ns: np.ndarray, ch: Channels, settings: SegmentSettings) -> tuple[list[tuple[int, int]], np.ndarray]:
     """Static stretches with the window of ``settings`` (no adaptation), and the non-finite sample indices."""
     stats = rolling_std_v(t_ns, ch, settings.static_window_s)
     thr = static_threshold_v(stats.std, ch)
-    quiet_block = np.all(stats.std < thr, axis=1)          # NaN compares False
+    quiet_block = np.all(stats.std < thr, axis=1)  # NaN compares False
     static = stats.per_sample(quiet_block)
     static &= stats.finite
     runs = _runs(static)
@@ -635,7 +652,7 @@ def _runs(mask: np.ndarray) -> np.ndarray:
     first_true = 0 if mask.size and mask[0] else 1
     b = bounds[first_true:]
     k = b.size // 2
-    return np.column_stack((b[0:2 * k:2], b[1:2 * k + 1:2])) if k else np.zeros((0, 2), dtype=np.int64)
+    return np.column_stack((b[0 : 2 * k : 2], b[1 : 2 * k + 1 : 2])) if k else np.zeros((0, 2), dtype=np.int64)
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -657,8 +674,11 @@ def for_rate(settings: SegmentSettings, t_ns) -> SegmentSettings:
     dt_s = median_interval_ns(t_ns) / _NS
     if not dt_s > 0:
         return settings
-    return dataclasses.replace(settings, static_window_s=max(settings.static_window_s, MIN_WINDOW_SAMPLES * dt_s),
-                               static_min_s=max(settings.static_min_s, MIN_SEGMENT_SAMPLES * dt_s))
+    return dataclasses.replace(
+        settings,
+        static_window_s=max(settings.static_window_s, MIN_WINDOW_SAMPLES * dt_s),
+        static_min_s=max(settings.static_min_s, MIN_SEGMENT_SAMPLES * dt_s),
+    )
 
 
 def median_interval_ns(t_ns, pairs: int = 100_000) -> float:
@@ -668,7 +688,7 @@ def median_interval_ns(t_ns, pairs: int = 100_000) -> float:
     n = len(t_ns)
     if n < 2:
         return float("nan")
-    i = np.linspace(0, n - 2, min(n - 1, pairs)).astype(np.int64)   # distinct: spacing >= 1
+    i = np.linspace(0, n - 2, min(n - 1, pairs)).astype(np.int64)  # distinct: spacing >= 1
     if isinstance(t_ns, pl.Series):
         d = (t_ns.gather(i + 1) - t_ns.gather(i)).to_numpy()
     else:
@@ -698,20 +718,24 @@ def segment_run(run: Run, settings: SegmentSettings = SegmentSettings()) -> Segm
         warnings.append("au_temperature: samples not in time order; sorted")
     bad_t = ~np.isfinite(temp)
     if bad_t.any():
-        warnings.append(f"au_temperature: {int(bad_t.sum())} non-finite samples ignored, first at "
-                        f"t_ns={int(tt_ns[bad_t][0])}")
+        warnings.append(
+            f"au_temperature: {int(bad_t.sum())} non-finite samples ignored, first at t_ns={int(tt_ns[bad_t][0])}"
+        )
         tt_ns, temp = tt_ns[~bad_t], temp[~bad_t]
 
     settings = for_rate(settings, t_ns)
     plateaus = find_plateaus(tt_ns, temp, settings)
     if not plateaus:
-        warnings.append("au_temperature: no temperature plateau found (the temperature never stays within "
-                        f"{settings.plateau_rate_c_per_min} C/min for {settings.plateau_min_s:.0f} s)")
+        warnings.append(
+            "au_temperature: no temperature plateau found (the temperature never stays within "
+            f"{settings.plateau_rate_c_per_min} C/min for {settings.plateau_min_s:.0f} s)"
+        )
 
     stretches, bad_u, settings = _adaptive_static(t_ns, ch, settings)
     if bad_u.size:
-        warnings.append(f"voltmeter: {bad_u.size} non-finite samples excluded (not static), first at "
-                        f"t_ns={int(t_ns[bad_u[0]])}")
+        warnings.append(
+            f"voltmeter: {bad_u.size} non-finite samples excluded (not static), first at t_ns={int(t_ns[bad_u[0]])}"
+        )
     pieces = _cut_at_plateaus(t_ns, stretches, plateaus, settings)
     fixture = _fixture_labels(run, t_ns, pieces)
 
@@ -721,33 +745,62 @@ def segment_run(run: Run, settings: SegmentSettings = SegmentSettings()) -> Segm
         fin = finite_columns(cols)
         if not fin.all():
             cols, tt = [c[fin] for c in cols], tt[fin]
-        tc = np.interp(tt.astype(np.float64), tt_ns.astype(np.float64), temp) if temp.size else np.full(tt.size,
-                                                                                                         np.nan)
+        tc = np.interp(tt.astype(np.float64), tt_ns.astype(np.float64), temp) if temp.size else np.full(tt.size, np.nan)
         ddof = 1 if tt.size > 1 else 0
-        rows.append(dict(t_start_ns=int(t_ns[i0]), t_end_ns=int(t_ns[i1 - 1]), plateau=p, fixture_label=fix,
-                         mean_v=np.array([c.mean() for c in cols]),
-                         std_v=np.array([c.std(ddof=ddof) for c in cols]), count=int(tt.size),
-                         temp_c=float(tc.mean()), temp_std_c=float(tc.std()), settling=settling))
+        rows.append(
+            dict(
+                t_start_ns=int(t_ns[i0]),
+                t_end_ns=int(t_ns[i1 - 1]),
+                plateau=p,
+                fixture_label=fix,
+                mean_v=np.array([c.mean() for c in cols]),
+                std_v=np.array([c.std(ddof=ddof) for c in cols]),
+                count=int(tt.size),
+                temp_c=float(tc.mean()),
+                temp_std_c=float(tc.std()),
+                settling=settling,
+            )
+        )
 
     names = _name_segments(run, rows, settings, warnings)
     segments = []
     for k, (r, nm) in enumerate(zip(rows, names)):
-        segments.append(StaticSegment(
-            index=k, t_start_ns=r["t_start_ns"], t_end_ns=r["t_end_ns"], position=nm["position"],
-            label_source=nm["source"], fixture_label=r["fixture_label"], label_conflict=nm["conflict"],
-            plateau=r["plateau"], mean_v=_tuple3(r["mean_v"]), std_v=_tuple3(r["std_v"]), count=r["count"],
-            temp_c=r["temp_c"], temp_std_c=r["temp_std_c"], direction_g=_tuple3(nm["direction"]),
-            settling=r["settling"]))
-    return Segmentation(plateaus=plateaus, segments=segments, warnings=warnings, stretches=stretches,
-                        static_window_s=settings.static_window_s, static_min_s=settings.static_min_s)
+        segments.append(
+            StaticSegment(
+                index=k,
+                t_start_ns=r["t_start_ns"],
+                t_end_ns=r["t_end_ns"],
+                position=nm["position"],
+                label_source=nm["source"],
+                fixture_label=r["fixture_label"],
+                label_conflict=nm["conflict"],
+                plateau=r["plateau"],
+                mean_v=_tuple3(r["mean_v"]),
+                std_v=_tuple3(r["std_v"]),
+                count=r["count"],
+                temp_c=r["temp_c"],
+                temp_std_c=r["temp_std_c"],
+                direction_g=_tuple3(nm["direction"]),
+                settling=r["settling"],
+            )
+        )
+    return Segmentation(
+        plateaus=plateaus,
+        segments=segments,
+        warnings=warnings,
+        stretches=stretches,
+        static_window_s=settings.static_window_s,
+        static_min_s=settings.static_min_s,
+    )
 
 
 def _tuple3(v) -> tuple[float, float, float]:
     return (float(v[0]), float(v[1]), float(v[2]))
 
 
-def _cut_at_plateaus(t_ns: np.ndarray, stretches: list[tuple[int, int]], plateaus: list[Plateau],
-                     settings: SegmentSettings) -> list[tuple[int, int, int | None, int | None]]:
+def _cut_at_plateaus(
+    t_ns: np.ndarray, stretches: list[tuple[int, int]], plateaus: list[Plateau], settings: SegmentSettings
+) -> list[tuple[int, int, int | None, int | None]]:
     """Cut static stretches at plateau boundaries, drop pieces shorter than static_min_s, trim each piece.
 
     A stretch is cut where each plateau begins and ends, except where it began in that plateau's settling: a hold
@@ -758,8 +811,9 @@ def _cut_at_plateaus(t_ns: np.ndarray, stretches: list[tuple[int, int]], plateau
     plateau's index (None otherwise).
     """
     starts = np.array([p.t_start_ns for p in plateaus], dtype=np.int64)
-    fronts = np.array([p.t_start_ns if p.settle_start_ns is None else p.settle_start_ns for p in plateaus],
-                      dtype=np.int64)
+    fronts = np.array(
+        [p.t_start_ns if p.settle_start_ns is None else p.settle_start_ns for p in plateaus], dtype=np.int64
+    )
     ends = np.array([p.t_end_ns for p in plateaus], dtype=np.int64)
     # sample index boundaries: a plateau owns the samples with start <= t <= end, its settling front <= t < start
     start_idx = np.searchsorted(t_ns, starts, side="left")
@@ -826,8 +880,10 @@ def _name_segments(run: Run, rows: list[dict], settings: SegmentSettings, warnin
     else:
         gain, offset = _scale_from_fixture(mean_v, fix)
         if gain is None:
-            warnings.append("positions unnamed: no nominal_gain_v_per_g in the metadata and no fixture log "
-                            "labelling positions on every axis")
+            warnings.append(
+                "positions unnamed: no nominal_gain_v_per_g in the metadata and no fixture log "
+                "labelling positions on every axis"
+            )
             nan3 = np.full(3, np.nan)
             return [dict(position=None, source="none", conflict=False, direction=nan3) for _ in rows]
 
@@ -845,15 +901,17 @@ def _name_segments(run: Run, rows: list[dict], settings: SegmentSettings, warnin
             continue
         conflict = fl is not None
         if conflict:
-            warnings.append(f"fixture label conflict at t_ns={r['t_start_ns']}..{r['t_end_ns']}: fixture log says "
-                            f"{fl}, the signal says {gname or 'no known position'}; named from gravity")
-        out.append(dict(position=gname, source="gravity" if gname else "none", conflict=conflict,
-                        direction=direction))
+            warnings.append(
+                f"fixture label conflict at t_ns={r['t_start_ns']}..{r['t_end_ns']}: fixture log says "
+                f"{fl}, the signal says {gname or 'no known position'}; named from gravity"
+            )
+        out.append(dict(position=gname, source="gravity" if gname else "none", conflict=conflict, direction=direction))
     return out
 
 
-def _nearest(mean_v: np.ndarray, gain: np.ndarray, offset: np.ndarray, max_angle_deg: float
-             ) -> list[tuple[str | None, np.ndarray]]:
+def _nearest(
+    mean_v: np.ndarray, gain: np.ndarray, offset: np.ndarray, max_angle_deg: float
+) -> list[tuple[str | None, np.ndarray]]:
     """(nearest position within max_angle_deg or None, unit gravity direction) per row of mean_v."""
     a = (mean_v - offset) / gain
     norm = np.linalg.norm(a, axis=1, keepdims=True)
@@ -897,8 +955,9 @@ def _scale_from_fixture(mean_v: np.ndarray, fix: list[str | None]) -> tuple[np.n
     return gain, offset
 
 
-def _refine_scale(mean_v: np.ndarray, gravity_names: list[str | None], fix: list[str | None], gain: np.ndarray,
-                  offset: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _refine_scale(
+    mean_v: np.ndarray, gravity_names: list[str | None], fix: list[str | None], gain: np.ndarray, offset: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Offsets from the midpoints of opposite test-position pairs, each axis's gain from its own vertical pair.
 
     Names are the gravity names (the fixture label where it agrees with them). Medians over repeated segments.
@@ -910,8 +969,9 @@ def _refine_scale(mean_v: np.ndarray, gravity_names: list[str | None], fix: list
         return np.median(mean_v[sel], axis=0) if sel else None
 
     per = {p: med(p) for p in TEST_POSITIONS}
-    mids = [0.5 * (per[hi] + per[lo]) for hi, lo in _OPPOSITE_TP.values() if per[hi] is not None
-            and per[lo] is not None]
+    mids = [
+        0.5 * (per[hi] + per[lo]) for hi, lo in _OPPOSITE_TP.values() if per[hi] is not None and per[lo] is not None
+    ]
     if not mids:
         return gain, offset
     new_offset = np.mean(mids, axis=0)
@@ -924,6 +984,20 @@ def _refine_scale(mean_v: np.ndarray, gravity_names: list[str | None], fix: list
     return new_gain, new_offset
 
 
-__all__ = ["SegmentSettings", "Plateau", "TemperatureProgram", "classify_temperature", "StaticSegment", "Segmentation", "Channels", "BlockStats",
-           "find_plateaus", "find_static", "rolling_std_v", "static_threshold_v", "finite_rows", "finite_columns",
-           "segment_run"]
+__all__ = [
+    "SegmentSettings",
+    "Plateau",
+    "TemperatureProgram",
+    "classify_temperature",
+    "StaticSegment",
+    "Segmentation",
+    "Channels",
+    "BlockStats",
+    "find_plateaus",
+    "find_static",
+    "rolling_std_v",
+    "static_threshold_v",
+    "finite_rows",
+    "finite_columns",
+    "segment_run",
+]

@@ -25,8 +25,8 @@ import numpy as np
 from pipeline.positions import AXES
 
 OFF_DIAGONAL = [(i, j) for i in range(3) for j in range(3) if i != j]
-DIAG_KEYS = [AXES[i] * 2 for i in range(3)]                         # "xx", "yy", "zz"
-OFF_KEYS = [AXES[i] + AXES[j] for i, j in OFF_DIAGONAL]               # "xy", "xz", "yx", "yz", "zx", "zy"
+DIAG_KEYS = [AXES[i] * 2 for i in range(3)]  # "xx", "yy", "zz"
+OFF_KEYS = [AXES[i] + AXES[j] for i, j in OFF_DIAGONAL]  # "xy", "xz", "yx", "yz", "zx", "zy"
 
 
 def cluster_temperatures(temps_c: np.ndarray, tol_c: float = 3.0) -> np.ndarray:
@@ -78,7 +78,7 @@ class PolynomialModel:
     def deltas(self, temp_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """dK (n, 3, 3) V/g and dU0 (n, 3) V: the change of the constants from T0 to ``temp_c``."""
         dT = np.atleast_1d(np.asarray(temp_c, dtype=float)) - self.normal_temp_c
-        powers = dT[:, None] ** np.arange(1, self.order + 1)[None, :]            # (n, order)
+        powers = dT[:, None] ** np.arange(1, self.order + 1)[None, :]  # (n, order)
         dU0 = powers @ self.alpha if self.order else np.zeros((len(dT), 3))
         rel = np.einsum("nk,kij->nij", powers, self.rel) if self.order else np.zeros((len(dT), 3, 3))
         return rel * self.K0, dU0
@@ -108,9 +108,9 @@ class PiecewiseModel:
     with the end slopes. T0 is always one of the nodes."""
 
     normal_temp_c: float
-    nodes_c: np.ndarray      # (m,) C, increasing
-    K_nodes: np.ndarray      # (m, 3, 3) V/g
-    U0_nodes: np.ndarray     # (m, 3) V
+    nodes_c: np.ndarray  # (m,) C, increasing
+    K_nodes: np.ndarray  # (m, 3, 3) V/g
+    U0_nodes: np.ndarray  # (m, 3) V
 
     @property
     def _i0(self) -> int:
@@ -128,10 +128,12 @@ class PiecewiseModel:
         T = np.atleast_1d(np.asarray(temp_c, dtype=float))
         x = self.nodes_c
         if len(x) == 1:
-            return (np.broadcast_to(self.K_nodes[0], (len(T), 3, 3)).copy(),
-                    np.broadcast_to(self.U0_nodes[0], (len(T), 3)).copy())
+            return (
+                np.broadcast_to(self.K_nodes[0], (len(T), 3, 3)).copy(),
+                np.broadcast_to(self.U0_nodes[0], (len(T), 3)).copy(),
+            )
         seg = np.clip(np.searchsorted(x, T) - 1, 0, len(x) - 2)
-        w = ((T - x[seg]) / (x[seg + 1] - x[seg]))
+        w = (T - x[seg]) / (x[seg + 1] - x[seg])
         K = self.K_nodes[seg] + w[:, None, None] * (self.K_nodes[seg + 1] - self.K_nodes[seg])
         U0 = self.U0_nodes[seg] + w[:, None] * (self.U0_nodes[seg + 1] - self.U0_nodes[seg])
         return K, U0
@@ -156,8 +158,11 @@ class PiecewiseModel:
         return out
 
     def to_dict(self) -> dict:
-        return {"kind": "piecewise_linear", "breakpoints_c": [float(t) for t in self.nodes_c],
-                "segments": self.segments()}
+        return {
+            "kind": "piecewise_linear",
+            "breakpoints_c": [float(t) for t in self.nodes_c],
+            "segments": self.segments(),
+        }
 
     @classmethod
     def from_dict(cls, d: dict, K0: np.ndarray, U00: np.ndarray, normal_temp_c: float) -> PiecewiseModel:
@@ -169,12 +174,12 @@ class PiecewiseModel:
         i0 = int(np.argmin(np.abs(nodes - normal_temp_c)))
         K_nodes[i0], U0_nodes[i0] = K0, U00
         segs = d["segments"]
-        for lo in range(i0, m - 1):            # upward from T0
+        for lo in range(i0, m - 1):  # upward from T0
             rel, alpha = _rel_from_dict(segs[lo]["alpha"], segs[lo]["beta"], segs[lo]["gamma"])
             span = nodes[lo + 1] - nodes[lo]
             K_nodes[lo + 1] = K_nodes[lo] + rel * K0 * span
             U0_nodes[lo + 1] = U0_nodes[lo] + alpha * span
-        for lo in range(i0 - 1, -1, -1):       # downward from T0
+        for lo in range(i0 - 1, -1, -1):  # downward from T0
             rel, alpha = _rel_from_dict(segs[lo]["alpha"], segs[lo]["beta"], segs[lo]["gamma"])
             span = nodes[lo + 1] - nodes[lo]
             K_nodes[lo] = K_nodes[lo + 1] - rel * K0 * span
@@ -185,17 +190,18 @@ class PiecewiseModel:
 ThermalModel = PolynomialModel | PiecewiseModel
 
 
-def fit_polynomial(temps_c: np.ndarray, K: np.ndarray, U0: np.ndarray, order: int,
-                   normal_temp_c: float = 20.0) -> PolynomialModel:
+def fit_polynomial(
+    temps_c: np.ndarray, K: np.ndarray, U0: np.ndarray, order: int, normal_temp_c: float = 20.0
+) -> PolynomialModel:
     """Least-squares polynomial of ``order`` in dT through per-plateau constants (exact, as seed 000's Cramer's-rule
     solution, when there are order+1 distinct temperatures). ``K`` (p, 3, 3) V/g, ``U0`` (p, 3) V at ``temps_c``."""
     temps_c = np.asarray(temps_c, dtype=float)
     dT = temps_c - normal_temp_c
-    A = dT[:, None] ** np.arange(order + 1)[None, :]                          # (p, order+1)
+    A = dT[:, None] ** np.arange(order + 1)[None, :]  # (p, order+1)
     if np.linalg.matrix_rank(A) < order + 1:
         raise ValueError(f"a polynomial of order {order} needs {order + 1} distinct temperatures")
-    Y = np.concatenate([K.reshape(len(K), 9), U0], axis=1)                     # (p, 12)
-    coef, *_ = np.linalg.lstsq(A, Y, rcond=None)                               # (order+1, 12)
+    Y = np.concatenate([K.reshape(len(K), 9), U0], axis=1)  # (p, 12)
+    coef, *_ = np.linalg.lstsq(A, Y, rcond=None)  # (order+1, 12)
     K0 = coef[0, :9].reshape(3, 3)
     U00 = coef[0, 9:]
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -203,8 +209,9 @@ def fit_polynomial(temps_c: np.ndarray, K: np.ndarray, U0: np.ndarray, order: in
     return PolynomialModel(K0, U00, float(normal_temp_c), int(order), coef[1:, 9:], rel)
 
 
-def fit_piecewise(temps_c: np.ndarray, K: np.ndarray, U0: np.ndarray, normal_temp_c: float = 20.0,
-                  cluster_tol_c: float = 3.0) -> PiecewiseModel:
+def fit_piecewise(
+    temps_c: np.ndarray, K: np.ndarray, U0: np.ndarray, normal_temp_c: float = 20.0, cluster_tol_c: float = 3.0
+) -> PiecewiseModel:
     """Piecewise-linear model with breakpoints at the calibration temperatures (seed 000, eq. 5 and 13).
 
     Plateaus within ``cluster_tol_c`` of each other are one calibration temperature (their constants and
@@ -238,8 +245,14 @@ def default_order(temps_c: np.ndarray, cluster_tol_c: float = 3.0) -> int:
 THERMAL_MODELS = ("auto", "poly1", "poly2", "poly3", "piecewise")
 
 
-def fit_thermal_model(temps_c: np.ndarray, K: np.ndarray, U0: np.ndarray, kind: str = "auto",
-                      normal_temp_c: float = 20.0, cluster_tol_c: float = 3.0) -> ThermalModel:
+def fit_thermal_model(
+    temps_c: np.ndarray,
+    K: np.ndarray,
+    U0: np.ndarray,
+    kind: str = "auto",
+    normal_temp_c: float = 20.0,
+    cluster_tol_c: float = 3.0,
+) -> ThermalModel:
     """Fit the model named ``kind``: ``poly1`` | ``poly2`` | ``poly3`` | ``piecewise`` | ``auto`` (the default
     polynomial order)."""
     if kind == "piecewise":
@@ -294,16 +307,22 @@ class RateTerms:
         return self.alpha_rate.shape[1] - 1
 
     def to_dict(self) -> dict:
-        d = {"order": self.order, "dt_order": self.dt_order, "rate_unit": RATE_UNIT,
-             "temp_smooth_s": float(self.temp_smooth_s), "lag_tau_s": float(self.lag_tau_s),
-             "units": {"alpha_rate": "V/(C/min)^n/C^k", "beta_rate": "1/(C/min)^n/C^k"},
-             "index": "[n-1][k] multiplies r^n dT^k",
-             "alpha_rate": {AXES[i]: self.alpha_rate[..., i].tolist() for i in range(3)},
-             "beta_rate": {AXES[i] * 2: self.beta_rate[..., i].tolist() for i in range(3)}}
+        d = {
+            "order": self.order,
+            "dt_order": self.dt_order,
+            "rate_unit": RATE_UNIT,
+            "temp_smooth_s": float(self.temp_smooth_s),
+            "lag_tau_s": float(self.lag_tau_s),
+            "units": {"alpha_rate": "V/(C/min)^n/C^k", "beta_rate": "1/(C/min)^n/C^k"},
+            "index": "[n-1][k] multiplies r^n dT^k",
+            "alpha_rate": {AXES[i]: self.alpha_rate[..., i].tolist() for i in range(3)},
+            "beta_rate": {AXES[i] * 2: self.beta_rate[..., i].tolist() for i in range(3)},
+        }
         if self.cross_abs is not None:
             d["units"]["cross_axis_abs"] = "V/g/C^m, [m-1] multiplies dT^m"
-            d["cross_axis_abs"] = {OFF_KEYS[k]: self.cross_abs[:, i, j].tolist()
-                                   for k, (i, j) in enumerate(OFF_DIAGONAL)}
+            d["cross_axis_abs"] = {
+                OFF_KEYS[k]: self.cross_abs[:, i, j].tolist() for k, (i, j) in enumerate(OFF_DIAGONAL)
+            }
         return d
 
     @classmethod
@@ -353,8 +372,9 @@ class DifferentialModel:
     def lag_tau_s(self) -> float:
         return self.rate.lag_tau_s if self.rate is not None else 0.0
 
-    def constants_at(self, temp_c: np.ndarray, rate_c_per_min: np.ndarray | None = None
-                     ) -> tuple[np.ndarray, np.ndarray]:
+    def constants_at(
+        self, temp_c: np.ndarray, rate_c_per_min: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """K (m, 3, 3) V/g and U0 (m, 3) V at temperatures ``temp_c`` (m,) C and rates (m,) C/min."""
         K, U0 = self.static.constants_at(temp_c)
         if self.rate is not None and self.rate.cross_abs is not None:
@@ -363,8 +383,12 @@ class DifferentialModel:
             K = K + np.einsum("nm,mij->nij", powers, self.rate.cross_abs)
         if self.rate is None or rate_c_per_min is None or self.rate.order == 0:
             return K, U0
-        g = rate_basis(np.atleast_1d(temp_c) - self.normal_temp_c, np.atleast_1d(rate_c_per_min),
-                        self.rate.order, self.rate.dt_order)
+        g = rate_basis(
+            np.atleast_1d(temp_c) - self.normal_temp_c,
+            np.atleast_1d(rate_c_per_min),
+            self.rate.order,
+            self.rate.dt_order,
+        )
         U0 = U0 + np.einsum("mnk,nki->mi", g, self.rate.alpha_rate)
         K = K.copy()
         K[:, np.arange(3), np.arange(3)] += np.einsum("mnk,nki->mi", g, self.rate.beta_rate) * np.diag(self.K0)

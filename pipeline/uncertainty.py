@@ -53,7 +53,7 @@ def segment_noise_var_v2(std_v: np.ndarray, count: np.ndarray) -> np.ndarray:
     """Variance (V^2) of each segment mean from the noise measured in it: std^2 / n, shape (m, 3)."""
     std_v = np.asarray(std_v, dtype=float)
     n = np.maximum(np.asarray(count, dtype=float), 1.0)
-    return std_v ** 2 / n[:, None]
+    return std_v**2 / n[:, None]
 
 
 def design_matrix(positions: list[str]) -> np.ndarray:
@@ -61,8 +61,12 @@ def design_matrix(positions: list[str]) -> np.ndarray:
     return np.array([np.append(gravity_vector_g(p), 1.0) for p in positions])
 
 
-def excess_scatter_v(residuals_v: list[np.ndarray], noise_var_v2: list[np.ndarray],
-                     estimators: list[np.ndarray], designs: list[np.ndarray]) -> np.ndarray:
+def excess_scatter_v(
+    residuals_v: list[np.ndarray],
+    noise_var_v2: list[np.ndarray],
+    estimators: list[np.ndarray],
+    designs: list[np.ndarray],
+) -> np.ndarray:
     """Per channel (3,), V: the scatter of the segment means about the plateau fits beyond their measured noise.
 
     ``residuals_v`` (m_p, 3), ``noise_var_v2`` (m_p, 3), ``estimators`` (W, (4, m_p)) and ``designs`` (A, (m_p, 4))
@@ -75,7 +79,7 @@ def excess_scatter_v(residuals_v: list[np.ndarray], noise_var_v2: list[np.ndarra
     expected = np.zeros(3)
     dof = 0.0
     for r, var, W, A in zip(residuals_v, noise_var_v2, estimators, designs):
-        H = A @ W                                  # fitted means = H u
+        H = A @ W  # fitted means = H u
         lev = np.clip(np.diag(H), 0.0, 1.0)
         ss += np.sum(np.asarray(r) ** 2, axis=0)
         expected += np.sum((1.0 - lev)[:, None] * var, axis=0)
@@ -88,7 +92,7 @@ def excess_scatter_v(residuals_v: list[np.ndarray], noise_var_v2: list[np.ndarra
 def plateau_sigma(W: np.ndarray, var_v2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Standard uncertainties of one plateau's constants: K (3, 3) V/g and U0 (3,) V, from the segment-mean
     variances ``var_v2`` (m, 3) and the estimator W (4, m)."""
-    var = (W ** 2) @ var_v2                      # (4, 3): rows K_.x, K_.y, K_.z, U0; columns channel i
+    var = (W**2) @ var_v2  # (4, 3): rows K_.x, K_.y, K_.z, U0; columns channel i
     sig = np.sqrt(var)
     return sig[:3].T.copy(), sig[3].copy()
 
@@ -98,10 +102,10 @@ class ThermalSigma:
     """Standard uncertainties of a fitted temperature model: the normal-temperature constants and the model's
     coefficients in the passport's layout (``thermal_model`` dict with the same keys, values in the same units)."""
 
-    K0: np.ndarray            # (3, 3) V/g
-    U00: np.ndarray           # (3,) V
+    K0: np.ndarray  # (3, 3) V/g
+    U00: np.ndarray  # (3,) V
     thermal_model: dict
-    birge_ratio: float        # sqrt(chi^2 / dof) of the plateau constants about the model (pooled), or nan
+    birge_ratio: float  # sqrt(chi^2 / dof) of the plateau constants about the model (pooled), or nan
     dof: int
     #: further fields of the passport's ``uncertainty`` block, e.g. ``rate_terms`` (the differential method's rate
     #: terms, same layout as the passport's), ``undetermined`` ({field: why it has no uncertainty}) and
@@ -111,8 +115,9 @@ class ThermalSigma:
     basis: dict | None = None
 
 
-def thermal_sigma(fit_model, temps_c: np.ndarray, K: np.ndarray, U0: np.ndarray, K_sigma: np.ndarray,
-                  U0_sigma: np.ndarray) -> ThermalSigma:
+def thermal_sigma(
+    fit_model, temps_c: np.ndarray, K: np.ndarray, U0: np.ndarray, K_sigma: np.ndarray, U0_sigma: np.ndarray
+) -> ThermalSigma:
     """Propagate per-plateau uncertainties through ``fit_model(temps_c, K, U0) -> model`` (a polynomial or piecewise
     model of :mod:`pipeline.thermal` with ``K0``, ``U00``, ``constants_at`` and ``to_dict``).
 
@@ -141,8 +146,13 @@ def thermal_sigma(fit_model, temps_c: np.ndarray, K: np.ndarray, U0: np.ndarray,
     sig = np.where(undetermined, np.nan, sig)
     K0_sig = sig[:9].reshape(3, 3)
     U00_sig = sig[9:12]
-    return ThermalSigma(K0=K0_sig, U00=U00_sig, thermal_model=_unflatten_model(base, sig[12:], layout),
-                        birge_ratio=float(ratio), dof=int(dof))
+    return ThermalSigma(
+        K0=K0_sig,
+        U00=U00_sig,
+        thermal_model=_unflatten_model(base, sig[12:], layout),
+        birge_ratio=float(ratio),
+        dof=int(dof),
+    )
 
 
 def _birge(model, temps_c, K, U0, K_sigma, U0_sigma) -> tuple[float, int]:
@@ -211,11 +221,12 @@ def _unflatten_model(model, sig: np.ndarray, layout) -> dict:
     d = model.to_dict()
     out = {k: v for k, v in d.items() if k not in ("alpha", "beta", "gamma", "segments")}
     if d.get("kind") != "polynomial":
-        out["segments"] = [{k: v for k, v in seg.items() if k not in ("alpha", "beta", "gamma")}
-                           for seg in d.get("segments") or []]
+        out["segments"] = [
+            {k: v for k, v in seg.items() if k not in ("alpha", "beta", "gamma")} for seg in d.get("segments") or []
+        ]
     pos = 0
     for path, n, scalar in layout:
-        vals = [None if not np.isfinite(v) else float(v) for v in sig[pos:pos + n]]
+        vals = [None if not np.isfinite(v) else float(v) for v in sig[pos : pos + n]]
         pos += n
         value = vals[0] if scalar else vals
         if path[0] == "segments":
@@ -268,11 +279,10 @@ def regression_cov(X: np.ndarray, resid: np.ndarray, noise_var: np.ndarray, clus
     cov_r = bread @ (S.T @ S) @ bread * factor
     var_n = np.diag(bread @ ((Xs.T * np.asarray(noise_var, dtype=float)) @ Xs) @ bread)
     sd_r = np.sqrt(np.maximum(np.diag(cov_r), 0.0))
-    sd = np.sqrt(np.maximum(sd_r ** 2, np.maximum(var_n, 0.0)))
+    sd = np.sqrt(np.maximum(sd_r**2, np.maximum(var_n, 0.0)))
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = np.where(np.outer(sd_r, sd_r) > 0, cov_r / np.outer(sd_r, sd_r), np.eye(p))
     cov = corr * np.outer(sd, sd) / np.outer(scale, scale)
     cov[empty, :] = np.nan
     cov[:, empty] = np.nan
     return cov
-

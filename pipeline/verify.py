@@ -47,10 +47,18 @@ class VerificationRow:
         return asdict(self)
 
 
-def verify_positions(model, positions: list[str], u_v: np.ndarray, temp_c: np.ndarray, *, normal_temp_c: float,
-                     tolerances: Tolerances = Tolerances(), run_ids: list[str] | None = None,
-                     spans_ns: list[tuple[int, int]] | None = None, plateaus: list[int | None] | None = None
-                     ) -> list[VerificationRow]:
+def verify_positions(
+    model,
+    positions: list[str],
+    u_v: np.ndarray,
+    temp_c: np.ndarray,
+    *,
+    normal_temp_c: float,
+    tolerances: Tolerances = Tolerances(),
+    run_ids: list[str] | None = None,
+    spans_ns: list[tuple[int, int]] | None = None,
+    plateaus: list[int | None] | None = None,
+) -> list[VerificationRow]:
     """dg at each verification segment (mean outputs ``u_v`` (m, 3) V at mean temperatures ``temp_c`` (m,) C);
     ``run_ids``, ``spans_ns`` (start, end ns) and ``plateaus`` (plateau index in its run) say where each is."""
     u_v = np.atleast_2d(np.asarray(u_v, dtype=float))
@@ -63,12 +71,22 @@ def verify_positions(model, positions: list[str], u_v: np.ndarray, temp_c: np.nd
     for k, pos in enumerate(positions):
         lim = tolerances.limit_g(float(temp_c[k]), normal_temp_c)
         span = spans_ns[k] if spans_ns else (0, 0)
-        rows.append(VerificationRow(
-            temp_c=round(float(temp_c[k]), 3), position=pos, run_id=run_ids[k] if run_ids else "",
-            t_start_ns=int(span[0]), t_end_ns=int(span[1]),
-            dg_uncompensated_g=float(dg0[k]), dg_method1_g=float(dg1[k]), dg_method2_g=float(dg2[k]),
-            dg_method2_simplified_g=float(dg2s[k]), tolerance_g=lim, passed=bool(abs(dg1[k]) <= lim),
-            plateau=None if plateaus is None or plateaus[k] is None else int(plateaus[k])))
+        rows.append(
+            VerificationRow(
+                temp_c=round(float(temp_c[k]), 3),
+                position=pos,
+                run_id=run_ids[k] if run_ids else "",
+                t_start_ns=int(span[0]),
+                t_end_ns=int(span[1]),
+                dg_uncompensated_g=float(dg0[k]),
+                dg_method1_g=float(dg1[k]),
+                dg_method2_g=float(dg2[k]),
+                dg_method2_simplified_g=float(dg2s[k]),
+                tolerance_g=lim,
+                passed=bool(abs(dg1[k]) <= lim),
+                plateau=None if plateaus is None or plateaus[k] is None else int(plateaus[k]),
+            )
+        )
     return rows
 
 
@@ -90,14 +108,16 @@ def summary_by_temperature(rows: list[VerificationRow], cluster_tol_c: float = 3
     out = []
     for c in range(labels.max() + 1):
         sel = [r for r, lab in zip(rows, labels) if lab == c]
-        out.append({
-            "temp_c": round(float(np.mean([r.temp_c for r in sel])), 2),
-            "n": len(sel),
-            "max_abs_dg_uncompensated_g": max(abs(r.dg_uncompensated_g) for r in sel),
-            "max_abs_dg_method1_g": max(abs(r.dg_method1_g) for r in sel),
-            "max_abs_dg_method2_g": max(abs(r.dg_method2_g) for r in sel),
-            "max_abs_dg_method2_simplified_g": max(abs(r.dg_method2_simplified_g) for r in sel),
-        })
+        out.append(
+            {
+                "temp_c": round(float(np.mean([r.temp_c for r in sel])), 2),
+                "n": len(sel),
+                "max_abs_dg_uncompensated_g": max(abs(r.dg_uncompensated_g) for r in sel),
+                "max_abs_dg_method1_g": max(abs(r.dg_method1_g) for r in sel),
+                "max_abs_dg_method2_g": max(abs(r.dg_method2_g) for r in sel),
+                "max_abs_dg_method2_simplified_g": max(abs(r.dg_method2_simplified_g) for r in sel),
+            }
+        )
     return out
 
 
@@ -113,15 +133,20 @@ def verification_visits(rows: list[dict], cluster_tol_c: float = 3.0) -> list[di
         return []
     rows = sorted(rows, key=lambda r: (r.get("run_id", ""), r.get("t_start_ns", 0)))
     labels = cluster_temperatures(np.array([r["temp_c"] for r in rows], dtype=float), cluster_tol_c)
-    groups: list[list[int]] = []   # row indices of each visit, in time order
+    groups: list[list[int]] = []  # row indices of each visit, in time order
     for i, lab in enumerate(labels):
-        if (i and lab == labels[i - 1] and rows[i].get("run_id") == rows[i - 1].get("run_id")
-                and rows[i].get("plateau") == rows[i - 1].get("plateau")):
+        if (
+            i
+            and lab == labels[i - 1]
+            and rows[i].get("run_id") == rows[i - 1].get("run_id")
+            and rows[i].get("plateau") == rows[i - 1].get("plateau")
+        ):
             groups[-1].append(i)
         else:
             groups.append([i])
-    cluster_temp = {c: float(np.mean([r["temp_c"] for r, lab in zip(rows, labels) if lab == c]))
-                    for c in set(labels.tolist())}
+    cluster_temp = {
+        c: float(np.mean([r["temp_c"] for r, lab in zip(rows, labels) if lab == c])) for c in set(labels.tolist())
+    }
     order = sorted(range(len(groups)), key=lambda g: (cluster_temp[labels[groups[g][0]]], g))
     count = {c: sum(labels[g[0]] == c for g in groups) for c in cluster_temp}
     seen: dict[int, int] = {}
@@ -130,6 +155,7 @@ def verification_visits(rows: list[dict], cluster_tol_c: float = 3.0) -> list[di
         c = int(labels[groups[g][0]])
         seen[c] = seen.get(c, 0) + 1
         sel = [rows[i] for i in groups[g]]
-        out.append({"rows": sel, "temp_c": float(np.mean([r["temp_c"] for r in sel])), "visit": seen[c],
-                    "visits": count[c]})
+        out.append(
+            {"rows": sel, "temp_c": float(np.mean([r["temp_c"] for r in sel])), "visit": seen[c], "visits": count[c]}
+        )
     return out

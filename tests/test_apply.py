@@ -31,10 +31,16 @@ def passport():
 def other():
     """Another run of the unit (other noise), with a few non-finite voltages."""
     res = simulate(SimConfig(program="short", seed=9, rate_hz=2.0))
-    v = res.run.voltmeter.with_columns(pl.when(pl.int_range(pl.len()).is_in([5, 6, 700])).then(float("nan"))
-                                       .otherwise(pl.col("uy")).alias("uy"))
-    run = Run(meta=res.run.meta, voltmeter=v, au_temperature=res.run.au_temperature, chamber=res.run.chamber,
-              fixture=res.run.fixture)
+    v = res.run.voltmeter.with_columns(
+        pl.when(pl.int_range(pl.len()).is_in([5, 6, 700])).then(float("nan")).otherwise(pl.col("uy")).alias("uy")
+    )
+    run = Run(
+        meta=res.run.meta,
+        voltmeter=v,
+        au_temperature=res.run.au_temperature,
+        chamber=res.run.chamber,
+        fixture=res.run.fixture,
+    )
     return run, res.truth
 
 
@@ -59,8 +65,11 @@ def test_apply_is_method_1_of_the_passport_model(passport, other):
     thermosensor temperature; non-finite inputs give NaN rows, never dropped ones."""
     run, _ = other
     t = apply_passport(passport, run).table
-    temp = np.interp(run.t_ns().astype(float), run.au_temperature["t_ns"].to_numpy().astype(float),
-                     run.au_temperature["temp_c"].to_numpy())
+    temp = np.interp(
+        run.t_ns().astype(float),
+        run.au_temperature["t_ns"].to_numpy().astype(float),
+        run.au_temperature["temp_c"].to_numpy(),
+    )
     ref = compensate.method1(load_model(passport), run.u_v(), temp)
     a = t.select("ax_g", "ay_g", "az_g").to_numpy()
     bad = ~np.isfinite(run.u_v()).all(axis=1)
@@ -71,14 +80,14 @@ def test_apply_is_method_1_of_the_passport_model(passport, other):
 
 def test_in_range_and_one_warning(passport, other):
     run, _ = other
-    assert valid_range_c(passport) == pytest.approx((-40.0, 70.0), abs=0.5)     # from the plateaus
+    assert valid_range_c(passport) == pytest.approx((-40.0, 70.0), abs=0.5)  # from the plateaus
     narrow = dict(passport, valid_temp_c=[0.0, 30.0])
     out = apply_passport(narrow, run)
     temp = out.table["temp_c"].to_numpy()
     assert (out.table["in_range"].to_numpy() == ((temp >= 0.0) & (temp <= 30.0))).all()
     assert 0 < (~out.table["in_range"].to_numpy()).sum() < out.table.height
     assert len(out.warnings) == 1 and "outside the passport's valid temperature range 0 .. 30 C" in out.warnings[0]
-    first = int(out.table.filter(~pl.col("in_range"))["t_ns"][0])     # the time for people: UTC, not raw t_ns
+    first = int(out.table.filter(~pl.col("in_range"))["t_ns"][0])  # the time for people: UTC, not raw t_ns
     assert f"(the first at {utc_text(first)})" in out.warnings[0] and "t_ns" not in out.warnings[0]
     assert apply_passport(dict(passport, valid_temp_c=[-45.0, 75.0]), run).warnings == []
     failed = apply_passport(dict(passport, valid_temp_c=[-45.0, 75.0], status="fail"), run).warnings
@@ -93,8 +102,9 @@ def test_write_parquet_and_mcap(passport, other, tmp_path):
     assert back.columns == list(APPLY_COLUMNS) and back.height == run.voltmeter.height
     assert back["in_range"].dtype == pl.Boolean
     mc = write_applied(out, tmp_path / "a.mcap", passport=passport, run=run)
-    from mcap.reader import make_reader
     import json
+
+    from mcap.reader import make_reader
 
     with open(mc, "rb") as f:
         rows = sum(len(json.loads(m.data)["t_ns"]) for _, _, m in make_reader(f).iter_messages())
@@ -112,9 +122,18 @@ def diagnosed():
 
     calib = simulate(SimConfig(program="short", rate_hz=2.0, seed=5)).run
     base = fit_passport(calib, segment_run(calib, segment_settings_for(calib)))
-    res = simulate(SimConfig(program="short", rate_hz=2.0, seed=6, noise_v=1e-6,
-                             effects=[("thermal_hysteresis", {"h_v": [20e-6, -15e-6, 10e-6]}),
-                                      ("time_drift", {"r_v_per_h": [4e-6, -3e-6, 2e-6]})]))
+    res = simulate(
+        SimConfig(
+            program="short",
+            rate_hz=2.0,
+            seed=6,
+            noise_v=1e-6,
+            effects=[
+                ("thermal_hysteresis", {"h_v": [20e-6, -15e-6, 10e-6]}),
+                ("time_drift", {"r_v_per_h": [4e-6, -3e-6, 2e-6]}),
+            ],
+        )
+    )
     extended = diagnose_run(res.run, base).passport
     assert {e["effect"] for e in extended["extended_model"]["effects"]} == {"thermal_hysteresis", "time_drift"}
     return base, extended, res.run, res.context
@@ -150,8 +169,10 @@ def test_extended_terms_that_need_the_fixture_are_named_in_one_warning(diagnosed
     warning line says which term and why."""
     _, extended, run, _ = diagnosed
     ext_model = dict(extended["extended_model"])
-    ext_model["effects"] = [*ext_model["effects"], {"effect": "tilt_settling", "parameters": {"f": 1e-4,
-                                                                                             "tau_s": 20.0}}]
+    ext_model["effects"] = [
+        *ext_model["effects"],
+        {"effect": "tilt_settling", "parameters": {"f": 1e-4, "tau_s": 20.0}},
+    ]
     out = apply_passport({**extended, "extended_model": ext_model}, run)
     said = [w for w in out.warnings if "extended model" in w]
     assert len(said) == 1 and "\n" not in said[0]

@@ -16,7 +16,7 @@ def _modules_in_child() -> list[str]:
 
 
 def _fleet_throughput():
-    if str(BENCHMARKS) not in sys.path:   # by name, so that a spawned child can unpickle its functions
+    if str(BENCHMARKS) not in sys.path:  # by name, so that a spawned child can unpickle its functions
         sys.path.insert(0, str(BENCHMARKS))
     import fleet_throughput
 
@@ -30,7 +30,7 @@ def test_benchmark_pools_spawn_after_parquet_was_written(tmp_path):
     ft = _fleet_throughput()
     with ft.process_pool(2) as pool:
         held = [pool.submit(_modules_in_child).result(timeout=120) for _ in range(2)]
-    assert held == [[], []]       # a forked child would hold the parent's polars and pyarrow
+    assert held == [[], []]  # a forked child would hold the parent's polars and pyarrow
     # the cli_latency fleet step itself, two units of the short program at a low rate, on two processes
     paths = ft.make_fleet(tmp_path / "fleet", 2, 0.5, "short", 2)
     assert [Path(p).name for p in paths] == ["AU-0001.mcap", "AU-0002.mcap"]

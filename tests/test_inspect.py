@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from pipeline.inspect import utc_text, format_summary, stream_summary, summarize_run
-from pipeline.run import Run, RunMeta, make_frame
+from pipeline.inspect import format_summary, stream_summary, summarize_run, utc_text
 from pipeline.io.runs import read_run, write_run
+from pipeline.run import Run, RunMeta, make_frame
 
 T0_NS = 1_793_491_200_000_000_000
 
@@ -29,8 +29,9 @@ def run() -> Run:
         meta=RunMeta(unit_serial="AU-0003", run_id="inspect-1", station="ch1"),
         voltmeter=make_frame("voltmeter", {"t_ns": t_v, "ux": u[:, 0], "uy": u[:, 1], "uz": u[:, 2]}),
         au_temperature=make_frame("au_temperature", {"t_ns": t_t, "temp_c": np.full(len(t_t), 20.0)}),
-        fixture=make_frame("fixture", {"t_ns": [T0_NS, T0_NS + 600 * 10**9, T0_NS + 610 * 10**9],
-                                       "position": ["TP1", "MOVING", "TP2"]}),
+        fixture=make_frame(
+            "fixture", {"t_ns": [T0_NS, T0_NS + 600 * 10**9, T0_NS + 610 * 10**9], "position": ["TP1", "MOVING", "TP2"]}
+        ),
     )
 
 

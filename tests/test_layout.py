@@ -35,7 +35,7 @@ def _imports(name: str, path: Path, known: set[str]) -> set[str]:
         elif isinstance(node, ast.ImportFrom):
             mod = node.module or ""
             if node.level:
-                anchor = base[:len(base) - (node.level - 1)] if node.level > 1 else base
+                anchor = base[: len(base) - (node.level - 1)] if node.level > 1 else base
                 mod = ".".join([*anchor, mod] if mod else anchor)
             targets = [f"{mod}.{a.name}" if f"{mod}.{a.name}" in known else mod for a in node.names]
         else:
@@ -62,7 +62,7 @@ def _cycle(graph: dict[str, set[str]]) -> list[str] | None:
         stack.append(n)
         for m in sorted(graph.get(n, ())):
             if state.get(m) == 1:
-                return stack[stack.index(m):] + [m]
+                return stack[stack.index(m) :] + [m]
             if m not in state and (found := visit(m)):
                 return found
         stack.pop()
@@ -89,8 +89,13 @@ def test_cycle_finder_finds_a_circle():
 def test_pipeline_never_imports_prefect():
     for path in (REPO / "pipeline").rglob("*.py"):
         for node in ast.walk(ast.parse(path.read_text())):
-            names = ([a.name for a in node.names] if isinstance(node, ast.Import)
-                     else [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
+            names = (
+                [a.name for a in node.names]
+                if isinstance(node, ast.Import)
+                else [node.module or ""]
+                if isinstance(node, ast.ImportFrom)
+                else []
+            )
             assert not any(n.split(".")[0] in ("prefect", "prefect_dask", "flows") for n in names), path
 
 
@@ -113,7 +118,12 @@ def test_shared_constants_have_one_home():
             v = node.value
             if isinstance(v, ast.Constant) and v.value == 1_000_000_000:
                 homes["1_000_000_000"].append(str(path.relative_to(REPO)))
-            elif (isinstance(v, ast.BinOp) and isinstance(v.op, ast.LShift) and isinstance(v.left, ast.Constant)
-                  and isinstance(v.right, ast.Constant) and (v.left.value, v.right.value) == (1, 20)):
+            elif (
+                isinstance(v, ast.BinOp)
+                and isinstance(v.op, ast.LShift)
+                and isinstance(v.left, ast.Constant)
+                and isinstance(v.right, ast.Constant)
+                and (v.left.value, v.right.value) == (1, 20)
+            ):
                 homes["1 << 20"].append(str(path.relative_to(REPO)))
     assert homes == {"1_000_000_000": ["pipeline/run.py"], "1 << 20": ["pipeline/run.py"]}, homes

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
 
 from pipeline.plausibility import UnitTypeRanges, check_constants, judged_status, mirrored_axis
@@ -46,8 +45,8 @@ def test_reversed_axis(table):
 def test_cross_axis_offsets_and_gain_range(table):
     T, K, U0 = table
     K2, U2 = K.copy(), U0.copy()
-    K2[:, 0, 2] = 0.2      # 0.36 of the gain
-    U2[:, 2] = 0.3         # 0.55 g
+    K2[:, 0, 2] = 0.2  # 0.36 of the gain
+    U2[:, 2] = 0.3  # 0.55 g
     msgs = check_constants(T, K2, U2, nominal_gain_v_per_g=-0.55)
     assert any("|K_xz| / |K_xx| = 0.363" in m for m in msgs), msgs
     assert any("U0_z is 0.547 g" in m for m in msgs), msgs
@@ -59,7 +58,7 @@ def test_cross_axis_offsets_and_gain_range(table):
 def test_mirrored_axis_from_label_conflicts():
     msg = mirrored_axis([("TP2", "TP4"), ("TP4", "TP2"), ("VP2", "VP5")])
     assert "differs by the sign of y" in msg and "axis y reversed" in msg and "3 segments" in msg, msg
-    assert mirrored_axis([("TP2", "TP4")]) is None                        # once is not a pattern
-    assert mirrored_axis([("TP2", "TP4"), ("TP1", "TP3")]) is None        # not one axis
-    assert mirrored_axis([("TP2", "TP4"), ("TP1", "TP5")]) is None        # not a mirror
+    assert mirrored_axis([("TP2", "TP4")]) is None  # once is not a pattern
+    assert mirrored_axis([("TP2", "TP4"), ("TP1", "TP3")]) is None  # not one axis
+    assert mirrored_axis([("TP2", "TP4"), ("TP1", "TP5")]) is None  # not a mirror
     assert mirrored_axis([]) is None

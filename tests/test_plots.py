@@ -11,13 +11,23 @@ from pipeline import plots
 from pipeline.verify import VerificationRow
 
 
-def _row(temp_c: float, position: str, dg_ug: float, tol_ug: float = 1000.0, t: int = 0,
-         after_ug: float | None = None) -> VerificationRow:
+def _row(
+    temp_c: float, position: str, dg_ug: float, tol_ug: float = 1000.0, t: int = 0, after_ug: float | None = None
+) -> VerificationRow:
     after = 0.1 * dg_ug if after_ug is None else after_ug
-    return VerificationRow(temp_c=temp_c, position=position, run_id="r", t_start_ns=t, t_end_ns=t + 1,
-                           dg_uncompensated_g=dg_ug * 1e-6, dg_method1_g=after * 1e-6,
-                           dg_method2_g=2 * after * 1e-6, dg_method2_simplified_g=0.0, tolerance_g=tol_ug * 1e-6,
-                           passed=abs(after) <= tol_ug)
+    return VerificationRow(
+        temp_c=temp_c,
+        position=position,
+        run_id="r",
+        t_start_ns=t,
+        t_end_ns=t + 1,
+        dg_uncompensated_g=dg_ug * 1e-6,
+        dg_method1_g=after * 1e-6,
+        dg_method2_g=2 * after * 1e-6,
+        dg_method2_simplified_g=0.0,
+        tolerance_g=tol_ug * 1e-6,
+        passed=abs(after) <= tol_ug,
+    )
 
 
 def _timed(rows):
@@ -28,17 +38,24 @@ def test_panels_per_visit_coldest_first():
     """Rows in time order (+45, then -10, then one VP at +70, then +44.6 again) give four panels: -10, +45 visit 1,
     +45 visit 2 (44.6 C, after the +70 visit), +70; each at least four slots wide with its points centred, one empty
     slot between panels; dicts (a passport's rows) give the same panels."""
-    rows = _timed([_row(45.0, f"VP{k}", 100.0 * k) for k in range(1, 7)] + [_row(-10.0, f"VP{k}", -50.0)
-                                                                           for k in (1, 2)]
-                  + [_row(70.2, "VP6", 3.0)] + [_row(44.6, "VP1", 7.0)])
+    rows = _timed(
+        [_row(45.0, f"VP{k}", 100.0 * k) for k in range(1, 7)]
+        + [_row(-10.0, f"VP{k}", -50.0) for k in (1, 2)]
+        + [_row(70.2, "VP6", 3.0)]
+        + [_row(44.6, "VP1", 7.0)]
+    )
     panels = plots._panels([r.to_dict() for r in rows])
     assert [round(p["temp_c"], 1) for p in panels] == [-10.0, 45.0, 44.6, 70.2]
     assert [(p["visit"], p["visits"]) for p in panels] == [(1, 1), (1, 2), (2, 2), (1, 1)]
-    assert [[r["position"] for r in p["rows"]] for p in panels] == [["VP1", "VP2"], [f"VP{k}" for k in range(1, 7)],
-                                                                     ["VP1"], ["VP6"]]
+    assert [[r["position"] for r in p["rows"]] for p in panels] == [
+        ["VP1", "VP2"],
+        [f"VP{k}" for k in range(1, 7)],
+        ["VP1"],
+        ["VP6"],
+    ]
     assert [p["width"] for p in panels] == [4, 6, 4, 4]
     assert [p["x0"] for p in panels] == [0.0, 5.0, 12.0, 17.0]
-    np.testing.assert_allclose(panels[0]["x"], [1.5, 2.5])   # two points centred in four slots
+    np.testing.assert_allclose(panels[0]["x"], [1.5, 2.5])  # two points centred in four slots
     np.testing.assert_allclose(panels[3]["x"], [19.0])
     for p in panels:
         assert p["x0"] < p["x"].min() and p["x"].max() < p["x0"] + p["width"]
@@ -50,32 +67,41 @@ def _red_rings(img: np.ndarray) -> np.ndarray:
 
 
 def test_before_and_after_on_their_own_scales_fails_circled(tmp_path):
-    rows = _timed([_row(t, f"VP{k}", 500.0 * (k - 3), tol) for t, tol in ((-10.0, 1000.0), (20.0, 300.0),
-                                                                        (45.0, 1000.0)) for k in range(1, 7)])
+    rows = _timed(
+        [
+            _row(t, f"VP{k}", 500.0 * (k - 3), tol)
+            for t, tol in ((-10.0, 1000.0), (20.0, 300.0), (45.0, 1000.0))
+            for k in range(1, 7)
+        ]
+    )
     path = plots.plot_verification(rows, tmp_path / "sub" / "v0001.png", title="AU-0001 v1")
     img = np.asarray(Image.open(path).convert("RGB"))
     slots = 3 * 6 + 2
     width_in = plots._MARGINS_IN["left"] + plots._MARGINS_IN["right"] + plots._SLOT_IN * slots
-    assert img.shape[:2] == (round(plots._HEIGHT_IN * plots._VERIFICATION_DPI),
-                             round(width_in * plots._VERIFICATION_DPI))
+    assert img.shape[:2] == (
+        round(plots._HEIGHT_IN * plots._VERIFICATION_DPI),
+        round(width_in * plots._VERIFICATION_DPI),
+    )
     h = img.shape[0]
-    upper, lower = img[: h // 2], img[h // 2:]
+    upper, lower = img[: h // 2], img[h // 2 :]
     blue = np.all(np.abs(img.astype(int) - [0x1F, 0x77, 0xB4]) < 30, axis=-1)  # uncompensated (C0): above only
     orange = np.all(np.abs(img.astype(int) - [0xFF, 0x7F, 0x0E]) < 30, axis=-1)  # method 1 (C1): below only
-    assert blue[: h // 2].sum() > 500 and blue[h // 2:].sum() < 50
-    assert orange[h // 2:].sum() > 500 and orange[: h // 2].sum() < 50
+    assert blue[: h // 2].sum() > 500 and blue[h // 2 :].sum() < 50
+    assert orange[h // 2 :].sum() > 500 and orange[: h // 2].sum() < 50
     # before: 1500 ug at VP6 -10/+45 and > 300 ug at +20 are beyond their limits: rings above, none below
     assert _red_rings(upper).sum() > 200 and _red_rings(lower).sum() == 0
     # after (method 1 up to 150 ug): the lower axes have their own scale, so its points are not flat on zero
-    ys = np.flatnonzero(orange[h // 2:].any(axis=1))
+    ys = np.flatnonzero(orange[h // 2 :].any(axis=1))
     assert ys.max() - ys.min() > 0.3 * plots._PANEL_IN * plots._VERIFICATION_DPI
     # one failing compensated row: ringed below
     bad = rows[:6] + [VerificationRow(**{**rows[6].to_dict(), "dg_method1_g": 400e-6, "passed": False})]
     img2 = np.asarray(Image.open(plots.plot_verification(bad, tmp_path / "bad.png")).convert("RGB"))
-    assert _red_rings(img2[img2.shape[0] // 2:]).sum() > 50
+    assert _red_rings(img2[img2.shape[0] // 2 :]).sum() > 50
     empty = plots.plot_verification([], tmp_path / "empty.png")
-    assert Image.open(empty).size[0] == round((plots._MARGINS_IN["left"] + plots._MARGINS_IN["right"]
-                                               + plots._SLOT_IN * plots._MIN_SLOTS) * plots._VERIFICATION_DPI)
+    assert Image.open(empty).size[0] == round(
+        (plots._MARGINS_IN["left"] + plots._MARGINS_IN["right"] + plots._SLOT_IN * plots._MIN_SLOTS)
+        * plots._VERIFICATION_DPI
+    )
 
 
 def test_constant_changes_in_engineering_units():
@@ -83,12 +109,12 @@ def test_constant_changes_in_engineering_units():
     K0[0, 1] = 1e-3
     U00 = np.array([0.01, 0.0, -0.02])
     K = K0[None].copy()
-    K[0, 0, 0] *= 1 + 200e-6                # +200 ppm of the x gain
-    K[0, 1, 2] += -0.55 * 50e-6             # yz: +50 ppm of the y gain (the change over K_yy, sign included)
-    U0 = (U00 + np.array([0.5 * 30e-6, 0.0, 0.0]))[None]   # +30 micro-g on x
+    K[0, 0, 0] *= 1 + 200e-6  # +200 ppm of the x gain
+    K[0, 1, 2] += -0.55 * 50e-6  # yz: +50 ppm of the y gain (the change over K_yy, sign included)
+    U0 = (U00 + np.array([0.5 * 30e-6, 0.0, 0.0]))[None]  # +30 micro-g on x
     ch = plots.constant_changes(K, U0, K0, U00)
     np.testing.assert_allclose(ch["gain"][0], [200.0, 0.0, 0.0], atol=1e-9)
-    np.testing.assert_allclose(ch["cross"][0, 1], [0.0, 50.0], atol=1e-9)   # row y: (yx, yz) over K_yy
+    np.testing.assert_allclose(ch["cross"][0, 1], [0.0, 50.0], atol=1e-9)  # row y: (yx, yz) over K_yy
     np.testing.assert_allclose(ch["offset"][0], [30.0, 0.0, 0.0], atol=1e-9)
 
 
@@ -101,24 +127,33 @@ def test_constants_figure_points_model_and_residuals(tmp_path):
     K0 = np.diag([0.55, 0.548, 0.548])
     K = np.array([K0 * (1 + 1e-5 * (t - 20) + 3e-8 * (t - 20) ** 2) for t in temps])
     U0 = np.array([[1e-3 + 2e-5 * (t - 20), 5e-4, 4e-4] for t in temps])
-    U0[3, 0] += 5e-6                                                       # a plateau off the model (~9 micro-g)
+    U0[3, 0] += 5e-6  # a plateau off the model (~9 micro-g)
     model = fit_thermal_model(temps, K, U0, "poly2", 20.0, 3.0)
     sigma_K, sigma_U0 = np.full((3, 3), 2e-7), np.full(3, 1e-7)
-    passport = {"coefficients": {"K": np.asarray(model.K0).tolist(), "U0": np.asarray(model.U00).tolist()},
-                "normal_temp_c": 20.0, "thermal_model": model.to_dict(),
-                "per_plateau": [{"temp_c": t, "K": k.tolist(), "U0": u.tolist()} for t, k, u in zip(temps, K, U0)],
-                "uncertainty": {"per_plateau": [{"K": sigma_K.tolist(), "U0": sigma_U0.tolist()} for _ in temps]}}
+    passport = {
+        "coefficients": {"K": np.asarray(model.K0).tolist(), "U0": np.asarray(model.U00).tolist()},
+        "normal_temp_c": 20.0,
+        "thermal_model": model.to_dict(),
+        "per_plateau": [{"temp_c": t, "K": k.tolist(), "U0": u.tolist()} for t, k, u in zip(temps, K, U0)],
+        "uncertainty": {"per_plateau": [{"K": sigma_K.tolist(), "U0": sigma_U0.tolist()} for _ in temps]},
+    }
     path = plots.plot_constants(passport, tmp_path / "c.png", title="AU-0001 v1")
     img = np.asarray(Image.open(path).convert("RGB"))
     assert img.shape[0] > 800 and img.shape[1] > 1000
     blue = np.all(np.abs(img.astype(int) - [0x1F, 0x77, 0xB4]) < 30, axis=-1)
     assert blue.sum() > 3000
     alone = plots.plot_constants({**passport, "per_plateau": [], "valid_temp_c": [-40.0, 70.0]}, tmp_path / "m.png")
-    img = np.asarray(Image.open(alone).convert("RGB"))        # a differential passport: its model curves alone
+    img = np.asarray(Image.open(alone).convert("RGB"))  # a differential passport: its model curves alone
     assert np.all(np.abs(img.astype(int) - [0x1F, 0x77, 0xB4]) < 30, axis=-1).sum() > 1000
     empty = plots.plot_constants({**passport, "per_plateau": []}, tmp_path / "e.png")
     assert Image.open(empty).size == Image.open(path).size
     # every y axis says its unit, the residual rows too
     labels = [ax.get_ylabel() for ax in plots.constants_figure(passport).axes if ax.get_ylabel()]
-    assert labels == ["gain K_ii\nchange [ppm]", "residual\n[ppm]", "cross-axis K_ij\nchange [ppm of K_ii]",
-                      "residual\n[ppm of K_ii]", "offset U0_i\nchange [micro-g]", "residual\n[micro-g]"]
+    assert labels == [
+        "gain K_ii\nchange [ppm]",
+        "residual\n[ppm]",
+        "cross-axis K_ij\nchange [ppm of K_ii]",
+        "residual\n[ppm of K_ii]",
+        "offset U0_i\nchange [micro-g]",
+        "residual\n[micro-g]",
+    ]

@@ -10,12 +10,12 @@ import numpy as np
 import polars as pl
 import pytest
 
-from pipeline.positions import gravity_vector_g, nearest_position
-from pipeline.simulate.program import get_program
-from pipeline.run import Run, RunMeta, make_frame
 from pipeline.io.runs import read_run, write_run
+from pipeline.positions import gravity_vector_g, nearest_position
+from pipeline.run import Run, RunMeta, make_frame
 from pipeline.segment import SegmentSettings, find_plateaus, find_static, segment_run
 from pipeline.simulate.chamber import SimConfig, simulate
+from pipeline.simulate.program import get_program
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
 REAL = SHARED / "reference" / "real" / "imucal_ferraris"
@@ -79,7 +79,7 @@ def _check_against_truth(seg, truth, *, source: str):
     # segments on a plateau that are not holds are the position carried over from the previous stage (soak)
     for i in range(7):
         names = [s.position for s in seg.on_plateau(i)]
-        assert names[-len(by_plateau[i]):] == by_plateau[i]
+        assert names[-len(by_plateau[i]) :] == by_plateau[i]
         assert len(names) - len(by_plateau[i]) <= 1
 
 
@@ -137,13 +137,13 @@ def test_nan_samples_excluded_with_warning():
     res = simulate(SimConfig(program="short", seed=5))
     run = res.run
     t = run.t_ns()
-    h = res.truth["holds"][2]                      # a 60 s hold
+    h = res.truth["holds"][2]  # a 60 s hold
     mid = int(np.searchsorted(t, (h["t_start_ns"] + h["t_end_ns"]) // 2))
     bad = np.zeros(t.size, bool)
-    bad[mid:mid + 3] = True                         # a short burst inside the hold: the hold stays one segment
+    bad[mid : mid + 3] = True  # a short burst inside the hold: the hold stays one segment
     h2 = res.truth["holds"][4]
     i2 = int(np.searchsorted(t, h2["t_start_ns"] + 30 * NS))
-    bad[i2:i2 + 100] = True                         # 10 s of dropouts: the hold splits in two
+    bad[i2 : i2 + 100] = True  # 10 s of dropouts: the hold splits in two
     vm = run.voltmeter.with_columns(pl.when(pl.Series(bad)).then(float("nan")).otherwise(pl.col("uy")).alias("uy"))
     seg = segment_run(dataclasses.replace(run, voltmeter=vm), SegmentSettings(plateau_min_s=300))
 
@@ -220,8 +220,7 @@ def test_noise_free_run():
 
 def test_find_plateaus_constant_and_short():
     t = np.arange(0, 100) * NS
-    assert [(p.temp_c, p.t_start_ns, p.t_end_ns) for p in find_plateaus(t, np.full(100, 20.0))] == [
-        (20.0, 0, 99 * NS)]
+    assert [(p.temp_c, p.t_start_ns, p.t_end_ns) for p in find_plateaus(t, np.full(100, 20.0))] == [(20.0, 0, 99 * NS)]
     # a ramp is no plateau; a ramp then 20 min stable is one plateau, starting after the ramp
     ts = np.arange(0, 3600.0)
     temp = np.where(ts < 1200, 20.0 - ts / 60.0, 0.0) + np.random.default_rng(0).normal(0, 0.01, ts.size)
@@ -261,7 +260,7 @@ def test_real_recording_six_positions():
         assert s.position == lab["position"] and s.label_source == "gravity" and s.plateau == 0
         assert min(s.t_end_ns, b) - max(s.t_start_ns, a) >= 0.6 * (b - a)
         # the segment mean is the hand-marked range's mean to within the hand tremor
-        ref = run.u_v()[lab["start_sample"]:lab["end_sample"]].mean(axis=0)
+        ref = run.u_v()[lab["start_sample"] : lab["end_sample"]].mean(axis=0)
         assert np.allclose(s.mean_v, ref, atol=0.02)
     assert not seg.warnings
 
@@ -278,9 +277,11 @@ def _hand_run(positions, K, U0, *, hold_s=40.0, move_s=10.0, rate=10.0, gain=-0.
     a /= np.linalg.norm(a, axis=1, keepdims=True)
     u = a @ np.asarray(K).T + U0 + np.random.default_rng(seed).normal(0, 5e-6, a.shape)
     t_ns = (t_s * NS).astype(np.int64)
-    return Run(RunMeta("AU-9", "hand", nominal_gain_v_per_g=gain),
-               make_frame("voltmeter", {"t_ns": t_ns, "ux": u[:, 0], "uy": u[:, 1], "uz": u[:, 2]}),
-               make_frame("au_temperature", {"t_ns": t_ns[::10], "temp_c": np.full(t_ns[::10].size, 20.0)}))
+    return Run(
+        RunMeta("AU-9", "hand", nominal_gain_v_per_g=gain),
+        make_frame("voltmeter", {"t_ns": t_ns, "ux": u[:, 0], "uy": u[:, 1], "uz": u[:, 2]}),
+        make_frame("au_temperature", {"t_ns": t_ns[::10], "temp_c": np.full(t_ns[::10].size, 20.0)}),
+    )
 
 
 def test_segment_run_minimal_in_memory_run():
@@ -289,7 +290,7 @@ def test_segment_run_minimal_in_memory_run():
     assert [s.position for s in seg.segments] == ["TP1", "TP3"]
     assert all(s.plateau == 0 and s.temp_c == 20.0 for s in seg.segments)
     s1, s3 = seg.segments
-    assert s1.t_start_ns == 10 * NS                  # settle trim from the start of the record
+    assert s1.t_start_ns == 10 * NS  # settle trim from the start of the record
     assert np.allclose(s1.mean_v, [0.003, 0.003, -0.547], atol=3e-6)
     assert np.allclose(s3.mean_v, [0.003, 0.003, 0.553], atol=3e-6)
 
@@ -326,7 +327,7 @@ def test_short_hand_turned_poses_found(rate_hz, jitter_s, hold_s):
     finally:
         prog.PROGRAMS["handheld"] = original
     t = res.run.t_ns()
-    assert np.any(np.diff(t) != np.median(np.diff(t)))                     # the stamps are irregular
+    assert np.any(np.diff(t) != np.median(np.diff(t)))  # the stamps are irregular
     seg = segment_run(res.run)
     holds = res.truth["holds"]
     assert len(holds) == 36

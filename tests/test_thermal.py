@@ -9,8 +9,14 @@ from pipeline.compensate import method1, method2, uncompensated
 from pipeline.constants import fit_constants, least_squares, six_position
 from pipeline.model import gravity_module_error_g, output_v
 from pipeline.positions import TEST_POSITIONS, VERIFICATION_POSITIONS
-from pipeline.thermal import (PiecewiseModel, PolynomialModel, default_order, fit_piecewise, fit_polynomial,
-                              fit_thermal_model)
+from pipeline.thermal import (
+    PiecewiseModel,
+    PolynomialModel,
+    default_order,
+    fit_piecewise,
+    fit_polynomial,
+    fit_thermal_model,
+)
 
 
 def _assert_table3(model_dict, seed000, temp_tol_c=1e-9):
@@ -25,7 +31,7 @@ def _assert_table3(model_dict, seed000, temp_tol_c=1e-9):
             for key, v in want[grp].items():
                 assert abs(got[grp][key] - v) <= 1e-9 + 1e-3 * abs(v), (grp, key, got[grp][key], v)
                 n += 1
-    assert n == 24   # 12 coefficients x 2 sub-bands: every value the JSON table holds
+    assert n == 24  # 12 coefficients x 2 sub-bands: every value the JSON table holds
 
 
 def test_piecewise_reproduces_table3(seed000, seed000_constants):
@@ -48,14 +54,15 @@ def test_polynomial_passes_through_or_fits(seed000_constants, order):
     m = fit_polynomial(T, K, U0, order, 20.0)
     back = PolynomialModel.from_dict(m.to_dict(), m.K0, m.U00, 20.0)
     Kt, U0t = back.constants_at(T)
-    if order == 2:   # three temperatures: exact (the paper's Cramer's-rule solution)
+    if order == 2:  # three temperatures: exact (the paper's Cramer's-rule solution)
         np.testing.assert_allclose(Kt, K, atol=1e-14)
         np.testing.assert_allclose(U0t, U0, atol=1e-14)
-    else:            # least squares: residuals orthogonal to the design
+    else:  # least squares: residuals orthogonal to the design
         assert np.abs(U0t - U0).max() > 1e-5
     # relative coefficients: beta = d Kii / (Kii dT) at order 1 near the table's slopes
     assert m.to_dict()["beta"]["xx"][0] == pytest.approx(
-        (m.constants_at(np.array([21.0]))[0][0, 0, 0] - m.K0[0, 0]) / m.K0[0, 0], rel=0.2, abs=1e-7)
+        (m.constants_at(np.array([21.0]))[0][0, 0, 0] - m.K0[0, 0]) / m.K0[0, 0], rel=0.2, abs=1e-7
+    )
 
 
 def test_default_order_counts_distinct_temperatures():
@@ -110,8 +117,8 @@ def test_compensation_methods(seed000, seed000_constants):
         dg1 = np.abs(gravity_module_error_g(method1(passport, u, t))).max()
         dg2 = np.abs(gravity_module_error_g(method2(passport, u, t))).max()
         dg2s = np.abs(gravity_module_error_g(method2(passport, u, t, full=False))).max()
-        assert 2e-3 < dg0 < 1e-2                       # paper: 3e-3 .. 4e-3 g uncompensated
-        assert 2.5 < dg0 / dg1 < 5                      # paper: 3-4x reduction
+        assert 2e-3 < dg0 < 1e-2  # paper: 3e-3 .. 4e-3 g uncompensated
+        assert 2.5 < dg0 / dg1 < 5  # paper: 3-4x reduction
         assert abs(dg2 - dg1) < 3e-5 and abs(dg2s - dg1) < 1e-4
         assert np.abs(gravity_module_error_g(method1(truth, u, t))).max() < 1e-12
-        assert np.abs(gravity_module_error_g(method2(truth, u, t))).max() < 5e-5   # first-order remainder
+        assert np.abs(gravity_module_error_g(method2(truth, u, t))).max() < 5e-5  # first-order remainder

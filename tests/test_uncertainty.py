@@ -78,7 +78,7 @@ def test_six_position_estimator_matches_closed_form_variance():
     K_sig, U0_sig = plateau_sigma(estimator_matrix(names, "six_position"), var)
     assert np.allclose(K_sig[:, 0] ** 2, (var[4] + var[5]) / 4)
     assert np.allclose(K_sig[:, 2] ** 2, (var[0] + var[2]) / 4)
-    assert np.allclose(U0_sig ** 2, var.sum(axis=0) / 36)
+    assert np.allclose(U0_sig**2, var.sum(axis=0) / 36)
     # a repeated position is averaged first: its mean has half the variance
     K2, _ = plateau_sigma(estimator_matrix(names + ["TP6"], "six_position"), np.vstack([var, var[5]]))
     assert np.allclose(K2[:, 0] ** 2, (var[4] + var[5] / 2) / 4)
@@ -110,6 +110,6 @@ def test_piecewise_model_uncertainty_mirrors_segments():
     for s, (seg, ss) in enumerate(zip(tm["segments"], sig["segments"])):
         span = seg["t_hi_c"] - seg["t_lo_c"]
         for i, ax in enumerate("xyz"):
-            true_alpha = (U0_nodes[s + 1, i] - U0_nodes[s, i]) / span   # the chord of the true curve
+            true_alpha = (U0_nodes[s + 1, i] - U0_nodes[s, i]) / span  # the chord of the true curve
             assert 0 < ss["alpha"][ax] < 1e-7
             assert abs(seg["alpha"][ax] - true_alpha) < 5 * ss["alpha"][ax]

@@ -54,9 +54,9 @@ from pipeline.calibrate.result import CalibrationResult, UnitFit, base_reference
 from pipeline.calibrate.settings import CalibrationSettings
 from pipeline.dynamics import first_order_lag
 from pipeline.errors import CalibrationError
+from pipeline.model import specific_force_g
 from pipeline.passport.document import build_passport, load_passport
 from pipeline.plausibility import assess
-from pipeline.model import specific_force_g
 from pipeline.positions import AXES, is_verification_position
 from pipeline.run import NS_PER_S as _NS
 from pipeline.thermal import DifferentialModel, PolynomialModel, RateTerms, rate_basis
@@ -71,21 +71,21 @@ CLUSTER_S = 1800.0
 class DifferentialSettings:
     """Model orders and the smoothing of seed 003's method (the paper: polynomial order 3, rate order 2)."""
 
-    poly_order: int = 3             # scale factor, bias (and cross-axis) polynomial in dT, 1..3
-    rate_order: int = 2             # terms in r^n, n = 1..rate_order (0: none)
-    rate_dt_order: int = 0          # rate terms also times dT^k, k = 1..rate_dt_order (0: the paper's model)
-    cross_axis: bool = True         # fit the cross-axis temperature terms the orientations excite
-    lag_fit: bool = False           # evaluate the polynomials at the lagged element temperature, tau fitted
-    lag_max_s: float = 1800.0       # search range of tau (s)
-    block_s: float = 10.0           # outputs averaged over blocks of this length (s)
-    temp_smooth_s: float = 301.0    # Savitzky-Golay window of the thermosensor, for T and r (s)
-    min_window_s: float = 3600.0    # shortest orientation window used (s)
-    trim_s: float = 60.0            # dropped at both ends of each orientation window (s)
-    max_turn_deg: float = 2.0       # static stretches closer than this in gravity direction are one orientation
-    min_excitation: float = 0.2     # smallest singular value per sqrt(windows) of [1, a_c, a_j] to fit a term
-    refine_passes: int = 1          # refits with each window's specific force from the previous fit's compensation
-    cross_axis_abs: bool = False    # cross-axis terms also where K0_cj is 0 (unknown), as absolute dK_cj (V/g/C^m)
-    select_model: bool = False      # choose poly_order (1..poly_order) and cross-axis terms by two-fold validation
+    poly_order: int = 3  # scale factor, bias (and cross-axis) polynomial in dT, 1..3
+    rate_order: int = 2  # terms in r^n, n = 1..rate_order (0: none)
+    rate_dt_order: int = 0  # rate terms also times dT^k, k = 1..rate_dt_order (0: the paper's model)
+    cross_axis: bool = True  # fit the cross-axis temperature terms the orientations excite
+    lag_fit: bool = False  # evaluate the polynomials at the lagged element temperature, tau fitted
+    lag_max_s: float = 1800.0  # search range of tau (s)
+    block_s: float = 10.0  # outputs averaged over blocks of this length (s)
+    temp_smooth_s: float = 301.0  # Savitzky-Golay window of the thermosensor, for T and r (s)
+    min_window_s: float = 3600.0  # shortest orientation window used (s)
+    trim_s: float = 60.0  # dropped at both ends of each orientation window (s)
+    max_turn_deg: float = 2.0  # static stretches closer than this in gravity direction are one orientation
+    min_excitation: float = 0.2  # smallest singular value per sqrt(windows) of [1, a_c, a_j] to fit a term
+    refine_passes: int = 1  # refits with each window's specific force from the previous fit's compensation
+    cross_axis_abs: bool = False  # cross-axis terms also where K0_cj is 0 (unknown), as absolute dK_cj (V/g/C^m)
+    select_model: bool = False  # choose poly_order (1..poly_order) and cross-axis terms by two-fold validation
 
     def __post_init__(self):
         if not 1 <= self.poly_order <= 3:
@@ -164,13 +164,24 @@ class OrientationWindow:
     temp_max_c: float
 
     def to_dict(self) -> dict:
-        return {"t_start_ns": self.t_start_ns, "t_end_ns": self.t_end_ns, "a0_g": list(self.a0_g),
-                "temp_min_c": round(self.temp_min_c, 3), "temp_max_c": round(self.temp_max_c, 3),
-                "duration_s": round((self.t_end_ns - self.t_start_ns) / _NS, 1)}
+        return {
+            "t_start_ns": self.t_start_ns,
+            "t_end_ns": self.t_end_ns,
+            "a0_g": list(self.a0_g),
+            "temp_min_c": round(self.temp_min_c, 3),
+            "temp_max_c": round(self.temp_max_c, 3),
+            "duration_s": round((self.t_end_ns - self.t_start_ns) / _NS, 1),
+        }
 
 
-def orientation_windows(t_ns: np.ndarray, u_v: np.ndarray, temp_c: np.ndarray, K0: np.ndarray, U0: np.ndarray,
-                        settings: DifferentialSettings = DifferentialSettings()) -> list[OrientationWindow]:
+def orientation_windows(
+    t_ns: np.ndarray,
+    u_v: np.ndarray,
+    temp_c: np.ndarray,
+    K0: np.ndarray,
+    U0: np.ndarray,
+    settings: DifferentialSettings = DifferentialSettings(),
+) -> list[OrientationWindow]:
     """The orientation windows of a run: static stretches (``pipeline.segment.find_static``, windows for the rate)
     joined while the
     gravity direction stays within ``max_turn_deg``, trimmed by ``trim_s`` at both ends, at least
@@ -194,8 +205,18 @@ def orientation_windows(t_ns: np.ndarray, u_v: np.ndarray, temp_c: np.ndarray, K
         if j1 <= j0 or (t_ns[j1 - 1] - t_ns[j0]) < settings.min_window_s * _NS:
             continue
         a0 = specific_force_g(K0, U0, np.nanmean(u_v[j0:j1], axis=0))
-        out.append(OrientationWindow(len(out), j0, j1, int(t_ns[j0]), int(t_ns[j1 - 1]), tuple(float(x) for x in a0),
-                                     float(np.nanmin(temp_c[j0:j1])), float(np.nanmax(temp_c[j0:j1]))))
+        out.append(
+            OrientationWindow(
+                len(out),
+                j0,
+                j1,
+                int(t_ns[j0]),
+                int(t_ns[j1 - 1]),
+                tuple(float(x) for x in a0),
+                float(np.nanmin(temp_c[j0:j1])),
+                float(np.nanmax(temp_c[j0:j1])),
+            )
+        )
     return out
 
 
@@ -226,8 +247,9 @@ class BlockData:
         return self.sensor.at(self.t_s, lag_tau_s)
 
 
-def block_data(run, K0: np.ndarray, U0: np.ndarray,
-               settings: DifferentialSettings = DifferentialSettings()) -> BlockData:
+def block_data(
+    run, K0: np.ndarray, U0: np.ndarray, settings: DifferentialSettings = DifferentialSettings()
+) -> BlockData:
     """Orientation windows of ``run`` and the ``block_s`` averages of its outputs in them. Blocks with fewer than
     80 % of their samples are dropped. Raises CalibrationError when the run has no orientation window."""
     t_ns = run.t_ns()
@@ -236,9 +258,12 @@ def block_data(run, K0: np.ndarray, U0: np.ndarray,
     t_s = (t_ns - sensor.t_ref_ns) / _NS
     windows = orientation_windows(t_ns, u_v, sensor.at(t_s)[0], K0, U0, settings)
     if not windows:
-        raise CalibrationError(f"no orientation held for {settings.min_window_s:.0f} s or more (the differential "
-                               "method needs the unit static at a few orientations through a temperature cycle)",
-                               path=run.source or None, stream="voltmeter")
+        raise CalibrationError(
+            f"no orientation held for {settings.min_window_s:.0f} s or more (the differential "
+            "method needs the unit static at a few orientations through a temperature cycle)",
+            path=run.source or None,
+            stream="voltmeter",
+        )
     idx = np.concatenate([np.arange(w.i0, w.i1) for w in windows])
     win = np.concatenate([np.full(w.i1 - w.i0, w.index) for w in windows])
     start_s = np.array([(w.t_start_ns - sensor.t_ref_ns) / _NS for w in windows])
@@ -255,13 +280,20 @@ def block_data(run, K0: np.ndarray, U0: np.ndarray,
     # the noise in each block: the scatter about a straight line in time (a ramp moves the output within a block)
     dev = u_v[idx] - np.repeat(u_b, counts, axis=0)
     tc = t_s[idx] - np.repeat(t_b, counts)
-    stt = np.add.reduceat(tc ** 2, bounds)
+    stt = np.add.reduceat(tc**2, bounds)
     slope = np.add.reduceat(tc[:, None] * dev, bounds, axis=0) / np.where(stt > 0, stt, 1.0)[:, None]
     dev = dev - np.repeat(slope, counts, axis=0) * tc[:, None]
-    var_b = np.add.reduceat(dev ** 2, bounds, axis=0) / np.maximum(counts - 2, 1)[:, None] / counts[:, None]
-    return BlockData(t_s=t_b[full], u_v=u_b[full], window=win[bounds][full], windows=windows, sensor=sensor,
-                     run_id=run.meta.run_id, constants=(np.asarray(K0, float), np.asarray(U0, float)),
-                     u_var_v2=var_b[full])
+    var_b = np.add.reduceat(dev**2, bounds, axis=0) / np.maximum(counts - 2, 1)[:, None] / counts[:, None]
+    return BlockData(
+        t_s=t_b[full],
+        u_v=u_b[full],
+        window=win[bounds][full],
+        windows=windows,
+        sensor=sensor,
+        run_id=run.meta.run_id,
+        constants=(np.asarray(K0, float), np.asarray(U0, float)),
+        u_var_v2=var_b[full],
+    )
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -292,11 +324,20 @@ class DifferentialFit:
 
     def summary(self) -> dict:
         st = self.settings
-        return {"terms": {AXES[c]: t for c, t in enumerate(self.terms)},
-                "residual_rms_g": self.residual_rms_g.tolist(), "n_pairs": int(self.n_pairs),
-                "windows": self.windows, "poly_order": st.poly_order, "rate_order": st.rate_order,
-                "rate_dt_order": st.rate_dt_order, "cross_axis": st.cross_axis, "lag_fit": st.lag_fit,
-                "lag_tau_s": self.model.lag_tau_s, "block_s": st.block_s, "temp_smooth_s": st.temp_smooth_s}
+        return {
+            "terms": {AXES[c]: t for c, t in enumerate(self.terms)},
+            "residual_rms_g": self.residual_rms_g.tolist(),
+            "n_pairs": int(self.n_pairs),
+            "windows": self.windows,
+            "poly_order": st.poly_order,
+            "rate_order": st.rate_order,
+            "rate_dt_order": st.rate_dt_order,
+            "cross_axis": st.cross_axis,
+            "lag_fit": st.lag_fit,
+            "lag_tau_s": self.model.lag_tau_s,
+            "block_s": st.block_s,
+            "temp_smooth_s": st.temp_smooth_s,
+        }
 
 
 def _half_pairs(window: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -306,7 +347,7 @@ def _half_pairs(window: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         idx = np.flatnonzero(window == w)
         n = idx.size // 2
         first.append(idx[:n])
-        second.append(idx[n:2 * n])
+        second.append(idx[n : 2 * n])
     return np.concatenate(first), np.concatenate(second)
 
 
@@ -320,19 +361,26 @@ def _excited(a_windows: np.ndarray, cols: list[int], min_sv: float) -> bool:
     return bool(np.linalg.svd(V, compute_uv=False)[-1] / np.sqrt(len(V)) >= min_sv)
 
 
-def _channel_terms(c: int, K0: np.ndarray, a_windows: np.ndarray, settings: DifferentialSettings
-                   ) -> tuple[list[str], list[str]]:
+def _channel_terms(
+    c: int, K0: np.ndarray, a_windows: np.ndarray, settings: DifferentialSettings
+) -> tuple[list[str], list[str]]:
     """The terms channel c can have given the orientations, and a note per term that it cannot."""
     names, axes, notes = ["bias"], [], []
     if _excited(a_windows, [c], settings.min_excitation):
         names.append("scale")
         axes.append(c)
     else:
-        notes.append(f"channel {AXES[c]}: no orientation had gravity along it; its scale-factor temperature "
-                     "terms are not determined (left at 0)")
+        notes.append(
+            f"channel {AXES[c]}: no orientation had gravity along it; its scale-factor temperature "
+            "terms are not determined (left at 0)"
+        )
     for j in range(3):
-        if settings.cross_axis and j != c and (K0[c, j] != 0 or settings.cross_axis_abs) and _excited(
-                a_windows, axes + [j], settings.min_excitation):
+        if (
+            settings.cross_axis
+            and j != c
+            and (K0[c, j] != 0 or settings.cross_axis_abs)
+            and _excited(a_windows, axes + [j], settings.min_excitation)
+        ):
             names.append(f"cross_{AXES[j]}")
             axes.append(j)
     if settings.rate_order:
@@ -345,16 +393,17 @@ class _Equations:
     """The differenced equations of all runs: per pair, the static and rate basis differences, the window's
     specific force, the output differences; rebuilt for each trial lag."""
 
-    df: np.ndarray      # (p, P)
-    dg: np.ndarray      # (p, R*(Kx+1))
-    a0: np.ndarray      # (p, 3)
-    du: np.ndarray      # (p, 3)
-    var: np.ndarray     # (p, 3) V^2: variance of du from the noise measured in the two blocks
+    df: np.ndarray  # (p, P)
+    dg: np.ndarray  # (p, R*(Kx+1))
+    a0: np.ndarray  # (p, 3)
+    du: np.ndarray  # (p, 3)
+    var: np.ndarray  # (p, 3) V^2: variance of du from the noise measured in the two blocks
     cluster: np.ndarray  # (p,) int: the stretch of time (run, window, CLUSTER_S) the pair's first block is in
 
 
-def _bases(dt: np.ndarray, rate: np.ndarray, poly_order: int, rate_order: int, rate_dt_order: int
-           ) -> tuple[np.ndarray, np.ndarray]:
+def _bases(
+    dt: np.ndarray, rate: np.ndarray, poly_order: int, rate_order: int, rate_dt_order: int
+) -> tuple[np.ndarray, np.ndarray]:
     """The temperature basis dT^n, n = 1..poly_order (m, P), and the rate basis (m, R * (rate_dt_order + 1),
     :func:`pipeline.thermal.rate_basis`) at temperature offsets ``dt`` (C from the normal temperature) and rates
     ``rate`` (C/min)."""
@@ -362,8 +411,9 @@ def _bases(dt: np.ndarray, rate: np.ndarray, poly_order: int, rate_order: int, r
     return f, rate_basis(dt, rate, rate_order, rate_dt_order).reshape(len(dt), -1)
 
 
-def _equations(data: list[BlockData], a_g: list[np.ndarray], normal_temp_c: float,
-               settings: DifferentialSettings, lag_tau_s: float) -> _Equations:
+def _equations(
+    data: list[BlockData], a_g: list[np.ndarray], normal_temp_c: float, settings: DifferentialSettings, lag_tau_s: float
+) -> _Equations:
     """The differenced equations; ``a_g`` holds each run's specific force per window (n_windows, 3)."""
     P, R, Kx = settings.poly_order, settings.rate_order, settings.rate_dt_order
     parts = []
@@ -374,7 +424,7 @@ def _equations(data: list[BlockData], a_g: list[np.ndarray], normal_temp_c: floa
         var = d.u_var_v2[i] + d.u_var_v2[j] if d.u_var_v2 is not None else np.zeros((len(i), 3))
         start = np.array([(w.t_start_ns - d.sensor.t_ref_ns) / _NS for w in d.windows])
         chunk = np.floor((d.t_s[i] - start[d.window[i]]) / CLUSTER_S).astype(np.int64)
-        cluster = (len(parts) * 1_000_000 + d.window[i].astype(np.int64) * 10_000 + chunk)
+        cluster = len(parts) * 1_000_000 + d.window[i].astype(np.int64) * 10_000 + chunk
         parts.append((f[j] - f[i], g[j] - g[i], a[d.window[i]], d.u_v[j] - d.u_v[i], var, cluster))
     return _Equations(*(np.concatenate([p[k] for p in parts]) for k in range(6)))
 
@@ -390,8 +440,13 @@ def _columns(f: np.ndarray, g: np.ndarray, a: np.ndarray, c: int, names: list[st
     (rows, P), the rate basis ``g`` (rows, R*(Kx+1)) and the specific force ``a`` (rows, 3) g. Differenced bases
     give the fit's equations; plain ones give the model's change of the output from T0 (times K0_cc)."""
     cols = {"bias": f, "scale": a[:, [c]] * f, "bias_rate": g, "scale_rate": a[:, [c]] * g}
-    return np.concatenate([cols[n] if n in cols else _cross_factor(K0, c, AXES.index(n[-1]))
-                           * a[:, [AXES.index(n[-1])]] * f for n in names], axis=1)
+    return np.concatenate(
+        [
+            cols[n] if n in cols else _cross_factor(K0, c, AXES.index(n[-1])) * a[:, [AXES.index(n[-1])]] * f
+            for n in names
+        ],
+        axis=1,
+    )
 
 
 def _solve(eq: _Equations, c: int, names: list[str], K0: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -408,6 +463,7 @@ def _solve(eq: _Equations, c: int, names: list[str], K0: np.ndarray) -> tuple[np
 def _best_lag(data, a_g, K0, normal_temp_c, settings, names) -> float:
     """The element lag tau (s) minimising the summed squared residuals of the three channels: a grid over
     [0, lag_max_s], then a bounded search around the best grid point."""
+
     def cost(tau):
         eq = _equations(data, a_g, normal_temp_c, settings, float(tau))
         return sum(float(np.sum(_solve(eq, c, names[c], K0)[1] ** 2)) for c in range(3))
@@ -420,8 +476,13 @@ def _best_lag(data, a_g, K0, normal_temp_c, settings, names) -> float:
     return float(res.x) if res.fun <= costs[k] else float(grid[k])
 
 
-def fit_differential(data: list[BlockData], K0: np.ndarray, U0: np.ndarray, normal_temp_c: float,
-                     settings: DifferentialSettings = DifferentialSettings()) -> DifferentialFit:
+def fit_differential(
+    data: list[BlockData],
+    K0: np.ndarray,
+    U0: np.ndarray,
+    normal_temp_c: float,
+    settings: DifferentialSettings = DifferentialSettings(),
+) -> DifferentialFit:
     """Least-squares temperature coefficients from the half-window differences of one or more runs' block data,
     starting from the normal-temperature constants ``K0`` (3, 3) V/g and ``U0`` (3,) V at ``normal_temp_c``."""
     K0 = np.asarray(K0, dtype=float)
@@ -438,14 +499,26 @@ def fit_differential(data: list[BlockData], K0: np.ndarray, U0: np.ndarray, norm
     for _ in range(1 + settings.refine_passes):
         model, sigma, resid, n_pairs, covs = _fit_once(data, a_g, K0, U0, normal_temp_c, settings, names, tau)
         # the windows' specific force, now compensated (the first pass used the normal-temperature estimate a0)
-        a_g = [np.array([a[d.window == w.index].mean(axis=0) for w in d.windows])
-               for d, a in ((d, compensate_blocks(model, d)) for d in data)]
-    return DifferentialFit(model=model, terms=names, residual_rms_g=resid, n_pairs=n_pairs, windows=windows,
-                           settings=settings, notes=notes, sigma=sigma, covariance=covs)
+        a_g = [
+            np.array([a[d.window == w.index].mean(axis=0) for w in d.windows])
+            for d, a in ((d, compensate_blocks(model, d)) for d in data)
+        ]
+    return DifferentialFit(
+        model=model,
+        terms=names,
+        residual_rms_g=resid,
+        n_pairs=n_pairs,
+        windows=windows,
+        settings=settings,
+        notes=notes,
+        sigma=sigma,
+        covariance=covs,
+    )
 
 
-def _fit_once(data, a_g, K0, U0, normal_temp_c, settings, names, tau
-              ) -> tuple[DifferentialModel, DifferentialModel, np.ndarray, int, list[np.ndarray]]:
+def _fit_once(
+    data, a_g, K0, U0, normal_temp_c, settings, names, tau
+) -> tuple[DifferentialModel, DifferentialModel, np.ndarray, int, list[np.ndarray]]:
     """One linear fit with the windows' specific force ``a_g`` and the element lag ``tau`` (s): the model, the
     standard uncertainty of each of its coefficients in the same layout (NaN where a term was not fitted), the
     residual rms per channel (g), the number of pairs, and per channel the covariance of its least-squares vector
@@ -459,15 +532,21 @@ def _fit_once(data, a_g, K0, U0, normal_temp_c, settings, names, tau
     covs = []
     for c in range(3):
         coef, r, X = _solve(eq, c, names[c], K0)
-        resid[c] = np.sqrt(np.mean(r ** 2))
+        resid[c] = np.sqrt(np.mean(r**2))
         value.place(c, names[c], coef, K0)
         cov = regression_cov(X, r, eq.var[:, c] / K0[c, c] ** 2, eq.cluster)
         covs.append(cov)
         sigma.place(c, names[c], np.sqrt(np.diag(cov)), K0)
     fitted_abs = np.any(value.cross_abs != 0)
-    return (value.model(K0, U0, normal_temp_c, settings.temp_smooth_s, tau, fitted_abs),
-            sigma.model(np.full((3, 3), np.nan), np.full(3, np.nan), normal_temp_c, settings.temp_smooth_s, tau,
-                        fitted_abs), resid, len(eq.du), covs)
+    return (
+        value.model(K0, U0, normal_temp_c, settings.temp_smooth_s, tau, fitted_abs),
+        sigma.model(
+            np.full((3, 3), np.nan), np.full(3, np.nan), normal_temp_c, settings.temp_smooth_s, tau, fitted_abs
+        ),
+        resid,
+        len(eq.du),
+        covs,
+    )
 
 
 class _Coefficients:
@@ -489,7 +568,7 @@ class _Coefficients:
         k = 0
         for name in names:
             width = R * (Kx + 1) if name.endswith("_rate") else P
-            part = vec[k:k + width]
+            part = vec[k : k + width]
             k += width
             if name == "bias":
                 self.alpha[:, c] = part * gain
@@ -507,18 +586,22 @@ class _Coefficients:
                 self.beta_rate[:, :, c] = part.reshape(R, Kx + 1)
 
     def model(self, K0, U0, normal_temp_c, temp_smooth_s, tau, with_cross_abs: bool) -> DifferentialModel:
-        static = PolynomialModel(np.asarray(K0, float), np.asarray(U0, float), float(normal_temp_c), self.P,
-                                 self.alpha, self.rel)
-        return DifferentialModel(static, RateTerms(self.alpha_rate, self.beta_rate, temp_smooth_s, tau,
-                                                   self.cross_abs if with_cross_abs else None))
+        static = PolynomialModel(
+            np.asarray(K0, float), np.asarray(U0, float), float(normal_temp_c), self.P, self.alpha, self.rel
+        )
+        return DifferentialModel(
+            static,
+            RateTerms(self.alpha_rate, self.beta_rate, temp_smooth_s, tau, self.cross_abs if with_cross_abs else None),
+        )
 
 
 # ---------------------------------------------------------------------------------------------------------------
 # Compensation
 
 
-def compensate_differential(model: DifferentialModel, u_v: np.ndarray, temp_c: np.ndarray,
-                            rate_c_per_min: np.ndarray | None = None) -> np.ndarray:
+def compensate_differential(
+    model: DifferentialModel, u_v: np.ndarray, temp_c: np.ndarray, rate_c_per_min: np.ndarray | None = None
+) -> np.ndarray:
     """Specific force (m, 3) in g: a = K(T, r)^-1 (U - U0(T, r)) (method 1 with the rate terms; without them when
     ``rate_c_per_min`` is None). ``temp_c`` is the element temperature when the model has a lag."""
     K, U0 = model.constants_at(np.atleast_1d(temp_c), rate_c_per_min)
@@ -571,8 +654,13 @@ SCORE_MEAN_S = 600.0
 
 
 def _fold(data: BlockData, keep: np.ndarray) -> BlockData:
-    return dataclasses.replace(data, t_s=data.t_s[keep], u_v=data.u_v[keep], window=data.window[keep],
-                               u_var_v2=None if data.u_var_v2 is None else data.u_var_v2[keep])
+    return dataclasses.replace(
+        data,
+        t_s=data.t_s[keep],
+        u_v=data.u_v[keep],
+        window=data.window[keep],
+        u_var_v2=None if data.u_var_v2 is None else data.u_var_v2[keep],
+    )
 
 
 def _spread_g(model: DifferentialModel, data: BlockData) -> float:
@@ -591,8 +679,9 @@ def _spread_g(model: DifferentialModel, data: BlockData) -> float:
     return float(np.mean(out)) if out else float("inf")
 
 
-def select_model(data: list[BlockData], K0: np.ndarray, U0: np.ndarray, normal_temp_c: float,
-                 settings: DifferentialSettings) -> tuple[DifferentialSettings, list[dict]]:
+def select_model(
+    data: list[BlockData], K0: np.ndarray, U0: np.ndarray, normal_temp_c: float, settings: DifferentialSettings
+) -> tuple[DifferentialSettings, list[dict]]:
     """The polynomial order (1..``settings.poly_order``), the rate order (0..``settings.rate_order``) and whether to
     fit cross-axis terms, chosen where the data supports them: each candidate is fitted on alternate
     :data:`FOLD_S` chunks of the windows and scored on the others (the spread of the compensated
@@ -603,8 +692,12 @@ def select_model(data: list[BlockData], K0: np.ndarray, U0: np.ndarray, normal_t
         odd = (np.floor(d.t_s / FOLD_S).astype(np.int64) % 2).astype(bool)
         folds.append((_fold(d, ~odd), _fold(d, odd)))
     scores = []
-    grid = [(o, r, c) for r in range(settings.rate_order + 1) for o in range(1, settings.poly_order + 1)
-            for c in ((False, True) if settings.cross_axis else (False,))]
+    grid = [
+        (o, r, c)
+        for r in range(settings.rate_order + 1)
+        for o in range(1, settings.poly_order + 1)
+        for c in ((False, True) if settings.cross_axis else (False,))
+    ]
     for order, rate, cross in grid:
         cand = dataclasses.replace(settings, poly_order=order, rate_order=rate, cross_axis=cross, select_model=False)
         try:
@@ -618,8 +711,16 @@ def select_model(data: list[BlockData], K0: np.ndarray, U0: np.ndarray, normal_t
     if not scores:
         return dataclasses.replace(settings, select_model=False), []
     best = min(scores, key=lambda x: x["score_g"])
-    return (dataclasses.replace(settings, poly_order=best["poly_order"], rate_order=best["rate_order"],
-                                cross_axis=best["cross_axis"], select_model=False), scores)
+    return (
+        dataclasses.replace(
+            settings,
+            poly_order=best["poly_order"],
+            rate_order=best["rate_order"],
+            cross_axis=best["cross_axis"],
+            select_model=False,
+        ),
+        scores,
+    )
 
 
 @dataclass
@@ -645,9 +746,15 @@ class OrientationBase:
         def f(x):
             return [None if not np.isfinite(v) else float(v) for v in x]
 
-        return {"K_diag_v_per_g": f(np.diag(self.K)), "U0_v": f(self.U0), "std_K_diag_v_per_g": f(self.std_K),
-                "std_U0_v": f(self.std_U0), "undetermined": list(self.undetermined), "roles": self.roles,
-                "nominal_gain_v_per_g": self.nominal_gain_v_per_g.tolist()}
+        return {
+            "K_diag_v_per_g": f(np.diag(self.K)),
+            "U0_v": f(self.U0),
+            "std_K_diag_v_per_g": f(self.std_K),
+            "std_U0_v": f(self.std_U0),
+            "undetermined": list(self.undetermined),
+            "roles": self.roles,
+            "nominal_gain_v_per_g": self.nominal_gain_v_per_g.tolist(),
+        }
 
 
 def nominal_gain_v_per_g(runs) -> np.ndarray:
@@ -664,8 +771,9 @@ def nominal_gain_v_per_g(runs) -> np.ndarray:
     return np.full(3, float(np.median(np.linalg.norm(u, axis=1))))
 
 
-def constants_from_orientations(data: list[BlockData], model: DifferentialModel, gain_v_per_g: np.ndarray,
-                                fit: DifferentialFit | None = None) -> OrientationBase:
+def constants_from_orientations(
+    data: list[BlockData], model: DifferentialModel, gain_v_per_g: np.ndarray, fit: DifferentialFit | None = None
+) -> OrientationBase:
     """K (diagonal) and U0 at T0 from orientation windows whose temperature terms ``model`` already describes.
 
     Each window's outputs are brought to T0 with the model (U - dU0(T, r) - dK(T, r) a) and averaged. Axis c's
@@ -712,6 +820,7 @@ def constants_from_orientations(data: list[BlockData], model: DifferentialModel,
         gvec = sum(wt * grads[w][c] for w, wt in enumerate(weights) if wt)
         cov = np.nan_to_num(fit.covariance[c])
         return float(gvec @ cov @ gvec) if np.ndim(gvec) else 0.0
+
     vert = np.abs(dirs) >= np.cos(np.radians(AXIS_ROLE_DEG))
     horiz = np.abs(dirs) <= np.sin(np.radians(AXIS_ROLE_DEG))
     U0 = np.zeros(3)
@@ -757,15 +866,17 @@ def constants_from_orientations(data: list[BlockData], model: DifferentialModel,
             weights = -u0_weights[c] * np.sum(1.0 / a_c) / v.size
             weights[v] += 1.0 / (a_c * v.size)
             spread = k.var(ddof=1) / v.size if v.size > 1 else 0.0
-            var = spread + model_var(c, weights) + float(weights ** 2 @ noise[:, c])
+            var = spread + model_var(c, weights) + float(weights**2 @ noise[:, c])
             # one vertical window: nothing checks the estimate (on simulated sweeps it is off by about 1 ppm against
             # a propagated 0.15 ppm), so no number is given
             std_K[c] = np.sqrt(var) if v.size > 1 else np.nan
     for c in range(3):
         if not (vert[:, c].any() and known_u0[c]):
             undetermined.append(f"K_{AXES[c]}{AXES[c]}")
-    roles = {AXES[c]: {"vertical": np.flatnonzero(vert[:, c]).tolist(),
-                       "horizontal": np.flatnonzero(horiz[:, c]).tolist()} for c in range(3)}
+    roles = {
+        AXES[c]: {"vertical": np.flatnonzero(vert[:, c]).tolist(), "horizontal": np.flatnonzero(horiz[:, c]).tolist()}
+        for c in range(3)
+    }
     return OrientationBase(K, U0, std_K, std_U0, undetermined, roles, np.asarray(gain_v_per_g, dtype=float))
 
 
@@ -780,8 +891,9 @@ def with_constants(data: BlockData, K0: np.ndarray, U0: np.ndarray) -> BlockData
     return dataclasses.replace(data, windows=windows, constants=(np.asarray(K0, float), np.asarray(U0, float)))
 
 
-def sweep_base(data: list[BlockData], settings: DifferentialSettings = SWEEP_SETTINGS, normal_temp_c: float = 20.0
-               ) -> OrientationBase:
+def sweep_base(
+    data: list[BlockData], settings: DifferentialSettings = SWEEP_SETTINGS, normal_temp_c: float = 20.0
+) -> OrientationBase:
     """The constants at T0 of a unit from its sweeps alone (no base passport): a first differential fit from the
     constants the block data were made with (the nominal gain, zero offsets: :func:`observe`) finds the temperature
     terms, :func:`constants_from_orientations` the constants."""
@@ -816,8 +928,14 @@ def base_constants(base_passport: dict | None, unit: str) -> tuple[np.ndarray, n
     return K0, U0, t0
 
 
-def observe(run, settings: CalibrationSettings = CalibrationSettings(), *, base_passport: dict | None = None,
-            differential: DifferentialSettings | None = None, segmentation=None) -> ObservedRun:
+def observe(
+    run,
+    settings: CalibrationSettings = CalibrationSettings(),
+    *,
+    base_passport: dict | None = None,
+    differential: DifferentialSettings | None = None,
+    segmentation=None,
+) -> ObservedRun:
     """The run's orientation windows and block averages (``data``, :func:`block_data`, with the base passport's
     normal-temperature constants, or without one the nominal gain and zero offsets) and its VP observations, if
     any (a run without plateaus simply has none; ``segmentation``: the run's, if already made with
@@ -831,17 +949,22 @@ def observe(run, settings: CalibrationSettings = CalibrationSettings(), *, base_
         observations = observe_run(run, settings.segment, segmentation)[0]
     except CalibrationError:
         observations = []
-    return ObservedRun(meta=run.meta, source=run.source, observations=observations, warnings=list(run.warnings),
-                       data=data)
+    return ObservedRun(
+        meta=run.meta, source=run.source, observations=observations, warnings=list(run.warnings), data=data
+    )
 
 
 def _settings_for(base_passport: dict | None) -> DifferentialSettings:
     return DifferentialSettings() if base_passport is not None else SWEEP_SETTINGS
 
 
-def calibrate_observed(observed: list[ObservedRun], settings: CalibrationSettings = CalibrationSettings(), *,
-                       base_passport: dict | None = None,
-                       differential: DifferentialSettings | None = None) -> CalibrationResult:
+def calibrate_observed(
+    observed: list[ObservedRun],
+    settings: CalibrationSettings = CalibrationSettings(),
+    *,
+    base_passport: dict | None = None,
+    differential: DifferentialSettings | None = None,
+) -> CalibrationResult:
     """Passport of method ``differential`` from one unit's observed runs and a normal-temperature passport.
 
     The passport's ``thermal_model`` is the polynomial of order ``differential.poly_order`` (alpha, beta, gamma),
@@ -872,17 +995,26 @@ def calibrate_observed(observed: list[ObservedRun], settings: CalibrationSetting
     observations = [o for r in observed for o in r.observations]
     rows, status = verify_unit(fit.model.static, observations, t0, settings.tolerances)
     covered = None
-    if fit.windows:      # the temperatures the orientation windows went through
-        covered = (round(min(w["temp_min_c"] for w in fit.windows), 1),
-                   round(max(w["temp_max_c"] for w in fit.windows), 1))
+    if fit.windows:  # the temperatures the orientation windows went through
+        covered = (
+            round(min(w["temp_min_c"] for w in fit.windows), 1),
+            round(max(w["temp_max_c"] for w in fit.windows), 1),
+        )
     notes = list(fit.notes)
     if orientation_base is not None:
-        notes.append("no base passport: constants at T0 from the orientations; undetermined (kept at nominal "
-                     "values): " + ", ".join(orientation_base.undetermined))
-    unit_fit = UnitFit(unit=serial, normal_temp_c=t0, per_plateau=[], model=fit.model.static,
-                       skipped=notes, valid_temp_c=covered,
-                       uncertainty=fit_uncertainty(fit, base_passport=base_passport,
-                                                   orientation_base=orientation_base))
+        notes.append(
+            "no base passport: constants at T0 from the orientations; undetermined (kept at nominal "
+            "values): " + ", ".join(orientation_base.undetermined)
+        )
+    unit_fit = UnitFit(
+        unit=serial,
+        normal_temp_c=t0,
+        per_plateau=[],
+        model=fit.model.static,
+        skipped=notes,
+        valid_temp_c=covered,
+        uncertainty=fit_uncertainty(fit, base_passport=base_passport, orientation_base=orientation_base),
+    )
     run_warnings = [w for r in observed for w in r.warnings]
     status, implausible = assess(unit_fit, status, observed[0].meta.nominal_gain_v_per_g, run_warnings)
     # the plateaus that verified the passport (the fit uses none; a sweep's drifting stretches are no plateaus)
@@ -890,23 +1022,42 @@ def calibrate_observed(observed: list[ObservedRun], settings: CalibrationSetting
     summary = fit.summary()
     if scores:
         summary["model_selection"] = {"folds_s": FOLD_S, "score_mean_s": SCORE_MEAN_S, "candidates": scores}
-    extra = {"differential": summary, "rate_terms": fit.model.rate.to_dict(),
-             "base_passport": ({k: base_passport.get(k) for k in ("unit", "version", "method", "created_utc")}
-                               if base_passport is not None else None),
-             **({"implausible": implausible} if implausible else {})}
+    extra = {
+        "differential": summary,
+        "rate_terms": fit.model.rate.to_dict(),
+        "base_passport": (
+            {k: base_passport.get(k) for k in ("unit", "version", "method", "created_utc")}
+            if base_passport is not None
+            else None
+        ),
+        **({"implausible": implausible} if implausible else {}),
+    }
     if orientation_base is not None:
         extra["orientation_base"] = orientation_base.to_dict()
         extra["undetermined"] = list(orientation_base.undetermined)
-    doc = build_passport(unit_fit, rows, status, g_local_mps2=observed[0].meta.g_local_mps2, plateaus=plateaus,
-                         method=METHOD, extra=extra)
-    return CalibrationResult(passport=doc, fit=unit_fit, rows=rows, status=status, plateaus=plateaus,
-                             warnings=run_warnings + notes + [p for p in implausible if p not in run_warnings],
-                             settings_extra=(base_reference(base_passport) if base_passport is not None
-                                             else {"base_passport_sha256": None}))
+    doc = build_passport(
+        unit_fit,
+        rows,
+        status,
+        g_local_mps2=observed[0].meta.g_local_mps2,
+        plateaus=plateaus,
+        method=METHOD,
+        extra=extra,
+    )
+    return CalibrationResult(
+        passport=doc,
+        fit=unit_fit,
+        rows=rows,
+        status=status,
+        plateaus=plateaus,
+        warnings=run_warnings + notes + [p for p in implausible if p not in run_warnings],
+        settings_extra=(base_reference(base_passport) if base_passport is not None else {"base_passport_sha256": None}),
+    )
 
 
-def fit_uncertainty(fit: DifferentialFit, *, base_passport: dict | None = None,
-                    orientation_base: OrientationBase | None = None) -> ThermalSigma:
+def fit_uncertainty(
+    fit: DifferentialFit, *, base_passport: dict | None = None, orientation_base: OrientationBase | None = None
+) -> ThermalSigma:
     """The passport's ``uncertainty`` of a differential calibration (standard uncertainties, 1 sigma, in the units
     of the fields they qualify):
 
@@ -925,29 +1076,35 @@ def fit_uncertainty(fit: DifferentialFit, *, base_passport: dict | None = None,
         K_sig = np.full((3, 3), np.nan)
         K_sig[np.diag_indices(3)] = ob.std_K
         U0_sig = np.asarray(ob.std_U0, dtype=float).copy()
-        for name in ob.undetermined:                  # "K_xy", "U0_x": kept at nominal values
+        for name in ob.undetermined:  # "K_xy", "U0_x": kept at nominal values
             kind, ax = name.split("_")
             if kind == "K":
                 K_sig[AXES.index(ax[0]), AXES.index(ax[1])] = np.nan
             else:
                 U0_sig[AXES.index(ax)] = np.nan
-            undetermined[f"{kind}.{ax}"] = ("not determined by the orientations (no base passport): kept at its "
-                                            "nominal value")
+            undetermined[f"{kind}.{ax}"] = (
+                "not determined by the orientations (no base passport): kept at its nominal value"
+            )
         for i in range(3):
             for name, sig in ((f"K.{AXES[i] * 2}", K_sig[i, i]), (f"U0.{AXES[i]}", U0_sig[i])):
                 if not np.isfinite(sig) and name not in undetermined:
-                    undetermined[name] = ("one orientation alone gives it: no second orientation checks it, and "
-                                          "its error is not covered by the noise and the model's uncertainty alone")
-        source = ("no base passport: the spread between the orientations that give each constant (std / sqrt(n)), "
-                  "the thermal model's error in bringing each window to T0 and the noise of the window means, "
-                  "in quadrature")
+                    undetermined[name] = (
+                        "one orientation alone gives it: no second orientation checks it, and "
+                        "its error is not covered by the noise and the model's uncertainty alone"
+                    )
+        source = (
+            "no base passport: the spread between the orientations that give each constant (std / sqrt(n)), "
+            "the thermal model's error in bringing each window to T0 and the noise of the window means, "
+            "in quadrature"
+        )
     else:
         base_unc = ((base_passport or {}).get("uncertainty") or {}).get("coefficients") or {}
         K_sig = _as_sigma(base_unc.get("K"), (3, 3))
         U0_sig = _as_sigma(base_unc.get("U0"), (3,))
         bp = base_passport or {}
-        ref = (f"base passport v{bp['version']}" if bp.get("version") is not None else "base passport") + \
-            f" ({bp.get('method', '-')})"
+        ref = (
+            f"base passport v{bp['version']}" if bp.get("version") is not None else "base passport"
+        ) + f" ({bp.get('method', '-')})"
         for i in range(3):
             for j in range(3):
                 if not np.isfinite(K_sig[i, j]):
@@ -960,8 +1117,10 @@ def fit_uncertainty(fit: DifferentialFit, *, base_passport: dict | None = None,
     for c in range(3):
         terms = fit.terms[c]
         if "scale" not in terms:
-            undetermined[f"beta.{AXES[c] * 2}"] = (f"no orientation had gravity along {AXES[c]}: its scale-factor "
-                                                  "temperature terms are not determined (left at 0)")
+            undetermined[f"beta.{AXES[c] * 2}"] = (
+                f"no orientation had gravity along {AXES[c]}: its scale-factor "
+                "temperature terms are not determined (left at 0)"
+            )
             if fit.settings.rate_order:
                 undetermined[f"rate_terms.beta_rate.{AXES[c] * 2}"] = undetermined[f"beta.{AXES[c] * 2}"]
         for j in range(3):
@@ -970,39 +1129,66 @@ def fit_uncertainty(fit: DifferentialFit, *, base_passport: dict | None = None,
             key = AXES[c] + AXES[j]
             fitted = f"cross_{AXES[j]}" in terms
             if K0[c, j] == 0:
-                undetermined[f"gamma.{key}"] = ("relative to K_" + key + " = 0 (not known): "
-                                                + ("fitted as the absolute rate_terms.cross_axis_abs." + key
-                                                   if fitted else "not fitted (left at 0)"))
+                undetermined[f"gamma.{key}"] = (
+                    "relative to K_"
+                    + key
+                    + " = 0 (not known): "
+                    + (
+                        "fitted as the absolute rate_terms.cross_axis_abs." + key
+                        if fitted
+                        else "not fitted (left at 0)"
+                    )
+                )
             elif not fitted:
-                undetermined[f"gamma.{key}"] = ("cross-axis temperature terms not fitted (cross_axis off)"
-                                                if not fit.settings.cross_axis else
-                                                f"the orientations do not excite axis {AXES[j]} for channel "
-                                                f"{AXES[c]}: not determined (left at 0)")
-            if (sig.rate is not None and sig.rate.cross_abs is not None and not fitted):
+                undetermined[f"gamma.{key}"] = (
+                    "cross-axis temperature terms not fitted (cross_axis off)"
+                    if not fit.settings.cross_axis
+                    else f"the orientations do not excite axis {AXES[j]} for channel "
+                    f"{AXES[c]}: not determined (left at 0)"
+                )
+            if sig.rate is not None and sig.rate.cross_abs is not None and not fitted:
                 undetermined[f"rate_terms.cross_axis_abs.{key}"] = "not fitted (left at 0)"
     rate = None
     if sig.rate is not None:
-        rate = {k: v for k, v in as_json_list(sig.rate.to_dict()).items()
-                if k in ("order", "dt_order", "alpha_rate", "beta_rate", "cross_axis_abs")}
+        rate = {
+            k: v
+            for k, v in as_json_list(sig.rate.to_dict()).items()
+            if k in ("order", "dt_order", "alpha_rate", "beta_rate", "cross_axis_abs")
+        }
         rate["lag_tau_s"] = None
         undetermined["rate_terms.lag_tau_s"] = (
             "the lag is found by a search, its uncertainty not estimated; the coefficients' uncertainties are "
-            "conditional on it" if fit.settings.lag_fit else "no lag fitted (lag_fit off): 0 by setting")
-    basis = {"level": "standard uncertainty (1 sigma)", "coefficients": source,
-             "thermal_model": "least squares over the differenced block means: the larger of the sandwich "
-                              "estimate from the residuals (clustered in stretches of cluster_s of each "
-                              "orientation window) and the voltmeter noise measured in the blocks",
-             "cluster_s": CLUSTER_S, "block_s": fit.settings.block_s,
-             "residual_rms_g": fit.residual_rms_g.tolist(), "n_pairs": int(fit.n_pairs)}
+            "conditional on it"
+            if fit.settings.lag_fit
+            else "no lag fitted (lag_fit off): 0 by setting"
+        )
+    basis = {
+        "level": "standard uncertainty (1 sigma)",
+        "coefficients": source,
+        "thermal_model": "least squares over the differenced block means: the larger of the sandwich "
+        "estimate from the residuals (clustered in stretches of cluster_s of each "
+        "orientation window) and the voltmeter noise measured in the blocks",
+        "cluster_s": CLUSTER_S,
+        "block_s": fit.settings.block_s,
+        "residual_rms_g": fit.residual_rms_g.tolist(),
+        "n_pairs": int(fit.n_pairs),
+    }
     if orientation_base is not None:
         basis["identification"] = (
             "statistical uncertainties of the model the orientations identify: with few orientations, the "
             "temperature change of a cross-axis term they do not excite is folded into the fitted bias and scale "
             "terms, and the cross-axis constants left at 0 shift the offsets (and so the windows' specific force); "
-            "neither can be seen in the data, so neither is in these numbers")
-    return ThermalSigma(K0=K_sig, U00=U0_sig, thermal_model=as_json_list(sig.static.to_dict()),
-                        birge_ratio=float("nan"), dof=0,
-                        extra={"rate_terms": rate, "undetermined": undetermined}, basis=basis)
+            "neither can be seen in the data, so neither is in these numbers"
+        )
+    return ThermalSigma(
+        K0=K_sig,
+        U00=U0_sig,
+        thermal_model=as_json_list(sig.static.to_dict()),
+        birge_ratio=float("nan"),
+        dof=0,
+        extra={"rate_terms": rate, "undetermined": undetermined},
+        basis=basis,
+    )
 
 
 def _as_sigma(values, shape) -> np.ndarray:
@@ -1010,14 +1196,19 @@ def _as_sigma(values, shape) -> np.ndarray:
     if values is None:
         return np.full(shape, np.nan)
     try:
-        a = np.array(values, dtype=float)       # None -> nan
+        a = np.array(values, dtype=float)  # None -> nan
     except (TypeError, ValueError):
         return np.full(shape, np.nan)
     return a if a.shape == shape else np.full(shape, np.nan)
 
 
-def calibrate(runs, settings: CalibrationSettings = CalibrationSettings(), *, base_passport: dict | None = None,
-              differential: DifferentialSettings | None = None) -> CalibrationResult:
+def calibrate(
+    runs,
+    settings: CalibrationSettings = CalibrationSettings(),
+    *,
+    base_passport: dict | None = None,
+    differential: DifferentialSettings | None = None,
+) -> CalibrationResult:
     """The differential calibration of one unit from its temperature-cycle runs, starting from ``base_passport``'s
     normal-temperature constants (without one: from the constants the orientations determine): :func:`observe`
     each run, then :func:`calibrate_observed`."""

@@ -29,8 +29,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from pipeline.calibrate.inputs import RunInput, folder_warning, resolve_run_ids
-from pipeline.calibrate.methods import METHODS, NEEDS_BASE_PASSPORT, base_passport_of, default_base_passport, \
-    recipe, resolve_auto
+from pipeline.calibrate.methods import (
+    METHODS,
+    NEEDS_BASE_PASSPORT,
+    base_passport_of,
+    default_base_passport,
+    recipe,
+    resolve_auto,
+)
 from pipeline.calibrate.publish import publish, recorded_settings
 from pipeline.calibrate.result import base_reference
 from pipeline.calibrate.settings import CalibrationSettings
@@ -126,8 +132,7 @@ def discover_runs(root: str | os.PathLike) -> list[Path]:
             dirnames[:] = []
             continue
         dirnames[:] = [d for d in dirnames if not d.startswith(".")]
-        found += [Path(dirpath) / f for f in filenames
-                  if f.lower().endswith(MCAP_SUFFIX) and not f.startswith(".")]
+        found += [Path(dirpath) / f for f in filenames if f.lower().endswith(MCAP_SUFFIX) and not f.startswith(".")]
     return sorted(found)
 
 
@@ -136,7 +141,7 @@ def _meta_of(path: Path) -> RunMeta:
     one-line error for a bad run)."""
     try:
         return read_run_meta(path)
-    except Exception:  # noqa: BLE001
+    except Exception:
         return read_run(path).meta
 
 
@@ -144,8 +149,12 @@ def _meta_of(path: Path) -> RunMeta:
 # planning
 
 
-def plan_fleet(root: str | os.PathLike, registry: str | os.PathLike | Registry,
-               settings: CalibrationSettings = CalibrationSettings(), method: str = "tilt") -> FleetPlan:
+def plan_fleet(
+    root: str | os.PathLike,
+    registry: str | os.PathLike | Registry,
+    settings: CalibrationSettings = CalibrationSettings(),
+    method: str = "tilt",
+) -> FleetPlan:
     """Group the runs under ``root`` by unit and decide what to calibrate (by ``method``; ``auto``: as
     ``calibrate --method auto``, the method each unit's first run supports, chosen when it is calibrated).
 
@@ -171,8 +180,9 @@ def plan_fleet(root: str | os.PathLike, registry: str | os.PathLike | Registry,
         warning = folder_warning(path, unit, Path(root).resolve())
         if warning:
             plan.warnings.append({"run": str(path), "warning": warning})
-        by_unit.setdefault(unit, []).append({"path": str(path), "sha256": digest.sha256, "digest": digest,
-                                             "run_id": meta.run_id})
+        by_unit.setdefault(unit, []).append(
+            {"path": str(path), "sha256": digest.sha256, "digest": digest, "run_id": meta.run_id}
+        )
     recs = [recipe(m) for m in METHODS] if method == "auto" else [recipe(method)]
     for unit, inputs in sorted(by_unit.items()):
         unique: dict[str, dict] = {}
@@ -190,16 +200,20 @@ def plan_fleet(root: str | os.PathLike, registry: str | os.PathLike | Registry,
                 continue
 
         def identities(base: dict | None, needs_base: bool) -> list[str]:
-            return [identity_key(kept, recorded_settings(settings, rec.METHOD, base_reference(base)
-                                                         if base is not None else {}))
-                    for rec in recs if (rec.METHOD in NEEDS_BASE_PASSPORT) == needs_base]
+            return [
+                identity_key(
+                    kept, recorded_settings(settings, rec.METHOD, base_reference(base) if base is not None else {})
+                )
+                for rec in recs
+                if (rec.METHOD in NEEDS_BASE_PASSPORT) == needs_base
+            ]
 
         try:
             if method != "auto":
                 base = base_passport_of(reg, unit)[0] if method in NEEDS_BASE_PASSPORT else None
                 identity = identities(base, method in NEEDS_BASE_PASSPORT)[0]
                 done = reg.find(unit, identity)
-            else:                   # done by whichever method it picks; the base only for a unit not done yet
+            else:  # done by whichever method it picks; the base only for a unit not done yet
                 plain = identities(None, False)
                 identity, base = plain[0], None
                 done = reg.find(unit, *plain)
@@ -210,11 +224,19 @@ def plan_fleet(root: str | os.PathLike, registry: str | os.PathLike | Registry,
             plan.failed += [{"run": i["path"], "reason": exc.one_line()} for i in kept]
             continue
         if done is not None:
-            plan.skipped += [{"run": i["path"], "why": ALREADY_PROCESSED, "unit": unit, "version": done.version}
-                             for i in kept]
+            plan.skipped += [
+                {"run": i["path"], "why": ALREADY_PROCESSED, "unit": unit, "version": done.version} for i in kept
+            ]
             continue
-        plan.groups.append(UnitGroup(unit=unit, runs=tuple(i["path"] for i in kept), identity=identity,
-                                     digests={i["path"]: i["digest"] for i in kept}, base_passport=base))
+        plan.groups.append(
+            UnitGroup(
+                unit=unit,
+                runs=tuple(i["path"] for i in kept),
+                identity=identity,
+                digests={i["path"]: i["digest"] for i in kept},
+                base_passport=base,
+            )
+        )
     return plan
 
 
@@ -222,7 +244,7 @@ def _inspect_run(path: Path) -> tuple[RunMeta | None, RunDigest | Exception]:
     """A run's metadata and :func:`pipeline.passport.provenance.hash_run`; or (None, the exception) if unreadable."""
     try:
         return _meta_of(path), hash_run(path)
-    except Exception as exc:  # noqa: BLE001 - reported as the run's failure
+    except Exception as exc:
         return None, exc
 
 
@@ -249,10 +271,16 @@ def prepare_worker() -> None:
     FigureCanvasAgg(fig).print_png(io.BytesIO())
 
 
-def calibrate_group(unit: str, runs: list[str] | tuple[str, ...], registry: str | os.PathLike,
-                    settings: CalibrationSettings = CalibrationSettings(), figure: bool = True,
-                    digests: Mapping[str, RunDigest] | None = None, method: str = "tilt",
-                    base_passport: dict | None = None) -> UnitOutcome:
+def calibrate_group(
+    unit: str,
+    runs: list[str] | tuple[str, ...],
+    registry: str | os.PathLike,
+    settings: CalibrationSettings = CalibrationSettings(),
+    figure: bool = True,
+    digests: Mapping[str, RunDigest] | None = None,
+    method: str = "tilt",
+    base_passport: dict | None = None,
+) -> UnitOutcome:
     """Calibrate ``unit`` from ``runs`` by ``method`` and publish the passport into ``registry`` (as ``thermocal
     calibrate``; ``figure``: the PNG of the VP errors beside a new passport, ~0.1 s of CPU of a standard 10 Hz
     unit's ~0.9 s (JSON blocks; ~0.55 s protobuf); ``digests``: the runs' hashes from the planning,
@@ -272,29 +300,34 @@ def calibrate_group(unit: str, runs: list[str] | tuple[str, ...], registry: str 
     try:
         rec = recipe(method) if method != "auto" else None
     except CalibrationError as exc:
-        return UnitOutcome(unit=unit, runs=runs, result=None, failed=[{"run": p, "reason": reason_of(exc)}
-                                                                      for p in runs],
-                           compute_s=time.perf_counter() - t0)
+        return UnitOutcome(
+            unit=unit,
+            runs=runs,
+            result=None,
+            failed=[{"run": p, "reason": reason_of(exc)} for p in runs],
+            compute_s=time.perf_counter() - t0,
+        )
     for path in runs:
         try:
             run = read_run(path)
             if run.meta.unit_serial != unit:
                 raise CalibrationError(f"run is of unit {run.meta.unit_serial!r}, not {unit!r}", path=path)
             seg = None
-            if rec is None:        # --method auto: the method the unit's first readable run supports
+            if rec is None:  # --method auto: the method the unit's first readable run supports
                 method, base_passport, seg, _ = resolve_auto(run, settings, base_passport)
                 rec = recipe(method)
             observed.append(rec.observe(run, settings, base_passport=base_passport, segmentation=seg))
-        except Exception as exc:  # noqa: BLE001 - drop this run, calibrate the others
+        except Exception as exc:
             failed.append({"run": path, "reason": reason_of(exc)})
             continue
         good.append(path)
     if good:
         try:
             calibration = rec.calibrate_observed(observed, settings, base_passport=base_passport)
-            result = publish(registry, calibration, input_paths=good, settings=settings, figure=figure,
-                             input_digests=digests)
-        except Exception as exc:  # noqa: BLE001 - the unit fails, the fleet goes on
+            result = publish(
+                registry, calibration, input_paths=good, settings=settings, figure=figure, input_digests=digests
+            )
+        except Exception as exc:
             reason = reason_of(exc)
             failed += [{"run": p, "reason": reason} for p in good]
     return UnitOutcome(unit=unit, runs=runs, result=result, failed=failed, compute_s=time.perf_counter() - t0)

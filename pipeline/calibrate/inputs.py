@@ -27,6 +27,7 @@ __all__ = ["RunInput", "folder_warning", "is_prefix_of", "resolve_run_ids", "sel
 @dataclass(frozen=True)
 class RunInput:
     """A run file (``path``) with its metadata's unit serial and run_id."""
+
     path: str
     unit: str
     run_id: str
@@ -61,7 +62,7 @@ def resolve_run_ids(inputs: Sequence[RunInput], read: Callable[[str], Run]) -> t
         for item in group:
             try:
                 runs[item.path] = read(item.path)
-            except Exception as exc:  # noqa: BLE001 - reported as this file's failure, in its own words
+            except Exception as exc:
                 dropped[item.path] = getattr(exc, "one_line", lambda e=exc: f"{type(e).__name__}: {e}")()
         readable = [item for item in group if item.path in runs]
         if len(readable) < 2:
@@ -72,14 +73,18 @@ def resolve_run_ids(inputs: Sequence[RunInput], read: Callable[[str], Run]) -> t
             for i in others:
                 same = runs[i.path].voltmeter.height == runs[longest.path].voltmeter.height
                 what = "a copy" if same else "a truncated copy"
-                dropped[i.path] = (f"{i.path}: {what} of {longest.path} (same run_id {run_id!r}; its samples are "
-                                   f"{'the same' if same else 'a prefix of the other'}'s): not used, the complete "
-                                   "file is")
+                dropped[i.path] = (
+                    f"{i.path}: {what} of {longest.path} (same run_id {run_id!r}; its samples are "
+                    f"{'the same' if same else 'a prefix of the other'}'s): not used, the complete "
+                    "file is"
+                )
         else:
             for i in readable:
                 rest = ", ".join(o.path for o in readable if o is not i)
-                dropped[i.path] = (f"{i.path}: run_id {run_id!r} of unit {unit} is also the run_id of {rest}, with "
-                                   "other samples: which is the recording is unknown, neither is used")
+                dropped[i.path] = (
+                    f"{i.path}: run_id {run_id!r} of unit {unit} is also the run_id of {rest}, with "
+                    "other samples: which is the recording is unknown, neither is used"
+                )
     kept = [i for i in inputs if i.path not in dropped]
     return kept, [{"run": i.path, "reason": dropped[i.path]} for i in inputs if i.path in dropped]
 
@@ -102,8 +107,7 @@ def folder_warning(path: str | Path, serial: str, root: str | Path | None = None
     named = [m.group(0) for part in parts for m in pattern.finditer(part)]
     if not named or any(n.lower() == serial.lower() for n in named):
         return None
-    return (f"{p}: its folder or file name says unit {named[0]} but its metadata says {serial}: filed under "
-            f"{serial}")
+    return f"{p}: its folder or file name says unit {named[0]} but its metadata says {serial}: filed under {serial}"
 
 
 def select_runs(runs: Sequence[Run]) -> tuple[list[Run], list[str]]:
@@ -115,8 +119,9 @@ def select_runs(runs: Sequence[Run]) -> tuple[list[Run], list[str]]:
     kept, dropped = resolve_run_ids(items, by_path.__getitem__)
     conflicts = [d for d in dropped if "neither is used" in d["reason"]]
     if conflicts:
-        raise CalibrationError(conflicts[0]["reason"].removeprefix(f"{conflicts[0]['run']}: "),
-                               path=conflicts[0]["run"], stream="metadata")
+        raise CalibrationError(
+            conflicts[0]["reason"].removeprefix(f"{conflicts[0]['run']}: "), path=conflicts[0]["run"], stream="metadata"
+        )
     warnings = [d["reason"] for d in dropped]
     warnings += [w for p, r in by_path.items() if r.source and (w := folder_warning(p, r.meta.unit_serial))]
     return [by_path[i.path] for i in kept], warnings

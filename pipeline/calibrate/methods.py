@@ -66,8 +66,9 @@ def default_base_passport(registry, unit: str) -> tuple[dict | None, str]:
     try:
         doc, st = base_passport_of(registry, unit)
     except ThermocalError as e:
-        return None, (f"differential base: none ({e.message}); the constants at T0 are taken from the "
-                      "orientations themselves")
+        return None, (
+            f"differential base: none ({e.message}); the constants at T0 are taken from the orientations themselves"
+        )
     return doc, f"differential base: {st.text()}"
 
 
@@ -85,14 +86,18 @@ def base_passport_of(registry, unit: str):
         st = reg.state(unit, exclude_methods=NEEDS_BASE_PASSPORT)
     except CalibrationError:
         raise
-    except Exception as e:  # noqa: BLE001 - an unknown unit or unreadable registry: the reason, in one line
-        raise CalibrationError(f"no normal-temperature passport of {unit} to start from "
-                               f"({getattr(e, 'message', e)})") from None
+    except Exception as e:
+        raise CalibrationError(
+            f"no normal-temperature passport of {unit} to start from ({getattr(e, 'message', e)})"
+        ) from None
     if st is None:
-        raise CalibrationError(f"no normal-temperature passport of {unit} to start from (no version, or only "
-                               "differential ones)")
+        raise CalibrationError(
+            f"no normal-temperature passport of {unit} to start from (no version, or only differential ones)"
+        )
     if st.status == "fail":
-        raise CalibrationError(f"{st.text()} failed its verification: not a base for the "
-                               "differential method (approve a passing version, 'thermocal passport approve', or "
-                               "name one with --base-passport)")
+        raise CalibrationError(
+            f"{st.text()} failed its verification: not a base for the "
+            "differential method (approve a passing version, 'thermocal passport approve', or "
+            "name one with --base-passport)"
+        )
     return reg.load(unit, st.version), st

@@ -33,7 +33,7 @@ class Observation:
     """One averaged static segment: named position, mean outputs (V), mean AU temperature (C)."""
 
     run_id: str
-    plateau: int | None          # plateau index within its run (None: not on a plateau)
+    plateau: int | None  # plateau index within its run (None: not on a plateau)
     position: str
     u_v: tuple[float, float, float]
     std_v: tuple[float, float, float]
@@ -41,8 +41,8 @@ class Observation:
     temp_c: float
     t_start_ns: int
     t_end_ns: int
-    source: str = ""             # the file or directory the run was read from ("" for a run made in memory)
-    settling: bool = False       # held while the unit still settled towards the plateau (before its stable part)
+    source: str = ""  # the file or directory the run was read from ("" for a run made in memory)
+    settling: bool = False  # held while the unit still settled towards the plateau (before its stable part)
 
 
 @dataclass
@@ -69,10 +69,21 @@ def observations_from_segmentation(run_id: str, segmentation, source: str = "") 
         settling = s.plateau is None and getattr(s, "settling", None) is not None
         if s.plateau is None and not settling and not is_verification_position(s.position):
             continue
-        out.append(Observation(run_id=run_id, plateau=s.settling if settling else s.plateau, position=s.position,
-                               u_v=tuple(s.mean_v), std_v=tuple(s.std_v), count=int(s.count),
-                               temp_c=float(s.temp_c), t_start_ns=int(s.t_start_ns), t_end_ns=int(s.t_end_ns),
-                               source=source, settling=settling))
+        out.append(
+            Observation(
+                run_id=run_id,
+                plateau=s.settling if settling else s.plateau,
+                position=s.position,
+                u_v=tuple(s.mean_v),
+                std_v=tuple(s.std_v),
+                count=int(s.count),
+                temp_c=float(s.temp_c),
+                t_start_ns=int(s.t_start_ns),
+                t_end_ns=int(s.t_end_ns),
+                source=source,
+                settling=settling,
+            )
+        )
     return out
 
 
@@ -110,27 +121,41 @@ def _unusable_run(run, plateaus, warnings: list[str], settings: SegmentSettings)
         t = run.au_temperature["t_ns"]
         temp = run.au_temperature["temp_c"].fill_nan(None)
         reads = f", it reads {temp.min():.2f}..{temp.max():.2f} C" if temp.null_count() < temp.len() else ""
-        return CalibrationError(f"no temperature plateau: the AU temperature never stays within "
-                                f"{settings.plateau_rate_c_per_min} C/min for {settings.plateau_min_s:.0f} s{reads}",
-                                path=run.source, stream="au_temperature",
-                                where=f"t_ns={t.min()}..{t.max()}")
+        return CalibrationError(
+            f"no temperature plateau: the AU temperature never stays within "
+            f"{settings.plateau_rate_c_per_min} C/min for {settings.plateau_min_s:.0f} s{reads}",
+            path=run.source,
+            stream="au_temperature",
+            where=f"t_ns={t.min()}..{t.max()}",
+        )
     why = f" ({'; '.join(warnings)})" if warnings else ""
-    return CalibrationError(f"no named static position on any of the {len(plateaus)} temperature plateau(s){why}",
-                            path=run.source, stream="voltmeter",
-                            where=f"t_ns={plateaus[0].t_start_ns}..{plateaus[-1].t_end_ns}")
+    return CalibrationError(
+        f"no named static position on any of the {len(plateaus)} temperature plateau(s){why}",
+        path=run.source,
+        stream="voltmeter",
+        where=f"t_ns={plateaus[0].t_start_ns}..{plateaus[-1].t_end_ns}",
+    )
 
 
-def verify_unit(model, observations: list[Observation], normal_temp_c: float,
-                tolerances: Tolerances = Tolerances()) -> tuple[list[VerificationRow], str]:
+def verify_unit(
+    model, observations: list[Observation], normal_temp_c: float, tolerances: Tolerances = Tolerances()
+) -> tuple[list[VerificationRow], str]:
     """dg at every VP observation on a plateau, except a soak hold (:func:`soak_holds`); returns the rows (by time)
     and the overall status."""
     vp = verification_observations(observations)
     if not vp:
         return [], "unverified"
-    rows = verify_positions(model, [o.position for o in vp], np.array([o.u_v for o in vp]),
-                            np.array([o.temp_c for o in vp]), normal_temp_c=normal_temp_c, tolerances=tolerances,
-                            run_ids=[o.run_id for o in vp], spans_ns=[(o.t_start_ns, o.t_end_ns) for o in vp],
-                            plateaus=[o.plateau for o in vp])
+    rows = verify_positions(
+        model,
+        [o.position for o in vp],
+        np.array([o.u_v for o in vp]),
+        np.array([o.temp_c for o in vp]),
+        normal_temp_c=normal_temp_c,
+        tolerances=tolerances,
+        run_ids=[o.run_id for o in vp],
+        spans_ns=[(o.t_start_ns, o.t_end_ns) for o in vp],
+        plateaus=[o.plateau for o in vp],
+    )
     status = overall_status(rows)
     if status == "pass" and verification_gap(observations, normal_temp_c) is not None:
         status = "unverified"
@@ -145,8 +170,14 @@ def verification_observations(observations: list[Observation]) -> list[Observati
     """The observations that are verification results, by run and time: VP observations on a plateau (or in the
     settling before it), except soak holds (:func:`soak_holds`)."""
     held = soak_holds(observations)
-    return sorted((o for o in observations if is_verification_position(o.position) and o.plateau is not None
-                   and id(o) not in held), key=lambda o: (o.run_id, o.t_start_ns))
+    return sorted(
+        (
+            o
+            for o in observations
+            if is_verification_position(o.position) and o.plateau is not None and id(o) not in held
+        ),
+        key=lambda o: (o.run_id, o.t_start_ns),
+    )
 
 
 def verification_gap(observations: list[Observation], normal_temp_c: float) -> str | None:
@@ -156,8 +187,11 @@ def verification_gap(observations: list[Observation], normal_temp_c: float) -> s
     instead). Nor is it when VP positions were held off every plateau found, more than 5 C outside the calibrated
     temperatures (soaks too short for the plateau test: the run went where the calibration does not)."""
     held = soak_holds(observations)
-    cal = [o.temp_c for o in observations if o.plateau is not None and not is_verification_position(o.position)
-           and id(o) not in held]
+    cal = [
+        o.temp_c
+        for o in observations
+        if o.plateau is not None and not is_verification_position(o.position) and id(o) not in held
+    ]
     vp = [o.temp_c for o in verification_observations(observations)]
     if not cal:
         return None
@@ -168,14 +202,24 @@ def verification_gap(observations: list[Observation], normal_temp_c: float) -> s
     if hi > normal_temp_c + _VERIFY_REACH_C and not any(t > normal_temp_c + _VERIFY_REACH_C for t in vp):
         gaps.append(f"above T0 (the model reaches {hi:+.1f} C)")
     where = ", ".join(f"{t:+.1f}" for t in sorted({round(t, 1) for t in vp})) or "none"
-    said = ([f"verification does not exercise the thermal model {' nor '.join(gaps)}: VP data only at {where} C"]
-            if gaps else [])
-    off = [o.temp_c for o in observations if o.plateau is None and is_verification_position(o.position)
-           and not lo - _VERIFY_REACH_C <= o.temp_c <= hi + _VERIFY_REACH_C]
+    said = (
+        [f"verification does not exercise the thermal model {' nor '.join(gaps)}: VP data only at {where} C"]
+        if gaps
+        else []
+    )
+    off = [
+        o.temp_c
+        for o in observations
+        if o.plateau is None
+        and is_verification_position(o.position)
+        and not lo - _VERIFY_REACH_C <= o.temp_c <= hi + _VERIFY_REACH_C
+    ]
     if off:
-        said.append(f"{len(off)} VP segments held between {min(off):+.1f} and {max(off):+.1f} C lie off every "
-                    f"temperature plateau found, outside the calibrated {lo:+.1f} .. {hi:+.1f} C (soaks too short "
-                    "for the plateau test?)")
+        said.append(
+            f"{len(off)} VP segments held between {min(off):+.1f} and {max(off):+.1f} C lie off every "
+            f"temperature plateau found, outside the calibrated {lo:+.1f} .. {hi:+.1f} C (soaks too short "
+            "for the plateau test?)"
+        )
     if not said:
         return None
     return "; ".join(said) + ", so the status is not pass"
@@ -206,6 +250,11 @@ def plateau_summary(observations: list[Observation]) -> list[dict]:
     out = []
     for (run_id, p), rows in sorted(groups.items(), key=lambda kv: (kv[0][0], min(o.t_start_ns for o in kv[1]))):
         rows.sort(key=lambda o: o.t_start_ns)
-        out.append({"temp_c": round(float(np.mean([o.temp_c for o in rows])), 2), "run_id": run_id,
-                    "positions": [o.position for o in rows]})
+        out.append(
+            {
+                "temp_c": round(float(np.mean([o.temp_c for o in rows])), 2),
+                "run_id": run_id,
+                "positions": [o.position for o in rows],
+            }
+        )
     return out

@@ -28,20 +28,37 @@ def calibration_json(result: CalibrationResult, published) -> dict:
     """The ``calibrate --json`` object of contract.md for a published passport (``published`` None: a dry run,
     nothing written)."""
     return {
-        "unit": result.unit, "version": published.version if published else None,
+        "unit": result.unit,
+        "version": published.version if published else None,
         "passport": str(published.path) if published else None,
         "passport_sha256": published.sha256 if published else None,
         "created": published.created if published else False,
         "plateaus": result.plateaus,
-        "verification": [{"temp_c": r.temp_c, "position": r.position, "dg_uncompensated_g": r.dg_uncompensated_g,
-                          "dg_method1_g": r.dg_method1_g, "dg_method2_g": r.dg_method2_g} for r in result.rows],
+        "verification": [
+            {
+                "temp_c": r.temp_c,
+                "position": r.position,
+                "dg_uncompensated_g": r.dg_uncompensated_g,
+                "dg_method1_g": r.dg_method1_g,
+                "dg_method2_g": r.dg_method2_g,
+            }
+            for r in result.rows
+        ],
         "status": result.status,
     }
 
 
-def publish(registry_root: str | Path, result: CalibrationResult, *, input_paths: list[str],
-            settings: CalibrationSettings, figure: bool = True, constants_figure: bool = False,
-            input_digests: Mapping[str, RunDigest] | None = None, dry_run: bool = False) -> dict:
+def publish(
+    registry_root: str | Path,
+    result: CalibrationResult,
+    *,
+    input_paths: list[str],
+    settings: CalibrationSettings,
+    figure: bool = True,
+    constants_figure: bool = False,
+    input_digests: Mapping[str, RunDigest] | None = None,
+    dry_run: bool = False,
+) -> dict:
     """Publish a calibration of any method as a new version (or find the identical existing one: same input hashes,
     same settings, same method) and, for a new version, write ``<passport>.png`` with the VP errors before and after
     compensation, and with ``constants_figure`` ``<passport>.constants.png``, the constants per plateau against
@@ -60,26 +77,45 @@ def publish(registry_root: str | Path, result: CalibrationResult, *, input_paths
     if dry_run:
         version, existing = Registry(Path(registry_root)).planned(result.passport, inputs=inputs, settings=recorded)
         out = calibration_json(result, None)
-        out.update(version=version, existing=existing, dry_run=True, method=result.method, figure=None,
-                   warnings=list(result.warnings), passport_content=result.passport)
+        out.update(
+            version=version,
+            existing=existing,
+            dry_run=True,
+            method=result.method,
+            figure=None,
+            warnings=list(result.warnings),
+            passport_content=result.passport,
+        )
         return out
-    published = Registry(Path(registry_root)).publish(result.passport, inputs=inputs, settings=recorded,
-                                                      code_version=code_version())
+    published = Registry(Path(registry_root)).publish(
+        result.passport, inputs=inputs, settings=recorded, code_version=code_version()
+    )
     out = calibration_json(result, published)
     out["method"] = result.method
     from pipeline.plots import plot_constants, plot_verification
 
     passport_path = Path(published.path)
-    fig = _figure(passport_path.with_suffix(".png"), figure, published.created,
-                  lambda tmp: plot_verification(result.rows, tmp,
-                                                title=f"{result.unit} v{published.version}: VP gravity-module error"))
+    fig = _figure(
+        passport_path.with_suffix(".png"),
+        figure,
+        published.created,
+        lambda tmp: plot_verification(
+            result.rows, tmp, title=f"{result.unit} v{published.version}: VP gravity-module error"
+        ),
+    )
     out["figure"] = fig
     if constants_figure:
         out["constants_figure"] = _figure(
-            passport_path.with_suffix(".constants.png"), True, published.created,
-            lambda tmp: plot_constants(json.loads(passport_path.read_text()), tmp,
-                                       title=f"{result.unit} v{published.version}: constants per plateau against "
-                                             "temperature, thermal model and residuals"))
+            passport_path.with_suffix(".constants.png"),
+            True,
+            published.created,
+            lambda tmp: plot_constants(
+                json.loads(passport_path.read_text()),
+                tmp,
+                title=f"{result.unit} v{published.version}: constants per plateau against "
+                "temperature, thermal model and residuals",
+            ),
+        )
     out["warnings"] = list(result.warnings)
     return out
 

@@ -25,18 +25,25 @@ class PlateauConstants:
     run_id: str
     plateau: int
     temp_c: float
-    K: np.ndarray                # (3, 3) V/g
-    U0: np.ndarray               # (3,) V
+    K: np.ndarray  # (3, 3) V/g
+    U0: np.ndarray  # (3,) V
     positions: tuple[str, ...]
     method: str
     residual_rms_v: float
-    K_sigma: np.ndarray | None = None     # (3, 3) V/g, standard uncertainty of K (None: not estimated)
-    U0_sigma: np.ndarray | None = None    # (3,) V
+    K_sigma: np.ndarray | None = None  # (3, 3) V/g, standard uncertainty of K (None: not estimated)
+    U0_sigma: np.ndarray | None = None  # (3,) V
 
     def to_dict(self) -> dict:
-        return {"temp_c": round(self.temp_c, 4), "run_id": self.run_id, "plateau": self.plateau,
-                "K": self.K.tolist(), "U0": self.U0.tolist(), "positions": list(self.positions),
-                "method": self.method, "residual_rms_v": self.residual_rms_v}
+        return {
+            "temp_c": round(self.temp_c, 4),
+            "run_id": self.run_id,
+            "plateau": self.plateau,
+            "K": self.K.tolist(),
+            "U0": self.U0.tolist(),
+            "positions": list(self.positions),
+            "method": self.method,
+            "residual_rms_v": self.residual_rms_v,
+        }
 
 
 @dataclass
@@ -47,10 +54,10 @@ class UnitFit:
     normal_temp_c: float
     per_plateau: list[PlateauConstants]
     model: ThermalModel
-    skipped: list[str]           # one line per plateau that could not be used, and why (notes of the passport)
-    uncertainty: ThermalSigma | None = None      # of K0, U00 and the thermal model's coefficients
-    valid_temp_c: tuple[float, float] | None = None   # the calibration temperatures the data covered (C)
-    excess_scatter_v: np.ndarray | None = None   # (3,) V, segment scatter beyond the measured noise (pooled)
+    skipped: list[str]  # one line per plateau that could not be used, and why (notes of the passport)
+    uncertainty: ThermalSigma | None = None  # of K0, U00 and the thermal model's coefficients
+    valid_temp_c: tuple[float, float] | None = None  # the calibration temperatures the data covered (C)
+    excess_scatter_v: np.ndarray | None = None  # (3,) V, segment scatter beyond the measured noise (pooled)
 
 
 @dataclass

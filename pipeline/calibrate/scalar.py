@@ -58,8 +58,8 @@ from pipeline.uncertainty import ThermalSigma
 #: channel pairs of psi_xy, psi_xz, psi_yz
 PSI_PAIRS = ((0, 1), (0, 2), (1, 2))
 PSI_NAMES = ("xy", "xz", "yz")
-_LOWER = np.tril_indices(3, -1)               # (1,0), (2,0), (2,1): psi_xy, psi_xz, psi_yz in the lower gauge
-_TRIL = np.tril_indices(3)                    # the 6 entries of a lower-triangular T
+_LOWER = np.tril_indices(3, -1)  # (1,0), (2,0), (2,1): psi_xy, psi_xz, psi_yz in the lower gauge
+_TRIL = np.tril_indices(3)  # the 6 entries of a lower-triangular T
 #: smallest singular value of the first-order design per sqrt(weight) that counts as "determined" (a direction
 #: product B_i B_j of RMS 0.26 over random orientations gives about 0.1; six axis-aligned positions give ~0)
 MIN_SPREAD = 0.02
@@ -84,8 +84,8 @@ class ScalarFit:
     d1: np.ndarray
     psi: np.ndarray
     norm_error_g: np.ndarray
-    method: str                        # "scalar_first_order" | "scalar_nonlinear"
-    model: str                         # "full" | "diagonal"
+    method: str  # "scalar_first_order" | "scalar_nonlinear"
+    model: str  # "full" | "diagonal"
     n_positions: int
     spread: float
     std: np.ndarray = field(default_factory=lambda: np.full(9, np.nan))
@@ -96,17 +96,23 @@ class ScalarFit:
     def summary(self) -> dict:
         """JSON-able summary (the passport's ``scalar`` field)."""
         out = {
-            "method": self.method, "model": self.model, "n_positions": int(self.n_positions),
+            "method": self.method,
+            "model": self.model,
+            "n_positions": int(self.n_positions),
             "gauge": "K lower-triangular: x along the x channel's sensitive axis, y in the x-y sensitive plane",
-            "d0_g": self.d0.tolist(), "d1": self.d1.tolist(),
+            "d0_g": self.d0.tolist(),
+            "d1": self.d1.tolist(),
             "psi": dict(zip(PSI_NAMES, self.psi.tolist())),
             "k_prelim_v_per_g": np.asarray(self.k_prelim_v_per_g).tolist(),
             "u0_prelim_v": np.asarray(self.u0_prelim_v).tolist(),
-            "norm_error_rms_g": float(np.sqrt(np.mean(self.norm_error_g ** 2))),
+            "norm_error_rms_g": float(np.sqrt(np.mean(self.norm_error_g**2))),
             "norm_error_max_abs_g": float(np.max(np.abs(self.norm_error_g))),
             "spread": float(self.spread),
-            "std": {"d0_g": self.std[0:3].tolist(), "d1": self.std[3:6].tolist(),
-                    "psi": dict(zip(PSI_NAMES, self.std[6:9].tolist()))},
+            "std": {
+                "d0_g": self.std[0:3].tolist(),
+                "d1": self.std[3:6].tolist(),
+                "psi": dict(zip(PSI_NAMES, self.std[6:9].tolist())),
+            },
         }
         if self.d2 is not None:
             out["d2_per_g"] = self.d2.tolist()
@@ -116,7 +122,8 @@ class ScalarFit:
 def normalise(u_v: np.ndarray, k_prelim_v_per_g, u0_prelim_v) -> np.ndarray:
     """B = (U - u0_p) / k_p per channel (m, 3), in g."""
     return (np.atleast_2d(np.asarray(u_v, dtype=float)) - np.asarray(u0_prelim_v, float)) / np.asarray(
-        k_prelim_v_per_g, float)
+        k_prelim_v_per_g, float
+    )
 
 
 def preliminary_from_outputs(u_v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -133,11 +140,11 @@ def preliminary_from_outputs(u_v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def _design(B: np.ndarray, model: str, quadratic: bool) -> np.ndarray:
     """First-order regressors (m, p): B_i (D0), B_i^2 (D1), [B_i B_j (psi)], [B_i^3 (D2)]."""
-    cols = [B, B ** 2]
+    cols = [B, B**2]
     if model == "full":
         cols.append(np.column_stack([B[:, i] * B[:, j] for i, j in PSI_PAIRS]))
     if quadratic:
-        cols.append(B ** 3)
+        cols.append(B**3)
     return np.concatenate(cols, axis=1)
 
 
@@ -148,18 +155,29 @@ def _check_positions(B: np.ndarray, w: np.ndarray, model: str, quadratic: bool) 
     p = A.shape[1]
     distinct = len(np.unique(np.round(B, 2), axis=0))
     if distinct < p:
-        need = {"full": "9 well-spread positions (12 with quadratic terms)",
-                "diagonal": "6 positions (each axis up and down)"}[model]
-        raise CalibrationError(f"scalar calibration ({model} model) needs at least {p} distinct static positions, "
-                               f"got {distinct}: use {need}")
+        need = {
+            "full": "9 well-spread positions (12 with quadratic terms)",
+            "diagonal": "6 positions (each axis up and down)",
+        }[model]
+        raise CalibrationError(
+            f"scalar calibration ({model} model) needs at least {p} distinct static positions, "
+            f"got {distinct}: use {need}"
+        )
     sv = np.linalg.svd(A * np.sqrt(w / w.sum())[:, None], compute_uv=False)
     spread = float(sv[-1])
     if spread < MIN_SPREAD:
-        hint = ("the pairwise misalignments need positions with gravity between two axes (e.g. VP1..VP6); "
-                "with axis-aligned positions only use model='diagonal'") if model == "full" else \
-            "each axis must point roughly up and down"
-        raise CalibrationError(f"static positions are not spread enough for the scalar {model} model "
-                               f"(smallest singular value {spread:.2g} < {MIN_SPREAD}): {hint}")
+        hint = (
+            (
+                "the pairwise misalignments need positions with gravity between two axes (e.g. VP1..VP6); "
+                "with axis-aligned positions only use model='diagonal'"
+            )
+            if model == "full"
+            else "each axis must point roughly up and down"
+        )
+        raise CalibrationError(
+            f"static positions are not spread enough for the scalar {model} model "
+            f"(smallest singular value {spread:.2g} < {MIN_SPREAD}): {hint}"
+        )
     return spread
 
 
@@ -205,8 +223,15 @@ def _inputs(u_v, k_prelim_v_per_g, u0_prelim_v, weights, model):
     return u, k_p, u0_p, _weights(len(u), weights)
 
 
-def scalar_first_order(u_v: np.ndarray, k_prelim_v_per_g, u0_prelim_v, *, model: str = "full",
-                       quadratic: bool = False, weights: np.ndarray | None = None) -> ScalarFit:
+def scalar_first_order(
+    u_v: np.ndarray,
+    k_prelim_v_per_g,
+    u0_prelim_v,
+    *,
+    model: str = "full",
+    quadratic: bool = False,
+    weights: np.ndarray | None = None,
+) -> ScalarFit:
     """The paper's linear first-order solution (seed 004, eq. 11) from mean outputs ``u_v`` (m, 3) V in m static
     positions of unknown orientation.
 
@@ -220,7 +245,7 @@ def scalar_first_order(u_v: np.ndarray, k_prelim_v_per_g, u0_prelim_v, *, model:
     B = normalise(u, k_p, u0_p)
     spread = _check_positions(B, w, model, quadratic)
     A = _design(B, model, quadratic)
-    y = (np.sum(B ** 2, axis=1) - 1.0) / 2.0
+    y = (np.sum(B**2, axis=1) - 1.0) / 2.0
     sw = np.sqrt(w)
     coef, *_ = np.linalg.lstsq(A * sw[:, None], y * sw, rcond=None)
     std = _pad9(model, _standard_errors(A * sw[:, None], (y - A @ coef) * sw))
@@ -231,8 +256,22 @@ def scalar_first_order(u_v: np.ndarray, k_prelim_v_per_g, u0_prelim_v, *, model:
     kn[_LOWER] = psi
     K, U0 = _to_constants(k_p, u0_p, d0, kn)
     dg = gravity_module_error_g(specific_force_g(K, U0, u))
-    return ScalarFit(K=K, U0=U0, d0=d0, d1=d1, psi=psi, norm_error_g=dg, method="scalar_first_order", model=model,
-                     n_positions=len(u), spread=spread, std=std, d2=d2, k_prelim_v_per_g=k_p, u0_prelim_v=u0_p)
+    return ScalarFit(
+        K=K,
+        U0=U0,
+        d0=d0,
+        d1=d1,
+        psi=psi,
+        norm_error_g=dg,
+        method="scalar_first_order",
+        model=model,
+        n_positions=len(u),
+        spread=spread,
+        std=std,
+        d2=d2,
+        k_prelim_v_per_g=k_p,
+        u0_prelim_v=u0_p,
+    )
 
 
 def _unpack(p: np.ndarray, model: str) -> tuple[np.ndarray, np.ndarray]:
@@ -252,12 +291,12 @@ def _residual_and_jacobian(B: np.ndarray, sw: np.ndarray, model: str):
 
     def jacobian(p):
         d, T = _unpack(p, model)
-        x = B - d                                               # (m, 3)
+        x = B - d  # (m, 3)
         a = x @ T.T
-        n = a / np.linalg.norm(a, axis=1)[:, None]              # d|a|/da
-        jd = -n @ T                                             # d/dd
+        n = a / np.linalg.norm(a, axis=1)[:, None]  # d|a|/da
+        jd = -n @ T  # d/dd
         if model == "full":
-            jt = n[:, _TRIL[0]] * x[:, _TRIL[1]]                # d|a|/dT_ij = n_i x_j
+            jt = n[:, _TRIL[0]] * x[:, _TRIL[1]]  # d|a|/dT_ij = n_i x_j
         else:
             jt = n * x
         return np.concatenate([jd, jt], axis=1) * sw[:, None]
@@ -278,8 +317,15 @@ def _output_transform(kn: np.ndarray, model: str) -> np.ndarray:
     return G
 
 
-def scalar_nonlinear(u_v: np.ndarray, k_prelim_v_per_g, u0_prelim_v, *, model: str = "full",
-                     weights: np.ndarray | None = None, start: ScalarFit | None = None) -> ScalarFit:
+def scalar_nonlinear(
+    u_v: np.ndarray,
+    k_prelim_v_per_g,
+    u0_prelim_v,
+    *,
+    model: str = "full",
+    weights: np.ndarray | None = None,
+    start: ScalarFit | None = None,
+) -> ScalarFit:
     """The constants up to a rotation by nonlinear least squares of |K^-1 (U - U0)| - 1 over the positions.
 
     In normalised outputs B (see :func:`normalise`) the unknowns are the offsets d (3, g) and T = K_n^-1
@@ -300,21 +346,35 @@ def scalar_nonlinear(u_v: np.ndarray, k_prelim_v_per_g, u0_prelim_v, *, model: s
         d_init, t_init = np.zeros(3), np.eye(3)
     p0 = np.concatenate([d_init, t_init[_TRIL] if model == "full" else np.diag(t_init)])
     residual, jacobian = _residual_and_jacobian(B, np.sqrt(w / w.mean()), model)
-    sol = _scipy_least_squares(residual, p0, jac=jacobian, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15,
-                               max_nfev=200 * len(p0))
+    sol = _scipy_least_squares(
+        residual, p0, jac=jacobian, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=200 * len(p0)
+    )
     if not np.all(np.isfinite(sol.x)):
         raise CalibrationError("scalar nonlinear fit did not converge")
     d, T = _unpack(sol.x, model)
     if np.any(np.diag(T) <= 0):
-        raise CalibrationError("scalar nonlinear fit converged to a reflected solution; check the preliminary "
-                               "gains' signs")
+        raise CalibrationError(
+            "scalar nonlinear fit converged to a reflected solution; check the preliminary gains' signs"
+        )
     kn = np.linalg.inv(T)
     K, U0 = _to_constants(k_p, u0_p, d, kn)
     dg = gravity_module_error_g(specific_force_g(K, U0, u))
     std = _pad9(model, _standard_errors(jacobian(sol.x), sol.fun, _output_transform(kn, model)))
-    return ScalarFit(K=K, U0=U0, d0=d, d1=np.diag(kn) - 1.0, psi=kn[_LOWER].copy(), norm_error_g=dg,
-                     method="scalar_nonlinear", model=model, n_positions=len(u), spread=spread, std=std,
-                     k_prelim_v_per_g=k_p, u0_prelim_v=u0_p)
+    return ScalarFit(
+        K=K,
+        U0=U0,
+        d0=d,
+        d1=np.diag(kn) - 1.0,
+        psi=kn[_LOWER].copy(),
+        norm_error_g=dg,
+        method="scalar_nonlinear",
+        model=model,
+        n_positions=len(u),
+        spread=spread,
+        std=std,
+        k_prelim_v_per_g=k_p,
+        u0_prelim_v=u0_p,
+    )
 
 
 def constants_sigma(fit: ScalarFit) -> tuple[np.ndarray, np.ndarray]:
@@ -339,21 +399,28 @@ def gauge_notes(fit: ScalarFit) -> tuple[dict[str, str], dict[str, str]]:
     assumption of orthogonal axes; uncertainty null)."""
     upper = [f"K.{AXES[i]}{AXES[j]}" for i, j in zip(*np.triu_indices(3, 1))]
     if fit.model == "full":
-        return ({n: "0 by the rotation gauge: K lower-triangular (x along the x channel's sensitive axis, y in the "
-                    "x-y sensitive plane); a scalar calibration cannot see a rotation of the triad" for n in upper},
-                {})
+        return (
+            {
+                n: "0 by the rotation gauge: K lower-triangular (x along the x channel's sensitive axis, y in the "
+                "x-y sensitive plane); a scalar calibration cannot see a rotation of the triad"
+                for n in upper
+            },
+            {},
+        )
     lower = [f"K.{AXES[i]}{AXES[j]}" for i, j in zip(*_LOWER)]
-    return {}, {n: "diagonal scalar model: orthogonal axes assumed, cross-axis sensitivity not determined (0)"
-                for n in upper + lower}
+    return {}, {
+        n: "diagonal scalar model: orthogonal axes assumed, cross-axis sensitivity not determined (0)"
+        for n in upper + lower
+    }
 
 
 def lower_gauge(K: np.ndarray) -> np.ndarray:
     """The lower-triangular K' = K R^T (R a rotation) with the same K K^T and the signs of K's diagonal: the form
     in which a scalar calibration can recover ``K`` (for comparing a fit with a truth)."""
     K = np.asarray(K, dtype=float)
-    L = np.linalg.cholesky(K @ K.T)               # lower, positive diagonal, L L^T = K K^T
+    L = np.linalg.cholesky(K @ K.T)  # lower, positive diagonal, L L^T = K K^T
     s = np.sign(np.diag(K))
-    return L * s[None, :]                          # flip columns: L diag(s) diag(s) L^T = K K^T
+    return L * s[None, :]  # flip columns: L diag(s) diag(s) L^T = K K^T
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -363,20 +430,33 @@ def lower_gauge(K: np.ndarray) -> np.ndarray:
 METHOD = "scalar"
 
 
-def observe(run, settings: CalibrationSettings = CalibrationSettings(), *, base_passport: dict | None = None,
-            segmentation=None) -> ObservedRun:
+def observe(
+    run, settings: CalibrationSettings = CalibrationSettings(), *, base_passport: dict | None = None, segmentation=None
+) -> ObservedRun:
     """The run's observations (named segments, for the verification and the plateau summary) and, as ``data``,
     every static segment on a plateau with finite mean outputs, named or not (orientations are not used).
     ``segmentation``: the run's, if already made with ``settings.segment``."""
     seg = segmentation if segmentation is not None else segment_run(run, settings.segment)
     static = [s for s in seg.segments if s.plateau is not None and s.count > 0 and np.all(np.isfinite(s.mean_v))]
-    return ObservedRun(meta=run.meta, source=run.source, warnings=list(run.warnings), data=static,
-                       observations=observations_from_segmentation(run.meta.run_id, seg, run.source))
+    return ObservedRun(
+        meta=run.meta,
+        source=run.source,
+        warnings=list(run.warnings),
+        data=static,
+        observations=observations_from_segmentation(run.meta.run_id, seg, run.source),
+    )
 
 
-def calibrate_observed(observed: list[ObservedRun], settings: CalibrationSettings = CalibrationSettings(), *,
-                       base_passport: dict | None = None, normal_temp_c: float | None = None, model: str = "auto",
-                       k_prelim_v_per_g=None, u0_prelim_v=None) -> CalibrationResult:
+def calibrate_observed(
+    observed: list[ObservedRun],
+    settings: CalibrationSettings = CalibrationSettings(),
+    *,
+    base_passport: dict | None = None,
+    normal_temp_c: float | None = None,
+    model: str = "auto",
+    k_prelim_v_per_g=None,
+    u0_prelim_v=None,
+) -> CalibrationResult:
     """Passport of method ``scalar`` from one unit's observed runs: the scalar nonlinear fit over every static
     segment on the plateaus within ``settings.cluster_tol_c`` of the normal temperature, polynomial thermal model
     of order 0 (K and U0 at T0), verified on the VP segments as usual.
@@ -393,8 +473,10 @@ def calibrate_observed(observed: list[ObservedRun], settings: CalibrationSetting
     observations = [o for r in observed for o in r.observations]
     static = [(r.meta.run_id, s) for r in observed for s in r.data if abs(s.temp_c - t0) <= settings.cluster_tol_c]
     if not static:
-        raise CalibrationError(f"no static segment on a plateau within {settings.cluster_tol_c} C of the normal "
-                               f"temperature {t0:+.1f} C", stream="voltmeter")
+        raise CalibrationError(
+            f"no static segment on a plateau within {settings.cluster_tol_c} C of the normal temperature {t0:+.1f} C",
+            stream="voltmeter",
+        )
     u = np.array([s.mean_v for _, s in static])
     w = np.array([s.count for _, s in static], dtype=float)
     if k_prelim_v_per_g is None:
@@ -410,8 +492,10 @@ def calibrate_observed(observed: list[ObservedRun], settings: CalibrationSetting
             fit_s = scalar_nonlinear(u, k_prelim_v_per_g, u0_prelim_v, model="full", weights=w)
         except CalibrationError as e:
             fit_s = scalar_nonlinear(u, k_prelim_v_per_g, u0_prelim_v, model="diagonal", weights=w)
-            notes.append(f"scalar: the full model is not determined ({e.message}); fitted the diagonal model "
-                         "(orthogonal axes: three gains and three offsets, no cross-axis terms)")
+            notes.append(
+                f"scalar: the full model is not determined ({e.message}); fitted the diagonal model "
+                "(orthogonal axes: three gains and three offsets, no cross-axis terms)"
+            )
     else:
         fit_s = scalar_nonlinear(u, k_prelim_v_per_g, u0_prelim_v, model=model, weights=w)
     temp = float(np.average([s.temp_c for _, s in static], weights=w))
@@ -419,35 +503,71 @@ def calibrate_observed(observed: list[ObservedRun], settings: CalibrationSetting
     # output residual: the norm error seen through the gains, dg |K_ii| (V)
     resid_v = fit_s.norm_error_g[:, None] * np.abs(np.diag(fit_s.K))[None, :]
     K_sig, U0_sig = constants_sigma(fit_s)
-    plateau = PlateauConstants(run_id=static[0][0], plateau=int(static[0][1].plateau), temp_c=temp, K=fit_s.K,
-                               U0=fit_s.U0, positions=tuple(dict.fromkeys(names)), method=fit_s.method,
-                               residual_rms_v=float(np.sqrt(np.mean(resid_v ** 2))), K_sigma=K_sig, U0_sigma=U0_sig)
+    plateau = PlateauConstants(
+        run_id=static[0][0],
+        plateau=int(static[0][1].plateau),
+        temp_c=temp,
+        K=fit_s.K,
+        U0=fit_s.U0,
+        positions=tuple(dict.fromkeys(names)),
+        method=fit_s.method,
+        residual_rms_v=float(np.sqrt(np.mean(resid_v**2))),
+        K_sigma=K_sig,
+        U0_sigma=U0_sig,
+    )
     thermal = PolynomialModel(fit_s.K, fit_s.U0, t0, 0, np.zeros((0, 3)), np.zeros((0, 3, 3)))
     seg_temps = [s.temp_c for _, s in static]
     fixed, undetermined = gauge_notes(fit_s)
-    sigma = ThermalSigma(K0=K_sig, U00=U0_sig, thermal_model={"kind": "polynomial", "order": 0, "alpha": {},
-                                                              "beta": {}, "gamma": {}},
-                         birge_ratio=float("nan"), dof=0,
-                         extra={"fixed_by_convention": fixed, "undetermined": undetermined},
-                         basis={"level": "standard uncertainty (1 sigma)",
-                                "coefficients": "the nonlinear fit's parameter covariance, scaled by its residuals "
-                                                "(the norm errors |a| - 1 over the positions)",
-                                "n_positions": int(fit_s.n_positions), "model": fit_s.model})
-    unit_fit = UnitFit(unit=serial, normal_temp_c=t0, per_plateau=[plateau], model=thermal, skipped=notes,
-                       valid_temp_c=(round(min(seg_temps), 1), round(max(seg_temps), 1)), uncertainty=sigma)
+    sigma = ThermalSigma(
+        K0=K_sig,
+        U00=U0_sig,
+        thermal_model={"kind": "polynomial", "order": 0, "alpha": {}, "beta": {}, "gamma": {}},
+        birge_ratio=float("nan"),
+        dof=0,
+        extra={"fixed_by_convention": fixed, "undetermined": undetermined},
+        basis={
+            "level": "standard uncertainty (1 sigma)",
+            "coefficients": "the nonlinear fit's parameter covariance, scaled by its residuals "
+            "(the norm errors |a| - 1 over the positions)",
+            "n_positions": int(fit_s.n_positions),
+            "model": fit_s.model,
+        },
+    )
+    unit_fit = UnitFit(
+        unit=serial,
+        normal_temp_c=t0,
+        per_plateau=[plateau],
+        model=thermal,
+        skipped=notes,
+        valid_temp_c=(round(min(seg_temps), 1), round(max(seg_temps), 1)),
+        uncertainty=sigma,
+    )
     rows, status = verify_unit(thermal, observations, t0, settings.tolerances)
     run_warnings = [w for r in observed for w in r.warnings]
     status, implausible = assess(unit_fit, status, meta.nominal_gain_v_per_g, run_warnings)
     plateaus = plateau_summary(observations)
-    doc = build_passport(unit_fit, rows, status, g_local_mps2=meta.g_local_mps2, plateaus=plateaus,
-                         method=METHOD, extra={"scalar": fit_s.summary(),
-                                               **({"implausible": implausible} if implausible else {})})
-    return CalibrationResult(passport=doc, fit=unit_fit, rows=rows, status=status, plateaus=plateaus,
-                             warnings=run_warnings + notes + [p for p in implausible if p not in run_warnings])
+    doc = build_passport(
+        unit_fit,
+        rows,
+        status,
+        g_local_mps2=meta.g_local_mps2,
+        plateaus=plateaus,
+        method=METHOD,
+        extra={"scalar": fit_s.summary(), **({"implausible": implausible} if implausible else {})},
+    )
+    return CalibrationResult(
+        passport=doc,
+        fit=unit_fit,
+        rows=rows,
+        status=status,
+        plateaus=plateaus,
+        warnings=run_warnings + notes + [p for p in implausible if p not in run_warnings],
+    )
 
 
-def calibrate(runs, settings: CalibrationSettings = CalibrationSettings(), *, base_passport: dict | None = None,
-              **options) -> CalibrationResult:
+def calibrate(
+    runs, settings: CalibrationSettings = CalibrationSettings(), *, base_passport: dict | None = None, **options
+) -> CalibrationResult:
     """The scalar calibration of one unit from its runs: :func:`observe` each, then :func:`calibrate_observed`
     (``options``: its ``normal_temp_c``, ``model``, ``k_prelim_v_per_g``, ``u0_prelim_v``)."""
     runs = list(runs)

@@ -37,7 +37,6 @@ from pipeline.passport.document import build_passport
 from pipeline.plausibility import assess
 from pipeline.positions import TEST_POSITIONS, gravity_vector_g, is_test_position
 from pipeline.thermal import ThermalModel, cluster_temperatures, fit_thermal_model
-from pipeline.utc import utc_span
 from pipeline.uncertainty import (
     design_matrix,
     estimator_matrix,
@@ -46,17 +45,35 @@ from pipeline.uncertainty import (
     segment_noise_var_v2,
     thermal_sigma,
 )
+from pipeline.utc import utc_span
 
 #: The passport's ``method`` for this recipe.
 METHOD = "tilt_six_position"
 
-__all__ = ["METHOD", "CalibrationSettings", "Observation", "ObservedRun", "UnitFit", "PlateauConstants",
-           "observe", "calibrate_observed", "calibrate", "fit_unit", "observe_run", "observations_from_segmentation",
-           "unit_of", "verify_unit", "plateau_summary", "calibration_plateaus", "determines_constants"]
+__all__ = [
+    "METHOD",
+    "CalibrationSettings",
+    "Observation",
+    "ObservedRun",
+    "UnitFit",
+    "PlateauConstants",
+    "observe",
+    "calibrate_observed",
+    "calibrate",
+    "fit_unit",
+    "observe_run",
+    "observations_from_segmentation",
+    "unit_of",
+    "verify_unit",
+    "plateau_summary",
+    "calibration_plateaus",
+    "determines_constants",
+]
 
 
-def observe(run, settings: CalibrationSettings = CalibrationSettings(), *, base_passport: dict | None = None,
-            segmentation=None) -> ObservedRun:
+def observe(
+    run, settings: CalibrationSettings = CalibrationSettings(), *, base_passport: dict | None = None, segmentation=None
+) -> ObservedRun:
     """The run's observations and warnings; CalibrationError for a run with no named static position on any
     plateau (``base_passport`` is not used by this method; ``segmentation``: the run's, if already made with
     ``settings.segment``)."""
@@ -64,8 +81,12 @@ def observe(run, settings: CalibrationSettings = CalibrationSettings(), *, base_
     return ObservedRun(meta=run.meta, source=run.source, observations=obs, warnings=warnings)
 
 
-def calibrate_observed(observed: list[ObservedRun], settings: CalibrationSettings = CalibrationSettings(), *,
-                       base_passport: dict | None = None) -> CalibrationResult:
+def calibrate_observed(
+    observed: list[ObservedRun],
+    settings: CalibrationSettings = CalibrationSettings(),
+    *,
+    base_passport: dict | None = None,
+) -> CalibrationResult:
     """Fit, verify and make the passport document from one unit's observed runs."""
     unit = unit_of(observed)
     meta = observed[0].meta
@@ -75,16 +96,32 @@ def calibrate_observed(observed: list[ObservedRun], settings: CalibrationSetting
     run_warnings = [w for r in observed for w in r.warnings]
     status, implausible = assess(fit, status, meta.nominal_gain_v_per_g, run_warnings)
     plateaus = plateau_summary(observations)
-    doc = build_passport(fit, rows, status, g_local_mps2=meta.g_local_mps2, plateaus=plateaus, method=METHOD,
-                         extra={"implausible": implausible} if implausible else None)
+    doc = build_passport(
+        fit,
+        rows,
+        status,
+        g_local_mps2=meta.g_local_mps2,
+        plateaus=plateaus,
+        method=METHOD,
+        extra={"implausible": implausible} if implausible else None,
+    )
     gap = verification_gap(observations, meta.normal_temp_c) if rows else None
-    return CalibrationResult(passport=doc, fit=fit, rows=rows, status=status, plateaus=plateaus,
-                             warnings=run_warnings + list(fit.skipped)
-                             + [p for p in implausible if p not in run_warnings] + ([gap] if gap else []))
+    return CalibrationResult(
+        passport=doc,
+        fit=fit,
+        rows=rows,
+        status=status,
+        plateaus=plateaus,
+        warnings=run_warnings
+        + list(fit.skipped)
+        + [p for p in implausible if p not in run_warnings]
+        + ([gap] if gap else []),
+    )
 
 
-def calibrate(runs, settings: CalibrationSettings = CalibrationSettings(), *, base_passport: dict | None = None
-              ) -> CalibrationResult:
+def calibrate(
+    runs, settings: CalibrationSettings = CalibrationSettings(), *, base_passport: dict | None = None
+) -> CalibrationResult:
     """The tilt calibration of one unit from its runs (TP runs, and runs with VP data that verify them)."""
     runs = list(runs)
     unit_of(runs)
@@ -123,60 +160,88 @@ def determines_constants(positions) -> bool:
     return rows.shape[0] >= 4 and np.linalg.matrix_rank(rows) == 4
 
 
-def _fit_plateaus(groups, shift_v: dict[int, np.ndarray], method: str, skipped: list[str] | None
-                  ) -> list[PlateauConstants]:
+def _fit_plateaus(
+    groups, shift_v: dict[int, np.ndarray], method: str, skipped: list[str] | None
+) -> list[PlateauConstants]:
     fits = []
     for (run_id, p), rows in groups.items():
         names = [o.position for o in rows]
         missing = [tp for tp in TEST_POSITIONS if tp not in names]
-        where = (f"{run_id} plateau {p} at {np.mean([o.temp_c for o in rows]):.1f} C "
-                 f"({utc_span(min(o.t_start_ns for o in rows), max(o.t_end_ns for o in rows))}): fewer than six "
-                 f"test positions (missing {', '.join(missing)})")
+        where = (
+            f"{run_id} plateau {p} at {np.mean([o.temp_c for o in rows]):.1f} C "
+            f"({utc_span(min(o.t_start_ns for o in rows), max(o.t_end_ns for o in rows))}): fewer than six "
+            f"test positions (missing {', '.join(missing)})"
+        )
         if missing and not determines_constants(names):
             # a position carried through the ramp onto a VP plateau is not an attempt at calibration
             if skipped is not None and len(set(names)) > 1:
                 skipped.append(f"{where}; {', '.join(dict.fromkeys(names))} do not determine the 12 constants")
             continue
         if missing and skipped is not None:
-            skipped.append(f"{where}; the 12 constants fitted by least squares over "
-                           f"{', '.join(dict.fromkeys(names))}")
+            skipped.append(f"{where}; the 12 constants fitted by least squares over {', '.join(dict.fromkeys(names))}")
         u = np.array([np.asarray(o.u_v) - shift_v.get(id(o), 0.0) for o in rows])
         # one weight per segment: a position carried through a ramp and soak is a long segment taken while the
         # unit settled; it should not outweigh the program's own hold of that position. Positions missing: least
         # squares over those there are (physics.md)
         cf = fit_constants(names, u, method="least_squares" if missing else method)
-        fits.append(PlateauConstants(
-            run_id=run_id, plateau=p, temp_c=float(np.mean([o.temp_c for o in rows])), K=cf.K, U0=cf.U0,
-            positions=tuple(dict.fromkeys(names)), method=cf.method,
-            residual_rms_v=float(np.sqrt(np.mean(cf.residual_v ** 2)))))
+        fits.append(
+            PlateauConstants(
+                run_id=run_id,
+                plateau=p,
+                temp_c=float(np.mean([o.temp_c for o in rows])),
+                K=cf.K,
+                U0=cf.U0,
+                positions=tuple(dict.fromkeys(names)),
+                method=cf.method,
+                residual_rms_v=float(np.sqrt(np.mean(cf.residual_v**2))),
+            )
+        )
     return fits
 
 
-def fit_unit(unit: str, observations: list[Observation], settings: CalibrationSettings = CalibrationSettings(),
-             normal_temp_c: float = 20.0) -> UnitFit:
+def fit_unit(
+    unit: str,
+    observations: list[Observation],
+    settings: CalibrationSettings = CalibrationSettings(),
+    normal_temp_c: float = 20.0,
+) -> UnitFit:
     """Per-plateau constants and the thermal model from a unit's observations (any number of runs)."""
     groups = _group_plateaus(observations)
     skipped: list[str] = []
     fits = _fit_plateaus(groups, {}, settings.constants_method, skipped)
     if not fits:
         on_plateaus = [o for rows in groups.values() for o in rows]
-        where = (f"t_ns={min(o.t_start_ns for o in on_plateaus)}..{max(o.t_end_ns for o in on_plateaus)}"
-                 if on_plateaus else None)
-        raise CalibrationError("no temperature plateau with the six test positions TP1..TP6, nor with test "
-                               "positions that determine the 12 constants"
-                               + (f" ({'; '.join(skipped)})" if skipped else ""),
-                               path=", ".join(sorted({o.source for o in observations if o.source})) or None,
-                               stream="voltmeter", where=where)
+        where = (
+            f"t_ns={min(o.t_start_ns for o in on_plateaus)}..{max(o.t_end_ns for o in on_plateaus)}"
+            if on_plateaus
+            else None
+        )
+        raise CalibrationError(
+            "no temperature plateau with the six test positions TP1..TP6, nor with test "
+            "positions that determine the 12 constants" + (f" ({'; '.join(skipped)})" if skipped else ""),
+            path=", ".join(sorted({o.source for o in observations if o.source})) or None,
+            stream="voltmeter",
+            where=where,
+        )
+
     def thermal(kind: str, temps=None, K=None, U0=None) -> ThermalModel:
         temps = np.array([f.temp_c for f in fits]) if temps is None else temps
         try:
-            return fit_thermal_model(temps, np.array([f.K for f in fits]) if K is None else K,
-                                     np.array([f.U0 for f in fits]) if U0 is None else U0,
-                                     kind, normal_temp_c, settings.cluster_tol_c)
+            return fit_thermal_model(
+                temps,
+                np.array([f.K for f in fits]) if K is None else K,
+                np.array([f.U0 for f in fits]) if U0 is None else U0,
+                kind,
+                normal_temp_c,
+                settings.cluster_tol_c,
+            )
         except ValueError as e:
             distinct = sorted({round(float(t)) for t in temps})
-            raise CalibrationError(f"thermal model {kind}: {e}; calibration temperatures found: "
-                                   f"{', '.join(f'{t:+d} C' for t in distinct)}", stream="au_temperature") from None
+            raise CalibrationError(
+                f"thermal model {kind}: {e}; calibration temperatures found: "
+                f"{', '.join(f'{t:+d} C' for t in distinct)}",
+                stream="au_temperature",
+            ) from None
 
     for _ in range(settings.temperature_referencing_passes):
         # Refer every segment average to its plateau's mean temperature. The local slopes come from the smooth
@@ -188,16 +253,28 @@ def fit_unit(unit: str, observations: list[Observation], settings: CalibrationSe
     fits, tau_v = _with_uncertainty(fits, groups, shift)
     if shift:
         fits, tau_v = _with_uncertainty(fits, groups, shift, _referral_errors(thermal, groups, fits))
-    nominal, K_nom, U0_nom = _at_calibration_temperatures(fits, thermal("auto"), normal_temp_c,
-                                                          settings.cluster_tol_c)
+    nominal, K_nom, U0_nom = _at_calibration_temperatures(fits, thermal("auto"), normal_temp_c, settings.cluster_tol_c)
     model = thermal(settings.thermal_model, nominal, K_nom, U0_nom)
-    sigma = thermal_sigma(lambda t, K, U0: thermal(settings.thermal_model, t, K, U0), nominal, K_nom, U0_nom,
-                          np.array([f.K_sigma for f in fits]), np.array([f.U0_sigma for f in fits]))
+    sigma = thermal_sigma(
+        lambda t, K, U0: thermal(settings.thermal_model, t, K, U0),
+        nominal,
+        K_nom,
+        U0_nom,
+        np.array([f.K_sigma for f in fits]),
+        np.array([f.U0_sigma for f in fits]),
+    )
     temps = [f.temp_c for f in fits]
     fits.sort(key=lambda f: (f.temp_c, f.run_id, f.plateau))
-    return UnitFit(unit=unit, normal_temp_c=normal_temp_c, per_plateau=fits, model=model, skipped=skipped,
-                   uncertainty=sigma, valid_temp_c=(round(min(temps), 1), round(max(temps), 1)),
-                   excess_scatter_v=tau_v)
+    return UnitFit(
+        unit=unit,
+        normal_temp_c=normal_temp_c,
+        per_plateau=fits,
+        model=model,
+        skipped=skipped,
+        uncertainty=sigma,
+        valid_temp_c=(round(min(temps), 1), round(max(temps), 1)),
+        excess_scatter_v=tau_v,
+    )
 
 
 def _referral_shifts(local: ThermalModel, groups, fits: list[PlateauConstants]) -> dict[int, np.ndarray]:
@@ -246,9 +323,12 @@ def _referral_errors(thermal, groups, fits: list[PlateauConstants]) -> dict[int,
     return {k: np.array(v) for k, v in changes.items()}
 
 
-def _with_uncertainty(fits: list[PlateauConstants], groups, shift_v: dict[int, np.ndarray],
-                      referral_v: dict[int, np.ndarray] | None = None
-                      ) -> tuple[list[PlateauConstants], np.ndarray]:
+def _with_uncertainty(
+    fits: list[PlateauConstants],
+    groups,
+    shift_v: dict[int, np.ndarray],
+    referral_v: dict[int, np.ndarray] | None = None,
+) -> tuple[list[PlateauConstants], np.ndarray]:
     """The plateau fits with the standard uncertainties of their constants (:mod:`pipeline.uncertainty`): the
     noise measured in each segment plus the excess scatter of the fits' residuals, pooled over the plateaus, and
     the error of referring each segment to its plateau's temperature (``referral_v``: :func:`_referral_errors`,
@@ -260,25 +340,31 @@ def _with_uncertainty(fits: list[PlateauConstants], groups, shift_v: dict[int, n
         u = np.array([np.asarray(o.u_v) - shift_v.get(id(o), 0.0) for o in rows])
         A = design_matrix(names)
         resid = u - A @ np.vstack([f.K.T, f.U0])
-        parts.append((estimator_matrix(names, f.method), A, resid,
-                      segment_noise_var_v2(np.array([o.std_v for o in rows]), np.array([o.count for o in rows]))))
-    tau_v = excess_scatter_v([p[2] for p in parts], [p[3] for p in parts], [p[0] for p in parts],
-                             [p[1] for p in parts])
+        parts.append(
+            (
+                estimator_matrix(names, f.method),
+                A,
+                resid,
+                segment_noise_var_v2(np.array([o.std_v for o in rows]), np.array([o.count for o in rows])),
+            )
+        )
+    tau_v = excess_scatter_v([p[2] for p in parts], [p[3] for p in parts], [p[0] for p in parts], [p[1] for p in parts])
     out = []
     for f, (W, _, _, var) in zip(fits, parts):
-        K_sig, U0_sig = plateau_sigma(W, var + tau_v ** 2)
+        K_sig, U0_sig = plateau_sigma(W, var + tau_v**2)
         rows = groups[(f.run_id, f.plateau)]
         if referral_v and all(id(o) in referral_v for o in rows):
-            moves = np.stack([referral_v[id(o)] for o in rows])          # (m, n_moves, 3)
-            extra = np.sum(np.einsum("rm,mni->nri", W, moves) ** 2, axis=0)     # (4, 3): [K_.x, K_.y, K_.z, U0]
-            K_sig = np.sqrt(K_sig ** 2 + extra[:3].T)
-            U0_sig = np.sqrt(U0_sig ** 2 + extra[3])
+            moves = np.stack([referral_v[id(o)] for o in rows])  # (m, n_moves, 3)
+            extra = np.sum(np.einsum("rm,mni->nri", W, moves) ** 2, axis=0)  # (4, 3): [K_.x, K_.y, K_.z, U0]
+            K_sig = np.sqrt(K_sig**2 + extra[:3].T)
+            U0_sig = np.sqrt(U0_sig**2 + extra[3])
         out.append(replace(f, K_sigma=K_sig, U0_sigma=U0_sig))
     return out, tau_v
 
 
-def _at_calibration_temperatures(fits: list[PlateauConstants], local: ThermalModel, normal_temp_c: float,
-                                 cluster_tol_c: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _at_calibration_temperatures(
+    fits: list[PlateauConstants], local: ThermalModel, normal_temp_c: float, cluster_tol_c: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per-plateau constants referred to their calibration temperature: T0 for plateaus within ``cluster_tol_c``
     of it, else the plateau cluster's mean rounded to 0.1 C. The shift uses the smooth ``local`` model; it is a few
     hundredths of a degree on a soaked plateau. Breakpoints of a piecewise model then sit at the nominal

@@ -48,12 +48,8 @@ from pipeline.diagnose.model import (
     polynomial_reference,
     raise_order,
 )
-from pipeline.diagnose.shift import RATE_U0
+from pipeline.diagnose.shift import RATE_U0, find_shift
 from pipeline.diagnose.shift import explain as explain_shift
-from pipeline.diagnose.shift import find_shift
-from pipeline.diagnose.unexplained import describe as describe_unexplained
-from pipeline.diagnose.unexplained import find_unexplained
-from pipeline.diagnose.unexplained import shares as unexplained_shares
 from pipeline.diagnose.signal import (
     Blocks,
     StaticRecord,
@@ -62,6 +58,9 @@ from pipeline.diagnose.signal import (
     static_record,
     temperature_noise_c,
 )
+from pipeline.diagnose.unexplained import describe as describe_unexplained
+from pipeline.diagnose.unexplained import find_unexplained
+from pipeline.diagnose.unexplained import shares as unexplained_shares
 from pipeline.effects.base import Shown
 from pipeline.effects.catalogue import EFFECTS, effect_class, make_effect
 from pipeline.errors import CalibrationError
@@ -115,8 +114,9 @@ class Diagnosis:
 def fit_passport(run: Run, segmentation: Segmentation, settings: CalibrationSettings = CalibrationSettings()) -> dict:
     """A passport fitted from the run itself by the tilt recipe (what ``calibrate`` would write, without registry
     fields), from the run's ``segmentation``."""
-    observed = ObservedRun(meta=run.meta, source="",
-                           observations=observations_from_segmentation(run.meta.run_id, segmentation))
+    observed = ObservedRun(
+        meta=run.meta, source="", observations=observations_from_segmentation(run.meta.run_id, segmentation)
+    )
     return tilt.calibrate_observed([observed], settings).passport
 
 
@@ -129,18 +129,31 @@ def own_model_passport(meta, order: int = OWN_MODEL_ORDER) -> dict:
     model of ``order``: the reference a diagnosis refits to the recording itself when nothing calibrates it."""
     zeros = [0.0] * order
     pairs = [a + b for a in AXES for b in AXES if a != b]
-    return {"schema": "thermocal.passport/1", "unit": meta.unit_serial, "normal_temp_c": float(meta.normal_temp_c),
-            "g_local_mps2": float(meta.g_local_mps2),
-            "coefficients": {"K": (float(meta.nominal_gain_v_per_g) * np.eye(3)).tolist(), "U0": [0.0, 0.0, 0.0]},
-            "thermal_model": {"kind": "polynomial", "order": order, "alpha": {a: zeros for a in AXES},
-                              "beta": {a + a: zeros for a in AXES}, "gamma": {p: zeros for p in pairs}},
-            "per_plateau": []}
+    return {
+        "schema": "thermocal.passport/1",
+        "unit": meta.unit_serial,
+        "normal_temp_c": float(meta.normal_temp_c),
+        "g_local_mps2": float(meta.g_local_mps2),
+        "coefficients": {"K": (float(meta.nominal_gain_v_per_g) * np.eye(3)).tolist(), "U0": [0.0, 0.0, 0.0]},
+        "thermal_model": {
+            "kind": "polynomial",
+            "order": order,
+            "alpha": {a: zeros for a in AXES},
+            "beta": {a + a: zeros for a in AXES},
+            "gamma": {p: zeros for p in pairs},
+        },
+        "per_plateau": [],
+    }
 
 
-def diagnose_run(run: Run, passport: dict | None = None, settings: DiagnoseSettings = DiagnoseSettings(),
-                 passport_source: str | None = None) -> Diagnosis:
+def diagnose_run(
+    run: Run,
+    passport: dict | None = None,
+    settings: DiagnoseSettings = DiagnoseSettings(),
+    passport_source: str | None = None,
+) -> Diagnosis:
     """Diagnose ``run`` against ``passport`` (fitted from the run when None). See the module doc."""
-    with _one_blas_thread():     # in a context of its own: the explanations' unit (reading_in) stays inside
+    with _one_blas_thread():  # in a context of its own: the explanations' unit (reading_in) stays inside
         return contextvars.copy_context().run(_diagnose, run, passport, settings, passport_source)
 
 
@@ -154,8 +167,7 @@ def _one_blas_thread():
     return threadpool_limits(1)
 
 
-def _diagnose(run: Run, passport: dict | None, settings: DiagnoseSettings, passport_source: str | None
-              ) -> Diagnosis:
+def _diagnose(run: Run, passport: dict | None, settings: DiagnoseSettings, passport_source: str | None) -> Diagnosis:
     seg_settings = segment_settings_for(run)
     seg = segment_run(run, seg_settings)
     given = passport is not None
@@ -163,78 +175,89 @@ def _diagnose(run: Run, passport: dict | None, settings: DiagnoseSettings, passp
         try:
             passport = fit_passport(run, seg, CalibrationSettings(segment=seg_settings))
             passport_source = "fitted from the run (default thermal model)"
-        except CalibrationError as e:   # no plateau the tilt recipe calibrates (a sweep, few orientations)
+        except CalibrationError as e:  # no plateau the tilt recipe calibrates (a sweep, few orientations)
             passport = own_model_passport(run.meta, OWN_MODEL_ORDER)
-            passport_source = (f"none: the tilt recipe cannot calibrate this run ({e.message}); the base model "
-                               f"K(T) a + U0(T), a polynomial of order {OWN_MODEL_ORDER} in temperature, is fitted "
-                               "to the recording itself, as far as its orientations determine it")
-    reading_in(output_unit_of(passport))    # the explanations' amounts in its unit (uV, mm/s^2)
+            passport_source = (
+                f"none: the tilt recipe cannot calibrate this run ({e.message}); the base model "
+                f"K(T) a + U0(T), a polynomial of order {OWN_MODEL_ORDER} in temperature, is fitted "
+                "to the recording itself, as far as its orientations determine it"
+            )
+    reading_in(output_unit_of(passport))  # the explanations' amounts in its unit (uV, mm/s^2)
     model, reference, notes = _base_model(passport)
     own_order = polynomial_reference(model).order
     rec = static_record(run, seg, micro_s=settings.micro_s, settings=seg_settings)
     if rec.size < 10 or not np.all(np.isfinite(rec.sigma_sample_v)):
-        raise CalibrationError("too few named static samples to compare with the model and estimate the noise",
-                               stream="voltmeter")
+        raise CalibrationError(
+            "too few named static samples to compare with the model and estimate the noise", stream="voltmeter"
+        )
     blocks = make_blocks(rec, settings.block_s)
     sigma = _block_sigma(run, rec, blocks, reference)
-    excluded = blocks.mean(rec.ramp_uncertain.astype(float)) > 0      # direction of the last ramp unknown there
+    excluded = blocks.mean(rec.ramp_uncertain.astype(float)) > 0  # direction of the last ramp unknown there
     sigma[excluded] *= _EXCLUDE
     design = Design(rec, blocks, reference, sigma)
     shift = None
-    if given:         # the passport as it is: its constants move only where the recording says they moved
+    if given:  # the passport as it is: its constants move only where the recording says they moved
         design.set_base_mask(np.zeros_like(design.base_mask))
     design.set_sigma(design.sigma * block_noise_factor(design, design.fit(())))
-    held: tuple = ()      # a drift of the constants within the recording, held in the model once found
+    held: tuple = ()  # a drift of the constants within the recording, held in the model once found
     if given:
         shift = find_shift(design, passport, settings.selection.threshold)
         design.set_base_mask(shift.mask)
         held = shift.terms
-    in_base = [e for e, c in EFFECTS.items()
-               if c.in_base_from_order is not None and reference.order >= c.in_base_from_order]
+    in_base = [
+        e for e, c in EFFECTS.items() if c.in_base_from_order is not None and reference.order >= c.in_base_from_order
+    ]
     candidates = [e for e in EFFECTS if e not in in_base]
     sel = _select(design, candidates, settings, initial=held)
-    if given and sel.accepted:    # does the shift still hold with the effects found? (they may explain it)
-        again = find_shift(design, passport, settings.selection.threshold,
-                           tuple(s for s in sel.state if s not in held))
+    if given and sel.accepted:  # does the shift still hold with the effects found? (they may explain it)
+        again = find_shift(design, passport, settings.selection.threshold, tuple(s for s in sel.state if s not in held))
         if again.level != shift.level or again.significant != shift.significant:
             shift = again
             design.set_base_mask(shift.mask)
             held = shift.terms
             sel = _select(design, candidates, settings, initial=held)
-    if given and sel.accepted:    # an effect that only takes up the passport's own error is not named
+    if given and sel.accepted:  # an effect that only takes up the passport's own error is not named
         absorbed = _passport_error_absorbed(design, sel, settings)
         if absorbed:
             candidates = [e for e in candidates if e not in absorbed]
             sel = _select(design, candidates, settings, initial=held)
-            notes.append(f"{', '.join(absorbed)} would only take up the passport's own error (with its thermal "
-                         "model free to move, the recording does not need it): not named")
+            notes.append(
+                f"{', '.join(absorbed)} would only take up the passport's own error (with its thermal "
+                "model free to move, the recording does not need it): not named"
+            )
     unexplained = find_unexplained(design, sel.final, settings.locate_sigma)
-    if unexplained is not None:   # held in the model, the catalogue search is redone on top of it
+    if unexplained is not None:  # held in the model, the catalogue search is redone on top of it
         held = held + ((unexplained[0], None),)
         sel = _select(design, candidates, settings, initial=held)
         forced = _forced_by_unexplained(design, sel, unexplained[0], settings)
         if forced:
             candidates = [e for e in candidates if e not in forced]
             sel = _select(design, candidates, settings, initial=held)
-            notes.append(f"{', '.join(forced)} would only absorb part of the unexplained mismatch (a generic "
-                         "function of time explains it as well): not named")
+            notes.append(
+                f"{', '.join(forced)} would only absorb part of the unexplained mismatch (a generic "
+                "function of time explains it as well): not named"
+            )
         for _ in range(3):
             nibbling = _not_explained_to_noise(design, sel, settings)
             if not nibbling:
                 break
             candidates = [e for e in candidates if e not in nibbling]
             sel = _select(design, candidates, settings, initial=held)
-            notes.append(", ".join(f"{e} (leaves {r:.1f} x the noise where it shows)" for e, r in nibbling.items())
-                         + ": not named, it does not explain the mismatch beside the unexplained one to within the "
-                         "noise, nor most of it")
+            notes.append(
+                ", ".join(f"{e} (leaves {r:.1f} x the noise where it shows)" for e, r in nibbling.items())
+                + ": not named, it does not explain the mismatch beside the unexplained one to within the "
+                "noise, nor most of it"
+            )
 
     final_trials = _final_trials(sel)
     predicted = blocks.mean(output_v(*model.constants_at(rec.temp_c), rec.a_g))
     before = design.y - predicted
     after = design.y - sel.final.fitted
-    extended = ExtendedModel(add_polynomial_correction(reference, sel.final.base_coef),
-                             [make_effect(t.effect, t.params) for t in final_trials] + _drift_effects(sel),
-                             source={"run_id": run.meta.run_id, "run": run.source, "method": "thermocal diagnose"})
+    extended = ExtendedModel(
+        add_polynomial_correction(reference, sel.final.base_coef),
+        [make_effect(t.effect, t.params) for t in final_trials] + _drift_effects(sel),
+        source={"run_id": run.meta.run_id, "run": run.source, "method": "thermocal diagnose"},
+    )
     w = (blocks.n * ~excluded)[:, None] * np.ones(3)
     noise_sigma = design.sigma / np.where(excluded, _EXCLUDE, 1.0)[:, None]
     findings = [_finding(design, sel, t, before, after, seg, settings) for t in final_trials]
@@ -242,11 +265,14 @@ def _diagnose(run: Run, passport: dict | None, settings: DiagnoseSettings, passp
         if shift.level is not None and shift.level.powers - 1 > own_order:
             shift.parameters["thermal_model_note"] = (
                 f"The passport's thermal model is a polynomial of order {own_order}: the recording needs powers "
-                f"up to {shift.level.powers - 1}, which its calibration temperatures warrant.")
+                f"up to {shift.level.powers - 1}, which its calibration temperatures warrant."
+            )
         findings.insert(0, _shift_finding(design, shift, predicted, before, after, seg, settings))
     elif shift is not None and shift.level is not None:
-        notes.append(f"the constants agree with the passport within its uncertainty (largest change "
-                     f"{shift.largest_z:.1f} sigma); {shift.level.name} refit to this run without a finding")
+        notes.append(
+            f"the constants agree with the passport within its uncertainty (largest change "
+            f"{shift.largest_z:.1f} sigma); {shift.level.name} refit to this run without a finding"
+        )
     if unexplained is not None:
         findings.append(_unexplained_finding(design, sel, unexplained, after, seg, settings))
     located = _where(design, np.abs(before) > settings.locate_sigma * design.sigma, seg, settings)
@@ -255,13 +281,16 @@ def _diagnose(run: Run, passport: dict | None, settings: DiagnoseSettings, passp
     out_passport["extended_model"] = extended.to_dict()
     notes += rec.warnings
     for e in in_base:
-        notes.append(f"the base thermal model is of order {reference.order}: {e} is already part of it and is not "
-                     "tested")
+        notes.append(
+            f"the base thermal model is of order {reference.order}: {e} is already part of it and is not tested"
+        )
     rms_before, rms_refit = _rms(before, w), _rms(design.y - sel.base.fitted, w)
     if not findings and rms_before > 3 * rms_refit and rms_before > 2 * _rms(noise_sigma, w):
-        notes.append(f"the passport's own model departs from the recording by {small(rms_before, '.2f')} RMS where "
-                     f"its base refit to this run (a polynomial of order {reference.order}) leaves "
-                     f"{small(rms_refit, '.2f')}: its constants or thermal model, not a left-out effect")
+        notes.append(
+            f"the passport's own model departs from the recording by {small(rms_before, '.2f')} RMS where "
+            f"its base refit to this run (a polynomial of order {reference.order}) leaves "
+            f"{small(rms_refit, '.2f')}: its constants or thermal model, not a left-out effect"
+        )
     report = {
         "verdict": "mismatch" if findings else "consistent",
         "findings": findings,
@@ -269,10 +298,14 @@ def _diagnose(run: Run, passport: dict | None, settings: DiagnoseSettings, passp
         "run_id": run.meta.run_id,
         "passport_source": passport_source or "given",
         "base_model": {"kind": "polynomial", "order": reference.order},
-        "noise_v": {"per_sample": rec.sigma_sample_v.tolist(), "thermosensor_c": temperature_noise_c(run)[0],
-                    "block_s": settings.block_s, "block_sigma_median": np.median(noise_sigma, axis=0).tolist(),
-                    "blocks_left_out": int(excluded.sum()),
-                    "ramp_direction_from": rec.ramp_source},
+        "noise_v": {
+            "per_sample": rec.sigma_sample_v.tolist(),
+            "thermosensor_c": temperature_noise_c(run)[0],
+            "block_s": settings.block_s,
+            "block_sigma_median": np.median(noise_sigma, axis=0).tolist(),
+            "blocks_left_out": int(excluded.sum()),
+            "ramp_direction_from": rec.ramp_source,
+        },
         "rms_before_v": rms_before,
         "rms_base_refit_v": rms_refit,
         "rms_after_v": _rms(after, w),
@@ -287,10 +320,17 @@ def _diagnose(run: Run, passport: dict | None, settings: DiagnoseSettings, passp
         "blocks": blocks.size,
         "notes": notes,
     }
-    return Diagnosis(report=report, passport=out_passport, extended=extended, t_h=blocks.t_s / 3600.0,
-                     before_v=before, after_v=after, sigma_v=noise_sigma,
-                     windows_h=_hours(rec, [w for f in findings for w in f["where"]["windows"]]),
-                     located_h=_hours(rec, located["windows"]))
+    return Diagnosis(
+        report=report,
+        passport=out_passport,
+        extended=extended,
+        t_h=blocks.t_s / 3600.0,
+        before_v=before,
+        after_v=after,
+        sigma_v=noise_sigma,
+        windows_h=_hours(rec, [w for f in findings for w in f["where"]["windows"]]),
+        located_h=_hours(rec, located["windows"]),
+    )
 
 
 def _select(design: Design, candidates: list[str], settings: DiagnoseSettings, initial: tuple = ()) -> Selection:
@@ -300,7 +340,7 @@ def _select(design: Design, candidates: list[str], settings: DiagnoseSettings, i
     for _ in range(4):
         sel = select_terms(design, left, settings.selection, initial)
         factor = block_noise_factor(design, sel.final)
-        if sel.accepted and np.any(factor > 1.05):     # correlated residual the accepted effects leave: widen, redo
+        if sel.accepted and np.any(factor > 1.05):  # correlated residual the accepted effects leave: widen, redo
             design.set_sigma(design.sigma * factor)
             sel = select_terms(design, left, settings.selection, initial)
         bad = [t.effect for t in _final_trials(sel) if effect_class(t.effect).implausible(t.params)]
@@ -360,8 +400,15 @@ def _forced_by_unexplained(design: Design, sel: Selection, fid: str, settings: D
     return forced
 
 
-def _shift_finding(design: Design, shift, predicted: np.ndarray, before: np.ndarray, after: np.ndarray,
-                   seg: Segmentation, settings: DiagnoseSettings) -> dict:
+def _shift_finding(
+    design: Design,
+    shift,
+    predicted: np.ndarray,
+    before: np.ndarray,
+    after: np.ndarray,
+    seg: Segmentation,
+    settings: DiagnoseSettings,
+) -> dict:
     """``constants_shift``: which constants moved since the passport, by how much, where it shows."""
     signature = shift.fit.fitted - predicted
     z = np.abs(signature) / design.sigma
@@ -369,14 +416,21 @@ def _shift_finding(design: Design, shift, predicted: np.ndarray, before: np.ndar
     where = _where(design, flagged, seg, settings)
     w = design.blocks.n[:, None] * flagged
     rb, ra = _rms(before, w), _rms(after, w)
-    return {"effect": "constants_shift",
-            "explanation": explain_shift(shift.parameters, rb, ra, shift.largest_z),
-            "where": where, "parameters": shift.parameters, "rms_before_v": rb, "rms_after_v": ra,
-            "delta_bic": round(shift.delta_bic, 1), "max_effect_v": float(np.abs(signature).max())}
+    return {
+        "effect": "constants_shift",
+        "explanation": explain_shift(shift.parameters, rb, ra, shift.largest_z),
+        "where": where,
+        "parameters": shift.parameters,
+        "rms_before_v": rb,
+        "rms_after_v": ra,
+        "delta_bic": round(shift.delta_bic, 1),
+        "max_effect_v": float(np.abs(signature).max()),
+    }
 
 
-def _unexplained_finding(design: Design, sel: Selection, unexplained, after: np.ndarray, seg: Segmentation,
-                         settings: DiagnoseSettings) -> dict:
+def _unexplained_finding(
+    design: Design, sel: Selection, unexplained, after: np.ndarray, seg: Segmentation, settings: DiagnoseSettings
+) -> dict:
     """``unexplained``: the located mismatch the catalogue leaves, its signature, and the empirical correction."""
     fid, desc, dbic, _ = unexplained
     desc = dict(desc, coef=sel.final.term_coef(fid).tolist())
@@ -384,7 +438,7 @@ def _unexplained_finding(design: Design, sel: Selection, unexplained, after: np.
     signature = sel.final.fitted - without.fitted
     residual = design.y - without.fitted
     z = np.abs(signature) / design.sigma
-    share_z = (z ** 2).sum(axis=0)
+    share_z = (z**2).sum(axis=0)
     axes_on = share_z >= 0.05 * share_z.max()
     level = np.minimum(settings.where_sigma, 0.5 * z.max(axis=0))
     flagged = (z >= level[None, :]) & axes_on[None, :] & (z > 0)
@@ -392,16 +446,37 @@ def _unexplained_finding(design: Design, sel: Selection, unexplained, after: np.
     w = design.blocks.n[:, None] * flagged
     peak = float(np.abs(signature[flagged]).max()) if flagged.any() else 0.0
     share, features = unexplained_shares(design, residual, axes_on)
-    text, numbers = describe_unexplained(fid, desc, residual, design, share, where, peak,
-                                         features["dominant_period_s"] if features["periodic_share"] >= 0.5
-                                         else None)
-    params = {"empirical_correction": fid.split(":", 1)[1], **{k: v for k, v in desc.items() if k != "coef"},
-              **numbers, "shares": share, "shares_alone": features["alone"],
-              "dominant_period_s": features["dominant_period_s"],
-              "periodic_share": features["periodic_share"], "peak_v": peak, "axes": where["axes"]}
-    return {"effect": "unexplained", "explanation": text, "where": where, "parameters": params,
-            "rms_before_v": _rms(residual, w), "rms_after_v": _rms(after, w), "delta_bic": dbic,
-            "max_effect_v": peak}
+    text, numbers = describe_unexplained(
+        fid,
+        desc,
+        residual,
+        design,
+        share,
+        where,
+        peak,
+        features["dominant_period_s"] if features["periodic_share"] >= 0.5 else None,
+    )
+    params = {
+        "empirical_correction": fid.split(":", 1)[1],
+        **{k: v for k, v in desc.items() if k != "coef"},
+        **numbers,
+        "shares": share,
+        "shares_alone": features["alone"],
+        "dominant_period_s": features["dominant_period_s"],
+        "periodic_share": features["periodic_share"],
+        "peak_v": peak,
+        "axes": where["axes"],
+    }
+    return {
+        "effect": "unexplained",
+        "explanation": text,
+        "where": where,
+        "parameters": params,
+        "rms_before_v": _rms(residual, w),
+        "rms_after_v": _rms(after, w),
+        "delta_bic": dbic,
+        "max_effect_v": peak,
+    }
 
 
 def _drift_effects(sel: Selection) -> list:
@@ -433,11 +508,15 @@ def _base_model(passport: dict):
     order = max(reference.order, default_order(cal_temps) if cal_temps.size else 0)
     notes = []
     if model is not reference:
-        notes.append("the passport's piecewise-linear thermal model was referred to a polynomial of order "
-                     f"{reference.order} through its breakpoints for the refit")
+        notes.append(
+            "the passport's piecewise-linear thermal model was referred to a polynomial of order "
+            f"{reference.order} through its breakpoints for the refit"
+        )
     if order > reference.order:
-        notes.append(f"the passport's polynomial of order {reference.order} was refit as order {order}, what its "
-                     f"{order + 1} calibration temperatures warrant")
+        notes.append(
+            f"the passport's polynomial of order {reference.order} was refit as order {order}, what its "
+            f"{order + 1} calibration temperatures warrant"
+        )
         reference = raise_order(reference, order)
     return model, reference, notes
 
@@ -449,7 +528,7 @@ def _block_sigma(run: Run, rec: StaticRecord, blocks: Blocks, reference) -> np.n
     km, um = reference.constants_at(blocks.temp_c - 0.5)
     du_dt = output_v(kp - km, up - um, blocks.a_g)
     n_t = np.maximum(1.0, (blocks.t_end_s - blocks.t_start_s + 1.0) * rate_t)
-    return np.sqrt(rec.sigma_sample_v[None, :] ** 2 / blocks.n[:, None] + du_dt ** 2 * sigma_t ** 2 / n_t[:, None])
+    return np.sqrt(rec.sigma_sample_v[None, :] ** 2 / blocks.n[:, None] + du_dt**2 * sigma_t**2 / n_t[:, None])
 
 
 def _final_trials(sel: Selection):
@@ -464,11 +543,10 @@ def _final_trials(sel: Selection):
 
 
 def _rms(r: np.ndarray, w: np.ndarray) -> float:
-    return float(np.sqrt(np.sum(w * r ** 2) / np.sum(w))) if np.sum(w) > 0 else 0.0
+    return float(np.sqrt(np.sum(w * r**2) / np.sum(w))) if np.sum(w) > 0 else 0.0
 
 
-def _windows(blocks: Blocks, flagged: np.ndarray, start_ns: int, merge_gap_s: float, half_s: float
-             ) -> list[list[int]]:
+def _windows(blocks: Blocks, flagged: np.ndarray, start_ns: int, merge_gap_s: float, half_s: float) -> list[list[int]]:
     """Flagged blocks merged into [t_start_ns, t_end_ns] windows (gaps up to ``merge_gap_s`` bridged)."""
     idx = np.flatnonzero(flagged)
     out: list[list[float]] = []
@@ -494,16 +572,25 @@ def _where(design: Design, flagged: np.ndarray, seg: Segmentation, settings: Dia
         else:
             on_ramps += 1
     positions = {POSITION_NAMES[int(p)] for p in blocks.position_idx[any_axis]}
-    return {"windows": _windows(blocks, any_axis, rec.start_ns, settings.merge_gap_s, settings.micro_s / 2),
-            "axes": [AXES[i] for i in range(3) if flagged[:, i].any()],
-            "temps_c": sorted(temps),
-            "positions": [p for p in POSITION_NAMES if p in positions],
-            "blocks": int(any_axis.sum()),
-            "blocks_on_ramps": on_ramps}
+    return {
+        "windows": _windows(blocks, any_axis, rec.start_ns, settings.merge_gap_s, settings.micro_s / 2),
+        "axes": [AXES[i] for i in range(3) if flagged[:, i].any()],
+        "temps_c": sorted(temps),
+        "positions": [p for p in POSITION_NAMES if p in positions],
+        "blocks": int(any_axis.sum()),
+        "blocks_on_ramps": on_ramps,
+    }
 
 
-def _finding(design: Design, sel: Selection, trial, before: np.ndarray, after: np.ndarray, seg: Segmentation,
-             settings: DiagnoseSettings) -> dict:
+def _finding(
+    design: Design,
+    sel: Selection,
+    trial,
+    before: np.ndarray,
+    after: np.ndarray,
+    seg: Segmentation,
+    settings: DiagnoseSettings,
+) -> dict:
     """One accepted effect as a contract finding: where its terms change the model, how much, in words."""
     effect = trial.effect
     signature = _shows(design, sel, effect)
@@ -513,8 +600,9 @@ def _finding(design: Design, sel: Selection, trial, before: np.ndarray, after: n
     confounded = sel.confounded.get(effect, [])
     finding = {
         "effect": effect,
-        "explanation": _explain(effect, trial.params, signature, flagged, where, confounded,
-                                float(design.rec.t_s[-1]) / 3600.0),
+        "explanation": _explain(
+            effect, trial.params, signature, flagged, where, confounded, float(design.rec.t_s[-1]) / 3600.0
+        ),
         "where": where,
         "parameters": trial.params,
         "rms_before_v": _rms(before, w),
@@ -532,7 +620,7 @@ def _shows_where(design: Design, signature: np.ndarray, settings: DiagnoseSettin
     its largest size (a large effect spreads a little into the base refit everywhere; that is not where it shows);
     small effects: where largest."""
     z = np.abs(signature) / design.sigma
-    share = (z ** 2).sum(axis=0)
+    share = (z**2).sum(axis=0)
     axes_on = share >= 0.05 * share.max()
     level = np.minimum(settings.where_sigma, 0.5 * z.max(axis=0))
     big = np.abs(signature) >= 0.25 * np.abs(signature).max(axis=0)
@@ -579,20 +667,28 @@ def _temps_text(where: dict) -> str:
     temps = where["temps_c"]
     text = (" at " + ", ".join(f"{t:+.0f}" for t in temps) + " C") if temps else ""
     if where.get("blocks_on_ramps"):
-        text += (" and on the ramps" if temps else " on the ramps")
+        text += " and on the ramps" if temps else " on the ramps"
     return text
 
 
-def _explain(effect: str, p: dict, signature: np.ndarray, flagged: np.ndarray, where: dict,
-             confounded: list[str], duration_h: float) -> str:
+def _explain(
+    effect: str,
+    p: dict,
+    signature: np.ndarray,
+    flagged: np.ndarray,
+    where: dict,
+    confounded: list[str],
+    duration_h: float,
+) -> str:
     """The effect's own sentences (what, where, how big, with units), and what it cannot be told apart from."""
     peak = float(np.abs(signature[flagged]).max()) if flagged.any() else 0.0
-    shown = Shown(peak=peak, axes="/".join(where["axes"]) or "no axis", temps=_temps_text(where),
-                  duration_h=duration_h)
+    shown = Shown(peak=peak, axes="/".join(where["axes"]) or "no axis", temps=_temps_text(where), duration_h=duration_h)
     text = effect_class(effect).explain(p, shown)
     if confounded:
-        text += (f" Under this run's program it cannot be told apart from {', '.join(confounded)}: they explain "
-                 "the mismatch equally well.")
+        text += (
+            f" Under this run's program it cannot be told apart from {', '.join(confounded)}: they explain "
+            "the mismatch equally well."
+        )
     return text
 
 
@@ -605,8 +701,9 @@ def _vp_errors(seg: Segmentation, rec: StaticRecord, model, extended: ExtendedMo
     t_ns = rec.start_ns + rec.t_s * _NS
     k, u0 = model.constants_at(rec.temp_c)
     a_before = specific_force_g(k, u0, rec.u_v)
-    a_after = extended.specific_force_g(rec.u_v, rec.context(extended.base),
-                                        rec.element_temperature_c(extended.lag_tau_s))
+    a_after = extended.specific_force_g(
+        rec.u_v, rec.context(extended.base), rec.element_temperature_c(extended.lag_tau_s)
+    )
     out = []
     for s in vp:
         m = (t_ns >= s.t_start_ns) & (t_ns <= s.t_end_ns)
@@ -615,10 +712,16 @@ def _vp_errors(seg: Segmentation, rec: StaticRecord, model, extended: ExtendedMo
         wts = rec.count[m][:, None]
         mean_b = (a_before[m] * wts).sum(0) / wts.sum()
         mean_a = (a_after[m] * wts).sum(0) / wts.sum()
-        out.append({"temp_c": round(float(s.temp_c), 2), "position": s.position,
-                    "t_start_ns": int(s.t_start_ns), "t_end_ns": int(s.t_end_ns),
-                    "dg_before_g": float(gravity_module_error_g(mean_b)),
-                    "dg_after_g": float(gravity_module_error_g(mean_a))})
+        out.append(
+            {
+                "temp_c": round(float(s.temp_c), 2),
+                "position": s.position,
+                "t_start_ns": int(s.t_start_ns),
+                "t_end_ns": int(s.t_end_ns),
+                "dg_before_g": float(gravity_module_error_g(mean_b)),
+                "dg_after_g": float(gravity_module_error_g(mean_a)),
+            }
+        )
     return out
 
 

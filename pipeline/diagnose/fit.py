@@ -72,17 +72,20 @@ class FitResult:
     labels: dict[str, list[str]]
     base_coef: np.ndarray
     rw: np.ndarray = field(repr=False)
-    fw: np.ndarray = field(repr=False)         # (B, 3, nb) weighted unit-norm base columns per channel
-    tw: np.ndarray = field(repr=False)         # (B, 3, p) weighted unit-norm term columns
+    fw: np.ndarray = field(repr=False)  # (B, 3, nb) weighted unit-norm base columns per channel
+    tw: np.ndarray = field(repr=False)  # (B, 3, p) weighted unit-norm term columns
     evecs: np.ndarray = field(repr=False)
     evals: np.ndarray = field(repr=False)
-    scale: np.ndarray = field(repr=False, default=None)   # column norms (coef = normalised coef / scale)
+    scale: np.ndarray = field(repr=False, default=None)  # column norms (coef = normalised coef / scale)
 
     def coef_sigma(self) -> np.ndarray:
         """Standard uncertainty of every coefficient from the weighted normal matrix (the block sigmas as given;
         a direction the data cannot determine gets inf)."""
-        var_n = np.einsum("ik,k,ik->i", self.evecs, 1.0 / self.evals, self.evecs) if self.evals.size else \
-            np.zeros(self.scale.size)
+        var_n = (
+            np.einsum("ik,k,ik->i", self.evecs, 1.0 / self.evals, self.evecs)
+            if self.evals.size
+            else np.zeros(self.scale.size)
+        )
         sig = np.sqrt(var_n) / self.scale
         undetermined = np.abs(self.evecs).sum(axis=1) == 0 if self.evals.size else np.ones(self.scale.size, bool)
         return np.where(undetermined, np.inf, sig)
@@ -100,11 +103,13 @@ class FitResult:
     def project(self, cw: np.ndarray) -> np.ndarray:
         """The projection (B, 3, c) of weighted columns ``cw`` (B, 3, c) on the span of this fit's columns."""
         nb = self.fw.shape[2]
-        xt = np.concatenate([np.einsum("bik,bic->ikc", self.fw, cw).reshape(3 * nb, -1),
-                             np.einsum("bip,bic->pc", self.tw, cw)])
+        xt = np.concatenate(
+            [np.einsum("bik,bic->ikc", self.fw, cw).reshape(3 * nb, -1), np.einsum("bip,bic->pc", self.tw, cw)]
+        )
         m = self.evecs @ ((self.evecs.T @ xt) / self.evals[:, None])
-        return (np.einsum("bik,ikc->bic", self.fw, m[:3 * nb].reshape(3, nb, -1))
-                + np.einsum("bip,pc->bic", self.tw, m[3 * nb:]))
+        return np.einsum("bik,ikc->bic", self.fw, m[: 3 * nb].reshape(3, nb, -1)) + np.einsum(
+            "bip,pc->bic", self.tw, m[3 * nb :]
+        )
 
 
 @dataclass
@@ -152,8 +157,7 @@ class Design:
         # reference model per block and power n: K_n a + U0_n (B, order+1, 3); with dT^n block means -> exact
         k_abs = [reference.K0] + [reference.rel[n] * reference.K0 for n in range(self.order)]
         u_abs = [reference.U00] + [reference.alpha[n] for n in range(self.order)]
-        self._ref_terms = np.stack([np.einsum("ij,bj->bi", k, blocks.a_g) + u for k, u in zip(k_abs, u_abs)],
-                                   axis=1)
+        self._ref_terms = np.stack([np.einsum("ij,bj->bi", k, blocks.a_g) + u for k, u in zip(k_abs, u_abs)], axis=1)
         self._powers: dict[float | None, np.ndarray] = {}
         self._columns: dict[tuple[str, float | None], tuple[list[str], np.ndarray]] = {}
         #: block-level columns of terms outside the catalogue (empirical corrections): id -> (labels, (B, 3, p))
@@ -179,8 +183,11 @@ class Design:
     def moves_temperature(self, effect_id: str) -> bool:
         """The term moves the temperature the base model is evaluated at (thermal lag) instead of adding columns;
         a term outside the catalogue (:attr:`extra`, an empirical correction) never does."""
-        return (effect_id not in self.extra and not effect_id.startswith("empirical")
-                and effect_class(effect_id).acts_on == "temperature")
+        return (
+            effect_id not in self.extra
+            and not effect_id.startswith("empirical")
+            and effect_class(effect_id).acts_on == "temperature"
+        )
 
     def element_temperature_c(self, lag_tau_s: float | None) -> np.ndarray:
         return self.rec.element_temperature_c(lag_tau_s)
@@ -208,8 +215,9 @@ class Design:
 
     def base_prediction(self, fit: FitResult, lag_tau_s: float | None) -> np.ndarray:
         """(B, 3) V: the fit's base model (reference + correction) at the thermosensor or element temperature."""
-        return self.reference(lag_tau_s) + np.einsum("bk,ik->bi", self.features(lag_tau_s),
-                                                     fit.base_coef.reshape(3, -1))
+        return self.reference(lag_tau_s) + np.einsum(
+            "bk,ik->bi", self.features(lag_tau_s), fit.base_coef.reshape(3, -1)
+        )
 
     def term_columns(self, effect_id: str, value: float | None) -> tuple[list[str], np.ndarray]:
         """Labels and (B, 3, p) columns of a catalogue term (block means of its unit-parameter delta_u_v)."""
@@ -243,7 +251,7 @@ class Design:
         ref = self.reference(lag)
         w = 1.0 / self.sigma
         yw = (self.y - ref) * w
-        fw = self.features(lag)[:, None, :] * w[:, :, None]                        # (B, 3, nb)
+        fw = self.features(lag)[:, None, :] * w[:, :, None]  # (B, 3, nb)
         tw = (np.concatenate(mats, axis=2) if mats else np.zeros((self.blocks.size, 3, 0))) * w[:, :, None]
         nf = np.sqrt(np.einsum("bik,bik->ik", fw, fw))
         nt = np.sqrt(np.einsum("bip,bip->p", tw, tw))
@@ -256,24 +264,38 @@ class Design:
         gff = np.einsum("bik,bil->ikl", fw, fw)
         gft = np.einsum("bik,bip->ikp", fw, tw).reshape(3 * nb, p)
         for i in range(3):
-            g[i * nb:(i + 1) * nb, i * nb:(i + 1) * nb] = gff[i]
-        g[:3 * nb, 3 * nb:] = gft
-        g[3 * nb:, :3 * nb] = gft.T
-        g[3 * nb:, 3 * nb:] = np.einsum("bip,biq->pq", tw, tw)
+            g[i * nb : (i + 1) * nb, i * nb : (i + 1) * nb] = gff[i]
+        g[: 3 * nb, 3 * nb :] = gft
+        g[3 * nb :, : 3 * nb] = gft.T
+        g[3 * nb :, 3 * nb :] = np.einsum("bip,biq->pq", tw, tw)
         rhs = np.concatenate([np.einsum("bik,bi->ik", fw, yw).reshape(-1), np.einsum("bip,bi->p", tw, yw)])
         evals, evecs = np.linalg.eigh(g)
         keep = evals > _RANK_TOL * max(evals[-1], 1e-300)
         v, lam = evecs[:, keep], evals[keep]
         cn = v @ ((v.T @ rhs) / lam)
-        pred = (np.einsum("bik,ik->bi", fw, cn[:3 * nb].reshape(3, nb)) + np.einsum("bip,p->bi", tw, cn[3 * nb:]))
+        pred = np.einsum("bik,ik->bi", fw, cn[: 3 * nb].reshape(3, nb)) + np.einsum("bip,p->bi", tw, cn[3 * nb :])
         rw = yw - pred
         c = cn / np.concatenate([nf.reshape(-1), nt])
-        return FitResult(state, c, float(np.sum(rw * rw)), int(keep.sum()), ref + pred / w, slices, labels,
-                         c[:3 * nb].reshape(3, self.order + 1, 4), rw, fw, tw, v, lam,
-                         np.concatenate([nf.reshape(-1), nt]))
+        return FitResult(
+            state,
+            c,
+            float(np.sum(rw * rw)),
+            int(keep.sum()),
+            ref + pred / w,
+            slices,
+            labels,
+            c[: 3 * nb].reshape(3, self.order + 1, 4),
+            rw,
+            fw,
+            tw,
+            v,
+            lam,
+            np.concatenate([nf.reshape(-1), nt]),
+        )
 
-    def score(self, current: FitResult, effect_id: str, value: float | None
-              ) -> tuple[float, int, np.ndarray, list[str], np.ndarray]:
+    def score(
+        self, current: FitResult, effect_id: str, value: float | None
+    ) -> tuple[float, int, np.ndarray, list[str], np.ndarray]:
         """chi2, added rank, coefficients, labels and weighted change (B, 3) of the fitted values when the term is
         added to ``current`` (thermal lag: refit with the lagged temperature)."""
         if self.moves_temperature(effect_id):
@@ -308,9 +330,12 @@ class Design:
             on_edge = k in (0, grid.size - 1)
             value = float(grid[k])
             if not on_edge:
-                res = minimize_scalar(lambda x: self.score(current, effect_id, float(np.exp(x)))[0],
-                                      bounds=(np.log(grid[k - 1]), np.log(grid[k + 1])), method="bounded",
-                                      options={"xatol": 0.01})
+                res = minimize_scalar(
+                    lambda x: self.score(current, effect_id, float(np.exp(x)))[0],
+                    bounds=(np.log(grid[k - 1]), np.log(grid[k + 1])),
+                    method="bounded",
+                    options={"xatol": 0.01},
+                )
                 if res.fun < chi[k]:
                     value = float(np.exp(res.x))
         chi2, added, coef, labels, change = self.score(current, effect_id, value)
@@ -319,15 +344,16 @@ class Design:
         if on_edge and reason is None:
             reason = f"time constant {value:.3g} s at the edge of the searched range"
         if term.nonlinear is not None:
-            added += 1                                   # the time constant is a parameter too
+            added += 1  # the time constant is a parameter too
         if added == 0 and reason is None:
             reason = "not separable from the base model under this run's program"
         dbic = chi2 - current.chi2 + added * ln_n
         return Trial(effect_id, value, chi2, added, float(dbic), params, reason, change)
 
 
-def select_terms(design: Design, candidates: list[str], settings: SelectionSettings = SelectionSettings(),
-                 initial: tuple = ()) -> Selection:
+def select_terms(
+    design: Design, candidates: list[str], settings: SelectionSettings = SelectionSettings(), initial: tuple = ()
+) -> Selection:
     """Greedy forward selection of catalogue terms (see the module doc), on top of the terms of ``initial``
     (e.g. an empirical correction held in the model)."""
     ln_n = float(np.log(design.n_values))
@@ -340,11 +366,19 @@ def select_terms(design: Design, candidates: list[str], settings: SelectionSetti
     rounds = []
     while left:
         trials = [design.trial(current, e, ln_n) for e in left]
-        rounds.append([{"effect": t.effect, "delta_bic": round(t.delta_bic, 1),
-                        "value": None if t.value is None else round(t.value, 3), "implausible": t.reason}
-                       for t in sorted(trials, key=lambda t: t.delta_bic)])
+        rounds.append(
+            [
+                {
+                    "effect": t.effect,
+                    "delta_bic": round(t.delta_bic, 1),
+                    "value": None if t.value is None else round(t.value, 3),
+                    "implausible": t.reason,
+                }
+                for t in sorted(trials, key=lambda t: t.delta_bic)
+            ]
+        )
         limit = settings.threshold
-        if accepted:    # no model is exact: what is left of a large effect must not be read as another one
+        if accepted:  # no model is exact: what is left of a large effect must not be read as another one
             limit = max(limit, settings.imperfection_rel * abs(accepted[0].delta_bic))
         good = sorted((t for t in trials if t.reason is None and t.delta_bic < -limit), key=lambda t: t.delta_bic)
         if not good:
@@ -355,8 +389,10 @@ def select_terms(design: Design, candidates: list[str], settings: SelectionSetti
         for t in trials:
             if t is best or t.delta_bic > best.delta_bic + margin:
                 continue
-            cos = float(np.sum(t.change_w * best.change_w)
-                        / (np.linalg.norm(t.change_w) * np.linalg.norm(best.change_w) + 1e-300))
+            cos = float(
+                np.sum(t.change_w * best.change_w)
+                / (np.linalg.norm(t.change_w) * np.linalg.norm(best.change_w) + 1e-300)
+            )
             if cos > settings.confound_cos:
                 group.append(t.effect)
         confounded[best.effect] = group
@@ -364,8 +400,7 @@ def select_terms(design: Design, candidates: list[str], settings: SelectionSetti
         state = _refine(design, state + ((best.effect, best.value),))
         current = design.fit(state)
         left = [e for e in left if e != best.effect and e not in group]
-    return Selection(state=state, final=current, base=base, accepted=accepted, confounded=confounded,
-                     rounds=rounds)
+    return Selection(state=state, final=current, base=base, accepted=accepted, confounded=confounded, rounds=rounds)
 
 
 def _refine(design: Design, state: tuple) -> tuple:
@@ -383,8 +418,12 @@ def _refine(design: Design, state: tuple) -> tuple:
         def chi2(x):
             return design.fit(others + ((effect_id, float(np.exp(x))),)).chi2
 
-        res = minimize_scalar(chi2, bounds=(max(np.log(grid[0]), x0 - 0.7), min(np.log(grid[-1]), x0 + 0.7)),
-                              method="bounded", options={"xatol": 0.01})
+        res = minimize_scalar(
+            chi2,
+            bounds=(max(np.log(grid[0]), x0 - 0.7), min(np.log(grid[-1]), x0 + 0.7)),
+            method="bounded",
+            options={"xatol": 0.01},
+        )
         if res.fun < chi2(x0):
             state[k] = (effect_id, float(np.exp(res.x)))
     return tuple(state)
@@ -399,8 +438,8 @@ def block_noise_factor(design: Design, fit: FitResult, min_since_start_s: float 
     """
     b = design.blocks
     r = design.y - fit.fitted
-    s2 = design.sigma ** 2
-    ok = ((b.since_start_s[:-2] >= min_since_start_s) & (b.stretch[2:] == b.stretch[:-2]))
+    s2 = design.sigma**2
+    ok = (b.since_start_s[:-2] >= min_since_start_s) & (b.stretch[2:] == b.stretch[:-2])
     if ok.sum() < 10:
         return np.ones(3)
     z = ((r[2:] - 2 * r[1:-1] + r[:-2]) / np.sqrt(s2[2:] + 4 * s2[1:-1] + s2[:-2]))[ok]

@@ -69,8 +69,9 @@ class ExtendedModel:
         k, u0 = self.base.constants_at(self.element_temperature_c(c, element_temp_c))
         return output_v(k, u0, c.a_g) + self._output_terms_v(c, with_face=True)
 
-    def specific_force_g(self, u_v: np.ndarray, ctx: SignalContext, element_temp_c: np.ndarray | None = None,
-                         iterations: int = 3) -> np.ndarray:
+    def specific_force_g(
+        self, u_v: np.ndarray, ctx: SignalContext, element_temp_c: np.ndarray | None = None, iterations: int = 3
+    ) -> np.ndarray:
         """Specific force (n, 3) g from outputs ``u_v`` (n, 3) V: the base inverted at T*, the output effects
         subtracted, iterated because some effects depend on the specific force (ctx.a_g is not used)."""
         u_v = np.asarray(u_v, dtype=float)
@@ -84,11 +85,15 @@ class ExtendedModel:
         return a
 
     def to_dict(self) -> dict[str, Any]:
-        doc = {"schema": SCHEMA_ID, "normal_temp_c": float(self.base.normal_temp_c),
-               "base": {"coefficients": {"K": np.asarray(self.base.K0).tolist(),
-                                         "U0": np.asarray(self.base.U00).tolist()},
-                        "thermal_model": self.base.to_dict()},
-               "effects": [{"effect": e.id, "parameters": e.stored_params()} for e in self.effects]}
+        doc = {
+            "schema": SCHEMA_ID,
+            "normal_temp_c": float(self.base.normal_temp_c),
+            "base": {
+                "coefficients": {"K": np.asarray(self.base.K0).tolist(), "U0": np.asarray(self.base.U00).tolist()},
+                "thermal_model": self.base.to_dict(),
+            },
+            "effects": [{"effect": e.id, "parameters": e.stored_params()} for e in self.effects],
+        }
         if self.source:
             doc["source"] = self.source
         return doc
@@ -99,8 +104,9 @@ class ExtendedModel:
             raise ValueError(f"not a {SCHEMA_ID} document")
         t0 = float(d["normal_temp_c"])
         c = d["base"]["coefficients"]
-        base = PolynomialModel.from_dict(d["base"]["thermal_model"], np.asarray(c["K"], float),
-                                         np.asarray(c["U0"], float), t0)
+        base = PolynomialModel.from_dict(
+            d["base"]["thermal_model"], np.asarray(c["K"], float), np.asarray(c["U0"], float), t0
+        )
         return cls(base, [make_effect(e["effect"], e["parameters"]) for e in d["effects"]], d.get("source"))
 
 
@@ -122,9 +128,14 @@ def raise_order(model: PolynomialModel, order: int) -> PolynomialModel:
     extra = order - model.order
     if extra <= 0:
         return model
-    return PolynomialModel(model.K0, model.U00, model.normal_temp_c, order,
-                           np.concatenate([np.asarray(model.alpha).reshape(-1, 3), np.zeros((extra, 3))]),
-                           np.concatenate([np.asarray(model.rel).reshape(-1, 3, 3), np.zeros((extra, 3, 3))]))
+    return PolynomialModel(
+        model.K0,
+        model.U00,
+        model.normal_temp_c,
+        order,
+        np.concatenate([np.asarray(model.alpha).reshape(-1, 3), np.zeros((extra, 3))]),
+        np.concatenate([np.asarray(model.rel).reshape(-1, 3, 3), np.zeros((extra, 3, 3))]),
+    )
 
 
 def add_polynomial_correction(reference: PolynomialModel, correction: np.ndarray) -> PolynomialModel:

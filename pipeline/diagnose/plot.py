@@ -12,15 +12,32 @@ from pipeline.positions import AXES
 
 #: Colours of the findings, most important first (matplotlib's qualitative "tab" colours, red and blue left to the
 #: residual series).
-_FINDING_COLOURS = ("tab:orange", "tab:green", "tab:purple", "tab:brown", "tab:pink", "tab:olive", "tab:cyan",
-                    "tab:gray")
+_FINDING_COLOURS = (
+    "tab:orange",
+    "tab:green",
+    "tab:purple",
+    "tab:brown",
+    "tab:pink",
+    "tab:olive",
+    "tab:cyan",
+    "tab:gray",
+)
 
 
-def plot_residuals(path: str | Path, t_h: np.ndarray, before_v: np.ndarray, after_v: np.ndarray,
-                   sigma_v: np.ndarray, windows_h: list[tuple[float, float]],
-                   located_h: list[tuple[float, float]] = (), title: str = "", *,
-                   findings: list[tuple[str, list[tuple[float, float]]]] | None = None,
-                   temperature: tuple[np.ndarray, np.ndarray] | None = None, output_unit: str = "V") -> Path:
+def plot_residuals(
+    path: str | Path,
+    t_h: np.ndarray,
+    before_v: np.ndarray,
+    after_v: np.ndarray,
+    sigma_v: np.ndarray,
+    windows_h: list[tuple[float, float]],
+    located_h: list[tuple[float, float]] = (),
+    title: str = "",
+    *,
+    findings: list[tuple[str, list[tuple[float, float]]]] | None = None,
+    temperature: tuple[np.ndarray, np.ndarray] | None = None,
+    output_unit: str = "V",
+) -> Path:
     """Write a PNG: the AU temperature (C) over time when ``temperature`` = (hours, C) is given; one panel per axis
     with the block residuals (uV; mm/s^2 when ``output_unit`` is m/s^2) against the passport (before) and the
     extended model (after), the +-3 sigma noise band of the blocks and the windows where the residual before
@@ -31,11 +48,15 @@ def plot_residuals(path: str | Path, t_h: np.ndarray, before_v: np.ndarray, afte
 
     path = Path(path)
     small, scale = OUTPUT_UNITS.get(output_unit, OUTPUT_UNITS["V"])
-    shaded = findings if findings is not None else ([("where the findings show", list(windows_h))]
-                                                    if windows_h else [])
+    shaded = findings if findings is not None else ([("where the findings show", list(windows_h))] if windows_h else [])
     n_top = 1 if temperature is not None else 0
-    fig, axes = new_figure(3 + n_top, 1, figsize=(11, 8 + 1.8 * n_top), sharex=True,
-                           gridspec_kw={"height_ratios": [1.6] * n_top + [2.2] * 3})
+    fig, axes = new_figure(
+        3 + n_top,
+        1,
+        figsize=(11, 8 + 1.8 * n_top),
+        sharex=True,
+        gridspec_kw={"height_ratios": [1.6] * n_top + [2.2] * 3},
+    )
     if temperature is not None:
         tax = axes[0]
         tax.plot(temperature[0], temperature[1], "-", color="k", lw=1, label="AU temperature")
@@ -50,21 +71,44 @@ def plot_residuals(path: str | Path, t_h: np.ndarray, before_v: np.ndarray, afte
             top = ax is axes[0] and n_top
             lo, hi = (1 - (k + 1) * lane, 1 - k * lane) if top else (0.97 - 0.04 * (k + 1), 0.97 - 0.04 * k)
             for j, (a, b) in enumerate(wins):
-                ax.axvspan(a, b, ymin=lo, ymax=hi, color=colour, alpha=0.35 if top else 0.9, lw=0,
-                           label=f"{k + 1}. {name}" if (j == 0 and ax is axes[0]) else None)
+                ax.axvspan(
+                    a,
+                    b,
+                    ymin=lo,
+                    ymax=hi,
+                    color=colour,
+                    alpha=0.35 if top else 0.9,
+                    lw=0,
+                    label=f"{k + 1}. {name}" if (j == 0 and ax is axes[0]) else None,
+                )
     for i, ax in enumerate(axes[n_top:]):
         for k, (a, b) in enumerate(located_h):
-            ax.axvspan(a, b, ymin=0.0, ymax=0.03, color="tab:red", lw=0,
-                       label="located: residual beyond 5 sigma" if k == 0 else None)
-        ax.fill_between(t_h, -3 * scale * sigma_v[:, i], 3 * scale * sigma_v[:, i], color="0.85", lw=0,
-                        step="mid", label="3 sigma (noise)")
+            ax.axvspan(
+                a,
+                b,
+                ymin=0.0,
+                ymax=0.03,
+                color="tab:red",
+                lw=0,
+                label="located: residual beyond 5 sigma" if k == 0 else None,
+            )
+        ax.fill_between(
+            t_h,
+            -3 * scale * sigma_v[:, i],
+            3 * scale * sigma_v[:, i],
+            color="0.85",
+            lw=0,
+            step="mid",
+            label="3 sigma (noise)",
+        )
         ax.plot(t_h, before_v[:, i] * scale, ".", ms=2, color="tab:red", label="before (passport)")
         ax.plot(t_h, after_v[:, i] * scale, ".", ms=2, color="tab:blue", label="after (extended model)")
         ax.set_ylabel(f"residual {AXES[i]} ({small})")
         ax.grid(alpha=0.3)
     if shaded or n_top:
-        axes[0].legend(loc="lower left", bbox_to_anchor=(0, 1.0), fontsize=8, frameon=False,
-                       ncols=min(len(shaded) + n_top, 4))
+        axes[0].legend(
+            loc="lower left", bbox_to_anchor=(0, 1.0), fontsize=8, frameon=False, ncols=min(len(shaded) + n_top, 4)
+        )
     axes[n_top].legend(*_series_handles(axes[n_top]), loc="upper right", fontsize=8, markerscale=4)
     axes[-1].set_xlabel("time since the start of the recording (h)")
     if title:
@@ -89,11 +133,23 @@ def plot_diagnosis(path: str | Path, diagnosis, run, title: str = "", *, output_
     t0_ns = int(run.voltmeter["t_ns"].min())
     temp = run.au_temperature
     t_temp_h = (temp["t_ns"].to_numpy() - t0_ns) / 3.6e12
-    findings = [(f["effect"], [((a - t0_ns) / 3.6e12, (b - t0_ns) / 3.6e12) for a, b in f["where"]["windows"]])
-                for f in diagnosis.report["findings"]]
-    return plot_residuals(path, diagnosis.t_h, diagnosis.before_v, diagnosis.after_v, diagnosis.sigma_v,
-                          diagnosis.windows_h, diagnosis.located_h, title, findings=findings,
-                          temperature=(t_temp_h, temp["temp_c"].to_numpy()), output_unit=output_unit)
+    findings = [
+        (f["effect"], [((a - t0_ns) / 3.6e12, (b - t0_ns) / 3.6e12) for a, b in f["where"]["windows"]])
+        for f in diagnosis.report["findings"]
+    ]
+    return plot_residuals(
+        path,
+        diagnosis.t_h,
+        diagnosis.before_v,
+        diagnosis.after_v,
+        diagnosis.sigma_v,
+        diagnosis.windows_h,
+        diagnosis.located_h,
+        title,
+        findings=findings,
+        temperature=(t_temp_h, temp["temp_c"].to_numpy()),
+        output_unit=output_unit,
+    )
 
 
 __all__ = ["plot_diagnosis", "plot_residuals"]

@@ -52,7 +52,7 @@ class Level:
     within the recording ("", "U0" or "K and U0")."""
 
     name: str
-    powers: int          # how many powers of dT (0: none, only a drift; 1: the constants at T0; order+1: the whole
+    powers: int  # how many powers of dT (0: none, only a drift; 1: the constants at T0; order+1: the whole
     #                      thermal model)
     u0_only: bool
     drift: str = ""
@@ -69,7 +69,7 @@ def levels(order: int) -> list[Level]:
     steps = [Level("U0", 1, True), Level("K and U0", 1, False)]
     if order >= 1:
         steps.append(Level("K, U0 and their thermal model", order + 1, False))
-    out = [Level("U0", 0, True, "U0"), Level("K and U0", 0, False, "K and U0")]    # the passport's at the start
+    out = [Level("U0", 0, True, "U0"), Level("K and U0", 0, False, "K and U0")]  # the passport's at the start
     for lv in steps:
         out.append(lv)
         for drift in ("U0",) if lv.u0_only else ("U0", "K and U0"):
@@ -86,7 +86,7 @@ def add_rate_columns(design: Design) -> None:
     k = np.zeros((b, 3, 9))
     for i in range(3):
         u0[:, i, i] = t_h
-        k[:, i, 3 * i:3 * i + 3] = t_h[:, None] * design.blocks.a_g
+        k[:, i, 3 * i : 3 * i + 3] = t_h[:, None] * design.blocks.a_g
     design.extra[RATE_U0] = ([f"rate_U0_{a}" for a in AXES], u0)
     design.extra[RATE_K] = ([f"rate_K_{a}{b_}" for a in AXES for b_ in AXES], k)
 
@@ -94,9 +94,9 @@ def add_rate_columns(design: Design) -> None:
 def level_mask(level: Level, order: int) -> np.ndarray:
     mask = np.zeros((order + 1, 4), dtype=bool)
     if level.u0_only:
-        mask[:level.powers, 3] = True
+        mask[: level.powers, 3] = True
     else:
-        mask[:level.powers, :] = True
+        mask[: level.powers, :] = True
     return mask.reshape(-1)
 
 
@@ -122,7 +122,7 @@ class ShiftResult:
 def passport_sigma(passport: dict) -> tuple[np.ndarray, np.ndarray]:
     """The passport's standard uncertainty of K (3, 3) V/g and U0 (3,) V at T0 (its ``uncertainty`` field where
     given, else the defaults)."""
-    unc = ((passport.get("uncertainty") or {}).get("coefficients") or {})
+    unc = (passport.get("uncertainty") or {}).get("coefficients") or {}
     k = np.full((3, 3), DEFAULT_PASSPORT_SIGMA["K"])
     u = np.full(3, DEFAULT_PASSPORT_SIGMA["U0"])
     try:
@@ -165,10 +165,14 @@ def find_shift(design: Design, passport: dict, threshold: float, state: tuple = 
     z_joint = departure_sigma(design, passport, change, max(lv.powers, 1))
     z = max(z, z_joint)
     w = design.blocks.n[:, None] * _kept(design)
-    rms_change = float(np.sqrt(np.sum(w * change ** 2) / np.sum(w)))
-    rms_noise = float(np.sqrt(np.sum(w * design.sigma ** 2) / np.sum(w)))
-    params.update(departure_sigma=round(z_joint, 1), departure_rms_v=rms_change, noise_rms_v=rms_noise,
-                  within_passport_uncertainty=bool(z < SIGNIFICANT_SIGMA))
+    rms_change = float(np.sqrt(np.sum(w * change**2) / np.sum(w)))
+    rms_noise = float(np.sqrt(np.sum(w * design.sigma**2) / np.sum(w)))
+    params.update(
+        departure_sigma=round(z_joint, 1),
+        departure_rms_v=rms_change,
+        noise_rms_v=rms_noise,
+        within_passport_uncertainty=bool(z < SIGNIFICANT_SIGMA),
+    )
     # beyond the noise, the passport as given does not explain the recording, whatever uncertainty it states
     significant = z >= SIGNIFICANT_SIGMA or rms_change > BEYOND_NOISE * rms_noise
     return ShiftResult(lv, mask, fr, float(dbic), significant, params, z)
@@ -186,10 +190,10 @@ def departure_sigma(design: Design, passport: dict, change_v: np.ndarray, powers
     (K and U0 at T0, and each of the ``powers`` - 1 thermal coefficients that uncertainty over 30 C per power)."""
     pk, pu = passport_sigma(passport)
     a = design.blocks.a_g
-    at_t0 = np.sqrt(pu[None, :] ** 2 + np.einsum("ij,bj->bi", pk ** 2, a ** 2))
+    at_t0 = np.sqrt(pu[None, :] ** 2 + np.einsum("ij,bj->bi", pk**2, a**2))
     x = (design.blocks.temp_c - design.rec.normal_temp_c) / 30.0
     spread = np.sqrt(np.sum(x[:, None] ** (2 * np.arange(powers))[None, :], axis=1))
-    sigma = np.sqrt(design.sigma ** 2 + (at_t0 * spread[:, None]) ** 2)
+    sigma = np.sqrt(design.sigma**2 + (at_t0 * spread[:, None]) ** 2)
     w = design.blocks.n[:, None] * _kept(design)
     return float(np.sqrt(np.sum(w * (change_v / sigma) ** 2) / max(np.sum(w), 1)))
 
@@ -202,18 +206,22 @@ def _amounts(fr: FitResult, lv: Level, passport: dict, duration_h: float) -> tup
     nb = fr.base_coef.shape[1] * 4
     birge = max(1.0, float(np.sqrt(fr.chi2 / max(fr.rw.size - fr.rank, 1))))
     sig_all = fr.coef_sigma() * birge
-    sig = sig_all[:3 * nb].reshape(3, -1, 4)
+    sig = sig_all[: 3 * nb].reshape(3, -1, 4)
     d = fr.base_coef
     du0, du0_s = d[:, 0, 3], sig[:, 0, 3]
     dk, dk_s = d[:, 0, :3], sig[:, 0, :3]
-    if lv.powers == 0:            # the passport's values at the start, held exactly
+    if lv.powers == 0:  # the passport's values at the start, held exactly
         du0_s, dk, dk_s = np.zeros(3), np.zeros((3, 3)), np.zeros((3, 3))
     pk, pu = passport_sigma(passport)
-    params = {"constants": lv.name, "change": "gradual" if lv.drift else "at one time",
-              "moved_before_the_recording": lv.powers > 0,
-              "dU0_v": du0.tolist(), "dU0_sigma_v": du0_s.tolist()}
+    params = {
+        "constants": lv.name,
+        "change": "gradual" if lv.drift else "at one time",
+        "moved_before_the_recording": lv.powers > 0,
+        "dU0_v": du0.tolist(),
+        "dU0_sigma_v": du0_s.tolist(),
+    }
     moved, z = _entries(d, sig, lv, pu, pk)
-    params["moved"] = moved                      # against the fit's and the passport's uncertainty
+    params["moved"] = moved  # against the fit's and the passport's uncertainty
     params["beyond_fit_uncertainty"] = _entries(d, sig, lv, 0 * pu, 0 * pk)[0]
     if lv.drift:
         drift, z_d = _drift(fr, lv, passport, duration_h, nb, birge)
@@ -227,14 +235,17 @@ def _amounts(fr: FitResult, lv: Level, passport: dict, duration_h: float) -> tup
         params["dK_sigma_v_per_g"] = np.where(np.isfinite(dk_s), dk_s, np.nan).tolist()
     if lv.powers > 1:
         params["thermal_model_change"] = {
-            f"power_{n}": {"dK_v_per_g_per_c": d[:, n, :3].tolist(), "dU0_v_per_c": d[:, n, 3].tolist(),
-                           "sigma_dU0_v_per_c": sig[:, n, 3].tolist()}
-            for n in range(1, lv.powers)}
+            f"power_{n}": {
+                "dK_v_per_g_per_c": d[:, n, :3].tolist(),
+                "dU0_v_per_c": d[:, n, 3].tolist(),
+                "sigma_dU0_v_per_c": sig[:, n, 3].tolist(),
+            }
+            for n in range(1, lv.powers)
+        }
     return params, z
 
 
-def _entries(d: np.ndarray, sig: np.ndarray, lv: Level, pu: np.ndarray, pk: np.ndarray
-             ) -> tuple[list[str], float]:
+def _entries(d: np.ndarray, sig: np.ndarray, lv: Level, pu: np.ndarray, pk: np.ndarray) -> tuple[list[str], float]:
     """The entries of level ``lv`` that moved by :data:`SIGNIFICANT_SIGMA` or more, most significant first (K_ij,
     U0_i at T0, their temperature coefficients "U0_x power 1", ...) and the largest change in sigmas: the fit's uncertainty
     ``sig`` (3, order+1, 4) combined with the passport's at T0 (``pu`` V, ``pk`` V/g), over 30 C per power for
@@ -244,23 +255,26 @@ def _entries(d: np.ndarray, sig: np.ndarray, lv: Level, pu: np.ndarray, pk: np.n
     out: list[tuple[float, str]] = []
     z = 0.0
     for n in range(lv.powers):
-        scale = 30.0 ** n
+        scale = 30.0**n
         su = sig[:, n, 3]
-        zu = np.abs(d[:, n, 3]) / np.sqrt(su ** 2 + (pu / scale) ** 2)
+        zu = np.abs(d[:, n, 3]) / np.sqrt(su**2 + (pu / scale) ** 2)
         tail = f" power {n}" if n else ""
         z = max(z, float(np.max(zu)))
         if not lv.u0_only:
             sk = np.where(np.isfinite(sig[:, n, :3]), sig[:, n, :3], 0.0)
-            zk = np.abs(d[:, n, :3]) / np.sqrt(sk ** 2 + (pk / scale) ** 2)
+            zk = np.abs(d[:, n, :3]) / np.sqrt(sk**2 + (pk / scale) ** 2)
             z = max(z, float(np.max(zk)))
-            out += [(zk[i, j], f"K_{a}{b}{tail}") for i, a in enumerate(AXES) for j, b in enumerate(AXES)
-                    if zk[i, j] >= SIGNIFICANT_SIGMA]
+            out += [
+                (zk[i, j], f"K_{a}{b}{tail}")
+                for i, a in enumerate(AXES)
+                for j, b in enumerate(AXES)
+                if zk[i, j] >= SIGNIFICANT_SIGMA
+            ]
         out += [(zz, f"U0_{a}{tail}") for a, zz in zip(AXES, zu) if zz >= SIGNIFICANT_SIGMA]
     return [name for _, name in sorted(out, key=lambda p: -p[0])], z
 
 
-def _drift(fr: FitResult, lv: Level, passport: dict, duration_h: float, nb: int, birge: float
-           ) -> tuple[dict, float]:
+def _drift(fr: FitResult, lv: Level, passport: dict, duration_h: float, nb: int, birge: float) -> tuple[dict, float]:
     """The drift within the recording: rates per hour and the values at the end of the recording (start value +
     rate x duration, their covariance included), each with its 1-sigma uncertainty, and the largest rate in
     sigmas."""
@@ -274,15 +288,17 @@ def _drift(fr: FitResult, lv: Level, passport: dict, duration_h: float, nb: int,
         rate = fr.coef[sl]
         idx = np.arange(sl.start, sl.stop)
         # the start values behind each rate: U0_i at T0 (column 3 of channel i's base), K_ij (column j)
-        start_idx = np.array([i * nb + (3 if name == "dU0" else j) for i in range(3)
-                              for j in ((0,) if name == "dU0" else range(3))])
-        cov = fr.coef_covariance(np.concatenate([start_idx, idx])) * birge ** 2
+        start_idx = np.array(
+            [i * nb + (3 if name == "dU0" else j) for i in range(3) for j in ((0,) if name == "dU0" else range(3))]
+        )
+        cov = fr.coef_covariance(np.concatenate([start_idx, idx])) * birge**2
         k = idx.size
         rate_s = np.sqrt(np.clip(np.diagonal(cov)[k:], 0.0, None))
         start = fr.coef[start_idx]
         end = start + rate * duration_h
-        end_var = (np.diagonal(cov)[:k] + duration_h ** 2 * np.diagonal(cov)[k:]
-                   + 2 * duration_h * np.diagonal(cov[:k, k:]))
+        end_var = (
+            np.diagonal(cov)[:k] + duration_h**2 * np.diagonal(cov)[k:] + 2 * duration_h * np.diagonal(cov[:k, k:])
+        )
         shape = (3,) if name == "dU0" else (3, 3)
         out[f"{name}_rate_{unit}_per_h"] = rate.reshape(shape).tolist()
         out[f"{name}_rate_sigma_{unit}_per_h"] = rate_s.reshape(shape).tolist()
@@ -295,8 +311,9 @@ def _drift(fr: FitResult, lv: Level, passport: dict, duration_h: float, nb: int,
             kii = np.diagonal(np.asarray(passport["coefficients"]["K"], dtype=float))
             r = np.diagonal(rate.reshape(3, 3))
             out["gain_drift_ppm_over_run"] = (r * duration_h / kii * 1e6).tolist()
-            out["gain_drift_sigma_ppm_over_run"] = (np.diagonal(rate_s.reshape(3, 3)) * duration_h
-                                                    / np.abs(kii) * 1e6).tolist()
+            out["gain_drift_sigma_ppm_over_run"] = (
+                np.diagonal(rate_s.reshape(3, 3)) * duration_h / np.abs(kii) * 1e6
+            ).tolist()
     out["_z"] = zs
     return out, z
 
@@ -325,8 +342,7 @@ def _moved_text(params: dict, names: list[str], most: int = 4) -> str:
                 parts.append(f"U0 {name[3]}'s temperature coefficient of power {n} by {small(x, '+.4g', f'/C^{n}')}")
             else:
                 x = ch.get("dK_v_per_g_per_c", [[0.0] * 3] * 3)[AXES.index(name[2])][AXES.index(name[3])]
-                parts.append(f"K {name[2:4]}'s temperature coefficient of power {n} by "
-                             f"{small(x, '+.4g', f'/g/C^{n}')}")
+                parts.append(f"K {name[2:4]}'s temperature coefficient of power {n} by {small(x, '+.4g', f'/g/C^{n}')}")
         elif not name.endswith("drift"):
             parts.append(name)
     more = len(parts) - most
@@ -340,43 +356,81 @@ def explain(params: dict, rms_before: float, rms_after: float, z: float) -> str:
     moved = _moved_text(params, params.get("moved", []))
     fit_moved = _moved_text(params, params.get("beyond_fit_uncertainty", []))
     if not params.get("moved_before_the_recording", True):
-        text = (f"The unit's constants ({params['constants']}) start the recording at the passport's values and "
-                "drift within it")
+        text = (
+            f"The unit's constants ({params['constants']}) start the recording at the passport's values and "
+            "drift within it"
+        )
     else:
         at = " (at the start of the recording)" if drift else ""
         if params.get("within_passport_uncertainty"):
-            text = (f"The passport's constants do not hold for this recording{at}: refit ({params['constants']}), "
-                    f"they change its prediction by {small(params['departure_rms_v'], '.2f')} RMS, "
-                    f"{params['departure_rms_v'] / params['noise_rms_v']:.0f} times the noise, although within "
-                    "the passport's own stated uncertainty (an imprecise or wrong passport, not necessarily a unit "
-                    "that moved)" + (f"; beyond the fit's uncertainty: {fit_moved}" if fit_moved else "") + ".")
+            text = (
+                f"The passport's constants do not hold for this recording{at}: refit ({params['constants']}), "
+                f"they change its prediction by {small(params['departure_rms_v'], '.2f')} RMS, "
+                f"{params['departure_rms_v'] / params['noise_rms_v']:.0f} times the noise, although within "
+                "the passport's own stated uncertainty (an imprecise or wrong passport, not necessarily a unit "
+                "that moved)" + (f"; beyond the fit's uncertainty: {fit_moved}" if fit_moved else "") + "."
+            )
         else:
-            text = (f"The unit's constants moved since its passport{at}: " + (moved or "no single entry is "
+            text = (
+                f"The unit's constants moved since its passport{at}: "
+                + (
+                    moved
+                    or "no single entry is "
                     f"significant on its own, but together ({params['constants']}) they depart from the passport "
-                    f"by {params.get('departure_sigma', z):.0f} sigma of its prediction") + ".")
+                    f"by {params.get('departure_sigma', z):.0f} sigma of its prediction"
+                )
+                + "."
+            )
         if moved and not params.get("within_passport_uncertainty"):
-            text += (f" Refit with them ({params['constants']}), the other entries agree with the passport within "
-                     f"{SIGNIFICANT_SIGMA:g} sigma.")
+            text += (
+                f" Refit with them ({params['constants']}), the other entries agree with the passport within "
+                f"{SIGNIFICANT_SIGMA:g} sigma."
+            )
     if params.get("thermal_model_note"):
         text += " " + params["thermal_model_note"]
     if drift:
         end, s_end = np.asarray(params["dU0_end_v"]), np.asarray(params["dU0_end_sigma_v"])
         rate = np.asarray(params["dU0_rate_v_per_h"])
-        text += (f" Over the {params['duration_h']:.1f} h recording ({drift} drifting) the offsets drift at "
-                 + ", ".join(f"{a} {small_number(x, '+.3f')}" for a, x in zip(AXES, rate)) + f" {small_name()}/h to "
-                 + ", ".join(f"{a} {small_number(x, '+.2f')} +/- {small_number(s, '.2g')}"
-                             for a, x, s in zip(AXES, end, s_end)) + f" {small_name()} at its end")
+        text += (
+            f" Over the {params['duration_h']:.1f} h recording ({drift} drifting) the offsets drift at "
+            + ", ".join(f"{a} {small_number(x, '+.3f')}" for a, x in zip(AXES, rate))
+            + f" {small_name()}/h to "
+            + ", ".join(
+                f"{a} {small_number(x, '+.2f')} +/- {small_number(s, '.2g')}" for a, x, s in zip(AXES, end, s_end)
+            )
+            + f" {small_name()} at its end"
+        )
         if "gain_drift_ppm_over_run" in params:
-            text += (", the gains by " + ", ".join(
-                f"{a} {x:+.1f} +/- {s:.2g}" for a, x, s in zip(AXES, params["gain_drift_ppm_over_run"],
-                                                                 params["gain_drift_sigma_ppm_over_run"]))
-                     + " ppm over it")
-        text += (" (a drift of the offsets is what the catalogue calls time_drift; against a passport it is part "
-                 "of the constants' change).")
-    return (text + f" Largest change {z:.0f} sigma (the passport's own uncertainty included); refitting takes the "
-            f"residual from {small_number(rms_before, '.2f')} to {small(rms_after, '.2f')} RMS.")
+            text += (
+                ", the gains by "
+                + ", ".join(
+                    f"{a} {x:+.1f} +/- {s:.2g}"
+                    for a, x, s in zip(AXES, params["gain_drift_ppm_over_run"], params["gain_drift_sigma_ppm_over_run"])
+                )
+                + " ppm over it"
+            )
+        text += (
+            " (a drift of the offsets is what the catalogue calls time_drift; against a passport it is part "
+            "of the constants' change)."
+        )
+    return (
+        text + f" Largest change {z:.0f} sigma (the passport's own uncertainty included); refitting takes the "
+        f"residual from {small_number(rms_before, '.2f')} to {small(rms_after, '.2f')} RMS."
+    )
 
 
-__all__ = ["Level", "ShiftResult", "levels", "level_mask", "find_shift", "passport_sigma", "explain",
-           "add_rate_columns", "RATE_U0", "RATE_K", "RATE_TERMS",
-           "DEFAULT_PASSPORT_SIGMA", "SIGNIFICANT_SIGMA"]
+__all__ = [
+    "Level",
+    "ShiftResult",
+    "levels",
+    "level_mask",
+    "find_shift",
+    "passport_sigma",
+    "explain",
+    "add_rate_columns",
+    "RATE_U0",
+    "RATE_K",
+    "RATE_TERMS",
+    "DEFAULT_PASSPORT_SIGMA",
+    "SIGNIFICANT_SIGMA",
+]

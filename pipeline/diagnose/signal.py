@@ -96,10 +96,18 @@ class StaticRecord:
 
     def context(self, constants, temp_c: np.ndarray | None = None) -> SignalContext:
         """A :class:`SignalContext` over the micro-samples with the given constants model (and temperature)."""
-        return SignalContext(t_s=self.t_s, temp_c=self.temp_c if temp_c is None else temp_c, a_g=self.a_g,
-                             position_idx=self.position_idx, move_start_s=self.move_start_s, arrive_s=self.arrive_s,
-                             constants=constants, normal_temp_c=self.normal_temp_c, ramp_sign=self.ramp_sign,
-                             start_ns=self.start_ns)
+        return SignalContext(
+            t_s=self.t_s,
+            temp_c=self.temp_c if temp_c is None else temp_c,
+            a_g=self.a_g,
+            position_idx=self.position_idx,
+            move_start_s=self.move_start_s,
+            arrive_s=self.arrive_s,
+            constants=constants,
+            normal_temp_c=self.normal_temp_c,
+            ramp_sign=self.ramp_sign,
+            start_ns=self.start_ns,
+        )
 
     def element_temperature_c(self, tau_s: float | None) -> np.ndarray:
         """Temperature (m,) C of a sensing element lagging the thermosensor by ``tau_s`` (None: no lag), computed
@@ -151,8 +159,15 @@ def segment_settings_for(run: Run, base: SegmentSettings = SegmentSettings()) ->
     return for_rate(base, run.voltmeter["t_ns"])
 
 
-def static_record(run: Run, segmentation: Segmentation, *, micro_s: float = 1.0, edge_margin_s: float = 0.5,
-                  settings: SegmentSettings = SegmentSettings(), slab_samples: int | None = None) -> StaticRecord:
+def static_record(
+    run: Run,
+    segmentation: Segmentation,
+    *,
+    micro_s: float = 1.0,
+    edge_margin_s: float = 0.5,
+    settings: SegmentSettings = SegmentSettings(),
+    slab_samples: int | None = None,
+) -> StaticRecord:
     """Reduce ``run`` to micro-sample means of its named static stretches (see the module doc).
 
     The voltmeter is read ``slab_samples`` samples at a time (default :data:`SLAB_SAMPLES`); the result does not
@@ -164,14 +179,15 @@ def static_record(run: Run, segmentation: Segmentation, *, micro_s: float = 1.0,
 
     stretches, kept = _named_stretches(run, segmentation, edge_margin_s, warnings)
     thermo_ns, thermo_c = _finite_thermosensor(run)
-    if thermo_c.size == 0:             # no temperature to put on any sample: nothing to compare
+    if thermo_c.size == 0:  # no temperature to put on any sample: nothing to compare
         kept_ok: list[tuple[int, int]] = []
     else:
         kept_ok = kept
     t0_s = np.array([s.t_start_s for s in stretches]) if stretches else np.zeros(0)
     bin_s = max(micro_s, 1.0 / rate_hz)
-    micro_sid, count, micro_t, micro_u, micro_temp = _micro_means(run, kept_ok, t0_s, start_ns, bin_s, thermo_ns,
-                                                                  thermo_c, slab)
+    micro_sid, count, micro_t, micro_u, micro_temp = _micro_means(
+        run, kept_ok, t0_s, start_ns, bin_s, thermo_ns, thermo_c, slab
+    )
     sigma = sample_noise_v(run, kept_ok, slab_samples=slab)
 
     pos_idx = np.array([POSITION_NAMES.index(s.position) for s in stretches], dtype=int)
@@ -181,11 +197,27 @@ def static_record(run: Run, segmentation: Segmentation, *, micro_s: float = 1.0,
     ramp, source, uncertain = _ramp_sign(run, micro_t, start_ns)
     thermo_t_s, thermo_temp_c = _thermosensor(run, start_ns)
     return StaticRecord(
-        start_ns=start_ns, normal_temp_c=float(run.meta.normal_temp_c), t_s=micro_t, u_v=micro_u, count=count,
-        temp_c=micro_temp, stretch=micro_sid, position_idx=micro_pos, a_g=table[micro_pos] if micro_pos.size
-        else np.zeros((0, 3)), ramp_sign=ramp, stretches=stretches, move_start_s=move_start_s, arrive_s=arrive_s,
-        sigma_sample_v=sigma, rate_hz=rate_hz, ramp_source=source, ramp_uncertain=uncertain,
-        thermo_t_s=thermo_t_s, thermo_c=thermo_temp_c, warnings=warnings)
+        start_ns=start_ns,
+        normal_temp_c=float(run.meta.normal_temp_c),
+        t_s=micro_t,
+        u_v=micro_u,
+        count=count,
+        temp_c=micro_temp,
+        stretch=micro_sid,
+        position_idx=micro_pos,
+        a_g=table[micro_pos] if micro_pos.size else np.zeros((0, 3)),
+        ramp_sign=ramp,
+        stretches=stretches,
+        move_start_s=move_start_s,
+        arrive_s=arrive_s,
+        sigma_sample_v=sigma,
+        rate_hz=rate_hz,
+        ramp_source=source,
+        ramp_uncertain=uncertain,
+        thermo_t_s=thermo_t_s,
+        thermo_c=thermo_temp_c,
+        warnings=warnings,
+    )
 
 
 def _slab(slab_samples: int | None) -> int:
@@ -231,8 +263,16 @@ def _finite_thermosensor(run: Run) -> tuple[np.ndarray, np.ndarray]:
     return tt.astype(np.float64), temp
 
 
-def _micro_means(run: Run, kept: list[tuple[int, int]], t0_s: np.ndarray, start_ns: int, bin_s: float,
-                 thermo_ns: np.ndarray, thermo_c: np.ndarray, slab: int):
+def _micro_means(
+    run: Run,
+    kept: list[tuple[int, int]],
+    t0_s: np.ndarray,
+    start_ns: int,
+    bin_s: float,
+    thermo_ns: np.ndarray,
+    thermo_c: np.ndarray,
+    slab: int,
+):
     """Micro-samples of the finite voltmeter samples in the ``kept`` index ranges (stretch k starting at
     ``t0_s[k]``): bins of ``bin_s`` from the stretch start. Returns per micro-sample the stretch, sample count, mean
     time (s since ``start_ns``), mean outputs (m, 3) V and mean interpolated thermosensor temperature (C).
@@ -263,12 +303,18 @@ def _micro_means(run: Run, kept: list[tuple[int, int]], t0_s: np.ndarray, start_
     key = (sid_a << 32) + bins_a
     first = np.flatnonzero(np.concatenate(([True], key[1:] != key[:-1])))
     count = np.add.reduceat(np.concatenate(cnt), first).astype(float)
-    return (sid_a[first].astype(int), count, np.add.reduceat(np.concatenate(s_t), first) / count,
-            np.add.reduceat(np.concatenate(s_u), first, axis=0) / count[:, None],
-            np.add.reduceat(np.concatenate(s_temp), first) / count)
+    return (
+        sid_a[first].astype(int),
+        count,
+        np.add.reduceat(np.concatenate(s_t), first) / count,
+        np.add.reduceat(np.concatenate(s_u), first, axis=0) / count[:, None],
+        np.add.reduceat(np.concatenate(s_temp), first) / count,
+    )
 
 
-def _named_stretches(run: Run, segmentation: Segmentation, margin_s: float, warnings: list[str]) -> tuple[list[Stretch], list[tuple[int, int]]]:
+def _named_stretches(
+    run: Run, segmentation: Segmentation, margin_s: float, warnings: list[str]
+) -> tuple[list[Stretch], list[tuple[int, int]]]:
     """Untrimmed static stretches, each named by the segments inside it, less ``margin_s`` at both ends."""
     raw = segmentation.stretches
     if not raw:
@@ -296,16 +342,24 @@ def _named_stretches(run: Run, segmentation: Segmentation, margin_s: float, warn
         a, b = int(a_all[k]), int(b_all[k])
         if b - a < 2:
             continue
-        stretches.append(Stretch(len(stretches), name, (a_ns[k] - start_ns) / _NS, (b_ns[k] - start_ns) / _NS,
-                                 (first_ns[k] - start_ns) / _NS))
+        stretches.append(
+            Stretch(
+                len(stretches),
+                name,
+                (a_ns[k] - start_ns) / _NS,
+                (b_ns[k] - start_ns) / _NS,
+                (first_ns[k] - start_ns) / _NS,
+            )
+        )
         kept.append((a, b))
     if unnamed:
         warnings.append(f"{unnamed} static stretch(es) without a position name left out")
     return stretches, kept
 
 
-def _moves(run: Run, kept, stretches: list[Stretch], start_ns: int, window_s: float, slab: int
-           ) -> tuple[np.ndarray, np.ndarray]:
+def _moves(
+    run: Run, kept, stretches: list[Stretch], start_ns: int, window_s: float, slab: int
+) -> tuple[np.ndarray, np.ndarray]:
     """(start, arrival) in s of every change of position between consecutive stretches.
 
     The move starts at the first sample after the earlier stretch. It arrives at the fixture log's arrival event
@@ -338,8 +392,16 @@ def _moves(run: Run, kept, stretches: list[Stretch], start_ns: int, window_s: fl
     return np.asarray(starts, dtype=float), np.asarray(arrivals, dtype=float)
 
 
-def _arrival_from_signal(run: Run, start_ns: int, before: tuple[int, int], after: tuple[int, int],
-                         angle_rad: float, slab: int, done: float = 0.999, edge: int = 10) -> float | None:
+def _arrival_from_signal(
+    run: Run,
+    start_ns: int,
+    before: tuple[int, int],
+    after: tuple[int, int],
+    angle_rad: float,
+    slab: int,
+    done: float = 0.999,
+    edge: int = 10,
+) -> float | None:
     """When the outputs between two static stretches (index ranges) have turned through ``done`` of the angle
     between the two positions, s since ``start_ns`` (interpolated between samples).
 
@@ -353,12 +415,11 @@ def _arrival_from_signal(run: Run, start_ns: int, before: tuple[int, int], after
     if not np.isfinite(step) or step < 1e-3 or angle_rad <= 0:
         return None
     lo, hi = before[1] - 1, after[0] + 1
-    later = None                  # (t_s, progress) of the first finite sample after the slab in hand
+    later = None  # (t_s, progress) of the first finite sample after the slab in hand
     for s1 in range(hi, lo, -slab):
         s0 = max(lo, s1 - slab)
         t_ns, *u = run.voltmeter_slab(s0, s1, ("t_ns", "ux", "uy", "uz"))
-        ratio = np.clip(np.linalg.norm(np.column_stack(u) - u_new, axis=1) / step * np.sin(angle_rad / 2), 0.0,
-                        1.0)
+        ratio = np.clip(np.linalg.norm(np.column_stack(u) - u_new, axis=1) / step * np.sin(angle_rad / 2), 0.0, 1.0)
         prog = 1.0 - 2 * np.arcsin(ratio) / angle_rad
         ok = np.isfinite(prog)
         t_s, prog = (t_ns[ok] - start_ns) / _NS, prog[ok]
@@ -401,8 +462,9 @@ def _ramp_steps(run: Run, start_ns: int) -> tuple[np.ndarray, np.ndarray, str]:
     return tt, ramp_sign_from_temperature(tt, temp), "AU thermosensor"
 
 
-def _ramp_sign(run: Run, t_s: np.ndarray, start_ns: int, before_s: float = 360.0, after_s: float = 60.0
-               ) -> tuple[np.ndarray, str, np.ndarray]:
+def _ramp_sign(
+    run: Run, t_s: np.ndarray, start_ns: int, before_s: float = 360.0, after_s: float = 60.0
+) -> tuple[np.ndarray, str, np.ndarray]:
     """The direction the temperature last came from at ``t_s``, where it came from, and where it is uncertain.
 
     From the chamber setpoint when it is recorded (exact ramp starts); else from the AU thermosensor, whose ramps
@@ -450,7 +512,7 @@ def sample_noise_v(run: Run, ranges: list[tuple[int, int]], *, slab_samples: int
 
     def differences():
         for a, b in ranges:
-            for s0, s1 in _spans(a, b - 1, slab):          # pairs (i, i + 1), a <= i < b - 1
+            for s0, s1 in _spans(a, b - 1, slab):  # pairs (i, i + 1), a <= i < b - 1
                 u = run.voltmeter_slab(s0, s1 + 1)
                 fin = finite_columns(u)
                 both = fin[1:] & fin[:-1]
@@ -460,8 +522,11 @@ def sample_noise_v(run: Run, ranges: list[tuple[int, int]], *, slab_samples: int
     if n < 10:
         return np.full(3, np.nan)
     med = exact_medians(differences, n, sample)
-    mad = exact_medians(lambda: ([np.abs(x - m) for x, m in zip(d, med)] for d in differences()), n,
-                        [np.abs(x - m) for x, m in zip(sample, med)])
+    mad = exact_medians(
+        lambda: ([np.abs(x - m) for x, m in zip(d, med)] for d in differences()),
+        n,
+        [np.abs(x - m) for x, m in zip(sample, med)],
+    )
     return np.maximum(1.4826 * mad / np.sqrt(2.0), _NOISE_FLOOR_V)
 
 
@@ -556,8 +621,7 @@ def make_blocks(rec: StaticRecord, block_s: float = 30.0, fine_edges_s=FINE_EDGE
     n_regular = np.floor((t1[rec.stretch] - t0[rec.stretch] - last_fine) / block_s)
     tail_short = (t1[rec.stretch] - t0[rec.stretch] - last_fine - n_regular * block_s) < block_s / 2
     regular = np.where(tail_short & (regular >= n_regular) & (n_regular >= 1), n_regular - 1, regular)
-    local = np.where(since < last_fine, np.searchsorted(fine, since, side="right") - 1,
-                     len(fine) - 1 + regular)
+    local = np.where(since < last_fine, np.searchsorted(fine, since, side="right") - 1, len(fine) - 1 + regular)
     key = rec.stretch.astype(np.int64) * (1 << 32) + local.astype(np.int64)
     starts = np.flatnonzero(np.concatenate(([True], np.diff(key) != 0))) if key.size else np.zeros(0, int)
     w = rec.count
@@ -565,13 +629,35 @@ def make_blocks(rec: StaticRecord, block_s: float = 30.0, fine_edges_s=FINE_EDGE
     ends = np.concatenate((starts[1:], [rec.size])) - 1
 
     def mean(q):
-        return np.add.reduceat(q * (w if q.ndim == 1 else w[:, None]), starts, axis=0) / (n if q.ndim == 1
-                                                                                           else n[:, None])
+        return np.add.reduceat(q * (w if q.ndim == 1 else w[:, None]), starts, axis=0) / (
+            n if q.ndim == 1 else n[:, None]
+        )
 
-    return Blocks(starts=starts, weight=w, n=n, t_s=mean(rec.t_s), t_start_s=rec.t_s[starts], t_end_s=rec.t_s[ends],
-                  since_start_s=since[starts], temp_c=mean(rec.temp_c), stretch=rec.stretch[starts],
-                  position_idx=rec.position_idx[starts], a_g=rec.a_g[starts])
+    return Blocks(
+        starts=starts,
+        weight=w,
+        n=n,
+        t_s=mean(rec.t_s),
+        t_start_s=rec.t_s[starts],
+        t_end_s=rec.t_s[ends],
+        since_start_s=since[starts],
+        temp_c=mean(rec.temp_c),
+        stretch=rec.stretch[starts],
+        position_idx=rec.position_idx[starts],
+        a_g=rec.a_g[starts],
+    )
 
 
-__all__ = ["Stretch", "StaticRecord", "Blocks", "static_record", "segment_settings_for", "make_blocks",
-           "sample_noise_v", "temperature_noise_c", "exact_medians", "FINE_EDGES_S", "SLAB_SAMPLES"]
+__all__ = [
+    "Stretch",
+    "StaticRecord",
+    "Blocks",
+    "static_record",
+    "segment_settings_for",
+    "make_blocks",
+    "sample_noise_v",
+    "temperature_noise_c",
+    "exact_medians",
+    "FINE_EDGES_S",
+    "SLAB_SAMPLES",
+]

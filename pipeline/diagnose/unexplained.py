@@ -43,7 +43,7 @@ def _per_axis(basis: np.ndarray) -> np.ndarray:
     b, k = basis.shape
     cols = np.zeros((b, 3, 3 * k))
     for i in range(3):
-        cols[:, i, i * k:(i + 1) * k] = basis
+        cols[:, i, i * k : (i + 1) * k] = basis
     return cols
 
 
@@ -75,7 +75,7 @@ def best_period_s(t_s: np.ndarray, r: np.ndarray, w: np.ndarray) -> float | None
     k = peak(periods)
     # refined to a small fraction of a cycle over the record: a period 1 % off drifts half a cycle in 50 cycles
     step = periods[1] / periods[0]
-    fine = np.geomspace(periods[k] / step ** 1.5, periods[k] * step ** 1.5, 301)
+    fine = np.geomspace(periods[k] / step**1.5, periods[k] * step**1.5, 301)
     return float(fine[peak(fine)])
 
 
@@ -88,27 +88,37 @@ def families(design: Design, current: FitResult) -> dict[str, tuple[list[str], n
         tb = time_basis(b.t_s, knot)
         out[fid] = (_labels("t", tb.shape[1]), _per_axis(tb), {"knot_s": knot})
     r = design.y - current.fitted
-    w = 1.0 / design.sigma ** 2
+    w = 1.0 / design.sigma**2
     t_step, size, _ = best_step(b.t_s, r, w)
-    out["empirical:step"] = (_labels("step", 1), _per_axis((b.t_s >= t_step).astype(float)[:, None]),
-                             {"step_at_h": t_step / 3600.0})
+    out["empirical:step"] = (
+        _labels("step", 1),
+        _per_axis((b.t_s >= t_step).astype(float)[:, None]),
+        {"step_at_h": t_step / 3600.0},
+    )
     period = best_period_s(b.t_s, r, w)
     if period is not None:
         out["empirical:periodic"] = _periodic_family(b.t_s, period)
     present = [int(p) for p in np.unique(b.position_idx) if p >= 0]
     pb = np.stack([(b.position_idx == p).astype(float) for p in present], axis=1)
-    out["empirical:orientation"] = (_labels("pos", len(present)), _per_axis(pb),
-                                    {"positions": [POSITION_NAMES[p] for p in present]})
+    out["empirical:orientation"] = (
+        _labels("pos", len(present)),
+        _per_axis(pb),
+        {"positions": [POSITION_NAMES[p] for p in present]},
+    )
     dt = b.temp_c - design.rec.normal_temp_c
     scale = max(float(np.max(np.abs(dt))), 1.0)
     powers = np.stack([(dt / scale) ** (design.order + 1 + k) for k in range(2)], axis=1)
-    out["empirical:temperature"] = (_labels("dT", 2), _per_axis(powers), {"powers": [design.order + 1,
-                                                                                     design.order + 2]})
+    out["empirical:temperature"] = (
+        _labels("dT", 2),
+        _per_axis(powers),
+        {"powers": [design.order + 1, design.order + 2]},
+    )
     return out
 
 
-def find_unexplained(design: Design, current: FitResult, locate_sigma: float,
-                     threshold: float = THRESHOLD) -> tuple[str, dict, float, list[dict]] | None:
+def find_unexplained(
+    design: Design, current: FitResult, locate_sigma: float, threshold: float = THRESHOLD
+) -> tuple[str, dict, float, list[dict]] | None:
     """The best generic correction when the residual after the catalogue still stands out (see the module doc):
     (id, description, dBIC, scores of all families), or None. Registers the chosen columns in ``design.extra``."""
     z = np.abs(design.y - current.fitted) / design.sigma
@@ -122,8 +132,9 @@ def find_unexplained(design: Design, current: FitResult, locate_sigma: float,
     for fid, (labels, cols, desc) in fams.items():
         design.extra[fid] = (labels, cols)
         chi2, added, _, _, _ = design.score(current, fid, None)
-        scores.append({"correction": fid, "delta_bic": round(float(chi2 - current.chi2 + added * ln_n), 1),
-                       "rank": int(added)})
+        scores.append(
+            {"correction": fid, "delta_bic": round(float(chi2 - current.chi2 + added * ln_n), 1), "rank": int(added)}
+        )
         del design.extra[fid]
     best = min(scores, key=lambda s: s["delta_bic"])
     if best["delta_bic"] >= -threshold or best["rank"] == 0:
@@ -170,7 +181,7 @@ def shares(design: Design, signature: np.ndarray, flagged_axes: np.ndarray) -> t
     dominant period (s), the share the sinusoid at it explains alone, and the step's time (h) are returned with the
     share each kind explains alone."""
     b = design.blocks
-    w = 1.0 / design.sigma ** 2
+    w = 1.0 / design.sigma**2
     axes = np.flatnonzero(flagged_axes)
     dt = b.temp_c - design.rec.normal_temp_c
     scale = max(float(np.max(np.abs(dt))), 1.0)
@@ -190,11 +201,11 @@ def shares(design: Design, signature: np.ndarray, flagged_axes: np.ndarray) -> t
         "direction of temperature change": np.stack([np.ones(b.size), ramp], axis=1),
         "orientation": np.stack([(b.position_idx == p).astype(float) for p in present], axis=1),
     }
-    sw = np.sqrt(w[:, axes])                                  # (B, a)
+    sw = np.sqrt(w[:, axes])  # (B, a)
     y = signature[:, axes] * sw
     mean = np.sum(y * sw, axis=0) / np.sum(sw * sw, axis=0)
     yc = y - mean * sw
-    total = float(np.sum(yc ** 2))
+    total = float(np.sum(yc**2))
 
     def explained(names: list[str], extra: list[np.ndarray] = ()) -> float:
         """Weighted sum of squares (about the mean) a joint fit of the bases ``names`` (and ``extra``) explains."""
@@ -203,10 +214,10 @@ def shares(design: Design, signature: np.ndarray, flagged_axes: np.ndarray) -> t
         basis = np.concatenate([np.ones((b.size, 1))] + [bases[n] for n in names] + list(extra), axis=1)
         out = 0.0
         for k in range(axes.size):
-            xw = basis * sw[:, k:k + 1]
+            xw = basis * sw[:, k : k + 1]
             coef, *_ = np.linalg.lstsq(xw, y[:, k], rcond=None)
             res = y[:, k] - xw @ coef
-            out += float(np.sum(yc[:, k] ** 2) - np.sum(res ** 2))
+            out += float(np.sum(yc[:, k] ** 2) - np.sum(res**2))
         return max(out, 0.0)
 
     alone = {n: explained([n]) / total if total > 0 else 0.0 for n in bases}
@@ -216,10 +227,13 @@ def shares(design: Design, signature: np.ndarray, flagged_axes: np.ndarray) -> t
         now = explained(taken)
         out[n] = round(max(now - have, 0.0) / total, 3) if total > 0 else 0.0
         have = max(have, now)
-    features = {"alone": {n: round(v, 3) for n, v in alone.items()},
-                "dominant_period_s": period,
-                "periodic_share": round(explained([], [periodic]) / total, 3) if periodic is not None and total > 0
-                else 0.0, "step_at_h": t_step / 3600.0, "step_share": round(step_share, 3)}
+    features = {
+        "alone": {n: round(v, 3) for n, v in alone.items()},
+        "dominant_period_s": period,
+        "periodic_share": round(explained([], [periodic]) / total, 3) if periodic is not None and total > 0 else 0.0,
+        "step_at_h": t_step / 3600.0,
+        "step_share": round(step_share, 3),
+    }
     return out, features
 
 
@@ -233,15 +247,23 @@ def best_step(t_s: np.ndarray, r: np.ndarray, w: np.ndarray) -> tuple[float, np.
     tot_w, tot_wr = cw[-1], cwr[-1]
     n1, s1 = cw[:-1], cwr[:-1]
     n2, s2 = tot_w - n1, tot_wr - s1
-    gain = (s1 ** 2 / n1 + s2 ** 2 / n2 - tot_wr ** 2 / tot_w).sum(axis=1)     # chi2 reduction of each split
+    gain = (s1**2 / n1 + s2**2 / n2 - tot_wr**2 / tot_w).sum(axis=1)  # chi2 reduction of each split
     k = int(np.argmax(gain))
     size = s2[k] / n2[k] - s1[k] / n1[k]
     var = float(np.sum(w * (r - tot_wr / tot_w) ** 2))
     return float(0.5 * (t[k] + t[k + 1])), size, float(gain[k] / var) if var > 0 else 0.0
 
 
-def describe(fid: str, desc: dict, residual: np.ndarray, design: Design, share: dict[str, float],
-             where: dict, peak: float, period_s: float | None = None) -> tuple[str, dict]:
+def describe(
+    fid: str,
+    desc: dict,
+    residual: np.ndarray,
+    design: Design,
+    share: dict[str, float],
+    where: dict,
+    peak: float,
+    period_s: float | None = None,
+) -> tuple[str, dict]:
     """Sentences for a person (what the residual looks like, where, how large; labelled empirical) and the
     numbers behind them. ``peak``: output unit (V or m/s^2)."""
     axes = "/".join(where["axes"]) or "no axis"
@@ -251,8 +273,11 @@ def describe(fid: str, desc: dict, residual: np.ndarray, design: Design, share: 
     if kind == "step":
         t_step = desc["step_at_h"] * 3600.0
         size = np.asarray(desc["coef"], dtype=float)[:3]
-        shape = (f"a step at about {t_step / 3600:.2f} h into the run of "
-                 + ", ".join(f"{a} {small_number(x, '+.1f')}" for a, x in zip(AXES, size)) + f" {small_name()}")
+        shape = (
+            f"a step at about {t_step / 3600:.2f} h into the run of "
+            + ", ".join(f"{a} {small_number(x, '+.1f')}" for a, x in zip(AXES, size))
+            + f" {small_name()}"
+        )
         extra = {"step_v": size.tolist()}
     elif kind.startswith("time"):
         shape = f"a wander over time (an empirical function of time with knots every {desc['knot_s'] / 60:.0f} min)"
@@ -268,9 +293,20 @@ def describe(fid: str, desc: dict, residual: np.ndarray, design: Design, share: 
         signature += f", {ranked[1][1]:.0%} more of {ranked[1][0]}"
     if ranked[0][0] == "time" and period_s is not None and kind != "periodic":
         signature += f" (its dominant period: {period_s / 60:.1f} min)"
-    return (f"A mismatch no catalogue effect explains: {shape}, up to {small(peak)} on {axes} (temperatures "
-            f"{temps} C). {signature}. An empirical correction ({kind}, not physics) takes it out."), extra
+    return (
+        f"A mismatch no catalogue effect explains: {shape}, up to {small(peak)} on {axes} (temperatures "
+        f"{temps} C). {signature}. An empirical correction ({kind}, not physics) takes it out."
+    ), extra
 
 
-__all__ = ["KNOT_S", "THRESHOLD", "families", "find_unexplained", "shares", "describe", "time_basis",
-           "best_period_s", "best_step"]
+__all__ = [
+    "KNOT_S",
+    "THRESHOLD",
+    "families",
+    "find_unexplained",
+    "shares",
+    "describe",
+    "time_basis",
+    "best_period_s",
+    "best_step",
+]

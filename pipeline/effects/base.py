@@ -161,8 +161,9 @@ class Effect:
             if key not in fields and key[-2:] in ("_x", "_y", "_z") and isinstance(fields.get(key[:-2]), tuple):
                 name, axis = key[:-2], AXES.index(key[-1])
             if name not in fields:
-                raise ValueError(f"effect {cls.id!r} has no parameter {key!r}; parameters: "
-                                 f"{', '.join(_describe_params(fields))}")
+                raise ValueError(
+                    f"effect {cls.id!r} has no parameter {key!r}; parameters: {', '.join(_describe_params(fields))}"
+                )
             try:
                 values[name] = cls._convert(name, fields[name], values[name], axis, raw)
             except (TypeError, ValueError, AttributeError) as e:
@@ -242,8 +243,9 @@ def axis_columns(cls: type[Effect], name: str, ctx: SignalContext, **fixed) -> l
     return [cls.make({name: list(e), **fixed}).delta_u_v(ctx) for e in np.eye(3)]
 
 
-def vector_columns(cls: type[Effect], name: str, prefix: str, ctx: SignalContext, **fixed
-                   ) -> tuple[list[str], list[np.ndarray]]:
+def vector_columns(
+    cls: type[Effect], name: str, prefix: str, ctx: SignalContext, **fixed
+) -> tuple[list[str], list[np.ndarray]]:
     """Labels ``prefix_x/_y/_z`` and :func:`axis_columns`."""
     return [f"{prefix}_{a}" for a in AXES], axis_columns(cls, name, ctx, **fixed)
 
@@ -272,10 +274,28 @@ def vec_uv(v, per: str = "") -> str:
     big = float(finite.max()) if finite.size else 0.0
     if 0.0 < big < 1.0 and unit == "uV":
         x, big, unit = x * 1e3, big * 1e3, "nV"
-    decimals = 0 if big >= 100 else 1 if big >= 10 else 2 if big >= 1 or big == 0.0 else \
-        min(6, 2 - int(np.floor(np.log10(big))))
+    decimals = (
+        0
+        if big >= 100
+        else 1
+        if big >= 10
+        else 2
+        if big >= 1 or big == 0.0
+        else min(6, 2 - int(np.floor(np.log10(big))))
+    )
     return ", ".join(f"{a} {c:+.{decimals}f}" for a, c in zip(AXES, x)) + f" {unit}{per}"
 
 
-__all__ = ["SignalContext", "Shown", "Effect", "Vec3", "finite", "log_grid", "axis_columns", "vector_columns",
-           "vector_parameters", "too_big", "vec_uv"]
+__all__ = [
+    "SignalContext",
+    "Shown",
+    "Effect",
+    "Vec3",
+    "finite",
+    "log_grid",
+    "axis_columns",
+    "vector_columns",
+    "vector_parameters",
+    "too_big",
+    "vec_uv",
+]

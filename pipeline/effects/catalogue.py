@@ -23,8 +23,11 @@ def _discover() -> dict[str, type[Effect]]:
         if info.name in _NOT_EFFECTS:
             continue
         module = importlib.import_module(f"pipeline.effects.{info.name}")
-        classes += [c for c in vars(module).values()
-                    if isinstance(c, type) and issubclass(c, Effect) and c.id and c.__module__ == module.__name__]
+        classes += [
+            c
+            for c in vars(module).values()
+            if isinstance(c, type) and issubclass(c, Effect) and c.id and c.__module__ == module.__name__
+        ]
     classes.sort(key=lambda c: (c.order, c.id))
     return {c.id: c for c in classes}
 
@@ -70,8 +73,7 @@ def parse_spec(spec: str) -> tuple[str, dict[str, float]]:
             try:
                 overrides[key.strip()] = float(value)
             except ValueError:
-                raise ValueError(f"effect {effect_id!r}: {key.strip()!r} is not a number: {value.strip()!r}") \
-                    from None
+                raise ValueError(f"effect {effect_id!r}: {key.strip()!r} is not a number: {value.strip()!r}") from None
     elif colon:
         raise ValueError(f"effect spec {spec!r} has ':' but no parameters")
     return effect_id, overrides

@@ -61,8 +61,10 @@ class FixtureFaceError(Effect):
 
     def position_vectors_g(self) -> dict[str, np.ndarray]:
         """The true specific force (g) of every position, R(delta_P) a_nominal."""
-        return {p: Rotation.from_rotvec(d).apply(np.asarray(ALL_POSITIONS[p], dtype=float))
-                for p, d in self.rotation_vectors_rad().items()}
+        return {
+            p: Rotation.from_rotvec(d).apply(np.asarray(ALL_POSITIONS[p], dtype=float))
+            for p, d in self.rotation_vectors_rad().items()
+        }
 
     def delta_u_v(self, ctx: SignalContext) -> np.ndarray:
         rot = self.rotation_vectors_rad()
@@ -122,7 +124,9 @@ class FixtureFaceError(Effect):
     @classmethod
     def explain(cls, p: dict[str, Any], shown: Shown) -> str:
         worst = max(p["delta_rad"].items(), key=lambda kv: np.linalg.norm(kv[1]))
-        return (f"The tilt fixture's faces carry their own small angular errors, up to "
-                f"{np.degrees(np.linalg.norm(worst[1])) * 3600:.0f} arcsec (in {worst[0]}): they move the "
-                f"horizontal channels of single positions by up to {small(shown.peak)}, the same at every "
-                "temperature.")
+        return (
+            f"The tilt fixture's faces carry their own small angular errors, up to "
+            f"{np.degrees(np.linalg.norm(worst[1])) * 3600:.0f} arcsec (in {worst[0]}): they move the "
+            f"horizontal channels of single positions by up to {small(shown.peak)}, the same at every "
+            "temperature."
+        )

@@ -36,13 +36,14 @@ class TemperatureCurvature(Effect):
     def delta_u_v(self, ctx: SignalContext) -> np.ndarray:
         k, _ = ctx.k_u0
         kii = np.diagonal(k, axis1=1, axis2=2)
-        dt3 = (ctx.dt_c ** 3)[:, None]
+        dt3 = (ctx.dt_c**3)[:, None]
         return dt3 * (np.asarray(self.c_v_per_c3) + kii * np.asarray(self.c_rel_per_c3) * ctx.a_g)
 
     @classmethod
     def fit_columns(cls, ctx, value):
-        cols = (axis_columns(cls, "c_v_per_c3", ctx, c_rel_per_c3=0.0)
-                + axis_columns(cls, "c_rel_per_c3", ctx, c_v_per_c3=0.0))
+        cols = axis_columns(cls, "c_v_per_c3", ctx, c_rel_per_c3=0.0) + axis_columns(
+            cls, "c_rel_per_c3", ctx, c_v_per_c3=0.0
+        )
         return [f"c_{a}" for a in AXES] + [f"crel_{a}" for a in AXES], cols
 
     @classmethod
@@ -51,14 +52,17 @@ class TemperatureCurvature(Effect):
 
     @classmethod
     def implausible(cls, p):
-        return (too_big(p, "c_v_per_c3", _LIMIT_AT_50C / 50 ** 3, "V/C^3")
-                or too_big(p, "c_rel_per_c3", _LIMIT_AT_50C / 50 ** 3, "1/C^3"))
+        return too_big(p, "c_v_per_c3", _LIMIT_AT_50C / 50**3, "V/C^3") or too_big(
+            p, "c_rel_per_c3", _LIMIT_AT_50C / 50**3, "1/C^3"
+        )
 
     @classmethod
     def explain(cls, p: dict[str, Any], shown: Shown) -> str:
-        c50 = np.asarray(p["c_v_per_c3"]) * 50.0 ** 3
-        r50 = np.asarray(p["c_rel_per_c3"]) * 50.0 ** 3 * 1e6
-        return (f"The temperature dependence has a cubic part the passport's polynomial lacks (at 50 C from T0: "
-                f"offsets {vec_uv(c50)}, gains {', '.join(f'{a} {x:+.0f}' for a, x in zip(AXES, r50))} ppm): up "
-                f"to {small(shown.peak)} on {shown.axes}{shown.temps}, where a polynomial through the "
-                "calibration temperatures cannot follow it.")
+        c50 = np.asarray(p["c_v_per_c3"]) * 50.0**3
+        r50 = np.asarray(p["c_rel_per_c3"]) * 50.0**3 * 1e6
+        return (
+            f"The temperature dependence has a cubic part the passport's polynomial lacks (at 50 C from T0: "
+            f"offsets {vec_uv(c50)}, gains {', '.join(f'{a} {x:+.0f}' for a, x in zip(AXES, r50))} ppm): up "
+            f"to {small(shown.peak)} on {shown.axes}{shown.temps}, where a polynomial through the "
+            "calibration temperatures cannot follow it."
+        )

@@ -53,6 +53,8 @@ class ThermalLag(Effect):
     def explain(cls, p: dict[str, Any], shown: Shown) -> str:
         tau = p["tau_s"]
         size = f"{tau:.0f} s" if tau >= 10 else f"{tau:.2g} s"
-        return (f"The sensing element lags the thermosensor by about {size} (a thermal gradient): during ramps and "
-                f"early in soaks the {shown.axes} outputs depart from the passport by up to {small(shown.peak)}, "
-                "with the sign of dT/dt, and agree again on soaked plateaus.")
+        return (
+            f"The sensing element lags the thermosensor by about {size} (a thermal gradient): during ramps and "
+            f"early in soaks the {shown.axes} outputs depart from the passport by up to {small(shown.peak)}, "
+            "with the sign of dT/dt, and agree again on soaked plateaus."
+        )

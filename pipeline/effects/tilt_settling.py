@@ -62,6 +62,8 @@ class TiltSettling(Effect):
 
     @classmethod
     def explain(cls, p: dict[str, Any], shown: Shown) -> str:
-        return (f"After every move the reading creeps to its final value: {p['f'] * 1e6:.0f} ppm of the step, "
-                f"decaying with a time constant of about {p['tau_s']:.0f} s (up to {small(shown.peak)} at the "
-                "start of each static position).")
+        return (
+            f"After every move the reading creeps to its final value: {p['f'] * 1e6:.0f} ppm of the step, "
+            f"decaying with a time constant of about {p['tau_s']:.0f} s (up to {small(shown.peak)} at the "
+            "start of each static position)."
+        )

@@ -11,8 +11,17 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from pipeline.effects.base import Effect, Shown, SignalContext, Vec3, log_grid, too_big, vec_uv, vector_columns, \
-    vector_parameters
+from pipeline.effects.base import (
+    Effect,
+    Shown,
+    SignalContext,
+    Vec3,
+    log_grid,
+    too_big,
+    vec_uv,
+    vector_columns,
+    vector_parameters,
+)
 from pipeline.model import small
 
 
@@ -45,6 +54,8 @@ class WarmupTransient(Effect):
 
     @classmethod
     def explain(cls, p: dict[str, Any], shown: Shown) -> str:
-        return (f"After power-on the zero offsets settle by {vec_uv(p['a_v'])} with a time constant of about "
-                f"{p['tau_s'] / 60:.1f} min: the early part of the first plateau{shown.temps} is off by up to "
-                f"{small(shown.peak)}.")
+        return (
+            f"After power-on the zero offsets settle by {vec_uv(p['a_v'])} with a time constant of about "
+            f"{p['tau_s'] / 60:.1f} min: the early part of the first plateau{shown.temps} is off by up to "
+            f"{small(shown.peak)}."
+        )

@@ -24,6 +24,8 @@ GAP_FACTOR = 5.0
 #: A sampled stream whose time jumps forward by more than this is refused: a clock error, or two recordings in one
 #: file (the segmenter works on the whole time span, so one sample stamped 1970 must not stretch it to decades).
 MAX_JUMP_S = 86_400.0
+
+
 def check_stream(stream: str, df: pl.DataFrame, *, path: str, warnings: list[str]) -> pl.DataFrame:
     """Check a stream table read from a file; return it in time order.
 
@@ -42,8 +44,10 @@ def check_stream(stream: str, df: pl.DataFrame, *, path: str, warnings: list[str
         back = t_ns[1:] < t_ns[:-1]
         row = int(back.argmax()) + 1
         df = df.sort("t_ns", maintain_order=True)
-        warnings.append(f"{stream}: {int(np.count_nonzero(back))} samples were out of time order (first at row {row}: "
-                        f"t_ns={t_ns[row]} after t_ns={t_ns[row - 1]}); sorted by t_ns")
+        warnings.append(
+            f"{stream}: {int(np.count_nonzero(back))} samples were out of time order (first at row {row}: "
+            f"t_ns={t_ns[row]} after t_ns={t_ns[row - 1]}); sorted by t_ns"
+        )
     if stream != "fixture" and df.height > 1:
         df = _check_time_base(stream, df, path=path, warnings=warnings)
     if stream == "fixture" and df.height:
@@ -52,7 +56,10 @@ def check_stream(stream: str, df: pl.DataFrame, *, path: str, warnings: list[str
             row = int(bad.arg_max())
             raise RunFormatError(
                 f"unknown fixture position {df['position'][row]!r} (expected one of {', '.join(FIXTURE_LABELS)})",
-                path=path, stream=stream, where=f"t_ns={df['t_ns'][row]}")
+                path=path,
+                stream=stream,
+                where=f"t_ns={df['t_ns'][row]}",
+            )
     return df
 
 
@@ -60,7 +67,7 @@ def _intervals(t_ns: np.ndarray):
     """``(offset, np.diff(t_ns[offset:offset + SLAB_SAMPLES + 1]))`` over the whole array: no temporary the length of a
     stream (at 1 kHz one is 0.5 GB, and every fresh one costs page faults)."""
     for a in range(0, t_ns.size - 1, SLAB_SAMPLES):
-        yield a, np.diff(t_ns[a:a + SLAB_SAMPLES + 1])
+        yield a, np.diff(t_ns[a : a + SLAB_SAMPLES + 1])
 
 
 def gap_indices(t_ns: np.ndarray) -> np.ndarray:
@@ -86,10 +93,14 @@ def _check_time_base(stream: str, df: pl.DataFrame, *, path: str, warnings: list
         jump = np.flatnonzero(dt > jump_ns)
         if jump.size:
             i = a + int(jump[0])
-            raise RunFormatError(f"time jumps forward by {(t_ns[i + 1] - t_ns[i]) / 3.6e12:.1f} h after "
-                                 f"t_ns={t_ns[i]}: a clock error or two recordings in one file (at most "
-                                 f"{MAX_JUMP_S / 3600:.0f} h without samples)", path=path, stream=stream,
-                                 where=f"t_ns={t_ns[i + 1]}")
+            raise RunFormatError(
+                f"time jumps forward by {(t_ns[i + 1] - t_ns[i]) / 3.6e12:.1f} h after "
+                f"t_ns={t_ns[i]}: a clock error or two recordings in one file (at most "
+                f"{MAX_JUMP_S / 3600:.0f} h without samples)",
+                path=path,
+                stream=stream,
+                where=f"t_ns={t_ns[i + 1]}",
+            )
         same_parts.append(a + np.flatnonzero(dt == 0) + 1)  # rows with the time of the row before
     same = np.concatenate(same_parts)
     if same.size:
@@ -102,10 +113,13 @@ def _check_time_base(stream: str, df: pl.DataFrame, *, path: str, warnings: list
             equal &= (x == y) | (np.isnan(x) & np.isnan(y))
         if not equal.all():
             k = int(same[~equal][0])
-            raise RunFormatError("two different samples at the same time", path=path, stream=stream,
-                                 where=f"t_ns={t_ns[k]}")
-        warnings.append(f"{stream}: dropped {same.size} repeated samples (same t_ns and values as the one before), "
-                        f"first at t_ns={t_ns[same[0]]}")
+            raise RunFormatError(
+                "two different samples at the same time", path=path, stream=stream, where=f"t_ns={t_ns[k]}"
+            )
+        warnings.append(
+            f"{stream}: dropped {same.size} repeated samples (same t_ns and values as the one before), "
+            f"first at t_ns={t_ns[same[0]]}"
+        )
         keep = np.ones(t_ns.size, dtype=bool)
         keep[same] = False
         df = df.filter(pl.Series(keep))
@@ -114,20 +128,24 @@ def _check_time_base(stream: str, df: pl.DataFrame, *, path: str, warnings: list
     if gaps.size:
         dt = t_ns[gaps + 1] - t_ns[gaps]
         i = int(gaps[np.argmax(dt)])
-        warnings.append(f"{stream}: {gaps.size} gap(s) without samples, the longest {dt.max() / 1e9:.1f} s after "
-                        f"t_ns={t_ns[i]}; the samples either side are used")
+        warnings.append(
+            f"{stream}: {gaps.size} gap(s) without samples, the longest {dt.max() / 1e9:.1f} s after "
+            f"t_ns={t_ns[i]}; the samples either side are used"
+        )
     return df
 
 
-def assemble_run(meta_values: dict[str, str] | None, frames: dict[str, pl.DataFrame], *, path: str,
-                 warnings: list[str]) -> Run:
+def assemble_run(
+    meta_values: dict[str, str] | None, frames: dict[str, pl.DataFrame], *, path: str, warnings: list[str]
+) -> Run:
     """Build the :class:`Run` from what a reader found; refuse a run without metadata or a required stream.
 
     ``frames`` maps stream name to its canonical table (streams absent from the file are absent from the map).
     """
     if meta_values is None:
-        raise RunFormatError("no run metadata (an MCAP metadata record named 'run' or run.json)", path=path,
-                             stream="metadata")
+        raise RunFormatError(
+            "no run metadata (an MCAP metadata record named 'run' or run.json)", path=path, stream="metadata"
+        )
     for stream in REQUIRED_STREAMS:
         df = frames.get(stream)
         if df is None:
@@ -136,8 +154,15 @@ def assemble_run(meta_values: dict[str, str] | None, frames: dict[str, pl.DataFr
             raise RunFormatError("required stream has no samples", path=path, stream=stream)
     checked = {name: check_stream(name, df, path=path, warnings=warnings) for name, df in frames.items()}
     meta = RunMeta.from_strings(meta_values, path=path)
-    return Run(meta=meta, voltmeter=checked["voltmeter"], au_temperature=checked["au_temperature"],
-               chamber=checked.get("chamber"), fixture=checked.get("fixture"), source=path, warnings=warnings)
+    return Run(
+        meta=meta,
+        voltmeter=checked["voltmeter"],
+        au_temperature=checked["au_temperature"],
+        chamber=checked.get("chamber"),
+        fixture=checked.get("fixture"),
+        source=path,
+        warnings=warnings,
+    )
 
 
 def writable_streams(run: Run, *, path: str) -> dict[str, pl.DataFrame]:
@@ -157,8 +182,9 @@ def writable_streams(run: Run, *, path: str) -> dict[str, pl.DataFrame]:
         try:
             df = df.select([pl.col(c).cast(dtype, strict=True) for c, dtype in spec.items()])
         except pl.exceptions.PolarsError as exc:
-            raise RunFormatError(f"stream table has columns of the wrong type ({exc})", path=path,
-                                 stream=stream) from None
+            raise RunFormatError(
+                f"stream table has columns of the wrong type ({exc})", path=path, stream=stream
+            ) from None
         t = df["t_ns"]
         if t.null_count():
             raise RunFormatError("t_ns has nulls", path=path, stream=stream)

@@ -35,8 +35,11 @@ SCHEMA_ENCODING = "protobuf"
 _INT64 = np.dtype("<i8")
 _FLOAT64 = np.dtype("<f8")
 #: protobuf field type expected for each column dtype of pipeline.run.STREAM_COLUMNS
-_FIELD_TYPES = {"Int64": FieldDescriptor.TYPE_SFIXED64, "Float64": FieldDescriptor.TYPE_DOUBLE,
-                "String": FieldDescriptor.TYPE_STRING}
+_FIELD_TYPES = {
+    "Int64": FieldDescriptor.TYPE_SFIXED64,
+    "Float64": FieldDescriptor.TYPE_DOUBLE,
+    "String": FieldDescriptor.TYPE_STRING,
+}
 _WIRE_VARINT, _WIRE_I64, _WIRE_LEN, _WIRE_I32 = 0, 1, 2, 5
 
 
@@ -62,11 +65,13 @@ def message_class(stream: str) -> type:
 def _layout(stream: str) -> dict[int, tuple[str, np.dtype]]:
     """Field number -> (column, little-endian dtype) of a block stream, checked against the canonical columns."""
     fields = {f.name: f for f in message_class(stream).DESCRIPTOR.fields}
-    problems = _field_problems(stream, {name: (f.number, f.type, f.is_repeated)
-                                        for name, f in fields.items()})
+    problems = _field_problems(stream, {name: (f.number, f.type, f.is_repeated) for name, f in fields.items()})
     if problems:  # the project's own schema file disagrees with pipeline.run: a broken installation
-        raise RunFormatError(f"schema does not match the canonical columns: {'; '.join(problems)}",
-                             path=str(DESCRIPTOR_SET_FILE), stream=stream)
+        raise RunFormatError(
+            f"schema does not match the canonical columns: {'; '.join(problems)}",
+            path=str(DESCRIPTOR_SET_FILE),
+            stream=stream,
+        )
     return {fields[name].number: (name, _INT64 if name == "t_ns" else _FLOAT64) for name in STREAM_COLUMNS[stream]}
 
 
@@ -81,16 +86,18 @@ def _field_problems(stream: str, fields: dict[str, tuple[int, int, bool]]) -> li
         if have is None:
             problems.append(f"no field {name!r}")
         elif have[1] != want_type or have[2] != want_repeated:
-            problems.append(f"field {name!r} is not {'repeated ' if want_repeated else ''}"
-                            f"{_type_name(want_type)}")
+            problems.append(f"field {name!r} is not {'repeated ' if want_repeated else ''}{_type_name(want_type)}")
         elif have[0] != numbers[name]:
             problems.append(f"field {name!r} has number {have[0]}, expected {numbers[name]}")
     return problems
 
 
 def _type_name(field_type: int) -> str:
-    return {FieldDescriptor.TYPE_SFIXED64: "sfixed64", FieldDescriptor.TYPE_DOUBLE: "double",
-            FieldDescriptor.TYPE_STRING: "string"}[field_type]
+    return {
+        FieldDescriptor.TYPE_SFIXED64: "sfixed64",
+        FieldDescriptor.TYPE_DOUBLE: "double",
+        FieldDescriptor.TYPE_STRING: "string",
+    }[field_type]
 
 
 # --- schema check ---------------------------------------------------------------------------------------------
@@ -179,8 +186,10 @@ def decode(stream: str, data: bytes | memoryview) -> dict[str, np.ndarray]:
                     return _decode_with_library(stream, view)
                 p = _read_varint(view, p)[1] if wire == _WIRE_VARINT else p + (8 if wire == _WIRE_I64 else 4)
             else:
-                raise BlockMismatch(f"not a protobuf {SCHEMA_NAMES[stream]} message (wire type {wire} at byte "
-                                    f"{p - 1}, first bytes {bytes(view[:12])!r})")
+                raise BlockMismatch(
+                    f"not a protobuf {SCHEMA_NAMES[stream]} message (wire type {wire} at byte "
+                    f"{p - 1}, first bytes {bytes(view[:12])!r})"
+                )
     except IndexError:
         raise BlockMismatch(f"message ends inside a field ({n} bytes)") from None
     if p > n:
@@ -188,8 +197,9 @@ def decode(stream: str, data: bytes | memoryview) -> dict[str, np.ndarray]:
     columns = {}
     for number, (name, dtype) in layout.items():
         arrays = [_packed(view, a, b, dtype, name) for a, b in spans.get(number, [])]
-        columns[name] = (arrays[0] if len(arrays) == 1 else
-                         np.concatenate(arrays) if arrays else np.empty(0, dtype=dtype))
+        columns[name] = (
+            arrays[0] if len(arrays) == 1 else np.concatenate(arrays) if arrays else np.empty(0, dtype=dtype)
+        )
     return _equal_lengths(columns)
 
 
@@ -218,8 +228,9 @@ def _packed(view: memoryview, start: int, end: int, dtype: np.dtype, name: str) 
 
 def _equal_lengths(columns: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     if len({a.size for a in columns.values()}) > 1:
-        raise BlockMismatch("arrays of unequal length (" + ", ".join(f"{k}: {a.size}" for k, a in columns.items())
-                            + ")")
+        raise BlockMismatch(
+            "arrays of unequal length (" + ", ".join(f"{k}: {a.size}" for k, a in columns.items()) + ")"
+        )
     return columns
 
 
@@ -240,6 +251,11 @@ def _decode_fixture(data: bytes | memoryview) -> dict[str, np.ndarray]:
     return {"t_ns": np.array([msg.t_ns], dtype=np.int64), "position": np.array([msg.position], dtype=object)}
 
 
-PROTOBUF_CODEC = BlockCodec(message_encoding=MESSAGE_ENCODING, schema_encoding=SCHEMA_ENCODING,
-                            schema_data=lambda stream: descriptor_set_bytes(), encode=encode, decode=decode,
-                            check_schema=check_schema)
+PROTOBUF_CODEC = BlockCodec(
+    message_encoding=MESSAGE_ENCODING,
+    schema_encoding=SCHEMA_ENCODING,
+    schema_data=lambda stream: descriptor_set_bytes(),
+    encode=encode,
+    decode=decode,
+    check_schema=check_schema,
+)

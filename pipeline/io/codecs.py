@@ -8,9 +8,9 @@ are package data in ``pipeline/io/schemas/``.
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import orjson
@@ -26,6 +26,7 @@ SCHEMA_NAMES: dict[str, str] = {
 }
 #: The schema files (JSON Schemas, the protobuf schema and its FileDescriptorSet), shipped inside the package.
 SCHEMA_DIR = Path(__file__).resolve().parent / "schemas"
+
 
 class BlockMismatch(ValueError):
     """A message that does not match its stream's schema (the reader adds the file, topic and time)."""
@@ -79,12 +80,14 @@ def _json_decode(stream: str, data: bytes | memoryview) -> dict[str, np.ndarray]
             raise BlockMismatch(f"missing key {name!r}")
     if stream == "fixture":
         return _json_fixture_event(obj)
-    columns = {name: (_int_array if name == "t_ns" else _float_array)(obj[name], name)
-               for name in STREAM_COLUMNS[stream]}
+    columns = {
+        name: (_int_array if name == "t_ns" else _float_array)(obj[name], name) for name in STREAM_COLUMNS[stream]
+    }
     lengths = {len(a) for a in columns.values()}
     if len(lengths) > 1:
-        raise BlockMismatch("arrays of unequal length (" + ", ".join(f"{k}: {len(a)}" for k, a in columns.items())
-                            + ")")
+        raise BlockMismatch(
+            "arrays of unequal length (" + ", ".join(f"{k}: {len(a)}" for k, a in columns.items()) + ")"
+        )
     return columns
 
 
@@ -141,5 +144,10 @@ def _first_non_integer(values: list) -> object:
     return next((v for v in values if type(v) is not int or not -(2**63) <= v < 2**63), None)
 
 
-JSON_CODEC = BlockCodec(message_encoding="json", schema_encoding="jsonschema", schema_data=_json_schema,
-                        encode=_json_encode, decode=_json_decode)
+JSON_CODEC = BlockCodec(
+    message_encoding="json",
+    schema_encoding="jsonschema",
+    schema_data=_json_schema,
+    encode=_json_encode,
+    decode=_json_decode,
+)

@@ -34,10 +34,10 @@ import struct
 import uuid
 import zlib
 from collections import deque
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterator
 
 import numpy as np
 import polars as pl
@@ -64,9 +64,23 @@ STREAM_OF_TOPIC: dict[str, str] = {topic: stream for stream, topic in TOPICS.ite
 # MCAP record opcodes (MCAP specification).
 _HEADER, _FOOTER, _SCHEMA, _CHANNEL, _MESSAGE, _CHUNK, _MESSAGE_INDEX, _CHUNK_INDEX = 1, 2, 3, 4, 5, 6, 7, 8
 _METADATA, _DATA_END = 0x0C, 0x0F
-_RECORD_NAMES = {1: "header", 2: "footer", 3: "schema", 4: "channel", 5: "message", 6: "chunk",
-                 7: "message index", 8: "chunk index", 9: "attachment", 10: "attachment index",
-                 11: "statistics", 12: "metadata", 13: "metadata index", 14: "summary offset", 15: "data end"}
+_RECORD_NAMES = {
+    1: "header",
+    2: "footer",
+    3: "schema",
+    4: "channel",
+    5: "message",
+    6: "chunk",
+    7: "message index",
+    8: "chunk index",
+    9: "attachment",
+    10: "attachment index",
+    11: "statistics",
+    12: "metadata",
+    13: "metadata index",
+    14: "summary offset",
+    15: "data end",
+}
 
 _RECORD_HEAD = struct.Struct("<BQ")  # opcode, body length
 _MESSAGE_HEAD = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
@@ -78,7 +92,9 @@ _CHANNEL_HEAD = struct.Struct("<HH")  # channel id, schema id
 
 _CHUNKS_AHEAD = 4  # chunks decompressed ahead of decoding
 _DECOMPRESS_THREADS = 2  # worker threads decompressing and CRC-checking chunks (both release the GIL)
-_PIECE_SAMPLES = SLAB_SAMPLES  # decoded blocks are copied into pieces of up to this many samples (one polars chunk each)
+_PIECE_SAMPLES = (
+    SLAB_SAMPLES  # decoded blocks are copied into pieces of up to this many samples (one polars chunk each)
+)
 _FIRST_PIECE_SAMPLES = 1024  # pieces start this small and double (short streams stay small)
 _NUMPY_DTYPES = {pl.Int64: np.int64, pl.Float64: np.float64, pl.String: object}
 
@@ -92,8 +108,16 @@ _COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none
 # --- writer -----------------------------------------------------------------------------------------------------
 
 
-def write_mcap(run: Run, path: str | Path, *, block_samples: int = 1000, chunk_size: int = 1 << 20,
-               compression: str = "zstd", summary: bool = True, encoding: str = "json") -> Path:
+def write_mcap(
+    run: Run,
+    path: str | Path,
+    *,
+    block_samples: int = 1000,
+    chunk_size: int = 1 << 20,
+    compression: str = "zstd",
+    summary: bool = True,
+    encoding: str = "json",
+) -> Path:
     """Write ``run`` as an MCAP file (log-format.md); return the path.
 
     ``block_samples``: samples per message (at most; ``/fixture`` has one event per message). ``chunk_size``: bytes
@@ -108,11 +132,19 @@ def write_mcap(run: Run, path: str | Path, *, block_samples: int = 1000, chunk_s
     if codec is None:
         raise RunFormatError(f"unknown message encoding {encoding!r} (known: {', '.join(CODECS)})", path=str(path))
     if compression not in _COMPRESSIONS:
-        raise RunFormatError(f"unknown compression {compression!r} (known: {', '.join(_COMPRESSIONS)})",
-                             path=str(path))
+        raise RunFormatError(f"unknown compression {compression!r} (known: {', '.join(_COMPRESSIONS)})", path=str(path))
     streams = writable_streams(run, path=str(path))
-    options = {} if summary else dict(repeat_schemas=False, repeat_channels=False, use_statistics=False,
-                                      use_summary_offsets=False, index_types=IndexType.NONE)
+    options = (
+        {}
+        if summary
+        else dict(
+            repeat_schemas=False,
+            repeat_channels=False,
+            use_statistics=False,
+            use_summary_offsets=False,
+            index_types=IndexType.NONE,
+        )
+    )
 
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:12]}.tmp")
@@ -133,8 +165,9 @@ def write_mcap(run: Run, path: str | Path, *, block_samples: int = 1000, chunk_s
     return path
 
 
-def _write_records(writer: Writer, codec: BlockCodec, run: Run, streams: dict[str, pl.DataFrame],
-                   block_samples: int) -> None:
+def _write_records(
+    writer: Writer, codec: BlockCodec, run: Run, streams: dict[str, pl.DataFrame], block_samples: int
+) -> None:
     channel_ids = {}
     for stream in streams:
         schema_id = writer.register_schema(SCHEMA_NAMES[stream], codec.schema_encoding, codec.schema_data(stream))
@@ -147,8 +180,9 @@ def _write_records(writer: Writer, codec: BlockCodec, run: Run, streams: dict[st
         block = {c: a[start:stop] for c, a in arrays[stream].items()}
         log_time_ns = int(block["t_ns"][0])
         sequence = start // (1 if stream == "fixture" else block_samples)
-        writer.add_message(channel_ids[stream], log_time_ns, codec.encode(stream, block), log_time_ns,
-                           sequence & 0xFFFFFFFF)
+        writer.add_message(
+            channel_ids[stream], log_time_ns, codec.encode(stream, block), log_time_ns, sequence & 0xFFFFFFFF
+        )
 
 
 def _blocks_in_time_order(streams: dict[str, pl.DataFrame], block_samples: int) -> list[tuple[str, int, int]]:
@@ -224,8 +258,9 @@ class _McapRunReader:
     def read(self) -> Run:
         self._check_magic()
         self._scan()
-        chunks = [(pos, start, end) for op, pos, start, end in self.data_records
-                  if op == _CHUNK and not self._skippable(pos)]
+        chunks = [
+            (pos, start, end) for op, pos, start, end in self.data_records if op == _CHUNK and not self._skippable(pos)
+        ]
         wanted = {pos for pos, _, _ in chunks}
         opened = self._opened_chunks(chunks)
         try:
@@ -268,7 +303,7 @@ class _McapRunReader:
                 self._truncated(pos, op, length, in_summary)
                 return
             if op == _FOOTER:
-                if buf[end:end + len(MAGIC)] != MAGIC:
+                if buf[end : end + len(MAGIC)] != MAGIC:
                     what = "is truncated in" if size - end < len(MAGIC) else "does not end with"
                     self.warnings.append(f"the file {what} the closing MCAP magic (byte {end}); all data was read")
                 return
@@ -292,14 +327,18 @@ class _McapRunReader:
                     in_summary = True
             except (struct.error, UnicodeDecodeError, _Malformed) as exc:
                 detail = f": {exc}" if isinstance(exc, _Malformed) else ""
-                raise self.fail(f"malformed {_RECORD_NAMES.get(op, f'opcode {op:#x}')} record{detail}",
-                                where=f"byte {pos}") from None
+                raise self.fail(
+                    f"malformed {_RECORD_NAMES.get(op, f'opcode {op:#x}')} record{detail}", where=f"byte {pos}"
+                ) from None
             pos = end
 
     def _truncated(self, pos: int, op: int | None, length: int, in_summary: bool) -> None:
         if op is None:
-            what = ("the file ends without a footer" if pos == self.size
-                    else f"the file ends inside the header of the record at byte {pos}")
+            what = (
+                "the file ends without a footer"
+                if pos == self.size
+                else f"the file ends inside the header of the record at byte {pos}"
+            )
         else:
             kind = _RECORD_NAMES.get(op, f"opcode {op:#x}")
             what = f"the {kind} record at byte {pos} needs {length} bytes, only {self.size - pos - 9} remain"
@@ -307,8 +346,9 @@ class _McapRunReader:
                 t_start, t_end = struct.unpack_from("<QQ", self.buf, pos + 9)
                 what += f" (its messages: t_ns {t_start}..{t_end})"
         if in_summary:
-            self.warnings.append(f"file is truncated at byte {self.size} in its summary section ({what}); "
-                                 "all data was read")
+            self.warnings.append(
+                f"file is truncated at byte {self.size} in its summary section ({what}); all data was read"
+            )
         else:
             self.truncation = f"file is truncated at byte {self.size}: {what}"
 
@@ -321,7 +361,7 @@ class _McapRunReader:
         (n,) = _U32.unpack_from(buf, p)
         if p + 4 + n > end:
             raise _Malformed("schema data runs past the record")
-        self.schemas[schema_id] = (name, encoding, bytes(buf[p + 4:p + 4 + n]))
+        self.schemas[schema_id] = (name, encoding, bytes(buf[p + 4 : p + 4 + n]))
 
     def _channel(self, buf, start: int, end: int, where: str) -> None:
         channel_id, schema_id = _CHANNEL_HEAD.unpack_from(buf, start)
@@ -333,18 +373,21 @@ class _McapRunReader:
             return
         codec = CODECS.get(encoding)
         if codec is None:
-            raise self.fail(f"unsupported message encoding {encoding!r} (supported: {', '.join(CODECS)})",
-                            stream=topic, where=where)
+            raise self.fail(
+                f"unsupported message encoding {encoding!r} (supported: {', '.join(CODECS)})", stream=topic, where=where
+            )
         schema = self.schemas.get(schema_id)
         if schema is not None and schema[0] != SCHEMA_NAMES[stream]:
-            raise self.fail(f"channel has schema {schema[0]!r}, expected {SCHEMA_NAMES[stream]!r}", stream=topic,
-                            where=where)
+            raise self.fail(
+                f"channel has schema {schema[0]!r}, expected {SCHEMA_NAMES[stream]!r}", stream=topic, where=where
+            )
         if schema is not None and codec.check_schema is not None:
             try:
                 codec.check_schema(stream, schema[1], schema[2])
             except BlockMismatch as exc:
-                raise self.fail(f"{encoding} channel with an unreadable schema: {exc}", stream=topic,
-                                where=where) from None
+                raise self.fail(
+                    f"{encoding} channel with an unreadable schema: {exc}", stream=topic, where=where
+                ) from None
         self.channels[channel_id] = _Channel(topic, stream, codec.decode)
         if stream not in self.columns:
             self.columns[stream] = _StreamColumns(stream)
@@ -356,8 +399,9 @@ class _McapRunReader:
         values = _string_map(buf, p, end)
         if self.meta is not None:  # which one describes the recording? neither is taken on trust
             differ = "that differ" if values != self.meta else "(identical)"
-            raise self.fail(f"two 'run' metadata records {differ}: a run has exactly one", stream="metadata",
-                            where=f"byte {start}")
+            raise self.fail(
+                f"two 'run' metadata records {differ}: a run has exactly one", stream="metadata", where=f"byte {start}"
+            )
         self.meta = values
 
     def _chunk_index(self, buf, start: int, end: int) -> None:
@@ -394,8 +438,9 @@ class _McapRunReader:
                 if k + _CHUNKS_AHEAD < len(chunks):
                     ahead.append(pool.submit(self._open_chunk, *chunks[k + _CHUNKS_AHEAD], buffers))
 
-    def _open_chunk(self, pos: int, start: int, end: int, buffers: _ChunkBuffers
-                    ) -> tuple[memoryview, str, _ChunkBuffers]:
+    def _open_chunk(
+        self, pos: int, start: int, end: int, buffers: _ChunkBuffers
+    ) -> tuple[memoryview, str, _ChunkBuffers]:
         """The uncompressed records of the chunk record at ``pos`` (in ``buffers``), a description of where it is,
         and ``buffers``."""
         buf = self.buf
@@ -415,8 +460,11 @@ class _McapRunReader:
             raise self.fail("the file changed while it was read", where=where)
         raw = self._decompress(compression, data, raw_size, where, topics, buffers)
         if crc and zlib.crc32(raw) != crc:
-            raise self.fail(f"corrupt chunk: CRC mismatch (stored {crc:#010x}, computed {zlib.crc32(raw):#010x})",
-                            stream=topics, where=where)
+            raise self.fail(
+                f"corrupt chunk: CRC mismatch (stored {crc:#010x}, computed {zlib.crc32(raw):#010x})",
+                stream=topics,
+                where=where,
+            )
         return raw, where, buffers
 
     def _chunk_topics(self, pos: int) -> str | None:
@@ -446,8 +494,9 @@ class _McapRunReader:
             detail = f": {exc}" if isinstance(exc, _Malformed) else ""
             raise self.fail(f"corrupt chunk: malformed records{detail}", where=where) from None
 
-    def _decompress(self, compression: str, data: memoryview, raw_size: int, where: str, topics: str | None,
-                    buffers: _ChunkBuffers) -> memoryview:
+    def _decompress(
+        self, compression: str, data: memoryview, raw_size: int, where: str, topics: str | None, buffers: _ChunkBuffers
+    ) -> memoryview:
         try:
             if compression == "zstd":
                 raw = buffers.sized("raw", raw_size)
@@ -456,15 +505,19 @@ class _McapRunReader:
                     while got < raw_size and (k := reader.readinto(raw[got:])):
                         got += k
                     if got == raw_size and reader.read(1):
-                        raise self.fail(f"corrupt chunk: more than the {raw_size} bytes the header says after "
-                                        "decompression", stream=topics, where=where)
+                        raise self.fail(
+                            f"corrupt chunk: more than the {raw_size} bytes the header says after decompression",
+                            stream=topics,
+                            where=where,
+                        )
                 raw = raw[:got]
             elif compression == "lz4":
                 try:
                     import lz4.frame
                 except ImportError:
-                    raise self.fail("chunk is lz4-compressed and the lz4 package is not installed",
-                                    where=where) from None
+                    raise self.fail(
+                        "chunk is lz4-compressed and the lz4 package is not installed", where=where
+                    ) from None
                 raw = memoryview(lz4.frame.decompress(data))
             elif compression == "":
                 raw = data
@@ -473,11 +526,15 @@ class _McapRunReader:
         except RunFormatError:
             raise
         except Exception as exc:  # zstd / lz4 errors on corrupt data
-            raise self.fail(f"corrupt chunk: cannot decompress {compression} data ({exc})", stream=topics,
-                            where=where) from None
+            raise self.fail(
+                f"corrupt chunk: cannot decompress {compression} data ({exc})", stream=topics, where=where
+            ) from None
         if len(raw) != raw_size:
-            raise self.fail(f"corrupt chunk: {len(raw)} bytes after decompression, the header says {raw_size}",
-                            stream=topics, where=where)
+            raise self.fail(
+                f"corrupt chunk: {len(raw)} bytes after decompression, the header says {raw_size}",
+                stream=topics,
+                where=where,
+            )
         return raw
 
     def _message(self, buf, start: int, end: int, where: str) -> None:
@@ -493,11 +550,13 @@ class _McapRunReader:
             return
         columns = self.columns[channel.stream]
         try:
-            decoded = channel.decode(channel.stream, buf[start + _MESSAGE_HEAD.size:end])
+            decoded = channel.decode(channel.stream, buf[start + _MESSAGE_HEAD.size : end])
         except BlockMismatch as exc:
-            raise self.fail(f"message does not match schema {SCHEMA_NAMES[channel.stream]}: {exc}",
-                            stream=channel.topic,
-                            where=f"t_ns={log_time} (message {columns.messages} of the topic, {where})") from None
+            raise self.fail(
+                f"message does not match schema {SCHEMA_NAMES[channel.stream]}: {exc}",
+                stream=channel.topic,
+                where=f"t_ns={log_time} (message {columns.messages} of the topic, {where})",
+            ) from None
         columns.add(decoded)
 
     # -- result ----------------------------------------------------------------------------------------------------
@@ -509,14 +568,18 @@ class _McapRunReader:
             missing += [f"{TOPICS[s]} samples" for s in REQUIRED_STREAMS if s not in frames or not frames[s].height]
             if missing:
                 raise self.fail(f"{self.truncation}; no {' and no '.join(missing)} before that point")
-            self.warnings.append(f"{self.truncation}; dropped that record and anything after it; kept "
-                                 f"{chunks_read} complete chunk(s), voltmeter samples up to "
-                                 f"t_ns={frames['voltmeter']['t_ns'].max()}")
+            self.warnings.append(
+                f"{self.truncation}; dropped that record and anything after it; kept "
+                f"{chunks_read} complete chunk(s), voltmeter samples up to "
+                f"t_ns={frames['voltmeter']['t_ns'].max()}"
+            )
         if self.meta is None and not frames:
             topics = sorted({c.topic for c in self.channels.values()})
             found = f"topics in the file: {', '.join(topics)}" if topics else "the file has no channels"
-            raise self.fail(f"no run topics or run metadata found: not a thermocal chamber run "
-                            f"(expected metadata 'run' and topics {', '.join(TOPICS.values())}; {found})")
+            raise self.fail(
+                f"no run topics or run metadata found: not a thermocal chamber run "
+                f"(expected metadata 'run' and topics {', '.join(TOPICS.values())}; {found})"
+            )
         if self.skipped:
             self.warnings.append(f"ignored topics that are not part of a run: {', '.join(sorted(self.skipped))}")
         if self.undefined_channel_messages:
@@ -550,7 +613,7 @@ def _read_at(fd: int, view: memoryview, offset: int) -> int:
         else:  # no preadv (Windows)
             data = os.pread(fd, len(view) - got, offset + got)
             k = len(data)
-            view[got:got + k] = data
+            view[got : got + k] = data
         if k == 0:
             break
         got += k
@@ -576,13 +639,13 @@ class _StreamColumns:
             self.capacity = max(n, min(_PIECE_SAMPLES, max(_FIRST_PIECE_SAMPLES, 2 * self.capacity)))
             self.current = {name: np.empty(self.capacity, dtype=dtype) for name, dtype in self.dtypes.items()}
         for name, values in block.items():
-            self.current[name][self.filled:self.filled + n] = values
+            self.current[name][self.filled : self.filled + n] = values
         self.filled += n
         self.messages += 1
 
     def _close_piece(self) -> None:
         if self.filled:
-            self.pieces.append({name: a[:self.filled] for name, a in self.current.items()})
+            self.pieces.append({name: a[: self.filled] for name, a in self.current.items()})
         self.current, self.filled = {}, 0
 
     def frame(self) -> pl.DataFrame:
@@ -590,8 +653,13 @@ class _StreamColumns:
         columns = []
         for name, dtype in STREAM_COLUMNS[self.stream].items():
             series = [pl.Series(name, piece[name], dtype=dtype) for piece in self.pieces]
-            columns.append(pl.concat(series, rechunk=False) if len(series) > 1 else
-                           series[0] if series else pl.Series(name, [], dtype=dtype))
+            columns.append(
+                pl.concat(series, rechunk=False)
+                if len(series) > 1
+                else series[0]
+                if series
+                else pl.Series(name, [], dtype=dtype)
+            )
         return pl.DataFrame(columns)
 
 
@@ -601,7 +669,7 @@ def _string(buf, p: int, end: int) -> tuple[str, int]:
     p += 4
     if p + n > end:
         raise _Malformed("string runs past the record")
-    return bytes(buf[p:p + n]).decode("utf-8"), p + n
+    return bytes(buf[p : p + n]).decode("utf-8"), p + n
 
 
 def _string_map(buf, p: int, end: int) -> dict[str, str]:

@@ -70,8 +70,16 @@ def write_parquet_run(run: Run, directory: str | Path) -> Path:
 def _write_stream(df: pl.DataFrame, path: Path) -> None:
     """One stream's file: zstd, statistics, a CRC-32 in every page header; dictionary encoding for strings only."""
     strings = [c for c, dt in df.schema.items() if dt == pl.String]
-    pq.write_table(df.to_arrow(), path, compression="zstd", compression_level=3, use_dictionary=strings or False,
-                   write_statistics=True, write_page_checksum=True, row_group_size=ROW_GROUP_ROWS)
+    pq.write_table(
+        df.to_arrow(),
+        path,
+        compression="zstd",
+        compression_level=3,
+        use_dictionary=strings or False,
+        write_statistics=True,
+        write_page_checksum=True,
+        row_group_size=ROW_GROUP_ROWS,
+    )
 
 
 def read_parquet_run(directory: str | Path) -> Run:
@@ -103,8 +111,9 @@ def _read_meta(path: Path) -> dict[str, str]:
     out = {}
     for key, value in values.items():
         if isinstance(value, bool) or not isinstance(value, (str, int, float)):
-            raise RunFormatError(f"metadata key {key!r} must be a string, got {value!r}", path=str(path),
-                                 stream="metadata")
+            raise RunFormatError(
+                f"metadata key {key!r} must be a string, got {value!r}", path=str(path), stream="metadata"
+            )
         out[key] = value if isinstance(value, str) else repr(value)
     return out
 
@@ -116,13 +125,13 @@ def _read_stream(path: Path, stream: str) -> pl.DataFrame:
     try:
         df = pl.read_parquet(path)
     except (pl.exceptions.PolarsError, OSError) as exc:
-        raise RunFormatError(f"not a readable Parquet file ({_one_line(exc)})", path=str(path),
-                             stream=stream) from None
+        raise RunFormatError(f"not a readable Parquet file ({_one_line(exc)})", path=str(path), stream=stream) from None
     columns = []
     for name, dtype in STREAM_COLUMNS[stream].items():
         if name not in df.columns:
-            raise RunFormatError(f"column {name!r} is missing (columns: {', '.join(df.columns)})", path=str(path),
-                                 stream=stream)
+            raise RunFormatError(
+                f"column {name!r} is missing (columns: {', '.join(df.columns)})", path=str(path), stream=stream
+            )
         columns.append(_canonical_column(df[name], dtype, path=str(path), stream=stream))
     return pl.DataFrame(columns)
 
@@ -142,8 +151,9 @@ def _canonical_column(s: pl.Series, dtype: pl.DataType, *, path: str, stream: st
         try:
             out = s.cast(pl.Int64, strict=True)
         except pl.exceptions.PolarsError:
-            raise RunFormatError(f"column {s.name!r} ({have}) has values beyond int64", path=path,
-                                 stream=stream) from None
+            raise RunFormatError(
+                f"column {s.name!r} ({have}) has values beyond int64", path=path, stream=stream
+            ) from None
     elif dtype == pl.Int64 and isinstance(have, pl.Datetime):
         out = s.dt.epoch("ns")
     elif dtype == pl.String and isinstance(have, (pl.Categorical, pl.Enum)):
@@ -158,8 +168,9 @@ def _canonical_column(s: pl.Series, dtype: pl.DataType, *, path: str, stream: st
 # --- page checksums -----------------------------------------------------------------------------------------------
 # Thrift compact protocol, just enough to read a PageHeader's compressed_page_size (field 3) and crc (field 4) and
 # skip everything else (parquet.thrift). Field types of the compact protocol:
-(_T_TRUE, _T_FALSE, _T_BYTE, _T_I16, _T_I32, _T_I64, _T_DOUBLE, _T_BINARY, _T_LIST, _T_SET, _T_MAP,
- _T_STRUCT) = range(1, 13)
+(_T_TRUE, _T_FALSE, _T_BYTE, _T_I16, _T_I32, _T_I64, _T_DOUBLE, _T_BINARY, _T_LIST, _T_SET, _T_MAP, _T_STRUCT) = range(
+    1, 13
+)
 
 
 class _Corrupt(Exception):
@@ -265,9 +276,8 @@ def verify_page_checksums(path: str | Path, stream: str | None = None) -> int:
     path = Path(path)
     try:
         meta = pq.ParquetFile(path).metadata
-    except Exception as exc:  # noqa: BLE001 - pyarrow raises several types for a damaged footer
-        raise RunFormatError(f"not a readable Parquet file ({_one_line(exc)})", path=str(path),
-                             stream=stream) from None
+    except Exception as exc:
+        raise RunFormatError(f"not a readable Parquet file ({_one_line(exc)})", path=str(path), stream=stream) from None
     checked = 0
     with open(path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as buf:
         view = memoryview(buf)
@@ -287,18 +297,27 @@ def verify_page_checksums(path: str | Path, stream: str | None = None) -> int:
                         try:
                             size, crc, data = _page_header(view, i)
                         except (_Corrupt, IndexError) as exc:
-                            raise RunFormatError(f"column {name!r}: unreadable page header at byte {i} ({exc}): the "
-                                                 "file is corrupted", path=str(path), stream=stream,
-                                                 where=rows) from None
+                            raise RunFormatError(
+                                f"column {name!r}: unreadable page header at byte {i} ({exc}): the file is corrupted",
+                                path=str(path),
+                                stream=stream,
+                                where=rows,
+                            ) from None
                         if data + size > end:
-                            raise RunFormatError(f"column {name!r}: page at byte {i} runs past its column chunk: "
-                                                 "the file is corrupted", path=str(path), stream=stream,
-                                                 where=rows)
+                            raise RunFormatError(
+                                f"column {name!r}: page at byte {i} runs past its column chunk: the file is corrupted",
+                                path=str(path),
+                                stream=stream,
+                                where=rows,
+                            )
                         if crc is not None:
-                            if zlib.crc32(view[data:data + size]) != crc:
-                                raise RunFormatError(f"column {name!r}: page checksum mismatch at byte {i}: the "
-                                                     "file is corrupted", path=str(path), stream=stream,
-                                                     where=rows)
+                            if zlib.crc32(view[data : data + size]) != crc:
+                                raise RunFormatError(
+                                    f"column {name!r}: page checksum mismatch at byte {i}: the file is corrupted",
+                                    path=str(path),
+                                    stream=stream,
+                                    where=rows,
+                                )
                             checked += 1
                         i = data + size
         finally:

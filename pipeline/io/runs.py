@@ -41,7 +41,6 @@ def read_run(path: str | Path) -> Run:
     """Read one chamber run from a ``*.mcap`` file or a Parquet run directory."""
     fmt = run_format(path)
     if fmt == "mcap":
-
         return read_mcap(path)
 
     return read_parquet_run(path)
@@ -81,19 +80,20 @@ def read_run_meta(path: str | os.PathLike) -> RunMeta:
         else:
             with open(p, "rb") as f:
                 if f.read(len(MAGIC)) != MAGIC:
-                    raise RunFormatError("not an MCAP file (it does not start with the MCAP magic bytes)",
-                                         path=str(p))
+                    raise RunFormatError("not an MCAP file (it does not start with the MCAP magic bytes)", path=str(p))
                 f.seek(0)
                 records = [dict(m.metadata) for m in make_reader(f).iter_metadata() if m.name == "run"]
                 if len(records) > 1:
-                    raise RunFormatError("two 'run' metadata records: a run has exactly one", path=str(p),
-                                         stream="metadata")
+                    raise RunFormatError(
+                        "two 'run' metadata records: a run has exactly one", path=str(p), stream="metadata"
+                    )
                 values = records[0] if records else None
     except RunFormatError:
         raise
-    except Exception as exc:  # noqa: BLE001 - OSError, JSON or MCAP library errors: one line
-        raise RunFormatError(f"cannot read the run metadata ({type(exc).__name__}: {exc})", path=str(p),
-                             stream="metadata") from None
+    except Exception as exc:
+        raise RunFormatError(
+            f"cannot read the run metadata ({type(exc).__name__}: {exc})", path=str(p), stream="metadata"
+        ) from None
     if values is None:
         raise RunFormatError("no run metadata (an MCAP metadata record named 'run')", path=str(p), stream="metadata")
     return RunMeta.from_strings(values, path=str(p))

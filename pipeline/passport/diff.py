@@ -30,30 +30,39 @@ def diff_passports(a: dict, b: dict, *, unit: str, v1: int, v2: int) -> dict:
     """
     gains = _gains_v_per_g(a) or _gains_v_per_g(b)
     u = output_unit_of(b)
-    fields = [{"name": k, "old": a.get(k), "new": b.get(k)}
-              for k in ("schema", "status", "normal_temp_c", "g_local_mps2") if a.get(k) != b.get(k)]
+    fields = [
+        {"name": k, "old": a.get(k), "new": b.get(k)}
+        for k in ("schema", "status", "normal_temp_c", "g_local_mps2")
+        if a.get(k) != b.get(k)
+    ]
     if output_unit_of(a) != u:
         fields.append({"name": "output_unit", "old": output_unit_of(a), "new": u})
     pa, pb = a.get("provenance") or {}, b.get("provenance") or {}
     if pa.get("code_version") != pb.get("code_version"):
-        fields.append({"name": "provenance.code_version", "old": pa.get("code_version"),
-                       "new": pb.get("code_version")})
+        fields.append({"name": "provenance.code_version", "old": pa.get("code_version"), "new": pb.get("code_version")})
     thermal, thermal_fields = _diff_thermal(a.get("thermal_model") or {}, b.get("thermal_model") or {}, gains, u)
     rate, rate_fields = _diff_rate(a.get("rate_terms") or {}, b.get("rate_terms") or {}, gains, u)
     old_in = {i["sha256"]: i for i in pa.get("inputs") or []}
     new_in = {i["sha256"]: i for i in pb.get("inputs") or []}
     return {
-        "unit": unit, "v1": int(v1), "v2": int(v2),
-        "constants": annotate(_diff_constants(a.get("coefficients") or {}, b.get("coefficients") or {}, gains, u),
-                              a, b),
+        "unit": unit,
+        "v1": int(v1),
+        "v2": int(v2),
+        "constants": annotate(
+            _diff_constants(a.get("coefficients") or {}, b.get("coefficients") or {}, gains, u), a, b
+        ),
         "thermal_model": annotate(thermal, a, b),
         "rate_terms": annotate(rate, a, b),
         "significance": significance_note(),
         "fields": fields + thermal_fields + rate_fields,
-        "settings": [{"name": k, "old": o, "new": n}
-                     for k, (o, n) in _diff_flat(pa.get("settings") or {}, pb.get("settings") or {}).items()],
-        "inputs": {"added": [new_in[s] for s in new_in if s not in old_in],
-                   "removed": [old_in[s] for s in old_in if s not in new_in]},
+        "settings": [
+            {"name": k, "old": o, "new": n}
+            for k, (o, n) in _diff_flat(pa.get("settings") or {}, pb.get("settings") or {}).items()
+        ],
+        "inputs": {
+            "added": [new_in[s] for s in new_in if s not in old_in],
+            "removed": [old_in[s] for s in old_in if s not in new_in],
+        },
     }
 
 
@@ -71,8 +80,15 @@ def _entry(name: str, unit: str, old: Any, new: Any, scale: float | None, scaled
     """One changed number; delta_scaled = delta * scale (None when a side is missing or no scale is known)."""
     numeric = isinstance(old, (int, float)) and isinstance(new, (int, float))
     delta = new - old if numeric else None
-    return {"name": name, "unit": unit, "old": old, "new": new, "delta": delta,
-            "delta_scaled": delta * scale if numeric and scale is not None else None, "scaled_unit": scaled_unit}
+    return {
+        "name": name,
+        "unit": unit,
+        "old": old,
+        "new": new,
+        "delta": delta,
+        "delta_scaled": delta * scale if numeric and scale is not None else None,
+        "scaled_unit": scaled_unit,
+    }
 
 
 def _diff_constants(ca: dict, cb: dict, gains: list[float] | None, u: str = "V") -> list[dict]:
@@ -114,8 +130,11 @@ def _diff_rate(ra: dict, rb: dict, gains: list[float] | None, u: str = "V") -> t
     """Changed rate terms of two differential passports (element-wise when both have the same orders) and changed
     orders, lag and smoothing. Entry names: ``rate_terms.alpha_rate.x[n][k]`` (multiplies r^n dT^k),
     ``rate_terms.beta_rate.xx[n][k]``, ``rate_terms.cross_axis_abs.xy[m]`` (multiplies dT^m)."""
-    fields = [{"name": f"rate_terms.{k}", "old": ra.get(k), "new": rb.get(k)}
-              for k in ("order", "dt_order", "lag_tau_s", "temp_smooth_s") if ra.get(k) != rb.get(k)]
+    fields = [
+        {"name": f"rate_terms.{k}", "old": ra.get(k), "new": rb.get(k)}
+        for k in ("order", "dt_order", "lag_tau_s", "temp_smooth_s")
+        if ra.get(k) != rb.get(k)
+    ]
     if not ra or not rb or ra.get("order") != rb.get("order") or ra.get("dt_order") != rb.get("dt_order"):
         return [], fields
     out = []
@@ -129,8 +148,16 @@ def _diff_rate(ra: dict, rb: dict, gains: list[float] | None, u: str = "V") -> t
                     if old != new:
                         scale, su = _coef_scale("alpha" if group == "alpha_rate" else "beta", key, gains)
                         per_ = f"(C/min)^{n + 1}/C^{k}"
-                        out.append(_entry(f"rate_terms.{group}.{key}[{n + 1}][{k}]", per(base, per_), old, new,
-                                          scale, f"{su}/{per_}"))
+                        out.append(
+                            _entry(
+                                f"rate_terms.{group}.{key}[{n + 1}][{k}]",
+                                per(base, per_),
+                                old,
+                                new,
+                                scale,
+                                f"{su}/{per_}",
+                            )
+                        )
     ca, cb = ra.get("cross_axis_abs") or {}, rb.get("cross_axis_abs") or {}
     for key in sorted(set(ca) | set(cb)):
         sa, sb = ca.get(key) or [], cb.get(key) or []
@@ -138,15 +165,26 @@ def _diff_rate(ra: dict, rb: dict, gains: list[float] | None, u: str = "V") -> t
         for m in range(max(len(sa), len(sb))):
             old, new = _at(sa, m), _at(sb, m)
             if old != new:
-                out.append(_entry(f"rate_terms.cross_axis_abs.{key}[{m + 1}]", f"{per(u, 'g')}/C^{m + 1}", old, new,
-                                  1e6 / gains[i] if gains else None, f"ppm of gain/C^{m + 1}"))
+                out.append(
+                    _entry(
+                        f"rate_terms.cross_axis_abs.{key}[{m + 1}]",
+                        f"{per(u, 'g')}/C^{m + 1}",
+                        old,
+                        new,
+                        1e6 / gains[i] if gains else None,
+                        f"ppm of gain/C^{m + 1}",
+                    )
+                )
     return out, fields
 
 
 def _diff_thermal(ta: dict, tb: dict, gains: list[float] | None, u: str = "V") -> tuple[list[dict], list[dict]]:
     """Changed thermal coefficients (element-wise when the two models have the same shape) and changed shape fields."""
-    fields = [{"name": f"thermal_model.{k}", "old": ta.get(k), "new": tb.get(k)}
-              for k in ("kind", "order", "breakpoints_c") if ta.get(k) != tb.get(k)]
+    fields = [
+        {"name": f"thermal_model.{k}", "old": ta.get(k), "new": tb.get(k)}
+        for k in ("kind", "order", "breakpoints_c")
+        if ta.get(k) != tb.get(k)
+    ]
     if ta.get("kind") != tb.get("kind") or ta.get("breakpoints_c") != tb.get("breakpoints_c"):
         return [], fields
     out = []
@@ -160,8 +198,11 @@ def _diff_thermal(ta: dict, tb: dict, gains: list[float] | None, u: str = "V") -
                     if old != new:
                         scale, su = _coef_scale(group, key, gains)
                         base = u if group == "alpha" else "1"
-                        out.append(_entry(f"{group}.{key}[{n + 1}]", per(base, f"C^{n + 1}"), old, new, scale,
-                                          f"{su}/C^{n + 1}"))
+                        out.append(
+                            _entry(
+                                f"{group}.{key}[{n + 1}]", per(base, f"C^{n + 1}"), old, new, scale, f"{su}/C^{n + 1}"
+                            )
+                        )
     elif ta.get("kind") == "piecewise_linear":
         sa, sb = ta.get("segments") or [], tb.get("segments") or []
         for s in range(max(len(sa), len(sb))):

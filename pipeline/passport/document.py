@@ -43,8 +43,16 @@ def failed_verification(subject: str) -> str:
     return f"{subject} failed its verification (status fail): its compensated errors exceeded the limits"
 
 
-def build_passport(fit, verification_rows, status: str, *, g_local_mps2: float, plateaus: list[dict],
-                   method: str = "tilt_six_position", extra: dict | None = None) -> dict:
+def build_passport(
+    fit,
+    verification_rows,
+    status: str,
+    *,
+    g_local_mps2: float,
+    plateaus: list[dict],
+    method: str = "tilt_six_position",
+    extra: dict | None = None,
+) -> dict:
     """Passport content (without version/parent/provenance, which the registry sets).
 
     ``method`` records the calibration method that made the passport: ``tilt_six_position`` (seed 000; the
@@ -90,18 +98,29 @@ def uncertainty_block(fit) -> dict | None:
     if sigma is None:
         return None
     tau = getattr(fit, "excess_scatter_v", None)
-    basis = sigma.basis if sigma.basis is not None else {
-        "level": "standard uncertainty (1 sigma)",
-        "segment_noise": "voltmeter noise measured in each static segment (std / sqrt(n))",
-        "excess_scatter_v": as_json_list(tau) if tau is not None else None,
-        "thermal_fit_birge_ratio": sigma.birge_ratio if sigma.dof else None,
-        "thermal_fit_dof": sigma.dof}
+    basis = (
+        sigma.basis
+        if sigma.basis is not None
+        else {
+            "level": "standard uncertainty (1 sigma)",
+            "segment_noise": "voltmeter noise measured in each static segment (std / sqrt(n))",
+            "excess_scatter_v": as_json_list(tau) if tau is not None else None,
+            "thermal_fit_birge_ratio": sigma.birge_ratio if sigma.dof else None,
+            "thermal_fit_dof": sigma.dof,
+        }
+    )
     return {
         "coefficients": {"K": as_json_list(sigma.K0), "U0": as_json_list(sigma.U00)},
-        "per_plateau": [{"temp_c": round(p.temp_c, 4), "run_id": p.run_id, "plateau": p.plateau,
-                         "K": as_json_list(p.K_sigma) if p.K_sigma is not None else None,
-                         "U0": as_json_list(p.U0_sigma) if p.U0_sigma is not None else None}
-                        for p in fit.per_plateau],
+        "per_plateau": [
+            {
+                "temp_c": round(p.temp_c, 4),
+                "run_id": p.run_id,
+                "plateau": p.plateau,
+                "K": as_json_list(p.K_sigma) if p.K_sigma is not None else None,
+                "U0": as_json_list(p.U0_sigma) if p.U0_sigma is not None else None,
+            }
+            for p in fit.per_plateau
+        ],
         "thermal_model": sigma.thermal_model,
         **(sigma.extra or {}),
         "basis": basis,
@@ -155,10 +174,22 @@ class Passport:
         if rate is not None and not isinstance(thermal, PolynomialModel):
             raise ThermocalError("passport with rate terms needs a polynomial thermal model", path=path)
         valid = doc.get("valid_temp_c")
-        return cls(format=fmt, unit=doc.get("unit"), method=doc.get("method") or DEFAULT_METHOD,
-                   version=doc.get("version"), normal_temp_c=t0, g_local_mps2=float(doc.get("g_local_mps2", 9.80665)),
-                   K=K, U0=U0, thermal_model=thermal, rate_terms=rate, extended=extended, status=doc.get("status"),
-                   valid_temp_c=(float(valid[0]), float(valid[1])) if valid else None, document=doc)
+        return cls(
+            format=fmt,
+            unit=doc.get("unit"),
+            method=doc.get("method") or DEFAULT_METHOD,
+            version=doc.get("version"),
+            normal_temp_c=t0,
+            g_local_mps2=float(doc.get("g_local_mps2", 9.80665)),
+            K=K,
+            U0=U0,
+            thermal_model=thermal,
+            rate_terms=rate,
+            extended=extended,
+            status=doc.get("status"),
+            valid_temp_c=(float(valid[0]), float(valid[1])) if valid else None,
+            document=doc,
+        )
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON document (contract.md), as it was loaded."""
@@ -213,11 +244,11 @@ def load_extended(passport: dict) -> ExtendedModel | None:
     if d is None:
         return None
     from pipeline.diagnose.model import ExtendedModel
+
     return ExtendedModel.from_dict(d)
 
 
-def compensate_extended(passport: dict, u_v: np.ndarray, ctx, element_temp_c: np.ndarray | None = None
-                        ) -> np.ndarray:
+def compensate_extended(passport: dict, u_v: np.ndarray, ctx, element_temp_c: np.ndarray | None = None) -> np.ndarray:
     """Specific force (n, 3) g of outputs ``u_v`` (n, 3) V with the passport's extended model, falling back to
     method 1 with the passport's own thermal model when it has none.
 

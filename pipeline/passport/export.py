@@ -45,9 +45,9 @@ from pipeline.passport.significance import sigma_of
 from pipeline.passport.text import output_unit_of, per
 
 FORMATS = ("px4", "ardupilot", "csv")
-ARDUPILOT_TREF_C = 35.0          # fixed reference temperature of ArduPilot's tempcal (not a parameter)
-ARDUPILOT_SCALE = 1.0e6          # ArduPilot stores the coefficients times 1e6
-ARDUPILOT_TEMP_RANGE_C = (-70.0, 80.0)   # the range INS_TCALn_TMIN/TMAX accept
+ARDUPILOT_TREF_C = 35.0  # fixed reference temperature of ArduPilot's tempcal (not a parameter)
+ARDUPILOT_SCALE = 1.0e6  # ArduPilot stores the coefficients times 1e6
+ARDUPILOT_TEMP_RANGE_C = (-70.0, 80.0)  # the range INS_TCALn_TMIN/TMAX accept
 GRID_STEP_C = 0.1
 AXES = "xyz"
 
@@ -68,9 +68,15 @@ class Export:
     params: dict[str, float] = field(default_factory=dict)
 
     def summary(self) -> dict:
-        return {"format": self.format, "unit": self.unit, "version": self.version,
-                "valid_temp_c": list(self.valid_temp_c), "not_held": self.not_held, "residual": self.residual,
-                "params": self.params}
+        return {
+            "format": self.format,
+            "unit": self.unit,
+            "version": self.version,
+            "valid_temp_c": list(self.valid_temp_c),
+            "not_held": self.not_held,
+            "residual": self.residual,
+            "params": self.params,
+        }
 
 
 def valid_range_c(passport: dict) -> tuple[float, float]:
@@ -109,7 +115,7 @@ def _cubic_fit(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     A = x[:, None] ** np.arange(deg + 1)[None, :]
     coef = np.zeros((4, y.shape[1]))
     if deg >= 0:
-        coef[:deg + 1], *_ = np.linalg.lstsq(A, y, rcond=None)
+        coef[: deg + 1], *_ = np.linalg.lstsq(A, y, rcond=None)
     return coef
 
 
@@ -119,9 +125,9 @@ def _poly(coef: np.ndarray, x: np.ndarray) -> np.ndarray:
 
 def _residual(bias: np.ndarray, held: np.ndarray, rel: np.ndarray, g: float, temps: np.ndarray) -> dict:
     """The error left over the grid: bias fit error per axis, unheld scale/cross-axis error (worst orientation)."""
-    fit_err = np.abs(held - bias)                                            # (n, 3) m/s^2
-    row = np.linalg.norm(rel, axis=2)                                        # (n, 3): per axis, worst |a| = 1 g
-    spec = np.linalg.norm(rel, ord=2, axis=(1, 2))                           # (n,)
+    fit_err = np.abs(held - bias)  # (n, 3) m/s^2
+    row = np.linalg.norm(rel, axis=2)  # (n, 3): per axis, worst |a| = 1 g
+    spec = np.linalg.norm(rel, ord=2, axis=(1, 2))  # (n,)
     worst_t = float(temps[int(np.argmax(spec))]) if len(temps) else None
     ug = 1e6 / g
     return {
@@ -139,15 +145,19 @@ def _residual(bias: np.ndarray, held: np.ndarray, rel: np.ndarray, g: float, tem
 
 def _not_held(passport: dict, extra: list[str]) -> list[str]:
     tm = passport.get("thermal_model") or {}
-    out = ["the scale-factor temperature terms (beta) and the cross-axis temperature terms (gamma): a bias-only "
-           "polynomial cannot hold terms that scale with the specific force (the error they leave is the residual's "
-           "unheld scale/cross-axis part)",
-           "the normal-temperature gains, cross-axis sensitivities and offsets (K, U0 at T0): the vehicle's own "
-           "accelerometer calibration holds those",
-           "the standard uncertainties of the constants"]
+    out = [
+        "the scale-factor temperature terms (beta) and the cross-axis temperature terms (gamma): a bias-only "
+        "polynomial cannot hold terms that scale with the specific force (the error they leave is the residual's "
+        "unheld scale/cross-axis part)",
+        "the normal-temperature gains, cross-axis sensitivities and offsets (K, U0 at T0): the vehicle's own "
+        "accelerometer calibration holds those",
+        "the standard uncertainties of the constants",
+    ]
     if tm.get("kind") == "piecewise_linear":
-        out.append("the piecewise-linear model itself: exported as the least-squares cubic through it over "
-                   "valid_temp_c (its fit error is in residual, bias_fit_max_ug)")
+        out.append(
+            "the piecewise-linear model itself: exported as the least-squares cubic through it over "
+            "valid_temp_c (its fit error is in residual, bias_fit_max_ug)"
+        )
     elif int(tm.get("order", 0) or 0) > 3:
         out.append("polynomial terms beyond the cubic")
     if passport.get("rate_terms"):
@@ -163,25 +173,35 @@ def export_px4(passport: dict, state=None) -> Export:
     tref = float(passport.get("normal_temp_c", 20.0))
     temps = _grid(lo, hi)
     bias, rel = thermal_errors(passport, temps)
-    coef = _cubic_fit(temps - tref, bias).astype(np.float32)                # PX4 parameters are float32
+    coef = _cubic_fit(temps - tref, bias).astype(np.float32)  # PX4 parameters are float32
     held = _poly(coef.astype(np.float64), temps - tref)
     g = float(passport.get("g_local_mps2", 9.80665))
-    params: dict[str, float] = {"TC_A_ENABLE": 1, "TC_A0_ID": 0, "TC_A0_TREF": tref, "TC_A0_TMIN": lo,
-                                "TC_A0_TMAX": hi}
+    params: dict[str, float] = {"TC_A_ENABLE": 1, "TC_A0_ID": 0, "TC_A0_TREF": tref, "TC_A0_TMIN": lo, "TC_A0_TMAX": hi}
     for n in range(4):
         for i in range(3):
             params[f"TC_A0_X{n}_{i}"] = float(coef[n, i])
     residual = _residual(bias, held, rel, g, temps)
-    not_held = _not_held(passport, ["TC_A0_ID (the accelerometer's device id on the vehicle): written as 0, set it "
-                                    "to CAL_ACC0_ID before use"])
+    not_held = _not_held(
+        passport,
+        ["TC_A0_ID (the accelerometer's device id on the vehicle): written as 0, set it to CAL_ACC0_ID before use"],
+    )
     ints = {"TC_A_ENABLE", "TC_A0_ID"}
-    lines = _header(passport, "PX4 thermal compensation (TC_A0_*), QGroundControl parameter file", lo, hi,
-                    not_held, residual, state)
+    lines = _header(
+        passport, "PX4 thermal compensation (TC_A0_*), QGroundControl parameter file", lo, hi, not_held, residual, state
+    )
     lines += ["# Vehicle-Id\tComponent-Id\tName\tValue\tType"]
     for name, value in params.items():
         lines.append(f"1\t1\t{name}\t{int(value) if name in ints else _f32(value)}\t{6 if name in ints else 9}")
-    return Export("px4", passport.get("unit", ""), passport.get("version"), (lo, hi), "\n".join(lines) + "\n",
-                  not_held, residual, params)
+    return Export(
+        "px4",
+        passport.get("unit", ""),
+        passport.get("version"),
+        (lo, hi),
+        "\n".join(lines) + "\n",
+        not_held,
+        residual,
+        params,
+    )
 
 
 def export_ardupilot(passport: dict, state=None) -> Export:
@@ -193,12 +213,13 @@ def export_ardupilot(passport: dict, state=None) -> Export:
     extra = []
     a_lo, a_hi = max(lo, ARDUPILOT_TEMP_RANGE_C[0]), min(hi, ARDUPILOT_TEMP_RANGE_C[1])
     if (a_lo, a_hi) != (lo, hi):
-        extra.append(f"the part of valid_temp_c outside ArduPilot's -70..80 C (TMIN/TMAX clipped to {a_lo:g}.."
-                     f"{a_hi:g} C)")
+        extra.append(
+            f"the part of valid_temp_c outside ArduPilot's -70..80 C (TMIN/TMAX clipped to {a_lo:g}..{a_hi:g} C)"
+        )
     temps = _grid(a_lo, a_hi)
     bias, rel = thermal_errors(passport, temps)
     q = _cubic_fit(temps - ARDUPILOT_TREF_C, bias)
-    coef = np.round(q[1:] * ARDUPILOT_SCALE, 9)                              # ACC1..ACC3 as written
+    coef = np.round(q[1:] * ARDUPILOT_SCALE, 9)  # ACC1..ACC3 as written
     # the correction the vehicle applies: p(T-35) - p(T_cal-35); its bias part at the calibration temperature
     # cancels, so compare the changes of the bias
     p = np.vstack([np.zeros(3), coef / ARDUPILOT_SCALE])
@@ -208,34 +229,60 @@ def export_ardupilot(passport: dict, state=None) -> Export:
     b0, _ = thermal_errors(passport, np.array([min(max(t0, a_lo), a_hi)]))
     held0 = _poly(p, np.array([min(max(t0, a_lo), a_hi)]) - ARDUPILOT_TREF_C)
     residual = _residual(bias - b0, held - held0, rel, g, temps)
-    params: dict[str, float] = {"INS_TCAL1_ENABLE": 1, "INS_TCAL1_TMIN": a_lo, "INS_TCAL1_TMAX": a_hi,
-                                "INS_ACC1_CALTEMP": t0}
+    params: dict[str, float] = {
+        "INS_TCAL1_ENABLE": 1,
+        "INS_TCAL1_TMIN": a_lo,
+        "INS_TCAL1_TMAX": a_hi,
+        "INS_ACC1_CALTEMP": t0,
+    }
     for n in range(3):
         for i, ax in enumerate("XYZ"):
             params[f"INS_TCAL1_ACC{n + 1}_{ax}"] = float(coef[n, i])
-    not_held = _not_held(passport, extra + ["gyroscope terms (INS_TCAL1_GYR*): the unit has no gyroscopes; "
-                                            "not written, so a vehicle's own values stay"])
-    lines = _header(passport, "ArduPilot IMU temperature calibration (INS_TCAL1_*), parameter file", a_lo, a_hi,
-                    not_held, residual, state)
-    lines.append(f"# INS_ACC1_CALTEMP = T0 ({t0:g} C): the raw reading assumed carries the passport's "
-                 "normal-temperature constants; a new accelerometer calibration on the vehicle resets it")
+    not_held = _not_held(
+        passport,
+        extra
+        + ["gyroscope terms (INS_TCAL1_GYR*): the unit has no gyroscopes; not written, so a vehicle's own values stay"],
+    )
+    lines = _header(
+        passport,
+        "ArduPilot IMU temperature calibration (INS_TCAL1_*), parameter file",
+        a_lo,
+        a_hi,
+        not_held,
+        residual,
+        state,
+    )
+    lines.append(
+        f"# INS_ACC1_CALTEMP = T0 ({t0:g} C): the raw reading assumed carries the passport's "
+        "normal-temperature constants; a new accelerometer calibration on the vehicle resets it"
+    )
     lines += [f"{name} {int(value) if name == 'INS_TCAL1_ENABLE' else _num(value)}" for name, value in params.items()]
-    return Export("ardupilot", passport.get("unit", ""), passport.get("version"), (a_lo, a_hi),
-                  "\n".join(lines) + "\n", not_held, residual, params)
+    return Export(
+        "ardupilot",
+        passport.get("unit", ""),
+        passport.get("version"),
+        (a_lo, a_hi),
+        "\n".join(lines) + "\n",
+        not_held,
+        residual,
+        params,
+    )
 
 
 def export_csv(passport: dict, state=None) -> Export:
     """Every number of the passport's model, one row each: ``quantity, key, order, t_lo_c, t_hi_c, value, unit,
     std_uncertainty`` (the uncertainty empty where the passport records none)."""
     lo, hi = valid_range_c(passport)
-    rows = [["quantity", "key", "order", "t_lo_c", "t_hi_c", "value", "unit", "std_uncertainty"],
-            ["unit", passport.get("unit", ""), "", "", "", "", "", ""],
-            ["version", "", "", "", "", passport.get("version", ""), "", ""],
-            ["status", "", "", "", "", passport.get("status", ""), "", ""],
-            ["approval", "", "", "", "", _approval(passport, state), "", ""],
-            ["normal_temp_c", "", "", "", "", passport.get("normal_temp_c", ""), "C", ""],
-            ["g_local_mps2", "", "", "", "", passport.get("g_local_mps2", ""), "m/s^2", ""],
-            ["valid_temp_c", "", "", lo, hi, "", "C", ""]]
+    rows = [
+        ["quantity", "key", "order", "t_lo_c", "t_hi_c", "value", "unit", "std_uncertainty"],
+        ["unit", passport.get("unit", ""), "", "", "", "", "", ""],
+        ["version", "", "", "", "", passport.get("version", ""), "", ""],
+        ["status", "", "", "", "", passport.get("status", ""), "", ""],
+        ["approval", "", "", "", "", _approval(passport, state), "", ""],
+        ["normal_temp_c", "", "", "", "", passport.get("normal_temp_c", ""), "C", ""],
+        ["g_local_mps2", "", "", "", "", passport.get("g_local_mps2", ""), "m/s^2", ""],
+        ["valid_temp_c", "", "", lo, hi, "", "C", ""],
+    ]
     c = passport.get("coefficients") or {}
     u = output_unit_of(passport)
     for i in range(3):
@@ -250,14 +297,25 @@ def export_csv(passport: dict, state=None) -> Export:
         for group in ("alpha", "beta", "gamma"):
             for key, values in sorted((tm.get(group) or {}).items()):
                 for n, v in enumerate(values, start=1):
-                    rows.append([group, key, n, "", "", v, units[group].format(n=n),
-                                 sigma_of(passport, f"{group}.{key}[{n}]")])
+                    rows.append(
+                        [group, key, n, "", "", v, units[group].format(n=n), sigma_of(passport, f"{group}.{key}[{n}]")]
+                    )
     else:
         for s, seg in enumerate(tm.get("segments") or []):
             for group in ("alpha", "beta", "gamma"):
                 for key, v in sorted((seg.get(group) or {}).items()):
-                    rows.append([group, key, 1, seg["t_lo_c"], seg["t_hi_c"], v, units[group].format(n=1),
-                                 sigma_of(passport, f"segments[{s}].{group}.{key}")])
+                    rows.append(
+                        [
+                            group,
+                            key,
+                            1,
+                            seg["t_lo_c"],
+                            seg["t_hi_c"],
+                            v,
+                            units[group].format(n=1),
+                            sigma_of(passport, f"segments[{s}].{group}.{key}"),
+                        ]
+                    )
     buf = io.StringIO()
     csv.writer(buf, lineterminator="\n").writerows([["" if x is None else x for x in r] for r in rows])
     return Export("csv", passport.get("unit", ""), passport.get("version"), (lo, hi), buf.getvalue(), [], {}, {})
@@ -289,26 +347,37 @@ def _approval(passport: dict, state) -> str:
     return state.approval_text() if state is not None else "approval unknown (not read from a registry)"
 
 
-def _header(passport: dict, what: str, lo: float, hi: float, not_held: list[str], residual: dict,
-            state=None) -> list[str]:
+def _header(
+    passport: dict, what: str, lo: float, hi: float, not_held: list[str], residual: dict, state=None
+) -> list[str]:
     unit, version = passport.get("unit", "?"), passport.get("version")
-    lines = [f"# {what}",
-             f"# thermocal export of {unit} passport v{version} (content_sha256 "
-             f"{str(passport.get('content_sha256', ''))[:16]}), method {passport.get('method', 'tilt_six_position')}",
-             f"# status {passport.get('status')}; {_approval(passport, state)}"]
+    lines = [
+        f"# {what}",
+        f"# thermocal export of {unit} passport v{version} (content_sha256 "
+        f"{str(passport.get('content_sha256', ''))[:16]}), method {passport.get('method', 'tilt_six_position')}",
+        f"# status {passport.get('status')}; {_approval(passport, state)}",
+    ]
     if passport.get("status") == "fail":
         lines.append(f"# WARNING: {failed_verification('this passport')}; review before loading it")
-    lines += [f"# valid temperature range {lo:g} .. {hi:g} C; accelerometer offsets in m/s^2 along the unit's x, "
-              "y, z",
-              "# raw reading assumed: the unit's output with the passport's normal-temperature constants applied",
-              "# not held by this format:"]
+    lines += [
+        f"# valid temperature range {lo:g} .. {hi:g} C; accelerometer offsets in m/s^2 along the unit's x, y, z",
+        "# raw reading assumed: the unit's output with the passport's normal-temperature constants applied",
+        "# not held by this format:",
+    ]
     lines += [f"#   - {t}" for t in not_held]
     if residual:
         lines.append("# residual error over the valid range (computed on a 0.1 C grid):")
-        lines.append("#   bias cubic fit error, max per axis x y z: "
-                     + " ".join(f"{v:.3g}" for v in residual["bias_fit_max_ug"]) + " micro-g")
-        lines.append("#   unheld scale/cross-axis terms, |a| = 1 g, max per axis x y z: "
-                     + " ".join(f"{v:.3g}" for v in residual["unheld_scale_cross_max_ug"]) + " micro-g")
-        lines.append(f"#   worst total: {residual['total_worst_ug']:.3g} micro-g "
-                     f"({residual['total_worst_mps2']:.3g} m/s^2)")
+        lines.append(
+            "#   bias cubic fit error, max per axis x y z: "
+            + " ".join(f"{v:.3g}" for v in residual["bias_fit_max_ug"])
+            + " micro-g"
+        )
+        lines.append(
+            "#   unheld scale/cross-axis terms, |a| = 1 g, max per axis x y z: "
+            + " ".join(f"{v:.3g}" for v in residual["unheld_scale_cross_max_ug"])
+            + " micro-g"
+        )
+        lines.append(
+            f"#   worst total: {residual['total_worst_ug']:.3g} micro-g ({residual['total_worst_mps2']:.3g} m/s^2)"
+        )
     return lines

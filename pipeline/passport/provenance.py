@@ -13,7 +13,6 @@ from pipeline import __version__
 from pipeline.passport.canonical import sha256_file
 
 
-
 @dataclass(frozen=True)
 class RunDigest:
     """A run's content hash (:func:`input_digest`) and its :func:`file_signature` taken just before hashing."""
@@ -54,8 +53,7 @@ def input_digest(path: str | Path, known: RunDigest | None = None) -> str:
     if known is not None and file_signature(p) == known.signature:
         return known.sha256
     if p.is_dir():
-        lines = [f"{f.relative_to(p).as_posix()} {sha256_file(f)}\n"
-                 for f in sorted(p.rglob("*")) if f.is_file()]
+        lines = [f"{f.relative_to(p).as_posix()} {sha256_file(f)}\n" for f in sorted(p.rglob("*")) if f.is_file()]
         return hashlib.sha256("".join(lines).encode()).hexdigest()
     return sha256_file(p)
 
@@ -67,11 +65,16 @@ def code_version() -> str:
     later."""
     here = Path(__file__).resolve().parent.parent
     try:
-        rev = subprocess.run(["git", "-C", str(here), "rev-parse", "--short=12", "HEAD"], capture_output=True,
-                             text=True, timeout=5)
+        rev = subprocess.run(
+            ["git", "-C", str(here), "rev-parse", "--short=12", "HEAD"], capture_output=True, text=True, timeout=5
+        )
         if rev.returncode == 0 and rev.stdout.strip():
-            dirty = subprocess.run(["git", "-C", str(here), "status", "--porcelain", "--untracked-files=no"],
-                                   capture_output=True, text=True, timeout=5).stdout.strip()
+            dirty = subprocess.run(
+                ["git", "-C", str(here), "status", "--porcelain", "--untracked-files=no"],
+                capture_output=True,
+                text=True,
+                timeout=5,
+            ).stdout.strip()
             return f"thermocal {__version__} ({rev.stdout.strip()}{'-dirty' if dirty else ''})"
     except (OSError, subprocess.SubprocessError):
         pass

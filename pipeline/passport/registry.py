@@ -42,10 +42,11 @@ import json
 import os
 import re
 import secrets
+from collections.abc import Iterator
 from dataclasses import dataclass, field
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 from pipeline.errors import RegistryError
 from pipeline.passport.canonical import canonical_json, content_sha256, sha256_bytes, sha256_file
@@ -54,8 +55,16 @@ from pipeline.passport.document import failed_verification
 from pipeline.passport.signing import TrustStore, sign_record, station_key, trusted_keys, verify_record
 
 __all__ = [
-    "PublishResult", "Registry", "VersionInfo", "VerifyReport",
-    "canonical_json", "identity_key", "safe_unit_name", "sha256_bytes", "sha256_file", "content_sha256",
+    "PublishResult",
+    "Registry",
+    "VersionInfo",
+    "VerifyReport",
+    "canonical_json",
+    "identity_key",
+    "safe_unit_name",
+    "sha256_bytes",
+    "sha256_file",
+    "content_sha256",
 ]
 
 _VERSION_FILE = re.compile(r"^v(\d+)\.json$")
@@ -93,8 +102,10 @@ def identity_key(inputs: list[dict], settings: dict) -> str:
 def safe_unit_name(unit: Any) -> str:
     """A unit serial usable as a folder name: letters, digits, ``.``, ``_``, ``-``; no separator, no ``..``."""
     if not isinstance(unit, str) or not _UNIT_NAME.match(unit) or ".." in unit:
-        raise RegistryError(f"unit serial {unit!r} is not usable as a registry name "
-                            "(letters, digits, '.', '_', '-'; no path separator, no '..', at most 100 characters)")
+        raise RegistryError(
+            f"unit serial {unit!r} is not usable as a registry name "
+            "(letters, digits, '.', '_', '-'; no path separator, no '..', at most 100 characters)"
+        )
     return unit
 
 
@@ -104,7 +115,7 @@ def _version_name(version: int) -> str:
 
 
 def _utc_now() -> str:
-    return datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%S.%fZ")
+    return datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%S.%fZ")
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -165,6 +176,7 @@ def _write_all(fd: int, data: bytes) -> None:
 @dataclass(frozen=True)
 class PublishResult:
     """Outcome of :meth:`Registry.publish`: the version written (``created``) or the existing one with that identity."""
+
     unit: str
     version: int
     path: Path
@@ -176,6 +188,7 @@ class PublishResult:
 @dataclass(frozen=True)
 class VersionInfo:
     """One version of a unit as stored. ``status`` is ``"unreadable"`` for a file that is not valid JSON."""
+
     version: int
     path: Path
     sha256: str
@@ -189,6 +202,7 @@ class VersionInfo:
 class VersionState:
     """What a person must know of the version a command uses: its status, who approved it, and whether it is the
     unit's current passport (contract.md: the newest approved version, else the newest; :meth:`Registry.state`)."""
+
     unit: str
     version: int
     status: str | None
@@ -203,8 +217,7 @@ class VersionState:
         """``approved by A. Metrologist`` or ``not approved`` (with, for the current passport, why it is current)."""
         if self.approved_by:
             return f"approved by {', '.join(self.approved_by)}"
-        return "not approved" + ("; the current passport: the newest version, none is approved" if self.current
-                                 else "")
+        return "not approved" + ("; the current passport: the newest version, none is approved" if self.current else "")
 
     def text(self) -> str:
         """``AU-0001 v2 (status pass, approved by A. Metrologist)``, ``AU-0001 v3 (status fail, not approved; the
@@ -218,13 +231,20 @@ class VersionState:
         return failed_verification(f"{self.unit} v{self.version}") + "; it is not approved"
 
     def as_dict(self) -> dict:
-        return {"unit": self.unit, "version": self.version, "status": self.status, "approved": self.approved,
-                "approved_by": list(self.approved_by), "current": self.current}
+        return {
+            "unit": self.unit,
+            "version": self.version,
+            "status": self.status,
+            "approved": self.approved,
+            "approved_by": list(self.approved_by),
+            "current": self.current,
+        }
 
 
 @dataclass
 class VerifyReport:
     """Integrity of a registry. ``problems`` (each naming unit and version) make ``ok`` False; ``notes`` do not."""
+
     ok: bool
     problems: list[str]
     notes: list[str]
@@ -235,6 +255,7 @@ class VerifyReport:
 @dataclass
 class _UnitState:
     """What a unit folder holds: version files, log rows, leftover temp files, other names."""
+
     files: dict[int, Path]
     log_rows: dict[int, dict]
     log_issues: list[tuple[str, bool]]  # (text, is_problem)
@@ -276,8 +297,11 @@ class Registry:
         if not self.units_dir.is_dir():
             return []
         with _os_errors(self.units_dir, "list units"):
-            return sorted(p.name for p in self.units_dir.iterdir()
-                          if p.is_dir() and _UNIT_NAME.match(p.name) and ".." not in p.name)
+            return sorted(
+                p.name
+                for p in self.units_dir.iterdir()
+                if p.is_dir() and _UNIT_NAME.match(p.name) and ".." not in p.name
+            )
 
     def _scan(self, unit: str) -> _UnitState:
         udir = self.unit_dir(unit)
@@ -308,8 +332,12 @@ class Registry:
         partial = bool(data) and not data.endswith(b"\n")
         lines = data.split(b"\n")[:-1]  # without the text after the last newline ("" or a fragment)
         if partial:
-            issues.append((f"log.jsonl ends with an unterminated line (writer interrupted); "
-                           f"it is dropped at the next publish", False))
+            issues.append(
+                (
+                    "log.jsonl ends with an unterminated line (writer interrupted); it is dropped at the next publish",
+                    False,
+                )
+            )
         for k, line in enumerate(lines, start=1):
             try:
                 row = json.loads(line)
@@ -346,8 +374,17 @@ class Registry:
                 out.append(VersionInfo(v, path, sha256_bytes(data), None, "unreadable", []))
                 continue
             inputs = (doc.get("provenance") or {}).get("inputs") or []
-            out.append(VersionInfo(v, path, sha256_bytes(data), doc.get("created_utc"), doc.get("status"),
-                                   list(inputs), doc.get("method")))
+            out.append(
+                VersionInfo(
+                    v,
+                    path,
+                    sha256_bytes(data),
+                    doc.get("created_utc"),
+                    doc.get("status"),
+                    list(inputs),
+                    doc.get("method"),
+                )
+            )
         return out
 
     def load(self, unit: str, version: int | None = None) -> dict:
@@ -375,12 +412,22 @@ class Registry:
         passport, :meth:`current`)."""
         approvals = self.approvals(unit)
         current = self.current(unit)
-        return [{"version": i.version, "created_utc": i.created_utc, "status": i.status,
-                 "inputs": [str(x.get("path")) for x in i.inputs if isinstance(x, dict)], "sha256": i.sha256,
-                 "approved": [{"by": a["by"], "approved_utc": a["approved_utc"]} for a in approvals
-                              if a["version"] == i.version and a["sha256"] == i.sha256],
-                 "current": i.version == current}
-                for i in self.versions(unit)]
+        return [
+            {
+                "version": i.version,
+                "created_utc": i.created_utc,
+                "status": i.status,
+                "inputs": [str(x.get("path")) for x in i.inputs if isinstance(x, dict)],
+                "sha256": i.sha256,
+                "approved": [
+                    {"by": a["by"], "approved_utc": a["approved_utc"]}
+                    for a in approvals
+                    if a["version"] == i.version and a["sha256"] == i.sha256
+                ],
+                "current": i.version == current,
+            }
+            for i in self.versions(unit)
+        ]
 
     # -- approvals and the current passport ----------------------------------------------------------------------
 
@@ -405,17 +452,32 @@ class Registry:
             digest = sha256_bytes(data)
             row = state.log_rows.get(v)
             if row is None or row.get("sha256") != digest:
-                raise RegistryError(f"unit {unit} v{v} does not match its log.jsonl row (altered or not yet "
-                                    "recorded); run 'thermocal passport verify'", path=str(state.files[v]))
+                raise RegistryError(
+                    f"unit {unit} v{v} does not match its log.jsonl row (altered or not yet "
+                    "recorded); run 'thermocal passport verify'",
+                    path=str(state.files[v]),
+                )
             status = json.loads(data).get("status")
             if status == "fail":
-                raise RegistryError(f"unit {unit} v{v} failed its verification (status fail) and cannot be "
-                                    "approved", path=str(state.files[v]))
+                raise RegistryError(
+                    f"unit {unit} v{v} failed its verification (status fail) and cannot be approved",
+                    path=str(state.files[v]),
+                )
             for rec in self._approval_records(udir)[0]:
                 if rec.get("version") == v and rec.get("sha256") == digest and rec.get("by") == by:
                     return rec
-            record = sign_record({"schema": APPROVAL_SCHEMA, "unit": unit, "version": v, "sha256": digest,
-                                  "status": status, "by": by, "approved_utc": _utc_now()}, key)
+            record = sign_record(
+                {
+                    "schema": APPROVAL_SCHEMA,
+                    "unit": unit,
+                    "version": v,
+                    "sha256": digest,
+                    "status": status,
+                    "by": by,
+                    "approved_utc": _utc_now(),
+                },
+                key,
+            )
             self._append_log(udir, record, _APPROVALS_NAME)
         return record
 
@@ -462,16 +524,18 @@ class Registry:
         return self._current(unit, self.versions(unit), self.approvals(unit), exclude_methods)
 
     @staticmethod
-    def _current(unit: str, infos: list[VersionInfo], approvals: list[dict], exclude_methods: tuple[str, ...]
-                 ) -> int | None:
+    def _current(
+        unit: str, infos: list[VersionInfo], approvals: list[dict], exclude_methods: tuple[str, ...]
+    ) -> int | None:
         versions = {i.version: i.sha256 for i in infos if i.method not in exclude_methods}
         if not versions:
             return None
         approved = [a["version"] for a in approvals if versions.get(a["version"]) == a["sha256"]]
         return max(approved) if approved else max(versions)
 
-    def state(self, unit: str, version: int | None = None, *, exclude_methods: tuple[str, ...] = ()
-              ) -> VersionState | None:
+    def state(
+        self, unit: str, version: int | None = None, *, exclude_methods: tuple[str, ...] = ()
+    ) -> VersionState | None:
         """The state of ``version`` of ``unit`` (default: the current passport, :meth:`current`): its status, its
         approvals, whether it is current. None when there is no such version (no current one)."""
         infos, approvals = self.versions(unit), self.approvals(unit)
@@ -483,15 +547,18 @@ class Registry:
         by = tuple(a["by"] for a in approvals if a["version"] == v and a["sha256"] == info.sha256)
         return VersionState(unit, v, info.status, by, v == self._current(unit, infos, approvals, ()))
 
-    def load_state(self, unit: str, version: int | None = None, *, exclude_methods: tuple[str, ...] = ()
-                   ) -> tuple[dict, VersionState]:
+    def load_state(
+        self, unit: str, version: int | None = None, *, exclude_methods: tuple[str, ...] = ()
+    ) -> tuple[dict, VersionState]:
         """The passport at ``version`` (default: the unit's current passport, :meth:`current`) and its
         :class:`VersionState`. RegistryError when there is no such version."""
         st = self.state(unit, version, exclude_methods=exclude_methods)
         if st is None:
-            self.load(unit, version)          # no version at all, or not that one: its own error
-            raise RegistryError(f"unit {unit!r} has no version other than by the {', '.join(exclude_methods)} "
-                                "method", path=str(self.unit_dir(unit)))
+            self.load(unit, version)  # no version at all, or not that one: its own error
+            raise RegistryError(
+                f"unit {unit!r} has no version other than by the {', '.join(exclude_methods)} method",
+                path=str(self.unit_dir(unit)),
+            )
         return self.load(unit, st.version), st
 
     def planned(self, passport: dict, *, inputs: list[dict], settings: dict) -> tuple[int, bool]:
@@ -562,16 +629,28 @@ class Registry:
             doc["version"] = latest + 1
             doc["parent_sha256"] = state.log_rows[latest]["sha256"] if latest else None
             doc["created_utc"] = _utc_now()
-            doc["provenance"] = {**(doc.get("provenance") or {}), "inputs": inputs, "code_version": code_version,
-                                 "settings": settings, "identity": identity}
+            doc["provenance"] = {
+                **(doc.get("provenance") or {}),
+                "inputs": inputs,
+                "code_version": code_version,
+                "settings": settings,
+                "identity": identity,
+            }
             doc = sign_record(doc, key)
             data = canonical_json(doc)
             final = self.version_path(unit, doc["version"])
             self._write_version(udir, final, data)
             digest = sha256_bytes(data)
             try:
-                self._append_log(udir, {"version": doc["version"], "sha256": digest,
-                                        "created_utc": doc["created_utc"], "identity": identity})
+                self._append_log(
+                    udir,
+                    {
+                        "version": doc["version"],
+                        "sha256": digest,
+                        "created_utc": doc["created_utc"],
+                        "identity": identity,
+                    },
+                )
             except RegistryError:
                 # all or nothing: the version is not published until logged, so take it back
                 with contextlib.suppress(OSError):
@@ -618,23 +697,36 @@ class Registry:
             if not doc_ok or doc.get("parent_sha256") != parent or doc.get("version") != v:
                 why = "fails its own checks"
             elif not (sig.ok and sig.own):
-                why = ("is not this station's own signed version" + (f" ({sig.problem})" if sig.problem else "")
-                       + "; it is not recovered")
+                why = (
+                    "is not this station's own signed version"
+                    + (f" ({sig.problem})" if sig.problem else "")
+                    + "; it is not recovered"
+                )
             else:
                 why = None
             if why:
-                raise RegistryError(f"unit {unit} v{v}: not in log.jsonl and {why}; run 'thermocal passport "
-                                    "verify'", path=str(state.files[v]))
-            row = {"version": v, "sha256": sha256_bytes(data), "created_utc": doc.get("created_utc"),
-                   "identity": (doc.get("provenance") or {}).get("identity"), "recovered": True}
+                raise RegistryError(
+                    f"unit {unit} v{v}: not in log.jsonl and {why}; run 'thermocal passport verify'",
+                    path=str(state.files[v]),
+                )
+            row = {
+                "version": v,
+                "sha256": sha256_bytes(data),
+                "created_utc": doc.get("created_utc"),
+                "identity": (doc.get("provenance") or {}).get("identity"),
+                "recovered": True,
+            }
             self._append_log(udir, row)
             state.log_rows[v] = row
         problems: list[str] = []
         self._check_unit(unit, state, trust, problems, [])
         if problems:
             more = f" (and {len(problems) - 1} more problem(s))" if len(problems) > 1 else ""
-            raise RegistryError(f"refusing to append to a chain that does not verify: {problems[0]}{more}; run "
-                                "'thermocal passport verify'", path=str(udir))
+            raise RegistryError(
+                f"refusing to append to a chain that does not verify: {problems[0]}{more}; run "
+                "'thermocal passport verify'",
+                path=str(udir),
+            )
         return state
 
     @staticmethod
@@ -724,16 +816,18 @@ class Registry:
             report.units_checked += 1
             report.versions_checked += len(state.files)
 
-    def _check_unit(self, unit: str, state: _UnitState, trust: TrustStore, problems: list[str],
-                    notes: list[str]) -> None:
+    def _check_unit(
+        self, unit: str, state: _UnitState, trust: TrustStore, problems: list[str], notes: list[str]
+    ) -> None:
         """Append the unit's problems and notes (the checks of :meth:`verify`)."""
         for tmp in state.temps:
-            notes.append(f"{unit}: leftover temp file {tmp.name} from an interrupted writer "
-                         "(not a version; removed at the next publish)")
+            notes.append(
+                f"{unit}: leftover temp file {tmp.name} from an interrupted writer "
+                "(not a version; removed at the next publish)"
+            )
         for stray in state.strays:
             m = _VERSION_FILE.match(stray.name)
-            hint = (f" (misnamed: version {int(m.group(1))} would be {_version_name(int(m.group(1)))})" if m
-                    else "")
+            hint = f" (misnamed: version {int(m.group(1))} would be {_version_name(int(m.group(1)))})" if m else ""
             problems.append(f"{unit}: stray file {stray.name!r} in the unit folder, not written by thermocal{hint}")
         for text, is_problem in state.log_issues:
             (problems if is_problem else notes).append(f"{unit}: {text}")
@@ -764,14 +858,15 @@ class Registry:
                 problems.append(f"{unit} v{v}: stored content_sha256 does not match the content (altered)")
                 altered.add(v)
             if doc.get("version") != v or doc.get("unit") != unit:
-                problems.append(f"{unit} v{v}: file says unit {doc.get('unit')!r} version "
-                                f"{doc.get('version')!r}")
+                problems.append(f"{unit} v{v}: file says unit {doc.get('unit')!r} version {doc.get('version')!r}")
             if self_hash_ok:  # (a self-hash that fails already names the version)
                 check = verify_record(doc, trust)
                 if not check.ok:
-                    problems.append(f"{unit} v{v}: hashes are consistent but it is {check.problem}"
-                                    if check.problem.startswith(("not signed", "signed by"))
-                                    else f"{unit} v{v}: {check.problem}")
+                    problems.append(
+                        f"{unit} v{v}: hashes are consistent but it is {check.problem}"
+                        if check.problem.startswith(("not signed", "signed by"))
+                        else f"{unit} v{v}: {check.problem}"
+                    )
                     unsigned.add(v)
         last_logged = max(state.log_rows, default=0)
         for v in range(1, state.latest + 1):
@@ -780,8 +875,10 @@ class Registry:
                 problems.append(f"{unit} v{v}: version file missing, {what}")
             elif v not in state.log_rows:
                 if v == state.latest and v == last_logged + 1 and v not in altered | unsigned:
-                    notes.append(f"{unit} v{v}: not yet in log.jsonl (writer interrupted after writing it); "
-                                 "recorded at the next publish")
+                    notes.append(
+                        f"{unit} v{v}: not yet in log.jsonl (writer interrupted after writing it); "
+                        "recorded at the next publish"
+                    )
                 else:
                     problems.append(f"{unit} v{v}: not recorded in log.jsonl")
         for v, doc in sorted(docs.items()):
@@ -791,14 +888,15 @@ class Registry:
                     problems.append(f"{unit} v1: parent_sha256 should be null")
             elif v - 1 in sha and parent != sha[v - 1]:
                 if v - 1 in altered:
-                    problems.append(f"{unit} v{v - 1}: file sha256 does not match v{v}'s parent_sha256 "
-                                    f"(v{v - 1} altered)")
+                    problems.append(
+                        f"{unit} v{v - 1}: file sha256 does not match v{v}'s parent_sha256 (v{v - 1} altered)"
+                    )
                 else:
-                    problems.append(f"{unit} v{v}: broken parent link (parent_sha256 does not match "
-                                    f"v{v - 1}'s file)")
+                    problems.append(f"{unit} v{v}: broken parent link (parent_sha256 does not match v{v - 1}'s file)")
 
-    def _check_approvals(self, unit: str, state: _UnitState, trust: TrustStore, problems: list[str],
-                         notes: list[str]) -> None:
+    def _check_approvals(
+        self, unit: str, state: _UnitState, trust: TrustStore, problems: list[str], notes: list[str]
+    ) -> None:
         """Every approval record: its own hash, a trusted signature, and a version that holds the approved bytes."""
         records, issues = self._approval_records(self.unit_dir(unit))
         for text, is_problem in issues:
@@ -830,8 +928,10 @@ class Registry:
         report = self.verify()
         if not report.ok:
             more = f" (and {len(report.problems) - 1} more)" if len(report.problems) > 1 else ""
-            raise RegistryError(f"the registry does not verify, no head statement signed: {report.problems[0]}"
-                                f"{more}", path=str(self.root))
+            raise RegistryError(
+                f"the registry does not verify, no head statement signed: {report.problems[0]}{more}",
+                path=str(self.root),
+            )
         units: dict[str, dict] = {}
         for unit in self.units():
             udir = self.unit_dir(unit)
@@ -841,14 +941,14 @@ class Registry:
                     v = max(files)
                     with _os_errors(files[v], "read passport"):
                         units[unit] = {"version": v, "sha256": sha256_file(files[v])}
-        return sign_record({"schema": HEAD_SCHEMA, "registry": str(self.root.resolve()), "created_utc": _utc_now(),
-                            "units": units})
+        return sign_record(
+            {"schema": HEAD_SCHEMA, "registry": str(self.root.resolve()), "created_utc": _utc_now(), "units": units}
+        )
 
     def _verify_against(self, head: dict, report: VerifyReport, trust: TrustStore) -> None:
         """Name every version the head statement listed that this registry no longer holds, or holds changed."""
         problems = report.problems
-        if not isinstance(head, dict) or head.get("schema") != HEAD_SCHEMA or not isinstance(head.get("units"),
-                                                                                               dict):
+        if not isinstance(head, dict) or head.get("schema") != HEAD_SCHEMA or not isinstance(head.get("units"), dict):
             raise RegistryError(f"not a head statement (schema {HEAD_SCHEMA}, from 'thermocal passport head')")
         when = head.get("created_utc")
         if head.get("content_sha256") != content_sha256(head):
@@ -867,11 +967,15 @@ class Registry:
             files = self._scan(unit).files if udir.is_dir() else {}
             gone = [v for v in range(1, listed + 1) if v not in files]
             for v in gone:
-                problems.append(f"{unit} v{v}: listed by the head statement of {when} and no longer in the "
-                                f"registry ({'unit folder deleted' if not files else 'deleted or rolled back'})")
+                problems.append(
+                    f"{unit} v{v}: listed by the head statement of {when} and no longer in the "
+                    f"registry ({'unit folder deleted' if not files else 'deleted or rolled back'})"
+                )
             if listed in files and sha256_file(files[listed]) != listed_sha:
-                problems.append(f"{unit} v{listed}: differs from the head statement of {when} (replaced: rolled "
-                                "back and written again, or altered)")
+                problems.append(
+                    f"{unit} v{listed}: differs from the head statement of {when} (replaced: rolled "
+                    "back and written again, or altered)"
+                )
         report.ok = not problems
 
     # -- comparison ---------------------------------------------------------------------------------------------

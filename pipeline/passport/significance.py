@@ -34,13 +34,13 @@ def sigma_of(passport: dict, name: str) -> float | None:
         if m:
             c = unc["coefficients"]
             value = c["K"][ax.index(m.group(2))][ax.index(m.group(3))] if m.group(1) else c["U0"][ax.index(m.group(5))]
-        elif (m := _POLY.match(name)):
+        elif m := _POLY.match(name):
             value = unc["thermal_model"][m.group(1)][m.group(2)][int(m.group(3)) - 1]
-        elif (m := _PIECE.match(name)):
+        elif m := _PIECE.match(name):
             value = unc["thermal_model"]["segments"][int(m.group(1))][m.group(2)][m.group(3)]
-        elif (m := _RATE.match(name)):
+        elif m := _RATE.match(name):
             value = unc["rate_terms"][m.group(1)][m.group(2)][int(m.group(3)) - 1][int(m.group(4))]
-        elif (m := _CROSS_ABS.match(name)):
+        elif m := _CROSS_ABS.match(name):
             value = unc["rate_terms"]["cross_axis_abs"][m.group(1)][int(m.group(2)) - 1]
         else:
             return None
@@ -69,13 +69,18 @@ def annotate(entries: list[dict], old: dict, new: dict, k: float = COVERAGE_FACT
 def significant_changes(diff: dict) -> list[dict]:
     """The constants and thermal coefficients of a :meth:`Registry.diff` result whose change exceeds its expanded
     combined uncertainty, largest first (in sigmas); entries without an uncertainty are not among them."""
-    rows = [e for e in diff.get("constants", []) + diff.get("thermal_model", []) + diff.get("rate_terms", [])
-            if e.get("significant")]
+    rows = [
+        e
+        for e in diff.get("constants", []) + diff.get("thermal_model", []) + diff.get("rate_terms", [])
+        if e.get("significant")
+    ]
     return sorted(rows, key=lambda e: -abs(e["delta"]) / e["uncertainty"] if e["uncertainty"] else 0.0)
 
 
 def significance_note(k: float = COVERAGE_FACTOR) -> dict[str, Any]:
     """How ``significant`` was decided (stored in the diff result)."""
-    return {"coverage_factor": k,
-            "rule": "significant when |delta| > coverage_factor * sqrt(u_old^2 + u_new^2), u the versions' "
-                    "standard uncertainties; null when a version records none"}
+    return {
+        "coverage_factor": k,
+        "rule": "significant when |delta| > coverage_factor * sqrt(u_old^2 + u_new^2), u the versions' "
+        "standard uncertainties; null when a version records none",
+    }

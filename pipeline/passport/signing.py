@@ -40,8 +40,17 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey,
 from pipeline.errors import RegistryError
 from pipeline.passport.canonical import content_sha256, signed_body
 
-__all__ = ["KEY_DIR_ENV", "SignatureCheck", "StationKey", "TrustStore", "key_dir", "sign_record", "station_key",
-           "trusted_keys", "verify_record"]
+__all__ = [
+    "KEY_DIR_ENV",
+    "SignatureCheck",
+    "StationKey",
+    "TrustStore",
+    "key_dir",
+    "sign_record",
+    "station_key",
+    "trusted_keys",
+    "verify_record",
+]
 
 KEY_DIR_ENV = "THERMOCAL_KEY_DIR"
 PRIVATE_NAME = "station_ed25519.pem"
@@ -72,6 +81,7 @@ def key_id_of(raw_public: bytes) -> str:
 @dataclass(frozen=True)
 class StationKey:
     """This station's signing key and where it is kept."""
+
     private: Ed25519PrivateKey
     path: Path
 
@@ -100,11 +110,14 @@ def _station_key(folder: str) -> StationKey:
     try:
         key = serialization.load_pem_private_key(path.read_bytes(), password=None)
     except OSError as exc:
-        raise RegistryError(f"cannot read this station's signing key ({exc.strerror}); set {KEY_DIR_ENV} to a "
-                            "folder of your own", path=str(path)) from None
+        raise RegistryError(
+            f"cannot read this station's signing key ({exc.strerror}); set {KEY_DIR_ENV} to a folder of your own",
+            path=str(path),
+        ) from None
     except (ValueError, TypeError) as exc:
-        raise RegistryError(f"this station's signing key is not a valid PEM private key ({exc})",
-                            path=str(path)) from None
+        raise RegistryError(
+            f"this station's signing key is not a valid PEM private key ({exc})", path=str(path)
+        ) from None
     if not isinstance(key, Ed25519PrivateKey):
         raise RegistryError("this station's signing key is not an Ed25519 key", path=str(path))
     return StationKey(key, path)
@@ -113,8 +126,7 @@ def _station_key(folder: str) -> StationKey:
 def _create_key(d: Path, path: Path) -> None:
     """Create the key atomically (temp file, then a hard link that fails if another process was first)."""
     key = Ed25519PrivateKey.generate()
-    pem = key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
-                            serialization.NoEncryption())
+    pem = key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption())
     tmp = d / f".tmp-{os.getpid()}-{secrets.token_hex(4)}.pem"
     try:
         d.mkdir(mode=0o700, parents=True, exist_ok=True)
@@ -131,19 +143,26 @@ def _create_key(d: Path, path: Path) -> None:
         raw = _raw_public(key.public_key())
         (d / PUBLIC_NAME).write_text(raw.hex() + "\n")
     except OSError as exc:
-        raise RegistryError(f"cannot create this station's signing key ({exc.strerror}); set {KEY_DIR_ENV} to a "
-                            "writable folder outside the registry", path=str(path)) from None
+        raise RegistryError(
+            f"cannot create this station's signing key ({exc.strerror}); set {KEY_DIR_ENV} to a "
+            "writable folder outside the registry",
+            path=str(path),
+        ) from None
     finally:
         with contextlib.suppress(OSError):
             tmp.unlink(missing_ok=True)
-    print(f"thermocal: created this station's signing key {path} (key id {key_id_of(raw)}); it signs every record "
-          f"this station writes into a registry: keep it private. Other stations accept them once "
-          f"{d / PUBLIC_NAME} is copied into their {TRUSTED_DIR}/ key folder.", file=sys.stderr)
+    print(
+        f"thermocal: created this station's signing key {path} (key id {key_id_of(raw)}); it signs every record "
+        f"this station writes into a registry: keep it private. Other stations accept them once "
+        f"{d / PUBLIC_NAME} is copied into their {TRUSTED_DIR}/ key folder.",
+        file=sys.stderr,
+    )
 
 
 @dataclass(frozen=True)
 class TrustStore:
     """Public keys whose signatures are accepted, by key id; ``folder`` is where they were read from."""
+
     keys: dict[str, Ed25519PublicKey]
     folder: Path
 
@@ -186,9 +205,16 @@ def sign_record(record: dict, key: StationKey | None = None) -> dict:
     key = key or station_key()
     body = {k: v for k, v in record.items() if k not in ("content_sha256", "signature")}
     value = key.private.sign(signed_body(body))
-    return {**body, "content_sha256": content_sha256(body),
-            "signature": {"alg": ALG, "key_id": key.key_id, "public_key": key.public_hex,
-                          "value": base64.b64encode(value).decode("ascii")}}
+    return {
+        **body,
+        "content_sha256": content_sha256(body),
+        "signature": {
+            "alg": ALG,
+            "key_id": key.key_id,
+            "public_key": key.public_hex,
+            "value": base64.b64encode(value).decode("ascii"),
+        },
+    }
 
 
 @dataclass(frozen=True)
@@ -196,6 +222,7 @@ class SignatureCheck:
     """Outcome of :func:`verify_record`: ``ok`` when a trusted key signed exactly this content. ``problem`` says
     what is wrong otherwise (one phrase); ``key_id`` names the signing key when the record names one; ``own`` is
     True when that key is this station's."""
+
     ok: bool
     problem: str | None = None
     key_id: str | None = None
@@ -221,11 +248,15 @@ def verify_record(record: dict, trust: TrustStore | None = None) -> SignatureChe
     pub = trust.keys.get(key_id)
     own = key_id == station_key(trust.folder).key_id
     if pub is None:
-        return SignatureCheck(False, f"signed by key {key_id}, which this station does not trust (not in "
-                                     f"{trust.folder / TRUSTED_DIR})", key_id)
+        return SignatureCheck(
+            False,
+            f"signed by key {key_id}, which this station does not trust (not in {trust.folder / TRUSTED_DIR})",
+            key_id,
+        )
     try:
         pub.verify(value, signed_body(record))
     except InvalidSignature:
-        return SignatureCheck(False, f"signature by key {key_id} does not match the content (altered or forged)",
-                              key_id, own)
+        return SignatureCheck(
+            False, f"signature by key {key_id} does not match the content (altered or forged)", key_id, own
+        )
     return SignatureCheck(True, None, key_id, own)

@@ -76,14 +76,23 @@ def constants_lines(doc: dict) -> list[str]:
     sK, sU = unc.get("K"), unc.get("U0")
     gains = gains_v_per_g(doc) or [1.0, 1.0, 1.0]
     u = output_unit_of(doc)
-    lines = [f"constants at T0 = {doc.get('normal_temp_c', 20.0):+.1f} C (+- one standard uncertainty: ppm of "
-             "the row's gain for K, micro-g for U0)",
-             "        " + "".join(f"{h:<28}" for h in (f"K_ix ({per(u, 'g')})", f"K_iy ({per(u, 'g')})",
-                                                          f"K_iz ({per(u, 'g')})", f"U0_i ({u})")).rstrip()]
+    lines = [
+        f"constants at T0 = {doc.get('normal_temp_c', 20.0):+.1f} C (+- one standard uncertainty: ppm of "
+        "the row's gain for K, micro-g for U0)",
+        "        "
+        + "".join(
+            f"{h:<28}"
+            for h in (f"K_ix ({per(u, 'g')})", f"K_iy ({per(u, 'g')})", f"K_iz ({per(u, 'g')})", f"U0_i ({u})")
+        ).rstrip(),
+    ]
     fixed, undetermined = sigma_reasons(doc)
     for i, ax in enumerate(AXES):
-        cells = [_pm(K[i][j], None if sK is None else sK[i][j], gains[i], "ppm",
-                     tag(f"K.{ax}{AXES[j]}", fixed, undetermined)) for j in range(3)]
+        cells = [
+            _pm(
+                K[i][j], None if sK is None else sK[i][j], gains[i], "ppm", tag(f"K.{ax}{AXES[j]}", fixed, undetermined)
+            )
+            for j in range(3)
+        ]
         cells.append(_pm(U0[i], None if sU is None else sU[i], gains[i], "ug", tag(f"U0.{ax}", fixed, undetermined)))
         lines.append(f"  i={ax}  " + "".join(f"{cell:<28}" for cell in cells).rstrip())
     return lines + reason_lines(doc, ("K.", "U0."))
@@ -137,22 +146,28 @@ def verification_lines(doc: dict) -> list[str]:
     rows = doc.get("verification") or []
     if not rows:
         return ["verification: no VP data (unverified)"]
-    head = (f"  {'temperature':<18}{'VPs':>4}  {'max |dg| before':>16}  {'after m1':>10}  {'after m2':>10}  "
-            f"{'limit':>8}  verdict")
+    head = (
+        f"  {'temperature':<18}{'VPs':>4}  {'max |dg| before':>16}  {'after m1':>10}  {'after m2':>10}  "
+        f"{'limit':>8}  verdict"
+    )
     lines = ["verification at the VP positions (|dg| = ||a| - 1|, micro-g; the verdict is on method 1)", head]
     for v in verification_visits(rows):
         rs = v["rows"]
         limit = max(r["tolerance_g"] for r in rs)
         failing = [r for r in rs if not r.get("passed", abs(r["dg_method1_g"]) <= r["tolerance_g"])]
         visit = f" visit {v['visit']}/{v['visits']}" if v["visits"] > 1 else ""
-        lines.append(f"  {v['temp_c']:+6.1f} C{visit:<10}{len(rs):>4}  "
-                     f"{max(abs(r['dg_uncompensated_g']) for r in rs) * _UG:16.1f}  "
-                     f"{max(abs(r['dg_method1_g']) for r in rs) * _UG:10.1f}  "
-                     f"{max(abs(r['dg_method2_g']) for r in rs) * _UG:10.1f}  {limit * _UG:8.0f}  "
-                     + ("FAIL  <<" if failing else "pass"))
+        lines.append(
+            f"  {v['temp_c']:+6.1f} C{visit:<10}{len(rs):>4}  "
+            f"{max(abs(r['dg_uncompensated_g']) for r in rs) * _UG:16.1f}  "
+            f"{max(abs(r['dg_method1_g']) for r in rs) * _UG:10.1f}  "
+            f"{max(abs(r['dg_method2_g']) for r in rs) * _UG:10.1f}  {limit * _UG:8.0f}  "
+            + ("FAIL  <<" if failing else "pass")
+        )
         for r in failing:
-            lines.append(f"      FAIL {r['position']} at {r['temp_c']:+.2f} C: |dg| {abs(r['dg_method1_g']) * _UG:.1f} "
-                         f"> {r['tolerance_g'] * _UG:.0f} micro-g")
+            lines.append(
+                f"      FAIL {r['position']} at {r['temp_c']:+.2f} C: |dg| {abs(r['dg_method1_g']) * _UG:.1f} "
+                f"> {r['tolerance_g'] * _UG:.0f} micro-g"
+            )
     return lines
 
 
@@ -168,13 +183,15 @@ def passport_summary(doc: dict, *, approved: list[dict] | None = None, figures: 
     prov = doc.get("provenance") or {}
     valid = doc.get("valid_temp_c")
     err = max_error_g(doc)
-    lines = [f"{doc.get('unit')} passport v{doc.get('version')}  created {doc.get('created_utc') or '-'}",
-             f"  method: {doc.get('method', '-')}; thermal model: {model_text(doc.get('thermal_model'))}",
-             f"  status: {doc.get('status', '-')}"
-             + (f"; largest |dg| after compensation {err * _UG:.1f} micro-g" if err is not None else ""),
-             f"  valid from {valid[0]:+.1f} to {valid[1]:+.1f} C" if valid else "  valid temperatures: not stated",
-             f"  approval: {approval_text(approved)}",
-             ""]
+    lines = [
+        f"{doc.get('unit')} passport v{doc.get('version')}  created {doc.get('created_utc') or '-'}",
+        f"  method: {doc.get('method', '-')}; thermal model: {model_text(doc.get('thermal_model'))}",
+        f"  status: {doc.get('status', '-')}"
+        + (f"; largest |dg| after compensation {err * _UG:.1f} micro-g" if err is not None else ""),
+        f"  valid from {valid[0]:+.1f} to {valid[1]:+.1f} C" if valid else "  valid temperatures: not stated",
+        f"  approval: {approval_text(approved)}",
+        "",
+    ]
     lines += constants_lines(doc) + [""] + verification_lines(doc)
     inputs = prov.get("inputs") or []
     if inputs:
@@ -191,17 +208,22 @@ def log_lines(rows: list[dict], docs: dict[int, dict]) -> list[str]:
     """``passport log``: one line per version: number (``*`` the current passport), created (UTC), method, thermal
     model, status, largest |dg| after compensation (micro-g), approval, inputs. ``docs``: the version documents by
     number (for method, model and error)."""
-    out = [f"   {'ver':<5} {'created (UTC)':<20} {'method':<18} {'thermal model':<19} {'status':<10} "
-           f"{'max |dg|':>9}  approval"]
+    out = [
+        f"   {'ver':<5} {'created (UTC)':<20} {'method':<18} {'thermal model':<19} {'status':<10} "
+        f"{'max |dg|':>9}  approval"
+    ]
     for r in rows:
         d = docs.get(r["version"], {})
         err = max_error_g(d)
         created = str(r.get("created_utc") or "-").replace("T", " ")[:19]
         mark = "*" if r.get("current") else " "
         appr = ", ".join(f"by {a.get('by')}" for a in r.get("approved") or []) or "-"
-        out.append(f" {mark} v{r['version']:<4} {created:<20} {str(d.get('method', '-')):<18} "
-                   f"{model_short(d.get('thermal_model')):<19} {str(r.get('status')):<10} "
-                   + (f"{err * _UG:7.1f}ug" if err is not None else f"{'-':>9}") + f"  {appr}")
+        out.append(
+            f" {mark} v{r['version']:<4} {created:<20} {str(d.get('method', '-')):<18} "
+            f"{model_short(d.get('thermal_model')):<19} {str(r.get('status')):<10} "
+            + (f"{err * _UG:7.1f}ug" if err is not None else f"{'-':>9}")
+            + f"  {appr}"
+        )
     if any(r.get("current") for r in rows):
         out.append("   (* the current passport: the newest approved version, else the newest)")
     return out
@@ -223,8 +245,11 @@ def diff_lines(d: dict, show_all: bool = False) -> list[str]:
     for i in ins.get("removed", []):
         lines.append(f"  input removed: {i.get('path')} ({str(i.get('sha256'))[:12]})")
     k = (d.get("significance") or {}).get("coverage_factor", 2)
-    for title, key in (("constants at T0", "constants"), ("thermal model coefficients", "thermal_model"),
-                       ("rate terms", "rate_terms")):
+    for title, key in (
+        ("constants at T0", "constants"),
+        ("thermal model coefficients", "thermal_model"),
+        ("rate terms", "rate_terms"),
+    ):
         entries = d.get(key, [])
         if not entries:
             continue
@@ -236,8 +261,10 @@ def diff_lines(d: dict, show_all: bool = False) -> list[str]:
         quiet = [e for e in entries if e not in shown]
         if quiet:
             worst = max(abs(e["delta"]) / e["uncertainty"] for e in quiet if e.get("uncertainty"))
-            lines.append(f"  {len(quiet)} {'more ' if shown else ''}within their uncertainty (largest "
-                         f"{worst:.1f} sigma; --all lists them)")
+            lines.append(
+                f"  {len(quiet)} {'more ' if shown else ''}within their uncertainty (largest "
+                f"{worst:.1f} sigma; --all lists them)"
+            )
     if not d.get("constants") and not d.get("thermal_model") and not d.get("rate_terms"):
         lines.append("constants and thermal coefficients: unchanged")
     kinds = [f for f in d.get("fields", []) if f["name"] in ("thermal_model.kind", "thermal_model.breakpoints_c")]
@@ -278,7 +305,7 @@ def _auto_reason(result: dict) -> str:
     if not auto:
         return ""
     chosen = f"{result.get('method')} ("
-    why = auto[len(chosen):-1] if auto.startswith(chosen) and auto.endswith(")") else auto
+    why = auto[len(chosen) : -1] if auto.startswith(chosen) and auto.endswith(")") else auto
     return f" (picked by --method auto: {why})"
 
 
@@ -288,25 +315,35 @@ def calibrate_lines(result: dict, doc: dict | None) -> list[str]:
     the warnings. ``doc``: the passport written (None: only the result's own fields)."""
     created = result.get("created")
     if result.get("dry_run"):
-        lines = [f"{result['unit']}: dry run, nothing written "
-                 + (f"(same inputs and settings as v{result['version']})" if result.get("existing")
-                    else f"(would be v{result['version']})")]
+        lines = [
+            f"{result['unit']}: dry run, nothing written "
+            + (
+                f"(same inputs and settings as v{result['version']})"
+                if result.get("existing")
+                else f"(would be v{result['version']})"
+            )
+        ]
     else:
-        lines = [f"{result['unit']}: passport v{result['version']} "
-                 f"{'written' if created else '(unchanged inputs: the existing version)'}: {result.get('passport')}"]
+        lines = [
+            f"{result['unit']}: passport v{result['version']} "
+            f"{'written' if created else '(unchanged inputs: the existing version)'}: {result.get('passport')}"
+        ]
     auto = _auto_reason(result)
     if doc is not None:
         valid = doc.get("valid_temp_c")
-        lines.append(f"  method {doc.get('method', result.get('method', '-'))}{auto}; thermal model "
-                     f"{model_text(doc.get('thermal_model'))}"
-                     + (f"; valid {valid[0]:+.1f} .. {valid[1]:+.1f} C" if valid else ""))
+        lines.append(
+            f"  method {doc.get('method', result.get('method', '-'))}{auto}; thermal model "
+            f"{model_text(doc.get('thermal_model'))}"
+            + (f"; valid {valid[0]:+.1f} .. {valid[1]:+.1f} C" if valid else "")
+        )
     elif auto:
         lines.append(f"  method {result.get('method', '-')}{auto}")
     lines.append(f"  status: {str(result['status']).upper()}")
     plateaus = result.get("plateaus") or []
     if plateaus:
-        lines.append(f"  {count_words(len(plateaus), 'plateau')}: "
-                     + ", ".join(f"{p['temp_c']:+.1f}" for p in plateaus) + " C")
+        lines.append(
+            f"  {count_words(len(plateaus), 'plateau')}: " + ", ".join(f"{p['temp_c']:+.1f}" for p in plateaus) + " C"
+        )
     if doc is not None:
         lines += [""] + verification_lines(doc) + [""] + constants_lines(doc)
     for key, what in (("figure", "figure, VP errors"), ("constants_figure", "figure, constants")):

@@ -22,7 +22,7 @@ from __future__ import annotations
 import dataclasses
 import json
 from dataclasses import dataclass, field
-from datetime import datetime, timedelta, timezone
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any
 
@@ -43,7 +43,7 @@ from pipeline.simulate.unit import UnitTruth, random_unit, seed000_unit
 #: Vibration tones during moves, Hz per axis (x, y, z).
 VIBRATION_HZ = (23.1, 29.7, 37.3)
 _NOMINAL_G = np.array([ALL_POSITIONS[p] for p in POSITION_NAMES], dtype=float)
-_EPOCH = datetime(1970, 1, 1, tzinfo=timezone.utc)
+_EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
 #: Rate of the thermosensor and chamber streams, Hz.
 THERMAL_RATE_HZ = 1.0
 
@@ -55,7 +55,7 @@ class SimConfig:
     unit_serial: str = "AU-0001"
     seed: int = 0
     unit_seed: int | None = None
-    program: str | Program = "standard"     # a name of pipeline.simulate.program.PROGRAMS, or a Program
+    program: str | Program = "standard"  # a name of pipeline.simulate.program.PROGRAMS, or a Program
     rate_hz: float = 10.0
     noise_v: float = 5e-6
     temp_noise_c: float = 0.01
@@ -92,7 +92,7 @@ def parse_utc_ns(text: str) -> int:
     except ValueError:
         raise ValueError(f"started_utc is not an ISO 8601 time: {text!r}") from None
     if dt.tzinfo is None:
-        dt = dt.replace(tzinfo=timezone.utc)
+        dt = dt.replace(tzinfo=UTC)
     return (dt - _EPOCH) // timedelta(microseconds=1) * 1_000
 
 
@@ -131,9 +131,18 @@ def simulate(config: SimConfig) -> SimResult:
     face_rad = _face_rotations_rad(effects)
     a_g, position_idx = _specific_force_g(timetable, tv_s, face_rad, config.vibration_g, rng)
     move_start_s, arrive_s = timetable.move_times_s()
-    ctx = SignalContext(t_s=tv_s, temp_c=temp_v_c, a_g=a_g, position_idx=position_idx, move_start_s=move_start_s,
-                        arrive_s=arrive_s, constants=unit, normal_temp_c=config.normal_temp_c,
-                        ramp_sign=timetable.ramp_sign(tv_s), start_ns=start_ns)
+    ctx = SignalContext(
+        t_s=tv_s,
+        temp_c=temp_v_c,
+        a_g=a_g,
+        position_idx=position_idx,
+        move_start_s=move_start_s,
+        arrive_s=arrive_s,
+        constants=unit,
+        normal_temp_c=config.normal_temp_c,
+        ramp_sign=timetable.ramp_sign(tv_s),
+        start_ns=start_ns,
+    )
 
     u_v = output_with_effects_v(ctx, effects, disturbances, config.noise_v, rng)
     temp_noise_c = rng.normal(0.0, config.temp_noise_c, (2, t1_s.size))  # thermosensor, chamber air
@@ -143,12 +152,25 @@ def simulate(config: SimConfig) -> SimResult:
         meta=_meta(config),
         voltmeter=make_frame("voltmeter", {"t_ns": tv_ns, "ux": u_v[:, 0], "uy": u_v[:, 1], "uz": u_v[:, 2]}),
         au_temperature=make_frame("au_temperature", {"t_ns": t1_ns, "temp_c": case_c + temp_noise_c[0]}),
-        chamber=(make_frame("chamber", {"t_ns": t1_ns, "setpoint_c": setpoint_c, "air_c": air_c + temp_noise_c[1]})
-                 if config.with_chamber else None),
+        chamber=(
+            make_frame("chamber", {"t_ns": t1_ns, "setpoint_c": setpoint_c, "air_c": air_c + temp_noise_c[1]})
+            if config.with_chamber
+            else None
+        ),
         fixture=_fixture_frame(timetable, start_ns) if config.with_fixture_log else None,
     )
-    truth = _truth(config, unit, effects + disturbances, timetable, _position_vectors_g(face_rad), start_ns,
-                   {"case_lag_s": case_lag_s, "air_lag_s": air_lag_s}, t1_s, case_c, run.meta)
+    truth = _truth(
+        config,
+        unit,
+        effects + disturbances,
+        timetable,
+        _position_vectors_g(face_rad),
+        start_ns,
+        {"case_lag_s": case_lag_s, "air_lag_s": air_lag_s},
+        t1_s,
+        case_c,
+        run.meta,
+    )
     return SimResult(run=run, truth=truth, context=ctx)
 
 
@@ -189,8 +211,9 @@ def _position_vectors_g(face_rad: np.ndarray) -> np.ndarray:
     return Rotation.from_rotvec(face_rad).apply(_NOMINAL_G)
 
 
-def _specific_force_g(timetable: Timetable, t_s: np.ndarray, face_rad: np.ndarray, vibration_g: float,
-                      rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+def _specific_force_g(
+    timetable: Timetable, t_s: np.ndarray, face_rad: np.ndarray, vibration_g: float, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
     """a (n, 3) in g and the position index per sample (-1 while moving).
 
     Static: R(delta_P) a_P. Moving: the nominal vector turns about a fixed axis (minimum-jerk profile) while the
@@ -213,7 +236,7 @@ def _specific_force_g(timetable: Timetable, t_s: np.ndarray, face_rad: np.ndarra
     t = t_s[moving]
     j = np.clip(np.searchsorted(start, t, side="right") - 1, 0, len(moves) - 1)
     u = np.clip((t - start[j]) / (end[j] - start[j]), 0.0, 1.0)
-    profile = (u ** 3 * (10 - 15 * u + 6 * u ** 2))[:, None]  # minimum jerk: zero rate and acceleration at ends
+    profile = (u**3 * (10 - 15 * u + 6 * u**2))[:, None]  # minimum jerk: zero rate and acceleration at ends
     theta = angle[j][:, None] * profile
     a_from = nominal[i_from][j]
     turned = a_from * np.cos(theta) + np.cross(axis[j], a_from) * np.sin(theta)
@@ -240,8 +263,9 @@ def _rotation_between(a_from: np.ndarray, a_to: np.ndarray) -> tuple[np.ndarray,
 
 def _fixture_frame(timetable: Timetable, start_ns: int):
     events = timetable.fixture_events()
-    return make_frame("fixture", {"t_ns": [start_ns + int(round(t * 1e9)) for t, _ in events],
-                                  "position": [p for _, p in events]})
+    return make_frame(
+        "fixture", {"t_ns": [start_ns + int(round(t * 1e9)) for t, _ in events], "position": [p for _, p in events]}
+    )
 
 
 def _meta(config: SimConfig) -> RunMeta:
@@ -258,17 +282,31 @@ def _meta(config: SimConfig) -> RunMeta:
     )
 
 
-def _truth(config: SimConfig, unit: UnitTruth, effects: list[Effect], timetable: Timetable, vectors_g: np.ndarray,
-           start_ns: int, lags_s: dict[str, float], t1_s: np.ndarray, case_c: np.ndarray,
-           meta: RunMeta) -> dict[str, Any]:
+def _truth(
+    config: SimConfig,
+    unit: UnitTruth,
+    effects: list[Effect],
+    timetable: Timetable,
+    vectors_g: np.ndarray,
+    start_ns: int,
+    lags_s: dict[str, float],
+    t1_s: np.ndarray,
+    case_c: np.ndarray,
+    meta: RunMeta,
+) -> dict[str, Any]:
     holds = []
     for h in timetable.holds():
         inside = (t1_s >= h.t_start_s) & (t1_s < h.t_end_s)
-        holds.append({
-            "position": h.position, "stage": h.stage, "setpoint_c": h.setpoint_start_c,
-            "t_start_ns": start_ns + int(round(h.t_start_s * 1e9)), "t_end_ns": start_ns + int(round(h.t_end_s * 1e9)),
-            "case_temp_c_mean": float(case_c[inside].mean()) if inside.any() else None,
-        })
+        holds.append(
+            {
+                "position": h.position,
+                "stage": h.stage,
+                "setpoint_c": h.setpoint_start_c,
+                "t_start_ns": start_ns + int(round(h.t_start_s * 1e9)),
+                "t_end_ns": start_ns + int(round(h.t_end_s * 1e9)),
+                "case_temp_c_mean": float(case_c[inside].mean()) if inside.any() else None,
+            }
+        )
     plateau_temps = sorted({h["setpoint_c"] for h in holds})
     k, u0 = unit.constants_at(np.array(plateau_temps))
     return {
@@ -279,8 +317,9 @@ def _truth(config: SimConfig, unit: UnitTruth, effects: list[Effect], timetable:
         "duration_s": timetable.duration_s,
         **lags_s,
         "unit": unit.to_dict(),
-        "unit_constants_at": [{"temp_c": t, "K": k[i].tolist(), "U0": u0[i].tolist()}
-                              for i, t in enumerate(plateau_temps)],
+        "unit_constants_at": [
+            {"temp_c": t, "K": k[i].tolist(), "U0": u0[i].tolist()} for i, t in enumerate(plateau_temps)
+        ],
         "effects": [{"id": e.id, "params": e.params()} for e in effects if e.id in EFFECTS],
         "disturbances": [{"id": e.id, "params": e.params()} for e in effects if e.id not in EFFECTS],
         "position_vectors_g": {p: vectors_g[i].tolist() for i, p in enumerate(POSITION_NAMES)},
@@ -300,8 +339,9 @@ def voltmeter_t_ns(start_ns: int, k: np.ndarray, config: SimConfig, rng: np.rand
     return t_ns
 
 
-def output_with_effects_v(ctx: SignalContext, effects: list, disturbances: list, noise_v: float,
-                          rng: np.random.Generator) -> np.ndarray:
+def output_with_effects_v(
+    ctx: SignalContext, effects: list, disturbances: list, noise_v: float, rng: np.random.Generator
+) -> np.ndarray:
     """The unit's outputs (n, 3) in V: U = K a + U0 at each sample's temperature, plus every effect acting on the
     output (a face error is already in ``ctx.a_g``), every disturbance, and white noise of ``noise_v`` V."""
     u_v = output_v(*ctx.k_u0, ctx.a_g)

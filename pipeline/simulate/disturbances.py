@@ -115,8 +115,7 @@ def make_disturbance(disturbance_id: str, params: dict[str, Any] | None = None) 
     try:
         cls = DISTURBANCES[disturbance_id]
     except KeyError:
-        raise ValueError(f"unknown disturbance {disturbance_id!r}; expected one of {', '.join(DISTURBANCES)}") \
-            from None
+        raise ValueError(f"unknown disturbance {disturbance_id!r}; expected one of {', '.join(DISTURBANCES)}") from None
     return cls.make(params)
 
 
@@ -127,5 +126,12 @@ def parse_disturbance_spec(spec: str) -> tuple[str, dict[str, Any]]:
     return d.id, d.params()
 
 
-__all__ = ["DISTURBANCES", "ConstantsShift", "BiasStep", "BiasRandomWalk", "Periodic", "make_disturbance",
-           "parse_disturbance_spec"]
+__all__ = [
+    "DISTURBANCES",
+    "ConstantsShift",
+    "BiasStep",
+    "BiasRandomWalk",
+    "Periodic",
+    "make_disturbance",
+    "parse_disturbance_spec",
+]

@@ -45,8 +45,9 @@ def simulate_run(config: SimConfig, chunked_above_samples: int = CHUNKED_ABOVE_S
     an effect needs the whole record (not ``local``), which is then simulated in one piece."""
     _check(config)
     n = int(np.floor(get_program(config.program).timetable().duration_s * config.rate_hz)) + 1
-    local = (all(effect_class(eid).local for eid, _ in config.effects)
-             and all(DISTURBANCES[did].local for did, _ in config.disturbances))
+    local = all(effect_class(eid).local for eid, _ in config.effects) and all(
+        DISTURBANCES[did].local for did, _ in config.disturbances
+    )
     return simulate_chunked(config) if n > chunked_above_samples and local else simulate(config)
 
 
@@ -57,8 +58,9 @@ def simulate_chunked(config: SimConfig, chunk_samples: int = 1_000_000) -> SimRe
     ``context`` is the 1 Hz one (the per-sample context of a long run is what this function avoids building).
     """
     _check(config)
-    refused = ([eid for eid, _ in config.effects if not effect_class(eid).local]
-               + [did for did, _ in config.disturbances if not DISTURBANCES[did].local])
+    refused = [eid for eid, _ in config.effects if not effect_class(eid).local] + [
+        did for did, _ in config.disturbances if not DISTURBANCES[did].local
+    ]
     if refused:
         raise ValueError(f"effects {refused} depend on other samples; use pipeline.simulate.chamber.simulate")
     if int(chunk_samples) < 1:
@@ -79,18 +81,32 @@ def simulate_chunked(config: SimConfig, chunk_samples: int = 1_000_000) -> SimRe
         t_s = k / config.rate_hz
         t_ns[k] = voltmeter_t_ns(ctx1.start_ns, k, config, noise)
         # simulate() draws the vibration phases first from default_rng(seed): the same phases in every chunk
-        a_g, position_idx = _specific_force_g(timetable, t_s, face_rad, config.vibration_g,
-                                              np.random.default_rng(config.seed))
-        ctx = SignalContext(t_s=t_s, temp_c=np.interp(t_s, ctx1.t_s, ctx1.temp_c), a_g=a_g,
-                            position_idx=position_idx, move_start_s=ctx1.move_start_s, arrive_s=ctx1.arrive_s,
-                            constants=ctx1.constants, normal_temp_c=config.normal_temp_c,
-                            ramp_sign=timetable.ramp_sign(t_s), start_ns=ctx1.start_ns)
+        a_g, position_idx = _specific_force_g(
+            timetable, t_s, face_rad, config.vibration_g, np.random.default_rng(config.seed)
+        )
+        ctx = SignalContext(
+            t_s=t_s,
+            temp_c=np.interp(t_s, ctx1.t_s, ctx1.temp_c),
+            a_g=a_g,
+            position_idx=position_idx,
+            move_start_s=ctx1.move_start_s,
+            arrive_s=ctx1.arrive_s,
+            constants=ctx1.constants,
+            normal_temp_c=config.normal_temp_c,
+            ramp_sign=timetable.ramp_sign(t_s),
+            start_ns=ctx1.start_ns,
+        )
         u = output_with_effects_v(ctx, effects, disturbances, config.noise_v, noise)
         for c, name in enumerate(u_v):
             u_v[name][k] = u[:, c]
 
     run = base.run
-    run = Run(meta=run.meta, voltmeter=make_frame("voltmeter", {"t_ns": t_ns, **u_v}),
-              au_temperature=run.au_temperature, chamber=run.chamber, fixture=run.fixture)
+    run = Run(
+        meta=run.meta,
+        voltmeter=make_frame("voltmeter", {"t_ns": t_ns, **u_v}),
+        au_temperature=run.au_temperature,
+        chamber=run.chamber,
+        fixture=run.fixture,
+    )
     truth = dict(base.truth, config=dataclasses.asdict(config))
     return SimResult(run=run, truth=truth, context=ctx1)

@@ -137,8 +137,9 @@ class Program:
                 else:
                     raise TypeError(f"unknown program step {step!r}")
                 t += dur
-        return Timetable(tuple(s for s in segs if s.t_end_s > s.t_start_s), self.start_position,
-                         float(self.start_setpoint_c))
+        return Timetable(
+            tuple(s for s in segs if s.t_end_s > s.t_start_s), self.start_position, float(self.start_setpoint_c)
+        )
 
 
 def _duration(step: Step) -> float:
@@ -175,8 +176,9 @@ class Timetable:
 
     def _index(self, t_s) -> np.ndarray:
         """Segment index of each time; a segment owns [t_start, t_end)."""
-        return np.clip(np.searchsorted(self._starts(), np.asarray(t_s, float), side="right") - 1, 0,
-                       len(self.segments) - 1)
+        return np.clip(
+            np.searchsorted(self._starts(), np.asarray(t_s, float), side="right") - 1, 0, len(self.segments) - 1
+        )
 
     def setpoint_c(self, t_s) -> np.ndarray:
         """Chamber setpoint (C), piecewise linear."""
@@ -229,8 +231,15 @@ class Timetable:
         return np.array([s.stage for s in self.segments])[self._index(t_s)]
 
 
-def _temperature_program(name: str, soak_s: tuple[float, float], hold_s: float, move_s: float,
-                         rate_c_per_min: float, case_lag_s: float, air_lag_s: float) -> Program:
+def _temperature_program(
+    name: str,
+    soak_s: tuple[float, float],
+    hold_s: float,
+    move_s: float,
+    rate_c_per_min: float,
+    case_lag_s: float,
+    air_lag_s: float,
+) -> Program:
     """The seven stages of physics.md with the given timings; soak_s = (normal soak, long soak at -40/+70 C)."""
     soak, long_soak = soak_s
     plan = [  # (setpoint C, soak s, positions)
@@ -243,24 +252,27 @@ def _temperature_program(name: str, soak_s: tuple[float, float], hold_s: float, 
         (20.0, soak, TP + VP),
     ]
     stages = tuple(
-        Stage(f"{sp:+.0f} C", (Ramp(sp, rate_c_per_min), Soak(sk)) + visit(pos, hold_s, move_s))
-        for sp, sk, pos in plan)
-    return Program(name, stages, start_setpoint_c=20.0, start_position="TP1", case_lag_s=case_lag_s,
-                   air_lag_s=air_lag_s)
+        Stage(f"{sp:+.0f} C", (Ramp(sp, rate_c_per_min), Soak(sk)) + visit(pos, hold_s, move_s)) for sp, sk, pos in plan
+    )
+    return Program(
+        name, stages, start_setpoint_c=20.0, start_position="TP1", case_lag_s=case_lag_s, air_lag_s=air_lag_s
+    )
 
 
 def standard_program() -> Program:
     """physics.md "The standard chamber program": 7 stages, holds 300 s, moves 20 s, ramps 1 C/min, soaks 60 min
     (90 min at -40 and +70 C); about 16.5 h. Case lag 600 s."""
-    return _temperature_program("standard", (3600.0, 5400.0), hold_s=300.0, move_s=20.0, rate_c_per_min=1.0,
-                                case_lag_s=600.0, air_lag_s=90.0)
+    return _temperature_program(
+        "standard", (3600.0, 5400.0), hold_s=300.0, move_s=20.0, rate_c_per_min=1.0, case_lag_s=600.0, air_lag_s=90.0
+    )
 
 
 def short_program() -> Program:
     """The standard sequence of temperatures and positions, short: soaks 15 min, holds 60 s, moves 10 s, ramps
     5 C/min (about 3.5 h). Case lag 120 s."""
-    return _temperature_program("short", (900.0, 900.0), hold_s=60.0, move_s=10.0, rate_c_per_min=5.0,
-                                case_lag_s=120.0, air_lag_s=30.0)
+    return _temperature_program(
+        "short", (900.0, 900.0), hold_s=60.0, move_s=10.0, rate_c_per_min=5.0, case_lag_s=120.0, air_lag_s=30.0
+    )
 
 
 def differential_program(orientations=("TP1", "TP2", "TP3", "TP4", "TP5", "TP6")) -> Program:
@@ -270,11 +282,20 @@ def differential_program(orientations=("TP1", "TP2", "TP3", "TP4", "TP5", "TP6")
     """
     stages = []
     for p in orientations:
-        steps = (Move(p, 20.0), Hold(p, 1800.0), Ramp(-40.0), Soak(1800.0), Ramp(70.0), Soak(1800.0), Ramp(20.0),
-                 Soak(1800.0))
+        steps = (
+            Move(p, 20.0),
+            Hold(p, 1800.0),
+            Ramp(-40.0),
+            Soak(1800.0),
+            Ramp(70.0),
+            Soak(1800.0),
+            Ramp(20.0),
+            Soak(1800.0),
+        )
         stages.append(Stage(f"cycle in {p}", steps))
-    return Program("differential", tuple(stages), start_setpoint_c=20.0, start_position="TP1", case_lag_s=600.0,
-                   air_lag_s=90.0)
+    return Program(
+        "differential", tuple(stages), start_setpoint_c=20.0, start_position="TP1", case_lag_s=600.0, air_lag_s=90.0
+    )
 
 
 def handheld_program(rounds: int = 3, hold_s: float = 3.0, move_s: float = 1.5) -> Program:
@@ -284,22 +305,36 @@ def handheld_program(rounds: int = 3, hold_s: float = 3.0, move_s: float = 1.5) 
     36 poses in about 2.7 min. Simulate it at ~100 Hz with timestamp jitter (``SimConfig.jitter_s``)."""
     order = np.random.default_rng(13).permuted(np.tile(np.arange(len(POSITION_NAMES)), (rounds, 1)), axis=1)
     names = [POSITION_NAMES[i] for i in order.ravel()]
-    names = [n for k, n in enumerate(names) if k == 0 or n != names[k - 1]]     # no pose repeated back to back
+    names = [n for k, n in enumerate(names) if k == 0 or n != names[k - 1]]  # no pose repeated back to back
     steps = (Hold(names[0], hold_s),) + visit(names[1:], hold_s, move_s)
-    return Program("handheld", (Stage("poses at 20 C", steps),), start_setpoint_c=20.0, start_position=names[0],
-                   case_lag_s=120.0, air_lag_s=30.0)
+    return Program(
+        "handheld",
+        (Stage("poses at 20 C", steps),),
+        start_setpoint_c=20.0,
+        start_position=names[0],
+        case_lag_s=120.0,
+        air_lag_s=30.0,
+    )
 
 
-def sweep_program(orientations=("TP3", "TP5", "TP2"), cold_c: float = 5.0, warm_c: float = 25.0,
-                  cool_c_per_min: float = 0.75, warm_c_per_min: float = 0.05) -> Program:
+def sweep_program(
+    orientations=("TP3", "TP5", "TP2"),
+    cold_c: float = 5.0,
+    warm_c: float = 25.0,
+    cool_c_per_min: float = 0.75,
+    warm_c_per_min: float = 0.05,
+) -> Program:
     """A temperature sweep with few orientations (physics.md, "Real recordings"; the shape of a logger put in a
     fridge): in each orientation (default three, one axis vertical in each, pointing down) the unit cools from
     where it is to ``cold_c`` at ``cool_c_per_min`` and warms slowly to ``warm_c`` at ``warm_c_per_min``, never
     holding a plateau. About 7.2 h per orientation with the defaults. Case lag 600 s."""
-    stages = tuple(Stage(f"sweep in {p}", (Move(p, 20.0), Ramp(cold_c, cool_c_per_min), Ramp(warm_c, warm_c_per_min)))
-                   for p in orientations)
-    return Program("sweep", stages, start_setpoint_c=20.0, start_position=orientations[0], case_lag_s=600.0,
-                   air_lag_s=90.0)
+    stages = tuple(
+        Stage(f"sweep in {p}", (Move(p, 20.0), Ramp(cold_c, cool_c_per_min), Ramp(warm_c, warm_c_per_min)))
+        for p in orientations
+    )
+    return Program(
+        "sweep", stages, start_setpoint_c=20.0, start_position=orientations[0], case_lag_s=600.0, air_lag_s=90.0
+    )
 
 
 def parse_drop(spec: str) -> tuple[str, float, int | None]:
@@ -341,8 +376,11 @@ def variant(program: Program, soak_s: float | None = None, drop: tuple[str, ...]
         seen[sp] = seen.get(sp, 0) + 1
         gone = set()
         for spec, pos, temp_c, nth in drops:
-            if abs(temp_c - sp) < 0.5 and nth in (None, seen[sp]) and any(
-                    isinstance(st, Hold) and st.position == pos for st in stage.steps):
+            if (
+                abs(temp_c - sp) < 0.5
+                and nth in (None, seen[sp])
+                and any(isinstance(st, Hold) and st.position == pos for st in stage.steps)
+            ):
                 gone.add(pos)
                 used[spec] = True
         steps = []
@@ -350,8 +388,10 @@ def variant(program: Program, soak_s: float | None = None, drop: tuple[str, ...]
             if isinstance(step, Soak) and soak_s is not None:
                 if soak_s > 0:
                     steps.append(Soak(float(soak_s)))
-            elif isinstance(step, (Move, Hold)) and (step.to_position if isinstance(step, Move) else step.position
-                                                      ) in gone:
+            elif (
+                isinstance(step, (Move, Hold))
+                and (step.to_position if isinstance(step, Move) else step.position) in gone
+            ):
                 continue
             else:
                 steps.append(step)
@@ -359,14 +399,23 @@ def variant(program: Program, soak_s: float | None = None, drop: tuple[str, ...]
     missing = [spec for spec, ok in used.items() if not ok]
     if missing:
         raise ValueError(f"program {program.name!r} holds no such position at that setpoint: {', '.join(missing)}")
-    name = program.name + (f"+soak{soak_s / 60:g}min" if soak_s is not None else "") + "".join(
-        f"-{spec.strip()}" for spec in drop)
-    return Program(name, tuple(stages), program.start_setpoint_c, program.start_position, program.case_lag_s,
-                   program.air_lag_s)
+    name = (
+        program.name
+        + (f"+soak{soak_s / 60:g}min" if soak_s is not None else "")
+        + "".join(f"-{spec.strip()}" for spec in drop)
+    )
+    return Program(
+        name, tuple(stages), program.start_setpoint_c, program.start_position, program.case_lag_s, program.air_lag_s
+    )
 
 
-PROGRAMS = {"standard": standard_program, "short": short_program, "differential": differential_program,
-            "handheld": handheld_program, "sweep": sweep_program}
+PROGRAMS = {
+    "standard": standard_program,
+    "short": short_program,
+    "differential": differential_program,
+    "handheld": handheld_program,
+    "sweep": sweep_program,
+}
 
 
 def get_program(name: str | Program) -> Program:

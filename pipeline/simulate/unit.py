@@ -42,8 +42,10 @@ class UnitTruth:
         k = np.asarray(self.k_coef, dtype=float)
         u = np.asarray(self.u0_coef, dtype=float)
         if k.ndim != 3 or k.shape[1:] != (3, 3) or u.shape != (k.shape[0], 3) or not 1 <= k.shape[0] <= 4:
-            raise ValueError(f"UnitTruth needs K coefficients (m,3,3) and U0 coefficients (m,3) with m in 1..4, "
-                             f"got {k.shape} and {u.shape}")
+            raise ValueError(
+                f"UnitTruth needs K coefficients (m,3,3) and U0 coefficients (m,3) with m in 1..4, "
+                f"got {k.shape} and {u.shape}"
+            )
         object.__setattr__(self, "k_coef", k)
         object.__setattr__(self, "u0_coef", u)
 
@@ -69,8 +71,7 @@ class UnitTruth:
             "order": self.order,
             "alpha": {a: self.u0_coef[1:, i].tolist() for i, a in enumerate(AXES)},
             "beta": {a + a: rel[:, i, i].tolist() for i, a in enumerate(AXES)},
-            "gamma": {a + b: rel[:, i, j].tolist() for i, a in enumerate(AXES) for j, b in enumerate(AXES)
-                      if i != j},
+            "gamma": {a + b: rel[:, i, j].tolist() for i, a in enumerate(AXES) for j, b in enumerate(AXES) if i != j},
         }
 
     def to_dict(self) -> dict[str, Any]:
@@ -90,8 +91,12 @@ class UnitTruth:
     def from_dict(cls, d: dict[str, Any]) -> UnitTruth:
         if d.get("kind") != "polynomial_in_dT":
             raise ValueError(f"not a UnitTruth document (kind={d.get('kind')!r})")
-        return cls(normal_temp_c=float(d["normal_temp_c"]), k_coef=np.array(d["K_coef"], dtype=float),
-                   u0_coef=np.array(d["U0_coef"], dtype=float), label=str(d.get("label", "")))
+        return cls(
+            normal_temp_c=float(d["normal_temp_c"]),
+            k_coef=np.array(d["K_coef"], dtype=float),
+            u0_coef=np.array(d["U0_coef"], dtype=float),
+            label=str(d.get("label", "")),
+        )
 
 
 def unit_through_tables(temps_c, k_v_per_g, u0_v, normal_temp_c: float = 20.0, label: str = "") -> UnitTruth:
@@ -102,11 +107,9 @@ def unit_through_tables(temps_c, k_v_per_g, u0_v, normal_temp_c: float = 20.0, l
     dt_c = np.asarray(temps_c, dtype=float) - normal_temp_c
     s = dt_c.size
     vander = np.vander(dt_c, s, increasing=True)
-    values = np.concatenate([np.asarray(k_v_per_g, float).reshape(s, 9), np.asarray(u0_v, float).reshape(s, 3)],
-                            axis=1)
+    values = np.concatenate([np.asarray(k_v_per_g, float).reshape(s, 9), np.asarray(u0_v, float).reshape(s, 3)], axis=1)
     coef = np.linalg.solve(vander, values)
-    return UnitTruth(normal_temp_c=normal_temp_c, k_coef=coef[:, :9].reshape(s, 3, 3), u0_coef=coef[:, 9:],
-                     label=label)
+    return UnitTruth(normal_temp_c=normal_temp_c, k_coef=coef[:, :9].reshape(s, 3, 3), u0_coef=coef[:, 9:], label=label)
 
 
 def seed000_tables() -> list[dict[str, Any]]:
@@ -117,8 +120,13 @@ def seed000_tables() -> list[dict[str, Any]]:
 def seed000_unit(normal_temp_c: float = 20.0) -> UnitTruth:
     """The real unit of seed 000: quadratic in T through its constants at +20, -40 and +70 C."""
     tables = seed000_tables()
-    return unit_through_tables([t["temp_c"] for t in tables], [t["K"] for t in tables], [t["U0"] for t in tables],
-                               normal_temp_c=normal_temp_c, label="seed000")
+    return unit_through_tables(
+        [t["temp_c"] for t in tables],
+        [t["K"] for t in tables],
+        [t["U0"] for t in tables],
+        normal_temp_c=normal_temp_c,
+        label="seed000",
+    )
 
 
 def _signed_loguniform(rng: np.random.Generator, lo: float, hi: float, size) -> np.ndarray:
@@ -142,8 +150,11 @@ def random_unit(unit_seed: int, normal_temp_c: float = 20.0) -> UnitTruth:
     temps_c = [20.0, -40.0, 70.0]
     ks, us = [k0], [u0]
     for t in temps_c[1:]:
-        rel = np.where(diag, rng.uniform(1e-5, 5e-5, (3, 3)) * rng.choice([-1.0, 1.0], (3, 3)),
-                       _signed_loguniform(rng, 1e-4, 6e-3, (3, 3)))
+        rel = np.where(
+            diag,
+            rng.uniform(1e-5, 5e-5, (3, 3)) * rng.choice([-1.0, 1.0], (3, 3)),
+            _signed_loguniform(rng, 1e-4, 6e-3, (3, 3)),
+        )
         alpha = _signed_loguniform(rng, 1.5e-5, 1.5e-4, 3)
         ks.append(k0 * (1.0 + rel * (t - 20.0)))
         us.append(u0 + alpha * (t - 20.0))

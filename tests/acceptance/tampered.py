@@ -12,9 +12,9 @@ from __future__ import annotations
 import json
 import os
 import shutil
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 from pipeline.passport.canonical import canonical_json, content_sha256
 from pipeline.passport.registry import Registry, sha256_file
@@ -27,19 +27,33 @@ VERSIONS = 3
 def passport(unit: str, k: int) -> dict:
     """A small passport (contract.md's required fields, seed 000's magnitudes); ``k`` varies one constant."""
     K = [[-0.5506, 0.0005 + 1e-5 * k, 0.0164], [-0.0132, -0.5485, -0.0007], [-0.0147, -0.0004, -0.5486]]
-    return {"schema": "thermocal.passport/1", "unit": unit, "normal_temp_c": 20.0, "g_local_mps2": 9.80665,
-            "status": "pass", "method": "tilt_six_position",
-            "coefficients": {"K": K, "U0": [0.0045, -0.0044, -0.0035]},
-            "per_plateau": [], "thermal_model": {"kind": "polynomial", "order": 1,
-                                                 "alpha": {"x": [1e-4], "y": [1e-4], "z": [1e-4]},
-                                                 "beta": {"xx": [1e-5], "yy": [1e-5], "zz": [1e-5]},
-                                                 "gamma": {g: [0.0] for g in ("xy", "xz", "yx", "yz", "zx", "zy")}},
-            "verification": []}
+    return {
+        "schema": "thermocal.passport/1",
+        "unit": unit,
+        "normal_temp_c": 20.0,
+        "g_local_mps2": 9.80665,
+        "status": "pass",
+        "method": "tilt_six_position",
+        "coefficients": {"K": K, "U0": [0.0045, -0.0044, -0.0035]},
+        "per_plateau": [],
+        "thermal_model": {
+            "kind": "polynomial",
+            "order": 1,
+            "alpha": {"x": [1e-4], "y": [1e-4], "z": [1e-4]},
+            "beta": {"xx": [1e-5], "yy": [1e-5], "zz": [1e-5]},
+            "gamma": {g: [0.0] for g in ("xy", "xz", "yx", "yz", "zx", "zy")},
+        },
+        "verification": [],
+    }
 
 
 def publish(reg: Registry, unit: str, k: int):
-    return reg.publish(passport(unit, k), inputs=[{"path": f"/runs/{unit}-{k}.mcap", "sha256": f"{k:064x}"}],
-                       settings={"k": k}, code_version="test")
+    return reg.publish(
+        passport(unit, k),
+        inputs=[{"path": f"/runs/{unit}-{k}.mcap", "sha256": f"{k:064x}"}],
+        settings={"k": k},
+        code_version="test",
+    )
 
 
 def build_base(folder: Path) -> tuple[Path, Path]:
@@ -55,8 +69,9 @@ def build_base(folder: Path) -> tuple[Path, Path]:
 
 def snapshot(root: Path) -> dict[str, bytes]:
     """Every file under ``root`` by relative path (the lock file aside), to show nothing was lost or altered."""
-    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*"))
-            if p.is_file() and p.name != ".lock"}
+    return {
+        str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file() and p.name != ".lock"
+    }
 
 
 # --- attacks ------------------------------------------------------------------------------------------------------
@@ -108,8 +123,12 @@ def forged_and_logged(root: Path) -> None:
     """The forgery, with its log row appended too (as the writer would have)."""
     _forge_next(root, UNITS[0], None)
     path = _vpath(root, UNITS[0], VERSIONS + 1)
-    row = {"version": VERSIONS + 1, "sha256": sha256_file(path), "created_utc": "2026-11-22T00:00:00Z",
-           "identity": "x" * 64}
+    row = {
+        "version": VERSIONS + 1,
+        "sha256": sha256_file(path),
+        "created_utc": "2026-11-22T00:00:00Z",
+        "identity": "x" * 64,
+    }
     with open(root / "units" / UNITS[0] / "log.jsonl", "a") as f:
         f.write(json.dumps(row, sort_keys=True, separators=(",", ":")) + "\n")
 
@@ -200,14 +219,27 @@ ATTACKS: tuple[Attack, ...] = (
     Attack("forged-version-attacker-key", forged_other_key, ((U0, 4, "which this station does not trust"),)),
     Attack("forged-version-logged", forged_and_logged, ((U0, 4, "not signed"),)),
     Attack("rollback-newest", rollback_newest, ((U0, 3, "no longer in the registry"),), against=True, refuses=None),
-    Attack("rollback-and-republish", rollback_and_republish, ((U0, 3, "differs from the head statement"),),
-           against=True, refuses=None),
-    Attack("delete-unit-folder", delete_unit, tuple((U1, v, "unit folder deleted") for v in (1, 2, 3)),
-           against=True, refuses=None),
+    Attack(
+        "rollback-and-republish",
+        rollback_and_republish,
+        ((U0, 3, "differs from the head statement"),),
+        against=True,
+        refuses=None,
+    ),
+    Attack(
+        "delete-unit-folder",
+        delete_unit,
+        tuple((U1, v, "unit folder deleted") for v in (1, 2, 3)),
+        against=True,
+        refuses=None,
+    ),
     Attack("altered-older-version", altered_older, ((U0, 2, "altered"),)),
     Attack("altered-older-version-rehashed", altered_older_rehashed, ((U0, 2, "does not match the content"),)),
     Attack("altered-newest-rehashed-and-logged", altered_newest_rehashed, ((U0, 3, "does not match the content"),)),
     Attack("signature-stripped", signature_stripped, ((U1, 1, "altered"),), refuses=U1),
-    Attack("stray-and-misnamed-files", stray_files,
-           ((U0, None, "'v2.json'"), (U0, None, "'v002.json'"), (U0, None, "'notes.txt'"))),
+    Attack(
+        "stray-and-misnamed-files",
+        stray_files,
+        ((U0, None, "'v2.json'"), (U0, None, "'v002.json'"), (U0, None, "'notes.txt'")),
+    ),
 )

@@ -70,10 +70,27 @@ def error_lines(stderr: str) -> list[str]:
 
 def test_corpus_covers_the_issue():
     """Every kind of broken input the issue lists has at least one case."""
-    kinds = ["truncated-mid-chunk", "no-summary", "crc", "not-matching-schema", "missing-stream", "unknown-topics",
-             "nan-inf", "repeated", "conflicting-duplicates", "backwards", "gap", "missing-a-position",
-             "never-stabilises", "metadata-missing", "metadata-malformed", "wrong-column-type", "empty-file",
-             "text-file", "foreign-mcap"]
+    kinds = [
+        "truncated-mid-chunk",
+        "no-summary",
+        "crc",
+        "not-matching-schema",
+        "missing-stream",
+        "unknown-topics",
+        "nan-inf",
+        "repeated",
+        "conflicting-duplicates",
+        "backwards",
+        "gap",
+        "missing-a-position",
+        "never-stabilises",
+        "metadata-missing",
+        "metadata-malformed",
+        "wrong-column-type",
+        "empty-file",
+        "text-file",
+        "foreign-mcap",
+    ]
     for kind in kinds:
         assert any(kind in c.name for c in CASES), kind
     assert sum(c.error is None for c in CASES) >= 8 and sum(c.error is not None for c in CASES) >= 20
@@ -132,8 +149,14 @@ def test_a_late_block_changes_nothing_in_the_calibration(corpus):
 
 # --- through the flow, the console script and fleet ---------------------------------------------------------------
 
-FLOW_CASES = ("mcap-corrupt-chunk-crc", "mcap-message-not-matching-schema", "clock-jump", "parquet-null-timestamp",
-              "no-plateau-with-six-positions", "temperature-never-stabilises")
+FLOW_CASES = (
+    "mcap-corrupt-chunk-crc",
+    "mcap-message-not-matching-schema",
+    "clock-jump",
+    "parquet-null-timestamp",
+    "no-plateau-with-six-positions",
+    "temperature-never-stabilises",
+)
 
 
 def test_calibrate_command_in_process(corpus, tmp_path, monkeypatch, capsys):
@@ -146,8 +169,9 @@ def test_calibrate_command_in_process(corpus, tmp_path, monkeypatch, capsys):
         with pytest.raises(ThermocalError) as info:
             calibrate_in_process(path)
         # the tilt recipe, as in-process (--method auto may take another method where tilt has too few positions)
-        code, out, err = run_main(monkeypatch, capsys, "calibrate", str(path), "--registry", str(registry),
-                                  "--method", "tilt")
+        code, out, err = run_main(
+            monkeypatch, capsys, "calibrate", str(path), "--registry", str(registry), "--method", "tilt"
+        )
         assert code == 2, (name, err)
         assert error_lines(err) == [f"thermocal: error: {info.value.one_line()}"], err
         assert out == ""
@@ -155,7 +179,7 @@ def test_calibrate_command_in_process(corpus, tmp_path, monkeypatch, capsys):
     path = corpus["mcap-truncated-mid-chunk"]
     code, out, err = run_main(monkeypatch, capsys, "calibrate", str(path), "--registry", str(registry), "--json")
     result = json.loads(out)
-    assert code == (1 if result["status"] == "fail" else 0), err          # contract.md: a fail exits 1
+    assert code == (1 if result["status"] == "fail" else 0), err  # contract.md: a fail exits 1
     assert result["version"] == 1 and result["unit"] == read_run(path).meta.unit_serial
     assert any("truncated at byte" in w and "kept" in w for w in result["warnings"])
 
@@ -164,15 +188,18 @@ def test_console_script_refuses_broken_runs(corpus, tmp_path):
     """The real console script: ``inspect`` (no Prefect) prints exactly one line; ``calibrate`` exits 2 with the
     one-line reason."""
     for name in ("mcap-corrupt-chunk-crc", "parquet-wrong-column-type", "lfs-pointer"):
-        proc = subprocess.run([THERMOCAL, "inspect", str(corpus[name])], capture_output=True, text=True,
-                              timeout=120)
+        proc = subprocess.run([THERMOCAL, "inspect", str(corpus[name])], capture_output=True, text=True, timeout=120)
         assert proc.returncode == 2 and proc.stdout == "", proc.stderr
         [line] = proc.stderr.splitlines()
         assert line.startswith(f"thermocal: error: {corpus[name]}")
         assert all(s in line for s in CASE_BY_NAME[name].says)
     path = corpus["temperature-never-stabilises"]
-    proc = subprocess.run([THERMOCAL, "calibrate", str(path), "--registry", str(tmp_path / "reg"), "--method",
-                           "tilt"], capture_output=True, text=True, timeout=600)
+    proc = subprocess.run(
+        [THERMOCAL, "calibrate", str(path), "--registry", str(tmp_path / "reg"), "--method", "tilt"],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert proc.returncode == 2, proc.stderr
     [line] = error_lines(proc.stderr)
     assert line.startswith(f"thermocal: error: {path}: au_temperature: t_ns=")
@@ -256,8 +283,9 @@ def read_error(path: Path) -> str:
 def test_real_mcap_files_of_the_conformance_kinds_are_refused_by_inspect(tmp_path, monkeypatch, capsys):
     """Real MCAP files written like the corpus's (every writer option combination; test_io builds them) through
     ``inspect``: refused as not a run, one line."""
-    from tests.io.test_io import _conformance_like_variants
     from mcap.writer import Writer
+
+    from tests.io.test_io import _conformance_like_variants
 
     for k, opts in enumerate(_conformance_like_variants()):
         path = tmp_path / f"variant-{k}.mcap"
@@ -272,4 +300,5 @@ def test_real_mcap_files_of_the_conformance_kinds_are_refused_by_inspect(tmp_pat
         assert code == 2 and err.splitlines() == [
             f"thermocal: error: {path}: no run topics or run metadata found: not a thermocal chamber run (expected "
             "metadata 'run' and topics /voltmeter, /au/temperature, /chamber, /fixture; topics in the file: "
-            "example)"], err
+            "example)"
+        ], err

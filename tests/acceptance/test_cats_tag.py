@@ -46,7 +46,7 @@ def test_passport_says_what_the_orientations_determined(result):
     roles = doc["orientation_base"]["roles"]
     assert all(len(roles[a]["vertical"]) == 1 and len(roles[a]["horizontal"]) == 2 for a in "xyz")
     K = np.diag(np.array(doc["coefficients"]["K"]))
-    assert np.all((K > 9.3) & (K < 10.3))                       # m/s^2 per g: the tag's outputs are in m/s^2
+    assert np.all((K > 9.3) & (K < 10.3))  # m/s^2 per g: the tag's outputs are in m/s^2
     lo, hi = doc["valid_temp_c"]
     assert 4.5 < lo < 5.5 and 23.0 < hi < 25.0
 
@@ -64,7 +64,7 @@ def test_texts_state_the_tags_output_unit(result):
     assert doc["output_unit"] == "m/s^2"
     show = passport_summary(doc)
     assert "K_ix ((m/s^2)/g)" in show and "U0_i (m/s^2)" in show and "(V" not in show
-    page = re.sub(r"base64,[A-Za-z0-9+/=]+", "", certificate_html(doc))     # the figures' bytes aside
+    page = re.sub(r"base64,[A-Za-z0-9+/=]+", "", certificate_html(doc))  # the figures' bytes aside
     assert "((m/s^2)/g)" in page and "(m/s^2)/C^1" in page and "V/g" not in page and "V/C" not in page
     csv_rows = [r.split(",") for r in export_passport(doc, "csv").text.splitlines()]
     units = {r[0]: r[6] for r in csv_rows[1:] if r[0] in ("K", "U0", "alpha")}

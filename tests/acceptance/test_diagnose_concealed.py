@@ -15,7 +15,7 @@ engineer cares about (the VP gravity-module error moves by 1-40 micro-g), far fr
 from __future__ import annotations
 
 import json
-from functools import lru_cache
+from functools import cache
 from pathlib import Path
 
 import numpy as np
@@ -62,14 +62,13 @@ def folder(tmp_path_factory) -> Path:
     return tmp_path_factory.mktemp("concealed")
 
 
-_TRUTH: dict[str, dict] = {}      # kept by the test, never given to diagnose
+_TRUTH: dict[str, dict] = {}  # kept by the test, never given to diagnose
 
 
-@lru_cache(maxsize=None)
+@cache
 def _diagnosed(name: str, folder: Path) -> dict:
     effects, seed, unit_seed, fmt = CASES[name]
-    res = simulate(SimConfig(seed=seed, unit_seed=unit_seed, rate_hz=RATE_HZ,
-                             effects=[(e, SIZES[e]) for e in effects]))
+    res = simulate(SimConfig(seed=seed, unit_seed=unit_seed, rate_hz=RATE_HZ, effects=[(e, SIZES[e]) for e in effects]))
     _TRUTH[name] = res.truth
     stem = name.replace(":", "_").replace("+", "_")
     path = write_run(res.run, folder / (f"{stem}.mcap" if fmt == "mcap" else stem), fmt)
@@ -116,8 +115,9 @@ def _check_sizes(rep: dict, truth: dict) -> None:
             if key == "tau_s":
                 assert got[key] == pytest.approx(value, rel=0.1), (eff["id"], key)
             elif isinstance(value, list):
-                np.testing.assert_allclose(got[key], value, rtol=0.1, atol=0.05 * np.max(np.abs(value)),
-                                           err_msg=f"{eff['id']} {key}")
+                np.testing.assert_allclose(
+                    got[key], value, rtol=0.1, atol=0.05 * np.max(np.abs(value)), err_msg=f"{eff['id']} {key}"
+                )
             else:
                 assert got[key] == pytest.approx(value, rel=0.1), (eff["id"], key)
 
@@ -137,7 +137,7 @@ def test_face_errors_seen_in_the_horizontal_channels_are_the_concealed_ones(fold
     diff = (d_fit - d_true).reshape(-1)
     common = np.concatenate([np.cross(np.eye(3)[k], a) for k in range(3)]).reshape(3, -1).T
     resid = diff - common @ np.linalg.lstsq(common, diff, rcond=None)[0]
-    assert np.sqrt(np.mean(resid ** 2)) < 0.1 * np.sqrt(np.mean(d_true ** 2))
+    assert np.sqrt(np.mean(resid**2)) < 0.1 * np.sqrt(np.mean(d_true**2))
 
 
 @pytest.mark.parametrize("name", [n for n in CASES if n.startswith("clean")])
@@ -150,11 +150,12 @@ def test_clean_runs_are_consistent(name, folder):
 
 def test_mcap_and_parquet_give_the_same_diagnosis(folder):
     res = simulate(SimConfig(seed=40, rate_hz=RATE_HZ, effects=[("tilt_settling", SIZES["tilt_settling"])]))
-    reports = [diagnose_run(read_run(write_run(res.run, folder / name, fmt))).report
-               for name, fmt in (("same.mcap", "mcap"), ("same", "parquet"))]
+    reports = [
+        diagnose_run(read_run(write_run(res.run, folder / name, fmt))).report
+        for name, fmt in (("same.mcap", "mcap"), ("same", "parquet"))
+    ]
     assert [f["effect"] for f in reports[0]["findings"]] == [f["effect"] for f in reports[1]["findings"]]
-    assert reports[0]["findings"][0]["parameters"] == pytest.approx(reports[1]["findings"][0]["parameters"],
-                                                                      rel=1e-9)
+    assert reports[0]["findings"][0]["parameters"] == pytest.approx(reports[1]["findings"][0]["parameters"], rel=1e-9)
 
 
 def test_a_given_passport_is_held_so_k2_is_told_apart_from_face_errors(folder):
@@ -164,8 +165,14 @@ def test_a_given_passport_is_held_so_k2_is_told_apart_from_face_errors(folder):
     the K2 of the vertical channels is told apart from face errors (which move the horizontal channels)."""
     calib = simulate(SimConfig(seed=41, rate_hz=RATE_HZ))
     passport = fit_passport(calib.run, segment_run(calib.run, segment_settings_for(calib.run)))
-    res = simulate(SimConfig(seed=42, rate_hz=RATE_HZ, program="differential",
-                             effects=[("scale_nonlinearity", {"k2_v_per_g2": [30e-6, -20e-6, 25e-6]})]))
+    res = simulate(
+        SimConfig(
+            seed=42,
+            rate_hz=RATE_HZ,
+            program="differential",
+            effects=[("scale_nonlinearity", {"k2_v_per_g2": [30e-6, -20e-6, 25e-6]})],
+        )
+    )
     rep = diagnose_run(read_run(write_run(res.run, folder / "differential.mcap", "mcap")), passport).report
     assert rep["verdict"] == "mismatch" and len(rep["findings"]) == 1
     f = rep["findings"][0]

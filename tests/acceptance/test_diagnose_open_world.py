@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import copy
 import json
-from functools import lru_cache
+from functools import cache
 from pathlib import Path
 
 import numpy as np
@@ -32,7 +32,7 @@ RATE_HZ = 1.0
 UV = 1e-6
 
 
-@lru_cache(maxsize=None)
+@cache
 def _passport() -> str:
     calib = simulate(SimConfig(seed=41, rate_hz=RATE_HZ)).run
     return json.dumps(fit_passport(calib, segment_run(calib, segment_settings_for(calib))))
@@ -46,17 +46,42 @@ CASES = {  # name -> (catalogue effects, disturbances, noise seed, passport give
     "clean:given": ([], [], 2, True),
     "clean11:given": ([], [], 11, True),
     "clean100:given": ([], [], 100, True),
-    "curvature:given": ([("temperature_curvature", {"c_v_per_c3": [0.3e-9, -0.2e-9, 0.2e-9],
-                                                    "c_rel_per_c3": [0.2e-9, 0.3e-9, -0.2e-9]})], [], 24, True),
+    "curvature:given": (
+        [
+            (
+                "temperature_curvature",
+                {"c_v_per_c3": [0.3e-9, -0.2e-9, 0.2e-9], "c_rel_per_c3": [0.2e-9, 0.3e-9, -0.2e-9]},
+            )
+        ],
+        [],
+        24,
+        True,
+    ),
     "shift_u0:given": ([], [("constants_shift", {"du0_v": [20e-6, -15e-6, 10e-6]})], 3, True),
-    "shift_gain:given": ([], [("constants_shift", {"du0_v": [0.0, 0.0, 0.0], "dgain_rel": [2e-4, 0.0, -1e-4]})],
-                         4, True),
-    "drift_u0:given": ([], [("constants_shift", {"du0_v": [0.0, 0.0, 0.0], "du0_rate_v_per_h": [0.9e-6, 0.0, 0.0]})],
-                       21, True),
-    "drift_gain:given": ([], [("constants_shift", {"du0_v": [0.0, 0.0, 0.0],
-                                                    "dgain_rate_rel_per_h": [0.0, 0.0, 6e-6]})], 22, True),
-    "shift_and_drift:given": ([], [("constants_shift", {"du0_v": [20e-6, 0.0, -10e-6],
-                                                         "du0_rate_v_per_h": [0.0, -1e-6, 0.0]})], 23, True),
+    "shift_gain:given": (
+        [],
+        [("constants_shift", {"du0_v": [0.0, 0.0, 0.0], "dgain_rel": [2e-4, 0.0, -1e-4]})],
+        4,
+        True,
+    ),
+    "drift_u0:given": (
+        [],
+        [("constants_shift", {"du0_v": [0.0, 0.0, 0.0], "du0_rate_v_per_h": [0.9e-6, 0.0, 0.0]})],
+        21,
+        True,
+    ),
+    "drift_gain:given": (
+        [],
+        [("constants_shift", {"du0_v": [0.0, 0.0, 0.0], "dgain_rate_rel_per_h": [0.0, 0.0, 6e-6]})],
+        22,
+        True,
+    ),
+    "shift_and_drift:given": (
+        [],
+        [("constants_shift", {"du0_v": [20e-6, 0.0, -10e-6], "du0_rate_v_per_h": [0.0, -1e-6, 0.0]})],
+        23,
+        True,
+    ),
     "drift_u0": ([("time_drift", {"r_v_per_h": [0.9e-6, 0.0, 0.0]})], [], 21, False),
     "hysteresis:given": ([("thermal_hysteresis", {"h_v": [10e-6, -8e-6, 6e-6]})], [], 5, True),
     "step": ([], [("bias_step", {"t_h": 8.0, "step_v": [20e-6, -10e-6, 0.0]})], 6, False),
@@ -67,7 +92,7 @@ CASES = {  # name -> (catalogue effects, disturbances, noise seed, passport give
 }
 
 
-@lru_cache(maxsize=None)
+@cache
 def diagnosed(name: str) -> dict:
     effects, disturbances, seed, given = CASES[name]
     run = simulate(SimConfig(seed=seed, rate_hz=RATE_HZ, effects=effects, disturbances=disturbances)).run
@@ -95,8 +120,7 @@ def test_a_clean_run_agrees_with_the_passport_of_another_run(name):
 def test_a_cubic_the_passport_lacks_is_still_named_against_it():
     rep = diagnosed("curvature:given")
     assert named(rep) == ["temperature_curvature"]
-    np.testing.assert_allclose(rep["findings"][0]["parameters"]["c_v_per_c3"], [0.3e-9, -0.2e-9, 0.2e-9],
-                               atol=0.03e-9)
+    np.testing.assert_allclose(rep["findings"][0]["parameters"]["c_v_per_c3"], [0.3e-9, -0.2e-9, 0.2e-9], atol=0.03e-9)
 
 
 def test_shifted_offsets_are_a_constants_shift_with_their_amounts():
@@ -122,17 +146,19 @@ def test_shifted_gains_are_a_constants_shift_of_k():
 def test_only_the_constants_that_moved_are_named():
     """A gain shift of x alone (the test above): the report names K_xx, not "K, U0 and their thermal model"."""
     f = diagnosed("shift_gain:given")["findings"][0]
-    assert f["parameters"]["moved"][:2] == ["K_xx", "K_zz"] and not any(m.startswith("U0") for m in
-                                                                          f["parameters"]["moved"])
+    assert f["parameters"]["moved"][:2] == ["K_xx", "K_zz"] and not any(
+        m.startswith("U0") for m in f["parameters"]["moved"]
+    )
     assert "K xx by" in f["explanation"] and "K zz by" in f["explanation"] and "U0 x by" not in f["explanation"]
 
 
-@lru_cache(maxsize=None)
+@cache
 def _poly1_passport() -> str:
     calib = simulate(SimConfig(seed=41, rate_hz=RATE_HZ)).run
     seg = segment_settings_for(calib)
-    return json.dumps(fit_passport(calib, segment_run(calib, seg),
-                                   CalibrationSettings(thermal_model="poly1", segment=seg)))
+    return json.dumps(
+        fit_passport(calib, segment_run(calib, seg), CalibrationSettings(thermal_model="poly1", segment=seg))
+    )
 
 
 def test_a_passport_of_too_low_an_order_is_a_finding_not_a_silent_refit():
@@ -154,14 +180,13 @@ def test_a_passport_of_too_low_an_order_is_a_finding_not_a_silent_refit():
 
 def test_a_passport_whose_thermal_model_is_off_is_named_as_such_not_as_physics():
     doc = passport()
-    doc["thermal_model"]["alpha"]["x"][0] += 2e-6            # V/C: 120 uV off at -40 C
+    doc["thermal_model"]["alpha"]["x"][0] += 2e-6  # V/C: 120 uV off at -40 C
     run = simulate(SimConfig(seed=2, rate_hz=RATE_HZ)).run
     rep = diagnose_run(run, doc).report
     assert named(rep) == ["constants_shift"]
     p = rep["findings"][0]["parameters"]
     assert p["constants"] == "K, U0 and their thermal model"
-    np.testing.assert_allclose(p["thermal_model_change"]["power_1"]["dU0_v_per_c"], [-2e-6, 0.0, 0.0],
-                               atol=0.02e-6)
+    np.testing.assert_allclose(p["thermal_model_change"]["power_1"]["dU0_v_per_c"], [-2e-6, 0.0, 0.0], atol=0.02e-6)
     assert rep["rms_after_v"] < 1.1 * rep["rms_noise_v"]
 
 
@@ -231,7 +256,7 @@ def test_a_bias_step_is_unexplained_and_located_in_time():
     np.testing.assert_allclose(f["parameters"]["step_v"], [20e-6, -10e-6, 0.0], atol=1.5 * UV)
     assert f["where"]["axes"] == ["x", "y"]
     assert "step" in f["explanation"] and "empirical" in f["explanation"]
-    shares = f["parameters"]["shares"]       # a step is a function of time (was time 0.86 + orientation 0.35)
+    shares = f["parameters"]["shares"]  # a step is a function of time (was time 0.86 + orientation 0.35)
     assert max(shares, key=shares.get) == "time" and shares["time"] > 0.85 and sum(shares.values()) <= 1 + 1e-6
     assert rep["rms_after_v"] < 1.1 * rep["rms_noise_v"] < 0.3 * rep["rms_before_v"]
 
@@ -256,11 +281,10 @@ OPEN = {
 }
 
 
-@lru_cache(maxsize=None)
+@cache
 def open_world(name: str) -> dict:
     effects, disturbances, seed, rate, program = OPEN[name]
-    run = simulate(SimConfig(seed=seed, rate_hz=rate, program=program, effects=effects,
-                             disturbances=disturbances)).run
+    run = simulate(SimConfig(seed=seed, rate_hz=rate, program=program, effects=effects, disturbances=disturbances)).run
     return diagnose_run(run).report
 
 
@@ -308,15 +332,16 @@ def test_an_orientation_dependent_mismatch_is_a_function_of_orientation():
 
 def test_a_random_walk_is_unexplained_as_a_function_of_time():
     rep = diagnosed("walk")
-    assert named(rep) == ["unexplained"]       # thermal_hysteresis would absorb part of it: not named
+    assert named(rep) == ["unexplained"]  # thermal_hysteresis would absorb part of it: not named
     f = rep["findings"][0]
     assert f["parameters"]["empirical_correction"].startswith("time")
     assert max(f["parameters"]["shares"], key=f["parameters"]["shares"].get) == "time"
     assert f["rms_after_v"] < 0.5 * f["rms_before_v"]
 
 
-@pytest.mark.parametrize("name, effect, tau_s", [("lag_0.3s", "thermal_lag", 0.3),
-                                                  ("warmup_3h", "warmup_transient", 3 * 3600.0)])
+@pytest.mark.parametrize(
+    "name, effect, tau_s", [("lag_0.3s", "thermal_lag", 0.3), ("warmup_3h", "warmup_transient", 3 * 3600.0)]
+)
 def test_time_constants_are_found_inside_the_search_range(name, effect, tau_s):
     rep = diagnosed(name)
     assert named(rep) == [effect]
@@ -328,8 +353,7 @@ def test_diagnose_with_registry_uses_the_units_current_passport(tmp_path: Path):
     old = passport()
     reg.publish(old, inputs=[], settings={"n": 1}, code_version="test")
     newer = copy.deepcopy(old)
-    newer["coefficients"]["U0"] = (np.asarray(newer["coefficients"]["U0"]) + np.array([20e-6, -15e-6, 10e-6])
-                                   ).tolist()
+    newer["coefficients"]["U0"] = (np.asarray(newer["coefficients"]["U0"]) + np.array([20e-6, -15e-6, 10e-6])).tolist()
     reg.publish(newer, inputs=[], settings={"n": 2}, code_version="test")
     run = simulate(SimConfig(seed=3, rate_hz=RATE_HZ)).run
     path = write_run(run, tmp_path / "run.mcap", "mcap")

@@ -30,8 +30,8 @@ from pipeline.calibrate import tilt
 from pipeline.calibrate.publish import publish as publish_result
 from pipeline.calibrate.settings import CalibrationSettings
 from pipeline.errors import RegistryError
-from pipeline.passport.registry import Registry, sha256_file
 from pipeline.io.runs import write_run
+from pipeline.passport.registry import Registry, sha256_file
 from tests.acceptance.badcorpus import valid
 from tests.conftest import run_in_child
 
@@ -57,8 +57,13 @@ def calibration(tmp_path_factory):
 def publish(calibration, registry: Path, k: int = 0, input_path: Path | None = None, **kw) -> dict:
     """The calibration's write step; ``k`` varies the settings, so each k is a new version."""
     c = calibration
-    return publish_result(registry, c["result"], input_paths=[str(input_path or c["paths"][0])],
-                          settings=CalibrationSettings(cluster_tol_c=3.0 + k * 1e-3), **kw)
+    return publish_result(
+        registry,
+        c["result"],
+        input_paths=[str(input_path or c["paths"][0])],
+        settings=CalibrationSettings(cluster_tol_c=3.0 + k * 1e-3),
+        **kw,
+    )
 
 
 def snapshot(registry: Path) -> dict[str, str]:
@@ -122,11 +127,15 @@ def test_calibration_killed_at_random_moments(calibration, tmp_path):
     """SIGKILL a process writing calibrations after a random delay, again and again: after every kill the registry
     verifies, no earlier version or figure changed; at the end a calibration goes through and leaves no note."""
     registry = tmp_path / "reg"
-    publish(calibration, registry, k=-1)       # a version that must survive everything
+    publish(calibration, registry, k=-1)  # a version that must survive everything
     before = assert_registry_sound(registry, {})
     rng = random.Random(7)
-    zygote = subprocess.Popen([sys.executable, "-c", ZYGOTE, str(calibration["state"]), str(registry),
-                               str(tmp_path / "warm.png")], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    zygote = subprocess.Popen(
+        [sys.executable, "-c", ZYGOTE, str(calibration["state"]), str(registry), str(tmp_path / "warm.png")],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     try:
         assert zygote.stdout.readline().strip() == "ready"
         for k in range(KILLS):
@@ -152,8 +161,12 @@ def test_calibration_killed_at_random_moments(calibration, tmp_path):
     assert_registry_sound(registry, before)
     leftovers = [p.name for p in (registry / "units" / UNIT).iterdir() if p.name.startswith(".tmp-")]
     assert leftovers == []
-    proc = subprocess.run([THERMOCAL, "passport", "verify", "--registry", str(registry), "--json"],
-                          capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [THERMOCAL, "passport", "verify", "--registry", str(registry), "--json"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode == 0 and json.loads(proc.stdout)["ok"] is True, proc.stderr
 
 
@@ -174,8 +187,16 @@ CALIBRATE = textwrap.dedent("""
 
 
 def _calibrate_at_once(paths: list[Path], registry: Path) -> list[dict]:
-    procs = [subprocess.Popen([sys.executable, "-c", CALIBRATE, str(p), str(registry)], stdin=subprocess.PIPE,
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for p in paths]
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-c", CALIBRATE, str(p), str(registry)],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for p in paths
+    ]
     for p in procs:
         assert p.stdout.readline().strip() == "ready", p.stderr.read()
     for p in procs:
@@ -213,8 +234,15 @@ def test_two_calibrate_commands_at_once(calibration, tmp_path):
     """Two ``thermocal calibrate`` console scripts (two Prefect flows sharing one Prefect home) on the same unit at
     the same time: both exit 0, two chained versions."""
     registry = tmp_path / "reg"
-    procs = [subprocess.Popen([THERMOCAL, "calibrate", str(p), "--registry", str(registry), "--json"],
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for p in calibration["paths"]]
+    procs = [
+        subprocess.Popen(
+            [THERMOCAL, "calibrate", str(p), "--registry", str(registry), "--json"],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for p in calibration["paths"]
+    ]
     results = []
     for p in procs:
         out, err = p.communicate(timeout=600)

@@ -28,10 +28,10 @@ from mcap.writer import CompressionType
 
 from pipeline.calibrate.tilt import CalibrationSettings, fit_unit, observe_run, verify_unit
 from pipeline.errors import ThermocalError
-from pipeline.positions import ALL_POSITIONS
-from pipeline.run import Run, RunMeta, make_frame
 from pipeline.io.checks import FIXTURE_LABELS
 from pipeline.io.runs import read_run, write_run
+from pipeline.positions import ALL_POSITIONS
+from pipeline.run import Run, RunMeta, make_frame
 from pipeline.segment import SegmentSettings, segment_run
 from tests.acceptance.badcorpus import rewrite_mcap
 
@@ -40,8 +40,11 @@ META = RunMeta(unit_serial="AU-0042", run_id="prop-run", nominal_gain_v_per_g=-0
 #: small segmentation scales, so that a few hundred samples hold plateaus and static positions
 SMALL = SegmentSettings(plateau_min_s=60.0, static_window_s=2.0, static_min_s=3.0, settle_trim_s=1.0)
 #: examples per property (THERMOCAL_HYPOTHESIS_EXAMPLES=2000 for a deeper search than CI's)
-FAST = settings(max_examples=int(os.environ.get("THERMOCAL_HYPOTHESIS_EXAMPLES", "60")), deadline=None,
-                suppress_health_check=[HealthCheck.too_slow])
+FAST = settings(
+    max_examples=int(os.environ.get("THERMOCAL_HYPOTHESIS_EXAMPLES", "60")),
+    deadline=None,
+    suppress_health_check=[HealthCheck.too_slow],
+)
 
 _DIR = Path(tempfile.mkdtemp(prefix="thermocal-properties-"))
 atexit.register(shutil.rmtree, _DIR, ignore_errors=True)
@@ -58,13 +61,17 @@ def small_run(n: int = 3000, seed: int = 0) -> Run:
     tt = t[::5]
     temp = np.where(np.arange(tt.size) < tt.size // 2, 20.0, -40.0) + rng.normal(0.0, 0.002, tt.size)
     events = np.flatnonzero(np.diff(k) != 0) + 1
-    fixture = make_frame("fixture", {"t_ns": np.concatenate(([t[0]], t[events])),
-                                     "position": [names[k[0]]] + [names[k[i]] for i in events]})
-    return Run(meta=META,
-               voltmeter=make_frame("voltmeter", {"t_ns": t, "ux": u[:, 0], "uy": u[:, 1], "uz": u[:, 2]}),
-               au_temperature=make_frame("au_temperature", {"t_ns": tt, "temp_c": temp}),
-               chamber=make_frame("chamber", {"t_ns": tt, "setpoint_c": np.round(temp), "air_c": temp}),
-               fixture=fixture)
+    fixture = make_frame(
+        "fixture",
+        {"t_ns": np.concatenate(([t[0]], t[events])), "position": [names[k[0]]] + [names[k[i]] for i in events]},
+    )
+    return Run(
+        meta=META,
+        voltmeter=make_frame("voltmeter", {"t_ns": t, "ux": u[:, 0], "uy": u[:, 1], "uz": u[:, 2]}),
+        au_temperature=make_frame("au_temperature", {"t_ns": tt, "temp_c": temp}),
+        chamber=make_frame("chamber", {"t_ns": tt, "setpoint_c": np.round(temp), "air_c": temp}),
+        fixture=fixture,
+    )
 
 
 def calibrate(run_or_path) -> None:
@@ -84,11 +91,16 @@ def calibrate(run_or_path) -> None:
 
 _MCAP_VARIANTS = {
     name: write_run(small_run(), _DIR / f"{name}.mcap", "mcap", block_samples=64, chunk_size=4096, **opts).read_bytes()
-    for name, opts in {"zstd": {}, "plain": {"compression": "none"},
-                       "no-summary": {"summary": False, "compression": "none"}}.items()}
+    for name, opts in {
+        "zstd": {},
+        "plain": {"compression": "none"},
+        "no-summary": {"summary": False, "compression": "none"},
+    }.items()
+}
 # chunks without CRC: a changed byte in a message reaches the message decoder
-_MCAP_VARIANTS["no-crc"] = rewrite_mcap(_DIR / "plain.mcap", _DIR / "no-crc.mcap", chunk_size=4096,
-                                        compression=CompressionType.NONE, enable_crcs=False).read_bytes()
+_MCAP_VARIANTS["no-crc"] = rewrite_mcap(
+    _DIR / "plain.mcap", _DIR / "no-crc.mcap", chunk_size=4096, compression=CompressionType.NONE, enable_crcs=False
+).read_bytes()
 
 
 @st.composite
@@ -109,7 +121,7 @@ def mutated(draw) -> bytes:
         elif kind == "insert":
             data[i:i] = draw(st.binary(min_size=1, max_size=16))
         else:
-            del data[i:i + draw(st.integers(1, 64))]
+            del data[i : i + draw(st.integers(1, 64))]
     return bytes(data)
 
 
@@ -123,19 +135,32 @@ def test_mutated_mcap_files_raise_only_thermocal_errors(data):
 
 # --- Parquet columns ------------------------------------------------------------------------------------------------
 
-_VALUES = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.integers(-2**63, 2**63 - 1), st.none(),
-                    st.text(max_size=3), st.booleans())
+_VALUES = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.integers(-(2**63), 2**63 - 1),
+    st.none(),
+    st.text(max_size=3),
+    st.booleans(),
+)
 _TYPES = {
-    "int64": pa.int64(), "int32": pa.int32(), "uint64": pa.uint64(), "float32": pa.float32(),
-    "float64": pa.float64(), "string": pa.string(), "bool": pa.bool_(), "timestamp": pa.timestamp("ns"),
-    "date": pa.date32(), "null": pa.null(), "dictionary": pa.dictionary(pa.int32(), pa.string()),
+    "int64": pa.int64(),
+    "int32": pa.int32(),
+    "uint64": pa.uint64(),
+    "float32": pa.float32(),
+    "float64": pa.float64(),
+    "string": pa.string(),
+    "bool": pa.bool_(),
+    "timestamp": pa.timestamp("ns"),
+    "date": pa.date32(),
+    "null": pa.null(),
+    "dictionary": pa.dictionary(pa.int32(), pa.string()),
 }
 
 
 def _column(values: np.ndarray, type_name: str, specials: list) -> pa.Array:
     """``values`` as an Arrow array of ``type_name`` (converted leniently), with ``specials`` written over the
     first rows; None where a value does not convert."""
-    items = [*specials[:len(values)], *values[len(specials):].tolist()]
+    items = [*specials[: len(values)], *values[len(specials) :].tolist()]
     t = _TYPES[type_name]
     if type_name == "null":
         return pa.nulls(len(items))
@@ -151,9 +176,14 @@ def _column(values: np.ndarray, type_name: str, specials: list) -> pa.Array:
 
 
 @FAST
-@given(stream=st.sampled_from(["voltmeter", "au_temperature", "chamber", "fixture"]), column=st.data(),
-       type_name=st.sampled_from(sorted(_TYPES)), specials=st.lists(_VALUES, max_size=5),
-       drop=st.sampled_from([False] * 5 + [True]), rows=st.sampled_from([None, 0, 1, 7]))
+@given(
+    stream=st.sampled_from(["voltmeter", "au_temperature", "chamber", "fixture"]),
+    column=st.data(),
+    type_name=st.sampled_from(sorted(_TYPES)),
+    specials=st.lists(_VALUES, max_size=5),
+    drop=st.sampled_from([False] * 5 + [True]),
+    rows=st.sampled_from([None, 0, 1, 7]),
+)
 def test_parquet_columns_of_any_type_raise_only_thermocal_errors(stream, column, type_name, specials, drop, rows):
     d = _DIR / "parquet-run"
     write_run(small_run(), d, "parquet")
@@ -185,17 +215,18 @@ def random_run(draw) -> Run:
     n = draw(st.integers(1500, 3000) if like_a_run else st.one_of(st.integers(0, 60), st.integers(1500, 3000)))
     # steps: a repeated time, 0.2 s, a 30 s gap, a pause of 20 h (the readers refuse more than a day)
     weights = np.array([draw(st.floats(0, 0.3)), 1.0, draw(st.floats(0, 0.01)), draw(st.sampled_from([0, 0.01]))])
-    t = T0_NS + np.cumsum(rng.choice([0, 200_000_000, 30 * 10**9, 72_000 * 10**9], p=weights / weights.sum(),
-                                     size=n))
+    t = T0_NS + np.cumsum(rng.choice([0, 200_000_000, 30 * 10**9, 72_000 * 10**9], p=weights / weights.sum(), size=n))
     hold = 100 if like_a_run else draw(st.sampled_from([1, 25, 100]))
     if like_a_run or draw(st.booleans()):  # held positions, as in a chamber run
         order = list(ALL_POSITIONS) if like_a_run or draw(st.booleans()) else rng.permutation(list(ALL_POSITIONS))
-        names = np.resize(order[:draw(st.sampled_from([6, 12]))], n // hold + 1)
+        names = np.resize(order[: draw(st.sampled_from([6, 12]))], n // hold + 1)
         g = np.repeat(np.array([ALL_POSITIONS[x] for x in names]), hold, axis=0)[:n]
         u = g * rng.normal(-0.55, 0.05, 3) + rng.normal(0.0, 0.01, 3)
     else:
-        u = draw(st.sampled_from([0.0, 1e-9, 0.55, 1e6])) * np.repeat(rng.normal(size=(n // hold + 1, 3)), hold,
-                                                                         axis=0)[:n]
+        u = (
+            draw(st.sampled_from([0.0, 1e-9, 0.55, 1e6]))
+            * np.repeat(rng.normal(size=(n // hold + 1, 3)), hold, axis=0)[:n]
+        )
     u = u + draw(st.sampled_from([0.0, 1e-6] if like_a_run else [0.0, 1e-6, 1e-2])) * rng.normal(size=(n, 3))
     if draw(st.booleans()) and n:
         swap = rng.integers(0, n, size=max(1, n // 50))
@@ -206,18 +237,30 @@ def random_run(draw) -> Run:
     span_s = int((t.max() - T0_NS) // 10**9) + 1 if n else draw(st.integers(0, 100))
     m = 10_000 if like_a_run else draw(st.one_of(st.just(10_000), st.integers(0, 100)))  # thermosensor samples
     tt = T0_NS + np.arange(0, span_s + 1, dtype=np.int64)[:m] * 10**9
-    temp = np.repeat(rng.choice([-40.0, 20.0, 70.0], size=tt.size // 300 + 1), 300)[:tt.size]
+    temp = np.repeat(rng.choice([-40.0, 20.0, 70.0], size=tt.size // 300 + 1), 300)[: tt.size]
     temp = temp + draw(st.sampled_from([0.0, 0.001] if like_a_run else [0.0, 0.001, 0.1])) * rng.normal(size=tt.size)
     for _ in range(draw(st.integers(0, 3))):
         if tt.size:
             temp[draw(st.integers(0, tt.size - 1))] = draw(_SPECIAL_FLOATS)
     k = draw(st.integers(0, 30))
-    fixture = make_frame("fixture", {"t_ns": np.sort(T0_NS + rng.integers(-10**10, 10**12, size=k)),
-                                     "position": rng.choice(FIXTURE_LABELS, size=k).tolist()}) if k else None
+    fixture = (
+        make_frame(
+            "fixture",
+            {
+                "t_ns": np.sort(T0_NS + rng.integers(-(10**10), 10**12, size=k)),
+                "position": rng.choice(FIXTURE_LABELS, size=k).tolist(),
+            },
+        )
+        if k
+        else None
+    )
     gain = draw(st.sampled_from([None, -0.55, 0.55, 0.0, 1e-300, 1e300]))
-    return Run(meta=replace(META, nominal_gain_v_per_g=gain),
-               voltmeter=make_frame("voltmeter", {"t_ns": t, "ux": u[:, 0], "uy": u[:, 1], "uz": u[:, 2]}),
-               au_temperature=make_frame("au_temperature", {"t_ns": tt, "temp_c": temp}), fixture=fixture)
+    return Run(
+        meta=replace(META, nominal_gain_v_per_g=gain),
+        voltmeter=make_frame("voltmeter", {"t_ns": t, "ux": u[:, 0], "uy": u[:, 1], "uz": u[:, 2]}),
+        au_temperature=make_frame("au_temperature", {"t_ns": tt, "temp_c": temp}),
+        fixture=fixture,
+    )
 
 
 @FAST

@@ -4,7 +4,7 @@ segmenter finds against the hand labels of imucal and the periods of the CATS au
 from __future__ import annotations
 
 import json
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 
 import numpy as np
 import pytest
@@ -15,12 +15,15 @@ from tests.conftest import shared_path
 
 
 def _ns(text: str) -> int:
-    return int(datetime.fromisoformat(text).replace(tzinfo=timezone.utc).timestamp()) * 10**9
+    return int(datetime.fromisoformat(text).replace(tzinfo=UTC).timestamp()) * 10**9
 
 
 #: the CATS authors' three periods (README of the recording) and the axis vertical (pointing down) in each
-CATS_PERIODS = [("2021-09-20T09:00", "2021-09-21T10:33", "-z"), ("2021-09-21T10:40", "2021-09-22T11:55", "-x"),
-                ("2021-09-22T12:14", "2021-09-23T11:19", "-y")]
+CATS_PERIODS = [
+    ("2021-09-20T09:00", "2021-09-21T10:33", "-z"),
+    ("2021-09-21T10:40", "2021-09-22T11:55", "-x"),
+    ("2021-09-22T12:14", "2021-09-23T11:19", "-y"),
+]
 
 
 @pytest.fixture(scope="module")
@@ -41,7 +44,7 @@ def test_cats_is_a_sweep_with_three_orientations(cats):
     rec = s["recording"]
     t = rec["temperature"]
     assert t["kind"] == "sweep"
-    assert s["plateaus"] == [] and t["plateaus"] == 0          # not 123 plateaus of a drift
+    assert s["plateaus"] == [] and t["plateaus"] == 0  # not 123 plateaus of a drift
     assert 4.5 < t["range_c"][0] < 5.0 and 27.5 < t["range_c"][1] < 28.0
     assert 40.0 < t["max_rate_c_per_h"] < 150.0
     long = [p for p in rec["poses"] if p["longest_hold_s"] > 20 * 3600]
@@ -113,4 +116,4 @@ def test_ferraris_six_position_constants_from_found_poses(ferraris):
     k = [(m["TP6"][0] - m["TP5"][0]) / 2, (m["TP4"][1] - m["TP2"][1]) / 2, (m["TP1"][2] - m["TP3"][2]) / 2]
     u0 = [(m["TP6"][0] + m["TP5"][0]) / 2, (m["TP4"][1] + m["TP2"][1]) / 2, (m["TP1"][2] + m["TP3"][2]) / 2]
     assert np.allclose(k, [9.777, 9.834, 10.039], atol=0.01)
-    assert np.allclose(u0, [0.551, -0.620, 0.386], atol=0.02)          # m/s^2: 2 mg, the hand's wobble
+    assert np.allclose(u0, [0.551, -0.620, 0.386], atol=0.02)  # m/s^2: 2 mg, the hand's wobble

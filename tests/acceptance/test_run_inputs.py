@@ -22,7 +22,7 @@ def sim(serial: str, seed: int):
 def truncated_copy(src: Path, dst: Path, fraction: float = 0.6) -> Path:
     dst.parent.mkdir(parents=True, exist_ok=True)
     data = src.read_bytes()
-    dst.write_bytes(data[:int(len(data) * fraction)])
+    dst.write_bytes(data[: int(len(data) * fraction)])
     return dst
 
 
@@ -59,17 +59,18 @@ def test_fleet_never_merges_one_run_id(inbox, tmp_path):
     assert all("\n" not in r for r in failed.values())
 
 
-
 def test_calibrate_drops_a_truncated_copy_and_refuses_two_recordings(inbox, tmp_path, monkeypatch, capsys):
     _, p = inbox
-    code, out, err = run_main(monkeypatch, capsys, "calibrate", str(p["a_copy"]), str(p["a"]), "--registry",
-                              str(tmp_path / "reg"), "--json")
+    code, out, err = run_main(
+        monkeypatch, capsys, "calibrate", str(p["a_copy"]), str(p["a"]), "--registry", str(tmp_path / "reg"), "--json"
+    )
     assert code == 0, err
     result = json.loads(out)
     assert [i["path"] for i in json.load(open(result["passport"]))["provenance"]["inputs"]] == [str(p["a"].resolve())]
     assert any("a truncated copy of" in w for w in result["warnings"])
-    code, out, err = run_main(monkeypatch, capsys, "calibrate", str(p["b1"]), str(p["b2"]), "--registry",
-                              str(tmp_path / "reg"))
+    code, out, err = run_main(
+        monkeypatch, capsys, "calibrate", str(p["b1"]), str(p["b2"]), "--registry", str(tmp_path / "reg")
+    )
     assert code == 2 and out == ""
     [line] = [x for x in err.splitlines() if x.startswith("thermocal:")]
     assert "neither is used" in line and str(p["b2"]) in line

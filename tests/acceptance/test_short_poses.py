@@ -24,14 +24,21 @@ GAIN_V_PER_G = 0.55
 
 def _part(run, t0_ns: int, t1_ns: int, run_id: str):
     cut = lambda df: None if df is None else df.filter(pl.col("t_ns").is_between(t0_ns, t1_ns))  # noqa: E731
-    return dataclasses.replace(run, meta=dataclasses.replace(run.meta, run_id=run_id), voltmeter=cut(run.voltmeter),
-                               au_temperature=cut(run.au_temperature), chamber=cut(run.chamber), fixture=None)
+    return dataclasses.replace(
+        run,
+        meta=dataclasses.replace(run.meta, run_id=run_id),
+        voltmeter=cut(run.voltmeter),
+        au_temperature=cut(run.au_temperature),
+        chamber=cut(run.chamber),
+        fixture=None,
+    )
 
 
 @pytest.fixture(scope="module")
 def recording():
-    res = simulate(SimConfig(program="handheld", rate_hz=RATE_HZ, jitter_s=3e-3, noise_v=NOISE_V,
-                             with_fixture_log=False, seed=21))
+    res = simulate(
+        SimConfig(program="handheld", rate_hz=RATE_HZ, jitter_s=3e-3, noise_v=NOISE_V, with_fixture_log=False, seed=21)
+    )
     run = res.run
     t = run.t_ns()
     mid = int(t[0] + (t[-1] - t[0]) // 2)
@@ -44,9 +51,9 @@ def test_poses_found_and_scalar_supported(recording):
     rec = describe_recording(res.run, seg)
     assert len(seg.segments) == len(res.truth["holds"]) == 36
     assert rec["static"]["poses"] == 12 and rec["static"]["window_s"] < 2.0
-    assert rec["method_auto"] == "scalar"                  # no fixture log: the orientations are not known
+    assert rec["method_auto"] == "scalar"  # no fixture log: the orientations are not known
     assert all(p["holds"] == 3 for p in rec["poses"])
-    assert all(1.5 < p["shortest_hold_s"] < 3.0 for p in rec["poses"])      # trimmed of the settling
+    assert all(1.5 < p["shortest_hold_s"] < 3.0 for p in rec["poses"])  # trimmed of the settling
 
 
 def test_scalar_on_the_first_half_holds_one_g_on_the_second(recording):

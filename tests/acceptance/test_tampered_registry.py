@@ -100,18 +100,19 @@ def test_head_statement_tampering_is_named(base, tmp_path):
     assert any("which this station does not trust" in p for p in report.problems), report.problems
 
 
-
 def test_cli_verify_head_and_against(base, tmp_path, monkeypatch, capsys):
     root, head = base
-    code, out, _ = run_main(monkeypatch, capsys, "passport", "head", "--registry", str(root), "--out",
-                            str(tmp_path / "h.json"))
+    code, out, _ = run_main(
+        monkeypatch, capsys, "passport", "head", "--registry", str(root), "--out", str(tmp_path / "h.json")
+    )
     assert code == 0 and json.loads(out)["units"] == json.loads(head.read_bytes())["units"]
     assert (tmp_path / "h.json").read_text() == out
     copy = attacked(base, tmp_path, ATTACK_BY_NAME["delete-unit-folder"])
     code, out, err = run_main(monkeypatch, capsys, "passport", "verify", "--registry", str(copy), "--json")
     assert code == 0, err  # the deletion is invisible to the registry alone...
-    code, out, err = run_main(monkeypatch, capsys, "passport", "verify", "--registry", str(copy), "--against",
-                              str(head), "--json")
+    code, out, err = run_main(
+        monkeypatch, capsys, "passport", "verify", "--registry", str(copy), "--against", str(head), "--json"
+    )
     assert code == 1  # ...and named against the head statement
     problems = json.loads(out)["problems"]
     assert [p.split(":")[0] for p in problems] == [f"{UNITS[1]} v{v}" for v in (1, 2, 3)]
@@ -137,8 +138,9 @@ def test_calibrate_and_fleet_refuse_a_forged_chain(tmp_path, monkeypatch, capsys
     assert code == 0 and json.loads(out)["version"] == 1, err
     tampered.forged_unsigned(reg, "AU-0310")
     before = snapshot(reg)
-    code, out, err = run_main(monkeypatch, capsys, "calibrate", str(path), "--registry", str(reg),
-                              "--thermal-model", "poly1")
+    code, out, err = run_main(
+        monkeypatch, capsys, "calibrate", str(path), "--registry", str(reg), "--thermal-model", "poly1"
+    )
     assert code == 2 and out == ""
     [line] = [x for x in err.splitlines() if x.startswith("thermocal:")]
     assert "AU-0310 v2" in line and "not this station's own signed version" in line

@@ -41,30 +41,48 @@ def installed(tmp_path_factory):
         shutil.copytree(REPO / pkg, src / pkg, ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
     env = {k: v for k, v in os.environ.items() if not k.startswith(("PYTHON", "VIRTUAL_ENV", "PIP_"))}
     env.update(PIP_NO_INDEX="1", PIP_DISABLE_PIP_VERSION_CHECK="1", PYTHONNOUSERSITE="1")
-    _run([sys.executable, "-m", "pip", "wheel", src, "--no-deps", "--no-build-isolation", "-w", root / "dist"],
-         cwd=root, env=env)
+    _run(
+        [sys.executable, "-m", "pip", "wheel", src, "--no-deps", "--no-build-isolation", "-w", root / "dist"],
+        cwd=root,
+        env=env,
+    )
     (wheel,) = (root / "dist").glob("thermocal-*.whl")
     venv = root / "venv"
     _run([sys.executable, "-m", "venv", "--without-pip", venv], cwd=root, env=env)
     py = venv / "bin" / "python"
-    purelib = Path(_run([py, "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"], root,
-                        env).stdout.strip())
+    purelib = Path(
+        _run([py, "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"], root, env).stdout.strip()
+    )
     (purelib / "project-deps.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")
     _run([sys.executable, "-m", "pip", "--python", py, "install", "--no-deps", wheel], cwd=root, env=env)
     work = root / "elsewhere"
     work.mkdir()
-    env.update(PREFECT_HOME=str(root / "prefect-home"), PREFECT_SERVER_ANALYTICS_ENABLED="false", DO_NOT_TRACK="1",
-               MPLBACKEND="Agg", THERMOCAL_KEY_DIR=str(root / "keys"), PATH=f"{venv / 'bin'}:{env.get('PATH', '')}")
+    env.update(
+        PREFECT_HOME=str(root / "prefect-home"),
+        PREFECT_SERVER_ANALYTICS_ENABLED="false",
+        DO_NOT_TRACK="1",
+        MPLBACKEND="Agg",
+        THERMOCAL_KEY_DIR=str(root / "keys"),
+        PATH=f"{venv / 'bin'}:{env.get('PATH', '')}",
+    )
     yield venv, work, env, purelib
     # the wheel's own local Prefect server (started by its first calibrate) must not outlive the tests
-    subprocess.run([str(venv / "bin" / "thermocal"), "server", "stop"], cwd=work, env=env, capture_output=True,
-                   timeout=120)
+    subprocess.run(
+        [str(venv / "bin" / "thermocal"), "server", "stop"], cwd=work, env=env, capture_output=True, timeout=120
+    )
 
 
 def test_pipeline_comes_from_the_wheel(installed):
     venv, work, env, purelib = installed
-    out = _run([venv / "bin" / "python", "-c", "import pipeline, flows, sys; print(pipeline.__file__); "
-                "print(flows.__file__); print(sys.prefix)"], work, env).stdout.split()
+    out = _run(
+        [
+            venv / "bin" / "python",
+            "-c",
+            "import pipeline, flows, sys; print(pipeline.__file__); print(flows.__file__); print(sys.prefix)",
+        ],
+        work,
+        env,
+    ).stdout.split()
     assert all(Path(p).is_relative_to(purelib) for p in out[:2]), out
     assert Path(out[2]) == venv
 
@@ -76,14 +94,31 @@ def test_simulate_inspect_calibrate_from_another_folder(installed):
     venv, work, env, _ = installed
     thermocal = venv / "bin" / "thermocal"
     assert thermocal.exists()
-    sim = json.loads(_run([thermocal, "simulate", "--format", "mcap", "--out", "run.mcap", "--program", "short",
-                           "--rate-hz", "2", "--json"], work, env).stdout)
+    sim = json.loads(
+        _run(
+            [
+                thermocal,
+                "simulate",
+                "--format",
+                "mcap",
+                "--out",
+                "run.mcap",
+                "--program",
+                "short",
+                "--rate-hz",
+                "2",
+                "--json",
+            ],
+            work,
+            env,
+        ).stdout
+    )
     assert Path(work / "run.mcap").is_file() and sim["samples"] > 1000 and sim["unit"] == "AU-0001"
     info = _run([thermocal, "inspect", "run.mcap", "--json"], work, env).stdout
     assert '"AU-0001"' in info and f"{sim['samples']}" in info and "TP6" in json.dumps(json.loads(info))
     res = json.loads(_run([thermocal, "calibrate", "run.mcap", "--registry", "reg", "--json"], work, env).stdout)
     assert res["version"] == 1 and res["status"] == "pass" and res["method"] == "tilt_six_position"
-    passport = work / res["passport"]                    # as given: relative to the folder it ran in
+    passport = work / res["passport"]  # as given: relative to the folder it ran in
     assert passport.resolve().is_relative_to((work / "reg").resolve())
     doc = json.loads(passport.read_text())
     unit = UnitTruth.from_dict(json.loads((work / "run.truth.json").read_text())["unit"])

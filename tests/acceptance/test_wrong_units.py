@@ -28,12 +28,18 @@ def scaled(run, stream: str, **exprs):
 
 def variants(run):
     return {
-        "millivolts": (scaled(run, "voltmeter", ux=pl.col("ux") * 1e3, uy=pl.col("uy") * 1e3, uz=pl.col("uz") * 1e3),
-                       ["about 997x", "voltages recorded in mV?"]),
-        "kelvin": (scaled(run, "au_temperature", temp_c=pl.col("temp_c") + 273.15),
-                   ["233.2..343.1 C lie outside", "recorded in kelvin?"]),
-        "reversed y": (scaled(run, "voltmeter", uy=-pl.col("uy")),
-                       ["differs by the sign of y", "axis y reversed", "TP2->TP4"]),
+        "millivolts": (
+            scaled(run, "voltmeter", ux=pl.col("ux") * 1e3, uy=pl.col("uy") * 1e3, uz=pl.col("uz") * 1e3),
+            ["about 997x", "voltages recorded in mV?"],
+        ),
+        "kelvin": (
+            scaled(run, "au_temperature", temp_c=pl.col("temp_c") + 273.15),
+            ["233.2..343.1 C lie outside", "recorded in kelvin?"],
+        ),
+        "reversed y": (
+            scaled(run, "voltmeter", uy=-pl.col("uy")),
+            ["differs by the sign of y", "axis y reversed", "TP2->TP4"],
+        ),
     }
 
 
@@ -56,8 +62,9 @@ def test_mistake_is_a_fail_that_says_what(run, name):
 def test_calibrate_command_reports_the_mistake(run, tmp_path, monkeypatch, capsys):
     bad, _ = variants(run)["millivolts"]
     path = write_run(bad, tmp_path / "mv.mcap", "mcap")
-    monkeypatch.setattr(sys, "argv", ["thermocal", "calibrate", str(path), "--registry", str(tmp_path / "reg"),
-                                      "--json"])
+    monkeypatch.setattr(
+        sys, "argv", ["thermocal", "calibrate", str(path), "--registry", str(tmp_path / "reg"), "--json"]
+    )
     with pytest.raises(SystemExit) as info:
         main()
     out = json.loads(capsys.readouterr().out)

@@ -93,7 +93,7 @@ def test_noisy_constants_within_noise_bound(noisy_runs, which):
     rows, status = verify_unit(fit.model, obs, T0)
     for temp in (-10.0, 45.0):
         sel = [r for r in rows if abs(r.temp_c - temp) < 3]
-        assert {r.position for r in sel} == {f"VP{k}" for k in range(1, 7)}   # (VP6 also during the soak)
+        assert {r.position for r in sel} == {f"VP{k}" for k in range(1, 7)}  # (VP6 also during the soak)
         unc = max(abs(r.dg_uncompensated_g) for r in sel)
         m1 = max(abs(r.dg_method1_g) for r in sel)
         m2 = max(abs(r.dg_method2_g) for r in sel)
@@ -111,7 +111,7 @@ def test_piecewise_vs_polynomial_on_vp(noisy_runs):
     rows_pw, _ = verify_unit(pw.model, obs, T0)
     rows_p2, _ = verify_unit(p2.model, obs, T0)
     far = lambda rows, key: max(abs(getattr(r, key)) for r in rows if abs(r.temp_c - T0) > 10)  # noqa: E731
-    assert far(rows_pw, "dg_uncompensated_g") > 2.5 * far(rows_pw, "dg_method1_g")   # seed 000: 3-4x
+    assert far(rows_pw, "dg_uncompensated_g") > 2.5 * far(rows_pw, "dg_method1_g")  # seed 000: 3-4x
     assert far(rows_p2, "dg_method1_g") < 0.3 * far(rows_pw, "dg_method1_g")
 
 
@@ -126,8 +126,11 @@ def test_real_recording_imucal(tmp_path):
     for lab in labels:
         if not lab["position"].startswith("TP"):
             continue
-        overlap = max(min(o.t_end_ns, lab["t_end_ns"]) - max(o.t_start_ns, lab["t_start_ns"])
-                      for o in obs if o.position == lab["position"])
+        overlap = max(
+            min(o.t_end_ns, lab["t_end_ns"]) - max(o.t_start_ns, lab["t_start_ns"])
+            for o in obs
+            if o.position == lab["position"]
+        )
         assert overlap > 0.5 * (lab["t_end_ns"] - lab["t_start_ns"]), lab["position"]
     res = run_calibrate([str(run_dir)], str(tmp_path / "reg"), CalibrationSettings())
     assert res["status"] == "unverified"
@@ -153,8 +156,13 @@ def test_cli_calibrate_json_and_idempotence(tmp_path):
     second = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
     r2 = json.loads(second.stdout)
     assert r2["version"] == 1 and r2["passport_sha256"] == r1["passport_sha256"]
-    bad = subprocess.run([exe, "calibrate", str(tmp_path / "nope.mcap"), "--registry", str(tmp_path / "reg")],
-                         capture_output=True, text=True, env=env, timeout=120)
+    bad = subprocess.run(
+        [exe, "calibrate", str(tmp_path / "nope.mcap"), "--registry", str(tmp_path / "reg")],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=120,
+    )
     assert bad.returncode != 0 and len(bad.stderr.strip().splitlines()) == 1 and "nope.mcap" in bad.stderr
 
 
@@ -165,9 +173,14 @@ def _slice_run(run, t0_ns: int, t1_ns: int, run_id: str):
     import polars as pl
 
     cut = lambda df: None if df is None else df.filter(pl.col("t_ns").is_between(t0_ns, t1_ns))  # noqa: E731
-    return dataclasses.replace(run, meta=dataclasses.replace(run.meta, run_id=run_id), voltmeter=cut(run.voltmeter),
-                               au_temperature=cut(run.au_temperature), chamber=cut(run.chamber),
-                               fixture=cut(run.fixture))
+    return dataclasses.replace(
+        run,
+        meta=dataclasses.replace(run.meta, run_id=run_id),
+        voltmeter=cut(run.voltmeter),
+        au_temperature=cut(run.au_temperature),
+        chamber=cut(run.chamber),
+        fixture=cut(run.fixture),
+    )
 
 
 def test_vp_only_run_verifies_tp_run(tmp_path):
@@ -185,8 +198,15 @@ def test_vp_only_run_verifies_tp_run(tmp_path):
     # TP run: +20 and -40 C; then the +70 C plateau through the end (+20 C again); VP run: -10 C ... +45 C
     tp_a = _slice_run(res.run, t_start, tp_m40_end, "tp-part-a")
     tp_b = _slice_run(res.run, min(h["t_start_ns"] for h in tp_70) - 1_200_000_000_000, 2**62, "tp-part-b")
-    vp = [_slice_run(res.run, min(h["t_start_ns"] for h in hs) - 1_200_000_000_000, max(h["t_end_ns"] for h in hs),
-                     f"vp-only-{k}") for k, hs in enumerate((vp_m10, vp_45))]
+    vp = [
+        _slice_run(
+            res.run,
+            min(h["t_start_ns"] for h in hs) - 1_200_000_000_000,
+            max(h["t_end_ns"] for h in hs),
+            f"vp-only-{k}",
+        )
+        for k, hs in enumerate((vp_m10, vp_45))
+    ]
     paths = [str(write_run(r, tmp_path / f"{r.meta.run_id}.mcap", "mcap")) for r in (tp_a, tp_b, *vp)]
     out = run_calibrate(paths, str(tmp_path / "reg"), CalibrationSettings())
     temps_vp = {round(v["temp_c"]) for v in out["verification"]}
@@ -212,8 +232,9 @@ def test_flow_other_methods_record_method_and_compensate(tmp_path):
     tilt = run_calibrate([str(short)], reg, CalibrationSettings())
     scal = run_calibrate([str(short)], reg, CalibrationSettings(), method="scalar")
     assert (tilt["version"], scal["version"]) == (1, 2) and scal["method"] == "scalar"
-    diff_run = simulate(SimConfig(seed=6, program="differential", rate_hz=1,
-                                  effects=[("fixture_face_error", {"sigma_deg": 1.5})]))
+    diff_run = simulate(
+        SimConfig(seed=6, program="differential", rate_hz=1, effects=[("fixture_face_error", {"sigma_deg": 1.5})])
+    )
     diff_path = write_run(diff_run.run, tmp_path / "diff.mcap", "mcap")
     base = json.loads(Path(tilt["passport"]).read_text())
     diff = run_calibrate([str(diff_path)], reg, CalibrationSettings(), method="differential", base_passport=base)

@@ -12,24 +12,30 @@ import numpy as np
 import pytest
 
 from pipeline import compensate
-from pipeline.simulate import program
 from pipeline.calibrate import differential
+from pipeline.calibrate.differential import (
+    DifferentialModel,
+    DifferentialSettings,
+    block_data,
+    compensate_blocks,
+    compensate_run,
+    fit_differential,
+    window_std_g,
+)
 from pipeline.calibrate.tilt import fit_unit, observe_run, verify_unit
-from pipeline.calibrate.differential import (DifferentialModel, DifferentialSettings, block_data,
-                                   compensate_blocks, compensate_run, fit_differential,
-                                   window_std_g)
 from pipeline.errors import CalibrationError
 from pipeline.passport.document import build_passport, load_model, load_passport
-from pipeline.positions import TEST_POSITIONS
 from pipeline.passport.registry import Registry
+from pipeline.positions import TEST_POSITIONS
+from pipeline.simulate import program
 from pipeline.simulate.chamber import SimConfig, simulate
-from pipeline.thermal import PolynomialModel
 from pipeline.simulate.unit import seed000_unit
+from pipeline.thermal import PolynomialModel
 from tests.conftest import REPO
 
 T0 = 20.0
 TAU_S = 120.0
-RATE_HZ = 2.0          # 10 s blocks of 20 samples: 5 uV / sqrt(20) = 1.1 uV, about 2 micro-g per block
+RATE_HZ = 2.0  # 10 s blocks of 20 samples: 5 uV / sqrt(20) = 1.1 uV, about 2 micro-g per block
 SIX = tuple(TEST_POSITIONS)
 
 
@@ -39,13 +45,22 @@ def _cycle_run(seed: int, face_seed: int, orientations=SIX):
     name = "differential_test_" + "_".join(orientations)
     with pytest.MonkeyPatch.context() as mp:
         mp.setitem(program.PROGRAMS, name, lambda: program.differential_program(orientations))
-        return simulate(SimConfig(program=name, seed=seed, rate_hz=RATE_HZ, effects=[
-            ("thermal_lag", {"tau_s": TAU_S}), ("fixture_face_error", {"sigma_deg": 1.5, "seed": face_seed})]))
+        return simulate(
+            SimConfig(
+                program=name,
+                seed=seed,
+                rate_hz=RATE_HZ,
+                effects=[
+                    ("thermal_lag", {"tau_s": TAU_S}),
+                    ("fixture_face_error", {"sigma_deg": 1.5, "seed": face_seed}),
+                ],
+            )
+        )
 
 
 @pytest.fixture(scope="module")
 def runs():
-    return _cycle_run(2, 4).run, _cycle_run(3, 5).run          # fit, held-out (other noise and face errors)
+    return _cycle_run(2, 4).run, _cycle_run(3, 5).run  # fit, held-out (other noise and face errors)
 
 
 @pytest.fixture(scope="module")
@@ -87,8 +102,12 @@ def _std_max_ug(model, data):
     return float(window_std_g(data, compensate_blocks(model, data)).max() * 1e6)
 
 
-MODELS = {"static": DifferentialSettings(rate_order=0), "paper": DifferentialSettings(),
-          "rate_dt": DifferentialSettings(rate_dt_order=1), "lag": DifferentialSettings(rate_order=0, lag_fit=True)}
+MODELS = {
+    "static": DifferentialSettings(rate_order=0),
+    "paper": DifferentialSettings(),
+    "rate_dt": DifferentialSettings(rate_dt_order=1),
+    "lag": DifferentialSettings(rate_order=0, lag_fit=True),
+}
 
 
 @pytest.fixture(scope="module")
@@ -129,7 +148,7 @@ def test_coefficients_against_truth(fits):
     Kf, Uf = fit.model.constants_at(temps)
     assert np.abs(Uf - Ut).max() < 5e-6
     assert np.abs(Kf - Kt).max() / 0.55 < 2e-6
-    assert np.abs(fit.model.static.alpha[2]).max() < 2e-9            # V/C^3 (alpha_2 is about 1e-6 V/C^2)
+    assert np.abs(fit.model.static.alpha[2]).max() < 2e-9  # V/C^3 (alpha_2 is about 1e-6 V/C^2)
     for c, terms in enumerate(fit.terms):
         assert sorted(terms) == sorted(["bias", "scale"] + [f"cross_{a}" for a in "xyz" if a != "xyz"[c]])
     _, Up = fits["paper"].model.constants_at(temps)
@@ -141,15 +160,17 @@ def test_passport_of_method_differential(runs, base, tmp_path):
     rate_terms with the lag); ``compensate_run`` on the held-out run gives 10 s block std under 10 ug at every
     orientation; ``pipeline.compensate`` works on the same passport (without lag: hundreds of ug)."""
     fit_run, held = runs
-    mc = differential.calibrate([fit_run], base_passport=base[1],
-                                differential=DifferentialSettings(rate_order=0, lag_fit=True))
+    mc = differential.calibrate(
+        [fit_run], base_passport=base[1], differential=DifferentialSettings(rate_order=0, lag_fit=True)
+    )
     doc = mc.passport
     assert doc["method"] == "differential" and doc["thermal_model"]["order"] == 3
     assert doc["rate_terms"]["lag_tau_s"] == pytest.approx(TAU_S, abs=2.0)
-    pub = Registry(tmp_path / "reg").publish(doc, inputs=[], settings={"method": "differential"},
-                                             code_version="test")
+    pub = Registry(tmp_path / "reg").publish(doc, inputs=[], settings={"method": "differential"}, code_version="test")
     stored = json.loads(pub.path.read_text())
-    jsonschema.validate(stored, json.loads((REPO / "pipeline" / "io" / "schemas" / "thermocal.passport.json").read_text()))
+    jsonschema.validate(
+        stored, json.loads((REPO / "pipeline" / "io" / "schemas" / "thermocal.passport.json").read_text())
+    )
 
     t_ns, a = compensate_run(stored, held)
     d = block_data(held, *_k0_u0(base[1]))
@@ -169,8 +190,12 @@ def test_rate_terms_round_trip_through_the_passport_form(base, fits):
     K0, U0 = _k0_u0(base[1])
     fit = fits["paper"]
     assert fit.model.rate.order == 2 and fit.model.lag_tau_s == 0.0
-    doc = {"coefficients": {"K": K0.tolist(), "U0": U0.tolist()}, "normal_temp_c": T0,
-           "thermal_model": fit.model.static.to_dict(), "rate_terms": fit.model.rate.to_dict()}
+    doc = {
+        "coefficients": {"K": K0.tolist(), "U0": U0.tolist()},
+        "normal_temp_c": T0,
+        "thermal_model": fit.model.static.to_dict(),
+        "rate_terms": fit.model.rate.to_dict(),
+    }
     back = load_passport(json.loads(json.dumps(doc))).compensation_model()
     assert isinstance(back, DifferentialModel)
     temps, rates = np.array([-40.0, 0.0, 20.0, 70.0]), np.array([-1.0, 0.5, 0.0, 1.0])

@@ -14,9 +14,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from pipeline.calibrate.fleet import ALREADY_PROCESSED, calibrate_group, discover_runs, plan_fleet, read_run_meta
 from pipeline.calibrate.tilt import CalibrationSettings
 from pipeline.errors import RunFormatError, ThermocalError
-from pipeline.calibrate.fleet import (ALREADY_PROCESSED, calibrate_group, discover_runs, plan_fleet, read_run_meta)
 from pipeline.io.runs import read_run, write_run
 from pipeline.simulate.chamber import SimConfig, simulate
 from pipeline.simulate.unit import UnitTruth
@@ -27,8 +27,9 @@ T0 = 20.0
 
 
 def _sim(serial: str, unit_seed: int, seed: int = 1, **kw):
-    return simulate(SimConfig(unit_serial=serial, unit_seed=unit_seed, seed=seed, program="short", rate_hz=RATE_HZ,
-                              **kw))
+    return simulate(
+        SimConfig(unit_serial=serial, unit_seed=unit_seed, seed=seed, program="short", rate_hz=RATE_HZ, **kw)
+    )
 
 
 def _corrupt_copy(src: Path, dst: Path) -> Path:
@@ -36,7 +37,7 @@ def _corrupt_copy(src: Path, dst: Path) -> Path:
     at the start stays readable)."""
     data = bytearray(src.read_bytes())
     mid = len(data) // 2
-    data[mid:mid + 64] = bytes(b ^ 0xFF for b in data[mid:mid + 64])
+    data[mid : mid + 64] = bytes(b ^ 0xFF for b in data[mid : mid + 64])
     dst.write_bytes(bytes(data))
     return dst
 
@@ -63,12 +64,19 @@ def fleet(tmp_path_factory):
     tp_m40_end = max(h["t_end_ns"] for h in holds if h["setpoint_c"] == -40.0)
     tp_70_start = min(h["t_start_ns"] for h in holds if h["setpoint_c"] == 70.0 and h["position"].startswith("TP"))
     write_run(_slice_run(c.run, t_start, tp_m40_end, "AU-0203-tp-a"), inbox / "ch1" / "AU-0203-tp-a.mcap", "mcap")
-    write_run(_slice_run(c.run, tp_70_start - 1_200_000_000_000, 2**62, "AU-0203-tp-b"),
-              inbox / "ch1" / "AU-0203-tp-b.mcap", "mcap")
+    write_run(
+        _slice_run(c.run, tp_70_start - 1_200_000_000_000, 2**62, "AU-0203-tp-b"),
+        inbox / "ch1" / "AU-0203-tp-b.mcap",
+        "mcap",
+    )
     for k, sp in enumerate((-10.0, 45.0)):
         hs = [h for h in holds if h["position"].startswith("VP") and h["setpoint_c"] == sp]
-        vp = _slice_run(c.run, min(h["t_start_ns"] for h in hs) - 1_200_000_000_000, max(h["t_end_ns"] for h in hs),
-                        f"AU-0203-vp-{k}")
+        vp = _slice_run(
+            c.run,
+            min(h["t_start_ns"] for h in hs) - 1_200_000_000_000,
+            max(h["t_end_ns"] for h in hs),
+            f"AU-0203-vp-{k}",
+        )
         write_run(vp, later / f"AU-0203-vp-{k}", "parquet")
     # AU-0204: a good run and a second run whose data is corrupt (its metadata is fine: it is grouped with AU-0204)
     d = _sim("AU-0204", 204)
@@ -92,9 +100,17 @@ def fleet(tmp_path_factory):
 def test_discover_and_metadata(fleet, tmp_path):
     inbox = fleet["inbox"]
     runs = [p.relative_to(inbox).as_posix() for p in discover_runs(inbox)]
-    assert runs == ["ch1/AU-0201.mcap", "ch1/AU-0203-tp-a.mcap", "ch1/AU-0203-tp-b.mcap", "ch2/AU-0202_run",
-                    "ch2/AU-0204-s2-corrupt.mcap", "ch2/AU-0204.mcap", "ch3/AU-0205_run", "ch3/junk.mcap",
-                    "copies/AU-0201-again.mcap"]
+    assert runs == [
+        "ch1/AU-0201.mcap",
+        "ch1/AU-0203-tp-a.mcap",
+        "ch1/AU-0203-tp-b.mcap",
+        "ch2/AU-0202_run",
+        "ch2/AU-0204-s2-corrupt.mcap",
+        "ch2/AU-0204.mcap",
+        "ch3/AU-0205_run",
+        "ch3/junk.mcap",
+        "copies/AU-0201-again.mcap",
+    ]
     assert read_run_meta(inbox / "ch1" / "AU-0201.mcap").unit_serial == "AU-0201"
     assert read_run_meta(inbox / "ch2" / "AU-0202_run").unit_serial == "AU-0202"
     m = read_run_meta(inbox / "ch1" / "AU-0203-tp-b.mcap")
@@ -173,8 +189,12 @@ def test_fleet_flow_nightly_cycle(fleet, tmp_path):
     assert sorted(done) == ["AU-0201", "AU-0202", "AU-0203", "AU-0204"]
     assert all(d["version"] == 1 and d["created"] for d in done.values())
     # AU-0203's TP-only runs verify only at +20 C: not a pass until VP data exercise the thermal model (issue 14)
-    assert {u: d["status"] for u, d in done.items()} == {"AU-0201": "pass", "AU-0202": "pass",
-                                                          "AU-0203": "unverified", "AU-0204": "pass"}
+    assert {u: d["status"] for u, d in done.items()} == {
+        "AU-0201": "pass",
+        "AU-0202": "pass",
+        "AU-0203": "unverified",
+        "AU-0204": "pass",
+    }
     assert [Path(r).name for r in done["AU-0203"]["runs"]] == ["AU-0203-tp-a.mcap", "AU-0203-tp-b.mcap"]
     assert [Path(r).name for r in done["AU-0204"]["runs"]] == ["AU-0204.mcap"]
     assert "corrupt chunk" in _failed_reason(s1, "AU-0204-s2-corrupt.mcap")
@@ -182,14 +202,17 @@ def test_fleet_flow_nightly_cycle(fleet, tmp_path):
     assert "not an MCAP file" in _failed_reason(s1, "junk.mcap")
     assert len(s1["failed"]) == 3 and all("\n" not in f["reason"] for f in s1["failed"])
     assert [(Path(x["run"]).name, x["why"].split(" ")[0]) for x in s1["skipped"]] == [
-        ("AU-0201-again.mcap", "duplicate")]
+        ("AU-0201-again.mcap", "duplicate")
+    ]
     for unit, d in done.items():
         assert Path(d["passport"]).with_suffix(".png").stat().st_size > 10_000  # the VP figure, as calibrate
         K_true, U0_true = UnitTruth.from_dict(fleet["truth"][unit]["unit"]).constants_at(np.array([T0]))
         passport = json.loads(Path(d["passport"]).read_text())
         assert np.abs(np.array(passport["coefficients"]["K"]) - K_true[0]).max() < 3e-6, unit
-    arts = _api_filter("artifacts", {"artifacts": {"key": {"any_": [ARTIFACT_KEY]}},
-                                     "flow_runs": {"id": {"any_": [s1["flow_run_id"]]}}})
+    arts = _api_filter(
+        "artifacts",
+        {"artifacts": {"key": {"any_": [ARTIFACT_KEY]}}, "flow_runs": {"id": {"any_": [s1["flow_run_id"]]}}},
+    )
     assert len(arts) == 1 and arts[0]["type"] == "table"
     table = json.loads(arts[0]["data"]) if isinstance(arts[0]["data"], str) else arts[0]["data"]
     assert len(table) == 4 + 3 + 1 and {r["outcome"] for r in table} == {"done", "failed", "skipped"}
@@ -262,21 +285,33 @@ def test_fleet_on_dask_localcluster(fleet, tmp_path):
 
     inbox = tmp_path / "inbox"
     inbox.mkdir()
-    for name in ("ch1/AU-0201.mcap", "ch1/AU-0203-tp-a.mcap", "ch1/AU-0203-tp-b.mcap", "ch2/AU-0204.mcap",
-                 "ch3/junk.mcap"):
+    for name in (
+        "ch1/AU-0201.mcap",
+        "ch1/AU-0203-tp-a.mcap",
+        "ch1/AU-0203-tp-b.mcap",
+        "ch2/AU-0204.mcap",
+        "ch3/junk.mcap",
+    ):
         shutil.copy(fleet["inbox"] / name, inbox / Path(name).name)
     shutil.copytree(fleet["inbox"] / "ch2" / "AU-0202_run", inbox / "AU-0202_run")
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                  dashboard_address=None, silence_logs=40) as cluster, \
-            distributed.Client(cluster) as client:
+    with (
+        distributed.LocalCluster(
+            n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None, silence_logs=40
+        ) as cluster,
+        distributed.Client(cluster) as client,
+    ):
         worker_pids = set(client.run(os.getpid).values())
         summary = run_fleet(str(inbox), str(tmp_path / "reg"), dask_address=cluster.scheduler_address, figures=False)
     assert len(worker_pids) == 2 and os.getpid() not in worker_pids
     done = _by_unit(summary)
     assert sorted(done) == ["AU-0201", "AU-0202", "AU-0203", "AU-0204"]
     assert all(Path(d["passport"]).exists() for d in done.values())
-    assert {u: d["status"] for u, d in done.items()} == {"AU-0201": "pass", "AU-0202": "pass",
-                                                          "AU-0203": "unverified", "AU-0204": "pass"}
+    assert {u: d["status"] for u, d in done.items()} == {
+        "AU-0201": "pass",
+        "AU-0202": "pass",
+        "AU-0203": "unverified",
+        "AU-0204": "pass",
+    }
     assert not list((tmp_path / "reg").rglob("*.png"))  # figures=False
     assert [Path(f["run"]).name for f in summary["failed"]] == ["junk.mcap"]
     assert summary["timing"]["runner"].startswith("DaskTaskRunner(tcp://127.0.0.1:")
@@ -295,7 +330,7 @@ def _read_all(fd: int) -> str:
     while True:
         try:
             data = os.read(fd, 65536)
-        except OSError:          # EIO: the terminal's other end is closed
+        except OSError:  # EIO: the terminal's other end is closed
             break
         if not data:
             break
@@ -336,7 +371,11 @@ def test_cli_fleet_json_and_exit_status(fleet, tmp_path):
     assert "thermocal: fleet: plan" in tty and "1 runs: 0 units to calibrate, 1 runs skipped" in tty, tty
     s2 = json.loads(again.stdout)
     assert s2["done"] == [] and [x["why"] for x in s2["skipped"]] == [ALREADY_PROCESSED]
-    missing = subprocess.run([exe, "fleet", str(tmp_path / "nowhere"), "--registry", str(tmp_path / "reg")],
-                             capture_output=True, text=True, timeout=120)
+    missing = subprocess.run(
+        [exe, "fleet", str(tmp_path / "nowhere"), "--registry", str(tmp_path / "reg")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert missing.returncode == 2 and len(missing.stderr.strip().splitlines()) == 1
     assert "nowhere" in missing.stderr

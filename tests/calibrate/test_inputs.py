@@ -21,7 +21,7 @@ def runs(tmp_path_factory):
     full = write_run(run, d / "full.mcap", "mcap", chunk_size=1 << 15)
     cut = d / "copy-truncated.mcap"
     data = full.read_bytes()
-    cut.write_bytes(data[:int(len(data) * 0.6)])
+    cut.write_bytes(data[: int(len(data) * 0.6)])
     other_run = simulate_run(SimConfig(program="short", rate_hz=2.0, seed=2)).run
     other = write_run(replace(other_run, meta=run.meta), d / "other.mcap", "mcap")
     return run.meta, full, cut, other
@@ -36,8 +36,11 @@ def test_truncated_copy_is_a_prefix(runs):
 
 def test_truncated_copy_is_dropped_and_the_complete_file_used(runs):
     meta, full, cut, _ = runs
-    items = [RunInput(str(cut), meta.unit_serial, meta.run_id), RunInput(str(full), meta.unit_serial, meta.run_id),
-             RunInput("/elsewhere/vp.mcap", meta.unit_serial, "another-run")]
+    items = [
+        RunInput(str(cut), meta.unit_serial, meta.run_id),
+        RunInput(str(full), meta.unit_serial, meta.run_id),
+        RunInput("/elsewhere/vp.mcap", meta.unit_serial, "another-run"),
+    ]
     kept, failed = resolve_run_ids(items, read_run)
     assert [k.path for k in kept] == [str(full), "/elsewhere/vp.mcap"]
     [f] = failed
@@ -59,13 +62,16 @@ def test_distinct_run_ids_are_not_read():
     assert resolve_run_ids(items, read=lambda p: pytest.fail("read")) == (items, [])
 
 
-@pytest.mark.parametrize("path, serial, warns", [
-    ("/inbox/AU-0002/tp.mcap", "AU-0001", "says unit AU-0002 but its metadata says AU-0001"),
-    ("/inbox/AU-0001/tp.mcap", "AU-0001", None),
-    ("/inbox/2026-11-01-ch2-AU-0003.mcap", "AU-0001", "says unit AU-0003"),
-    ("/inbox/AU-0002/run-AU-0001.mcap", "AU-0001", None),   # the file names its own unit
-    ("/inbox/chamber-2/tp.mcap", "AU-0001", None),           # nothing shaped like a serial
-])
+@pytest.mark.parametrize(
+    "path, serial, warns",
+    [
+        ("/inbox/AU-0002/tp.mcap", "AU-0001", "says unit AU-0002 but its metadata says AU-0001"),
+        ("/inbox/AU-0001/tp.mcap", "AU-0001", None),
+        ("/inbox/2026-11-01-ch2-AU-0003.mcap", "AU-0001", "says unit AU-0003"),
+        ("/inbox/AU-0002/run-AU-0001.mcap", "AU-0001", None),  # the file names its own unit
+        ("/inbox/chamber-2/tp.mcap", "AU-0001", None),  # nothing shaped like a serial
+    ],
+)
 def test_folder_name_naming_another_unit_warns(path, serial, warns):
     got = folder_warning(path, serial, "/inbox")
     assert (got is None) if warns is None else (warns in got and got.startswith(path))

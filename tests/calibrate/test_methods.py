@@ -26,16 +26,31 @@ def inboxes(tmp_path_factory):
     """AU-0001: a short-program run (2 Hz) in one inbox, a differential-program run (1 Hz) in another."""
     d = tmp_path_factory.mktemp("methods")
     short = write_run(simulate(SimConfig(seed=5, program="short", rate_hz=2)).run, d / "in1" / "short.mcap", "mcap")
-    diff = write_run(simulate(SimConfig(seed=6, program="differential", rate_hz=1,
-                                        effects=[("fixture_face_error", {"sigma_deg": 1.5})])).run,
-                     d / "in2" / "diff.mcap", "mcap")
+    diff = write_run(
+        simulate(
+            SimConfig(seed=6, program="differential", rate_hz=1, effects=[("fixture_face_error", {"sigma_deg": 1.5})])
+        ).run,
+        d / "in2" / "diff.mcap",
+        "mcap",
+    )
     return short, diff
 
 
 def _fleet(inbox: Path, registry: Path, method: str) -> tuple:
     plan = plan_fleet(inbox, registry, CalibrationSettings(), method)
-    outcomes = [calibrate_group(g.unit, g.runs, registry, CalibrationSettings(), figure=False, digests=g.digests,
-                                method=method, base_passport=g.base_passport) for g in plan.groups]
+    outcomes = [
+        calibrate_group(
+            g.unit,
+            g.runs,
+            registry,
+            CalibrationSettings(),
+            figure=False,
+            digests=g.digests,
+            method=method,
+            base_passport=g.base_passport,
+        )
+        for g in plan.groups
+    ]
     return plan, outcomes
 
 
@@ -55,7 +70,7 @@ def test_fleet_runs_every_method(inboxes, tmp_path):
     group starts from the current passport (the approved tilt version), also on the next night."""
     short, diff = inboxes
     reg = tmp_path / "reg"
-    plan, _ = _fleet(short.parent, reg, "differential")           # nothing to start from yet
+    plan, _ = _fleet(short.parent, reg, "differential")  # nothing to start from yet
     assert not plan.groups and len(plan.failed) == 1
     assert "no normal-temperature passport of AU-0001" in plan.failed[0]["reason"]
 
@@ -72,8 +87,11 @@ def test_fleet_runs_every_method(inboxes, tmp_path):
 
     # the base is the unit's current passport among the non-differential versions: while nothing is approved the
     # newest, v2 (scalar), which failed its verification: refused, saying so; v1 (tilt) once approved
-    with pytest.raises(CalibrationError, match=r"AU-0001 v2 \(status fail, not approved; the current passport: the "
-                                               r"newest version, none is approved\) failed its verification"):
+    with pytest.raises(
+        CalibrationError,
+        match=r"AU-0001 v2 \(status fail, not approved; the current passport: the "
+        r"newest version, none is approved\) failed its verification",
+    ):
         base_passport_of(reg, "AU-0001")
     plan, outcomes = _fleet(diff.parent, reg, "differential")
     assert not outcomes and "failed its verification: not a base" in plan.failed[0]["reason"]
@@ -84,9 +102,12 @@ def test_fleet_runs_every_method(inboxes, tmp_path):
     assert outcome.result["version"] == 3 and doc["method"] == "differential"
     assert doc["base_passport"]["version"] == 1 and doc["thermal_model"]["order"] == 3
     base, state = base_passport_of(reg, "AU-0001")
-    assert base["version"] == 1 and state.approved and state.text() == ("AU-0001 v1 (status pass, approved by "
-                                                                         "A. Metrologist)")
-    plan, outcomes = _fleet(diff.parent, reg, "differential")     # the next night: nothing new
+    assert (
+        base["version"] == 1
+        and state.approved
+        and state.text() == ("AU-0001 v1 (status pass, approved by A. Metrologist)")
+    )
+    plan, outcomes = _fleet(diff.parent, reg, "differential")  # the next night: nothing new
     assert not outcomes and [s["why"] for s in plan.skipped] == [ALREADY_PROCESSED]
     assert [v.version for v in Registry(reg).versions("AU-0001")] == [1, 2, 3]
 
@@ -110,8 +131,12 @@ def test_cli_fleet_unknown_method_is_one_line(tmp_path):
     import sys
 
     thermocal = str(Path(sys.executable).parent / "thermocal")
-    proc = subprocess.run([thermocal, "fleet", str(tmp_path), "--registry", str(tmp_path / "reg"), "--method",
-                           "sweep"], capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [thermocal, "fleet", str(tmp_path), "--registry", str(tmp_path / "reg"), "--method", "sweep"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode == 2 and proc.stdout == ""
     assert len(proc.stderr.strip().splitlines()) == 1 and "unknown method 'sweep'" in proc.stderr
 
@@ -124,8 +149,9 @@ def test_cli_fleet_method_tilt_then_differential(inboxes, tmp_path, monkeypatch,
     short, diff = inboxes
     reg = str(tmp_path / "reg")
     for inbox, method, version in ((short.parent, "tilt", 1), (diff.parent, "differential", 2)):
-        code, out, err = run_main(monkeypatch, capsys, "fleet", str(inbox), "--registry", reg, "--method", method,
-                                  "--no-figures", "--json")
+        code, out, err = run_main(
+            monkeypatch, capsys, "fleet", str(inbox), "--registry", reg, "--method", method, "--no-figures", "--json"
+        )
         assert code == 0, err
         summary = json.loads(out)
         assert [(d["unit"], d["version"]) for d in summary["done"]] == [("AU-0001", version)] and not summary["failed"]
@@ -144,8 +170,7 @@ def test_cli_fleet_defaults_to_auto(inboxes, tmp_path, monkeypatch, capsys):
     reg = str(tmp_path / "reg")
     picked = {}
     for inbox, version in ((short.parent, 1), (diff.parent, 2)):
-        code, out, err = run_main(monkeypatch, capsys, "fleet", str(inbox), "--registry", reg, "--no-figures",
-                                  "--json")
+        code, out, err = run_main(monkeypatch, capsys, "fleet", str(inbox), "--registry", reg, "--no-figures", "--json")
         assert code == 0, err
         summary = json.loads(out)
         assert [(d["unit"], d["version"]) for d in summary["done"]] == [("AU-0001", version)] and not summary["failed"]

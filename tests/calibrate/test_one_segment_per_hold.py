@@ -36,8 +36,10 @@ def _holds_ns(run, prog) -> list[tuple[int, int, str]]:
 
 
 def _rows_by_visit(res) -> list[tuple[float, int, int, list[str]]]:
-    return [(round(v["temp_c"]), v["visit"], v["visits"], [r["position"] for r in v["rows"]])
-            for v in verification_visits([r.to_dict() for r in res.rows])]
+    return [
+        (round(v["temp_c"]), v["visit"], v["visits"], [r["position"] for r in v["rows"]])
+        for v in verification_visits([r.to_dict() for r in res.rows])
+    ]
 
 
 @pytest.mark.parametrize("soak_min", [20, 35])
@@ -53,8 +55,12 @@ def test_a_hold_begun_while_the_unit_settles_is_one_segment(soak_min):
     # each plateau lists each position it held once (the JSON's "plateaus"), each visit its six VPs once
     for p in res.plateaus:
         assert len(p["positions"]) == len(set(p["positions"])), p
-    assert _rows_by_visit(res) == [(-10, 1, 1, list(VP)), (20, 1, 2, list(VP)), (20, 2, 2, list(VP)),
-                                   (45, 1, 1, list(VP))]
+    assert _rows_by_visit(res) == [
+        (-10, 1, 1, list(VP)),
+        (20, 1, 2, list(VP)),
+        (20, 2, 2, list(VP)),
+        (45, 1, 1, list(VP)),
+    ]
     assert res.status == "pass"
 
 
@@ -89,8 +95,9 @@ def test_soaks_too_short_for_any_plateau_away_from_t0_are_not_pass():
     res = calibrate([_run(600.0)])
     assert {round(f.temp_c) for f in res.fit.per_plateau} <= {18, 19, 20, 21, 22}
     assert res.status == "unverified"
-    assert any("VP segments held between -1" in w and "lie off every temperature plateau found" in w
-               for w in res.warnings), res.warnings
+    assert any(
+        "VP segments held between -1" in w and "lie off every temperature plateau found" in w for w in res.warnings
+    ), res.warnings
 
 
 def test_vp_data_at_t0_only_say_so_and_keep_their_two_visits_apart():
@@ -110,15 +117,29 @@ def test_vp_data_at_t0_only_say_so_and_keep_their_two_visits_apart():
 def _obs(plateau: int, position: str, temp_c: float, t: int) -> Observation:
     K, U0 = seed000_unit().constants_at(np.array([temp_c]))
     u = K[0] @ np.asarray(gravity_vector_g(position)) + U0[0]
-    return Observation(run_id="r", plateau=plateau, position=position, u_v=tuple(u), std_v=(5e-6,) * 3, count=600,
-                       temp_c=temp_c, t_start_ns=t * 400 * NS, t_end_ns=(t * 400 + 300) * NS)
+    return Observation(
+        run_id="r",
+        plateau=plateau,
+        position=position,
+        u_v=tuple(u),
+        std_v=(5e-6,) * 3,
+        count=600,
+        temp_c=temp_c,
+        t_start_ns=t * 400 * NS,
+        t_end_ns=(t * 400 + 300) * NS,
+    )
 
 
 def test_a_soak_hold_below_t0_verifies_nothing():
     """The VP6 the unit held through the ramp to -40 C and its soak is no verification there: the VPs visited at
     +20 and +45 C all pass, the model reaches -40 C, so the status is not pass."""
-    seq = ([(0, p, 20.0) for p in TP + VP] + [(1, "VP6", -40.0)] + [(1, p, -40.0) for p in TP]
-           + [(2, p, 45.0) for p in VP] + [(3, p, 70.0) for p in TP])
+    seq = (
+        [(0, p, 20.0) for p in TP + VP]
+        + [(1, "VP6", -40.0)]
+        + [(1, p, -40.0) for p in TP]
+        + [(2, p, 45.0) for p in VP]
+        + [(3, p, 70.0) for p in TP]
+    )
     obs = [_obs(p, pos, t, k) for k, (p, pos, t) in enumerate(seq)]
     fit = fit_unit("AU-0001", obs, CalibrationSettings())
     rows, status = verify_unit(fit.model, obs, 20.0)

@@ -11,14 +11,14 @@ import polars as pl
 import pytest
 
 from pipeline import compensate
+from pipeline.calibrate import scalar
+from pipeline.calibrate.scalar import lower_gauge, scalar_first_order, scalar_nonlinear
 from pipeline.constants import six_position
 from pipeline.errors import CalibrationError
 from pipeline.model import gravity_module_error_g, output_v, specific_force_g
 from pipeline.passport.document import load_model
-from pipeline.positions import ALL_POSITIONS
 from pipeline.passport.registry import Registry
-from pipeline.calibrate import scalar
-from pipeline.calibrate.scalar import lower_gauge, scalar_first_order, scalar_nonlinear
+from pipeline.positions import ALL_POSITIONS
 from pipeline.simulate.chamber import SimConfig, simulate
 from pipeline.simulate.unit import random_unit, seed000_unit
 from tests.conftest import REPO, shared_path
@@ -61,14 +61,14 @@ def test_nonlinear_recovers_constants_up_to_rotation_within_noise(unit):
     f = scalar_nonlinear(u, GAIN, np.zeros(3))
     err = _estimate(f) - _identifiable(K, U0, GAIN, np.zeros(3))
     assert np.all(np.abs(err) < 4.5 * f.std)
-    sigma_r = sigma_v / 0.55                                     # radial noise in g
-    B = a                                                         # design at the truth, to first order
-    A = np.concatenate([B, B ** 2, np.column_stack([B[:, 0] * B[:, 1], B[:, 0] * B[:, 2], B[:, 1] * B[:, 2]])], 1)
+    sigma_r = sigma_v / 0.55  # radial noise in g
+    B = a  # design at the truth, to first order
+    A = np.concatenate([B, B**2, np.column_stack([B[:, 0] * B[:, 1], B[:, 0] * B[:, 2], B[:, 1] * B[:, 2]])], 1)
     expected_std = sigma_r * np.sqrt(np.diag(np.linalg.inv(A.T @ A)))
     np.testing.assert_allclose(f.std, expected_std, rtol=0.3)
-    rms = np.sqrt(np.mean(f.norm_error_g ** 2))
+    rms = np.sqrt(np.mean(f.norm_error_g**2))
     assert rms == pytest.approx(sigma_r * np.sqrt(1 - 9 / m), rel=0.3)
-    kkt_err = np.abs(f.K @ f.K.T - K @ K.T).max() / 0.55 ** 2
+    kkt_err = np.abs(f.K @ f.K.T - K @ K.T).max() / 0.55**2
     assert kkt_err < 3 * 4.5 * expected_std.max()
     # the fit is in the lower gauge and keeps the sign of the gains
     assert np.allclose(np.triu(f.K, 1), 0.0) and np.all(np.diag(f.K) < 0)
@@ -120,7 +120,7 @@ def test_first_order_valid_for_small_errors_and_degrades_with_misalignment():
     assert 0.01 < rel.max() < 0.05
 
     M = AK6_M.copy()
-    M[0, 1] = 0.01                                      # the paper's a_xz
+    M[0, 1] = 0.01  # the paper's a_xz
     B, kn = _paper_triad(AK6_D0, AK6_D1, M)
     truth = _identifiable(kn, AK6_D0, one, 0 * one)
     rel = np.abs(_estimate(scalar_first_order(B, one, 0 * one)) - truth) / np.abs(truth)
@@ -133,7 +133,7 @@ def test_quadratic_terms_recovered_by_first_order():
     rng = np.random.default_rng(5)
     a = _directions(rng, 40)
     d2 = np.array([3e-4, -2e-4, 2.5e-4])
-    B = AK6_D0 + a @ (np.eye(3) + np.diag(AK6_D1)).T + d2 * a ** 2
+    B = AK6_D0 + a @ (np.eye(3) + np.diag(AK6_D1)).T + d2 * a**2
     f = scalar_first_order(B, np.ones(3), np.zeros(3), quadratic=True)
     np.testing.assert_allclose(f.d2, d2, rtol=0.1)
     np.testing.assert_allclose(f.d1, AK6_D1, rtol=0.1, atol=2e-5)
@@ -161,9 +161,10 @@ def test_too_few_or_badly_spread_positions_raise():
 def real_positions():
     base = shared_path("reference", "real", "imucal_ferraris")
     u = pl.read_parquet(base / "run" / "voltmeter.parquet").select(["ux", "uy", "uz"]).to_numpy()
-    labels = [lab for lab in json.loads((base / "labels.json").read_text())["labels"]
-              if lab["position"].startswith("TP")]
-    means = np.array([u[lab["start_sample"]:lab["end_sample"]].mean(axis=0) for lab in labels])
+    labels = [
+        lab for lab in json.loads((base / "labels.json").read_text())["labels"] if lab["position"].startswith("TP")
+    ]
+    means = np.array([u[lab["start_sample"] : lab["end_sample"]].mean(axis=0) for lab in labels])
     counts = np.array([lab["end_sample"] - lab["start_sample"] for lab in labels], dtype=float)
     return base, [lab["position"] for lab in labels], means, counts
 
@@ -186,7 +187,7 @@ def test_real_recording_scalar_against_six_position(real_positions):
         scalar_nonlinear(means, np.full(3, 9.81), np.zeros(3), weights=counts)
     sc = scalar_nonlinear(means, np.full(3, 9.81), np.zeros(3), model="diagonal", weights=counts)
     assert np.abs(sc.norm_error_g).max() < 1e-6
-    np.testing.assert_allclose(np.diag(sc.K), np.diag(K6), rtol=2e-3)       # README: 9.777, 9.834, 10.039
+    np.testing.assert_allclose(np.diag(sc.K), np.diag(K6), rtol=2e-3)  # README: 9.777, 9.834, 10.039
     fo = scalar_first_order(means, np.full(3, 9.81), np.zeros(3), model="diagonal", weights=counts)
     assert np.abs(fo.norm_error_g).max() > 3e-3
 
@@ -197,7 +198,7 @@ def test_real_recording_scalar_against_six_position(real_positions):
     dg_6 = gravity_module_error_g(specific_force_g(K6, U06, u_all))
     assert np.abs(dg_sc).max() < 1e-3
     assert np.abs(dg_6).max() > 2e-3
-    assert np.sqrt(np.mean(dg_sc ** 2)) < 0.3 * np.sqrt(np.mean(dg_6 ** 2))
+    assert np.sqrt(np.mean(dg_sc**2)) < 0.3 * np.sqrt(np.mean(dg_6**2))
 
 
 def test_calibrate_scalar_real_run_falls_back_to_diagonal(real_positions):

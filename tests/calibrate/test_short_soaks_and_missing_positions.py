@@ -12,7 +12,7 @@ noise, with shorter soaks or one position left out; the seed 000 unit's true con
 from __future__ import annotations
 
 import json
-from functools import lru_cache
+from functools import cache
 
 import numpy as np
 import pytest
@@ -29,8 +29,12 @@ PLAN = [(20.0, TP), (-40.0, TP), (-10.0, VP), (20.0, TP + VP), (45.0, VP), (70.0
 TP_STAGES = [k for k, (_, pos) in enumerate(PLAN) if "TP1" in pos]
 
 
-def program(soak_s: float = 3600.0, long_soak_s: float = 5400.0, drop: tuple[int, str] | None = None,
-            vp_temps: tuple[float, ...] | None = None) -> Program:
+def program(
+    soak_s: float = 3600.0,
+    long_soak_s: float = 5400.0,
+    drop: tuple[int, str] | None = None,
+    vp_temps: tuple[float, ...] | None = None,
+) -> Program:
     stages = []
     for k, (sp, pos) in enumerate(PLAN):
         pos = tuple(p for p in pos if (k, p) != drop)
@@ -41,13 +45,14 @@ def program(soak_s: float = 3600.0, long_soak_s: float = 5400.0, drop: tuple[int
     return Program("variant", tuple(stages), case_lag_s=600.0, air_lag_s=90.0)
 
 
-@lru_cache(maxsize=None)
+@cache
 def _run(soak_s: float, drop: tuple[int, str] | None = None, vp_temps=None, seed: int = 5):
-    return simulate(SimConfig(seed=seed, rate_hz=1.0, program=program(soak_s, soak_s if soak_s < 3600 else 5400.0,
-                                                                       drop, vp_temps))).run
+    return simulate(
+        SimConfig(seed=seed, rate_hz=1.0, program=program(soak_s, soak_s if soak_s < 3600 else 5400.0, drop, vp_temps))
+    ).run
 
 
-@lru_cache(maxsize=None)
+@cache
 def _standard_passport_json() -> str:
     """The unit's passport from another run, on the standard program (what ``calibrate`` wrote some time ago)."""
     calib = simulate(SimConfig(seed=41, rate_hz=1.0)).run
@@ -58,8 +63,10 @@ def check_no_false_alarm(run) -> None:
     """diagnose names nothing, with the passport fitted from the run and with the unit's passport of another run."""
     for passport in (None, json.loads(_standard_passport_json())):
         rep = diagnose_run(run, passport).report
-        assert rep["verdict"] == "consistent", (passport is not None, [(f["effect"], f["delta_bic"])
-                                                                       for f in rep["findings"]])
+        assert rep["verdict"] == "consistent", (
+            passport is not None,
+            [(f["effect"], f["delta_bic"]) for f in rep["findings"]],
+        )
         assert rep["rms_after_v"] < 1.1 * rep["rms_noise_v"]
 
 
@@ -70,8 +77,8 @@ def check_constants(result):
     unit = seed000_unit()
     for f in fits:
         k, u0 = unit.constants_at(np.array([f.temp_c]))
-        np.testing.assert_allclose(f.K, k[0], atol=3e-6)        # V/g: a few ppm of a 0.55 V/g gain
-        np.testing.assert_allclose(f.U0, u0[0], atol=3e-6)      # V
+        np.testing.assert_allclose(f.K, k[0], atol=3e-6)  # V/g: a few ppm of a 0.55 V/g gain
+        np.testing.assert_allclose(f.U0, u0[0], atol=3e-6)  # V
     assert result.passport["thermal_model"]["order"] == 2
     assert result.status == "pass"
     assert max(abs(r.dg_method1_g) for r in result.rows) < 2e-5
@@ -102,7 +109,7 @@ def test_positions_that_cannot_determine_the_constants_are_said_so():
 
     assert determines_constants(["TP1", "TP2", "TP3", "TP5", "TP6"])
     assert determines_constants(["TP1", "TP2", "TP5", "TP6"])
-    assert not determines_constants(["TP1", "TP3", "TP5", "TP6"])     # no y: K_iy undetermined
+    assert not determines_constants(["TP1", "TP3", "TP5", "TP6"])  # no y: K_iy undetermined
     assert not determines_constants(["TP6"])
 
 

@@ -11,15 +11,32 @@ from pipeline.simulate.chamber import SimConfig, simulate
 
 
 def _obs(plateau, position, t, run="r"):
-    return Observation(run_id=run, plateau=plateau, position=position, u_v=(0.0, 0.0, -0.55), std_v=(1e-6,) * 3,
-                       count=100, temp_c=20.0, t_start_ns=t, t_end_ns=t + 1)
+    return Observation(
+        run_id=run,
+        plateau=plateau,
+        position=position,
+        u_v=(0.0, 0.0, -0.55),
+        std_v=(1e-6,) * 3,
+        count=100,
+        temp_c=20.0,
+        t_start_ns=t,
+        t_end_ns=t + 1,
+    )
 
 
 def test_the_held_position_is_a_soak_hold():
-    seq = [_obs(0, "VP5", 0), _obs(0, "VP6", 1), _obs(None, "VP6", 2), _obs(1, "VP6", 3), _obs(1, "VP1", 4),
-           _obs(1, "VP6", 5), _obs(2, "VP6", 6), _obs(0, "VP6", 0, run="other")]
+    seq = [
+        _obs(0, "VP5", 0),
+        _obs(0, "VP6", 1),
+        _obs(None, "VP6", 2),
+        _obs(1, "VP6", 3),
+        _obs(1, "VP1", 4),
+        _obs(1, "VP6", 5),
+        _obs(2, "VP6", 6),
+        _obs(0, "VP6", 0, run="other"),
+    ]
     held = soak_holds(seq)
-    assert held == {id(seq[3]), id(seq[6])}    # carried onto plateau 1 (through a ramp segment) and onto plateau 2
+    assert held == {id(seq[3]), id(seq[6])}  # carried onto plateau 1 (through a ramp segment) and onto plateau 2
 
 
 def test_simulated_standard_run_verifies_only_the_vp_sequences():
@@ -32,4 +49,4 @@ def test_simulated_standard_run_verifies_only_the_vp_sequences():
     names = [r.position for r in sorted(rows, key=lambda r: r.t_start_ns)]
     assert names == [f"VP{k}" for k in range(1, 7)] * (len(rows) // 6)
     temps = np.array([r.temp_c for r in rows])
-    assert np.all(np.abs(temps - np.round(temps / 5) * 5) < 0.5)      # on the plateaus' nominal temperatures
+    assert np.all(np.abs(temps - np.round(temps / 5) * 5) < 0.5)  # on the plateaus' nominal temperatures

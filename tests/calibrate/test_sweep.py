@@ -106,8 +106,13 @@ def test_cli_auto_picks_differential_and_apply_writes_every_row(sweeps, tmp_path
     path = write_run(run, tmp_path / "sweep_parquet", "parquet")
     env = dict(os.environ)
     exe = str(Path(sys.executable).parent / "thermocal")
-    cal = subprocess.run([exe, "calibrate", str(path), "--registry", str(tmp_path / "reg"), "--json"],
-                         capture_output=True, text=True, env=env, timeout=300)
+    cal = subprocess.run(
+        [exe, "calibrate", str(path), "--registry", str(tmp_path / "reg"), "--json"],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
     assert cal.returncode == 0, cal.stderr
     r = json.loads(cal.stdout)
     assert r["method"] == "differential" and r["method_auto"].startswith("differential (temperature sweep: ")
@@ -115,8 +120,13 @@ def test_cli_auto_picks_differential_and_apply_writes_every_row(sweeps, tmp_path
     out = tmp_path / "applied.parquet"
     wide = simulate(SimConfig(program="short", seed=3, rate_hz=0.5)).run
     wide_path = write_run(wide, tmp_path / "wide.mcap", "mcap")
-    ap = subprocess.run([exe, "apply", r["passport"], str(wide_path), "--out", str(out), "--json"],
-                        capture_output=True, text=True, env=env, timeout=120)
+    ap = subprocess.run(
+        [exe, "apply", r["passport"], str(wide_path), "--out", str(out), "--json"],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=120,
+    )
     assert ap.returncode == 0, ap.stderr
     rep = json.loads(ap.stdout)
     assert rep["rows"] == wide.voltmeter.height and 0 < rep["out_of_range"] < rep["rows"]
@@ -129,15 +139,24 @@ def test_cli_auto_picks_differential_and_apply_writes_every_row(sweeps, tmp_path
 def test_auto_refuses_a_recording_no_method_fits(tmp_path, monkeypatch, capsys):
     """Three poses at one temperature (the sweep program's orientations, no temperature change): ``calibrate``
     (auto) exits 2 with one line saying why each method does not fit, before any flow runs."""
-    from pipeline.simulate.program import Move, Hold, Program, Stage
     from pipeline.simulate import program as prog
+    from pipeline.simulate.program import Hold, Move, Program, Stage
     from tests.conftest import run_main
 
-    flat = Program("flat3", (Stage("three poses", (Hold("TP3", 120.0), Move("TP5", 10.0), Hold("TP5", 120.0),
-                                                   Move("TP2", 10.0), Hold("TP2", 120.0))),), start_position="TP3")
+    flat = Program(
+        "flat3",
+        (
+            Stage(
+                "three poses",
+                (Hold("TP3", 120.0), Move("TP5", 10.0), Hold("TP5", 120.0), Move("TP2", 10.0), Hold("TP2", 120.0)),
+            ),
+        ),
+        start_position="TP3",
+    )
     monkeypatch.setitem(prog.PROGRAMS, "flat3", lambda: flat)
-    path = write_run(simulate(SimConfig(program="flat3", rate_hz=10.0, with_fixture_log=False)).run,
-                     tmp_path / "flat3.mcap", "mcap")
+    path = write_run(
+        simulate(SimConfig(program="flat3", rate_hz=10.0, with_fixture_log=False)).run, tmp_path / "flat3.mcap", "mcap"
+    )
     code, out, err = run_main(monkeypatch, capsys, "calibrate", str(path), "--registry", str(tmp_path / "reg"))
     assert code == 2 and out == ""
     lines = err.strip().splitlines()

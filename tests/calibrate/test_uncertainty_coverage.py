@@ -32,9 +32,9 @@ from pipeline.simulate.chamber import SimConfig, simulate
 from pipeline.simulate.unit import UnitTruth, seed000_unit
 from tests.calibrate.test_short_soaks_and_missing_positions import program as soak_program
 
-N_CHAMBER = 16          # chamber cycles at 1 Hz, about 1 s each to simulate and calibrate
-N_SWEEP = 16            # sweeps at 0.5 Hz, about 0.6 s each
-N_SCALAR = 24           # short programs at 1 Hz, about 0.12 s each
+N_CHAMBER = 16  # chamber cycles at 1 Hz, about 1 s each to simulate and calibrate
+N_SWEEP = 16  # sweeps at 0.5 Hz, about 0.6 s each
+N_SCALAR = 24  # short programs at 1 Hz, about 0.12 s each
 GROUPS = ("alpha", "beta", "gamma")
 
 
@@ -55,8 +55,14 @@ def _cycle(seed: int, orientations=("TP1", "TP2", "TP3", "TP4", "TP5", "TP6"), r
     name = "coverage_cycle_" + "_".join(orientations)
     with pytest.MonkeyPatch.context() as mp:
         mp.setitem(program.PROGRAMS, name, lambda: program.differential_program(orientations))
-        return simulate(SimConfig(program=name, seed=100 + seed, rate_hz=rate_hz, effects=[
-            ("fixture_face_error", {"sigma_deg": 1.5, "seed": 200 + seed})]))
+        return simulate(
+            SimConfig(
+                program=name,
+                seed=100 + seed,
+                rate_hz=rate_hz,
+                effects=[("fixture_face_error", {"sigma_deg": 1.5, "seed": 200 + seed})],
+            )
+        )
 
 
 @pytest.fixture(scope="module")
@@ -86,7 +92,7 @@ def test_chamber_differential_thermal_coefficients_cover_the_truth(chamber_runs)
     """Every alpha, beta and gamma coefficient (36 per run) against seed 000's unit: coverage and width."""
     truth = seed000_unit().relative_coefficients()
     per_run = [_thermal_errors(doc, truth) for doc in chamber_runs]
-    assert all(len(e) == 36 for e, _, _ in per_run)              # six orientations determine every term
+    assert all(len(e) == 36 for e, _, _ in per_run)  # six orientations determine every term
     err = np.array([e for e, _, _ in per_run])
     sd = np.array([s for _, s, _ in per_run])
     within1, within2, median = _within(err / sd)
@@ -135,7 +141,7 @@ def test_terms_the_orientations_do_not_excite_have_no_uncertainty(base):
         assert "no orientation had gravity along" in u["undetermined"][f"beta.{key}"]
         assert u["rate_terms"]["beta_rate"][key] == [[None], [None]]
     assert all(v > 0 for v in sig["beta"]["xx"]) and all(v > 0 for ax in "xyz" for v in sig["alpha"][ax])
-    for key, values in sig["gamma"].items():      # K_yx a_x and K_zx a_x are excited; the rest are not
+    for key, values in sig["gamma"].items():  # K_yx a_x and K_zx a_x are excited; the rest are not
         if key in ("yx", "zx"):
             assert all(v > 0 for v in values) and f"gamma.{key}" not in u["undetermined"]
         else:
@@ -161,16 +167,18 @@ def sweep_runs() -> list[dict]:
     """Sweep passports (quadratic model, no rate terms, cross-axis terms the orientations excite), one per seed."""
     settings = dataclasses.replace(differential.SWEEP_SETTINGS, select_model=False, poly_order=2, rate_order=0)
     unit = _identifiable_unit()
-    with pytest.MonkeyPatch.context() as mp, np.errstate(invalid="ignore"):   # the truth's gamma: 0 / 0
+    with pytest.MonkeyPatch.context() as mp, np.errstate(invalid="ignore"):  # the truth's gamma: 0 / 0
         mp.setattr(chamber, "unit_for", lambda config: unit)
-        runs = [simulate(SimConfig(program="sweep", seed=300 + s, rate_hz=0.5, with_fixture_log=False)).run
-                for s in range(N_SWEEP)]
+        runs = [
+            simulate(SimConfig(program="sweep", seed=300 + s, rate_hz=0.5, with_fixture_log=False)).run
+            for s in range(N_SWEEP)
+        ]
     return [differential.calibrate([r], differential=settings).passport for r in runs]
 
 
 def test_sweep_differential_thermal_coefficients_cover_the_truth(sweep_runs):
     """alpha and beta of every axis, and the absolute cross-axis terms (true value 0), against the truth."""
-    with np.errstate(invalid="ignore"):             # gamma = 0 / 0 for the zeroed cross-axis terms: not used
+    with np.errstate(invalid="ignore"):  # gamma = 0 / 0 for the zeroed cross-axis terms: not used
         truth = _identifiable_unit().relative_coefficients()
     err, sd = [], []
     for doc in sweep_runs:
@@ -182,7 +190,7 @@ def test_sweep_differential_thermal_coefficients_cover_the_truth(sweep_runs):
                 if sv is not None:
                     e.append(v)
                     s.append(sv)
-        assert len(e) == 18                                      # three cross-axis terms of order 2 excited
+        assert len(e) == 18  # three cross-axis terms of order 2 excited
         err.append(e)
         sd.append(s)
     err, sd = np.array(err), np.array(sd)
@@ -206,8 +214,7 @@ def test_sweep_offsets_at_t0_cover_the_truth(sweep_runs):
         sig = doc["uncertainty"]["coefficients"]
         z += [(doc["coefficients"]["U0"][i] - truth[i]) / sig["U0"][i] for i in range(3)]
         assert all(sig["K"][i][i] is None for i in range(3))
-        assert all("one orientation alone gives it" in doc["uncertainty"]["undetermined"][f"K.{a * 2}"]
-                   for a in "xyz")
+        assert all("one orientation alone gives it" in doc["uncertainty"]["undetermined"][f"K.{a * 2}"] for a in "xyz")
     within1, within2, median = _within(z)
     assert 0.5 <= within1 <= 0.85 and within2 >= 0.85 and 0.4 <= median <= 1.0, (within1, within2, median)
 
@@ -283,8 +290,7 @@ def test_referral_to_the_plateau_temperature_is_in_the_sigma_and_small(monkeypat
     truth."""
     run = simulate(SimConfig(seed=603, rate_hz=1.0, program=soak_program(1200.0, 1200.0))).run
     obs, _ = observe_run(run)
-    spread = [max(o.temp_c for o in rows) - min(o.temp_c for o in rows)
-              for rows in tilt._group_plateaus(obs).values()]
+    spread = [max(o.temp_c for o in rows) - min(o.temp_c for o in rows) for rows in tilt._group_plateaus(obs).values()]
     assert max(spread) > 0.8, spread
     with_ref = fit_unit("AU-0001", obs)
     monkeypatch.setattr(tilt, "_referral_errors", lambda *args: {})
@@ -327,7 +333,7 @@ def test_scalar_constants_cover_the_truth_and_name_the_gauge():
     within1, within2, median = _within(err / sd)
     assert 0.58 <= within1 <= 0.80 and 0.90 <= within2 <= 1.0 and 0.5 <= median <= 0.85, (within1, within2, median)
     # not absurdly wide: median sigma against the rms error over the seeds, per entry (24 seeds: +-15 %)
-    ratio = np.median(sd, axis=0) / np.sqrt(np.mean(err ** 2, axis=0))
+    ratio = np.median(sd, axis=0) / np.sqrt(np.mean(err**2, axis=0))
     assert np.all((0.5 < ratio) & (ratio < 2.0)), ratio
 
 
@@ -348,7 +354,7 @@ def test_show_report_and_csv_print_the_differential_and_scalar_uncertainties(cha
     text = passport_summary(chamber_doc)
     assert text.count("ppm") >= 9 and text.count(" ug") >= 3 and "(undetermined)" not in text
     html = certificate_html(chamber_doc)
-    assert html.count("&plusmn;") >= 12 + 36            # constants and every alpha, beta, gamma coefficient
+    assert html.count("&plusmn;") >= 12 + 36  # constants and every alpha, beta, gamma coefficient
     sweep_text = passport_summary(sweep_doc)
     assert "(undetermined)" in sweep_text and "no uncertainty: K.xy, K.xz, K.yx, K.yz, K.zx, K.zy" in sweep_text
     scalar_doc = scalar.calibrate([simulate(SimConfig(seed=3, program="short", rate_hz=1.0)).run]).passport

@@ -15,12 +15,12 @@ import pytest
 from flows.diagnose_cmd import diagnose_command, diagnose_text
 from pipeline.diagnose.diagnosis import diagnose_run, fit_passport
 from pipeline.diagnose.model import ExtendedModel
-from pipeline.passport.document import compensate_extended, load_extended
 from pipeline.diagnose.signal import make_blocks, segment_settings_for, static_record
 from pipeline.effects.catalogue import make_effect
 from pipeline.errors import ThermocalError
-from pipeline.model import gravity_module_error_g
 from pipeline.io.runs import write_run
+from pipeline.model import gravity_module_error_g
+from pipeline.passport.document import compensate_extended, load_extended
 from pipeline.segment import segment_run
 from pipeline.simulate.chamber import SimConfig, simulate
 from pipeline.thermal import PolynomialModel
@@ -95,9 +95,15 @@ def _truth_base(res) -> PolynomialModel:
 
 
 def test_extended_model_reproduces_the_simulator_and_compensates_exactly():
-    effects = [("thermal_lag", {"tau_s": 90.0}), ("thermal_hysteresis", {}), ("time_drift", {}),
-               ("warmup_transient", {}), ("temperature_curvature", {}), ("scale_nonlinearity", {}),
-               ("tilt_settling", {})]
+    effects = [
+        ("thermal_lag", {"tau_s": 90.0}),
+        ("thermal_hysteresis", {}),
+        ("time_drift", {}),
+        ("warmup_transient", {}),
+        ("temperature_curvature", {}),
+        ("scale_nonlinearity", {}),
+        ("tilt_settling", {}),
+    ]
     res = short(effects, noise_v=0.0, temp_noise_c=0.0)
     ctx = res.context
     ext = ExtendedModel(_truth_base(res), [make_effect(e, p) for e, p in effects])
@@ -137,7 +143,7 @@ def test_fitted_parameters_match_the_concealed_truth():
 def test_clean_run_is_consistent_and_the_report_has_the_contract_shape(clean_short):
     rep = diagnose_run(clean_short.run).report
     assert rep["verdict"] == "consistent" and rep["findings"] == []
-    json.dumps(rep)                                        # plain JSON, no numpy types
+    json.dumps(rep)  # plain JSON, no numpy types
     # the model explains the data to the noise
     assert rep["rms_after_v"] < 1.2 * rep["rms_noise_v"]
     assert rep["rms_before_v"] < 1.5 * rep["rms_noise_v"]
@@ -175,11 +181,15 @@ def test_explanations_are_in_the_recordings_unit():
     from pipeline.run import Run
 
     res = short([("warmup_transient", {"a_v": [60e-6, -40e-6, 30e-6], "tau_s": 600.0})], seed=4)
-    scale = 9.80665 / 0.55                  # the same recording (gains near -0.55 V/g), as a logger writing m/s^2
+    scale = 9.80665 / 0.55  # the same recording (gains near -0.55 V/g), as a logger writing m/s^2
     r = res.run
-    run = Run(meta=dataclasses.replace(r.meta, nominal_gain_v_per_g=r.meta.nominal_gain_v_per_g * scale),
-              voltmeter=r.voltmeter.with_columns([pl.col(c) * scale for c in ("ux", "uy", "uz")]),
-              au_temperature=r.au_temperature, chamber=r.chamber, fixture=r.fixture)
+    run = Run(
+        meta=dataclasses.replace(r.meta, nominal_gain_v_per_g=r.meta.nominal_gain_v_per_g * scale),
+        voltmeter=r.voltmeter.with_columns([pl.col(c) * scale for c in ("ux", "uy", "uz")]),
+        au_temperature=r.au_temperature,
+        chamber=r.chamber,
+        fixture=r.fixture,
+    )
     diag = diagnose_run(run)
     assert diag.passport["output_unit"] == "m/s^2"
     f = diag.report["findings"][0]
@@ -210,14 +220,14 @@ def test_small_amounts_in_either_unit():
         return small(0.0123), vec_uv([1.2e-3, -3e-4, 0.0], "/h")
 
     assert contextvars.copy_context().run(in_mps2) == ("12.3 mm/s^2", "x +1.20, y -0.30, z +0.00 mm/s^2/h")
-    assert small(0.0123) == "12300.0 uV"              # the caller's context is left as it was
+    assert small(0.0123) == "12300.0 uV"  # the caller's context is left as it was
 
 
 # ---------------------------------------------------------------------------------------------- the command
 
 
 def test_command_writes_figure_and_extended_passport(tmp_path: Path):
-    calib = short(seed=5)                                  # a clean calibration run of the same unit
+    calib = short(seed=5)  # a clean calibration run of the same unit
     passport = fit_passport(calib.run, segment_run(calib.run, segment_settings_for(calib.run)))
     pp = tmp_path / "passport.json"
     pp.write_text(json.dumps(passport))
@@ -229,7 +239,7 @@ def test_command_writes_figure_and_extended_passport(tmp_path: Path):
     png = Path(rep["figure"])
     assert png == tmp_path / "fig" / "residual.png" and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     ext_doc = json.loads(Path(rep["extended_passport"]).read_text())
-    assert Path(rep["extended_passport"]).parent == tmp_path          # beside the run by default
+    assert Path(rep["extended_passport"]).parent == tmp_path  # beside the run by default
     assert ext_doc["unit"] == passport["unit"] and ext_doc["coefficients"] == passport["coefficients"]
     ext = load_extended(ext_doc)
     assert [e.id for e in ext.effects] == ["scale_nonlinearity"]
@@ -237,7 +247,7 @@ def test_command_writes_figure_and_extended_passport(tmp_path: Path):
     text = diagnose_text(rep)
     assert "scale_nonlinearity" in text and "mismatch" in text
     assert rep["output_unit"] == "V" and f"before {rep['rms_before_v'] * 1e6:.2f} uV" in text
-    in_mps2 = diagnose_text({**rep, "output_unit": "m/s^2"})      # a logger recording m/s^2: no micro-volts
+    in_mps2 = diagnose_text({**rep, "output_unit": "m/s^2"})  # a logger recording m/s^2: no micro-volts
     assert f"before {rep['rms_before_v'] * 1e3:.2f} mm/s^2" in in_mps2 and " uV" not in in_mps2.split("\n")[1]
 
 
@@ -257,8 +267,9 @@ def test_a_piecewise_passport_is_refined_not_blamed_on_the_catalogue(clean_short
     from pipeline.calibrate.tilt import CalibrationSettings
 
     st = segment_settings_for(clean_short.run)
-    passport = fit_passport(clean_short.run, segment_run(clean_short.run, st),
-                            CalibrationSettings(thermal_model="piecewise", segment=st))
+    passport = fit_passport(
+        clean_short.run, segment_run(clean_short.run, st), CalibrationSettings(thermal_model="piecewise", segment=st)
+    )
     clean = diagnose_run(short(seed=8).run, passport).report
     assert clean["verdict"] == "consistent"
     assert clean["rms_before_v"] > 5 * clean["rms_after_v"]

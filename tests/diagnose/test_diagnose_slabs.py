@@ -47,11 +47,15 @@ def reference_record(run: Run, rec, micro_s: float = 1.0):
     same = (np.diff(idx) == 1) & (np.diff(sid) == 0)
     d = np.diff(u[idx], axis=0)[same]
     mad = np.median(np.abs(d - np.median(d, axis=0)), axis=0)
-    return dict(rate_hz=rate_hz, count=count, stretch=sid[starts],
-                t_s=np.add.reduceat(t_s[idx], starts) / count,
-                u_v=np.add.reduceat(u[idx], starts, axis=0) / count[:, None],
-                temp_c=np.add.reduceat(temp_s, starts) / count,
-                sigma_sample_v=np.maximum(1.4826 * mad / np.sqrt(2.0), 1e-9))
+    return dict(
+        rate_hz=rate_hz,
+        count=count,
+        stretch=sid[starts],
+        t_s=np.add.reduceat(t_s[idx], starts) / count,
+        u_v=np.add.reduceat(u[idx], starts, axis=0) / count[:, None],
+        temp_c=np.add.reduceat(temp_s, starts) / count,
+        sigma_sample_v=np.maximum(1.4826 * mad / np.sqrt(2.0), 1e-9),
+    )
 
 
 def with_nan_and_chunks(run: Run, nan_at: np.ndarray, chunk: int) -> Run:
@@ -74,8 +78,7 @@ def run10():
     rng = np.random.default_rng(1)
     t_s = res.context.t_s
     stretch_start = int(np.searchsorted(t_s, res.context.arrive_s[3] + 3.0))
-    nan_at = np.unique(np.concatenate((rng.choice(n, 300, replace=False), np.arange(50_000, 50_040),
-                                       [stretch_start])))
+    nan_at = np.unique(np.concatenate((rng.choice(n, 300, replace=False), np.arange(50_000, 50_040), [stretch_start])))
     return with_nan_and_chunks(res.run, nan_at, 9_999)
 
 
@@ -91,11 +94,11 @@ def test_slab_reduction_is_the_whole_record_one(run10, slab):
     assert rec.rate_hz == ref["rate_hz"]
     np.testing.assert_array_equal(rec.count, ref["count"])
     np.testing.assert_array_equal(rec.stretch, ref["stretch"])
-    assert rec.count.min() < 10 and rec.count.sum() == ref["count"].sum()        # NaN samples left out
+    assert rec.count.min() < 10 and rec.count.sum() == ref["count"].sum()  # NaN samples left out
     np.testing.assert_allclose(rec.t_s, ref["t_s"], rtol=0, atol=1e-9)
     np.testing.assert_allclose(rec.u_v, ref["u_v"], rtol=1e-13, atol=1e-15)
     np.testing.assert_allclose(rec.temp_c, ref["temp_c"], rtol=1e-13, atol=1e-12)
-    np.testing.assert_array_equal(rec.sigma_sample_v, ref["sigma_sample_v"])   # exact order statistics
+    np.testing.assert_array_equal(rec.sigma_sample_v, ref["sigma_sample_v"])  # exact order statistics
     np.testing.assert_allclose(rec.sigma_sample_v, 5e-6, rtol=0.03)
 
 
@@ -103,7 +106,7 @@ def test_stretches_and_moves_do_not_depend_on_the_slab(run10):
     st = segment_settings_for(run10)
     seg = segment_run(run10, st)
     big = static_record(run10, seg, settings=st)
-    tiny = static_record(run10, seg, settings=st, slab_samples=37)     # a move's gap crosses several slabs
+    tiny = static_record(run10, seg, settings=st, slab_samples=37)  # a move's gap crosses several slabs
     assert big.stretches == tiny.stretches and big.arrive_s.size > 20
     assert run10.fixture is None or run10.fixture.height == 0
     np.testing.assert_array_equal(big.move_start_s, tiny.move_start_s)
@@ -144,13 +147,15 @@ def test_segment_settings_from_the_median_step():
 def test_exact_medians_match_numpy():
     rng = np.random.default_rng(7)
     n = 200_001
-    series = [rng.standard_t(2, n) * 1e-6,                    # heavy tails
-              np.round(rng.normal(0, 3, n)),                  # few values, many ties
-              np.full(n, 2.5),                                # one value
-              np.concatenate((rng.normal(0, 1, n // 2), rng.normal(50, 1, n - n // 2)))]   # two modes
+    series = [
+        rng.standard_t(2, n) * 1e-6,  # heavy tails
+        np.round(rng.normal(0, 3, n)),  # few values, many ties
+        np.full(n, 2.5),  # one value
+        np.concatenate((rng.normal(0, 1, n // 2), rng.normal(50, 1, n - n // 2))),
+    ]  # two modes
 
     def slabs(size):
-        return lambda: ([x[s:s + size] for x in series] for s in range(0, n, size))
+        return lambda: ([x[s : s + size] for x in series] for s in range(0, n, size))
 
     truth = [np.median(x) for x in series]
     for size in (1000, 65_536):
@@ -161,13 +166,15 @@ def test_exact_medians_match_numpy():
     np.testing.assert_array_equal(exact_medians(slabs(4096), n, bad), truth)
     # an even number of values: the mean of the two middle ones
     even = [x[:-1] for x in series]
-    got = exact_medians(lambda: ([x[s:s + 777] for x in even] for s in range(0, n - 1, 777)), n - 1,
-                        [x[::50] for x in even])
+    got = exact_medians(
+        lambda: ([x[s : s + 777] for x in even] for s in range(0, n - 1, 777)), n - 1, [x[::50] for x in even]
+    )
     np.testing.assert_array_equal(got, [np.median(x) for x in even])
 
 
-@pytest.mark.parametrize("effect", [("thermal_hysteresis", {"h_v": [10e-6, -8e-6, 6e-6]}),
-                                    ("tilt_settling", {"f": 4e-5, "tau_s": 30.0})])
+@pytest.mark.parametrize(
+    "effect", [("thermal_hysteresis", {"h_v": [10e-6, -8e-6, 6e-6]}), ("tilt_settling", {"f": 4e-5, "tau_s": 30.0})]
+)
 def test_diagnose_names_the_same_effect_at_100_hz(effect, monkeypatch):
     """The same concealed effect at 10 Hz and 100 Hz (1.3 M samples, read in slabs of 100 000): the same finding,
     of the same size."""

@@ -25,9 +25,17 @@ def ctx() -> SignalContext:
     temp = 20.0 + 30.0 * np.clip(np.minimum(t - 500, 3500 - t) / 1000.0, 0.0, 1.0)
     a = np.where((t < 2000)[:, None], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0])
     ramp = np.where(t < 500, 0.0, np.where(t < 2000, 1.0, -1.0))
-    return SignalContext(t_s=t, temp_c=temp, a_g=a, position_idx=np.where(t < 2000, 0, 5),
-                         move_start_s=np.array([1990.0]), arrive_s=np.array([2000.0]), constants=seed000_unit(),
-                         normal_temp_c=20.0, ramp_sign=ramp)
+    return SignalContext(
+        t_s=t,
+        temp_c=temp,
+        a_g=a,
+        position_idx=np.where(t < 2000, 0, 5),
+        move_start_s=np.array([1990.0]),
+        arrive_s=np.array([2000.0]),
+        constants=seed000_unit(),
+        normal_temp_c=20.0,
+        ramp_sign=ramp,
+    )
 
 
 def test_every_effect_lives_in_its_own_module_named_for_its_id():
@@ -48,9 +56,13 @@ def test_no_module_outside_the_package_names_an_effect_id_in_code():
         if path.parent.name == "effects":
             continue
         tree = ast.parse(path.read_text())
-        docstrings = {id(n.body[0].value) for n in ast.walk(tree)
-                      if isinstance(n, (ast.Module, ast.FunctionDef, ast.ClassDef, ast.AsyncFunctionDef))
-                      and n.body and isinstance(n.body[0], ast.Expr)}
+        docstrings = {
+            id(n.body[0].value)
+            for n in ast.walk(tree)
+            if isinstance(n, (ast.Module, ast.FunctionDef, ast.ClassDef, ast.AsyncFunctionDef))
+            and n.body
+            and isinstance(n.body[0], ast.Expr)
+        }
         for node in ast.walk(tree):
             if isinstance(node, ast.Constant) and node.value in EFFECTS and id(node) not in docstrings:
                 offenders.append(f"{path.relative_to(PKG)}:{node.lineno} {node.value}")
@@ -64,7 +76,7 @@ def test_fit_columns_rebuild_the_simulated_signal(ctx, eid):
     cls = effect_class(eid)
     value = None if cls.nonlinear is None else float(cls.grid[len(cls.grid) // 2])
     labels, cols = cls.fit_columns(ctx, value)
-    if cls.acts_on == "temperature":       # evaluated through the lagged temperature instead of columns
+    if cls.acts_on == "temperature":  # evaluated through the lagged temperature instead of columns
         assert cols == [] and cls.fit_parameters(np.zeros(0), value, labels) == {"tau_s": value}
         return
     assert len(labels) == len(cols) > 0 and all(c.shape == (ctx.t_s.size, 3) for c in cols)
@@ -91,8 +103,11 @@ def test_explanations_and_bounds(eid):
     assert cls.implausible(params) is None
     if eid in ("thermal_lag",):
         return
-    big = {k: (np.asarray(v) * 1e4).tolist() if k not in ("tau_s", "seed", "sigma_deg") else v
-           for k, v in params.items() if k != "delta_rad"}
+    big = {
+        k: (np.asarray(v) * 1e4).tolist() if k not in ("tau_s", "seed", "sigma_deg") else v
+        for k, v in params.items()
+        if k != "delta_rad"
+    }
     if eid == "fixture_face_error":
         big = {"delta_rad": {"TP1": [0.1, 0.0, 0.0]}}
     if eid == "tilt_settling":
@@ -110,7 +125,8 @@ def test_effects_are_effect_subclasses_with_properties():
 
 def test_small_rates_are_not_printed_as_zero():
     """time_drift of a few tens of nV/h (the reviewer saw "+0.0 uV/h"): said in nV/h, to three digits."""
-    text = effect_class("time_drift").explain({"r_v_per_h": [3.2e-8, -2.1e-8, 4.0e-9]},
-                                              Shown(peak=1.0e-6, axes="x", temps="", duration_h=16.5))
+    text = effect_class("time_drift").explain(
+        {"r_v_per_h": [3.2e-8, -2.1e-8, 4.0e-9]}, Shown(peak=1.0e-6, axes="x", temps="", duration_h=16.5)
+    )
     assert "x +32.0, y -21.0, z +4.0 nV/h" in text and "uV/h" not in text
     assert "x +528, y -346, z +66 nV over the 16.5 h run" in text

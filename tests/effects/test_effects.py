@@ -15,12 +15,20 @@ from pipeline.effects.fixture_face_error import FixtureFaceError
 from pipeline.effects.tilt_settling import TiltSettling
 from pipeline.model import output_v
 from pipeline.positions import gravity_vector_g
-from pipeline.simulate.program import standard_program
 from pipeline.simulate.chamber import SimConfig, simulate
+from pipeline.simulate.program import standard_program
 from pipeline.simulate.unit import seed000_unit
 
-CATALOGUE = ["thermal_lag", "thermal_hysteresis", "time_drift", "warmup_transient", "temperature_curvature",
-             "scale_nonlinearity", "fixture_face_error", "tilt_settling"]
+CATALOGUE = [
+    "thermal_lag",
+    "thermal_hysteresis",
+    "time_drift",
+    "warmup_transient",
+    "temperature_curvature",
+    "scale_nonlinearity",
+    "fixture_face_error",
+    "tilt_settling",
+]
 TIMETABLE = standard_program().timetable()
 UV = 1e-6
 
@@ -81,8 +89,13 @@ def since_segment_start(t):
 
 
 def holds_where(base, setpoint_c=None, position=None, stage=None):
-    return [h for h in base.truth["holds"] if (setpoint_c is None or h["setpoint_c"] == setpoint_c)
-            and (position is None or h["position"] == position) and (stage is None or h["stage"] == stage)]
+    return [
+        h
+        for h in base.truth["holds"]
+        if (setpoint_c is None or h["setpoint_c"] == setpoint_c)
+        and (position is None or h["position"] == position)
+        and (stage is None or h["stage"] == stage)
+    ]
 
 
 def mean_in(d, base, hold, late_fraction=0.5):
@@ -115,7 +128,7 @@ def test_thermal_lag(base, diff):
     ctx = base.context
     unit = seed000_unit()
     dtdt = np.gradient(ctx.temp_c, ctx.t_s)
-    lagged_c = ctx.temp_c - tau_s * dtdt + tau_s ** 2 * np.gradient(dtdt, ctx.t_s)
+    lagged_c = ctx.temp_c - tau_s * dtdt + tau_s**2 * np.gradient(dtdt, ctx.t_s)
     k_e, u0_e = unit.constants_at(lagged_c)
     predicted = output_v(k_e, u0_e, ctx.a_g) - ctx.model_output_v()
     steady = ramps & (since_segment_start(ctx.t_s) > 1200)
@@ -182,11 +195,11 @@ def test_temperature_curvature(base, diff):
         hold = holds_where(base, sp, "TP1")[0]
         m = hold_mask(base, hold)
         dt = base.context.temp_c[m] - 20.0
-        np.testing.assert_allclose(d[m, 0], c_v_per_c3[0] * dt ** 3, rtol=1e-6)
-        np.testing.assert_allclose(d[m, 1], c_v_per_c3[1] * dt ** 3, rtol=1e-6)
+        np.testing.assert_allclose(d[m, 0], c_v_per_c3[0] * dt**3, rtol=1e-6)
+        np.testing.assert_allclose(d[m, 1], c_v_per_c3[1] * dt**3, rtol=1e-6)
         # z in TP1 also sees the gain term, Kzz (1 + c_rel dT^3).
         k, _ = unit.constants_at(base.context.temp_c[m])
-        np.testing.assert_allclose(d[m, 2], (c_v_per_c3[2] + k[:, 2, 2] * c_rel_per_c3[2]) * dt ** 3, rtol=1e-6)
+        np.testing.assert_allclose(d[m, 2], (c_v_per_c3[2] + k[:, 2, 2] * c_rel_per_c3[2]) * dt**3, rtol=1e-6)
     # The -40 C value is (-60/50)^3 times the +70 C value for the offset-only channel.
     r = mean_in(d, base, holds_where(base, -40.0, "TP1")[0])[0] / mean_in(d, base, holds_where(base, 70.0, "TP1")[0])[0]
     assert r == pytest.approx((-60 / 50) ** 3, rel=1e-3)
@@ -199,7 +212,7 @@ def test_scale_nonlinearity(base, diff):
     d, _ = diff("scale_nonlinearity")
     for hold in base.truth["holds"]:
         a = gravity_vector_g(hold["position"])
-        np.testing.assert_allclose(mean_in(d, base, hold), k2 * a ** 2, rtol=0, atol=1e-15)
+        np.testing.assert_allclose(mean_in(d, base, hold), k2 * a**2, rtol=0, atol=1e-15)
     # Only in channels with a nonzero component of a, and the same for +1 g and -1 g.
     tp1, tp3 = holds_where(base, 20.0, "TP1")[0], holds_where(base, 20.0, "TP3")[0]
     np.testing.assert_array_equal(mean_in(d, base, tp1)[:2], 0.0)
@@ -225,8 +238,14 @@ def test_fixture_face_error_explicit(base, diff):
     tp1 = np.array([mean_in(d, base, holds_where(base, sp, "TP1")[0]) for sp in (-40.0, 20.0, 70.0)])
     np.testing.assert_allclose(tp1, tp1[1][None].repeat(3, 0), rtol=0.01, atol=0.1 * UV)
     # Horizontal channels carry it; the vertical channel only to second order.
-    assert np.abs(tp1[:, :2]).min() > 50 * UV and np.abs(tp1[:, 2] - np.einsum("ij,j->i", unit.constants_at(
-        np.array([20.0]))[0][0], np.cross(delta_rad["TP1"], (0, 0, 1)))[2]).max() < 0.1 * UV
+    assert (
+        np.abs(tp1[:, :2]).min() > 50 * UV
+        and np.abs(
+            tp1[:, 2]
+            - np.einsum("ij,j->i", unit.constants_at(np.array([20.0]))[0][0], np.cross(delta_rad["TP1"], (0, 0, 1)))[2]
+        ).max()
+        < 0.1 * UV
+    )
 
 
 def test_fixture_face_error_seeded(base, diff):
@@ -286,9 +305,17 @@ def test_effects_on_a_hand_built_context():
     """delta_u_v works on any context, e.g. one built from a recording with nominal positions."""
     t = np.arange(0.0, 200.0, 0.5)
     a = np.where((t < 100)[:, None], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0])
-    ctx = SignalContext(t_s=t, temp_c=np.full(t.size, 20.0), a_g=a, position_idx=np.where(t < 100, 0, 5),
-                        move_start_s=np.array([100.0]), arrive_s=np.array([100.0]), constants=seed000_unit(),
-                        normal_temp_c=20.0, ramp_sign=None)
+    ctx = SignalContext(
+        t_s=t,
+        temp_c=np.full(t.size, 20.0),
+        a_g=a,
+        position_idx=np.where(t < 100, 0, 5),
+        move_start_s=np.array([100.0]),
+        arrive_s=np.array([100.0]),
+        constants=seed000_unit(),
+        normal_temp_c=20.0,
+        ramp_sign=None,
+    )
     du = TiltSettling(f=1e-3, tau_s=10.0).delta_u_v(ctx)
     k = np.array(seed000_unit().k_coef[0])
     np.testing.assert_allclose(du[t == 100.0][0], -1e-3 * k @ np.array([1.0, 0.0, -1.0]), rtol=1e-12)
@@ -301,8 +328,15 @@ def test_effects_on_a_hand_built_context():
         assert make_effect(eid).delta_u_v(ctx).shape == (t.size, 3)
     assert np.all(make_effect("thermal_hysteresis").delta_u_v(ctx) == 0.0)  # ramp_sign None: no ramp yet
     # The thermal-lag hook: the element temperature lags a step with tau.
-    step = SignalContext(t_s=t, temp_c=np.where(t < 50, 20.0, 30.0), a_g=a, position_idx=np.zeros(t.size, int),
-                         move_start_s=np.array([]), arrive_s=np.array([]), constants=seed000_unit())
+    step = SignalContext(
+        t_s=t,
+        temp_c=np.where(t < 50, 20.0, 30.0),
+        a_g=a,
+        position_idx=np.zeros(t.size, int),
+        move_start_s=np.array([]),
+        arrive_s=np.array([]),
+        constants=seed000_unit(),
+    )
     te = make_effect("thermal_lag", {"tau_s": 20.0}).element_temperature_c(step)
     after = t >= 50
     np.testing.assert_allclose(te[after], 30 - 10 * np.exp(-(t[after] - 49.75) / 20.0), atol=2e-3)
@@ -318,8 +352,10 @@ def test_parse_effect_spec_defaults_and_overrides():
     assert parse_effect_spec(" thermal_lag:tau_s=60 ") == ("thermal_lag", {"tau_s": 60.0})
     assert parse_effect_spec("thermal_hysteresis:h_v=1e-5")[1] == {"h_v": [1e-5, 1e-5, 1e-5]}
     assert parse_effect_spec("thermal_hysteresis:h_v_y=2e-5")[1] == {"h_v": [50e-6, 2e-5, 30e-6]}
-    assert parse_effect_spec("warmup_transient:a_v=1e-4,a_v_z=0,tau_s=300")[1] == \
-        {"a_v": [1e-4, 1e-4, 0.0], "tau_s": 300.0}
+    assert parse_effect_spec("warmup_transient:a_v=1e-4,a_v_z=0,tau_s=300")[1] == {
+        "a_v": [1e-4, 1e-4, 0.0],
+        "tau_s": 300.0,
+    }
     eid, params = parse_effect_spec("fixture_face_error:sigma_deg=0.02,seed=3")
     assert eid == "fixture_face_error" and params["seed"] == 3 and params["sigma_deg"] == 0.02
     assert set(params["delta_rad"]) == {f"TP{i}" for i in range(1, 7)} | {f"VP{i}" for i in range(1, 7)}
@@ -329,18 +365,21 @@ def test_parse_effect_spec_defaults_and_overrides():
     assert make_effect("scale_nonlinearity", {"k2_v_per_g2": [1e-6, 2e-6, 3e-6]}).k2_v_per_g2 == (1e-6, 2e-6, 3e-6)
 
 
-@pytest.mark.parametrize("spec, message", [
-    ("nope", "unknown effect 'nope'"),
-    ("thermal_lag:tau=3", "has no parameter 'tau'"),
-    ("thermal_lag:tau_s=abc", "not a number"),
-    ("thermal_lag:", "no parameters"),
-    ("thermal_lag:tau_s", "expected name=value"),
-    ("thermal_lag:tau_s=inf", "not a finite number"),
-    ("fixture_face_error:seed=1.5", "needs an integer"),
-    ("thermal_hysteresis:h_v_w=1", "has no parameter 'h_v_w'"),
-    ("warmup_transient:tau_s=-1", "must not be negative"),
-    ("tilt_settling:tau_s=0", "must be positive"),
-])
+@pytest.mark.parametrize(
+    "spec, message",
+    [
+        ("nope", "unknown effect 'nope'"),
+        ("thermal_lag:tau=3", "has no parameter 'tau'"),
+        ("thermal_lag:tau_s=abc", "not a number"),
+        ("thermal_lag:", "no parameters"),
+        ("thermal_lag:tau_s", "expected name=value"),
+        ("thermal_lag:tau_s=inf", "not a finite number"),
+        ("fixture_face_error:seed=1.5", "needs an integer"),
+        ("thermal_hysteresis:h_v_w=1", "has no parameter 'h_v_w'"),
+        ("warmup_transient:tau_s=-1", "must not be negative"),
+        ("tilt_settling:tau_s=0", "must be positive"),
+    ],
+)
 def test_parse_effect_spec_errors(spec, message):
     with pytest.raises(ValueError, match=message):
         parse_effect_spec(spec)

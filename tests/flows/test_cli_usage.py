@@ -19,17 +19,20 @@ from tests.conftest import run_main
 THERMOCAL = str(Path(sys.executable).parent / "thermocal")
 
 
-@pytest.mark.parametrize("args, says", [
-    ((), "missing command"),
-    (("calibrat", "x.mcap"), "no such command 'calibrat'"),
-    (("passport",), "missing command"),
-    (("passport", "lg", "AU-0001"), "no such command 'lg'"),
-    (("simulate", "--out", "x.mcap", "--program", "bogus"), "unknown chamber program 'bogus'"),
-    (("simulate", "--out", "x.mcap", "--format", "csv"), "unknown format 'csv'"),
-    (("simulate", "--out", "x.mcap", "--rate-hz", "fast"), "--rate-hz"),
-    (("calibrate",), "missing argument 'run'"),
-    (("calibrate", "x.mcap", "--registry", "r", "--bogus"), "no such option: --bogus"),
-])
+@pytest.mark.parametrize(
+    "args, says",
+    [
+        ((), "missing command"),
+        (("calibrat", "x.mcap"), "no such command 'calibrat'"),
+        (("passport",), "missing command"),
+        (("passport", "lg", "AU-0001"), "no such command 'lg'"),
+        (("simulate", "--out", "x.mcap", "--program", "bogus"), "unknown chamber program 'bogus'"),
+        (("simulate", "--out", "x.mcap", "--format", "csv"), "unknown format 'csv'"),
+        (("simulate", "--out", "x.mcap", "--rate-hz", "fast"), "--rate-hz"),
+        (("calibrate",), "missing argument 'run'"),
+        (("calibrate", "x.mcap", "--registry", "r", "--bogus"), "no such option: --bogus"),
+    ],
+)
 def test_usage_errors_exit_2_with_one_line(monkeypatch, capsys, tmp_path, args, says):
     monkeypatch.chdir(tmp_path)
     code, out, err = run_main(monkeypatch, capsys, *args)
@@ -71,17 +74,30 @@ def test_every_option_and_argument_has_plain_help(monkeypatch, capsys):
         assert code == 0 and err == "", err
         assert not jargon.search(out), f"{' '.join(path)} --help:\n{out}"
         usage = next(ln for ln in out.splitlines() if "Usage:" in ln)
-        assert "{" not in usage, usage                      # RUN, not {RUN} (a set of choices to a reader)
+        assert "{" not in usage, usage  # RUN, not {RUN} (a set of choices to a reader)
     code, out, _ = run_main(monkeypatch, capsys, "export", "--help")
     assert code == 0 and "Usage: thermocal export [OPTIONS] UNIT [V]" in out
 
 
 def test_inspect_prints_times_in_utc(tmp_path):
     assert utc_text(1_793_491_200_123_456_789) == "2026-11-01 00:00:00.123 UTC"
-    summary = {"metadata": {"run_id": "r"}, "plateaus": [], "static_positions": [], "warnings": [],
-               "streams": {"voltmeter": {"samples": 3, "rate_hz": 1.0, "t_start_ns": 1_793_491_200_000_000_000,
-                                         "t_end_ns": 1_793_491_202_000_000_000, "duration_s": 2.0,
-                                         "gaps": [[1_793_491_201_000_000_000, 5.0]], "non_finite": 0}}}
+    summary = {
+        "metadata": {"run_id": "r"},
+        "plateaus": [],
+        "static_positions": [],
+        "warnings": [],
+        "streams": {
+            "voltmeter": {
+                "samples": 3,
+                "rate_hz": 1.0,
+                "t_start_ns": 1_793_491_200_000_000_000,
+                "t_end_ns": 1_793_491_202_000_000_000,
+                "duration_s": 2.0,
+                "gaps": [[1_793_491_201_000_000_000, 5.0]],
+                "non_finite": 0,
+            }
+        },
+    }
     text = format_summary(summary)
     assert "t_ns" not in text
     assert "from 2026-11-01 00:00:00.000 UTC to 2026-11-01 00:00:02.000 UTC" in text
@@ -93,8 +109,9 @@ def _with_reader_gone(args: list[str], env: dict | None = None, cwd=None) -> sub
     r, w = os.pipe()
     os.close(r)
     try:
-        return subprocess.run([THERMOCAL, *args], stdout=w, stderr=subprocess.PIPE, text=True, timeout=300,
-                              env=env, cwd=cwd)
+        return subprocess.run(
+            [THERMOCAL, *args], stdout=w, stderr=subprocess.PIPE, text=True, timeout=300, env=env, cwd=cwd
+        )
     finally:
         os.close(w)
 
@@ -114,9 +131,11 @@ def test_fleet_summary_names_each_failed_run_once():
     from flows.cli import _fleet_text
 
     bad = "/in/bad.mcap"
-    s = {"done": [{"unit": "AU-0002", "version": 1, "status": "pass", "created": True, "runs": ["/in/u2.mcap"]}],
-         "failed": [{"run": bad, "reason": f"{bad}: not an MCAP file"}, {"run": "/in/x", "reason": "no voltmeter"}],
-         "skipped": []}
+    s = {
+        "done": [{"unit": "AU-0002", "version": 1, "status": "pass", "created": True, "runs": ["/in/u2.mcap"]}],
+        "failed": [{"run": bad, "reason": f"{bad}: not an MCAP file"}, {"run": "/in/x", "reason": "no voltmeter"}],
+        "skipped": [],
+    }
     text = _fleet_text(s)
     assert text.splitlines()[0] == "done: 1 unit, failed: 2 runs, skipped: 0 runs"
     assert "  FAILED  /in/bad.mcap: not an MCAP file" in text and text.count(bad) == 1
@@ -130,11 +149,15 @@ def test_unwritable_outputs_and_wrong_files_are_one_line_errors(monkeypatch, cap
     blocked = tmp_path / "a-file"
     blocked.write_text("not a folder")
     run = Path(__file__).resolve().parents[2] / "sample_data" / "standard_short.mcap"
-    cases = [(("simulate", "--out", str(blocked / "x.mcap"), "--program", "short", "--rate-hz", "0.2"),
-              f"{blocked / 'x.mcap'}: cannot write the run"),
-             (("apply", str(run), str(run), "--out", "x.parquet"), f"{run}: not a passport: the file is not JSON"),
-             (("diagnose", str(run), "--passport", str(blocked)), f"{blocked}: not a passport: the file is not JSON"),
-             (("passport", "show", "AU-0001", "--registry", "nothere"), "nothere: no registry here")]
+    cases = [
+        (
+            ("simulate", "--out", str(blocked / "x.mcap"), "--program", "short", "--rate-hz", "0.2"),
+            f"{blocked / 'x.mcap'}: cannot write the run",
+        ),
+        (("apply", str(run), str(run), "--out", "x.parquet"), f"{run}: not a passport: the file is not JSON"),
+        (("diagnose", str(run), "--passport", str(blocked)), f"{blocked}: not a passport: the file is not JSON"),
+        (("passport", "show", "AU-0001", "--registry", "nothere"), "nothere: no registry here"),
+    ]
     for args, says in cases:
         code, out, err = run_main(monkeypatch, capsys, *args)
         assert (code, out) == (2, ""), (args, code, err)

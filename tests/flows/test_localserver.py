@@ -115,8 +115,13 @@ def test_commands_recorded_and_listed_by_prefects_cli(short_run, tmp_path):
     ls`, `task-run ls`, `artifact ls` and `deployment ls` (the nightly deployment registered against it) list them
     with the pinned prefect/fastapi/pydantic (fastapi >= 0.151 made the server answer 422 to these commands)."""
     env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}
-    out = subprocess.run([THERMOCAL, "calibrate", str(short_run), "--registry", str(tmp_path / "reg"), "--json"],
-                         capture_output=True, text=True, env=env, timeout=300)
+    out = subprocess.run(
+        [THERMOCAL, "calibrate", str(short_run), "--registry", str(tmp_path / "reg"), "--json"],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
     assert out.returncode == 0, out.stderr
     assert json.loads(out.stdout)["unit"] == "AU-0401" and _without_key_notice(out.stderr) == ""
     st = read_state(Path(os.environ["PREFECT_HOME"]))
@@ -125,27 +130,37 @@ def test_commands_recorded_and_listed_by_prefects_cli(short_run, tmp_path):
     url = subprocess.run([THERMOCAL, "server", "url"], capture_output=True, text=True, env=env, timeout=60)
     assert url.stdout.strip() == st["api_url"]
     api = st["api_url"]
-    (fr,) = [f for f in httpx.post(f"{api}/flow_runs/filter", json={"limit": 200}, timeout=30).json()
-             if f["parameters"].get("registry") == str(tmp_path / "reg")]
+    (fr,) = [
+        f
+        for f in httpx.post(f"{api}/flow_runs/filter", json={"limit": 200}, timeout=30).json()
+        if f["parameters"].get("registry") == str(tmp_path / "reg")
+    ]
     assert fr["state"]["type"] == "COMPLETED"
 
     def tasks():
-        trs = httpx.post(f"{api}/task_runs/filter", timeout=30,
-                         json={"flow_runs": {"id": {"any_": [fr["id"]]}}}).json()
+        trs = httpx.post(f"{api}/task_runs/filter", timeout=30, json={"flow_runs": {"id": {"any_": [fr["id"]]}}}).json()
         names = {t["name"].rsplit("-", 1)[0] for t in trs if t["state"]["type"] == "COMPLETED"}
         return names if names >= {"ingest", "observe", "fit", "write"} else None
 
     _wait("task runs recorded (ingest, observe, fit, write)", tasks, 60)
     # the nightly deployment registered on the same server (as `thermocal serve` does, without serving it)
-    reg = subprocess.run([sys.executable, "-c", "from flows.serve import nightly_deployment as d; "
-                          f"d({str(tmp_path / 'inbox')!r}, {str(tmp_path / 'reg')!r}, name='i17').apply()"],
-                         capture_output=True, text=True, env={**env, "PREFECT_API_URL": api}, timeout=120)
+    reg = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            "from flows.serve import nightly_deployment as d; "
+            f"d({str(tmp_path / 'inbox')!r}, {str(tmp_path / 'reg')!r}, name='i17').apply()",
+        ],
+        capture_output=True,
+        text=True,
+        env={**env, "PREFECT_API_URL": api},
+        timeout=120,
+    )
     assert reg.returncode == 0, reg.stderr
     penv = {**env, "PREFECT_API_URL": api, "COLUMNS": "250"}
     listed = {}
     for what in ("flow-run", "task-run", "artifact", "deployment"):
-        p = subprocess.run([str(BIN / "prefect"), what, "ls"], capture_output=True, text=True, env=penv,
-                           timeout=120)
+        p = subprocess.run([str(BIN / "prefect"), what, "ls"], capture_output=True, text=True, env=penv, timeout=120)
         assert p.returncode == 0, f"prefect {what} ls: {p.stdout[-2000:]}{p.stderr[-2000:]}"
         listed[what] = p.stdout
     assert fr["id"] in listed["flow-run"] and "thermocal-calibrate" in listed["flow-run"]
@@ -166,10 +181,25 @@ def test_killed_fleet_leaves_no_process(tmp_path):
     st = ensure_server()
     sup = st["pid"]
     warm = _wait("the warm worker", lambda: _workers(sup), 60)
-    cli = subprocess.Popen([THERMOCAL, "fleet", str(inbox), "--registry", str(tmp_path / "reg"), "--pool", "process",
-                            "--workers", "2", "--json"], env=env, stdout=subprocess.DEVNULL,
-                           stderr=subprocess.DEVNULL)
+    cli = subprocess.Popen(
+        [
+            THERMOCAL,
+            "fleet",
+            str(inbox),
+            "--registry",
+            str(tmp_path / "reg"),
+            "--pool",
+            "process",
+            "--workers",
+            "2",
+            "--json",
+        ],
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     try:
+
         def pool_running():
             for job in _jobs(sup):
                 kids = _descendants(job)
@@ -195,8 +225,13 @@ def test_ctrl_c_stops_cleanly(standard_run, tmp_path):
     st = ensure_server()
     sup = st["pid"]
     warm = _wait("the warm worker", lambda: _workers(sup), 60)
-    cli = subprocess.Popen([THERMOCAL, "calibrate", str(standard_run), "--registry", str(tmp_path / "reg")],
-                           env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    cli = subprocess.Popen(
+        [THERMOCAL, "calibrate", str(standard_run), "--registry", str(tmp_path / "reg")],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     (job,) = _wait("the command running in a job process", lambda: _jobs(sup), 60)
     cli.send_signal(signal.SIGINT)
     out, err = cli.communicate(timeout=60)
@@ -215,13 +250,26 @@ def test_commands_back_to_back_and_at_once_each_get_a_job_process(short_run, tmp
     sup = st["pid"]
     warm = _wait("the warm worker", lambda: _workers(sup), 60)
     regs = [tmp_path / f"reg{k}" for k in range(3)]
-    procs = [subprocess.Popen([THERMOCAL, "calibrate", str(short_run), "--registry", str(r), "--json"], env=env,
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for r in regs]
+    procs = [
+        subprocess.Popen(
+            [THERMOCAL, "calibrate", str(short_run), "--registry", str(r), "--json"],
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for r in regs
+    ]
     outs = [p.communicate(timeout=300) for p in procs]
     assert [p.returncode for p in procs] == [0, 0, 0], [e for _, e in outs]
     assert [json.loads(o)["version"] for o, _ in outs] == [1, 1, 1]
-    again = subprocess.run([THERMOCAL, "calibrate", str(short_run), "--registry", str(regs[0]), "--json"], env=env,
-                           capture_output=True, text=True, timeout=300)
+    again = subprocess.run(
+        [THERMOCAL, "calibrate", str(short_run), "--registry", str(regs[0]), "--json"],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert again.returncode == 0 and json.loads(again.stdout)["created"] is False
     flow_runs = httpx.post(f"{st['api_url']}/flow_runs/filter", json={"limit": 200}, timeout=30).json()
     mine = [f for f in flow_runs if f["parameters"].get("registry") in {str(r) for r in regs}]
@@ -279,19 +327,40 @@ def test_progress_on_a_terminal_json_alone_on_stdout(short_run, tmp_path):
     write) there, stdout (a pipe, --json) the JSON alone; with stderr not a terminal, nothing on stderr."""
     env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}
     code, out, steps = _with_terminal_stderr(
-        [THERMOCAL, "calibrate", str(short_run), "--registry", str(tmp_path / "reg"), "--json"], env)
+        [THERMOCAL, "calibrate", str(short_run), "--registry", str(tmp_path / "reg"), "--json"], env
+    )
     assert code == 0 and json.loads(out)["unit"] == "AU-0401"
     assert steps == ["ingest", "choose", "observe", "fit", "write", "done"]
     code, out, steps = _with_terminal_stderr(
-        [THERMOCAL, "diagnose", str(short_run), "--json", "--png", str(tmp_path / "d.png"), "--out-passport",
-         str(tmp_path / "d.json")], env)
+        [
+            THERMOCAL,
+            "diagnose",
+            str(short_run),
+            "--json",
+            "--png",
+            str(tmp_path / "d.png"),
+            "--out-passport",
+            str(tmp_path / "d.json"),
+        ],
+        env,
+    )
     assert code == 0 and json.loads(out)["unit"] == "AU-0401"
     assert steps == ["ingest", "segment,", "write"]
-    quiet = subprocess.run([THERMOCAL, "calibrate", str(short_run), "--registry", str(tmp_path / "reg"), "--json"],
-                           env=env, capture_output=True, text=True, timeout=300)
+    quiet = subprocess.run(
+        [THERMOCAL, "calibrate", str(short_run), "--registry", str(tmp_path / "reg"), "--json"],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert quiet.returncode == 0 and quiet.stderr == "" and json.loads(quiet.stdout)["version"] == 1
-    quiet = subprocess.run([THERMOCAL, "calibrate", str(short_run), "--registry", str(tmp_path / "reg"), "--json"],
-                           env=env, capture_output=True, text=True, timeout=300)
+    quiet = subprocess.run(
+        [THERMOCAL, "calibrate", str(short_run), "--registry", str(tmp_path / "reg"), "--json"],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert quiet.returncode == 0 and quiet.stderr == "" and json.loads(quiet.stdout)["version"] == 1
 
 
@@ -300,8 +369,13 @@ def test_failing_command_prints_one_line(short_run, tmp_path):
     noise (tracebacks, event flushing) on stderr."""
     env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}
     (tmp_path / "reg").write_text("not a folder")
-    out = subprocess.run([THERMOCAL, "calibrate", str(short_run), "--registry", str(tmp_path / "reg")],
-                         capture_output=True, text=True, env=env, timeout=300)
+    out = subprocess.run(
+        [THERMOCAL, "calibrate", str(short_run), "--registry", str(tmp_path / "reg")],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
     assert out.returncode == 2 and out.stdout == ""
     err = _without_key_notice(out.stderr)
     assert len(err.splitlines()) == 1 and err.startswith("thermocal: error: "), out.stderr
@@ -315,8 +389,14 @@ def test_calibrate_into_a_closed_pipe_ends_quietly_and_writes_its_passport(short
     r, w = os.pipe()
     os.close(r)
     try:
-        p = subprocess.run([THERMOCAL, "calibrate", str(short_run), "--registry", str(tmp_path / "reg")], stdout=w,
-                           stderr=subprocess.PIPE, text=True, env=env, timeout=300)
+        p = subprocess.run(
+            [THERMOCAL, "calibrate", str(short_run), "--registry", str(tmp_path / "reg")],
+            stdout=w,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=env,
+            timeout=300,
+        )
     finally:
         os.close(w)
     assert p.returncode == 0 and _without_key_notice(p.stderr) == "", (p.returncode, p.stderr)
@@ -331,8 +411,10 @@ def test_a_job_process_exits_with_its_status_with_or_without_cpython_exit_hooks(
     import sys
 
     for drop in ("", "del threading._shutdown; "):
-        code = ("import atexit, threading; from flows.worker import _exit_job_process; "
-                "atexit.register(lambda: print('atexit ran', flush=True)); " + drop + "_exit_job_process(3)")
+        code = (
+            "import atexit, threading; from flows.worker import _exit_job_process; "
+            "atexit.register(lambda: print('atexit ran', flush=True)); " + drop + "_exit_job_process(3)"
+        )
         done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
         assert done.returncode == 3, (drop, done.stderr)
         assert done.stdout.strip() == "atexit ran", (drop, done.stdout, done.stderr)

@@ -28,17 +28,28 @@ EXE = str(Path(sys.executable).parent / "thermocal")
 def test_cli_dry_run_of_a_failing_calibration_exits_1_and_writes_nothing(tmp_path):
     sample = REPO / "sample_data" / "standard_short.mcap"
     reg = tmp_path / "reg"
-    cmd = [EXE, "calibrate", str(sample), "--registry", str(reg), "--dry-run", "--json",
-           "--tol-normal-g", "1e-9", "--tol-range-g", "1e-9"]
+    cmd = [
+        EXE,
+        "calibrate",
+        str(sample),
+        "--registry",
+        str(reg),
+        "--dry-run",
+        "--json",
+        "--tol-normal-g",
+        "1e-9",
+        "--tol-range-g",
+        "1e-9",
+    ]
     p = subprocess.run(cmd, capture_output=True, text=True, env=dict(os.environ), timeout=600)
     assert p.returncode == 1, p.stderr
-    r = json.loads(p.stdout)                                     # the JSON is printed all the same
+    r = json.loads(p.stdout)  # the JSON is printed all the same
     assert r["status"] == "fail" and r["dry_run"] is True and r["version"] == 1 and r["passport"] is None
     assert r["passport_content"]["uncertainty"]["coefficients"]["K"] and r["passport_content"]["valid_temp_c"]
     # our one line (on a loaded machine Prefect's ephemeral server may log its own shutdown after it)
     ours = [line for line in p.stderr.splitlines() if line.startswith("thermocal:")]
     assert len(ours) == 1 and "status fail" in ours[0] and p.stderr.startswith("thermocal:")
-    assert not reg.exists()                                      # nothing written
+    assert not reg.exists()  # nothing written
 
 
 @pytest.fixture(scope="module")
@@ -82,13 +93,25 @@ def test_cli_approve_and_differential_base_is_the_current_passport(calibrated, t
     # v2 (pass) is the newest: the base; a failed newest version with nothing approved is refused
     base, line = default_base_passport(reg, "AU-0001")
     assert base["version"] == 2
-    assert line == ("differential base: AU-0001 v2 (status pass, not approved; the current passport: the newest "
-                    "version, none is approved)")
-    p = subprocess.run([EXE, "passport", "approve", "AU-0001", "1", "--by", "A. Metrologist", "--registry",
-                        str(reg)], capture_output=True, text=True, env=dict(os.environ), timeout=120)
+    assert line == (
+        "differential base: AU-0001 v2 (status pass, not approved; the current passport: the newest "
+        "version, none is approved)"
+    )
+    p = subprocess.run(
+        [EXE, "passport", "approve", "AU-0001", "1", "--by", "A. Metrologist", "--registry", str(reg)],
+        capture_output=True,
+        text=True,
+        env=dict(os.environ),
+        timeout=120,
+    )
     assert p.returncode == 2 and len(p.stderr.strip().splitlines()) == 1 and "fail" in p.stderr
-    p = subprocess.run([EXE, "passport", "approve", "AU-0001", "2", "--by", "A. Metrologist", "--registry",
-                        str(reg), "--json"], capture_output=True, text=True, env=dict(os.environ), timeout=120)
+    p = subprocess.run(
+        [EXE, "passport", "approve", "AU-0001", "2", "--by", "A. Metrologist", "--registry", str(reg), "--json"],
+        capture_output=True,
+        text=True,
+        env=dict(os.environ),
+        timeout=120,
+    )
     assert p.returncode == 0, p.stderr
     out = json.loads(p.stdout)
     assert out["current_version"] == 2 and out["approval"]["by"] == "A. Metrologist"
@@ -104,8 +127,11 @@ def test_cli_approve_and_differential_base_is_the_current_passport(calibrated, t
     reg2 = Registry(tmp_path / "reg2")
     reg2.publish(failing, inputs=[{"path": "other", "sha256": "e" * 64}], settings={}, code_version="t")
     state = reg2.state("AU-0001")
-    assert state.text() == ("AU-0001 v1 (status fail, not approved; the current passport: the newest version, "
-                            "none is approved)") and "failed its verification" in state.warning()
+    assert (
+        state.text()
+        == ("AU-0001 v1 (status fail, not approved; the current passport: the newest version, none is approved)")
+        and "failed its verification" in state.warning()
+    )
     with pytest.raises(ThermocalError, match="failed its verification"):
         base_passport_of(reg2, "AU-0001")
     base, line = default_base_passport(tmp_path / "reg2", "AU-0001")
@@ -120,15 +146,25 @@ def test_diagnose_registry_compares_with_the_current_passport(calibrated, tmp_pa
     assert Registry(reg).current("AU-0001") == 2 and len(Registry(reg).versions("AU-0001")) == 3
     rep = diagnose_command(run_path, None, True, tmp_path / "d.png", tmp_path / "d.json", registry=reg)
     assert "AU-0001 v2 (status pass, approved by A. Metrologist)" in rep["passport_source"]
-    assert rep["passport_used"] == {"unit": "AU-0001", "version": 2, "status": "pass", "approved": True,
-                                    "approved_by": ["A. Metrologist"], "current": True}
+    assert rep["passport_used"] == {
+        "unit": "AU-0001",
+        "version": 2,
+        "status": "pass",
+        "approved": True,
+        "approved_by": ["A. Metrologist"],
+        "current": True,
+    }
     assert rep["verdict"] == "consistent" and rep["findings"] == []
     # nothing approved and the newest version failed: that one is the current passport, and the report says so
     reg3 = Registry(tmp_path / "reg3")
     for v in (2, 1):
         doc = Registry(reg).load("AU-0001", v)
-        reg3.publish({k: x for k, x in doc.items() if k not in ("signature", "content_sha256")},
-                     inputs=[{"path": f"r{v}", "sha256": str(v) * 64}], settings={}, code_version="t")
+        reg3.publish(
+            {k: x for k, x in doc.items() if k not in ("signature", "content_sha256")},
+            inputs=[{"path": f"r{v}", "sha256": str(v) * 64}],
+            settings={},
+            code_version="t",
+        )
     rep = diagnose_command(run_path, None, True, tmp_path / "d3.png", tmp_path / "d3.json", registry=reg3.root)
     assert rep["passport_used"]["version"] == 2 and rep["passport_used"]["status"] == "fail"
     assert "AU-0001 v2 (status fail, not approved; the current passport" in rep["passport_source"]

@@ -70,39 +70,88 @@ def test_serve_nightly_deployment_processes_the_inbox(tmp_path):
     port = _free_port()
     api = f"http://127.0.0.1:{port}/api"
     env = {k: v for k, v in os.environ.items() if k != "PREFECT_LOGGING_LEVEL"}  # serve's own default: INFO
-    env.update({"PREFECT_HOME": str(tmp_path / "prefect-home"), "PREFECT_API_URL": api, "DO_NOT_TRACK": "1",
-                "PREFECT_SERVER_ANALYTICS_ENABLED": "false", "PREFECT_UI_ENABLED": "false",
-                "PREFECT_RUNNER_POLL_FREQUENCY": "2"})  # serve looks for due runs every 2 s (default 10 s)
+    env.update(
+        {
+            "PREFECT_HOME": str(tmp_path / "prefect-home"),
+            "PREFECT_API_URL": api,
+            "DO_NOT_TRACK": "1",
+            "PREFECT_SERVER_ANALYTICS_ENABLED": "false",
+            "PREFECT_UI_ENABLED": "false",
+            "PREFECT_RUNNER_POLL_FREQUENCY": "2",
+        }
+    )  # serve looks for due runs every 2 s (default 10 s)
     server = serve = None
     try:
-        server = _start([str(BIN / "prefect"), "server", "start", "--host", "127.0.0.1", "--port", str(port)], env,
-                        tmp_path / "server.log")
-        _wait_for("prefect server health", lambda: httpx.get(f"{api}/health", timeout=5).status_code == 200, 180,
-                  server, tmp_path / "server.log")
+        server = _start(
+            [str(BIN / "prefect"), "server", "start", "--host", "127.0.0.1", "--port", str(port)],
+            env,
+            tmp_path / "server.log",
+        )
+        _wait_for(
+            "prefect server health",
+            lambda: httpx.get(f"{api}/health", timeout=5).status_code == 200,
+            180,
+            server,
+            tmp_path / "server.log",
+        )
 
-        serve = _start([str(BIN / "thermocal"), "serve", "--inbox", str(inbox), "--registry", str(registry),
-                        "--cron", "0 2 * * *", "--timezone", "Europe/Berlin"], env, tmp_path / "serve.log")
+        serve = _start(
+            [
+                str(BIN / "thermocal"),
+                "serve",
+                "--inbox",
+                str(inbox),
+                "--registry",
+                str(registry),
+                "--cron",
+                "0 2 * * *",
+                "--timezone",
+                "Europe/Berlin",
+            ],
+            env,
+            tmp_path / "serve.log",
+        )
         deployment = _wait_for(
             "deployment registered",
-            lambda: (r := httpx.get(f"{api}/deployments/name/thermocal-fleet/nightly", timeout=5)).status_code == 200
-            and r.json(), 120, serve, tmp_path / "serve.log")
+            lambda: (
+                (r := httpx.get(f"{api}/deployments/name/thermocal-fleet/nightly", timeout=5)).status_code == 200
+                and r.json()
+            ),
+            120,
+            serve,
+            tmp_path / "serve.log",
+        )
         (schedule,) = deployment["schedules"]
         assert schedule["schedule"]["cron"] == "0 2 * * *" and schedule["schedule"]["timezone"] == "Europe/Berlin"
         assert deployment["parameters"]["root"] == str(inbox.resolve())
 
-        run = subprocess.run([str(BIN / "prefect"), "deployment", "run", "thermocal-fleet/nightly", "--watch",
-                              "--watch-timeout", "240"], env=env, capture_output=True, text=True, timeout=300)
+        run = subprocess.run(
+            [str(BIN / "prefect"), "deployment", "run", "thermocal-fleet/nightly", "--watch", "--watch-timeout", "240"],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
         assert run.returncode == 0, run.stdout + run.stderr + (tmp_path / "serve.log").read_text()[-3000:]
 
-        flow_runs = httpx.post(f"{api}/flow_runs/filter", timeout=10, json={
-            "limit": 10, "deployments": {"id": {"any_": [deployment["id"]]}}}).json()
+        flow_runs = httpx.post(
+            f"{api}/flow_runs/filter",
+            timeout=10,
+            json={"limit": 10, "deployments": {"id": {"any_": [deployment["id"]]}}},
+        ).json()
         assert [fr["state"]["type"] for fr in flow_runs] == ["COMPLETED"]
         passport = json.loads((registry / "units" / "AU-0301" / "v0001.json").read_text())
         assert passport["status"] == "pass"
         assert [Path(i["path"]).name for i in passport["provenance"]["inputs"]] == ["AU-0301.mcap"]
         # the flow run's table artifact lists the calibrated unit and the broken run with its reason
-        arts = {a["key"]: a for a in httpx.post(f"{api}/artifacts/filter", timeout=10, json={
-            "limit": 10, "flow_runs": {"id": {"any_": [flow_runs[0]["id"]]}}}).json()}
+        arts = {
+            a["key"]: a
+            for a in httpx.post(
+                f"{api}/artifacts/filter",
+                timeout=10,
+                json={"limit": 10, "flow_runs": {"id": {"any_": [flow_runs[0]["id"]]}}},
+            ).json()
+        }
         assert sorted(arts) == ["registry-head", "thermocal-fleet"]
         # the registry's signed head statement, for a later 'passport verify --against'
         assert '"AU-0301"' in arts["registry-head"]["data"] and '"signature"' in arts["registry-head"]["data"]

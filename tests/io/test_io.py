@@ -21,14 +21,22 @@ from mcap.writer import CompressionType, IndexType, Writer
 from pipeline.errors import RunFormatError
 from pipeline.io.mcap import MAGIC, SCHEMA_NAMES, TOPICS, read_mcap, write_mcap
 from pipeline.io.parquet import read_parquet_run, write_parquet_run
-from pipeline.run import STREAM_COLUMNS, Run, RunMeta, make_frame
 from pipeline.io.runs import read_run, run_format, write_run
+from pipeline.run import STREAM_COLUMNS, Run, RunMeta, make_frame
 
 SHARED = Path(__file__).resolve().parents[3] / "shared"
 T0_NS = 1_793_491_200_000_000_000  # 2026-11-01T00:00:00Z
-META = RunMeta(unit_serial="AU-0007", run_id="2026-11-01-ch2-AU-0007", station="ch2", fixture="tilt-6",
-               normal_temp_c=20.0, g_local_mps2=9.81234, started_utc="2026-11-01T00:00:00Z",
-               nominal_gain_v_per_g=-0.55, extra={"operator": "Zoë"})
+META = RunMeta(
+    unit_serial="AU-0007",
+    run_id="2026-11-01-ch2-AU-0007",
+    station="ch2",
+    fixture="tilt-6",
+    normal_temp_c=20.0,
+    g_local_mps2=9.81234,
+    started_utc="2026-11-01T00:00:00Z",
+    nominal_gain_v_per_g=-0.55,
+    extra={"operator": "Zoë"},
+)
 
 
 def make_run(n: int = 5000, seed: int = 0, optional: bool = True) -> Run:
@@ -47,11 +55,17 @@ def make_run(n: int = 5000, seed: int = 0, optional: bool = True) -> Run:
         au_temperature=make_frame("au_temperature", {"t_ns": t_1, "temp_c": temp}),
     )
     if optional:
-        frames["chamber"] = make_frame("chamber", {"t_ns": t_1, "setpoint_c": np.round(temp, 0),
-                                                   "air_c": rng.normal(20.0, 30.0, m)})
+        frames["chamber"] = make_frame(
+            "chamber", {"t_ns": t_1, "setpoint_c": np.round(temp, 0), "air_c": rng.normal(20.0, 30.0, m)}
+        )
         k = max(2, n // 500)
-        frames["fixture"] = make_frame("fixture", {"t_ns": np.sort(rng.choice(t_v, k, replace=False)),
-                                                   "position": rng.choice(["TP1", "TP4", "VP3", "MOVING"], k)})
+        frames["fixture"] = make_frame(
+            "fixture",
+            {
+                "t_ns": np.sort(rng.choice(t_v, k, replace=False)),
+                "position": rng.choice(["TP1", "TP4", "VP3", "MOVING"], k),
+            },
+        )
     return Run(meta=META, **frames)
 
 
@@ -74,8 +88,13 @@ def assert_same_run(a: Run, b: Run) -> None:
 # --- hand-made MCAP files ---------------------------------------------------------------------------------------
 
 
-def write_raw_mcap(path: Path, messages: list[tuple[str, int, bytes]], meta: dict[str, str] | None,
-                   encoding: str = "json", **writer_opts) -> Path:
+def write_raw_mcap(
+    path: Path,
+    messages: list[tuple[str, int, bytes]],
+    meta: dict[str, str] | None,
+    encoding: str = "json",
+    **writer_opts,
+) -> Path:
     """An MCAP file with the given (topic, log_time, data) messages, written with the mcap library."""
     with open(path, "wb") as f:
         w = Writer(f, **writer_opts)
@@ -99,8 +118,13 @@ def run_messages(n_blocks: int = 3, block: int = 10) -> list[tuple[str, int, byt
     for k in range(n_blocks):
         t = T0_NS + (k * block + np.arange(block, dtype=np.int64)) * 100_000_000
         v = np.linspace(-1, 1, block)
-        out.append(("/voltmeter", int(t[0]), orjson.dumps({"t_ns": t, "ux": v, "uy": v, "uz": v},
-                                                           option=orjson.OPT_SERIALIZE_NUMPY)))
+        out.append(
+            (
+                "/voltmeter",
+                int(t[0]),
+                orjson.dumps({"t_ns": t, "ux": v, "uy": v, "uz": v}, option=orjson.OPT_SERIALIZE_NUMPY),
+            )
+        )
         out.append(("/au/temperature", int(t[0]), orjson.dumps({"t_ns": [int(t[0])], "temp_c": [20.0 + k]})))
     return out
 
@@ -149,7 +173,9 @@ def test_mcap_layout(tmp_path):
         assert [m.name for m in reader.iter_metadata()] == ["run"]
         assert next(reader.iter_metadata()).metadata == META.to_strings()
         assert {c.topic: c.message_encoding for c in summary.channels.values()} == {t: "json" for t in TOPICS.values()}
-        assert {s.name: s.encoding for s in summary.schemas.values()} == {n: "jsonschema" for n in SCHEMA_NAMES.values()}
+        assert {s.name: s.encoding for s in summary.schemas.values()} == {
+            n: "jsonschema" for n in SCHEMA_NAMES.values()
+        }
         assert all(ci.compression == "zstd" for ci in summary.chunk_indexes)
         schema = orjson.loads(next(s for s in summary.schemas.values() if s.name == "thermocal.VoltageBlock").data)
         assert schema["required"] == ["t_ns", "ux", "uy", "uz"]
@@ -207,6 +233,7 @@ def test_unchunked_file_reads_fully(tmp_path):
 
 def test_padded_records_read(tmp_path):
     """Records longer than their known fields (MCAP lets writers pad them) are read by their length."""
+
     def record(op: int, body: bytes, pad: int = 0) -> bytes:
         return struct.pack("<BQ", op, len(body) + pad) + body + b"\0" * pad
 
@@ -219,16 +246,29 @@ def test_padded_records_read(tmp_path):
 
     out = [MAGIC, record(1, s("") + s("hand"), pad=5)]
     for cid, (topic, stream) in enumerate([("/voltmeter", "voltmeter"), ("/au/temperature", "au_temperature")], 1):
-        out.append(record(3, struct.pack("<H", cid) + s(SCHEMA_NAMES[stream]) + s("jsonschema")
-                          + struct.pack("<I", 2) + b"{}", pad=3))
+        out.append(
+            record(
+                3,
+                struct.pack("<H", cid) + s(SCHEMA_NAMES[stream]) + s("jsonschema") + struct.pack("<I", 2) + b"{}",
+                pad=3,
+            )
+        )
         out.append(record(4, struct.pack("<HH", cid, cid) + s(topic) + s("json") + smap({"k": "v"}), pad=7))
     out.append(record(12, s("run") + smap(META.to_strings()), pad=4))
     chunk_records = b""
     for topic, t, data in run_messages(n_blocks=2):
         cid = 1 if topic == "/voltmeter" else 2
         chunk_records += record(5, struct.pack("<HIQQ", cid, 0, t, t) + data)
-    out.append(record(6, struct.pack("<QQQI", T0_NS, T0_NS, len(chunk_records), zlib.crc32(chunk_records))
-                      + s("") + struct.pack("<Q", len(chunk_records)) + chunk_records, pad=11))
+    out.append(
+        record(
+            6,
+            struct.pack("<QQQI", T0_NS, T0_NS, len(chunk_records), zlib.crc32(chunk_records))
+            + s("")
+            + struct.pack("<Q", len(chunk_records))
+            + chunk_records,
+            pad=11,
+        )
+    )
     out += [record(15, struct.pack("<I", 0), pad=2), record(2, struct.pack("<QQI", 0, 0, 0)), MAGIC]
     path = tmp_path / "padded.mcap"
     path.write_bytes(b"".join(out))
@@ -238,11 +278,22 @@ def test_padded_records_read(tmp_path):
 
 def test_unknown_topic_is_ignored_without_decoding(tmp_path):
     junk = [("/camera", T0_NS + k, b"\xff\xfe not json " * 50) for k in range(200)]
-    no_summary = dict(repeat_channels=False, repeat_schemas=False, index_types=IndexType.NONE,
-                      use_statistics=False, use_summary_offsets=False)
+    no_summary = dict(
+        repeat_channels=False,
+        repeat_schemas=False,
+        index_types=IndexType.NONE,
+        use_statistics=False,
+        use_summary_offsets=False,
+    )
     for name, opts in (("indexed.mcap", {}), ("flat.mcap", no_summary)):
-        path = write_raw_mcap(tmp_path / name, junk + run_messages(), META.to_strings(), chunk_size=2000,
-                              compression=CompressionType.NONE, **opts)
+        path = write_raw_mcap(
+            tmp_path / name,
+            junk + run_messages(),
+            META.to_strings(),
+            chunk_size=2000,
+            compression=CompressionType.NONE,
+            **opts,
+        )
         run = read_run(path)
         assert run.voltmeter.height == 30
         assert any("/camera" in w and "ignored" in w for w in run.warnings)
@@ -259,8 +310,9 @@ def test_unknown_topic_is_ignored_without_decoding(tmp_path):
 
 def test_out_of_order_blocks_are_sorted_with_a_warning(tmp_path):
     msgs = run_messages(n_blocks=3)
-    path = write_raw_mcap(tmp_path / "ooo.mcap", [msgs[2], msgs[3], msgs[0], msgs[1], msgs[4], msgs[5]],
-                          META.to_strings())
+    path = write_raw_mcap(
+        tmp_path / "ooo.mcap", [msgs[2], msgs[3], msgs[0], msgs[1], msgs[4], msgs[5]], META.to_strings()
+    )
     run = read_run(path)
     assert run.voltmeter["t_ns"].is_sorted() and run.au_temperature["t_ns"].is_sorted()
     assert any("out of time order" in w for w in run.warnings)
@@ -268,9 +320,13 @@ def test_out_of_order_blocks_are_sorted_with_a_warning(tmp_path):
 
 def test_null_samples_read_as_nan(tmp_path):
     body = b'{"t_ns": [%d, %d, %d], "ux": [1.5, null, 2], "uy": [0, 0, 0], "uz": [null, null, null]}' % (
-        T0_NS, T0_NS + 1, T0_NS + 2)
-    path = write_raw_mcap(tmp_path / "nulls.mcap", [("/voltmeter", T0_NS, body)] + run_messages()[1:2],
-                          META.to_strings())
+        T0_NS,
+        T0_NS + 1,
+        T0_NS + 2,
+    )
+    path = write_raw_mcap(
+        tmp_path / "nulls.mcap", [("/voltmeter", T0_NS, body)] + run_messages()[1:2], META.to_strings()
+    )
     run = read_run(path)
     np.testing.assert_array_equal(run.voltmeter["ux"].to_numpy(), [1.5, np.nan, 2.0])
     assert run.voltmeter["uz"].is_nan().all() and run.voltmeter["ux"].null_count() == 0
@@ -291,8 +347,10 @@ def test_truncated_file_keeps_complete_chunks(tmp_path):
     assert f"truncated at byte {cut}" in warning and "chunk record at byte" in warning
     n = got.voltmeter.height
     assert 0.4 * 20_000 < n < 0.75 * 20_000  # the complete chunks before the cut (the summary is ~10%)
-    assert_same_run(Run(meta=run.meta, voltmeter=run.voltmeter[:n], au_temperature=run.au_temperature[:got.au_temperature.height]),
-                    Run(meta=got.meta, voltmeter=got.voltmeter, au_temperature=got.au_temperature))
+    assert_same_run(
+        Run(meta=run.meta, voltmeter=run.voltmeter[:n], au_temperature=run.au_temperature[: got.au_temperature.height]),
+        Run(meta=got.meta, voltmeter=got.voltmeter, au_temperature=got.au_temperature),
+    )
     assert str(got.voltmeter["t_ns"].max()) in warning
 
 
@@ -317,21 +375,30 @@ def test_corrupt_compressed_chunk(tmp_path):
     path = write_mcap(make_run(n=3000), tmp_path / "run.mcap", chunk_size=50_000)
     data = bytearray(path.read_bytes())
     mid = len(data) // 2
-    data[mid:mid + 64] = bytes(64)
+    data[mid : mid + 64] = bytes(64)
     path.write_bytes(bytes(data))
     expect_error(path, "corrupt chunk")
 
 
-@pytest.mark.parametrize("body, fragment", [
-    (b'{"t_ns": [1, 2], "ux": [0.1, 0.2], "uy": [0.1, 0.2]}', "missing key 'uz'"),
-    (b'{"t_ns": [1, 2], "ux": [0.1, 0.2], "uy": [0.1], "uz": [0.1, 0.2]}', "unequal length"),
-    (b'{"t_ns": [1, 2], "ux": [0.1, "0.2"], "uy": [0.1, 0.2], "uz": [0.1, 0.2]}', "'ux' holds values that are not numbers (e.g. '0.2')"),
-    (b'{"t_ns": [1, 2.5], "ux": [0.1, 0.2], "uy": [0.1, 0.2], "uz": [0.1, 0.2]}', "'t_ns' holds values that are not int64 integers (e.g. 2.5)"),
-    (b'{"t_ns": [1, 2], "ux": [0.1, 0.2], "uy": [[0.1], [0.2]], "uz": [0.1, 0.2]}', "'uy' is not a flat array"),
-    (b'{"t_ns": 1, "ux": 0.1, "uy": 0.1, "uz": 0.1}', "'t_ns' is not an array"),
-    (b'[1, 2, 3]', "not an object"),
-    (b'{"t_ns": [1, 2], "ux": [0.1, 0.2], ', "not valid JSON"),
-])
+@pytest.mark.parametrize(
+    "body, fragment",
+    [
+        (b'{"t_ns": [1, 2], "ux": [0.1, 0.2], "uy": [0.1, 0.2]}', "missing key 'uz'"),
+        (b'{"t_ns": [1, 2], "ux": [0.1, 0.2], "uy": [0.1], "uz": [0.1, 0.2]}', "unequal length"),
+        (
+            b'{"t_ns": [1, 2], "ux": [0.1, "0.2"], "uy": [0.1, 0.2], "uz": [0.1, 0.2]}',
+            "'ux' holds values that are not numbers (e.g. '0.2')",
+        ),
+        (
+            b'{"t_ns": [1, 2.5], "ux": [0.1, 0.2], "uy": [0.1, 0.2], "uz": [0.1, 0.2]}',
+            "'t_ns' holds values that are not int64 integers (e.g. 2.5)",
+        ),
+        (b'{"t_ns": [1, 2], "ux": [0.1, 0.2], "uy": [[0.1], [0.2]], "uz": [0.1, 0.2]}', "'uy' is not a flat array"),
+        (b'{"t_ns": 1, "ux": 0.1, "uy": 0.1, "uz": 0.1}', "'t_ns' is not an array"),
+        (b"[1, 2, 3]", "not an object"),
+        (b'{"t_ns": [1, 2], "ux": [0.1, 0.2], ', "not valid JSON"),
+    ],
+)
 def test_schema_mismatch_names_topic_and_time(tmp_path, body, fragment):
     bad_t = T0_NS + 10**12
     msgs = run_messages() + [("/voltmeter", bad_t, body)]
@@ -339,12 +406,15 @@ def test_schema_mismatch_names_topic_and_time(tmp_path, body, fragment):
     expect_error(path, "/voltmeter", f"t_ns={bad_t}", "does not match schema thermocal.VoltageBlock", fragment)
 
 
-@pytest.mark.parametrize("event, fragment", [
-    (b'{"t_ns": 5, "position": "TP9"}', "unknown fixture position 'TP9'"),
-    (b'{"t_ns": 5, "position": 3}', "'position' is not a string"),
-    (b'{"t_ns": "5", "position": "TP1"}', "'t_ns' is not an int64 integer"),
-    (b'{"position": "TP1"}', "missing key 't_ns'"),
-])
+@pytest.mark.parametrize(
+    "event, fragment",
+    [
+        (b'{"t_ns": 5, "position": "TP9"}', "unknown fixture position 'TP9'"),
+        (b'{"t_ns": 5, "position": 3}', "'position' is not a string"),
+        (b'{"t_ns": "5", "position": "TP1"}', "'t_ns' is not an int64 integer"),
+        (b'{"position": "TP1"}', "missing key 't_ns'"),
+    ],
+)
 def test_bad_fixture_event(tmp_path, event, fragment):
     path = write_raw_mcap(tmp_path / "fix.mcap", run_messages() + [("/fixture", 5, event)], META.to_strings())
     expect_error(path, fragment)
@@ -352,15 +422,21 @@ def test_bad_fixture_event(tmp_path, event, fragment):
 
 def test_missing_stream_and_metadata(tmp_path):
     only_v = [m for m in run_messages() if m[0] == "/voltmeter"]
-    expect_error(write_raw_mcap(tmp_path / "a.mcap", only_v, META.to_strings()), "au_temperature",
-                 "required stream is missing")
+    expect_error(
+        write_raw_mcap(tmp_path / "a.mcap", only_v, META.to_strings()), "au_temperature", "required stream is missing"
+    )
     expect_error(write_raw_mcap(tmp_path / "b.mcap", run_messages(), None), "no run metadata")
     bad_meta = {k: v for k, v in META.to_strings().items() if k != "unit_serial"}
     expect_error(write_raw_mcap(tmp_path / "c.mcap", run_messages(), bad_meta), "metadata", "'unit_serial'")
-    expect_error(write_raw_mcap(tmp_path / "d.mcap", run_messages(), {**META.to_strings(), "normal_temp_c": "warm"}),
-                 "'normal_temp_c' is not a number")
-    expect_error(write_raw_mcap(tmp_path / "e.mcap", run_messages(), META.to_strings(), encoding="cdr"),
-                 "unsupported message encoding 'cdr'", "/voltmeter")
+    expect_error(
+        write_raw_mcap(tmp_path / "d.mcap", run_messages(), {**META.to_strings(), "normal_temp_c": "warm"}),
+        "'normal_temp_c' is not a number",
+    )
+    expect_error(
+        write_raw_mcap(tmp_path / "e.mcap", run_messages(), META.to_strings(), encoding="cdr"),
+        "unsupported message encoding 'cdr'",
+        "/voltmeter",
+    )
 
 
 def test_not_mcap_files(tmp_path):
@@ -403,10 +479,17 @@ def test_shared_conformance_files_are_refused():
 def _conformance_like_variants():
     """Writer option combinations like the corpus's (chunked, indexes, repeats, statistics, summary offsets)."""
     for chunked, index, repeat, stats, offsets in itertools.product(
-            (True, False), (IndexType.ALL, IndexType.NONE), (True, False), (True, False), (True, False)):
-        yield dict(use_chunking=chunked, index_types=index, repeat_channels=repeat, repeat_schemas=repeat,
-                   use_statistics=stats, use_summary_offsets=offsets,
-                   compression=CompressionType.ZSTD if chunked else CompressionType.NONE)
+        (True, False), (IndexType.ALL, IndexType.NONE), (True, False), (True, False), (True, False)
+    ):
+        yield dict(
+            use_chunking=chunked,
+            index_types=index,
+            repeat_channels=repeat,
+            repeat_schemas=repeat,
+            use_statistics=stats,
+            use_summary_offsets=offsets,
+            compression=CompressionType.ZSTD if chunked else CompressionType.NONE,
+        )
 
 
 @pytest.mark.parametrize("content", ["NoData", "OneMessage", "OneSchemalessMessage", "OneMetadata", "OneAttachment"])
@@ -438,8 +521,13 @@ def test_generated_conformance_variants_are_refused(tmp_path, content):
 def test_parquet_layout_and_replace(tmp_path):
     run = make_run(n=1000)
     d = write_parquet_run(run, tmp_path / "run")
-    assert sorted(p.name for p in d.iterdir()) == ["au_temperature.parquet", "chamber.parquet", "fixture.parquet",
-                                                   "run.json", "voltmeter.parquet"]
+    assert sorted(p.name for p in d.iterdir()) == [
+        "au_temperature.parquet",
+        "chamber.parquet",
+        "fixture.parquet",
+        "run.json",
+        "voltmeter.parquet",
+    ]
     assert pq.ParquetFile(d / "voltmeter.parquet").metadata.row_group(0).column(1).compression == "ZSTD"
     # An existing run directory is replaced; a run without optional streams leaves no stale files.
     bare = make_run(n=500, seed=3, optional=False)
@@ -464,8 +552,9 @@ def test_parquet_safe_casts(tmp_path):
     n = 50
     t = (np.arange(n) * 100).astype(np.int32)
     x = np.linspace(-1, 1, n).astype(np.float32)
-    d = _parquet_dir(tmp_path, pa.table({"t_ns": t, "ux": x, "uy": x, "uz": np.arange(n, dtype=np.int16),
-                                         "extra": ["a"] * n}))
+    d = _parquet_dir(
+        tmp_path, pa.table({"t_ns": t, "ux": x, "uy": x, "uz": np.arange(n, dtype=np.int16), "extra": ["a"] * n})
+    )
     run = read_parquet_run(d)
     assert run.voltmeter.schema == pl.Schema(STREAM_COLUMNS["voltmeter"])
     np.testing.assert_array_equal(run.voltmeter["ux"].to_numpy(), x.astype(np.float64))
@@ -477,14 +566,24 @@ def test_parquet_safe_casts(tmp_path):
     assert run.voltmeter["t_ns"][0] == T0_NS and np.isnan(run.voltmeter["ux"][0])
 
 
-@pytest.mark.parametrize("table, fragments", [
-    (pa.table({"t_ns": [1, 2], "ux": ["0.1", "0.2"], "uy": [0.1, 0.2], "uz": [0.1, 0.2]}),
-     ("column 'ux' has type String, expected Float64",)),
-    (pa.table({"t_ns": [1.0, 2.0], "ux": [0.1, 0.2], "uy": [0.1, 0.2], "uz": [0.1, 0.2]}),
-     ("column 't_ns' has type Float64, expected Int64",)),
-    (pa.table({"t_ns": [1, 2], "ux": [0.1, 0.2], "uz": [0.1, 0.2]}), ("column 'uy' is missing",)),
-    (pa.table({"t_ns": [1, None], "ux": [0.1, 0.2], "uy": [0.1, 0.2], "uz": [0.1, 0.2]}), ("t_ns is missing", "row 1")),
-])
+@pytest.mark.parametrize(
+    "table, fragments",
+    [
+        (
+            pa.table({"t_ns": [1, 2], "ux": ["0.1", "0.2"], "uy": [0.1, 0.2], "uz": [0.1, 0.2]}),
+            ("column 'ux' has type String, expected Float64",),
+        ),
+        (
+            pa.table({"t_ns": [1.0, 2.0], "ux": [0.1, 0.2], "uy": [0.1, 0.2], "uz": [0.1, 0.2]}),
+            ("column 't_ns' has type Float64, expected Int64",),
+        ),
+        (pa.table({"t_ns": [1, 2], "ux": [0.1, 0.2], "uz": [0.1, 0.2]}), ("column 'uy' is missing",)),
+        (
+            pa.table({"t_ns": [1, None], "ux": [0.1, 0.2], "uy": [0.1, 0.2], "uz": [0.1, 0.2]}),
+            ("t_ns is missing", "row 1"),
+        ),
+    ],
+)
 def test_parquet_bad_columns_name_file_and_column(tmp_path, table, fragments):
     d = _parquet_dir(tmp_path, table)
     with pytest.raises(RunFormatError) as info:
@@ -533,7 +632,9 @@ def test_write_refuses_bad_runs(tmp_path):
 
 
 def test_io_modules_do_not_import_prefect_or_matplotlib():
-    code = ("import sys, pipeline.io.runs, pipeline.io.mcap, pipeline.io.parquet, pipeline.inspect; "
-            "bad = [m for m in sys.modules if m.split('.')[0] in ('prefect', 'matplotlib')]; "
-            "assert not bad, bad")
+    code = (
+        "import sys, pipeline.io.runs, pipeline.io.mcap, pipeline.io.parquet, pipeline.inspect; "
+        "bad = [m for m in sys.modules if m.split('.')[0] in ('prefect', 'matplotlib')]; "
+        "assert not bad, bad"
+    )
     subprocess.run([sys.executable, "-c", code], check=True)

@@ -31,10 +31,10 @@ def reg(tmp_path):
 
 
 def test_current_is_newest_approved_else_newest(reg):
-    assert reg.current(UNIT) == 3                     # nothing approved: the newest
+    assert reg.current(UNIT) == 3  # nothing approved: the newest
     before = reg.version_path(UNIT, 1).read_bytes()
     rec = reg.approve(UNIT, 1, "A. Metrologist")
-    assert reg.version_path(UNIT, 1).read_bytes() == before          # approval does not change the version
+    assert reg.version_path(UNIT, 1).read_bytes() == before  # approval does not change the version
     assert rec["version"] == 1 and rec["by"] == "A. Metrologist" and rec["schema"] == "thermocal.approval/1"
     assert verify_record(rec).ok
     assert reg.current(UNIT) == 1
@@ -42,7 +42,7 @@ def test_current_is_newest_approved_else_newest(reg):
     assert doc["version"] == 1 and st.approved and st.version == 1
     reg.approve(UNIT, 2, "B. Checker")
     assert reg.current(UNIT) == 2
-    assert reg.approve(UNIT, 2, "B. Checker") == reg.approvals(UNIT)[-1]      # idempotent: same record back
+    assert reg.approve(UNIT, 2, "B. Checker") == reg.approvals(UNIT)[-1]  # idempotent: same record back
     log = {r["version"]: r for r in reg.log(UNIT)}
     assert [a["by"] for a in log[2]["approved"]] == ["B. Checker"] and log[2]["current"]
     assert log[3]["approved"] == [] and not log[3]["current"]
@@ -63,11 +63,11 @@ def test_verify_names_a_forged_or_altered_approval(reg):
     reg.approve(UNIT, 1, "A. Metrologist")
     path = reg.unit_dir(UNIT) / "approvals.jsonl"
     rec = json.loads(path.read_text().splitlines()[0])
-    forged = dict(rec, version=2, sha256=reg.versions(UNIT)[1].sha256)       # moved to another version
+    forged = dict(rec, version=2, sha256=reg.versions(UNIT)[1].sha256)  # moved to another version
     path.write_text(path.read_text() + json.dumps(forged) + "\n")
     report = reg.verify()
     assert not report.ok and any("approval of v2" in p and "altered" in p for p in report.problems)
-    assert reg.current(UNIT) == 1                     # the forged record does not count
+    assert reg.current(UNIT) == 1  # the forged record does not count
 
 
 def test_planned_writes_nothing(reg, tmp_path):

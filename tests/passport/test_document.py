@@ -59,8 +59,9 @@ def test_rate_terms_and_extended_models_come_from_the_same_loader(published):
     extended model as the ExtendedModel; load_model gives the base thermal model of either."""
     out, _ = published
     doc = json.loads(open(out["tilt_six_position"]["passport"]).read())
-    rate = RateTerms(alpha_rate=np.full((1, 1, 3), 1e-5), beta_rate=np.zeros((1, 1, 3)), temp_smooth_s=301.0,
-                     lag_tau_s=12.0)
+    rate = RateTerms(
+        alpha_rate=np.full((1, 1, 3), 1e-5), beta_rate=np.zeros((1, 1, 3)), temp_smooth_s=301.0, lag_tau_s=12.0
+    )
     diff_doc = {**doc, "method": "differential", "rate_terms": rate.to_dict()}
     model = load_passport(json.loads(json.dumps(diff_doc))).compensation_model()
     assert isinstance(model, DifferentialModel) and model.lag_tau_s == 12.0
@@ -80,10 +81,12 @@ def test_rate_terms_and_extended_models_come_from_the_same_loader(published):
 def test_not_a_passport_is_one_line_naming_the_file(tmp_path, published):
     out, _ = published
     doc = json.loads(open(out["scalar"]["passport"]).read())
-    cases = {"other-schema.json": {**doc, "schema": "thermocal.passport/0"},
-             "no-constants.json": {k: v for k, v in doc.items() if k != "coefficients"},
-             "bad-K.json": {**doc, "coefficients": {"K": [[1, 2], [3, 4]], "U0": [0, 0, 0]}},
-             "truncated.json": None}
+    cases = {
+        "other-schema.json": {**doc, "schema": "thermocal.passport/0"},
+        "no-constants.json": {k: v for k, v in doc.items() if k != "coefficients"},
+        "bad-K.json": {**doc, "coefficients": {"K": [[1, 2], [3, 4]], "U0": [0, 0, 0]}},
+        "truncated.json": None,
+    }
     for name, content in cases.items():
         path = tmp_path / name
         path.write_text(json.dumps(content) if content is not None else json.dumps(doc)[:100])

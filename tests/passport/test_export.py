@@ -51,11 +51,11 @@ def _px4_params(text: str) -> dict[str, float]:
 
 def _px4_offset(p: dict[str, float], temps: np.ndarray) -> np.ndarray:
     dt = np.clip(temps, p["TC_A0_TMIN"], p["TC_A0_TMAX"]) - p["TC_A0_TREF"]
-    return np.stack([sum(p[f"TC_A0_X{n}_{i}"] * dt ** n for n in range(4)) for i in range(3)], axis=1)
+    return np.stack([sum(p[f"TC_A0_X{n}_{i}"] * dt**n for n in range(4)) for i in range(3)], axis=1)
 
 
 def _ardupilot_poly(p: dict[str, float], x: np.ndarray) -> np.ndarray:
-    return np.stack([sum(p[f"INS_TCAL1_ACC{n}_{ax}"] * x ** n for n in (1, 2, 3)) * 1e-6 for ax in "XYZ"], axis=1)
+    return np.stack([sum(p[f"INS_TCAL1_ACC{n}_{ax}"] * x**n for n in (1, 2, 3)) * 1e-6 for ax in "XYZ"], axis=1)
 
 
 def test_px4_offsets_reproduce_the_passport_bias(passports):
@@ -66,8 +66,8 @@ def test_px4_offsets_reproduce_the_passport_bias(passports):
     assert (p["TC_A0_TMIN"], p["TC_A0_TMAX"]) == tuple(doc["valid_temp_c"]) == (-40.0, 70.0)
     temps = np.linspace(-40, 70, 221)
     want = _bias_mps2(doc, temps)
-    assert np.abs(want).max() > 1e-3                                # a real thermal bias, m/s^2
-    assert np.abs(_px4_offset(p, temps) - want).max() < 1e-7        # float32 parameters, poly2 model: exact
+    assert np.abs(want).max() > 1e-3  # a real thermal bias, m/s^2
+    assert np.abs(_px4_offset(p, temps) - want).max() < 1e-7  # float32 parameters, poly2 model: exact
     # outside the range PX4 clamps: the offset stays at the end value
     assert np.allclose(_px4_offset(p, np.array([90.0])), _px4_offset(p, np.array([70.0])))
 
@@ -82,7 +82,7 @@ def test_ardupilot_correction_reproduces_the_passport_bias(passports):
     # between TMIN and T0)
     assert p["INS_ACC1_CALTEMP"] == doc["normal_temp_c"] == 20.0
     temps = np.linspace(-40, 70, 221)
-    for t_cal in (p["INS_ACC1_CALTEMP"], 31.5):   # the file's, then a vehicle's own later calibration temperature
+    for t_cal in (p["INS_ACC1_CALTEMP"], 31.5):  # the file's, then a vehicle's own later calibration temperature
         corr = _ardupilot_poly(p, temps - 35.0) - _ardupilot_poly(p, np.array([t_cal - 35.0]))
         want = _bias_mps2(doc, temps) - _bias_mps2(doc, np.array([t_cal]))
         assert np.abs(corr - want).max() < 1e-8
@@ -96,8 +96,11 @@ def test_ardupilot_correction_with_the_file_alone_leaves_only_the_unheld_terms(p
     p = {k: float(v) for k, v in (line.split() for line in exp.text.splitlines() if line and line[0] != "#")}
     temps = np.linspace(-40, 70, 111)
     clamp = lambda t: np.clip(t, p["INS_TCAL1_TMIN"], p["INS_TCAL1_TMAX"])  # noqa: E731
-    corrected = (_bias_mps2(doc, temps) - _ardupilot_poly(p, clamp(temps) - 35.0)
-                 + _ardupilot_poly(p, clamp(np.array([p["INS_ACC1_CALTEMP"]])) - 35.0))
+    corrected = (
+        _bias_mps2(doc, temps)
+        - _ardupilot_poly(p, clamp(temps) - 35.0)
+        + _ardupilot_poly(p, clamp(np.array([p["INS_ACC1_CALTEMP"]])) - 35.0)
+    )
     assert np.abs(corrected).max() < 1e-8 < np.abs(_bias_mps2(doc, temps)).max() * 1e-3
     assert "# INS_ACC1_CALTEMP = T0 (20 C)" in exp.text
 
@@ -141,7 +144,7 @@ def test_piecewise_model_states_its_cubic_fit_error(passports):
     p = _px4_params(exp.text)
     temps = np.linspace(-40, 70, 1101)
     fit_err = np.abs(_px4_offset(p, temps) - _bias_mps2(doc, temps)).max(axis=0)
-    assert np.all(fit_err > 1e-7)                                    # a cubic cannot follow the kinks
+    assert np.all(fit_err > 1e-7)  # a cubic cannot follow the kinks
     assert np.allclose(fit_err, exp.residual["bias_fit_max_mps2"], rtol=1e-3, atol=1e-9)
     assert any("piecewise" in t for t in exp.not_held)
 
@@ -158,8 +161,9 @@ def test_csv_holds_every_number_with_its_uncertainty(passports):
     assert by[("valid_temp_c", "", "")]["t_lo_c"] == "-40.0"
     assert len([r for r in rows if r["quantity"] in ("alpha", "beta", "gamma")]) == 24
     pw = list(csv.DictReader(io.StringIO(export_passport(passports["piecewise"], "csv").text)))
-    assert len([r for r in pw if r["quantity"] == "alpha"]) == 6 and all(r["t_lo_c"] for r in pw
-                                                                          if r["quantity"] == "beta")
+    assert len([r for r in pw if r["quantity"] == "alpha"]) == 6 and all(
+        r["t_lo_c"] for r in pw if r["quantity"] == "beta"
+    )
 
 
 def test_cli_export_current_passport(passports, tmp_path):
@@ -169,24 +173,43 @@ def test_cli_export_current_passport(passports, tmp_path):
     reg.approve("AU-0001", 1, "A. Metrologist")
     exe = str(Path(sys.executable).parent / "thermocal")
     out = tmp_path / "au1.params"
-    r = subprocess.run([exe, "export", "AU-0001", "--registry", str(reg.root), "--format", "ardupilot", "--out",
-                        str(out), "--json"], capture_output=True, text=True, env=dict(os.environ), timeout=120)
+    r = subprocess.run(
+        [exe, "export", "AU-0001", "--registry", str(reg.root), "--format", "ardupilot", "--out", str(out), "--json"],
+        capture_output=True,
+        text=True,
+        env=dict(os.environ),
+        timeout=120,
+    )
     assert r.returncode == 0, r.stderr
     summary = json.loads(r.stdout)
-    assert summary["version"] == 1 and summary["valid_temp_c"] == [-40.0, 70.0]     # the approved one
+    assert summary["version"] == 1 and summary["valid_temp_c"] == [-40.0, 70.0]  # the approved one
     assert summary["passport_used"]["approved_by"] == ["A. Metrologist"] and r.stderr == ""
     text = out.read_text()
     assert "INS_TCAL1_ACC1_X" in text and summary["residual"]["total_worst_ug"] > 100
     assert "# status unverified; approved by A. Metrologist" in text
     # a failed version, not approved: exported all the same, with one warning line and the status in the file
     failed = dict(passports["auto"], status="fail")
-    reg.publish({k: v for k, v in failed.items() if k not in ("signature", "content_sha256")},
-                inputs=[{"path": "c", "sha256": "c" * 64}], settings={}, code_version="t")
-    r = subprocess.run([exe, "export", "AU-0001", "3", "--registry", str(reg.root), "--format", "px4"],
-                       capture_output=True, text=True, env=dict(os.environ), timeout=120)
+    reg.publish(
+        {k: v for k, v in failed.items() if k not in ("signature", "content_sha256")},
+        inputs=[{"path": "c", "sha256": "c" * 64}],
+        settings={},
+        code_version="t",
+    )
+    r = subprocess.run(
+        [exe, "export", "AU-0001", "3", "--registry", str(reg.root), "--format", "px4"],
+        capture_output=True,
+        text=True,
+        env=dict(os.environ),
+        timeout=120,
+    )
     assert r.returncode == 0 and r.stderr.count("\n") == 1, r.stderr
     assert r.stderr.startswith("thermocal: warning: export of AU-0001 v3 failed its verification (status fail)")
     assert "# status fail; not approved" in r.stdout and "# WARNING: this passport failed" in r.stdout
-    bad = subprocess.run([exe, "export", "AU-0001", "--registry", str(reg.root), "--format", "betaflight"],
-                         capture_output=True, text=True, env=dict(os.environ), timeout=120)
+    bad = subprocess.run(
+        [exe, "export", "AU-0001", "--registry", str(reg.root), "--format", "betaflight"],
+        capture_output=True,
+        text=True,
+        env=dict(os.environ),
+        timeout=120,
+    )
     assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1 and "--format" in bad.stderr

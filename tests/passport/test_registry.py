@@ -23,30 +23,52 @@ UNIT = "AU-0001"
 INPUTS = [{"path": "runs/a.mcap", "sha256": "a" * 64}, {"path": "runs/b.mcap", "sha256": "b" * 64}]
 
 
-def make_passport(unit: str = UNIT, *, kxy: float = 0.0123, u0z: float = 0.0031, alpha_x2: float = 2.0e-7,
-                  status: str = "pass") -> dict:
+def make_passport(
+    unit: str = UNIT, *, kxy: float = 0.0123, u0z: float = 0.0031, alpha_x2: float = 2.0e-7, status: str = "pass"
+) -> dict:
     """A small passport as contract.md describes it (values of seed 000's magnitudes)."""
     return {
-        "schema": "thermocal.passport/1", "unit": unit, "normal_temp_c": 20.0, "g_local_mps2": 9.80665,
+        "schema": "thermocal.passport/1",
+        "unit": unit,
+        "normal_temp_c": 20.0,
+        "g_local_mps2": 9.80665,
         "status": status,
-        "coefficients": {"K": [[-0.55, kxy, -0.004], [0.002, -0.56, 0.016], [-0.001, 0.003, -0.54]],
-                         "U0": [0.0021, -0.0017, u0z]},
-        "per_plateau": [{"temp_c": 20.0, "K": [[-0.55, kxy, -0.004], [0.002, -0.56, 0.016],
-                                                [-0.001, 0.003, -0.54]],
-                         "U0": [0.0021, -0.0017, u0z], "positions": ["TP1", "TP2", "TP3", "TP4", "TP5", "TP6"]}],
-        "thermal_model": {"kind": "polynomial", "order": 2,
-                          "alpha": {"x": [1.1e-4, alpha_x2], "y": [-0.9e-4, 1e-7], "z": [1.2e-4, -3e-7]},
-                          "beta": {"xx": [1.5e-5, 1e-8], "yy": [2.5e-5, 0.0], "zz": [4.5e-5, -2e-8]},
-                          "gamma": {k: [1e-4, 1e-6] for k in ("xy", "xz", "yx", "yz", "zx", "zy")}},
-        "verification": [{"temp_c": -10.0, "position": "VP1", "dg_uncompensated_g": 1.2e-3,
-                          "dg_method1_g": 2.1e-5, "dg_method2_g": 2.4e-5}],
+        "coefficients": {
+            "K": [[-0.55, kxy, -0.004], [0.002, -0.56, 0.016], [-0.001, 0.003, -0.54]],
+            "U0": [0.0021, -0.0017, u0z],
+        },
+        "per_plateau": [
+            {
+                "temp_c": 20.0,
+                "K": [[-0.55, kxy, -0.004], [0.002, -0.56, 0.016], [-0.001, 0.003, -0.54]],
+                "U0": [0.0021, -0.0017, u0z],
+                "positions": ["TP1", "TP2", "TP3", "TP4", "TP5", "TP6"],
+            }
+        ],
+        "thermal_model": {
+            "kind": "polynomial",
+            "order": 2,
+            "alpha": {"x": [1.1e-4, alpha_x2], "y": [-0.9e-4, 1e-7], "z": [1.2e-4, -3e-7]},
+            "beta": {"xx": [1.5e-5, 1e-8], "yy": [2.5e-5, 0.0], "zz": [4.5e-5, -2e-8]},
+            "gamma": {k: [1e-4, 1e-6] for k in ("xy", "xz", "yx", "yz", "zx", "zy")},
+        },
+        "verification": [
+            {
+                "temp_c": -10.0,
+                "position": "VP1",
+                "dg_uncompensated_g": 1.2e-3,
+                "dg_method1_g": 2.1e-5,
+                "dg_method2_g": 2.4e-5,
+            }
+        ],
         "provenance": {"host": "chamber-3"},
     }
 
 
 def publish(reg: Registry, settings: dict | None = None, inputs=INPUTS, **kw):
-    return reg.publish(make_passport(**kw), inputs=inputs, settings=settings or {"thermal_model": "poly2"},
-                       code_version="0.1.0")
+    return reg.publish(
+        make_passport(**kw), inputs=inputs, settings=settings or {"thermal_model": "poly2"}, code_version="0.1.0"
+    )
 
 
 def tamper(path: Path, old: bytes, new: bytes) -> None:
@@ -84,8 +106,10 @@ def test_publish_chain_and_canonical_file(tmp_path):
     assert prov["identity"] == identity_key(INPUTS, {"thermal_model": "poly3"})
     assert stat.S_IMODE(r1.path.stat().st_mode) == 0o444
     assert reg.units() == [UNIT]
-    assert [(i.version, i.sha256, i.status) for i in reg.versions(UNIT)] == [(1, r1.sha256, "pass"),
-                                                                             (2, r2.sha256, "pass")]
+    assert [(i.version, i.sha256, i.status) for i in reg.versions(UNIT)] == [
+        (1, r1.sha256, "pass"),
+        (2, r2.sha256, "pass"),
+    ]
     rows = reg.log(UNIT)
     assert [r["version"] for r in rows] == [1, 2] and rows[1]["inputs"] == ["runs/a.mcap", "runs/b.mcap"]
     assert rows[0]["created_utc"] <= rows[1]["created_utc"]
@@ -96,9 +120,11 @@ def test_same_inputs_and_settings_give_the_existing_version(tmp_path):
     reg = Registry(tmp_path)
     first = publish(reg, settings={"thermal_model": "poly2", "min_soak_s": 600})
     # same input files (other order, other paths) and same settings (other key order): nothing new
-    again = publish(reg, settings={"min_soak_s": 600, "thermal_model": "poly2"},
-                    inputs=[{"path": "/elsewhere/b.mcap", "sha256": "b" * 64},
-                            {"path": "/elsewhere/a.mcap", "sha256": "a" * 64}])
+    again = publish(
+        reg,
+        settings={"min_soak_s": 600, "thermal_model": "poly2"},
+        inputs=[{"path": "/elsewhere/b.mcap", "sha256": "b" * 64}, {"path": "/elsewhere/a.mcap", "sha256": "a" * 64}],
+    )
     assert again.created is False and (again.version, again.sha256, again.path) == (1, first.sha256, first.path)
     assert sorted(p.name for p in (tmp_path / "units" / UNIT).glob("v*.json")) == ["v0001.json"]
     assert len(reg.log(UNIT)) == 1
@@ -253,8 +279,10 @@ WRITER = textwrap.dedent("""
 
 def test_two_processes_publishing_at_once_keep_a_valid_chain(tmp_path):
     n = 20
-    procs = [subprocess.Popen([sys.executable, "-c", WRITER, str(tmp_path), tag, str(n)],
-                              stderr=subprocess.PIPE, text=True) for tag in ("a", "b")]
+    procs = [
+        subprocess.Popen([sys.executable, "-c", WRITER, str(tmp_path), tag, str(n)], stderr=subprocess.PIPE, text=True)
+        for tag in ("a", "b")
+    ]
     for p in procs:
         _, err = p.communicate(timeout=120)
         assert p.returncode == 0, err
@@ -293,6 +321,7 @@ def run_unprivileged(fn) -> None:
     if os.geteuid() != 0:
         fn()
         return
+
     def drop_to_nobody():
         os.setgid(65534)
         os.setuid(65534)
@@ -355,8 +384,12 @@ def test_a_failed_write_leaves_nothing_partial(tmp_path, where):
         limit, pad = 4096, 20_000
     else:  # a small passport fits, the log (already bigger than the quota) cannot grow: the version is taken back
         limit, pad = len(log_bytes), 0
-    proc = subprocess.run([sys.executable, "-c", FULL_DISK, str(tmp_path), str(limit), str(pad)],
-                          capture_output=True, text=True, timeout=60)
+    proc = subprocess.run(
+        [sys.executable, "-c", FULL_DISK, str(tmp_path), str(limit), str(pad)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert proc.returncode == 3, proc.stderr
     assert "file too large" in proc.stdout and len(proc.stdout.strip().splitlines()) == 1
     assert sorted(p.name for p in udir.iterdir()) == [".lock", "log.jsonl"] + [f"v{i:04d}.json" for i in range(1, 9)]
@@ -373,9 +406,15 @@ def test_diff_reports_changed_constants_in_physical_units(tmp_path):
     reg = Registry(tmp_path)
     publish(reg, settings={"thermal_model": "poly2"})
     # K.xy +1.1e-5 V/g, U0.z +5.4e-6 V, alpha_x order 2 +1e-7 V/C^2, status pass -> fail, new settings and inputs
-    publish(reg, settings={"thermal_model": "poly2", "min_soak_s": 900}, inputs=INPUTS[:1] + [
-        {"path": "runs/c.mcap", "sha256": "c" * 64}], kxy=0.0123 + 1.1e-5, u0z=0.0031 + 5.4e-6,
-        alpha_x2=3.0e-7, status="fail")
+    publish(
+        reg,
+        settings={"thermal_model": "poly2", "min_soak_s": 900},
+        inputs=INPUTS[:1] + [{"path": "runs/c.mcap", "sha256": "c" * 64}],
+        kxy=0.0123 + 1.1e-5,
+        u0z=0.0031 + 5.4e-6,
+        alpha_x2=3.0e-7,
+        status="fail",
+    )
     d = reg.diff(UNIT, 1, 2)
     by_name = {e["name"]: e for e in d["constants"]}
     assert set(by_name) == {"K.xy", "U0.z"}
@@ -389,8 +428,10 @@ def test_diff_reports_changed_constants_in_physical_units(tmp_path):
     assert alpha["delta"] == pytest.approx(1e-7) and alpha["delta_scaled"] == pytest.approx(1e-7 / 0.55 * 1e6)
     assert {f["name"]: (f["old"], f["new"]) for f in d["fields"]} == {"status": ("pass", "fail")}
     assert d["settings"] == [{"name": "min_soak_s", "old": None, "new": 900}]
-    assert d["inputs"] == {"added": [{"path": "runs/c.mcap", "sha256": "c" * 64}],
-                           "removed": [{"path": "runs/b.mcap", "sha256": "b" * 64}]}
+    assert d["inputs"] == {
+        "added": [{"path": "runs/c.mcap", "sha256": "c" * 64}],
+        "removed": [{"path": "runs/b.mcap", "sha256": "b" * 64}],
+    }
     # a version compared with itself has no difference
     same = reg.diff(UNIT, 2, 2)
     assert not (same["constants"] or same["thermal_model"] or same["fields"] or same["settings"])
@@ -398,12 +439,18 @@ def test_diff_reports_changed_constants_in_physical_units(tmp_path):
 
 def test_diff_of_piecewise_models_and_of_a_model_change(tmp_path):
     reg = Registry(tmp_path)
-    seg = lambda a, b: {"alpha": {"x": a, "y": 0.0, "z": 0.0}, "beta": {"xx": b, "yy": 0.0, "zz": 0.0},
-                        "gamma": {}}
+    seg = lambda a, b: {"alpha": {"x": a, "y": 0.0, "z": 0.0}, "beta": {"xx": b, "yy": 0.0, "zz": 0.0}, "gamma": {}}
+
     def pw(a2):
-        return {"kind": "piecewise_linear", "breakpoints_c": [-40.0, 20.0, 70.0],
-                "segments": [{"t_lo_c": -40.0, "t_hi_c": 20.0, **seg(1e-4, 2e-5)},
-                             {"t_lo_c": 20.0, "t_hi_c": 70.0, **seg(a2, 2e-5)}]}
+        return {
+            "kind": "piecewise_linear",
+            "breakpoints_c": [-40.0, 20.0, 70.0],
+            "segments": [
+                {"t_lo_c": -40.0, "t_hi_c": 20.0, **seg(1e-4, 2e-5)},
+                {"t_lo_c": 20.0, "t_hi_c": 70.0, **seg(a2, 2e-5)},
+            ],
+        }
+
     for i, model in enumerate([pw(1.1e-4), pw(1.3e-4)]):
         p = make_passport()
         p["thermal_model"] = model
@@ -416,6 +463,10 @@ def test_diff_of_piecewise_models_and_of_a_model_change(tmp_path):
     reg.publish(make_passport(), inputs=INPUTS, settings={"i": 2}, code_version="0.2.0")
     d = reg.diff(UNIT, 2, 3)
     names = {f["name"] for f in d["fields"]}
-    assert {"thermal_model.kind", "thermal_model.order", "thermal_model.breakpoints_c",
-            "provenance.code_version"} <= names
+    assert {
+        "thermal_model.kind",
+        "thermal_model.order",
+        "thermal_model.breakpoints_c",
+        "provenance.code_version",
+    } <= names
     assert d["thermal_model"] == []

@@ -28,9 +28,9 @@ def registry(tmp_path_factory):
     reg = Registry(tmp_path_factory.mktemp("reg"))
     a, b = _passport(41), _passport(42)
     shifted = copy.deepcopy(b)
-    shifted["coefficients"]["U0"][0] += 5e-6                              # about 9 micro-g on x
-    shifted["coefficients"]["K"][1][1] *= 1 + 40e-6                       # 40 ppm of the y gain
-    shifted["coefficients"]["K"][2][0] += 1e-16                           # a float-noise delta
+    shifted["coefficients"]["U0"][0] += 5e-6  # about 9 micro-g on x
+    shifted["coefficients"]["K"][1][1] *= 1 + 40e-6  # 40 ppm of the y gain
+    shifted["coefficients"]["K"][2][0] += 1e-16  # a float-noise delta
     for n, doc in enumerate((a, b, shifted)):
         reg.publish(doc, inputs=[{"path": f"run{n}.mcap", "sha256": f"{n:064x}"}], settings={}, code_version="t")
     return reg
@@ -40,12 +40,12 @@ def test_noise_only_changes_are_rarely_significant(registry):
     d = registry.diff("AU-0001", 1, 2)
     entries = d["constants"] + d["thermal_model"]
     assert len(entries) == 12 + 24 and all(e["significant"] is not None for e in entries)
-    assert sum(e["significant"] for e in entries) <= 5          # about 5 % expected at k = 2
+    assert sum(e["significant"] for e in entries) <= 5  # about 5 % expected at k = 2
     assert d["significance"]["coverage_factor"] == 2.0
     for e in d["constants"]:
         assert e["uncertainty"] > 0 and e["uncertainty_scaled"] > 0
         if e["name"].startswith("U0"):
-            assert e["scaled_unit"] == "micro-g" and e["uncertainty_scaled"] < 3      # below a few micro-g
+            assert e["scaled_unit"] == "micro-g" and e["uncertainty_scaled"] < 3  # below a few micro-g
 
 
 def test_real_shift_is_marked_in_engineering_units(registry):
@@ -54,8 +54,8 @@ def test_real_shift_is_marked_in_engineering_units(registry):
     assert set(by_name) == {"U0.x", "K.yy", "K.zx"}
     assert by_name["U0.x"]["significant"] and by_name["K.yy"]["significant"]
     assert not by_name["K.zx"]["significant"]
-    assert by_name["U0.x"]["delta_scaled"] == pytest.approx(5e-6 / 0.55 * 1e6, rel=0.02)     # micro-g
-    assert by_name["K.yy"]["delta_scaled"] == pytest.approx(-40.0, rel=0.02)                 # ppm (gain < 0)
+    assert by_name["U0.x"]["delta_scaled"] == pytest.approx(5e-6 / 0.55 * 1e6, rel=0.02)  # micro-g
+    assert by_name["K.yy"]["delta_scaled"] == pytest.approx(-40.0, rel=0.02)  # ppm (gain < 0)
     assert {e["name"] for e in significant_changes(d)} == {"U0.x", "K.yy"}
 
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import re
 
-
 from flows.cli import _calibrate_text
 from pipeline.passport.registry import Registry
 from pipeline.passport.text import diff_lines, verification_lines
@@ -22,7 +21,7 @@ def test_calibrate_summary_is_a_table_per_temperature(calibrated_registry):
     rows = [ln for ln in lines if re.match(r"^\s+[+-]\d+\.\d C", ln)]
     temps = sorted({round(v["temp_c"]) for v in doc["verification"]})
     assert len(rows) >= len(temps) and all(("1000" in r or "300" in r) for r in rows), text
-    m1_by_temp: dict[int, float] = {}   # the "after m1" column: the largest |dg| of the visit, in micro-g
+    m1_by_temp: dict[int, float] = {}  # the "after m1" column: the largest |dg| of the visit, in micro-g
     for r in rows:
         m = re.search(r"(\d+\.\d)\s+(\d+\.\d)\s+(\d+\.\d)\s+(\d+)\s+(pass|FAIL)", r)
         assert m, r
@@ -43,17 +42,31 @@ def test_calibrate_summary_names_the_method_once(calibrated_registry):
     why = "plateaus with the six tilt positions: the 12 constants at each temperature"
     text = _calibrate_text({**res, "method": "tilt", "method_auto": f"tilt ({why})"})
     said = [ln for ln in text.splitlines() if ln.lstrip().startswith("method")]
-    assert said == [f"  method {doc['method']} (picked by --method auto: {why}); thermal model "
-                    + said[0].split("; thermal model ", 1)[1]], text
+    assert said == [
+        f"  method {doc['method']} (picked by --method auto: {why}); thermal model "
+        + said[0].split("; thermal model ", 1)[1]
+    ], text
     plain = _calibrate_text({k: v for k, v in res.items() if k != "method_auto"})
     assert [ln for ln in plain.splitlines() if ln.lstrip().startswith("method")] == [
-        said[0].replace(f" (picked by --method auto: {why})", "")]
+        said[0].replace(f" (picked by --method auto: {why})", "")
+    ]
 
 
 def test_failing_rows_are_marked():
-    rows = [{"temp_c": -10.0, "position": f"VP{k}", "run_id": "r", "t_start_ns": k, "dg_uncompensated_g": 5e-3,
-             "dg_method1_g": (1.4e-3 if k == 2 else 2e-6), "dg_method2_g": 1e-5, "tolerance_g": 1e-3,
-             "passed": k != 2} for k in range(1, 7)]
+    rows = [
+        {
+            "temp_c": -10.0,
+            "position": f"VP{k}",
+            "run_id": "r",
+            "t_start_ns": k,
+            "dg_uncompensated_g": 5e-3,
+            "dg_method1_g": (1.4e-3 if k == 2 else 2e-6),
+            "dg_method2_g": 1e-5,
+            "tolerance_g": 1e-3,
+            "passed": k != 2,
+        }
+        for k in range(1, 7)
+    ]
     lines = verification_lines({"verification": rows})
     row = next(ln for ln in lines if "-10.0 C" in ln)
     assert "FAIL" in row and "5000.0" in row and "1400.0" in row and "1000" in row
@@ -75,9 +88,17 @@ def test_passport_log_show_and_diff(monkeypatch, capsys, calibrated_registry):
         assert f"{worst:.1f}ug" in line
     code, out, _ = run_main(monkeypatch, capsys, "passport", "show", unit, "1", "--registry", reg)
     assert code == 0 and not out.lstrip().startswith("{") and len(out.splitlines()) < 40
-    for what in ("passport v1", "method: tilt_six_position", "thermal model: polynomial", "approval:",
-                 "constants at T0", "verification at the VP positions", "inputs (sha256)",
-                 docs[0]["provenance"]["inputs"][0]["sha256"][:16], "v0001.png"):
+    for what in (
+        "passport v1",
+        "method: tilt_six_position",
+        "thermal model: polynomial",
+        "approval:",
+        "constants at T0",
+        "verification at the VP positions",
+        "inputs (sha256)",
+        docs[0]["provenance"]["inputs"][0]["sha256"][:16],
+        "v0001.png",
+    ):
         assert what in out, what
     code, out, _ = run_main(monkeypatch, capsys, "passport", "show", unit, "1", "--registry", reg, "--json")
     assert json.loads(out) == docs[0]
@@ -85,22 +106,54 @@ def test_passport_log_show_and_diff(monkeypatch, capsys, calibrated_registry):
     assert code == 0
     assert "thermal_model.kind: polynomial -> piecewise_linear" in out
     assert "thermal models of different forms" in out
-    assert "e-1" not in out                   # no 16-digit numbers: tiny deltas are counted, not listed
+    assert "e-1" not in out  # no 16-digit numbers: tiny deltas are counted, not listed
     assert "within their uncertainty" in out or "constants and thermal coefficients: unchanged" in out
 
 
 def test_diff_prints_significant_changes_in_engineering_units():
-    d = {"unit": "U", "v1": 1, "v2": 2, "fields": [], "settings": [], "inputs": {},
-         "significance": {"coverage_factor": 2.0},
-         "constants": [{"name": "K.xx", "unit": "V/g", "delta": 5.5e-5, "delta_scaled": 100.0,
-                        "scaled_unit": "ppm of gain", "uncertainty": 1.1e-6, "uncertainty_scaled": 2.0,
-                        "significant": True},
-                       {"name": "U0.y", "unit": "V", "delta": 1e-16, "delta_scaled": 1.8e-10,
-                        "scaled_unit": "micro-g", "uncertainty": 1e-7, "uncertainty_scaled": 0.18,
-                        "significant": False}],
-         "thermal_model": [{"name": "alpha.x[1]", "unit": "V/C^1", "delta": 1e-6, "delta_scaled": 1.8,
-                            "scaled_unit": "micro-g/C^1", "uncertainty": 1e-8, "uncertainty_scaled": 0.018,
-                            "significant": True}]}
+    d = {
+        "unit": "U",
+        "v1": 1,
+        "v2": 2,
+        "fields": [],
+        "settings": [],
+        "inputs": {},
+        "significance": {"coverage_factor": 2.0},
+        "constants": [
+            {
+                "name": "K.xx",
+                "unit": "V/g",
+                "delta": 5.5e-5,
+                "delta_scaled": 100.0,
+                "scaled_unit": "ppm of gain",
+                "uncertainty": 1.1e-6,
+                "uncertainty_scaled": 2.0,
+                "significant": True,
+            },
+            {
+                "name": "U0.y",
+                "unit": "V",
+                "delta": 1e-16,
+                "delta_scaled": 1.8e-10,
+                "scaled_unit": "micro-g",
+                "uncertainty": 1e-7,
+                "uncertainty_scaled": 0.18,
+                "significant": False,
+            },
+        ],
+        "thermal_model": [
+            {
+                "name": "alpha.x[1]",
+                "unit": "V/C^1",
+                "delta": 1e-6,
+                "delta_scaled": 1.8,
+                "scaled_unit": "micro-g/C^1",
+                "uncertainty": 1e-8,
+                "uncertainty_scaled": 0.018,
+                "significant": True,
+            }
+        ],
+    }
     text = "\n".join(diff_lines(d))
     assert re.search(r"K\.xx\s+\+100 ppm of gain \(\+-2, 50\.0 sigma\)\s+SIGNIFICANT", text), text
     assert "U0.y" not in text and "1 more within their uncertainty" in text
@@ -119,8 +172,13 @@ def test_output_unit_recorded_and_inferred_for_older_passports(calibrated_regist
     old = {k: v for k, v in doc.items() if k != "output_unit"}
     assert output_unit_of(old) == "V"
     scale = -9.80665 / 0.55
-    mps2 = {**old, "coefficients": {"K": [[k * scale for k in row] for row in doc["coefficients"]["K"]],
-                                    "U0": [u * scale for u in doc["coefficients"]["U0"]]}}
+    mps2 = {
+        **old,
+        "coefficients": {
+            "K": [[k * scale for k in row] for row in doc["coefficients"]["K"]],
+            "U0": [u * scale for u in doc["coefficients"]["U0"]],
+        },
+    }
     assert output_unit_of(mps2) == "m/s^2"
     text = "\n".join(constants_lines(mps2))
     assert "K_ix ((m/s^2)/g)" in text and "U0_i (m/s^2)" in text and "V/g" not in text
@@ -149,8 +207,11 @@ def test_diff_prints_a_rate_term_in_the_recordings_unit_per_rate():
     from pipeline.passport.diff import diff_passports
 
     def doc(value):
-        return {"unit": "AU-0001", "output_unit": "m/s^2",
-                "rate_terms": {"order": 1, "dt_order": 0, "alpha_rate": {"x": [[value]]}}}
+        return {
+            "unit": "AU-0001",
+            "output_unit": "m/s^2",
+            "rate_terms": {"order": 1, "dt_order": 0, "alpha_rate": {"x": [[value]]}},
+        }
 
     d = diff_passports(doc(1.0), doc(3.0), unit="AU-0001", v1=1, v2=2)
     (entry,) = d["rate_terms"]

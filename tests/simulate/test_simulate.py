@@ -11,10 +11,20 @@ import pytest
 from pipeline.dynamics import first_order_lag
 from pipeline.model import output_v
 from pipeline.positions import MOVING, VERIFICATION_POSITIONS, gravity_vector_g
-from pipeline.simulate.program import PROGRAMS, Hold, Move, Program, Ramp, Soak, Stage, get_program, short_program, \
-    standard_program
 from pipeline.run import RunMeta
 from pipeline.simulate.chamber import SimConfig, parse_utc_ns, simulate, write_truth
+from pipeline.simulate.program import (
+    PROGRAMS,
+    Hold,
+    Move,
+    Program,
+    Ramp,
+    Soak,
+    Stage,
+    get_program,
+    short_program,
+    standard_program,
+)
 from pipeline.simulate.unit import UnitTruth, random_unit, seed000_tables, seed000_unit
 
 SHARED = Path(__file__).resolve().parents[3] / "shared"
@@ -91,12 +101,15 @@ def test_relative_coefficients_describe_the_same_model():
     k0, u00 = unit.constants_at(np.array([20.0]))
     k, u0 = unit.constants_at(np.array([55.0]))
     dt = 35.0
-    assert u0[0, 1] == pytest.approx(u00[0, 1] + sum(c * dt ** (n + 1) for n, c in enumerate(rel["alpha"]["y"])),
-                                     abs=1e-15)
-    assert k[0, 2, 2] == pytest.approx(k0[0, 2, 2] * (1 + sum(c * dt ** (n + 1) for n, c in enumerate(
-        rel["beta"]["zz"]))), abs=1e-15)
-    assert k[0, 0, 2] == pytest.approx(k0[0, 0, 2] * (1 + sum(c * dt ** (n + 1) for n, c in enumerate(
-        rel["gamma"]["xz"]))), abs=1e-15)
+    assert u0[0, 1] == pytest.approx(
+        u00[0, 1] + sum(c * dt ** (n + 1) for n, c in enumerate(rel["alpha"]["y"])), abs=1e-15
+    )
+    assert k[0, 2, 2] == pytest.approx(
+        k0[0, 2, 2] * (1 + sum(c * dt ** (n + 1) for n, c in enumerate(rel["beta"]["zz"]))), abs=1e-15
+    )
+    assert k[0, 0, 2] == pytest.approx(
+        k0[0, 0, 2] * (1 + sum(c * dt ** (n + 1) for n, c in enumerate(rel["gamma"]["xz"]))), abs=1e-15
+    )
 
 
 @pytest.mark.parametrize("seed", range(12))
@@ -167,8 +180,9 @@ def test_timetable_vectorised_queries():
 
 def test_short_program_is_the_same_sequence_shorter():
     std, short = standard_program().timetable(), short_program().timetable()
-    assert [(h.setpoint_start_c, h.position) for h in std.holds()] == \
-        [(h.setpoint_start_c, h.position) for h in short.holds()]
+    assert [(h.setpoint_start_c, h.position) for h in std.holds()] == [
+        (h.setpoint_start_c, h.position) for h in short.holds()
+    ]
     assert all(h.t_end_s - h.t_start_s == 60.0 for h in short.holds())
     assert all(m.t_end_s - m.t_start_s == 10.0 for m in short.moves())
     assert short.duration_s < 4 * 3600
@@ -177,7 +191,7 @@ def test_short_program_is_the_same_sequence_shorter():
 
 def test_differential_program_holds_orientations_through_cycles():
     tt = get_program("differential").timetable()
-    assert [h.position for h in tt.holds()] == [f"TP{k}" for k in range(1, 7)]   # seed 003: six orientations
+    assert [h.position for h in tt.holds()] == [f"TP{k}" for k in range(1, 7)]  # seed 003: six orientations
     t = np.arange(0.0, tt.duration_s, 10.0)
     sp = tt.setpoint_c(t)
     assert sp.min() == -40.0 and sp.max() == 70.0
@@ -207,8 +221,9 @@ def test_first_order_lag_is_exact_for_a_ramp():
     np.testing.assert_allclose(y, rate * (t - tau * (1 - np.exp(-t / tau))), atol=1e-12)
     # A non-uniform grid gives the same answer (resampled).
     tn = np.sort(np.concatenate([t[::7], t[3::11] + 0.5]))
-    np.testing.assert_allclose(first_order_lag(tn, rate * tn, tau), rate * (tn - tau * (1 - np.exp(-tn / tau))),
-                               atol=1e-3)
+    np.testing.assert_allclose(
+        first_order_lag(tn, rate * tn, tau), rate * (tn - tau * (1 - np.exp(-tn / tau))), atol=1e-3
+    )
 
 
 @pytest.mark.parametrize("case_lag_s", [None, 900.0])
@@ -230,8 +245,9 @@ def test_case_follows_air_with_the_configured_lag(case_lag_s):
     u = t_s[ramp] - 5500
     rate_c_per_s, tau_air = -1.0 / 60.0, 90.0
     lag_air = rate_c_per_s * tau_air * (1 - np.exp(-u / tau_air))
-    lag_case = rate_c_per_s * (tau_air + tau - (tau_air ** 2 * np.exp(-u / tau_air) - tau ** 2 * np.exp(-u / tau))
-                               / (tau_air - tau))
+    lag_case = rate_c_per_s * (
+        tau_air + tau - (tau_air**2 * np.exp(-u / tau_air) - tau**2 * np.exp(-u / tau)) / (tau_air - tau)
+    )
     np.testing.assert_allclose(setpoint[ramp] - air[ramp], lag_air, atol=1e-6)
     np.testing.assert_allclose(setpoint[ramp] - case[ramp], lag_case, atol=1e-4)
     assert case[ramp][-1] - setpoint[ramp][-1] == pytest.approx(-rate_c_per_s * (tau_air + tau), rel=0.05)
@@ -289,7 +305,7 @@ def test_noisy_plateaus_average_to_the_model(noisy):
         diff = (u[m] - output_v(k[m], u0[m], gravity_vector_g(hold["position"]))).mean(axis=0)
         z.append(diff / (5e-6 / np.sqrt(m.sum())))
     z = np.abs(np.array(z))
-    assert z.max() < 5.0 and np.mean(z ** 2) < 2.0
+    assert z.max() < 5.0 and np.mean(z**2) < 2.0
 
 
 def test_moves_turn_smoothly_with_vibration():
@@ -306,8 +322,9 @@ def test_moves_turn_smoothly_with_vibration():
         m = (t >= seg.t_start_s) & (t <= seg.t_end_s)
         angle = np.arccos(np.clip(qa[m] @ gravity_vector_g(seg.from_position), -1, 1))
         assert np.all(np.diff(angle) >= -1e-12)
-        assert angle[-1] == pytest.approx(np.arccos(np.clip(gravity_vector_g(seg.to_position) @
-                                                            gravity_vector_g(seg.from_position), -1, 1)), abs=1e-9)
+        assert angle[-1] == pytest.approx(
+            np.arccos(np.clip(gravity_vector_g(seg.to_position) @ gravity_vector_g(seg.from_position), -1, 1)), abs=1e-9
+        )
 
 
 def test_reproducible_and_seeded(clean):
@@ -329,7 +346,7 @@ def test_reproducible_and_seeded(clean):
 def test_streams_and_rates(clean):
     run = clean.run
     start = parse_utc_ns("2026-11-01T00:00:00Z")
-    assert start == 1793491200 * 10 ** 9
+    assert start == 1793491200 * 10**9
     t = run.t_ns()
     assert t[0] == start and np.all(np.diff(t) == 100_000_000) and t.size == 592_601
     tt = run.au_temperature["t_ns"].to_numpy()
@@ -351,7 +368,7 @@ def test_fixture_log_events(clean):
     arrivals = [p for p in pos if p != MOVING]
     holds = [h["position"] for h in clean.truth["holds"]]
     assert arrivals == holds  # consecutive holds are always in different positions here
-    np.testing.assert_array_equal(t[2::2] - t[1::2], 20 * 10 ** 9)  # 20 s moves
+    np.testing.assert_array_equal(t[2::2] - t[1::2], 20 * 10**9)  # 20 s moves
     for hold, t_arrive in zip(clean.truth["holds"][1:], t[2::2]):
         assert hold["t_start_ns"] == t_arrive
     # The voltages move only while the log says MOVING.
@@ -368,15 +385,19 @@ def test_metadata(clean):
     assert meta.started_utc == "2026-11-01T00:00:00Z" and meta.nominal_gain_v_per_g == -0.55
     strings = meta.to_strings()
     assert strings["g_local_mps2"] == "9.80665" and RunMeta.from_strings(strings) == meta
-    other = simulate(SimConfig(program="short", unit_serial="AU-0042", seed=3, station="ch2",
-                               started_utc="2027-01-02T03:04:05Z"))
+    other = simulate(
+        SimConfig(program="short", unit_serial="AU-0042", seed=3, station="ch2", started_utc="2027-01-02T03:04:05Z")
+    )
     assert other.run.meta.run_id == "sim-AU-0042-s3" and other.run.meta.station == "ch2"
     assert other.run.t_ns()[0] == parse_utc_ns("2027-01-02T03:04:05+00:00")
 
 
 def test_truth_document(clean, tmp_path):
-    res = simulate(SimConfig(program="short", effects=[("thermal_hysteresis", {"h_v_x": 1e-5}),
-                                                       ("fixture_face_error", {"seed": 4})]))
+    res = simulate(
+        SimConfig(
+            program="short", effects=[("thermal_hysteresis", {"h_v_x": 1e-5}), ("fixture_face_error", {"seed": 4})]
+        )
+    )
     path = tmp_path / "truth.json"
     write_truth(res.truth, path)
     text = path.read_text()
@@ -398,7 +419,7 @@ def test_truth_document(clean, tmp_path):
     assert 0 < np.linalg.norm(vp1 - np.array(VERIFICATION_POSITIONS["VP1"])) < 1e-3
     h = doc["holds"][0]
     assert set(h) >= {"position", "t_start_ns", "t_end_ns", "setpoint_c"}
-    assert h["position"] == "TP1" and h["t_end_ns"] - h["t_start_ns"] == 60 * 10 ** 9
+    assert h["position"] == "TP1" and h["t_end_ns"] - h["t_start_ns"] == 60 * 10**9
     assert doc["config"]["effects"][0] == ["thermal_hysteresis", {"h_v_x": 1e-5}]
 
 

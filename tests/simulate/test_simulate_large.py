@@ -10,8 +10,14 @@ import pytest
 from pipeline.simulate.chamber import SimConfig, simulate
 from pipeline.simulate.large import simulate_chunked, simulate_run
 
-LOCAL_EFFECTS = [("time_drift", {}), ("thermal_hysteresis", {}), ("warmup_transient", {}),
-                 ("temperature_curvature", {}), ("scale_nonlinearity", {}), ("fixture_face_error", {})]
+LOCAL_EFFECTS = [
+    ("time_drift", {}),
+    ("thermal_hysteresis", {}),
+    ("warmup_transient", {}),
+    ("temperature_curvature", {}),
+    ("scale_nonlinearity", {}),
+    ("fixture_face_error", {}),
+]
 
 
 @pytest.mark.parametrize("effects", [[], LOCAL_EFFECTS])
