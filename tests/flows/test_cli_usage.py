@@ -128,7 +128,7 @@ def test_output_into_a_closed_pipe_ends_quietly():
 def test_fleet_summary_names_each_failed_run_once():
     """The fleet's text: counts in words, and a failed run's one-line reason (which names its file) not preceded by
     the same path again."""
-    from flows.cli import _fleet_text
+    from flows.cli.fleet import fleet_text
 
     bad = "/in/bad.mcap"
     s = {
@@ -136,7 +136,7 @@ def test_fleet_summary_names_each_failed_run_once():
         "failed": [{"run": bad, "reason": f"{bad}: not an MCAP file"}, {"run": "/in/x", "reason": "no voltmeter"}],
         "skipped": [],
     }
-    text = _fleet_text(s)
+    text = fleet_text(s)
     assert text.splitlines()[0] == "done: 1 unit, failed: 2 runs, skipped: 0 runs"
     assert "  FAILED  /in/bad.mcap: not an MCAP file" in text and text.count(bad) == 1
     assert "  FAILED  /in/x: no voltmeter" in text

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import re
 
-from flows.cli import _calibrate_text
+from flows.cli.calibrate import calibrate_text
 from pipeline.passport.registry import Registry
 from pipeline.passport.text import diff_lines, verification_lines
 from tests.conftest import run_main
@@ -14,7 +14,7 @@ from tests.conftest import run_main
 def test_calibrate_summary_is_a_table_per_temperature(calibrated_registry):
     res = calibrated_registry["results"][0]
     doc = json.loads(open(res["passport"]).read())
-    text = _calibrate_text({**res, "constants_figure": "c.png"})
+    text = calibrate_text({**res, "constants_figure": "c.png"})
     lines = text.splitlines()
     assert len(lines) < 30, text
     # one row per visit of a verification temperature, with its limit in micro-g
@@ -40,13 +40,13 @@ def test_calibrate_summary_names_the_method_once(calibrated_registry):
     res = calibrated_registry["results"][0]
     doc = json.loads(open(res["passport"]).read())
     why = "plateaus with the six tilt positions: the 12 constants at each temperature"
-    text = _calibrate_text({**res, "method": "tilt", "method_auto": f"tilt ({why})"})
+    text = calibrate_text({**res, "method": "tilt", "method_auto": f"tilt ({why})"})
     said = [ln for ln in text.splitlines() if ln.lstrip().startswith("method")]
     assert said == [
         f"  method {doc['method']} (picked by --method auto: {why}); thermal model "
         + said[0].split("; thermal model ", 1)[1]
     ], text
-    plain = _calibrate_text({k: v for k, v in res.items() if k != "method_auto"})
+    plain = calibrate_text({k: v for k, v in res.items() if k != "method_auto"})
     assert [ln for ln in plain.splitlines() if ln.lstrip().startswith("method")] == [
         said[0].replace(f" (picked by --method auto: {why})", "")
     ]

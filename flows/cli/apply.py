@@ -1,0 +1,48 @@
+"""``thermocal apply PASSPORT RUN --out FILE``: a passport's model applied to every voltmeter sample."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import typer
+
+from .app import JsonFlag, app, emit
+
+
+@app.command()
+def apply(
+    passport: Path = typer.Argument(..., metavar="PASSPORT", help="passport JSON file"),
+    run: Path = typer.Argument(..., metavar="RUN", help="an .mcap file or a Parquet run directory"),
+    out: Path = typer.Option(..., "--out", help="output: a Parquet file, or MCAP when the name ends .mcap"),
+    as_json: JsonFlag = False,
+):
+    """The passport's model (thermal model included) applied to every voltmeter sample: specific force in g, one
+    row per input row, in_range per the passport's valid temperatures (a warning when some are outside)."""
+    from pipeline.apply import apply_passport, write_applied
+    from pipeline.io.runs import read_run
+    from pipeline.passport.document import read_passport
+
+    doc = read_passport(passport)
+    r = read_run(run)
+    applied = apply_passport(doc, r)
+    path = write_applied(applied, out, passport=doc, run=r)
+    for w in applied.warnings:
+        print(f"thermocal: warning: {w}", file=sys.stderr)
+    t = applied.table
+    inr = int(t["in_range"].sum())
+    obj = {
+        "out": str(path),
+        "rows": t.height,
+        "in_range": inr,
+        "out_of_range": t.height - inr,
+        "valid_temp_c": list(applied.valid_temp_c) if applied.valid_temp_c else None,
+        "passport": {
+            "unit": doc.get("unit"),
+            "version": doc.get("version"),
+            "method": doc.get("method"),
+            "status": doc.get("status"),
+        },
+        "warnings": applied.warnings,
+    }
+    emit(obj, as_json, f"wrote {path}: {t.height} rows, {t.height - inr} outside the valid temperature range")

@@ -1,0 +1,106 @@
+"""``thermocal calibrate RUN...``: one unit's runs into a new passport version (the Prefect flow
+:func:`flows.calibrate.calibrate_flow`, run by :func:`flows.calibrate.run_calibrate`)."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import typer
+
+from pipeline.errors import ThermocalError
+
+from .app import REGISTRY_HELP, JsonFlag, app, calibration_settings, check_method, emit, needs_base
+
+
+@app.command()
+def calibrate(
+    runs: list[Path] = typer.Argument(
+        ..., metavar="RUN", help="runs of one unit (.mcap files or Parquet run directories)"
+    ),
+    registry: Path = typer.Option(..., "--registry", help=REGISTRY_HELP),
+    thermal_model: str = typer.Option(
+        "auto",
+        "--thermal-model",
+        help="temperature model of the constants: poly1 | poly2 | poly3 "
+        "(polynomial of that order) | piecewise (linear between "
+        "plateaus); auto: the highest order the plateaus allow, at "
+        "most 3",
+    ),
+    constants_method: str = typer.Option(
+        "auto",
+        "--constants-method",
+        help="how the constants are solved per plateau: six_position "
+        "(closed form from TP1..TP6) | least_squares (every "
+        "position) | auto",
+    ),
+    tol_normal_g: float = typer.Option(
+        3e-4, "--tol-normal-g", help="pass limit of the gravity-module error |dg| at the normal temperature, g"
+    ),
+    tol_range_g: float = typer.Option(
+        1e-3, "--tol-range-g", help="pass limit of |dg| over the rest of the temperature range, g"
+    ),
+    method: str = typer.Option(
+        "auto",
+        "--method",
+        help="auto (default: the method the recording supports, as inspect "
+        "says, and the result says which) | tilt (known fixture positions) | "
+        "scalar (the positions need not be known: only |a| = 1 g is used) | "
+        "differential (fixed orientations through a temperature cycle or "
+        "sweep)",
+    ),
+    base_passport: Path | None = typer.Option(
+        None,
+        "--base-passport",
+        help="differential: normal-temperature passport to start from "
+        "(default: the unit's current passport in the registry: its "
+        "newest approved version, else its newest, not made by the "
+        "differential method and not failed; without one, the constants "
+        "the orientations determine by themselves)",
+    ),
+    dry_run: bool = typer.Option(
+        False, "--dry-run", help="compute and print everything, write nothing to the registry"
+    ),
+    as_json: JsonFlag = False,
+):
+    """Ingest, segment, average, fit, verify on the VP segments, write a new passport version (Prefect flow).
+
+    Exit status 1 (with the result printed) when the calibration's status is fail."""
+    settings = calibration_settings(thermal_model, constants_method, tol_normal_g, tol_range_g)
+    if method != "auto":
+        check_method(method)
+    for r in runs:
+        if not r.exists():
+            raise ThermocalError("no such file or directory", path=str(r))
+    base = None  # the flow looks up the unit's current passport when the method needs one and none is named
+    if base_passport is not None and (method == "auto" or needs_base(method)):
+        from pipeline.passport.document import read_passport
+
+        base = read_passport(base_passport)
+    from ..calibrate import run_calibrate
+
+    result = run_calibrate([str(r) for r in runs], str(registry), settings, method, base, dry_run)
+    emit(result, as_json, None if as_json else calibrate_text(result))
+    if result.get("status") == "fail":
+        print(
+            f"thermocal: calibrate: {result['unit']}: status fail (the compensated gravity-module error "
+            "exceeds its limit at a verification position)",
+            file=sys.stderr,
+        )
+        raise typer.Exit(1)
+
+
+def calibrate_text(r: dict) -> str:
+    from pipeline.passport.text import calibrate_lines
+
+    doc = r.get("passport_content") if r.get("dry_run") else None
+    if doc is None and r.get("passport") and Path(r["passport"]).is_file():
+        try:
+            doc = json.loads(Path(r["passport"]).read_text())
+        except (OSError, ValueError):
+            doc = None
+    lines = calibrate_lines(r, doc)
+    if r.get("base_passport_used"):
+        lines.insert(1, r["base_passport_used"])
+    return "\n".join(lines)

@@ -1,0 +1,39 @@
+"""``thermocal diagnose RUN``: the recording against the model its passport predicts (the work:
+:mod:`flows.diagnose_cmd`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from .app import JsonFlag, app, emit
+
+
+@app.command()
+def diagnose(
+    run: Path = typer.Argument(..., metavar="RUN", help="an .mcap file or a Parquet run directory"),
+    passport: Path | None = typer.Option(
+        None, "--passport", help="the passport file to compare with (default: one fitted from the run itself)"
+    ),
+    registry: Path | None = typer.Option(
+        None,
+        "--registry",
+        help="compare with the unit's current passport in this registry (its newest approved version, else its newest)",
+    ),
+    png: Path | None = typer.Option(
+        None, "--png", help="where to write the figure (default: RUN.diagnose.png beside the run)"
+    ),
+    out_passport: Path | None = typer.Option(
+        None,
+        "--out-passport",
+        help="where to write the passport extended by the findings (default: "
+        "RUN.diagnose.passport.json beside the run)",
+    ),
+    as_json: JsonFlag = False,
+):
+    """Compare the recording with the model its passport predicts: locate, name and model the mismatch."""
+    from ..diagnose_cmd import diagnose_command, diagnose_text
+
+    report = diagnose_command(run, passport, as_json, png, out_passport, registry)  # a failed passport: its notes
+    emit(report, as_json, None if as_json else diagnose_text(report))

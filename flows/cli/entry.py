@@ -1,0 +1,70 @@
+"""The console entry point :func:`main`: runs :data:`flows.cli.app.app` (every command registered by
+importing :mod:`flows.cli`) with one-line usage errors and exit statuses (contract.md)."""
+
+from __future__ import annotations
+
+import sys
+
+import typer
+
+from .app import app
+
+
+def _click_errors() -> tuple[type, ...]:
+    """The exception classes of a command-line usage error: click's, and typer's own copy of click's (newer typer
+    vendors click)."""
+    import click
+
+    found = [click.ClickException]
+    try:
+        from typer._click.exceptions import ClickException as vendored
+    except ImportError:
+        pass
+    else:
+        found.append(vendored)
+    return tuple(found)
+
+
+_CLICK_ERRORS = _click_errors()
+
+
+def _usage_line(e: Exception) -> str:
+    """One line for a usage error: the message, the command it concerns and where help is."""
+    msg = " ".join((e.format_message() if hasattr(e, "format_message") else str(e)).split())
+    ctx = getattr(e, "ctx", None)
+    cmd = ctx.command_path if ctx is not None and getattr(ctx, "command_path", "") else "thermocal"
+    if not msg:  # a group called without its command
+        msg = "missing command."
+    return f"thermocal: usage error: {msg} (see `{cmd} --help`)"
+
+
+def main(server_checked: bool = False) -> None:
+    """Console entry point: one-line errors, no tracebacks (set THERMOCAL_DEBUG=1 to see them); a closed stdout
+    (``| head``) ends the output quietly (:func:`flows.runtime.exit_guarded`). Commands that run a flow go to the
+    local server's warm worker unless PREFECT_API_URL is set (:mod:`flows.localserver`; ``server_checked``: the
+    caller, :func:`flows.console.main`, has already found that this command is not one of them)."""
+    from ..runtime import exit_guarded
+
+    exit_guarded(lambda: _main(server_checked))
+
+
+def _main(server_checked: bool) -> int:
+    """The command's exit status (usage errors: their one line and 2)."""
+    try:
+        argv = sys.argv[1:]
+        if not server_checked:
+            from ..localserver import run_on_server, runs_on_local_server
+
+            if runs_on_local_server(argv):
+                return run_on_server(argv)
+        rc = app(standalone_mode=False, prog_name="thermocal")
+        if rc == 130:  # typer's answer to Ctrl-C (KeyboardInterrupt) in a command
+            raise KeyboardInterrupt
+        return rc if isinstance(rc, int) else 0
+    except _CLICK_ERRORS as e:  # usage: a missing or unknown command, option or value
+        print(_usage_line(e), file=sys.stderr)
+        return 2 if getattr(e, "exit_code", 2) in (None, 2) else e.exit_code
+    except typer.Exit as e:
+        return e.exit_code
+    except typer.Abort:
+        raise KeyboardInterrupt from None

@@ -1,0 +1,22 @@
+"""``thermocal inspect RUN``: what a run holds (no Prefect)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from .app import JsonFlag, app, emit
+
+
+@app.command()
+def inspect(
+    run: Path = typer.Argument(..., metavar="RUN", help="an .mcap file or a Parquet run directory"),
+    as_json: JsonFlag = False,
+):
+    """What a run holds: metadata, streams, rates, gaps, the plateaus and static positions found (no Prefect)."""
+    from pipeline.inspect import format_summary, summarize_run
+    from pipeline.io.runs import read_run
+
+    summary = summarize_run(read_run(run))
+    emit(summary, as_json, None if as_json else format_summary(summary))

@@ -1,0 +1,145 @@
+"""``thermocal simulate``: one simulated run of a chamber program and its ground truth."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from pipeline.errors import ThermocalError
+
+from .app import JsonFlag, app, emit
+
+
+@app.command()
+def simulate(
+    out: Path = typer.Option(..., "--out", help="output .mcap file or Parquet directory"),
+    fmt: str = typer.Option("mcap", "--format", help="file format: mcap (one file) | parquet (a folder)"),
+    unit: str = typer.Option("AU-0001", "--unit", help="unit serial number written into the run"),
+    seed: int = typer.Option(0, "--seed", help="random seed of the measurement noise"),
+    unit_seed: int | None = typer.Option(
+        None,
+        "--unit-seed",
+        help="draw a different unit of the same type from this seed (default: the "
+        "reference unit, whose constants are the published tables)",
+    ),
+    effect: list[str] = typer.Option(
+        [],
+        "--effect",
+        metavar="ID[:k=v,...]",
+        help="add a physical effect from the catalogue, with its parameters by name; repeat for several",
+    ),
+    disturbance: list[str] = typer.Option(
+        [],
+        "--disturbance",
+        metavar="ID[:k=v,...]",
+        help="add a mismatch outside the catalogue (constants_shift, bias_step, bias_random_walk, "
+        "periodic), with its parameters by name; repeat for several",
+    ),
+    program: str = typer.Option(
+        "standard",
+        "--program",
+        help="chamber program: standard (full temperature steps), short (a few "
+        "plateaus, for quick tries) | differential (six orientations "
+        "through a temperature cycle) | handheld (36 hand-turned poses of "
+        "3 s at 20 C; use ~100 Hz and --jitter-ms) | sweep (three "
+        "orientations, the temperature drifting 5-25 C, no plateau)",
+    ),
+    soak_min: float | None = typer.Option(
+        None,
+        "--soak-min",
+        metavar="MINUTES",
+        help="make every soak of the program this many minutes (the standard program soaks 60 and 90 "
+        "min); short soaks leave the unit still settling while the positions are held",
+    ),
+    drop: list[str] = typer.Option(
+        [],
+        "--drop",
+        metavar="POS@TEMP[#K]",
+        help="leave out the hold of a position at the stages of that setpoint, e.g. TP4@-40 (#2: only the "
+        "second stage at that setpoint); repeat for several",
+    ),
+    rate_hz: float = typer.Option(10.0, "--rate-hz", help="voltmeter sampling rate, Hz"),
+    noise_uv: float = typer.Option(5.0, "--noise-uv", help="voltmeter noise per sample, micro-volts"),
+    case_lag_s: float | None = typer.Option(
+        None,
+        "--case-lag-s",
+        help="time constant of the unit's case temperature behind the chamber air, s (default: the unit type's)",
+    ),
+    jitter_ms: float = typer.Option(
+        0.0,
+        "--jitter-ms",
+        help="voltmeter timestamp jitter (standard deviation), ms: a wireless logger's irregular stamps",
+    ),
+    no_fixture_log: bool = typer.Option(False, "--no-fixture-log", help="leave out the fixture's position log"),
+    encoding: str = typer.Option("json", "--encoding", help="MCAP message encoding: json | protobuf"),
+    truth: Path | None = typer.Option(
+        None, "--truth", help="where to write the ground truth as JSON (default: beside the run, NAME.truth.json)"
+    ),
+    as_json: JsonFlag = False,
+):
+    """Write one simulated run of a chamber program, and its ground truth as JSON beside it."""
+    from pipeline.effects.catalogue import parse_effect_spec
+    from pipeline.io.runs import FORMATS, write_run
+    from pipeline.simulate.chamber import SimConfig, write_truth
+    from pipeline.simulate.disturbances import parse_disturbance_spec
+    from pipeline.simulate.large import simulate_run
+    from pipeline.simulate.program import PROGRAMS, get_program, parse_drop, variant
+
+    if program not in PROGRAMS:
+        raise ThermocalError(f"unknown chamber program {program!r} ({', '.join(PROGRAMS)})", where="--program")
+    chosen = program
+    if soak_min is not None or drop:
+        if soak_min is not None and not soak_min >= 0:
+            raise ThermocalError(f"soak must be 0 minutes or more, got {soak_min:g}", where="--soak-min")
+        for d in drop:
+            try:
+                parse_drop(d)
+            except ValueError as e:
+                raise ThermocalError(str(e), where="--drop") from None
+        try:
+            chosen = variant(get_program(program), None if soak_min is None else soak_min * 60.0, tuple(drop))
+        except ValueError as e:
+            raise ThermocalError(str(e), where="--drop") from None
+    if fmt not in FORMATS:
+        raise ThermocalError(f"unknown format {fmt!r} ({', '.join(FORMATS)})", where="--format")
+    try:
+        effects = [parse_effect_spec(e) for e in effect]
+    except ValueError as e:
+        raise ThermocalError(str(e), where="--effect") from None
+    try:
+        disturbances = [parse_disturbance_spec(d) for d in disturbance]
+    except ValueError as e:
+        raise ThermocalError(str(e), where="--disturbance") from None
+    cfg = SimConfig(
+        unit_serial=unit,
+        seed=seed,
+        unit_seed=unit_seed,
+        program=chosen,
+        rate_hz=rate_hz,
+        noise_v=noise_uv * 1e-6,
+        case_lag_s=case_lag_s,
+        effects=effects,
+        jitter_s=jitter_ms * 1e-3,
+        disturbances=disturbances,
+        with_fixture_log=not no_fixture_log,
+    )
+    res = simulate_run(cfg)
+    opts = {"encoding": encoding} if fmt == "mcap" and encoding != "json" else {}
+    path = write_run(res.run, out, fmt, **opts)
+    truth_path = truth or _truth_path(path)
+    try:
+        write_truth(res.truth, truth_path)
+    except OSError as e:
+        raise ThermocalError(f"cannot write the ground truth ({e.strerror or e})", path=str(truth_path)) from None
+    n = res.run.voltmeter.height
+    emit(
+        {"run": str(path), "truth": str(truth_path), "samples": n, "unit": unit},
+        as_json,
+        f"wrote {path} ({n} voltmeter samples) and {truth_path}",
+    )
+
+
+def _truth_path(run_path: Path) -> Path:
+    run_path = Path(run_path)
+    return run_path.parent / f"{run_path.name.removesuffix('.mcap')}.truth.json"
