@@ -11,8 +11,8 @@ about 17 MB each at 10 Hz; ``--encoding``: JSON blocks, the default, or protobuf
 Every mode calibrates the whole fleet into a fresh registry:
 
 - ``plain``:   :func:`pipeline.calibrate.fleet.calibrate_group` in a loop, no Prefect (the compute baseline);
-- ``pool``:    what the flow's ``pool="process"`` does, without Prefect: :func:`pipeline.calibrate.fleet.plan_fleet`, then
-  ``calibrate_group`` on a spawn process pool of ``--workers`` warmed by ``prepare_worker`` (the parallel
+- ``pool``:    what the flow's ``pool="process"`` does, without Prefect: :func:`pipeline.calibrate.fleet.plan_fleet`,
+  then ``calibrate_group`` on a spawn process pool of ``--workers`` warmed by ``prepare_worker`` (the parallel
   baseline: ``process`` wall / ``pool`` wall - 1 is Prefect's share);
 - ``thread1``: the fleet flow with one worker thread: its wall time minus the compute measured inside the tasks is
   Prefect's own cost (flow run, planning, task runs, artifact), given per unit;

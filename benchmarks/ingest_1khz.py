@@ -12,7 +12,8 @@ peak memory figure (``ru_maxrss``, which sees numpy and polars memory and mapped
   column for JSON, ``numpy.frombuffer`` of the packed fields for protobuf) and one concatenation per column;
 - thermocal's ingest (``pipeline.io.runs.read_run``);
 - the whole calibration without Prefect: ingest, segmentation and averaging (``observe_run``), fit, verification,
-  and writing the passport into a fresh registry (``pipeline.calibrate.publish.publish``: hashes the input, draws the figure);
+  and writing the passport into a fresh registry (``pipeline.calibrate.publish.publish``: hashes the input, draws the
+  figure);
 - with ``--flow``, the same through the Prefect flow (``flows.calibrate.run_calibrate``) after a warm-up flow has
   started Prefect, so that the figure does not include Prefect's start-up.
 
@@ -222,9 +223,7 @@ def table(results: list[tuple[str, str, dict]]) -> str:
         )
         if "stages" in r:
             lines.append(
-                "| | &nbsp;&nbsp;stages | "
-                + ", ".join(f"{k} {v:.1f}" for k, v in r["stages"].items())
-                + " | | | | | |"
+                "| | &nbsp;&nbsp;stages | " + ", ".join(f"{k} {v:.1f}" for k, v in r["stages"].items()) + " | | | | | |"
             )
     return "\n".join(lines)
 

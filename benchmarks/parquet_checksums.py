@@ -18,6 +18,7 @@ import argparse
 import os
 import tempfile
 import time
+from functools import partial
 from pathlib import Path
 
 import polars as pl
@@ -54,9 +55,9 @@ def main() -> None:
         total = [0.0] * 6
         for f in sorted(d.glob("*.parquet")):
             pages = verify_page_checksums(f)
-            v = best(lambda: verify_page_checksums(f), args.repeat)
-            r = best(lambda: pl.read_parquet(f), args.repeat)
-            p = best(lambda: pq.read_table(f, page_checksum_verification=True), args.repeat)
+            v = best(partial(verify_page_checksums, f), args.repeat)
+            r = best(partial(pl.read_parquet, f), args.repeat)
+            p = best(partial(pq.read_table, f, page_checksum_verification=True), args.repeat)
             for k, x in enumerate((*v, *r, *p)):
                 total[k] += x
             mb = f.stat().st_size / 1e6

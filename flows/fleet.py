@@ -210,8 +210,9 @@ def fleet_flow(
     method: str = "tilt",
 ) -> dict:
     """Calibrate every run under ``root`` into ``registry`` by ``method`` (``pipeline.calibrate.methods``): one
-    task per unit, bad runs reported, done units skipped. Returns the ``fleet --json`` object: ``done``, ``failed``, ``skipped`` (contract.md), ``flow_run_id``
-    and ``timing`` (wall, planning and in-task compute seconds, the runner)."""
+    task per unit, bad runs reported, done units skipped. Returns the ``fleet --json`` object: ``done``, ``failed``,
+    ``skipped`` (contract.md), ``flow_run_id`` and ``timing`` (wall, planning and in-task compute seconds, the
+    runner)."""
     logger = get_run_logger()
     t0 = time.perf_counter()
     step = Steps("fleet")  # progress only when asked and stderr is a terminal

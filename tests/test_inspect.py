@@ -69,7 +69,7 @@ def test_format_summary(run):
     text = format_summary(summarize_run(run))
     assert "run inspect-1  unit AU-0003  station ch1" in text
     assert "voltmeter: 19700 samples, 10 Hz, 33.3 min" in text
-    assert "1 gaps (longest 30.1 s at %s)" % utc_text(T0_NS + 500 * 10**9) in text
+    assert f"1 gaps (longest 30.1 s at {utc_text(T0_NS + 500 * 10**9)})" in text
     assert "4 non-finite values" in text
     assert "fixture: 3 events" in text and "positions MOVING TP1 TP2" in text
     assert "segmentation:" in text

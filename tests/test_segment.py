@@ -334,7 +334,9 @@ def test_short_hand_turned_poses_found(rate_hz, jitter_s, hold_s):
     assert len(seg.segments) == 36
     assert [s.position for s in seg.segments] == [h["position"] for h in holds]
     assert seg.static_window_s < 2.0 and seg.static_min_s < hold_s
+    # each segment lies in its pose's hold (within one window) and fills most of it
     for s, h in zip(seg.segments, holds):
+        assert h["t_start_ns"] - 2e9 <= s.t_start_ns < s.t_end_ns <= h["t_end_ns"] + 2e9
         assert s.duration_s > 0.3 * hold_s
     assert dc.replace(SegmentSettings()).static_window_s == 2.0
 

@@ -18,7 +18,8 @@ polynomial in dT = T - T0 (order up to 3) plus terms in the temperature rate r =
 The specific force a is not known precisely, but it multiplies only small changes, so the orientation's mean output
 with the normal-temperature constants, a0 = K0^-1 (U - U0) (the paper's F^p), stands in for it. a0 carries the mean
 temperature error of the window (mg uncompensated), which multiplies the scale change; ``refine_passes`` refits with
-the windows' compensated mean instead (a micro-g effect). The paper fits s and b per axis (its quartz-flexure units have negligible cross-axis temperature terms). This project adds, as options:
+the windows' compensated mean instead (a micro-g effect). The paper fits s and b per axis (its quartz-flexure units have
+negligible cross-axis temperature terms). This project adds, as options:
 
 - the cross-axis terms g_cj for the axes j the orientations excite (``cross_axis``, on by default: seed 000's unit
   has gamma up to 6e-3 /C on cross-axis terms of 0.03 of the gain, about 1 mg of cross-axis change over 50 C);
@@ -1063,9 +1064,10 @@ def fit_uncertainty(
 
     - ``coefficients`` (K, U0 at T0): the base passport's own uncertainties (the method takes its constants), or,
       without a base, the spread of the constants between the orientations that give them (std / sqrt(n));
-    - ``thermal_model`` and ``rate_terms``: every fitted coefficient's standard uncertainty (:func:`pipeline.uncertainty.regression_cov`)
-      over the differenced pairs (residuals clustered in :data:`CLUSTER_S` stretches, or the block noise measured
-      in the data, whichever is larger), conditional on the lag when the lag was fitted.
+    - ``thermal_model`` and ``rate_terms``: every fitted coefficient's standard uncertainty
+      (:func:`pipeline.uncertainty.regression_cov`) over the differenced pairs (residuals clustered in :data:`CLUSTER_S`
+      stretches, or the block noise measured in the data, whichever is larger), conditional on the lag when the lag was
+      fitted.
 
     A number without a measured uncertainty is null, and ``undetermined`` says why (a term the orientations do not
     excite, a cross-axis constant the orientations cannot separate, a base passport without uncertainties, a

@@ -3,12 +3,12 @@ calibrate one unit's group while isolating a bad run.
 
 - :func:`discover_runs`: every run under a folder, both layouts (``*.mcap`` files; Parquet run directories, i.e.
   directories holding ``voltmeter.parquet`` or ``run.json``); hidden names (writers' temp files) are ignored.
-- :func:`pipeline.io.runs.read_run_meta`: a run's metadata only (the MCAP ``run`` record through the summary's metadata index; a
-  Parquet run's ``run.json``), to group runs by unit without reading their samples.
+- :func:`pipeline.io.runs.read_run_meta`: a run's metadata only (the MCAP ``run`` record through the summary's metadata
+  index; a Parquet run's ``run.json``), to group runs by unit without reading their samples.
 - :func:`plan_fleet`: groups by unit serial; a group whose identity (the content hashes of its runs and the
-  settings, :func:`pipeline.passport.registry.identity_key`) is already in the registry is skipped ("already processed").
-  Metadata and hashes are read in a few threads (hashing releases the GIL); the hashes travel with the groups, so
-  the calibration does not read the runs a second time to hash them (unless a run changed since, by its
+  settings, :func:`pipeline.passport.registry.identity_key`) is already in the registry is skipped ("already
+  processed"). Metadata and hashes are read in a few threads (hashing releases the GIL); the hashes travel with the
+  groups, so the calibration does not read the runs a second time to hash them (unless a run changed since, by its
   :func:`pipeline.passport.provenance.file_signature`).
 - :func:`calibrate_group`: the calibration of one unit from all its runs (TP runs and the VP runs that verify them)
   by any method (``pipeline.calibrate.methods``; the differential method starts from the unit's passport in the
@@ -117,7 +117,8 @@ def reason_of(exc: BaseException) -> str:
 
 def discover_runs(root: str | os.PathLike) -> list[Path]:
     """Every run under ``root`` (recursively), sorted: ``*.mcap`` files and Parquet run directories (not descended
-    into). Names starting with ``.`` are skipped: writers put their temp files there (``pipeline.io.runs.write_run``)."""
+    into). Names starting with ``.`` are skipped: writers put their temp files there
+    (``pipeline.io.runs.write_run``)."""
     root = Path(root)
     if not root.is_dir():
         raise ThermocalError("not a directory (fleet expects a folder of runs)", path=str(root))
@@ -199,7 +200,7 @@ def plan_fleet(
             if not kept:
                 continue
 
-        def identities(base: dict | None, needs_base: bool) -> list[str]:
+        def identities(base: dict | None, needs_base: bool, kept: list[dict] = kept) -> list[str]:
             return [
                 identity_key(
                     kept, recorded_settings(settings, rec.METHOD, base_reference(base) if base is not None else {})

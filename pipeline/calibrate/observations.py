@@ -248,7 +248,7 @@ def plateau_summary(observations: list[Observation]) -> list[dict]:
         if o.plateau is not None:
             groups.setdefault((o.run_id, o.plateau), []).append(o)
     out = []
-    for (run_id, p), rows in sorted(groups.items(), key=lambda kv: (kv[0][0], min(o.t_start_ns for o in kv[1]))):
+    for (run_id, _plateau), rows in sorted(groups.items(), key=lambda kv: (kv[0][0], min(o.t_start_ns for o in kv[1]))):
         rows.sort(key=lambda o: o.t_start_ns)
         out.append(
             {

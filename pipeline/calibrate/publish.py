@@ -122,8 +122,9 @@ def publish(
 
 def _figure(path: Path, wanted: bool, redraw: bool, draw) -> str | None:
     """Draw a figure beside a passport with ``draw(tmp_path)`` when ``wanted``, for a new version (``redraw``) or
-    where it is missing; its path, or None when there is none. Drawn under a temporary name, then renamed: a killed writer or a full
-    disk leaves no partial figure (a leftover ".tmp-" file is removed by the registry at the unit's next publish)."""
+    where it is missing; its path, or None when there is none. Drawn under a temporary name, then renamed: a killed
+    writer or a full disk leaves no partial figure (a leftover ".tmp-" file is removed by the registry at the unit's
+    next publish)."""
     if wanted and (redraw or not path.exists()):
         tmp = path.with_name(f".tmp-{path.stem}-{os.getpid()}.png")
         try:

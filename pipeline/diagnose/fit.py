@@ -415,7 +415,7 @@ def _refine(design: Design, state: tuple) -> tuple:
         grid = np.asarray(effect_class(effect_id).grid)
         x0 = np.log(value)
 
-        def chi2(x):
+        def chi2(x: float, others: tuple = others, effect_id: str = effect_id) -> float:
             return design.fit(others + ((effect_id, float(np.exp(x))),)).chi2
 
         res = minimize_scalar(

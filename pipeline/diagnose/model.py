@@ -11,7 +11,8 @@ The forward model is the simulator's: ``U = K(T*) a + U0(T*) + sum of delta_u_v`
 ``T* = T_e`` (the lagged element temperature) when ``thermal_lag`` is among them and T otherwise.
 :func:`pipeline.passport.document.compensate_extended` inverts it for the specific force: it needs the signal
 context of the samples (times, temperature, ramp direction, moves), because several effects depend on the history
-of the run, not only on the current sample. The face error is not compensated: the rotated vector is the true specific force.
+of the run, not only on the current sample. The face error is not compensated: the rotated vector is the true specific
+force.
 """
 
 from __future__ import annotations

@@ -41,9 +41,9 @@ def plot_residuals(
     """Write a PNG: the AU temperature (C) over time when ``temperature`` = (hours, C) is given; one panel per axis
     with the block residuals (uV; mm/s^2 when ``output_unit`` is m/s^2) against the passport (before) and the
     extended model (after), the +-3 sigma noise band of the blocks and the windows where the residual before
-    exceeds the noise (located, marked under each panel). ``findings``: (name, windows in hours) per finding, each in its own colour and lane (a band of
-    the top panel, a strip along the top of each residual panel); without it, ``windows_h`` (all findings
-    together) are marked in one colour."""
+    exceeds the noise (located, marked under each panel). ``findings``: (name, windows in hours) per finding, each in
+    its own colour and lane (a band of the top panel, a strip along the top of each residual panel); without it,
+    ``windows_h`` (all findings together) are marked in one colour."""
     from pipeline.plots import new_figure
 
     path = Path(path)

@@ -247,9 +247,9 @@ def _amounts(fr: FitResult, lv: Level, passport: dict, duration_h: float) -> tup
 
 def _entries(d: np.ndarray, sig: np.ndarray, lv: Level, pu: np.ndarray, pk: np.ndarray) -> tuple[list[str], float]:
     """The entries of level ``lv`` that moved by :data:`SIGNIFICANT_SIGMA` or more, most significant first (K_ij,
-    U0_i at T0, their temperature coefficients "U0_x power 1", ...) and the largest change in sigmas: the fit's uncertainty
-    ``sig`` (3, order+1, 4) combined with the passport's at T0 (``pu`` V, ``pk`` V/g), over 30 C per power for
-    its thermal coefficients."""
+    U0_i at T0, their temperature coefficients "U0_x power 1", ...) and the largest change in sigmas: the fit's
+    uncertainty ``sig`` (3, order+1, 4) combined with the passport's at T0 (``pu`` V, ``pk`` V/g), over 30 C per power
+    for its thermal coefficients."""
     if lv.powers == 0:
         return [], 0.0
     out: list[tuple[float, str]] = []
@@ -350,8 +350,8 @@ def _moved_text(params: dict, names: list[str], most: int = 4) -> str:
 
 
 def explain(params: dict, rms_before: float, rms_after: float, z: float) -> str:
-    """Two or three sentences (``rms_before``, ``rms_after``: output unit, V or m/s^2): which constants moved significantly (only those), by how much, how sure; what
-    else was refit with them and agrees with the passport."""
+    """Two or three sentences (``rms_before``, ``rms_after``: output unit, V or m/s^2): which constants moved
+    significantly (only those), by how much, how sure; what else was refit with them and agrees with the passport."""
     drift = params.get("drifting", "")
     moved = _moved_text(params, params.get("moved", []))
     fit_moved = _moved_text(params, params.get("beyond_fit_uncertainty", []))

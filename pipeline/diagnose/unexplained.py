@@ -129,7 +129,7 @@ def find_unexplained(
     fams = families(design, current)
     if "empirical:periodic" in fams:
         fams["empirical:periodic"] = _refined_periodic(design, current, fams["empirical:periodic"][2]["period_s"])
-    for fid, (labels, cols, desc) in fams.items():
+    for fid, (labels, cols, _desc) in fams.items():
         design.extra[fid] = (labels, cols)
         chi2, added, _, _, _ = design.score(current, fid, None)
         scores.append(

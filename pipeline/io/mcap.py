@@ -2,10 +2,10 @@
 
 Layout: one metadata record named ``run`` (string to string, written before any data); one channel per stream, topics
 ``/voltmeter``, ``/au/temperature``, ``/chamber``, ``/fixture``; message encoding ``json``, schema encoding
-``jsonschema``, schema names ``thermocal.VoltageBlock`` ... with the schema files of the package's ``pipeline/io/schemas/``.
-A message holds a block of samples (equal-length arrays) and is logged at its first sample's ``t_ns``; ``/fixture``
-messages hold one event each. Topics interleave in time order; chunks are zstd-compressed. JSON has no NaN or
-infinity: a non-finite sample is written as ``null`` and read back as NaN (so +-inf come back as NaN).
+``jsonschema``, schema names ``thermocal.VoltageBlock`` ... with the schema files of the package's
+``pipeline/io/schemas/``. A message holds a block of samples (equal-length arrays) and is logged at its first sample's
+``t_ns``; ``/fixture`` messages hold one event each. Topics interleave in time order; chunks are zstd-compressed. JSON
+has no NaN or infinity: a non-finite sample is written as ``null`` and read back as NaN (so +-inf come back as NaN).
 
 The reader works on the memory-mapped file at the level of MCAP records, so it can say at which byte a file is cut or
 corrupt, and read what is complete:

@@ -1,11 +1,11 @@
 """Simulated runs too long to simulate in one piece (1 kHz over the 16.5 h standard program: about 59 M samples).
 
-:func:`pipeline.simulate.chamber.simulate` builds every per-sample array of the run at once (the constants K(T) alone take
-72 bytes a sample, about 12 GB all told at 1 kHz). :func:`simulate_chunked` computes the same signal in time chunks
+:func:`pipeline.simulate.chamber.simulate` builds every per-sample array of the run at once (the constants K(T) alone
+take 72 bytes a sample, about 12 GB all told at 1 kHz). :func:`simulate_chunked` computes the same signal in time chunks
 and keeps only the voltmeter samples (32 bytes a sample): the thermal streams, the fixture log, the unit and the
-ground truth come from one :func:`~pipeline.simulate.chamber.simulate` call at the thermal rate (1 Hz, where the voltmeter
-grid is the thermal grid, so its context's temperature is the true case temperature), and each voltmeter chunk is
-``K(T) a + U0(T) + effects + noise`` with T interpolated from that 1 Hz grid, as in ``simulate``.
+ground truth come from one :func:`~pipeline.simulate.chamber.simulate` call at the thermal rate (1 Hz, where the
+voltmeter grid is the thermal grid, so its context's temperature is the true case temperature), and each voltmeter chunk
+is ``K(T) a + U0(T) + effects + noise`` with T interpolated from that 1 Hz grid, as in ``simulate``.
 
 Without noise the voltmeter equals ``simulate``'s to rounding (the vibration phases are drawn the same way); the
 noise and the thermosensor noise are other draws of the same distributions. Effects must act sample by sample:
@@ -52,7 +52,8 @@ def simulate_run(config: SimConfig, chunked_above_samples: int = CHUNKED_ABOVE_S
 
 
 def simulate_chunked(config: SimConfig, chunk_samples: int = 1_000_000) -> SimResult:
-    """:func:`~pipeline.simulate.chamber.simulate` for long runs, computed ``chunk_samples`` voltmeter samples at a time.
+    """:func:`~pipeline.simulate.chamber.simulate` for long runs, computed ``chunk_samples`` voltmeter samples at a
+    time.
 
     Peak memory is the voltmeter table (32 bytes a sample) plus about 200 bytes a sample of one chunk. The result's
     ``context`` is the 1 Hz one (the per-sample context of a long run is what this function avoids building).

@@ -11,7 +11,6 @@ This timetable is the simulator's script only; the pipeline finds plateaus and p
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Union
 
 import numpy as np
 
@@ -58,7 +57,7 @@ class Hold:
     duration_s: float = 300.0
 
 
-Step = Union[Ramp, Soak, Move, Hold]
+Step = Ramp | Soak | Move | Hold
 
 
 @dataclass(frozen=True)

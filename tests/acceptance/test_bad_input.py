@@ -1,5 +1,5 @@
-"""Bad input (issue 7): every run of the broken corpus (tests/acceptance/badcorpus.py) gives a one-line error naming the file,
-the stream and the time or row, or is processed with a warning saying what was dropped, and then still calibrates
+"""Bad input (issue 7): every run of the broken corpus (tests/acceptance/badcorpus.py) gives a one-line error naming the
+file, the stream and the time or row, or is processed with a warning saying what was dropped, and then still calibrates
 to the simulator's truth; ``thermocal`` exits non-zero with that line; ``fleet`` reports the failures and calibrates
 the rest; every file of the MCAP conformance corpus is refused by ``inspect`` and ``calibrate``.
 

@@ -25,8 +25,8 @@ def result():
 
 def test_thermocal_beats_the_peers_linear_method_with_one_model(result):
     """Held-out std of 10-min means (mm/s^2): the raw signal varies by about 100; the peer's linear per-period
-    fits (nine models) leave about 6.7; thermocal's one model for the unit leaves at least 10 % less (5.6), reduces the axes that
-    moved most (raw above 60) at least tenfold and every axis of every period at least fivefold."""
+    fits (nine models) leave about 6.7; thermocal's one model for the unit leaves at least 10 % less (5.6), reduces the
+    axes that moved most (raw above 60) at least tenfold and every axis of every period at least fivefold."""
     tab = result["table"]
     raw, lin, pw, tc = (tab[k] for k in ("raw", "peer_linear", "peer_piecewise", "thermocal"))
     assert 90.0 < raw.mean() < 110.0

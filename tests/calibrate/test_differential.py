@@ -85,8 +85,8 @@ def _k0_u0(passport):
 
 def test_orientation_windows_found_without_positions(blocks):
     """Six windows, one per orientation, found from the signal: each a0 has |a0| = 1 within 3e-3 (the uncompensated
-    temperature error, up to 5 mg, averaged over the cycle), points within 8 degrees of its nominal axis (face errors 1.5 deg per
-    component) and covers the cycle's temperatures."""
+    temperature error, up to 5 mg, averaged over the cycle), points within 8 degrees of its nominal axis (face errors
+    1.5 deg per component) and covers the cycle's temperatures."""
     d = blocks[0]
     assert len(d.windows) == 6
     for w, p in zip(d.windows, SIX):

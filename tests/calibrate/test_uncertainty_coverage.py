@@ -1,12 +1,12 @@
-"""Standard uncertainties of the differential (seed 003) and scalar (seed 004) methods tested for coverage against the simulator's truth
-over many noise seeds, as tests/test_uncertainty.py does for the tilt method: the chamber differential (a base
-passport, six orientations with 1.5 degree face errors, one temperature cycle) and the sweep differential (no base,
-three orientations, the temperature drifting 5 -> 25 C; its offsets at T0 from the orientations too). About 68 %
-of the errors within 1 sigma and 95 % within 2 sigma, and the sigmas not absurdly wide (their median within a small factor of the scatter of the estimates
-between seeds); terms the orientations cannot determine have no uncertainty and the passport says why; ``passport
-diff`` of two differential passports marks a real change of a temperature coefficient and not the noise. The
-scalar method's constants likewise, with its gauge-fixed entries named; and the tilt method's referral of each
-position to its plateau's temperature is in its sigmas.
+"""Standard uncertainties of the differential (seed 003) and scalar (seed 004) methods tested for coverage against the
+simulator's truth over many noise seeds, as tests/test_uncertainty.py does for the tilt method: the chamber differential
+(a base passport, six orientations with 1.5 degree face errors, one temperature cycle) and the sweep differential (no
+base, three orientations, the temperature drifting 5 -> 25 C; its offsets at T0 from the orientations too). About 68 %
+of the errors within 1 sigma and 95 % within 2 sigma, and the sigmas not absurdly wide (their median within a small
+factor of the scatter of the estimates between seeds); terms the orientations cannot determine have no uncertainty and
+the passport says why; ``passport diff`` of two differential passports marks a real change of a temperature coefficient
+and not the noise. The scalar method's constants likewise, with its gauge-fixed entries named; and the tilt method's
+referral of each position to its plateau's temperature is in its sigmas.
 
 Tolerances: the z-scores of one run's coefficients are correlated (the orders of one constant's polynomial share the
 same data), so a few hundred z-scores count as about a third as many independent ones; the binomial standard

@@ -439,7 +439,9 @@ def test_diff_reports_changed_constants_in_physical_units(tmp_path):
 
 def test_diff_of_piecewise_models_and_of_a_model_change(tmp_path):
     reg = Registry(tmp_path)
-    seg = lambda a, b: {"alpha": {"x": a, "y": 0.0, "z": 0.0}, "beta": {"xx": b, "yy": 0.0, "zz": 0.0}, "gamma": {}}
+
+    def seg(a, b):
+        return {"alpha": {"x": a, "y": 0.0, "z": 0.0}, "beta": {"xx": b, "yy": 0.0, "zz": 0.0}, "gamma": {}}
 
     def pw(a2):
         return {
