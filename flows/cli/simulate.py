@@ -43,7 +43,21 @@ def simulate(
         "plateaus, for quick tries) | differential (six orientations "
         "through a temperature cycle) | handheld (36 hand-turned poses of "
         "3 s at 20 C; use ~100 Hz and --jitter-ms) | sweep (three "
-        "orientations, the temperature drifting 5-25 C, no plateau)",
+        "orientations, the temperature drifting 5-25 C, no plateau) | fast (positions cycled on continuous "
+        "ramps +20 -> +70 -> -40 -> +20 C, 2.8 h) | a stepped program SETPOINT@SOAK_MIN:POSITIONS; ... "
+        "(e.g. '20@0:TP; -40@0:TP; -10@0:VP; 20@0:TP+VP; 45@0:VP; 70@0:TP; 20@0:TP+VP')",
+    ),
+    ramp_c_per_min: float | None = typer.Option(
+        None,
+        "--ramp-c-per-min",
+        metavar="C_PER_MIN",
+        help="ramp rate of the fast program (default 2) or a stepped program (default 1)",
+    ),
+    hold_s: float | None = typer.Option(
+        None, "--hold-s", help="hold of each position, s: fast program (default 120), stepped program (default 300)"
+    ),
+    move_s: float | None = typer.Option(
+        None, "--move-s", help="move between positions, s: fast program or stepped program (default 20)"
     ),
     soak_min: float | None = typer.Option(
         None,
@@ -84,21 +98,24 @@ def simulate(
     from pipeline.simulate.chamber import SimConfig, write_truth
     from pipeline.simulate.disturbances import parse_disturbance_spec
     from pipeline.simulate.large import simulate_run
-    from pipeline.simulate.program import PROGRAMS, get_program, parse_drop, variant
+    from pipeline.simulate.program import parse_drop, program_from
 
-    if program not in PROGRAMS:
-        raise ThermocalError(f"unknown chamber program {program!r} ({', '.join(PROGRAMS)})", where="--program")
-    chosen = program
-    if soak_min is not None or drop:
-        if soak_min is not None and not soak_min >= 0:
-            raise ThermocalError(f"soak must be 0 minutes or more, got {soak_min:g}", where="--soak-min")
-        for d in drop:
-            try:
-                parse_drop(d)
-            except ValueError as e:
-                raise ThermocalError(str(e), where="--drop") from None
+    if soak_min is not None and not soak_min >= 0:
+        raise ThermocalError(f"soak must be 0 minutes or more, got {soak_min:g}", where="--soak-min")
+    for d in drop:
         try:
-            chosen = variant(get_program(program), None if soak_min is None else soak_min * 60.0, tuple(drop))
+            parse_drop(d)
+        except ValueError as e:
+            raise ThermocalError(str(e), where="--drop") from None
+    try:
+        chosen = program_from(program, ramp_c_per_min, hold_s, move_s)
+    except ValueError as e:
+        raise ThermocalError(str(e), where="--program") from None
+    if soak_min is not None or drop:
+        try:
+            chosen = program_from(
+                program, ramp_c_per_min, hold_s, move_s, None if soak_min is None else soak_min * 60.0, tuple(drop)
+            )
         except ValueError as e:
             raise ThermocalError(str(e), where="--drop") from None
     if fmt not in FORMATS:

@@ -2,8 +2,13 @@
 
 A :class:`Program` is a list of stages, each a list of steps: :class:`Ramp` and :class:`Soak` of the chamber
 setpoint (the unit stays in its last position), :class:`Move` to a position and :class:`Hold` of a position (the
-setpoint stays). :meth:`Program.timetable` expands it into a :class:`Timetable` of segments that answers vectorised
-questions for a time grid ``t_s`` (seconds since the start): setpoint, position per sample, moves, fixture events.
+setpoint stays), and :class:`Tour`: the fixture cycles through positions while the setpoint ramps or stays (the fast
+programs of physics.md, "Fast programs"). :meth:`Program.timetable` expands it into a :class:`Timetable` of segments
+that answers vectorised questions for a time grid ``t_s`` (seconds since the start): setpoint, position per sample,
+moves, fixture events.
+
+Programs by name (:data:`PROGRAMS`), and :func:`parse_program` for a stepped program written as text
+(``20@0:TP; -40@0:TP; -10@0:VP; ...``: setpoint C, soak min, positions per stage).
 
 This timetable is the simulator's script only; the pipeline finds plateaus and positions from the data.
 """
@@ -57,7 +62,24 @@ class Hold:
     duration_s: float = 300.0
 
 
-Step = Ramp | Soak | Move | Hold
+@dataclass(frozen=True)
+class Tour:
+    """The fixture cycles through ``positions`` (each held ``hold_s``, with moves of ``move_s`` between them) while
+    the chamber setpoint ramps to ``to_c`` at ``rate_c_per_min``, or, with ``to_c`` None, stays where it is for
+    ``duration_s``. The cycle goes on from the position the unit is in: a tour that follows a hold moves on to the
+    next one in ``positions`` (the first when the unit is in none of them), otherwise it holds the position it is
+    in first; the last hold of the step lasts to the step's end (a hold that would leave less than a move and a
+    hold is stretched instead)."""
+
+    positions: tuple[str, ...]
+    to_c: float | None = None
+    rate_c_per_min: float = 1.0
+    duration_s: float = 0.0
+    hold_s: float = 120.0
+    move_s: float = 20.0
+
+
+Step = Ramp | Soak | Move | Hold | Tour
 
 
 @dataclass(frozen=True)
@@ -133,6 +155,11 @@ class Program:
                         raise ValueError(f"Hold {step.position} while the unit is in {pos}: add a Move first")
                     dur = _duration(step)
                     segs.append(Segment("hold", t, t + dur, sp, sp, pos, pos, pos, k))
+                elif isinstance(step, Tour):
+                    held = bool(segs) and segs[-1].kind == "hold" and segs[-1].t_end_s == t
+                    tour, dur, pos = _tour_segments(step, t, sp, pos, k, held)
+                    segs += tour
+                    sp = float(step.to_c) if step.to_c is not None else sp
                 else:
                     raise TypeError(f"unknown program step {step!r}")
                 t += dur
@@ -146,6 +173,53 @@ def _duration(step: Step) -> float:
     if not dur >= 0:
         raise ValueError(f"duration must be >= 0 s in {step!r}")
     return dur
+
+
+def _tour_segments(
+    step: Tour, t0: float, sp0: float, pos: str, stage: int, held: bool
+) -> tuple[list[Segment], float, str]:
+    """The hold and move segments of a :class:`Tour` starting at ``t0`` (s) from setpoint ``sp0`` (C) in ``pos``
+    (``held``: its hold has just ended, so the tour moves on at once): (segments, duration s, the position it ends
+    in). The setpoint runs linearly over the whole step."""
+    if not step.positions:
+        raise ValueError("a tour needs at least one position")
+    for p in step.positions:
+        _check_position(p)
+    if not (step.hold_s > 0 and step.move_s >= 0):
+        raise ValueError(f"a tour needs hold_s > 0 and move_s >= 0, got {step.hold_s} and {step.move_s}")
+    if step.to_c is None:
+        dur = _duration(step)
+        to_c = sp0
+    else:
+        if not step.rate_c_per_min > 0:
+            raise ValueError(f"ramp rate must be positive, got {step.rate_c_per_min}")
+        to_c = float(step.to_c)
+        dur = abs(to_c - sp0) / step.rate_c_per_min * 60.0
+    t_end = t0 + dur
+
+    def sp_at(t: float) -> float:
+        return sp0 + (to_c - sp0) * (t - t0) / dur if dur > 0 else sp0
+
+    segs: list[Segment] = []
+    names = list(step.positions)
+    nxt = (names.index(pos) + 1) % len(names) if pos in names else 0
+    t = t0
+    if pos not in names or (held and len(names) > 1):  # go on to the tour's next position at once
+        end = min(t + step.move_s, t_end)
+        segs.append(Segment("move", t, end, sp_at(t), sp_at(end), MOVING, pos, names[nxt], stage))
+        t, pos, nxt = end, names[nxt], (nxt + 1) % len(names)
+    while t < t_end:
+        hold_end = t + step.hold_s
+        if t_end - hold_end < step.move_s + step.hold_s or len(names) == 1:
+            hold_end = t_end  # the last hold of the step lasts to its end
+        segs.append(Segment("hold", t, hold_end, sp_at(t), sp_at(hold_end), pos, pos, pos, stage))
+        t = hold_end
+        if t >= t_end:
+            break
+        end = t + step.move_s
+        segs.append(Segment("move", t, end, sp_at(t), sp_at(end), MOVING, pos, names[nxt], stage))
+        t, pos, nxt = end, names[nxt], (nxt + 1) % len(names)
+    return segs, dur, pos
 
 
 def _check_position(name: str) -> None:
@@ -217,11 +291,12 @@ class Timetable:
 
     def ramp_sign(self, t_s) -> np.ndarray:
         """Direction the temperature last came from: +1 from the start of a heating ramp on, -1 from a cooling
-        ramp, 0 before the first ramp (physics.md, thermal_hysteresis)."""
+        ramp, 0 before the first ramp (physics.md, thermal_hysteresis). A ramp is any segment whose setpoint
+        changes (a ramp step, or the holds and moves of a tour on a ramp)."""
         sign = np.zeros(len(self.segments))
         last = 0.0
         for i, s in enumerate(self.segments):
-            if s.kind == "ramp":
+            if s.setpoint_end_c != s.setpoint_start_c:
                 last = float(np.sign(s.setpoint_end_c - s.setpoint_start_c))
             sign[i] = last
         return sign[self._index(t_s)]
@@ -336,6 +411,92 @@ def sweep_program(
     )
 
 
+def fast_program(
+    low_c: float = -40.0,
+    high_c: float = 70.0,
+    rate_c_per_min: float = 2.0,
+    dwell_s: float = 1800.0,
+    hold_s: float = 120.0,
+    move_s: float = 20.0,
+    positions: tuple[str, ...] = TP + VP,
+) -> Program:
+    """Positions held on continuous ramps up and then down (physics.md, "Fast programs"; Niu et al. 2013): from
+    +20 C (soaked) the setpoint ramps to ``high_c``, stays there ``dwell_s``, ramps down to ``low_c``, stays
+    ``dwell_s`` and ramps back to +20 C, all at ``rate_c_per_min``, while the fixture cycles through ``positions``
+    the whole time (holds ``hold_s``, moves ``move_s``). Every temperature between the ends is passed once heating
+    and once cooling; the dwells let the case reach the ends (its lag behind the air is 600 s, as in the standard
+    program). Defaults: 2 C/min, 30-min dwells, 120-s holds, 20-s moves, TP1..TP6 and VP1..VP6: about 2.8 h."""
+    if not low_c < 20.0 < high_c:
+        raise ValueError(f"a fast program runs from +20 C to its ends, which must lie either side: {low_c}..{high_c}")
+    if not dwell_s >= 0:
+        raise ValueError(f"dwell must be >= 0 s, got {dwell_s}")
+
+    def tour(**kw) -> Tour:
+        return Tour(tuple(positions), hold_s=hold_s, move_s=move_s, rate_c_per_min=rate_c_per_min, **kw)
+
+    plan = [
+        (f"up to {high_c:+.0f} C", tour(to_c=high_c)),
+        (f"at {high_c:+.0f} C", tour(duration_s=dwell_s)),
+        (f"down to {low_c:+.0f} C", tour(to_c=low_c)),
+        (f"at {low_c:+.0f} C", tour(duration_s=dwell_s)),
+        ("up to +20 C", tour(to_c=20.0)),
+    ]
+    stages = tuple(Stage(label, (step,)) for label, step in plan if step.to_c is not None or dwell_s > 0)
+    return Program("fast", stages, start_setpoint_c=20.0, start_position=positions[0], case_lag_s=600.0, air_lag_s=90.0)
+
+
+#: the position groups a stepped program's text may name besides single positions
+POSITION_GROUPS = {"TP": TP, "VP": VP}
+
+
+def parse_program(
+    spec: str,
+    rate_c_per_min: float = 1.0,
+    hold_s: float = 300.0,
+    move_s: float = 20.0,
+    case_lag_s: float = 600.0,
+    air_lag_s: float = 90.0,
+) -> Program:
+    """A stepped program written as text: stages separated by ``;``, each ``SETPOINT@SOAK:POSITIONS`` (setpoint in
+    C, soak in minutes after the ramp to it, the positions visited then: ``TP``, ``VP``, ``TP3``, ... joined by
+    ``+``), e.g. ``20@0:TP; -40@0:TP; -10@0:VP; 20@0:TP+VP; 45@0:VP; 70@0:TP; 20@0:TP+VP`` (issue 23: no soak, the
+    positions held while the unit still approaches each temperature). ``@SOAK`` may be left out (no soak). Ramps at
+    ``rate_c_per_min``, holds ``hold_s``, moves ``move_s``; the unit starts soaked at the first stage's setpoint in
+    its first position. ValueError naming the stage at fault."""
+    stages = []
+    texts = [x.strip() for x in spec.split(";") if x.strip()]
+    if not texts:
+        raise ValueError(f"a program needs at least one stage SETPOINT@SOAK:POSITIONS, got {spec!r}")
+    for text in texts:
+        head, sep, pos_text = text.partition(":")
+        sp_text, _, soak_text = head.partition("@")
+        try:
+            sp = float(sp_text.strip().removesuffix("C").removesuffix("c"))
+            soak_min = float(soak_text) if soak_text.strip() else 0.0
+        except ValueError:
+            sp = soak_min = float("nan")
+        if not sep or not np.isfinite(sp) or not soak_min >= 0:
+            raise ValueError(f"stage {text!r}: expected SETPOINT@SOAK_MIN:POSITIONS, e.g. -40@0:TP")
+        names: list[str] = []
+        for part in pos_text.split("+"):
+            key = part.strip().upper()
+            group = POSITION_GROUPS.get(key)
+            if group is None and key not in ALL_POSITIONS:
+                raise ValueError(f"stage {text!r}: unknown position {part.strip()!r} (TP, VP, TP1..TP6, VP1..VP6)")
+            names += list(group or (key,))
+        soak = (Soak(soak_min * 60.0),) if soak_min > 0 else ()
+        stages.append(Stage(f"{sp:+.0f} C", (Ramp(sp, rate_c_per_min), *soak) + visit(names, hold_s, move_s)))
+    start_position = next(st.to_position for st in stages[0].steps if isinstance(st, Move))
+    return Program(
+        "stepped",
+        tuple(stages),
+        start_setpoint_c=float(stages[0].steps[0].to_c),
+        start_position=start_position,
+        case_lag_s=case_lag_s,
+        air_lag_s=air_lag_s,
+    )
+
+
 def parse_drop(spec: str) -> tuple[str, float, int | None]:
     """``POS@T`` or ``POS@T#K`` (e.g. ``TP4@-40``, ``VP3@+20#2``): the position, the stage setpoint (C) and which
     of the stages at that setpoint (1, 2, ...; None: every one). ValueError naming what is wrong."""
@@ -414,12 +575,57 @@ PROGRAMS = {
     "differential": differential_program,
     "handheld": handheld_program,
     "sweep": sweep_program,
+    "fast": fast_program,
 }
 
 
+#: the programs whose ramp rate, holds and moves can be chosen (:func:`program_from`)
+TIMED = ("fast",)
+
+
+def program_from(
+    name: str,
+    rate_c_per_min: float | None = None,
+    hold_s: float | None = None,
+    move_s: float | None = None,
+    soak_s: float | None = None,
+    drop: tuple[str, ...] = (),
+) -> Program:
+    """The program ``thermocal simulate --program`` names: a name of :data:`PROGRAMS` or a stepped program's text
+    (:func:`parse_program`, recognised by its ``:``), with the ramp rate (C/min), holds and moves (s) where given
+    (the fast program and stepped programs only), every soak made ``soak_s`` (s; the fast program: its dwells at
+    the ends) and positions dropped (:func:`variant`). ValueError naming what is wrong."""
+    timing = {
+        k: v for k, v in (("rate_c_per_min", rate_c_per_min), ("hold_s", hold_s), ("move_s", move_s)) if v is not None
+    }
+    for k, v in timing.items():
+        if not v > 0 and not (k == "move_s" and v == 0):
+            raise ValueError(f"{k} must be positive, got {v:g}")
+    if ":" in name:
+        program = parse_program(name, **timing)
+    elif name in TIMED:
+        program = fast_program(**timing, **({"dwell_s": soak_s} if soak_s is not None else {}))
+        soak_s = None
+    elif name in PROGRAMS:
+        if timing:
+            raise ValueError(
+                f"ramp rate, holds and moves can be chosen for {', '.join(TIMED)} and stepped programs "
+                f"(SETPOINT@SOAK:POSITIONS; ...), not for {name!r}"
+            )
+        program = get_program(name)
+    else:
+        raise ValueError(
+            f"unknown chamber program {name!r}; expected one of {', '.join(PROGRAMS)} or a stepped program "
+            "(SETPOINT@SOAK_MIN:POSITIONS; ..., e.g. 20@0:TP; -40@0:TP)"
+        )
+    if soak_s is not None or drop:
+        program = variant(program, soak_s, tuple(drop))
+    return program
+
+
 def get_program(name: str | Program) -> Program:
-    """The program called ``name``: ``standard``, ``short``, ``differential``, ``handheld`` or ``sweep`` (a
-    :class:`Program` is itself)."""
+    """The program called ``name``: ``standard``, ``short``, ``differential``, ``handheld``, ``sweep`` or ``fast``
+    (a :class:`Program` is itself)."""
     if isinstance(name, Program):
         return name
     try:

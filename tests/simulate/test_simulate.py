@@ -207,7 +207,7 @@ def test_program_errors():
         Program("bad", (Stage("x", (Move("TP9"),)),)).timetable()
     with pytest.raises(ValueError, match="ramp rate"):
         Program("bad", (Stage("x", (Ramp(30.0, 0.0),)),)).timetable()
-    assert set(PROGRAMS) == {"standard", "short", "differential", "handheld", "sweep"}
+    assert set(PROGRAMS) == {"standard", "short", "differential", "handheld", "sweep", "fast"}
 
 
 # ----------------------------------------------------------------------------------------------------------------
