@@ -1,14 +1,16 @@
 """The calibration flow: ingest -> (choose) -> observe -> fit -> write, one Prefect task per step (per file for
-ingest and observe). Each task is a call of one library function; the method's recipe
-(``pipeline.calibrate.methods``: ``tilt``, seed 000; ``scalar``, seed 004; ``differential``, seed 003, from a base
-passport or, on sweeps, from the orientations) supplies observe and fit:
+ingest and observe). Each task is a call of one library function; the method
+(:class:`pipeline.calibrate.method.Method` from the registry ``pipeline.calibrate.methods``: ``tilt``, seed 000;
+``scalar``, seed 004; ``differential``, seed 003, from a base passport or, on sweeps, from the orientations)
+supplies observe and fit:
 
 - ingest:  ``pipeline.io.runs.read_run``
 - choose:  with ``method="auto"`` (the command line's default) the first run's segmentation
   and the method the recording supports (``pipeline.calibrate.methods.resolve_auto``, shared with the fleet);
   observe reuses that segmentation (the run is read and segmented once)
-- observe: ``<recipe>.observe`` (``pipeline.calibrate.observations``: segmentation and per-segment averages)
-- fit:     ``<recipe>.calibrate_observed`` (constants, thermal model, VP verification, passport document)
+- observe: ``Method.observe`` (e.g. ``pipeline.calibrate.observations``: segmentation and per-segment averages)
+- fit:     ``Method.calibrate_observed`` (the method's fit: constants, thermal model; then the tail every method
+  shares, ``Method.finish``: VP verification, plausibility, passport document)
 - write:   ``pipeline.calibrate.publish.publish`` (``pipeline.passport.registry``, ``pipeline.plots``)
 """
 
@@ -25,12 +27,7 @@ from prefect.artifacts import create_markdown_artifact  # noqa: E402
 from prefect.cache_policies import NO_CACHE  # noqa: E402  (no input hashing: a Run is large and never reused)
 
 from pipeline.calibrate.inputs import select_runs  # noqa: E402
-from pipeline.calibrate.methods import (  # noqa: E402
-    NEEDS_BASE_PASSPORT,
-    default_base_passport,
-    recipe,
-    resolve_auto,
-)
+from pipeline.calibrate.methods import by_name, default_base_passport, resolve_auto  # noqa: E402
 from pipeline.calibrate.observations import unit_of  # noqa: E402
 from pipeline.calibrate.publish import publish  # noqa: E402
 from pipeline.calibrate.settings import CalibrationSettings  # noqa: E402
@@ -54,12 +51,12 @@ def choose(run, settings: CalibrationSettings, base_passport: dict | None):
 
 @task(name="observe", cache_policy=NO_CACHE)
 def observe(run, method: str, settings: CalibrationSettings, base_passport: dict | None, segmentation=None):
-    return recipe(method).observe(run, settings, base_passport=base_passport, segmentation=segmentation)
+    return by_name(method).observe(run, settings, base_passport=base_passport, segmentation=segmentation)
 
 
 @task(name="fit", cache_policy=NO_CACHE)
 def fit(observed, method: str, settings: CalibrationSettings, base_passport: dict | None):
-    return recipe(method).calibrate_observed(observed, settings, base_passport=base_passport)
+    return by_name(method).calibrate_observed(observed, settings, base_passport=base_passport)
 
 
 def record_head(registry: str) -> None:
@@ -98,7 +95,7 @@ def calibrate_flow(
     logger = get_run_logger()
     step = Steps("calibrate")  # progress lines on stderr when it is a terminal
     if method != "auto":
-        recipe(method)  # an unknown method fails before any run is read
+        by_name(method)  # an unknown method fails before any run is read
     runs = []
     for p in paths:
         step(f"ingest {os.path.basename(p)}")
@@ -112,7 +109,7 @@ def calibrate_flow(
         step(f"choose the method (segment {os.path.basename(paths[0])})")
         method, base_passport, segmentation, chosen = choose(runs[0], settings, base_passport)
     base_line = None  # which version the differential method starts from, and its status
-    if method not in NEEDS_BASE_PASSPORT:
+    if not by_name(method).uses_base_passport:
         base_passport = None
     elif base_passport is None:
         base_passport, base_line = default_base_passport(registry, unit)

@@ -12,6 +12,7 @@ from typing import Annotated
 
 import typer
 
+from pipeline.calibrate.methods import names as method_names
 from pipeline.errors import ThermocalError
 from pipeline.jsonable import json_default
 
@@ -105,18 +106,17 @@ def emit(obj, as_json: bool, text: str | None = None) -> None:
 
 
 def check_method(method: str) -> None:
-    """``--method``: a known calibration method (``auto`` is checked by the caller)."""
-    from pipeline.calibrate.methods import METHODS
-
-    if method not in METHODS:
-        raise ThermocalError(f"unknown method {method!r} ({', '.join(METHODS)})", where="--method")
+    """``--method``: auto or a method of the registry (:mod:`pipeline.calibrate.methods`, by name: none is
+    imported)."""
+    if method != "auto" and method not in method_names():
+        raise ThermocalError(f"unknown method {method!r} (auto, {', '.join(method_names())})", where="--method")
 
 
 def needs_base(method: str) -> bool:
     """Whether ``method`` starts from a base passport (``--base-passport``)."""
-    from pipeline.calibrate.methods import NEEDS_BASE_PASSPORT
+    from pipeline.calibrate.methods import by_name
 
-    return method in NEEDS_BASE_PASSPORT
+    return by_name(method).uses_base_passport
 
 
 def calibration_settings(thermal_model: str, constants_method: str, tol_normal_g: float, tol_range_g: float):

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import typer
 
+from pipeline.calibrate.methods import names as method_names
 from pipeline.errors import ThermocalError
 
 from .app import REGISTRY_HELP, JsonFlag, app, calibration_settings, check_method, emit, needs_base
@@ -45,10 +46,8 @@ def calibrate(
         "auto",
         "--method",
         help="auto (default: the method the recording supports, as inspect "
-        "says, and the result says which) | tilt (known fixture positions) | "
-        "scalar (the positions need not be known: only |a| = 1 g is used) | "
-        "differential (fixed orientations through a temperature cycle or "
-        "sweep)",
+        f"says, and the result says which) | {' | '.join(method_names())} "
+        "(inspect RUN says what each needs and determines)",
     ),
     base_passport: Path | None = typer.Option(
         None,

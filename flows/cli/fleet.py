@@ -8,6 +8,7 @@ from pathlib import Path
 
 import typer
 
+from pipeline.calibrate.methods import names as method_names
 from pipeline.errors import ThermocalError
 
 from .app import REGISTRY_HELP, JsonFlag, app, calibration_settings, check_method, emit
@@ -37,9 +38,9 @@ def fleet(
         "auto",
         "--method",
         help="auto (default: as for calibrate, the method each unit's first run "
-        "supports), tilt, scalar, or differential (starting from each unit's "
-        "current passport in the registry: its newest approved, else newest, "
-        "version not made by the differential method)",
+        f"supports) | {' | '.join(method_names())} (a method that starts from "
+        "a base passport takes each unit's current passport in the registry: "
+        "its newest approved, else newest, version not made by such a method)",
     ),
     as_json: JsonFlag = False,
 ):

@@ -50,14 +50,15 @@ from scipy.linalg import lstsq as scipy_lstsq
 from scipy.optimize import minimize_scalar
 from scipy.signal import savgol_filter
 
-from pipeline.calibrate.observations import ObservedRun, observe_run, plateau_summary, unit_of, verify_unit
-from pipeline.calibrate.result import CalibrationResult, UnitFit, base_reference
+from pipeline.calibrate.method import Fitted, Method, Support
+from pipeline.calibrate.observations import ObservedRun, observe_run, unit_of
+from pipeline.calibrate.recording import Recording, axis_roles
+from pipeline.calibrate.result import UnitFit, base_reference
 from pipeline.calibrate.settings import CalibrationSettings
 from pipeline.dynamics import first_order_lag
 from pipeline.errors import CalibrationError
 from pipeline.model import specific_force_g
-from pipeline.passport.document import build_passport, load_passport
-from pipeline.plausibility import assess
+from pipeline.passport.document import load_passport
 from pipeline.positions import AXES, is_verification_position
 from pipeline.run import NS_PER_S as _NS
 from pipeline.thermal import DifferentialModel, PolynomialModel, RateTerms, rate_basis
@@ -929,131 +930,184 @@ def base_constants(base_passport: dict | None, unit: str) -> tuple[np.ndarray, n
     return K0, U0, t0
 
 
-def observe(
-    run,
-    settings: CalibrationSettings = CalibrationSettings(),
-    *,
-    base_passport: dict | None = None,
-    differential: DifferentialSettings | None = None,
-    segmentation=None,
-) -> ObservedRun:
-    """The run's orientation windows and block averages (``data``, :func:`block_data`, with the base passport's
-    normal-temperature constants, or without one the nominal gain and zero offsets) and its VP observations, if
-    any (a run without plateaus simply has none; ``segmentation``: the run's, if already made with
-    ``settings.segment``)."""
-    if base_passport is None:
-        K0, U0 = np.diag(nominal_gain_v_per_g([run])), np.zeros(3)
-    else:
-        K0, U0, _ = base_constants(base_passport, run.meta.unit_serial)
-    data = block_data(run, K0, U0, differential or _settings_for(base_passport))
-    try:
-        observations = observe_run(run, settings.segment, segmentation)[0]
-    except CalibrationError:
-        observations = []
-    return ObservedRun(
-        meta=run.meta, source=run.source, observations=observations, warnings=list(run.warnings), data=data
-    )
+class Differential(Method):
+    """Seed 003's differential calibration: fixed orientations through a temperature cycle or sweep; starts from a
+    normal-temperature passport when there is one, else from the constants the orientations determine."""
+
+    name = "differential"
+    passport_method = METHOD
+    uses_base_passport = True
+
+    def supports(self, recording: Recording) -> Support:
+        """Orientations held :data:`SWEEP_MIN_HOLD_S` or more through :data:`SWEEP_MIN_SPAN_C` or more (two or
+        more); per axis, whether its bias and scale factor separate (vertical in one orientation, horizontal in
+        another)."""
+        held = [
+            p
+            for p in recording.poses
+            if p["longest_hold_s"] >= SWEEP_MIN_HOLD_S
+            and None not in p["temp_range_c"]
+            and p["temp_range_c"][1] - p["temp_range_c"][0] >= SWEEP_MIN_SPAN_C
+        ]
+        roles = axis_roles(held)
+        both = [ax for ax, (v, h) in roles.items() if v and h]
+        ok = len(held) >= 2
+        det: list[str] = []
+        if ok:
+            det.append("per axis: bias temperature terms (polynomial in T, rate terms)")
+            det += [
+                f"axis {ax}: bias and scale factor separated (vertical in one orientation, horizontal in another)"
+                for ax in both
+            ]
+            det += [
+                f"axis {ax}: scale factor and its temperature terms undetermined without --base-passport (never "
+                "vertical)"
+                if not roles[ax][0]
+                else f"axis {ax}: bias at T0 undetermined without --base-passport (never horizontal)"
+                for ax in "xyz"
+                if ax not in both
+            ]
+            det.append(
+                "cross-axis constants: undetermined without --base-passport (only their temperature terms, "
+                "where the orientations excite them)"
+            )
+        hold_h = f"{SWEEP_MIN_HOLD_S / 3600:.0f} h"
+        span = f"{SWEEP_MIN_SPAN_C:.0f} C"
+        return Support(
+            supported=ok,
+            why=(
+                f"{len(held)} orientations held {hold_h} or more through {span} or more"
+                if ok
+                else f"needs two or more orientations each held {hold_h} or more through {span} or more; "
+                f"found {len(held)}"
+            ),
+            determines=tuple(det),
+            preference=PREFERENCE_SWEEP if recording.program.kind == "sweep" else PREFERENCE,
+        )
+
+    def observe(
+        self,
+        run,
+        settings: CalibrationSettings = CalibrationSettings(),
+        *,
+        base_passport: dict | None = None,
+        segmentation=None,
+        differential: DifferentialSettings | None = None,
+    ) -> ObservedRun:
+        """The run's orientation windows and block averages (``data``, :func:`block_data`, with the base
+        passport's normal-temperature constants, or without one the nominal gain and zero offsets) and its VP
+        observations, if any (a run without plateaus simply has none; ``segmentation``: the run's, if already made
+        with ``settings.segment``)."""
+        if base_passport is None:
+            K0, U0 = np.diag(nominal_gain_v_per_g([run])), np.zeros(3)
+        else:
+            K0, U0, _ = base_constants(base_passport, run.meta.unit_serial)
+        data = block_data(run, K0, U0, differential or _settings_for(base_passport))
+        try:
+            observations = observe_run(run, settings.segment, segmentation)[0]
+        except CalibrationError:
+            observations = []
+        return ObservedRun(
+            meta=run.meta, source=run.source, observations=observations, warnings=list(run.warnings), data=data
+        )
+
+    def fit(
+        self,
+        observed: list[ObservedRun],
+        settings: CalibrationSettings = CalibrationSettings(),
+        *,
+        base_passport: dict | None = None,
+        differential: DifferentialSettings | None = None,
+    ) -> Fitted:
+        """The differential fit of one unit's observed runs, from a normal-temperature passport.
+
+        The passport's ``thermal_model`` is the polynomial of order ``differential.poly_order`` (alpha, beta, gamma),
+        ``rate_terms`` holds the rate terms and lag (see :class:`RateTerms`), ``differential`` the fit's details and
+        ``base_passport`` the starting passport's unit, version and method. VP segments in the runs, if any, verify it
+        as usual (without rate terms).
+
+        Without ``base_passport`` (temperature sweeps, physics.md "Real recordings") the constants at T0 come from the
+        orientations themselves (:func:`sweep_base`, default model :data:`SWEEP_SETTINGS`): the passport's
+        ``orientation_base`` says how, and ``undetermined`` lists what the orientations cannot determine (kept at
+        nominal values, never guessed).
+        """
+        serial = unit_of(observed)
+        differential = differential or _settings_for(base_passport)
+        data = [r.data for r in observed]
+        orientation_base = None
+        if base_passport is None:
+            t0 = float(observed[0].meta.normal_temp_c)
+            orientation_base = sweep_base(data, dataclasses.replace(differential, select_model=False), t0)
+            K0, U0 = orientation_base.K, orientation_base.U0
+            data = [with_constants(d, K0, U0) for d in data]
+        else:
+            K0, U0, t0 = base_constants(base_passport, serial)
+        scores = []
+        if differential.select_model:
+            differential, scores = select_model(data, K0, U0, t0, differential)
+        fit = fit_differential(data, K0, U0, t0, differential)
+        covered = None
+        if fit.windows:  # the temperatures the orientation windows went through
+            covered = (
+                round(min(w["temp_min_c"] for w in fit.windows), 1),
+                round(max(w["temp_max_c"] for w in fit.windows), 1),
+            )
+        notes = list(fit.notes)
+        if orientation_base is not None:
+            notes.append(
+                "no base passport: constants at T0 from the orientations; undetermined (kept at nominal "
+                "values): " + ", ".join(orientation_base.undetermined)
+            )
+        unit_fit = UnitFit(
+            unit=serial,
+            normal_temp_c=t0,
+            per_plateau=[],
+            model=fit.model.static,
+            skipped=notes,
+            valid_temp_c=covered,
+            uncertainty=fit_uncertainty(fit, base_passport=base_passport, orientation_base=orientation_base),
+        )
+        summary = fit.summary()
+        if scores:
+            summary["model_selection"] = {"folds_s": FOLD_S, "score_mean_s": SCORE_MEAN_S, "candidates": scores}
+        fields = {
+            "differential": summary,
+            "rate_terms": fit.model.rate.to_dict(),
+            "base_passport": (
+                {k: base_passport.get(k) for k in ("unit", "version", "method", "created_utc")}
+                if base_passport is not None
+                else None
+            ),
+        }
+        if orientation_base is not None:
+            fields["orientation_base"] = orientation_base.to_dict()
+            fields["undetermined"] = list(orientation_base.undetermined)
+        identity = base_reference(base_passport) if base_passport is not None else {"base_passport_sha256": None}
+        return Fitted(unit_fit, passport_fields=fields, settings_extra=identity)
+
+    def plateau_observations(self, observations):
+        """The plateaus that verified the passport (the fit uses none; a sweep's drifting stretches are no
+        plateaus)."""
+        return [o for o in observations if is_verification_position(o.position)]
 
 
 def _settings_for(base_passport: dict | None) -> DifferentialSettings:
     return DifferentialSettings() if base_passport is not None else SWEEP_SETTINGS
 
 
-def calibrate_observed(
-    observed: list[ObservedRun],
-    settings: CalibrationSettings = CalibrationSettings(),
-    *,
-    base_passport: dict | None = None,
-    differential: DifferentialSettings | None = None,
-) -> CalibrationResult:
-    """Passport of method ``differential`` from one unit's observed runs and a normal-temperature passport.
+#: a recording supports the differential method with two or more orientations each held this long (s) through at
+#: least this temperature change (C)
+SWEEP_MIN_HOLD_S = 3600.0
+SWEEP_MIN_SPAN_C = 2.0
+#: how much ``--method auto`` prefers the differential method (:attr:`pipeline.calibrate.method.Support.preference`):
+#: first on a temperature sweep, between the tilt and the scalar method otherwise
+PREFERENCE_SWEEP = 30.0
+PREFERENCE = 10.0
 
-    The passport's ``thermal_model`` is the polynomial of order ``differential.poly_order`` (alpha, beta, gamma),
-    ``rate_terms`` holds the rate terms and lag (see :class:`RateTerms`), ``differential`` the fit's details and
-    ``base_passport`` the starting passport's unit, version and method. VP segments in the runs, if any, verify it
-    as usual (without rate terms).
-
-    Without ``base_passport`` (temperature sweeps, physics.md "Real recordings") the constants at T0 come from the
-    orientations themselves (:func:`sweep_base`, default model :data:`SWEEP_SETTINGS`): the passport's
-    ``orientation_base`` says how, and ``undetermined`` lists what the orientations cannot determine (kept at
-    nominal values, never guessed).
-    """
-    serial = unit_of(observed)
-    differential = differential or _settings_for(base_passport)
-    data = [r.data for r in observed]
-    orientation_base = None
-    if base_passport is None:
-        t0 = float(observed[0].meta.normal_temp_c)
-        orientation_base = sweep_base(data, dataclasses.replace(differential, select_model=False), t0)
-        K0, U0 = orientation_base.K, orientation_base.U0
-        data = [with_constants(d, K0, U0) for d in data]
-    else:
-        K0, U0, t0 = base_constants(base_passport, serial)
-    scores = []
-    if differential.select_model:
-        differential, scores = select_model(data, K0, U0, t0, differential)
-    fit = fit_differential(data, K0, U0, t0, differential)
-    observations = [o for r in observed for o in r.observations]
-    rows, status = verify_unit(fit.model.static, observations, t0, settings.tolerances)
-    covered = None
-    if fit.windows:  # the temperatures the orientation windows went through
-        covered = (
-            round(min(w["temp_min_c"] for w in fit.windows), 1),
-            round(max(w["temp_max_c"] for w in fit.windows), 1),
-        )
-    notes = list(fit.notes)
-    if orientation_base is not None:
-        notes.append(
-            "no base passport: constants at T0 from the orientations; undetermined (kept at nominal "
-            "values): " + ", ".join(orientation_base.undetermined)
-        )
-    unit_fit = UnitFit(
-        unit=serial,
-        normal_temp_c=t0,
-        per_plateau=[],
-        model=fit.model.static,
-        skipped=notes,
-        valid_temp_c=covered,
-        uncertainty=fit_uncertainty(fit, base_passport=base_passport, orientation_base=orientation_base),
-    )
-    run_warnings = [w for r in observed for w in r.warnings]
-    status, implausible = assess(unit_fit, status, observed[0].meta.nominal_gain_v_per_g, run_warnings)
-    # the plateaus that verified the passport (the fit uses none; a sweep's drifting stretches are no plateaus)
-    plateaus = plateau_summary([o for o in observations if is_verification_position(o.position)])
-    summary = fit.summary()
-    if scores:
-        summary["model_selection"] = {"folds_s": FOLD_S, "score_mean_s": SCORE_MEAN_S, "candidates": scores}
-    extra = {
-        "differential": summary,
-        "rate_terms": fit.model.rate.to_dict(),
-        "base_passport": (
-            {k: base_passport.get(k) for k in ("unit", "version", "method", "created_utc")}
-            if base_passport is not None
-            else None
-        ),
-        **({"implausible": implausible} if implausible else {}),
-    }
-    if orientation_base is not None:
-        extra["orientation_base"] = orientation_base.to_dict()
-        extra["undetermined"] = list(orientation_base.undetermined)
-    doc = build_passport(
-        unit_fit,
-        rows,
-        status,
-        g_local_mps2=observed[0].meta.g_local_mps2,
-        plateaus=plateaus,
-        method=METHOD,
-        extra=extra,
-    )
-    return CalibrationResult(
-        passport=doc,
-        fit=unit_fit,
-        rows=rows,
-        status=status,
-        plateaus=plateaus,
-        warnings=run_warnings + notes + [p for p in implausible if p not in run_warnings],
-        settings_extra=(base_reference(base_passport) if base_passport is not None else {"base_passport_sha256": None}),
-    )
+#: the differential method, for the registry (:mod:`pipeline.calibrate.methods`)
+CALIBRATION_METHOD = Differential()
+observe = CALIBRATION_METHOD.observe
+calibrate_observed = CALIBRATION_METHOD.calibrate_observed
 
 
 def fit_uncertainty(
@@ -1204,18 +1258,4 @@ def _as_sigma(values, shape) -> np.ndarray:
     return a if a.shape == shape else np.full(shape, np.nan)
 
 
-def calibrate(
-    runs,
-    settings: CalibrationSettings = CalibrationSettings(),
-    *,
-    base_passport: dict | None = None,
-    differential: DifferentialSettings | None = None,
-) -> CalibrationResult:
-    """The differential calibration of one unit from its temperature-cycle runs, starting from ``base_passport``'s
-    normal-temperature constants (without one: from the constants the orientations determine): :func:`observe`
-    each run, then :func:`calibrate_observed`."""
-    runs = list(runs)
-    if base_passport is not None:
-        base_constants(base_passport, unit_of(runs))
-    observed = [observe(r, settings, base_passport=base_passport, differential=differential) for r in runs]
-    return calibrate_observed(observed, settings, base_passport=base_passport, differential=differential)
+calibrate = CALIBRATION_METHOD.calibrate

@@ -11,10 +11,10 @@ calibrate one unit's group while isolating a bad run.
   groups, so the calibration does not read the runs a second time to hash them (unless a run changed since, by its
   :func:`pipeline.passport.provenance.file_signature`).
 - :func:`calibrate_group`: the calibration of one unit from all its runs (TP runs and the VP runs that verify them)
-  by any method (``pipeline.calibrate.methods``; the differential method starts from the unit's passport in the
-  registry, :func:`pipeline.calibrate.methods.base_passport_of`). A run that cannot be read or observed (the
-  recipe's per-run step) is dropped and reported; the others are calibrated. Never raises for a bad input: failures
-  come back as ``{"run", "reason"}`` rows with the one-line reason.
+  by any method (the registry ``pipeline.calibrate.methods``; a method that uses a base passport starts from
+  the unit's passport in the registry, :func:`pipeline.calibrate.methods.base_passport_of`). A run that cannot be
+  read or observed (the method's per-run step) is dropped and reported; the others are calibrated. Never raises
+  for a bad input: failures come back as ``{"run", "reason"}`` rows with the one-line reason.
 
 The Prefect flow (``flows/fleet.py``) runs :func:`plan_fleet` once and :func:`calibrate_group` as one task per unit.
 """
@@ -29,14 +29,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from pipeline.calibrate.inputs import RunInput, folder_warning, resolve_run_ids
-from pipeline.calibrate.methods import (
-    METHODS,
-    NEEDS_BASE_PASSPORT,
-    base_passport_of,
-    default_base_passport,
-    recipe,
-    resolve_auto,
-)
+from pipeline.calibrate.methods import all_methods, base_passport_of, by_name, default_base_passport, resolve_auto
 from pipeline.calibrate.publish import publish, recorded_settings
 from pipeline.calibrate.result import base_reference
 from pipeline.calibrate.settings import CalibrationSettings
@@ -184,7 +177,7 @@ def plan_fleet(
         by_unit.setdefault(unit, []).append(
             {"path": str(path), "sha256": digest.sha256, "digest": digest, "run_id": meta.run_id}
         )
-    recs = [recipe(m) for m in METHODS] if method == "auto" else [recipe(method)]
+    candidates = all_methods() if method == "auto" else [by_name(method)]
     for unit, inputs in sorted(by_unit.items()):
         unique: dict[str, dict] = {}
         for item in inputs:
@@ -200,19 +193,21 @@ def plan_fleet(
             if not kept:
                 continue
 
-        def identities(base: dict | None, needs_base: bool, kept: list[dict] = kept) -> list[str]:
+        def identities(base: dict | None, uses_base: bool, kept: list[dict] = kept) -> list[str]:
             return [
                 identity_key(
-                    kept, recorded_settings(settings, rec.METHOD, base_reference(base) if base is not None else {})
+                    kept,
+                    recorded_settings(settings, m.passport_method, base_reference(base) if base is not None else {}),
                 )
-                for rec in recs
-                if (rec.METHOD in NEEDS_BASE_PASSPORT) == needs_base
+                for m in candidates
+                if m.uses_base_passport == uses_base
             ]
 
         try:
             if method != "auto":
-                base = base_passport_of(reg, unit)[0] if method in NEEDS_BASE_PASSPORT else None
-                identity = identities(base, method in NEEDS_BASE_PASSPORT)[0]
+                uses_base = candidates[0].uses_base_passport
+                base = base_passport_of(reg, unit)[0] if uses_base else None
+                identity = identities(base, uses_base)[0]
                 done = reg.find(unit, identity)
             else:  # done by whichever method it picks; the base only for a unit not done yet
                 plain = identities(None, False)
@@ -288,7 +283,7 @@ def calibrate_group(
     :attr:`UnitGroup.digests`, reused for the runs unchanged since; ``base_passport``: the differential method's
     starting passport, :attr:`UnitGroup.base_passport`).
 
-    Runs that cannot be read or observed (the recipe's per-run step), or belong to another unit, are dropped
+    Runs that cannot be read or observed (the method's per-run step), or belong to another unit, are dropped
     (listed in ``failed``); the rest are calibrated together. If the unit cannot be calibrated at all, every
     remaining run is listed in ``failed`` with the reason and ``result`` is None. Bad inputs never raise.
     """
@@ -299,7 +294,7 @@ def calibrate_group(
     observed: list = []
     result = None
     try:
-        rec = recipe(method) if method != "auto" else None
+        chosen = by_name(method) if method != "auto" else None
     except CalibrationError as exc:
         return UnitOutcome(
             unit=unit,
@@ -314,17 +309,17 @@ def calibrate_group(
             if run.meta.unit_serial != unit:
                 raise CalibrationError(f"run is of unit {run.meta.unit_serial!r}, not {unit!r}", path=path)
             seg = None
-            if rec is None:  # --method auto: the method the unit's first readable run supports
+            if chosen is None:  # --method auto: the method the unit's first readable run supports
                 method, base_passport, seg, _ = resolve_auto(run, settings, base_passport)
-                rec = recipe(method)
-            observed.append(rec.observe(run, settings, base_passport=base_passport, segmentation=seg))
+                chosen = by_name(method)
+            observed.append(chosen.observe(run, settings, base_passport=base_passport, segmentation=seg))
         except Exception as exc:
             failed.append({"run": path, "reason": reason_of(exc)})
             continue
         good.append(path)
     if good:
         try:
-            calibration = rec.calibrate_observed(observed, settings, base_passport=base_passport)
+            calibration = chosen.calibrate_observed(observed, settings, base_passport=base_passport)
             result = publish(
                 registry, calibration, input_paths=good, settings=settings, figure=figure, input_digests=digests
             )

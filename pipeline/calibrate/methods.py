@@ -1,62 +1,120 @@
-"""The calibration methods by name: one recipe module per method, each with the same interface.
+"""The registry of calibration methods (:class:`pipeline.calibrate.method.Method`): what ``inspect``,
+``--method auto``, the command line's ``--method`` and the fleet all read.
 
-A recipe module (``tilt``, ``scalar``, ``differential``) has ``METHOD`` (the passport's ``method``),
-``observe(run, settings, *, base_passport=None, segmentation=None) -> ObservedRun`` (the per-run step: what a
-fleet isolates; ``segmentation``: the run's, when already made, e.g. by :func:`auto_method`'s caller),
-``calibrate_observed(observed, settings, *, base_passport=None) -> CalibrationResult`` and
-``calibrate(runs, settings, *, base_passport=None) -> CalibrationResult`` (the two in a row).
+- :data:`BUILTIN`: the methods by name, each the module that defines it (its ``CALIBRATION_METHOD``), imported on
+  first use (their names cost nothing: the command line checks ``--method`` without importing any);
+  :func:`register` adds one more (a method defined elsewhere, a test's);
+- :func:`names`, :func:`by_name`, :func:`all_methods`: the methods in the order listed;
+- :func:`judge`: every method's :class:`pipeline.calibrate.method.Support` of a recording, in the order ``--method
+  auto`` prefers them, and :func:`auto_choice` the one it takes; :func:`auto_method` / :func:`resolve_auto` the
+  ``--method auto`` steps on a unit's first run (the calibrate flow's and the fleet's);
+- :func:`default_base_passport`, :func:`base_passport_of`: the passport a method that uses one
+  (:attr:`~pipeline.calibrate.method.Method.uses_base_passport`) starts from by default.
+
+Adding a method: a module with a :class:`~pipeline.calibrate.method.Method` subclass and its instance
+``CALIBRATION_METHOD``, and its line in :data:`BUILTIN`.
 """
 
 from __future__ import annotations
 
-from types import ModuleType
+import importlib
+from typing import TYPE_CHECKING
 
-from pipeline.calibrate import differential, scalar, tilt
 from pipeline.errors import CalibrationError, ThermocalError
 
-#: recipe module by the name ``calibrate --method`` and ``fleet --method`` take
-RECIPES: dict[str, ModuleType] = {"tilt": tilt, "scalar": scalar, "differential": differential}
-#: the method names, the default first
-METHODS: tuple[str, ...] = tuple(RECIPES)
-#: methods that start from a normal-temperature passport (``base_passport``)
-NEEDS_BASE_PASSPORT: tuple[str, ...] = ("differential",)
+if TYPE_CHECKING:
+    from pipeline.calibrate.method import Method, Support
+    from pipeline.calibrate.recording import Recording
+
+#: the built-in methods by the name ``calibrate --method`` and ``fleet --method`` take: the module defining each
+BUILTIN: dict[str, str] = {
+    "tilt": "pipeline.calibrate.tilt",
+    "scalar": "pipeline.calibrate.scalar",
+    "differential": "pipeline.calibrate.differential",
+}
+_loaded: dict[str, Method] = {}  # the methods imported or registered so far, by name
 
 
-def recipe(method: str) -> ModuleType:
-    """The recipe module of ``method``; CalibrationError naming the known methods otherwise."""
-    try:
-        return RECIPES[method]
-    except KeyError:
-        raise CalibrationError(f"unknown method {method!r} ({', '.join(METHODS)})") from None
+def names() -> tuple[str, ...]:
+    """Every method's name, built-in first, without importing any."""
+    return (*BUILTIN, *(n for n in _loaded if n not in BUILTIN))
+
+
+def register(method: Method) -> Method:
+    """Add ``method`` to the registry (after the others; a method of a name already registered replaces it).
+    Returns it."""
+    _loaded[method.name] = method
+    return method
+
+
+def unregister(name: str) -> None:
+    """Remove the method ``name`` added by :func:`register` (a built-in one is loaded again on its next use)."""
+    _loaded.pop(name, None)
+
+
+def by_name(name: str) -> Method:
+    """The method ``name``; CalibrationError naming the known methods otherwise."""
+    if name not in _loaded:
+        if name not in BUILTIN:
+            raise CalibrationError(f"unknown method {name!r} ({', '.join(names())})")
+        method = importlib.import_module(BUILTIN[name]).CALIBRATION_METHOD
+        if method.name != name:
+            raise CalibrationError(f"{BUILTIN[name]} defines the method {method.name!r}, not {name!r}")
+        _loaded[name] = method
+    return _loaded[name]
+
+
+def all_methods() -> list[Method]:
+    """Every method, in the order of :func:`names`."""
+    return [by_name(n) for n in names()]
+
+
+def passport_methods_with_base() -> tuple[str, ...]:
+    """The passports' ``method`` of the methods that start from a base passport (never a base themselves)."""
+    return tuple(m.passport_method for m in all_methods() if m.uses_base_passport)
+
+
+def judge(recording: Recording) -> list[tuple[Method, Support]]:
+    """Every method's judgement of ``recording`` (:meth:`~pipeline.calibrate.method.Method.supports`), the one
+    ``--method auto`` prefers first (highest :attr:`~pipeline.calibrate.method.Support.preference`; ties in the
+    order of :func:`names`)."""
+    judged = [(m, m.supports(recording)) for m in all_methods()]
+    return sorted(judged, key=lambda ms: -ms[1].preference)
+
+
+def auto_choice(judged: list[tuple[Method, Support]]) -> tuple[Method, Support] | None:
+    """The method ``--method auto`` takes from :func:`judge`'s list: the first that the recording supports or that
+    insists on it (:attr:`~pipeline.calibrate.method.Support.insists`); None when none does."""
+    return next(((m, s) for m, s in judged if s.supported or s.insists), None)
 
 
 def auto_method(run, seg) -> tuple[str, str]:
     """The method ``calibrate --method auto`` uses on ``run`` (segmented as ``seg``,
-    :func:`pipeline.segment.segment_run`): the one inspect says the recording supports
-    (:func:`pipeline.inspect.describe_recording`), and a line saying which and why. CalibrationError naming the
-    file when no method fits the recording."""
-    from pipeline.inspect import KIND_WORDS, describe_recording
+    :func:`pipeline.segment.segment_run`): :func:`auto_choice`, and a line saying which and why. CalibrationError
+    naming the file when no method fits the recording."""
+    from pipeline.calibrate.recording import KIND_WORDS, Recording
 
-    rec = describe_recording(run, seg)
-    chosen = rec["method_auto"]
-    kind = KIND_WORDS.get(rec["temperature"]["kind"], rec["temperature"]["kind"])
+    recording = Recording.of(run, seg)
+    judged = judge(recording)
+    kind = KIND_WORDS.get(recording.program.kind, recording.program.kind)
+    chosen = auto_choice(judged)
     if chosen is None:
-        why = "; ".join(f"{m['method']}: {m['why']}" for m in rec["methods"])
+        why = "; ".join(f"{m.name}: {s.why}" for m, s in judged)
         raise CalibrationError(f"no calibration method fits this recording ({kind}; {why})", path=run.source)
-    m = next(m for m in rec["methods"] if m["method"] == chosen)
-    return chosen, f"{chosen} ({kind}: {m['why']})"
+    m, s = chosen
+    return m.name, f"{m.name} ({kind}: {s.why})"
 
 
 def resolve_auto(run, settings, base_passport: dict | None = None):
     """The ``--method auto`` steps on a unit's first run, for the calibrate flow and the fleet alike: segment
     ``run`` (``settings.segment``), choose the method it supports (:func:`auto_method`) and keep ``base_passport``
-    only when that method starts from one. Returns (the method's name, for :func:`recipe`; the base passport or
-    None; the segmentation for the recipe's ``observe``; the line saying which method and why)."""
+    only when that method starts from one. Returns (the method's name, for :func:`by_name`; the base passport or
+    None; the segmentation for the method's ``observe``; the line saying which method and why)."""
     from pipeline.segment import segment_run
 
     seg = segment_run(run, settings.segment)
     method, why = auto_method(run, seg)
-    return method, (base_passport if method in NEEDS_BASE_PASSPORT else None), seg, why
+    return method, (base_passport if by_name(method).uses_base_passport else None), seg, why
 
 
 def default_base_passport(registry, unit: str) -> tuple[dict | None, str]:
@@ -83,7 +141,7 @@ def base_passport_of(registry, unit: str):
 
     reg = registry if isinstance(registry, Registry) else Registry(registry)
     try:
-        st = reg.state(unit, exclude_methods=NEEDS_BASE_PASSPORT)
+        st = reg.state(unit, exclude_methods=passport_methods_with_base())
     except CalibrationError:
         raise
     except Exception as e:

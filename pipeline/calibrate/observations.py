@@ -10,7 +10,9 @@ warnings, and the VP verification of a fitted model on them.
 - :func:`verification_observations`: the VP observations that are verification results (no soak holds);
 - :func:`verify_unit`: dg at each of them, uncompensated and by both compensation methods, and the status (never
   ``pass`` where :func:`verification_gap` finds the thermal model's range unverified);
-- :func:`plateau_summary`: the plateaus and their positions, for ``calibrate --json``.
+- :func:`plateau_summary`: the plateaus and their positions, for ``calibrate --json``;
+- :func:`plateau_groups`, :func:`calibration_plateaus`: the test-position observations per plateau, and the
+  plateaus whose test positions determine the 12 constants (:func:`determines_constants`).
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ import numpy as np
 
 from pipeline.errors import CalibrationError
 from pipeline.plausibility import IMPLAUSIBLE, mirrored_axis
-from pipeline.positions import is_verification_position
+from pipeline.positions import gravity_vector_g, is_test_position, is_verification_position
 from pipeline.run import RunMeta
 from pipeline.segment import SegmentSettings, segment_run
 from pipeline.verify import Tolerances, VerificationRow, overall_status, verify_positions
@@ -258,3 +260,36 @@ def plateau_summary(observations: list[Observation]) -> list[dict]:
             }
         )
     return out
+
+
+def plateau_groups(obs: list[Observation]) -> dict[tuple[str, int], list[Observation]]:
+    """Test-position observations per plateau; a position held while the unit still settled towards the plateau
+    counts only where the plateau's stable part lacks it (each at its own temperature: see
+    :func:`pipeline.calibrate.tilt.fit_unit`)."""
+    groups: dict[tuple[str, int], list[Observation]] = {}
+    for o in obs:
+        if o.plateau is not None and is_test_position(o.position):
+            groups.setdefault((o.run_id, o.plateau), []).append(o)
+    for key, rows in groups.items():
+        stable = {o.position for o in rows if not o.settling}
+        groups[key] = [o for o in rows if not (o.settling and o.position in stable)]
+    return groups
+
+
+def calibration_plateaus(observations: list[Observation]) -> list[tuple[str, int, float, tuple[str, ...]]]:
+    """The plateaus the tilt method fits constants on: ``(run_id, plateau, mean temperature C, positions)`` for
+    each plateau whose test positions determine the 12 constants (:func:`determines_constants`), in the order
+    found. What ``inspect`` tells of a recording before calibrating it."""
+    out = []
+    for (run_id, p), rows in plateau_groups(observations).items():
+        names = tuple(dict.fromkeys(o.position for o in rows))
+        if determines_constants(names):
+            out.append((run_id, p, float(np.mean([o.temp_c for o in rows])), names))
+    return out
+
+
+def determines_constants(positions) -> bool:
+    """Whether static positions determine all 12 constants: U = K a + U0 has, per channel, four unknowns and the
+    positions' [a, 1] rows must have rank 4 (e.g. five of the six test positions do)."""
+    rows = np.array([[*gravity_vector_g(p), 1.0] for p in dict.fromkeys(positions)])
+    return rows.shape[0] >= 4 and np.linalg.matrix_rank(rows) == 4

@@ -37,19 +37,13 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares as _scipy_least_squares
 
-from pipeline.calibrate.observations import (
-    ObservedRun,
-    observations_from_segmentation,
-    plateau_summary,
-    unit_of,
-    verify_unit,
-)
-from pipeline.calibrate.result import CalibrationResult, PlateauConstants, UnitFit
+from pipeline.calibrate.method import Fitted, Method, Support
+from pipeline.calibrate.observations import ObservedRun, observations_from_segmentation, unit_of
+from pipeline.calibrate.recording import Recording
+from pipeline.calibrate.result import PlateauConstants, UnitFit
 from pipeline.calibrate.settings import CalibrationSettings
 from pipeline.errors import CalibrationError
 from pipeline.model import gravity_module_error_g, specific_force_g
-from pipeline.passport.document import build_passport
-from pipeline.plausibility import assess
 from pipeline.positions import AXES
 from pipeline.segment import segment_run
 from pipeline.thermal import PolynomialModel
@@ -430,146 +424,175 @@ def lower_gauge(K: np.ndarray) -> np.ndarray:
 METHOD = "scalar"
 
 
-def observe(
-    run, settings: CalibrationSettings = CalibrationSettings(), *, base_passport: dict | None = None, segmentation=None
-) -> ObservedRun:
-    """The run's observations (named segments, for the verification and the plateau summary) and, as ``data``,
-    every static segment on a plateau with finite mean outputs, named or not (orientations are not used).
-    ``segmentation``: the run's, if already made with ``settings.segment``."""
-    seg = segmentation if segmentation is not None else segment_run(run, settings.segment)
-    static = [s for s in seg.segments if s.plateau is not None and s.count > 0 and np.all(np.isfinite(s.mean_v))]
-    return ObservedRun(
-        meta=run.meta,
-        source=run.source,
-        warnings=list(run.warnings),
-        data=static,
-        observations=observations_from_segmentation(run.meta.run_id, seg, run.source),
-    )
+#: a scalar calibration needs at least this many distinct poses for the full model (gains, offsets, 3 psi
+#: combinations), and this many for gains and offsets only (``inspect``: poses within 3 C of T0)
+FULL_POSES = 9
+DIAGONAL_POSES = 6
+#: how much ``--method auto`` prefers the scalar method (:attr:`pipeline.calibrate.method.Support.preference`):
+#: above the tilt method on many poses at one temperature when no fixture log says where they are (poses named
+#: from gravity alone are not known to a fixture's precision: a hand-turned fixture) and the tilt method would not
+#: determine a thermal model, or when it cannot run at all; last otherwise, and always on a sweep
+PREFERENCE_POSES = 25.0
+PREFERENCE = 0.0
 
 
-def calibrate_observed(
-    observed: list[ObservedRun],
-    settings: CalibrationSettings = CalibrationSettings(),
-    *,
-    base_passport: dict | None = None,
-    normal_temp_c: float | None = None,
-    model: str = "auto",
-    k_prelim_v_per_g=None,
-    u0_prelim_v=None,
-) -> CalibrationResult:
-    """Passport of method ``scalar`` from one unit's observed runs: the scalar nonlinear fit over every static
-    segment on the plateaus within ``settings.cluster_tol_c`` of the normal temperature, polynomial thermal model
-    of order 0 (K and U0 at T0), verified on the VP segments as usual.
+class Scalar(Method):
+    """Seed 004's scalar calibration: |a| = 1 g in every static pose, the poses need not be known."""
 
-    Preliminary constants: the runs' ``nominal_gain_v_per_g`` (sign included) and zero offsets when the metadata has
-    a gain, else :func:`preliminary_from_outputs`. ``model``: ``full`` (>= 9 spread positions, e.g. the standard
-    program's TP and VP positions at +20 C), ``diagonal`` (orthogonal axes, >= 6 positions) or ``auto`` (full when
-    the positions determine it, else diagonal, with a note in the passport). The passport's extra field ``scalar``
-    holds the fit's details (:meth:`ScalarFit.summary`).
-    """
-    serial = unit_of(observed)
-    meta = observed[0].meta
-    t0 = float(meta.normal_temp_c if normal_temp_c is None else normal_temp_c)
-    observations = [o for r in observed for o in r.observations]
-    static = [(r.meta.run_id, s) for r in observed for s in r.data if abs(s.temp_c - t0) <= settings.cluster_tol_c]
-    if not static:
-        raise CalibrationError(
-            f"no static segment on a plateau within {settings.cluster_tol_c} C of the normal temperature {t0:+.1f} C",
-            stream="voltmeter",
+    name = "scalar"
+    passport_method = METHOD
+
+    def supports(self, recording: Recording) -> Support:
+        """Distinct static poses within 3 C of T0: the full model from :data:`FULL_POSES`, gains and offsets from
+        :data:`DIAGONAL_POSES`."""
+        t0 = float(recording.run.meta.normal_temp_c)
+        k = len(recording.poses_near(t0))
+        n = len(recording.constant_plateaus)
+        preferred = recording.program.kind != "sweep" and (
+            (k >= FULL_POSES and not recording.fixture_logged and n < 2) or (k >= DIAGONAL_POSES and n == 0)
         )
-    u = np.array([s.mean_v for _, s in static])
-    w = np.array([s.count for _, s in static], dtype=float)
-    if k_prelim_v_per_g is None:
-        k_auto, u0_auto = preliminary_from_outputs(u)
-        gain = meta.nominal_gain_v_per_g
-        k_prelim_v_per_g = np.full(3, gain) if gain else k_auto
-        u0_prelim_v = np.zeros(3) if gain else u0_auto
-    elif u0_prelim_v is None:
-        u0_prelim_v = np.zeros(3)
-    notes: list[str] = []
-    if model == "auto":
-        try:
-            fit_s = scalar_nonlinear(u, k_prelim_v_per_g, u0_prelim_v, model="full", weights=w)
-        except CalibrationError as e:
-            fit_s = scalar_nonlinear(u, k_prelim_v_per_g, u0_prelim_v, model="diagonal", weights=w)
-            notes.append(
-                f"scalar: the full model is not determined ({e.message}); fitted the diagonal model "
-                "(orthogonal axes: three gains and three offsets, no cross-axis terms)"
+        return Support(
+            supported=k >= DIAGONAL_POSES,
+            why=f"{k} distinct static poses within 3 C of T0 ({t0:g} C)",
+            determines=(
+                (
+                    "gains and offsets at T0",
+                    "psi_xy, psi_xz, psi_yz (sums of cross-axis pairs; the "
+                    "individual cross-axis terms are not determined)",
+                )
+                if k >= FULL_POSES
+                else (
+                    "gains and offsets at T0 (orthogonal axes assumed: too few poses for the cross-axis combinations)",
+                )
+                if k >= DIAGONAL_POSES
+                else ()
+            ),
+            preference=PREFERENCE_POSES if preferred else PREFERENCE,
+        )
+
+    def observe(
+        self,
+        run,
+        settings: CalibrationSettings = CalibrationSettings(),
+        *,
+        base_passport: dict | None = None,
+        segmentation=None,
+        **fit_options,
+    ) -> ObservedRun:
+        """The run's observations (named segments, for the verification and the plateau summary) and, as
+        ``data``, every static segment on a plateau with finite mean outputs, named or not (orientations are not
+        used). ``segmentation``: the run's, if already made with ``settings.segment``; ``fit_options``: the
+        fit's (:meth:`fit`), not used here."""
+        seg = segmentation if segmentation is not None else segment_run(run, settings.segment)
+        static = [s for s in seg.segments if s.plateau is not None and s.count > 0 and np.all(np.isfinite(s.mean_v))]
+        return ObservedRun(
+            meta=run.meta,
+            source=run.source,
+            warnings=list(run.warnings),
+            data=static,
+            observations=observations_from_segmentation(run.meta.run_id, seg, run.source),
+        )
+
+    def fit(
+        self,
+        observed: list[ObservedRun],
+        settings: CalibrationSettings = CalibrationSettings(),
+        *,
+        base_passport: dict | None = None,
+        normal_temp_c: float | None = None,
+        model: str = "auto",
+        k_prelim_v_per_g=None,
+        u0_prelim_v=None,
+    ) -> Fitted:
+        """The scalar nonlinear fit over every static segment on the plateaus within ``settings.cluster_tol_c`` of
+        the normal temperature, polynomial thermal model of order 0 (K and U0 at T0).
+
+        Preliminary constants: the runs' ``nominal_gain_v_per_g`` (sign included) and zero offsets when the
+        metadata has a gain, else :func:`preliminary_from_outputs`. ``model``: ``full`` (>= 9 spread positions,
+        e.g. the standard program's TP and VP positions at +20 C), ``diagonal`` (orthogonal axes, >= 6 positions)
+        or ``auto`` (full when the positions determine it, else diagonal, with a note in the passport). The
+        passport's field ``scalar`` holds the fit's details (:meth:`ScalarFit.summary`).
+        """
+        serial = unit_of(observed)
+        meta = observed[0].meta
+        t0 = float(meta.normal_temp_c if normal_temp_c is None else normal_temp_c)
+        static = [(r.meta.run_id, s) for r in observed for s in r.data if abs(s.temp_c - t0) <= settings.cluster_tol_c]
+        if not static:
+            raise CalibrationError(
+                f"no static segment on a plateau within {settings.cluster_tol_c} C of the normal temperature "
+                f"{t0:+.1f} C",
+                stream="voltmeter",
             )
-    else:
-        fit_s = scalar_nonlinear(u, k_prelim_v_per_g, u0_prelim_v, model=model, weights=w)
-    temp = float(np.average([s.temp_c for _, s in static], weights=w))
-    names = [s.position or "unnamed" for _, s in static]
-    # output residual: the norm error seen through the gains, dg |K_ii| (V)
-    resid_v = fit_s.norm_error_g[:, None] * np.abs(np.diag(fit_s.K))[None, :]
-    K_sig, U0_sig = constants_sigma(fit_s)
-    plateau = PlateauConstants(
-        run_id=static[0][0],
-        plateau=int(static[0][1].plateau),
-        temp_c=temp,
-        K=fit_s.K,
-        U0=fit_s.U0,
-        positions=tuple(dict.fromkeys(names)),
-        method=fit_s.method,
-        residual_rms_v=float(np.sqrt(np.mean(resid_v**2))),
-        K_sigma=K_sig,
-        U0_sigma=U0_sig,
-    )
-    thermal = PolynomialModel(fit_s.K, fit_s.U0, t0, 0, np.zeros((0, 3)), np.zeros((0, 3, 3)))
-    seg_temps = [s.temp_c for _, s in static]
-    fixed, undetermined = gauge_notes(fit_s)
-    sigma = ThermalSigma(
-        K0=K_sig,
-        U00=U0_sig,
-        thermal_model={"kind": "polynomial", "order": 0, "alpha": {}, "beta": {}, "gamma": {}},
-        birge_ratio=float("nan"),
-        dof=0,
-        extra={"fixed_by_convention": fixed, "undetermined": undetermined},
-        basis={
-            "level": "standard uncertainty (1 sigma)",
-            "coefficients": "the nonlinear fit's parameter covariance, scaled by its residuals "
-            "(the norm errors |a| - 1 over the positions)",
-            "n_positions": int(fit_s.n_positions),
-            "model": fit_s.model,
-        },
-    )
-    unit_fit = UnitFit(
-        unit=serial,
-        normal_temp_c=t0,
-        per_plateau=[plateau],
-        model=thermal,
-        skipped=notes,
-        valid_temp_c=(round(min(seg_temps), 1), round(max(seg_temps), 1)),
-        uncertainty=sigma,
-    )
-    rows, status = verify_unit(thermal, observations, t0, settings.tolerances)
-    run_warnings = [w for r in observed for w in r.warnings]
-    status, implausible = assess(unit_fit, status, meta.nominal_gain_v_per_g, run_warnings)
-    plateaus = plateau_summary(observations)
-    doc = build_passport(
-        unit_fit,
-        rows,
-        status,
-        g_local_mps2=meta.g_local_mps2,
-        plateaus=plateaus,
-        method=METHOD,
-        extra={"scalar": fit_s.summary(), **({"implausible": implausible} if implausible else {})},
-    )
-    return CalibrationResult(
-        passport=doc,
-        fit=unit_fit,
-        rows=rows,
-        status=status,
-        plateaus=plateaus,
-        warnings=run_warnings + notes + [p for p in implausible if p not in run_warnings],
-    )
+        u = np.array([s.mean_v for _, s in static])
+        w = np.array([s.count for _, s in static], dtype=float)
+        if k_prelim_v_per_g is None:
+            k_auto, u0_auto = preliminary_from_outputs(u)
+            gain = meta.nominal_gain_v_per_g
+            k_prelim_v_per_g = np.full(3, gain) if gain else k_auto
+            u0_prelim_v = np.zeros(3) if gain else u0_auto
+        elif u0_prelim_v is None:
+            u0_prelim_v = np.zeros(3)
+        notes: list[str] = []
+        if model == "auto":
+            try:
+                fit_s = scalar_nonlinear(u, k_prelim_v_per_g, u0_prelim_v, model="full", weights=w)
+            except CalibrationError as e:
+                fit_s = scalar_nonlinear(u, k_prelim_v_per_g, u0_prelim_v, model="diagonal", weights=w)
+                notes.append(
+                    f"scalar: the full model is not determined ({e.message}); fitted the diagonal model "
+                    "(orthogonal axes: three gains and three offsets, no cross-axis terms)"
+                )
+        else:
+            fit_s = scalar_nonlinear(u, k_prelim_v_per_g, u0_prelim_v, model=model, weights=w)
+        temp = float(np.average([s.temp_c for _, s in static], weights=w))
+        names = [s.position or "unnamed" for _, s in static]
+        # output residual: the norm error seen through the gains, dg |K_ii| (V)
+        resid_v = fit_s.norm_error_g[:, None] * np.abs(np.diag(fit_s.K))[None, :]
+        K_sig, U0_sig = constants_sigma(fit_s)
+        plateau = PlateauConstants(
+            run_id=static[0][0],
+            plateau=int(static[0][1].plateau),
+            temp_c=temp,
+            K=fit_s.K,
+            U0=fit_s.U0,
+            positions=tuple(dict.fromkeys(names)),
+            method=fit_s.method,
+            residual_rms_v=float(np.sqrt(np.mean(resid_v**2))),
+            K_sigma=K_sig,
+            U0_sigma=U0_sig,
+        )
+        thermal = PolynomialModel(fit_s.K, fit_s.U0, t0, 0, np.zeros((0, 3)), np.zeros((0, 3, 3)))
+        seg_temps = [s.temp_c for _, s in static]
+        fixed, undetermined = gauge_notes(fit_s)
+        sigma = ThermalSigma(
+            K0=K_sig,
+            U00=U0_sig,
+            thermal_model={"kind": "polynomial", "order": 0, "alpha": {}, "beta": {}, "gamma": {}},
+            birge_ratio=float("nan"),
+            dof=0,
+            extra={"fixed_by_convention": fixed, "undetermined": undetermined},
+            basis={
+                "level": "standard uncertainty (1 sigma)",
+                "coefficients": "the nonlinear fit's parameter covariance, scaled by its residuals "
+                "(the norm errors |a| - 1 over the positions)",
+                "n_positions": int(fit_s.n_positions),
+                "model": fit_s.model,
+            },
+        )
+        unit_fit = UnitFit(
+            unit=serial,
+            normal_temp_c=t0,
+            per_plateau=[plateau],
+            model=thermal,
+            skipped=notes,
+            valid_temp_c=(round(min(seg_temps), 1), round(max(seg_temps), 1)),
+            uncertainty=sigma,
+        )
+        return Fitted(unit_fit, passport_fields={"scalar": fit_s.summary()})
 
 
-def calibrate(
-    runs, settings: CalibrationSettings = CalibrationSettings(), *, base_passport: dict | None = None, **options
-) -> CalibrationResult:
-    """The scalar calibration of one unit from its runs: :func:`observe` each, then :func:`calibrate_observed`
-    (``options``: its ``normal_temp_c``, ``model``, ``k_prelim_v_per_g``, ``u0_prelim_v``)."""
-    runs = list(runs)
-    unit_of(runs)
-    return calibrate_observed([observe(r, settings) for r in runs], settings, **options)
+#: the scalar method, for the registry (:mod:`pipeline.calibrate.methods`)
+CALIBRATION_METHOD = Scalar()
+observe = CALIBRATION_METHOD.observe
+calibrate_observed = CALIBRATION_METHOD.calibrate_observed
+calibrate = CALIBRATION_METHOD.calibrate

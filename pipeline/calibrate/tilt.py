@@ -1,16 +1,17 @@
 """Seed 000's tilt calibration (``tilt_six_position``): per-plateau constants from the six test positions, the
 thermal model, VP verification.
 
-The recipe, each step a pure function:
+The method (:class:`Tilt`, a :class:`pipeline.calibrate.method.Method`), each step a pure function:
 
 1. ``observe`` (per run): the run's averaged static segments (:func:`pipeline.calibrate.observations.observe_run`);
-2. ``fit_unit``: per-plateau constants (six-position closed form or least squares), then the thermal model, with
-   the segment averages referred to their plateau's mean temperature (the unit is still settling during a plateau's
-   positions, so each position is at a slightly different temperature);
-3. ``verify_unit`` (:mod:`pipeline.calibrate.observations`): dg at every VP observation, uncompensated and by both
-   compensation methods;
-4. ``calibrate_observed``: 2 and 3 and the passport document, as a
-   :class:`pipeline.calibrate.result.CalibrationResult`. ``calibrate(runs)`` is 1 then 4.
+2. ``fit`` (:func:`fit_unit`): per-plateau constants (six-position closed form or least squares), then the thermal
+   model, with the segment averages referred to their plateau's mean temperature (the unit is still settling
+   during a plateau's positions, so each position is at a slightly different temperature);
+3. the tail every method shares (:meth:`pipeline.calibrate.method.Method.finish`): dg at every VP observation,
+   uncompensated and by both compensation methods, the plausibility judgement and the passport document, as a
+   :class:`pipeline.calibrate.result.CalibrationResult`; the tilt method adds what the VP data leave unverified
+   (:func:`pipeline.calibrate.observations.verification_gap`). ``calibrate_observed`` is 2 then 3,
+   ``calibrate(runs)`` 1, 2, 3.
 """
 
 from __future__ import annotations
@@ -19,24 +20,27 @@ from dataclasses import replace
 
 import numpy as np
 
+from pipeline.calibrate.method import Fitted, Method, Support
 from pipeline.calibrate.observations import (
     Observation,
     ObservedRun,
+    calibration_plateaus,
+    determines_constants,
     observations_from_segmentation,
     observe_run,
+    plateau_groups,
     plateau_summary,
     unit_of,
     verification_gap,
     verify_unit,
 )
-from pipeline.calibrate.result import CalibrationResult, PlateauConstants, UnitFit
+from pipeline.calibrate.recording import Recording
+from pipeline.calibrate.result import PlateauConstants, UnitFit
 from pipeline.calibrate.settings import CalibrationSettings
 from pipeline.constants import fit_constants
 from pipeline.errors import CalibrationError
-from pipeline.passport.document import build_passport
-from pipeline.plausibility import assess
-from pipeline.positions import TEST_POSITIONS, gravity_vector_g, is_test_position
-from pipeline.thermal import ThermalModel, cluster_temperatures, fit_thermal_model
+from pipeline.positions import TEST_POSITIONS, gravity_vector_g
+from pipeline.thermal import ThermalModel, cluster_temperatures, default_order, fit_thermal_model
 from pipeline.uncertainty import (
     design_matrix,
     estimator_matrix,
@@ -46,12 +50,15 @@ from pipeline.uncertainty import (
     thermal_sigma,
 )
 from pipeline.utc import utc_span
+from pipeline.words import count_words
 
 #: The passport's ``method`` for this recipe.
 METHOD = "tilt_six_position"
 
 __all__ = [
     "METHOD",
+    "CALIBRATION_METHOD",
+    "Tilt",
     "CalibrationSettings",
     "Observation",
     "ObservedRun",
@@ -71,93 +78,92 @@ __all__ = [
 ]
 
 
-def observe(
-    run, settings: CalibrationSettings = CalibrationSettings(), *, base_passport: dict | None = None, segmentation=None
-) -> ObservedRun:
-    """The run's observations and warnings; CalibrationError for a run with no named static position on any
-    plateau (``base_passport`` is not used by this method; ``segmentation``: the run's, if already made with
-    ``settings.segment``)."""
-    obs, warnings = observe_run(run, settings.segment, segmentation)
-    return ObservedRun(meta=run.meta, source=run.source, observations=obs, warnings=warnings)
+class Tilt(Method):
+    """Seed 000's tilt calibration: the 12 constants per plateau from the known test positions, then the thermal
+    model (this module's functions)."""
+
+    name = "tilt"
+    passport_method = METHOD
+
+    def supports(self, recording: Recording) -> Support:
+        """The soaks whose test positions determine the 12 constants, as the fit takes them (the six, or fewer by
+        least squares; held while the unit still settled too); the thermal model's order is what their distinct
+        temperatures allow (calibrate --thermal-model refuses a higher one). A recording whose fixture logged its
+        positions is the tilt method's even where it falls short: the fit then says exactly what is missing."""
+        cal = recording.constant_plateaus
+        n = len(cal)
+        six = sum(set(c[3]) >= {f"TP{k}" for k in range(1, 7)} for c in cal)
+        temps = np.array([c[2] for c in cal])
+        labels = cluster_temperatures(temps) if n else np.zeros(0, dtype=int)
+        distinct = int(labels.max()) + 1 if n else 0
+        order = default_order(temps) if n else 0
+        at = ", ".join(f"{t:+.0f}" for t in sorted(float(np.mean(temps[labels == k])) for k in range(distinct)))
+        logged = recording.fixture_logged
+        return Support(
+            supported=n > 0,
+            why=(
+                f"{count_words(n, 'plateau')} whose test positions determine the 12 constants ({six} with all "
+                f"six), at {count_words(distinct, 'temperature')} ({at} C)"
+                if n
+                else "no temperature plateau holds test positions that determine the 12 constants (TP1..TP6, "
+                "or five of them)"
+            ),
+            determines=(
+                (
+                    "K (9) and U0 (3) at each plateau temperature",
+                    f"thermal model of order up to {order} (one less than the distinct temperatures, at most 3)"
+                    if distinct > 1
+                    else "no thermal model (one temperature)",
+                )
+                if n
+                else ()
+            ),
+            preference=PREFERENCE_LOGGED if logged else PREFERENCE,
+            insists="the fixture log says tilt; it will say what is missing" if logged else None,
+        )
+
+    def observe(
+        self,
+        run,
+        settings: CalibrationSettings = CalibrationSettings(),
+        *,
+        base_passport: dict | None = None,
+        segmentation=None,
+    ) -> ObservedRun:
+        """The run's observations and warnings; CalibrationError for a run with no named static position on any
+        plateau (``base_passport`` is not used by this method; ``segmentation``: the run's, if already made with
+        ``settings.segment``)."""
+        obs, warnings = observe_run(run, settings.segment, segmentation)
+        return ObservedRun(meta=run.meta, source=run.source, observations=obs, warnings=warnings)
+
+    def fit(
+        self,
+        observed: list[ObservedRun],
+        settings: CalibrationSettings = CalibrationSettings(),
+        *,
+        base_passport: dict | None = None,
+    ) -> Fitted:
+        """:func:`fit_unit` over the observations of one unit's observed runs."""
+        observations = [o for r in observed for o in r.observations]
+        return Fitted(fit_unit(unit_of(observed), observations, settings, observed[0].meta.normal_temp_c))
+
+    def verification_notes(self, observations, rows, normal_temp_c: float) -> list[str]:
+        """What the VP data leave unverified of the thermal model's range (:func:`verification_gap`)."""
+        gap = verification_gap(observations, normal_temp_c) if rows else None
+        return [gap] if gap else []
 
 
-def calibrate_observed(
-    observed: list[ObservedRun],
-    settings: CalibrationSettings = CalibrationSettings(),
-    *,
-    base_passport: dict | None = None,
-) -> CalibrationResult:
-    """Fit, verify and make the passport document from one unit's observed runs."""
-    unit = unit_of(observed)
-    meta = observed[0].meta
-    observations = [o for r in observed for o in r.observations]
-    fit = fit_unit(unit, observations, settings, meta.normal_temp_c)
-    rows, status = verify_unit(fit.model, observations, meta.normal_temp_c, settings.tolerances)
-    run_warnings = [w for r in observed for w in r.warnings]
-    status, implausible = assess(fit, status, meta.nominal_gain_v_per_g, run_warnings)
-    plateaus = plateau_summary(observations)
-    doc = build_passport(
-        fit,
-        rows,
-        status,
-        g_local_mps2=meta.g_local_mps2,
-        plateaus=plateaus,
-        method=METHOD,
-        extra={"implausible": implausible} if implausible else None,
-    )
-    gap = verification_gap(observations, meta.normal_temp_c) if rows else None
-    return CalibrationResult(
-        passport=doc,
-        fit=fit,
-        rows=rows,
-        status=status,
-        plateaus=plateaus,
-        warnings=run_warnings
-        + list(fit.skipped)
-        + [p for p in implausible if p not in run_warnings]
-        + ([gap] if gap else []),
-    )
+#: how much ``--method auto`` prefers the tilt method (:attr:`pipeline.calibrate.method.Support.preference`): above
+#: the differential method except on a sweep, below the scalar method where that one is preferred; with a fixture
+#: log, above both but a sweep the differential method supports
+PREFERENCE = 20.0
+PREFERENCE_LOGGED = 28.0
 
-
-def calibrate(
-    runs, settings: CalibrationSettings = CalibrationSettings(), *, base_passport: dict | None = None
-) -> CalibrationResult:
-    """The tilt calibration of one unit from its runs (TP runs, and runs with VP data that verify them)."""
-    runs = list(runs)
-    unit_of(runs)
-    return calibrate_observed([observe(r, settings) for r in runs], settings)
-
-
-def _group_plateaus(obs: list[Observation]) -> dict[tuple[str, int], list[Observation]]:
-    """Test-position observations per plateau; a position held while the unit still settled towards the plateau
-    counts only where the plateau's stable part lacks it (each at its own temperature: see ``fit_unit``)."""
-    groups: dict[tuple[str, int], list[Observation]] = {}
-    for o in obs:
-        if o.plateau is not None and is_test_position(o.position):
-            groups.setdefault((o.run_id, o.plateau), []).append(o)
-    for key, rows in groups.items():
-        stable = {o.position for o in rows if not o.settling}
-        groups[key] = [o for o in rows if not (o.settling and o.position in stable)]
-    return groups
-
-
-def calibration_plateaus(observations: list[Observation]) -> list[tuple[str, int, float, tuple[str, ...]]]:
-    """The plateaus the tilt method fits constants on: ``(run_id, plateau, mean temperature C, positions)`` for
-    each plateau whose test positions determine the 12 constants (:func:`determines_constants`), in the order
-    found. What ``inspect`` tells of a recording before calibrating it."""
-    out = []
-    for (run_id, p), rows in _group_plateaus(observations).items():
-        names = tuple(dict.fromkeys(o.position for o in rows))
-        if determines_constants(names):
-            out.append((run_id, p, float(np.mean([o.temp_c for o in rows])), names))
-    return out
-
-
-def determines_constants(positions) -> bool:
-    """Whether static positions determine all 12 constants: U = K a + U0 has, per channel, four unknowns and the
-    positions' [a, 1] rows must have rank 4 (e.g. five of the six test positions do)."""
-    rows = np.array([[*gravity_vector_g(p), 1.0] for p in dict.fromkeys(positions)])
-    return rows.shape[0] >= 4 and np.linalg.matrix_rank(rows) == 4
+#: the tilt method, for the registry (:mod:`pipeline.calibrate.methods`)
+CALIBRATION_METHOD = Tilt()
+observe = CALIBRATION_METHOD.observe
+calibrate_observed = CALIBRATION_METHOD.calibrate_observed
+calibrate = CALIBRATION_METHOD.calibrate
 
 
 def _fit_plateaus(
@@ -206,7 +212,7 @@ def fit_unit(
     normal_temp_c: float = 20.0,
 ) -> UnitFit:
     """Per-plateau constants and the thermal model from a unit's observations (any number of runs)."""
-    groups = _group_plateaus(observations)
+    groups = plateau_groups(observations)
     skipped: list[str] = []
     fits = _fit_plateaus(groups, {}, settings.constants_method, skipped)
     if not fits:

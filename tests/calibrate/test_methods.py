@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.calibrate import scalar, tilt
+from pipeline.calibrate import differential, scalar, tilt
 from pipeline.calibrate.fleet import ALREADY_PROCESSED, calibrate_group, plan_fleet
-from pipeline.calibrate.methods import METHODS, base_passport_of, recipe
+from pipeline.calibrate.methods import base_passport_of, by_name, names
 from pipeline.calibrate.settings import CalibrationSettings
 from pipeline.errors import CalibrationError
 from pipeline.io.runs import read_run, write_run
@@ -54,14 +54,18 @@ def _fleet(inbox: Path, registry: Path, method: str) -> tuple:
     return plan, outcomes
 
 
-def test_recipes_share_one_interface():
-    assert METHODS == ("tilt", "scalar", "differential")
-    for m in METHODS:
-        r = recipe(m)
-        assert callable(r.observe) and callable(r.calibrate_observed) and callable(r.calibrate)
-    assert {recipe(m).METHOD for m in METHODS} == {"tilt_six_position", "scalar", "differential"}
+def test_methods_share_one_interface():
+    """Each recipe module's functions are its method's (one implementation each)."""
+    assert names() == ("tilt", "scalar", "differential")
+    for name, module in zip(names(), (tilt, scalar, differential)):
+        m = by_name(name)
+        assert m is module.CALIBRATION_METHOD and m.passport_method == module.METHOD
+        assert module.observe == m.observe and module.calibrate_observed == m.calibrate_observed
+        assert module.calibrate == m.calibrate
+    assert [by_name(n).passport_method for n in names()] == ["tilt_six_position", "scalar", "differential"]
+    assert [by_name(n).uses_base_passport for n in names()] == [False, False, True]
     with pytest.raises(CalibrationError, match="unknown method 'sweep' \\(tilt, scalar, differential\\)"):
-        recipe("sweep")
+        by_name("sweep")
 
 
 def test_fleet_runs_every_method(inboxes, tmp_path):
@@ -156,7 +160,7 @@ def test_cli_fleet_method_tilt_then_differential(inboxes, tmp_path, monkeypatch,
         summary = json.loads(out)
         assert [(d["unit"], d["version"]) for d in summary["done"]] == [("AU-0001", version)] and not summary["failed"]
         doc = json.loads(Path(summary["done"][0]["passport"]).read_text())
-        assert doc["method"] == recipe(method).METHOD
+        assert doc["method"] == by_name(method).passport_method
     assert doc["base_passport"]["version"] == 1 and doc["base_passport"]["method"] == "tilt_six_position"
 
 

@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 
 from pipeline.calibrate import differential, scalar, tilt
+from pipeline.calibrate.observations import plateau_groups
 from pipeline.calibrate.tilt import fit_unit, observe_run
 from pipeline.passport.document import build_passport
 from pipeline.passport.registry import Registry
@@ -290,7 +291,7 @@ def test_referral_to_the_plateau_temperature_is_in_the_sigma_and_small(monkeypat
     truth."""
     run = simulate(SimConfig(seed=603, rate_hz=1.0, program=soak_program(1200.0, 1200.0))).run
     obs, _ = observe_run(run)
-    spread = [max(o.temp_c for o in rows) - min(o.temp_c for o in rows) for rows in tilt._group_plateaus(obs).values()]
+    spread = [max(o.temp_c for o in rows) - min(o.temp_c for o in rows) for rows in plateau_groups(obs).values()]
     assert max(spread) > 0.8, spread
     with_ref = fit_unit("AU-0001", obs)
     monkeypatch.setattr(tilt, "_referral_errors", lambda *args: {})

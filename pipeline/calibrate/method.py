@@ -1,0 +1,184 @@
+"""What a calibration method is (:class:`Method`): what the recording must hold, what it determines, its per-run
+step (``observe``) and its fit (``fit``); the verification, the plausibility judgement and the passport document
+that follow every fit are one tail here (:meth:`Method.finish`).
+
+A method is one module (``pipeline.calibrate.tilt``, ``.scalar``, ``.differential``) defining a subclass of
+:class:`Method` and one instance of it, ``CALIBRATION_METHOD``; :mod:`pipeline.calibrate.methods` is the registry
+that ``inspect``, ``--method auto``, the command line's ``--method`` and the fleet read.
+
+The steps, for one unit:
+
+1. ``supports(recording)`` (:class:`pipeline.calibrate.recording.Recording`: the temperature program, the static
+   poses, the fixture log, the soaks whose test positions determine the 12 constants) -> :class:`Support`:
+   whether this method can run on the recording, why, what it would determine, and how much ``--method auto``
+   prefers it;
+2. ``observe(run, settings, ...)`` per run -> :class:`pipeline.calibrate.observations.ObservedRun`;
+3. ``fit(observed, settings, ...)`` -> :class:`Fitted`: the constants and thermal model
+   (:class:`pipeline.calibrate.result.UnitFit`) and the method's own passport fields;
+4. :meth:`Method.finish`: the VP verification (``verify_unit``), ``assess`` and ``build_passport``, the same for
+   every method -> :class:`pipeline.calibrate.result.CalibrationResult`. ``calibrate_observed`` is 3 then 4,
+   ``calibrate(runs)`` 2 then 3 then 4.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, ClassVar
+
+from pipeline.calibrate.observations import Observation, ObservedRun, plateau_summary, unit_of, verify_unit
+from pipeline.calibrate.result import CalibrationResult, UnitFit
+from pipeline.calibrate.settings import CalibrationSettings
+from pipeline.passport.document import build_passport
+from pipeline.plausibility import assess
+from pipeline.verify import VerificationRow
+
+if TYPE_CHECKING:
+    from pipeline.calibrate.recording import Recording
+    from pipeline.run import Run
+
+
+@dataclass(frozen=True)
+class Support:
+    """A method's judgement of a recording, before anything is fitted (:meth:`Method.supports`).
+
+    ``supported``: the recording holds what the method needs; ``why``: one line saying what was found (or is
+    missing); ``determines``: one line per group of constants it would determine, and what it leaves undetermined;
+    ``preference``: how much ``--method auto`` prefers it on this recording (the methods are listed and tried
+    highest first); ``insists``: when set, ``auto`` takes the method even where it is not supported (it then says
+    exactly what is missing), and this says why (e.g. a tilt fixture's log)."""
+
+    supported: bool
+    why: str
+    determines: tuple[str, ...] = ()
+    preference: float = 0.0
+    insists: str | None = None
+
+
+@dataclass
+class Fitted:
+    """What a method's fit makes, before the tail every method shares (:meth:`Method.finish`): ``fit``, the constants
+    and the thermal model the VP verification compensates with (``fit.skipped``: the fit's notes, also warnings);
+    ``passport_fields``: the method's own fields of the passport (contract.md: ``scalar``, ``differential``,
+    ``rate_terms``...); ``settings_extra``: what the passport's identity depends on besides the settings and the
+    method (:attr:`pipeline.calibrate.result.CalibrationResult.settings_extra`)."""
+
+    fit: UnitFit
+    passport_fields: dict[str, Any] = field(default_factory=dict)
+    settings_extra: dict[str, Any] = field(default_factory=dict)
+
+
+class Method(ABC):
+    """A calibration method. Subclasses set the class attributes and implement :meth:`supports`, :meth:`observe`
+    and :meth:`fit`; the hooks :meth:`plateau_observations` and :meth:`verification_notes` have defaults."""
+
+    #: the name ``calibrate --method`` and ``fleet --method`` take
+    name: ClassVar[str]
+    #: the passport's ``method`` field
+    passport_method: ClassVar[str]
+    #: the method starts from a normal-temperature passport when there is one (``base_passport``: named, or the
+    #: unit's current passport in the registry, :func:`pipeline.calibrate.methods.default_base_passport`); a
+    #: passport it made is never such a base itself
+    uses_base_passport: ClassVar[bool] = False
+
+    def __repr__(self) -> str:
+        return f"<calibration method {self.name}>"
+
+    @abstractmethod
+    def supports(self, recording: Recording) -> Support:
+        """Whether the recording (inspect's description of it) holds what this method needs, and what it would
+        determine."""
+
+    @abstractmethod
+    def observe(
+        self,
+        run: Run,
+        settings: CalibrationSettings = CalibrationSettings(),
+        *,
+        base_passport: dict | None = None,
+        segmentation=None,
+        **options,
+    ) -> ObservedRun:
+        """The per-run step (what a fleet isolates: a run that cannot be observed is dropped). ``segmentation``:
+        the run's, when already made with ``settings.segment`` (e.g. to choose the method)."""
+
+    @abstractmethod
+    def fit(
+        self,
+        observed: list[ObservedRun],
+        settings: CalibrationSettings = CalibrationSettings(),
+        *,
+        base_passport: dict | None = None,
+        **options,
+    ) -> Fitted:
+        """The constants and thermal model of one unit from its observed runs."""
+
+    def plateau_observations(self, observations: list[Observation]) -> list[Observation]:
+        """The observations whose plateaus the passport's ``plateaus`` summary lists (default: all)."""
+        return observations
+
+    def verification_notes(
+        self, observations: list[Observation], rows: list[VerificationRow], normal_temp_c: float
+    ) -> list[str]:
+        """Warnings about the verification itself, after the others (default: none)."""
+        return []
+
+    def finish(self, observed: list[ObservedRun], fitted: Fitted, settings: CalibrationSettings) -> CalibrationResult:
+        """The tail of every method: verify ``fitted.fit.model`` at every VP observation, judge the constants'
+        plausibility (:func:`pipeline.plausibility.assess`), and build the passport document with the method's
+        fields. Warnings: the runs', the fit's notes, the implausibilities not already among the runs', then
+        :meth:`verification_notes`."""
+        unit_fit = fitted.fit
+        meta = observed[0].meta
+        observations = [o for r in observed for o in r.observations]
+        rows, status = verify_unit(unit_fit.model, observations, unit_fit.normal_temp_c, settings.tolerances)
+        run_warnings = [w for r in observed for w in r.warnings]
+        status, implausible = assess(unit_fit, status, meta.nominal_gain_v_per_g, run_warnings)
+        plateaus = plateau_summary(self.plateau_observations(observations))
+        doc = build_passport(
+            unit_fit,
+            rows,
+            status,
+            g_local_mps2=meta.g_local_mps2,
+            plateaus=plateaus,
+            method=self.passport_method,
+            extra={**fitted.passport_fields, **({"implausible": implausible} if implausible else {})},
+        )
+        return CalibrationResult(
+            passport=doc,
+            fit=unit_fit,
+            rows=rows,
+            status=status,
+            plateaus=plateaus,
+            warnings=run_warnings
+            + list(unit_fit.skipped)
+            + [p for p in implausible if p not in run_warnings]
+            + self.verification_notes(observations, rows, unit_fit.normal_temp_c),
+            settings_extra=dict(fitted.settings_extra),
+        )
+
+    def calibrate_observed(
+        self,
+        observed: list[ObservedRun],
+        settings: CalibrationSettings = CalibrationSettings(),
+        *,
+        base_passport: dict | None = None,
+        **options,
+    ) -> CalibrationResult:
+        """:meth:`fit` then :meth:`finish`: the calibration of one unit from its observed runs."""
+        return self.finish(observed, self.fit(observed, settings, base_passport=base_passport, **options), settings)
+
+    def calibrate(
+        self,
+        runs,
+        settings: CalibrationSettings = CalibrationSettings(),
+        *,
+        base_passport: dict | None = None,
+        **options,
+    ) -> CalibrationResult:
+        """The calibration of one unit from its runs: :meth:`observe` each, then :meth:`calibrate_observed`
+        (``options``: the method's own, passed to both)."""
+        runs = list(runs)
+        unit_of(runs)
+        observed = [self.observe(r, settings, base_passport=base_passport, **options) for r in runs]
+        return self.calibrate_observed(observed, settings, base_passport=base_passport, **options)
