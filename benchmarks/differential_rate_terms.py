@@ -25,7 +25,7 @@ import time
 
 import numpy as np
 
-from pipeline.calibrate.differential import (
+from pipeline.calibrate.differential_fit import (
     DifferentialModel,
     DifferentialSettings,
     block_data,

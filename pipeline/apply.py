@@ -11,7 +11,7 @@ applied with the extended model wherever its terms are functions of what the rec
 first voltmeter sample (drift, warm-up), temperature and its history (curvature, the element's lag, hysteresis by
 the direction the temperature last came from), the specific force (scale nonlinearity, solved iteratively). Terms
 that need the fixture's moves (``tilt_settling``) are left out, with one warning naming them; the fixture's face
-error is the fixture's, not the unit's, and is never compensated (:mod:`pipeline.diagnose.model`).
+error is the fixture's, not the unit's, and is never compensated (:mod:`pipeline.effects.model`).
 
 The temperature at a sample is the AU thermosensor interpolated at its time (smoothed as when the passport was made
 where the passport has rate terms). One output row per input row, in the input's order; a sample whose voltages or
@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 import polars as pl
 
+from pipeline.dynamics import Thermosensor, first_order_lag, ramp_direction, smooth_temperature
 from pipeline.errors import ThermocalError
 from pipeline.model import specific_force_g
 from pipeline.passport.document import failed_verification
@@ -89,7 +90,7 @@ def _model(passport: dict):
 def _applicable_extended(ext, warnings: list[str]):
     """The extended model without the terms that need the fixture (its moves: ``Effect.needs_fixture``), and one
     warning naming those."""
-    from pipeline.diagnose.model import ExtendedModel  # the effect catalogue (scipy.signal): only for such passports
+    from pipeline.effects.model import ExtendedModel  # the effect catalogue (scipy.signal): only for such passports
 
     left = [e for e in ext.effects if e.needs_fixture]
     if left:
@@ -107,8 +108,6 @@ def _extended_context(run: Run, t_ns: np.ndarray, temp_c: np.ndarray, ext):
     element temperature C or None)`` for a slab of samples. Times are s since the first voltmeter sample (as in a
     diagnosis), the direction of the last ramp and the element's lag come from the whole temperature record; no
     position or move is known (the terms that need them are not in ``ext``)."""
-    from pipeline.diagnose.signal import ramp_direction
-    from pipeline.dynamics import first_order_lag
     from pipeline.effects.base import SignalContext
 
     start_ns = int(t_ns[0]) if t_ns.size else 0
@@ -160,8 +159,6 @@ def _temperature_at(
     outside = (t_ns < tt[0]) | (t_ns > tt[-1])
     rate = None
     if smooth_s is not None and tt.size >= 5:
-        from pipeline.calibrate.differential import Thermosensor, smooth_temperature
-
         sm, rt = smooth_temperature(xs, temp, smooth_s)
         values, rate = Thermosensor(xs, sm, rt, t_ref).at(x, lag_tau_s)
     else:

@@ -10,7 +10,6 @@ logger that records acceleration; K is then in that unit per g and U0 in that un
 
 from __future__ import annotations
 
-import contextvars
 import math
 import re
 from typing import Protocol
@@ -34,31 +33,21 @@ def output_unit(gains, g_local_mps2: float = 9.80665) -> str:
     return "V"
 
 
-#: the output unit the explanations of the running diagnosis are written in (:func:`reading_in`)
-_READING_UNIT: contextvars.ContextVar[str] = contextvars.ContextVar("thermocal_output_unit", default="V")
+def small_unit(unit: str) -> tuple[str, float]:
+    """The small unit amounts in the output unit ``unit`` (``OUTPUT_UNITS``: V, m/s^2; another: V) are printed in
+    (uV, mm/s^2), and its factor."""
+    return OUTPUT_UNITS.get(unit, OUTPUT_UNITS["V"])
 
 
-def reading_in(unit: str) -> None:
-    """Write :func:`small` amounts in ``unit``'s small unit (``OUTPUT_UNITS``) from here on in this context (a
-    diagnosis sets it from its passport, inside a context of its own)."""
-    _READING_UNIT.set(unit if unit in OUTPUT_UNITS else "V")
-
-
-def small_unit(unit: str | None = None) -> tuple[str, float]:
-    """The small unit amounts in ``unit`` (default: the one set by :func:`reading_in`) are printed in (uV, mm/s^2),
-    and its factor."""
-    return OUTPUT_UNITS[unit or _READING_UNIT.get()]
-
-
-def small_name(unit: str | None = None) -> str:
+def small_name(unit: str) -> str:
     """The name of :func:`small_unit`: uV, mm/s^2."""
     return small_unit(unit)[0]
 
 
-def small_number(x: float, spec: str = ".1f", unit: str | None = None) -> str:
-    """``x`` (in the output unit: V or m/s^2) as a number of its small unit (:func:`small_name`) formatted by
-    ``spec``. A fixed-point ``spec`` written for micro-volts keeps at least three significant digits in a larger
-    small unit (mm/s^2 is a thousand micro-(m/s^2))."""
+def small_number(x: float, spec: str = ".1f", *, unit: str) -> str:
+    """``x`` (in the output unit ``unit``: V or m/s^2) as a number of its small unit (:func:`small_name`)
+    formatted by ``spec``. A fixed-point ``spec`` written for micro-volts keeps at least three significant digits
+    in a larger small unit (mm/s^2 is a thousand micro-(m/s^2))."""
     _, scale = small_unit(unit)
     v = float(x) * scale
     m = re.fullmatch(r"([+ ]?)\.(\d+)f", spec)
@@ -69,9 +58,10 @@ def small_number(x: float, spec: str = ".1f", unit: str | None = None) -> str:
     return f"{v:{spec}}"
 
 
-def small(x: float, spec: str = ".1f", per: str = "", unit: str | None = None) -> str:
-    """``x`` (output unit) with its small unit: ``12.3 uV``, ``712 mm/s^2``; ``per``: e.g. ``/h``, ``/g``."""
-    return f"{small_number(x, spec, unit)} {small_name(unit)}{per}"
+def small(x: float, spec: str = ".1f", per: str = "", *, unit: str) -> str:
+    """``x`` (in the output unit ``unit``) with its small unit: ``12.3 uV``, ``712 mm/s^2``; ``per``: e.g. ``/h``,
+    ``/g``."""
+    return f"{small_number(x, spec, unit=unit)} {small_name(unit)}{per}"
 
 
 class ConstantsModel(Protocol):

@@ -351,7 +351,7 @@ def rate_basis(dt_c, rate, order: int, dt_order: int) -> np.ndarray:
 @dataclass
 class DifferentialModel:
     """Constants K(T, r) and U0(T, r): the polynomial model ``static`` plus the ``rate`` terms (None: without).
-    With a lag, T is the element temperature (:meth:`Thermosensor.at` with ``lag_tau_s``)."""
+    With a lag, T is the element temperature (:meth:`pipeline.dynamics.Thermosensor.at` with ``lag_tau_s``)."""
 
     static: PolynomialModel
     rate: RateTerms | None = None
@@ -393,3 +393,53 @@ class DifferentialModel:
         K = K.copy()
         K[:, np.arange(3), np.arange(3)] += np.einsum("mnk,nki->mi", g, self.rate.beta_rate) * np.diag(self.K0)
         return K, U0
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# A thermal model as a polynomial, and polynomial corrections (diagnose refits a passport's model with them)
+
+
+def polynomial_reference(model, order: int | None = None) -> PolynomialModel:
+    """A passport's thermal model as a :class:`PolynomialModel`: itself when polynomial; a piecewise-linear model
+    becomes the polynomial through (or fitted to) its breakpoints, of ``order`` (default: breakpoints - 1, at most
+    3)."""
+    if isinstance(model, PolynomialModel):
+        return model
+    if isinstance(model, PiecewiseModel):
+        nodes = np.asarray(model.nodes_c, float)
+        k = min(3, len(nodes) - 1) if order is None else order
+        return fit_polynomial(nodes, model.K_nodes, model.U0_nodes, k, model.normal_temp_c)
+    raise TypeError(f"unsupported thermal model {type(model).__name__}")
+
+
+def raise_order(model: PolynomialModel, order: int) -> PolynomialModel:
+    """The same polynomial model written with ``order`` powers (the higher ones zero)."""
+    extra = order - model.order
+    if extra <= 0:
+        return model
+    return PolynomialModel(
+        model.K0,
+        model.U00,
+        model.normal_temp_c,
+        order,
+        np.concatenate([np.asarray(model.alpha).reshape(-1, 3), np.zeros((extra, 3))]),
+        np.concatenate([np.asarray(model.rel).reshape(-1, 3, 3), np.zeros((extra, 3, 3))]),
+    )
+
+
+def add_polynomial_correction(reference: PolynomialModel, correction: np.ndarray) -> PolynomialModel:
+    """``reference`` plus a correction (3, order+1, 4) in absolute form (per channel i and power n: the change of
+    K_n[i, j] in V/g/C^n for j = x, y, z, then of U0_n[i] in V/C^n)."""
+    k = reference.order + 1
+    k_abs = np.empty((k, 3, 3))
+    u_abs = np.empty((k, 3))
+    k_abs[0], u_abs[0] = reference.K0, reference.U00
+    if reference.order:
+        k_abs[1:] = reference.rel * reference.K0
+        u_abs[1:] = reference.alpha
+    k_abs += np.transpose(correction[:, :, :3], (1, 0, 2))
+    u_abs += correction[:, :, 3].T
+    k0 = k_abs[0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rel = np.where(k0 != 0, k_abs[1:] / k0, 0.0)
+    return PolynomialModel(k0, u_abs[0], reference.normal_temp_c, reference.order, u_abs[1:], rel)

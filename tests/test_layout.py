@@ -127,3 +127,42 @@ def test_shared_constants_have_one_home():
             ):
                 homes["1 << 20"].append(str(path.relative_to(REPO)))
     assert homes == {"1_000_000_000": ["pipeline/run.py"], "1 << 20": ["pipeline/run.py"]}, homes
+
+
+#: (a layer, the layers above it that it may not import, at any depth of a file): the passport layer reads what the
+#: methods and diagnose wrote, through models that live below them (the extended model in pipeline.effects.model,
+#: the thermosensor and the ramp direction in pipeline.dynamics); apply uses the passport, not its makers
+LOWER_LAYERS = {
+    "pipeline.passport": ("pipeline.diagnose", "pipeline.calibrate", "pipeline.apply", "pipeline.inspect"),
+    "pipeline.apply": ("pipeline.diagnose", "pipeline.calibrate", "pipeline.inspect"),
+    "pipeline.calibrate": ("pipeline.diagnose", "pipeline.inspect", "pipeline.apply"),
+    "pipeline.effects": ("pipeline.diagnose", "pipeline.calibrate", "pipeline.passport", "pipeline.apply"),
+    "pipeline.dynamics": ("pipeline.diagnose", "pipeline.calibrate", "pipeline.passport", "pipeline.effects"),
+    "pipeline.thermal": ("pipeline.diagnose", "pipeline.calibrate", "pipeline.passport", "pipeline.effects"),
+    "pipeline.model": ("pipeline.diagnose", "pipeline.calibrate", "pipeline.passport", "pipeline.effects"),
+}
+
+
+def _in(module: str, layer: str) -> bool:
+    return module == layer or module.startswith(layer + ".")
+
+
+def _back_arrows(graph: dict[str, set[str]]) -> list[str]:
+    return sorted(
+        f"{a} -> {b}"
+        for a, imported in graph.items()
+        for layer, above in LOWER_LAYERS.items()
+        if _in(a, layer)
+        for b in imported
+        if any(_in(b, up) for up in above)
+    )
+
+
+def test_no_arrow_runs_back_up():
+    assert _back_arrows(_graph()) == []
+
+
+def test_back_arrow_finder_finds_one():
+    assert _back_arrows({"pipeline.passport.document": {"pipeline.diagnose.model", "pipeline.thermal"}}) == [
+        "pipeline.passport.document -> pipeline.diagnose.model"
+    ]

@@ -249,18 +249,21 @@ def _inspect_run(path: Path) -> tuple[RunMeta | None, RunDigest | Exception]:
 
 
 def prepare_worker() -> None:
-    """Import what calibrating a unit needs (both run readers, the description of a recording that ``--method
-    auto`` reads, matplotlib's Agg canvas) and draw one tiny figure to memory (matplotlib's fonts and Pillow's
-    image plugins load on the first figure), so that a fresh worker process (the initializer of the fleet's process
-    pool, the local server's warm worker) pays for it before its first unit, not in it."""
+    """Import what calibrating a unit needs (both run readers, every method of the registry, which ``--method
+    auto`` judges a recording by, matplotlib's Agg canvas) and draw one tiny figure to memory (matplotlib's fonts
+    and Pillow's image plugins load on the first figure), so that a fresh worker process (the initializer of the
+    fleet's process pool, the local server's warm worker) pays for it before its first unit, not in it."""
     import io
 
     from matplotlib import patches  # noqa: F401
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from pipeline import inspect, plots  # noqa: F401
+    from pipeline import plots  # noqa: F401
+    from pipeline.calibrate import recording  # noqa: F401
     from pipeline.io import mcap, parquet  # noqa: F401
+
+    all_methods()
 
     fig = Figure(figsize=(1, 1), dpi=20)
     fig.subplots().set_title("warm-up", fontsize=7)

@@ -318,9 +318,9 @@ def _drift(fr: FitResult, lv: Level, passport: dict, duration_h: float, nb: int,
     return out, z
 
 
-def _moved_text(params: dict, names: list[str], most: int = 4) -> str:
-    """The entries ``names`` with their amounts and uncertainty (uV, uV/g, uV/C^n: :func:`pipeline.model.small`);
-    the first ``most`` of them, and how many more."""
+def _moved_text(params: dict, names: list[str], unit: str, most: int = 4) -> str:
+    """The entries ``names`` with their amounts and uncertainty in the output unit ``unit``'s small unit (uV,
+    uV/g, uV/C^n: :func:`pipeline.model.small`); the first ``most`` of them, and how many more."""
     du0, su0 = np.asarray(params["dU0_v"]), np.asarray(params["dU0_sigma_v"])
     dk = np.asarray(params.get("dK_v_per_g", np.zeros((3, 3))))
     sk = np.asarray(params.get("dK_sigma_v_per_g", np.zeros((3, 3))), dtype=float)
@@ -330,31 +330,38 @@ def _moved_text(params: dict, names: list[str], most: int = 4) -> str:
         words = name.split()
         if name.startswith("U0_") and len(words) == 1:
             i = AXES.index(name[3])
-            parts.append(f"U0 {name[3]} by {small_number(du0[i], '+.2f')} +/- {small(su0[i], '.2g')}")
+            parts.append(
+                f"U0 {name[3]} by {small_number(du0[i], '+.2f', unit=unit)} +/- {small(su0[i], '.2g', unit=unit)}"
+            )
         elif name.startswith("K_") and len(words) == 1:
             i, j = AXES.index(name[2]), AXES.index(name[3])
-            parts.append(f"K {name[2:4]} by {small_number(dk[i, j], '+.2f')} +/- {small(sk[i, j], '.2g', '/g')}")
+            sigma = small(sk[i, j], ".2g", "/g", unit=unit)
+            parts.append(f"K {name[2:4]} by {small_number(dk[i, j], '+.2f', unit=unit)} +/- {sigma}")
         elif len(words) == 3 and words[1] == "power":
             n = int(words[2])
             ch = thermal.get(f"power_{n}", {})
             if name.startswith("U0_"):
                 x = ch.get("dU0_v_per_c", [0.0] * 3)[AXES.index(name[3])]
-                parts.append(f"U0 {name[3]}'s temperature coefficient of power {n} by {small(x, '+.4g', f'/C^{n}')}")
+                parts.append(
+                    f"U0 {name[3]}'s temperature coefficient of power {n} by {small(x, '+.4g', f'/C^{n}', unit=unit)}"
+                )
             else:
                 x = ch.get("dK_v_per_g_per_c", [[0.0] * 3] * 3)[AXES.index(name[2])][AXES.index(name[3])]
-                parts.append(f"K {name[2:4]}'s temperature coefficient of power {n} by {small(x, '+.4g', f'/g/C^{n}')}")
+                amount = small(x, "+.4g", f"/g/C^{n}", unit=unit)
+                parts.append(f"K {name[2:4]}'s temperature coefficient of power {n} by {amount}")
         elif not name.endswith("drift"):
             parts.append(name)
     more = len(parts) - most
     return "; ".join(parts[:most]) + (f"; and {more} more (the finding's parameters list them)" if more > 0 else "")
 
 
-def explain(params: dict, rms_before: float, rms_after: float, z: float) -> str:
-    """Two or three sentences (``rms_before``, ``rms_after``: output unit, V or m/s^2): which constants moved
-    significantly (only those), by how much, how sure; what else was refit with them and agrees with the passport."""
+def explain(params: dict, rms_before: float, rms_after: float, z: float, *, unit: str) -> str:
+    """Two or three sentences (``rms_before``, ``rms_after``: in the output unit ``unit``, V or m/s^2): which
+    constants moved significantly (only those), by how much, how sure; what else was refit with them and agrees
+    with the passport."""
     drift = params.get("drifting", "")
-    moved = _moved_text(params, params.get("moved", []))
-    fit_moved = _moved_text(params, params.get("beyond_fit_uncertainty", []))
+    moved = _moved_text(params, params.get("moved", []), unit)
+    fit_moved = _moved_text(params, params.get("beyond_fit_uncertainty", []), unit)
     if not params.get("moved_before_the_recording", True):
         text = (
             f"The unit's constants ({params['constants']}) start the recording at the passport's values and "
@@ -365,7 +372,7 @@ def explain(params: dict, rms_before: float, rms_after: float, z: float) -> str:
         if params.get("within_passport_uncertainty"):
             text = (
                 f"The passport's constants do not hold for this recording{at}: refit ({params['constants']}), "
-                f"they change its prediction by {small(params['departure_rms_v'], '.2f')} RMS, "
+                f"they change its prediction by {small(params['departure_rms_v'], '.2f', unit=unit)} RMS, "
                 f"{params['departure_rms_v'] / params['noise_rms_v']:.0f} times the noise, although within "
                 "the passport's own stated uncertainty (an imprecise or wrong passport, not necessarily a unit "
                 "that moved)" + (f"; beyond the fit's uncertainty: {fit_moved}" if fit_moved else "") + "."
@@ -393,12 +400,13 @@ def explain(params: dict, rms_before: float, rms_after: float, z: float) -> str:
         rate = np.asarray(params["dU0_rate_v_per_h"])
         text += (
             f" Over the {params['duration_h']:.1f} h recording ({drift} drifting) the offsets drift at "
-            + ", ".join(f"{a} {small_number(x, '+.3f')}" for a, x in zip(AXES, rate))
-            + f" {small_name()}/h to "
+            + ", ".join(f"{a} {small_number(x, '+.3f', unit=unit)}" for a, x in zip(AXES, rate))
+            + f" {small_name(unit)}/h to "
             + ", ".join(
-                f"{a} {small_number(x, '+.2f')} +/- {small_number(s, '.2g')}" for a, x, s in zip(AXES, end, s_end)
+                f"{a} {small_number(x, '+.2f', unit=unit)} +/- {small_number(s, '.2g', unit=unit)}"
+                for a, x, s in zip(AXES, end, s_end)
             )
-            + f" {small_name()} at its end"
+            + f" {small_name(unit)} at its end"
         )
         if "gain_drift_ppm_over_run" in params:
             text += (
@@ -415,7 +423,7 @@ def explain(params: dict, rms_before: float, rms_after: float, z: float) -> str:
         )
     return (
         text + f" Largest change {z:.0f} sigma (the passport's own uncertainty included); refitting takes the "
-        f"residual from {small_number(rms_before, '.2f')} to {small(rms_after, '.2f')} RMS."
+        f"residual from {small_number(rms_before, '.2f', unit=unit)} to {small(rms_after, '.2f', unit=unit)} RMS."
     )
 
 

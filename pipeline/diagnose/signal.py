@@ -23,13 +23,12 @@ sample step is the median of the whole record's steps, found the same way.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 import polars as pl
 
-from pipeline.dynamics import first_order_lag, ramp_sign_from_temperature
+from pipeline.dynamics import first_order_lag, ramp_steps, step_at, thermosensor_since
 from pipeline.effects.base import SignalContext
 from pipeline.positions import ALL_POSITIONS, MOVING, POSITION_NAMES
 from pipeline.run import NS_PER_S as _NS
@@ -195,7 +194,7 @@ def static_record(
     micro_pos = pos_idx[micro_sid] if micro_sid.size else np.zeros(0, int)
     move_start_s, arrive_s = _moves(run, kept, stretches, start_ns, settings.static_window_s, slab)
     ramp, source, uncertain = _ramp_sign(run, micro_t, start_ns)
-    thermo_t_s, thermo_temp_c = _thermosensor(run, start_ns)
+    thermo_t_s, thermo_temp_c = thermosensor_since(run, start_ns)
     return StaticRecord(
         start_ns=start_ns,
         normal_temp_c=float(run.meta.normal_temp_c),
@@ -439,29 +438,6 @@ def _arrival_from_signal(
     return None
 
 
-def _thermosensor(run: Run, start_ns: int) -> tuple[np.ndarray, np.ndarray]:
-    tt, temp = run.thermosensor()
-    return (tt - start_ns) / _NS, temp
-
-
-def _ramp_steps(run: Run, start_ns: int) -> tuple[np.ndarray, np.ndarray, str]:
-    """The direction the temperature last came from as a step function of the whole record: its times (s since
-    ``start_ns``), its values (+1 / -1 / 0, each holding until the next) and where it came from. From the chamber
-    setpoint when it is recorded, else from the AU thermosensor; no steps ("none") with neither."""
-    ch = run.chamber
-    if ch is not None and ch.height > 2:
-        ts = (ch["t_ns"].to_numpy() - start_ns) / _NS
-        sp = ch["setpoint_c"].to_numpy()
-        ok = np.isfinite(sp)
-        if ok.sum() > 2:
-            step = float(np.median(np.diff(ts[ok])))
-            return ts[ok], ramp_sign_from_temperature(ts[ok], sp[ok], window_s=4.0 * step), "chamber setpoint"
-    tt, temp = _thermosensor(run, start_ns)
-    if tt.size < 3:
-        return np.zeros(0), np.zeros(0), "none"
-    return tt, ramp_sign_from_temperature(tt, temp), "AU thermosensor"
-
-
 def _ramp_sign(
     run: Run, t_s: np.ndarray, start_ns: int, before_s: float = 360.0, after_s: float = 60.0
 ) -> tuple[np.ndarray, str, np.ndarray]:
@@ -472,34 +448,18 @@ def _ramp_sign(
     direction found there, the direction is marked uncertain.
     """
     none = np.zeros(t_s.size, dtype=bool)
-    t_src, sign, source = _ramp_steps(run, start_ns)
+    t_src, sign, source = ramp_steps(run, start_ns)
     if source == "none":
         return np.zeros(t_s.size), source, none
     if source == "chamber setpoint":
-        return _step_at(t_src, sign, t_s), source, none
+        return step_at(t_src, sign, t_s), source, none
     switch = t_src[1:][np.diff(sign) != 0]
     if switch.size == 0:
-        return _step_at(t_src, sign, t_s), source, none
+        return step_at(t_src, sign, t_s), source, none
     k = np.searchsorted(switch, t_s)
     near_next = (k < switch.size) & (switch[np.minimum(k, switch.size - 1)] - t_s <= before_s)
     near_prev = (k > 0) & (t_s - switch[np.maximum(k - 1, 0)] <= after_s)
-    return _step_at(t_src, sign, t_s), source, near_next | near_prev
-
-
-def ramp_direction(run: Run, start_ns: int) -> Callable[[np.ndarray], np.ndarray]:
-    """The direction the temperature last came from (+1 / -1 / 0) as a function of ``t_s`` (s since ``start_ns``),
-    by the same rule as a diagnosis (the chamber setpoint when recorded, else the AU thermosensor), found once from
-    the whole record: for applying an extended model to a recording a slab of samples at a time."""
-    t_src, sign, _ = _ramp_steps(run, start_ns)
-    if t_src.size == 0:
-        return lambda t_s: np.zeros(np.asarray(t_s).size)
-    return lambda t_s: _step_at(t_src, sign, np.asarray(t_s, dtype=float))
-
-
-def _step_at(t_src: np.ndarray, values: np.ndarray, t_s: np.ndarray) -> np.ndarray:
-    """The value of a step function given at ``t_src`` (each value holds until the next) at ``t_s``."""
-    i = np.clip(np.searchsorted(t_src, t_s, side="right") - 1, 0, t_src.size - 1)
-    return np.asarray(values, dtype=float)[i]
+    return step_at(t_src, sign, t_s), source, near_next | near_prev
 
 
 def sample_noise_v(run: Run, ranges: list[tuple[int, int]], *, slab_samples: int | None = None) -> np.ndarray:

@@ -263,9 +263,11 @@ def describe(
     where: dict,
     peak: float,
     period_s: float | None = None,
+    *,
+    unit: str,
 ) -> tuple[str, dict]:
     """Sentences for a person (what the residual looks like, where, how large; labelled empirical) and the
-    numbers behind them. ``peak``: output unit (V or m/s^2)."""
+    numbers behind them. ``peak``: in the output unit ``unit`` (V or m/s^2)."""
     axes = "/".join(where["axes"]) or "no axis"
     ranked = sorted(share.items(), key=lambda kv: -kv[1])
     kind = fid.split(":", 1)[1]
@@ -275,8 +277,8 @@ def describe(
         size = np.asarray(desc["coef"], dtype=float)[:3]
         shape = (
             f"a step at about {t_step / 3600:.2f} h into the run of "
-            + ", ".join(f"{a} {small_number(x, '+.1f')}" for a, x in zip(AXES, size))
-            + f" {small_name()}"
+            + ", ".join(f"{a} {small_number(x, '+.1f', unit=unit)}" for a, x in zip(AXES, size))
+            + f" {small_name(unit)}"
         )
         extra = {"step_v": size.tolist()}
     elif kind.startswith("time"):
@@ -294,7 +296,7 @@ def describe(
     if ranked[0][0] == "time" and period_s is not None and kind != "periodic":
         signature += f" (its dominant period: {period_s / 60:.1f} min)"
     return (
-        f"A mismatch no catalogue effect explains: {shape}, up to {small(peak)} on {axes} (temperatures "
+        f"A mismatch no catalogue effect explains: {shape}, up to {small(peak, unit=unit)} on {axes} (temperatures "
         f"{temps} C). {signature}. An empirical correction ({kind}, not physics) takes it out."
     ), extra
 

@@ -80,13 +80,22 @@ class SignalContext:
 @dataclass(frozen=True)
 class Shown:
     """Where and how large a fitted effect shows in a diagnosis, for its explanation: the largest change of the
-    model (output unit: V, or m/s^2; printed by :func:`pipeline.model.small`), the axes ("x/z"), the temperatures in
-    words (" at -40, +20 C and on the ramps"), the run's length (h)."""
+    model (in the output unit ``unit``: V, or m/s^2; printed by :func:`pipeline.model.small`), the axes ("x/z"), the
+    temperatures in words (" at -40, +20 C and on the ramps"), the run's length (h)."""
 
     peak: float
     axes: str
     temps: str
     duration_h: float
+    unit: str
+
+    def amount(self, x: float, spec: str = ".1f", per: str = "") -> str:
+        """``x`` (in the output unit) in words: :func:`pipeline.model.small` in this diagnosis' unit."""
+        return small(x, spec, per, unit=self.unit)
+
+    def vector(self, v, per: str = "") -> str:
+        """A 3-vector (in the output unit) in words: :func:`vec_uv` in this diagnosis' unit."""
+        return vec_uv(v, per, unit=self.unit)
 
 
 class Effect:
@@ -215,7 +224,7 @@ class Effect:
     @classmethod
     def explain(cls, params: dict[str, Any], shown: Shown) -> str:
         """One or two plain sentences for a person: what, where, how big, with units."""
-        return f"{cls.id}: up to {small(shown.peak)} on {shown.axes}."
+        return f"{cls.id}: up to {shown.amount(shown.peak)} on {shown.axes}."
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -264,11 +273,11 @@ def too_big(params: dict, name: str, limit: float, unit: str) -> str | None:
     return f"{name} {v:.3g} {unit} is beyond {limit:.3g} {unit}" if v > limit else None
 
 
-def vec_uv(v, per: str = "") -> str:
-    """A 3-vector in the output unit as "x +1.25, y -2.00, z +0.50 uV" (in the small unit of
+def vec_uv(v, per: str = "", *, unit: str) -> str:
+    """A 3-vector in the output unit ``unit`` as "x +1.25, y -2.00, z +0.50 uV" (in the small unit of
     :func:`pipeline.model.small_name`; ``per`` e.g. ``/h``): for volts in nV when every component is below 1 uV
     (``+0.0 uV/h`` says nothing), to three significant digits of the largest."""
-    unit, scale = small_unit()
+    unit, scale = small_unit(unit)
     x = np.asarray(v, dtype=float) * scale
     finite = np.abs(x[np.isfinite(x)])
     big = float(finite.max()) if finite.size else 0.0

@@ -14,7 +14,7 @@ from typing import Any
 
 from pipeline.effects.base import Effect
 
-_NOT_EFFECTS = ("base", "catalogue")
+_NOT_EFFECTS = ("base", "catalogue", "model")
 
 
 def _discover() -> dict[str, type[Effect]]:

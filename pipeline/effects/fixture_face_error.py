@@ -17,7 +17,6 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from pipeline.effects.base import Effect, Shown, SignalContext, Vec3, finite
-from pipeline.model import small
 from pipeline.positions import ALL_POSITIONS, POSITION_NAMES
 
 #: rotation used to linearise the face error, rad (far below any real face error)
@@ -127,6 +126,6 @@ class FixtureFaceError(Effect):
         return (
             f"The tilt fixture's faces carry their own small angular errors, up to "
             f"{np.degrees(np.linalg.norm(worst[1])) * 3600:.0f} arcsec (in {worst[0]}): they move the "
-            f"horizontal channels of single positions by up to {small(shown.peak)}, the same at every "
+            f"horizontal channels of single positions by up to {shown.amount(shown.peak)}, the same at every "
             "temperature."
         )

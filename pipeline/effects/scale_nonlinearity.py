@@ -11,8 +11,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from pipeline.effects.base import Effect, Shown, SignalContext, Vec3, too_big, vec_uv, vector_columns, vector_parameters
-from pipeline.model import small
+from pipeline.effects.base import Effect, Shown, SignalContext, Vec3, too_big, vector_columns, vector_parameters
 
 
 @dataclass(frozen=True)
@@ -42,7 +41,7 @@ class ScaleNonlinearity(Effect):
     @classmethod
     def explain(cls, p: dict[str, Any], shown: Shown) -> str:
         return (
-            f"The scale factors have a second-order part K2 = {vec_uv(p['k2_v_per_g2'], '/g^2')}: a "
+            f"The scale factors have a second-order part K2 = {shown.vector(p['k2_v_per_g2'], '/g^2')}: a "
             f"channel reads that much more when its own axis is vertical than the linear model says (up to "
-            f"{small(shown.peak)} in single positions), which also biases the VP gravity module."
+            f"{shown.amount(shown.peak)} in single positions), which also biases the VP gravity module."
         )

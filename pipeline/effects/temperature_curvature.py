@@ -13,8 +13,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from pipeline.effects.base import Effect, Shown, SignalContext, Vec3, axis_columns, too_big, vec_uv
-from pipeline.model import small
+from pipeline.effects.base import Effect, Shown, SignalContext, Vec3, axis_columns, too_big
 from pipeline.positions import AXES
 
 #: a cubic term beyond this at 50 C from T0 (V, or relative scale) is not a small left-out term
@@ -62,7 +61,7 @@ class TemperatureCurvature(Effect):
         r50 = np.asarray(p["c_rel_per_c3"]) * 50.0**3 * 1e6
         return (
             f"The temperature dependence has a cubic part the passport's polynomial lacks (at 50 C from T0: "
-            f"offsets {vec_uv(c50)}, gains {', '.join(f'{a} {x:+.0f}' for a, x in zip(AXES, r50))} ppm): up "
-            f"to {small(shown.peak)} on {shown.axes}{shown.temps}, where a polynomial through the "
+            f"offsets {shown.vector(c50)}, gains {', '.join(f'{a} {x:+.0f}' for a, x in zip(AXES, r50))} ppm): up "
+            f"to {shown.amount(shown.peak)} on {shown.axes}{shown.temps}, where a polynomial through the "
             "calibration temperatures cannot follow it."
         )

@@ -11,7 +11,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from pipeline.effects.base import Effect, Shown, SignalContext, Vec3, too_big, vec_uv, vector_columns, vector_parameters
+from pipeline.effects.base import Effect, Shown, SignalContext, Vec3, too_big, vector_columns, vector_parameters
 
 
 @dataclass(frozen=True)
@@ -43,6 +43,6 @@ class ThermalHysteresis(Effect):
     def explain(cls, p: dict[str, Any], shown: Shown) -> str:
         return (
             f"The zero offsets depend on the direction the temperature came from: after heating they sit "
-            f"2h = {vec_uv(2 * np.asarray(p['h_v']))} above their values after cooling, so the same "
+            f"2h = {shown.vector(2 * np.asarray(p['h_v']))} above their values after cooling, so the same "
             f"temperature revisited from above and from below disagrees{shown.temps}, even soaked."
         )

@@ -16,7 +16,7 @@ import numpy as np
 
 from pipeline.dynamics import first_order_lag
 from pipeline.effects.base import Effect, Shown, SignalContext, log_grid
-from pipeline.model import output_v, small
+from pipeline.model import output_v
 
 
 @dataclass(frozen=True)
@@ -55,6 +55,6 @@ class ThermalLag(Effect):
         size = f"{tau:.0f} s" if tau >= 10 else f"{tau:.2g} s"
         return (
             f"The sensing element lags the thermosensor by about {size} (a thermal gradient): during ramps and "
-            f"early in soaks the {shown.axes} outputs depart from the passport by up to {small(shown.peak)}, "
+            f"early in soaks the {shown.axes} outputs depart from the passport by up to {shown.amount(shown.peak)}, "
             "with the sign of dT/dt, and agree again on soaked plateaus."
         )

@@ -13,7 +13,6 @@ from typing import Any, ClassVar
 import numpy as np
 
 from pipeline.effects.base import Effect, Shown, SignalContext, log_grid
-from pipeline.model import small
 
 
 @dataclass(frozen=True)
@@ -64,6 +63,6 @@ class TiltSettling(Effect):
     def explain(cls, p: dict[str, Any], shown: Shown) -> str:
         return (
             f"After every move the reading creeps to its final value: {p['f'] * 1e6:.0f} ppm of the step, "
-            f"decaying with a time constant of about {p['tau_s']:.0f} s (up to {small(shown.peak)} at the "
+            f"decaying with a time constant of about {p['tau_s']:.0f} s (up to {shown.amount(shown.peak)} at the "
             "start of each static position)."
         )

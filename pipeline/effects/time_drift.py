@@ -11,7 +11,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from pipeline.effects.base import Effect, Shown, SignalContext, Vec3, too_big, vec_uv, vector_columns, vector_parameters
+from pipeline.effects.base import Effect, Shown, SignalContext, Vec3, too_big, vector_columns, vector_parameters
 
 
 @dataclass(frozen=True)
@@ -44,7 +44,7 @@ class TimeDrift(Effect):
     def explain(cls, p: dict[str, Any], shown: Shown) -> str:
         r = np.asarray(p["r_v_per_h"])
         return (
-            f"The zero offsets age at {vec_uv(r, '/h')}, {vec_uv(r * shown.duration_h)} over the "
+            f"The zero offsets age at {shown.vector(r, '/h')}, {shown.vector(r * shown.duration_h)} over the "
             f"{shown.duration_h:.1f} h run: revisits of one temperature{shown.temps} drift monotonically with "
             "time."
         )

@@ -18,11 +18,9 @@ from pipeline.effects.base import (
     Vec3,
     log_grid,
     too_big,
-    vec_uv,
     vector_columns,
     vector_parameters,
 )
-from pipeline.model import small
 
 
 @dataclass(frozen=True)
@@ -55,7 +53,7 @@ class WarmupTransient(Effect):
     @classmethod
     def explain(cls, p: dict[str, Any], shown: Shown) -> str:
         return (
-            f"After power-on the zero offsets settle by {vec_uv(p['a_v'])} with a time constant of about "
+            f"After power-on the zero offsets settle by {shown.vector(p['a_v'])} with a time constant of about "
             f"{p['tau_s'] / 60:.1f} min: the early part of the first plateau{shown.temps} is off by up to "
-            f"{small(shown.peak)}."
+            f"{shown.amount(shown.peak)}."
         )

@@ -8,7 +8,7 @@
   loader (a document or a file), and :meth:`Passport.compensation_model` the right compensation model for every
   method: the thermal model (``tilt_six_position``, ``scalar``), the thermal model with rate terms and lag
   (``differential``: :class:`pipeline.thermal.DifferentialModel`), or the extended model a ``diagnose`` wrote
-  (:class:`pipeline.diagnose.model.ExtendedModel`, which needs the samples' signal context).
+  (:class:`pipeline.effects.model.ExtendedModel`, which needs the samples' signal context).
 - :func:`load_model` (the base thermal model), :func:`load_extended`, :func:`compensate_extended` and
   :func:`read_passport` (the document of a file) are views of the same loader.
 """
@@ -28,7 +28,7 @@ from pipeline.thermal import DifferentialModel, PolynomialModel, RateTerms, Ther
 from pipeline.verify import summary_by_temperature
 
 if TYPE_CHECKING:  # the extended model pulls in the effect catalogue (scipy.signal): imported where one is read
-    from pipeline.diagnose.model import ExtendedModel
+    from pipeline.effects.model import ExtendedModel
 
 #: the passport's format version (its ``schema`` field)
 SCHEMA_ID = "thermocal.passport/1"
@@ -243,7 +243,7 @@ def load_extended(passport: dict) -> ExtendedModel | None:
     d = passport.get("extended_model")
     if d is None:
         return None
-    from pipeline.diagnose.model import ExtendedModel
+    from pipeline.effects.model import ExtendedModel
 
     return ExtendedModel.from_dict(d)
 

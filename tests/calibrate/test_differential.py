@@ -13,7 +13,7 @@ import pytest
 
 from pipeline import compensate
 from pipeline.calibrate import differential
-from pipeline.calibrate.differential import (
+from pipeline.calibrate.differential_fit import (
     DifferentialModel,
     DifferentialSettings,
     block_data,

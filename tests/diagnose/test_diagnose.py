@@ -14,9 +14,9 @@ import pytest
 
 from flows.diagnose_cmd import diagnose_command, diagnose_text
 from pipeline.diagnose.diagnosis import diagnose_run, fit_passport
-from pipeline.diagnose.model import ExtendedModel
 from pipeline.diagnose.signal import make_blocks, segment_settings_for, static_record
 from pipeline.effects.catalogue import make_effect
+from pipeline.effects.model import ExtendedModel
 from pipeline.errors import ThermocalError
 from pipeline.io.runs import write_run
 from pipeline.model import gravity_module_error_g
@@ -204,23 +204,19 @@ def test_explanations_are_in_the_recordings_unit():
 
 
 def test_small_amounts_in_either_unit():
-    """The one helper the sentences print amounts through: uV as before for volts; mm/s^2 with three significant
-    digits for m/s^2; the diagnosis' unit set inside a context of its own."""
-    import contextvars
-
+    """The one helper the sentences print amounts through, given the output unit: uV as before for volts; mm/s^2
+    with three significant digits for m/s^2; the unit is always named by the caller (no hidden state)."""
     from pipeline.effects.base import vec_uv
-    from pipeline.model import reading_in, small
+    from pipeline.model import small
 
-    assert small(12.34e-6) == "12.3 uV" and small(2e-6, ".2f", "/g") == "2.00 uV/g"
+    assert small(12.34e-6, unit="V") == "12.3 uV" and small(2e-6, ".2f", "/g", unit="V") == "2.00 uV/g"
     assert small(0.7122582, unit="m/s^2") == "712.3 mm/s^2"
     assert small(5e-5, unit="m/s^2") == "0.0500 mm/s^2"
-
-    def in_mps2():
-        reading_in("m/s^2")
-        return small(0.0123), vec_uv([1.2e-3, -3e-4, 0.0], "/h")
-
-    assert contextvars.copy_context().run(in_mps2) == ("12.3 mm/s^2", "x +1.20, y -0.30, z +0.00 mm/s^2/h")
-    assert small(0.0123) == "12300.0 uV"  # the caller's context is left as it was
+    assert small(0.0123, unit="m/s^2") == "12.3 mm/s^2" and small(0.0123, unit="V") == "12300.0 uV"
+    assert vec_uv([1.2e-3, -3e-4, 0.0], "/h", unit="m/s^2") == "x +1.20, y -0.30, z +0.00 mm/s^2/h"
+    assert vec_uv([1.2e-9, -3e-10, 0.0], "/h", unit="V") == "x +1.20, y -0.30, z +0.00 nV/h"
+    with pytest.raises(TypeError):
+        small(0.0123)  # the unit is a required keyword
 
 
 # ---------------------------------------------------------------------------------------------- the command

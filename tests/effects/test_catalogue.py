@@ -96,7 +96,7 @@ def test_explanations_and_bounds(eid):
     cls = effect_class(eid)
     effect = make_effect(eid)
     params = effect.stored_params()
-    text = cls.explain(params, Shown(peak=12.3e-6, axes="x/z", temps=" at -40, +70 C", duration_h=16.5))
+    text = cls.explain(params, Shown(peak=12.3e-6, axes="x/z", temps=" at -40, +70 C", duration_h=16.5, unit="V"))
     assert text.endswith(".") and len(text) > 60 and f"{eid}:" not in text
     # The catalogue defaults are plausible; the same effect a thousand times larger is not (except the lag, whose
     # time constant is bounded by the search range instead).
@@ -126,7 +126,7 @@ def test_effects_are_effect_subclasses_with_properties():
 def test_small_rates_are_not_printed_as_zero():
     """time_drift of a few tens of nV/h (the reviewer saw "+0.0 uV/h"): said in nV/h, to three digits."""
     text = effect_class("time_drift").explain(
-        {"r_v_per_h": [3.2e-8, -2.1e-8, 4.0e-9]}, Shown(peak=1.0e-6, axes="x", temps="", duration_h=16.5)
+        {"r_v_per_h": [3.2e-8, -2.1e-8, 4.0e-9]}, Shown(peak=1.0e-6, axes="x", temps="", duration_h=16.5, unit="V")
     )
     assert "x +32.0, y -21.0, z +4.0 nV/h" in text and "uV/h" not in text
     assert "x +528, y -346, z +66 nV over the 16.5 h run" in text

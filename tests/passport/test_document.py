@@ -14,7 +14,7 @@ from pipeline import compensate
 from pipeline.calibrate import scalar, tilt
 from pipeline.calibrate.publish import publish
 from pipeline.calibrate.settings import CalibrationSettings
-from pipeline.diagnose.model import ExtendedModel
+from pipeline.effects.model import ExtendedModel
 from pipeline.errors import ThermocalError
 from pipeline.model import gravity_module_error_g, output_v
 from pipeline.passport.document import SCHEMA_ID, Passport, load_model, load_passport, read_passport

@@ -1,4 +1,5 @@
-"""The extended model ``diagnose`` writes into a passport: the refit base thermal model plus fitted catalogue effects.
+"""The extended model ``diagnose`` writes into a passport (read by the passport layer and ``apply``, fitted by
+``pipeline.diagnose``): the refit base thermal model plus fitted catalogue effects.
 
 Stored in the passport as ``extended_model``::
 
@@ -11,8 +12,8 @@ The forward model is the simulator's: ``U = K(T*) a + U0(T*) + sum of delta_u_v`
 ``T* = T_e`` (the lagged element temperature) when ``thermal_lag`` is among them and T otherwise.
 :func:`pipeline.passport.document.compensate_extended` inverts it for the specific force: it needs the signal
 context of the samples (times, temperature, ramp direction, moves), because several effects depend on the history
-of the run, not only on the current sample. The face error is not compensated: the rotated vector is the true specific
-force.
+of the run, not only on the current sample. The face error is not compensated: the rotated vector is the true
+specific force.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ import numpy as np
 from pipeline.effects.base import Effect, SignalContext
 from pipeline.effects.catalogue import make_effect
 from pipeline.model import output_v, specific_force_g
-from pipeline.thermal import PiecewiseModel, PolynomialModel, fit_polynomial
+from pipeline.thermal import PolynomialModel
 
 SCHEMA_ID = "thermocal.extended_model/1"
 
@@ -111,50 +112,4 @@ class ExtendedModel:
         return cls(base, [make_effect(e["effect"], e["parameters"]) for e in d["effects"]], d.get("source"))
 
 
-def polynomial_reference(model, order: int | None = None) -> PolynomialModel:
-    """A passport's thermal model as a :class:`PolynomialModel`: itself when polynomial; a piecewise-linear model
-    becomes the polynomial through (or fitted to) its breakpoints, of ``order`` (default: breakpoints - 1, at most
-    3)."""
-    if isinstance(model, PolynomialModel):
-        return model
-    if isinstance(model, PiecewiseModel):
-        nodes = np.asarray(model.nodes_c, float)
-        k = min(3, len(nodes) - 1) if order is None else order
-        return fit_polynomial(nodes, model.K_nodes, model.U0_nodes, k, model.normal_temp_c)
-    raise TypeError(f"unsupported thermal model {type(model).__name__}")
-
-
-def raise_order(model: PolynomialModel, order: int) -> PolynomialModel:
-    """The same polynomial model written with ``order`` powers (the higher ones zero)."""
-    extra = order - model.order
-    if extra <= 0:
-        return model
-    return PolynomialModel(
-        model.K0,
-        model.U00,
-        model.normal_temp_c,
-        order,
-        np.concatenate([np.asarray(model.alpha).reshape(-1, 3), np.zeros((extra, 3))]),
-        np.concatenate([np.asarray(model.rel).reshape(-1, 3, 3), np.zeros((extra, 3, 3))]),
-    )
-
-
-def add_polynomial_correction(reference: PolynomialModel, correction: np.ndarray) -> PolynomialModel:
-    """``reference`` plus a correction (3, order+1, 4) in absolute form (per channel i and power n: the change of
-    K_n[i, j] in V/g/C^n for j = x, y, z, then of U0_n[i] in V/C^n)."""
-    k = reference.order + 1
-    k_abs = np.empty((k, 3, 3))
-    u_abs = np.empty((k, 3))
-    k_abs[0], u_abs[0] = reference.K0, reference.U00
-    if reference.order:
-        k_abs[1:] = reference.rel * reference.K0
-        u_abs[1:] = reference.alpha
-    k_abs += np.transpose(correction[:, :, :3], (1, 0, 2))
-    u_abs += correction[:, :, 3].T
-    k0 = k_abs[0]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        rel = np.where(k0 != 0, k_abs[1:] / k0, 0.0)
-    return PolynomialModel(k0, u_abs[0], reference.normal_temp_c, reference.order, u_abs[1:], rel)
-
-
-__all__ = ["ExtendedModel", "SCHEMA_ID", "polynomial_reference", "raise_order", "add_polynomial_correction"]
+__all__ = ["ExtendedModel", "SCHEMA_ID"]
