@@ -311,7 +311,7 @@ def supervise(home: Path) -> int:
     token = secrets.token_hex(16)
     worker_env = {**env, "PREFECT_API_URL": api_url, "THERMOCAL_WORKER_TOKEN": token}
 
-    def new_worker() -> subprocess.Popen:
+    def new_worker() -> subprocess.Popen[bytes]:
         return subprocess.Popen(
             [sys.executable, "-m", "flows.worker", str(listener.fileno())],
             env=worker_env,
@@ -348,6 +348,7 @@ def supervise(home: Path) -> int:
         import select
 
         while not stopping.is_set():
+            assert worker.stdout is not None  # new_worker starts it with stdout=PIPE
             if select.select([worker.stdout], [], [], 0.25)[0]:
                 line = worker.stdout.readline()
                 if line:

@@ -73,7 +73,7 @@ def _model(passport: dict):
     from pipeline.thermal import DifferentialModel
 
     p = load_passport(passport)
-    warnings = []
+    warnings: list[str] = []
     if p.extended is not None:
         return _applicable_extended(p.extended, warnings), 0.0, None, warnings, True
     if p.rate_terms is not None:

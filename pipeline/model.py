@@ -77,6 +77,11 @@ def output_v(K: np.ndarray, U0: np.ndarray, a_g: np.ndarray) -> np.ndarray:
     return np.einsum("...ij,...j->...i", K, a_g) + U0
 
 
+def vector3(v) -> tuple[float, float, float]:
+    """A 3-vector (array or sequence) as a tuple of three Python floats, as dataclasses and JSON keep it."""
+    return (float(v[0]), float(v[1]), float(v[2]))
+
+
 def specific_force_g(K: np.ndarray, U0: np.ndarray, u_v: np.ndarray) -> np.ndarray:
     """Estimated specific force a_hat = K^-1 (U - U0) in g from outputs ``u_v`` (V)."""
     K = np.asarray(K, dtype=float)

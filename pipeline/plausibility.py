@@ -13,6 +13,7 @@ Units: K in V/g, U0 in V, temperatures in C; cross-axis as the ratio |K_ij| / |K
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -169,11 +170,11 @@ def mirrored_axis(labelled: list[tuple[str, str]]) -> str | None:
     ((axis, pairs),) = hits.items()
     if sum(1 for _ in labelled) < 2:
         return None
-    a = AXES[axis]
+    ax = AXES[axis]
     shown = ", ".join(f"{x}->{y}" for x, y in sorted(pairs)[:4])
     return (
         f"every position the fixture log and the signal disagree on ({len(labelled)} segments: {shown}) differs "
-        f"by the sign of {a}: axis {a} reversed (wiring or mounting), or a fixture log mirrored in {a}?"
+        f"by the sign of {ax}: axis {ax} reversed (wiring or mounting), or a fixture log mirrored in {ax}?"
     )
 
 
@@ -181,7 +182,7 @@ def assess(
     fit,
     status: str,
     nominal_gain_v_per_g: float | None = None,
-    run_warnings: list[str] = (),
+    run_warnings: Sequence[str] = (),
     ranges: UnitTypeRanges = UnitTypeRanges(),
 ) -> tuple[str, list[str]]:
     """The calibration's status after the plausibility checks, and every finding (``implausible: ...`` lines: the

@@ -222,7 +222,10 @@ def constants_figure(passport: dict, *, title: str = ""):
         # a method without plateau constants (differential) shows its model over the valid range, no points
         T = np.array([p["temp_c"] for p in pp], float)
         points = constant_changes(
-            [p["K"] for p in pp] or np.zeros((0, 3, 3)), [p["U0"] for p in pp] or np.zeros((0, 3)), K0, U00
+            np.asarray([p["K"] for p in pp], float).reshape(-1, 3, 3),
+            np.asarray([p["U0"] for p in pp], float).reshape(-1, 3),
+            K0,
+            U00,
         )
         sig = _plateau_sigmas(passport, len(pp), K0)
         lo, hi = min([T0, span[0], *T.tolist()]), max([T0, span[1], *T.tolist()])

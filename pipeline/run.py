@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import polars as pl
@@ -38,6 +38,9 @@ REQUIRED_META = ("unit_serial", "run_id")
 NS_PER_S = 1_000_000_000
 #: per-sample passes over a long run read it this many samples at a time (a slab's temporaries, not the record's)
 SLAB_SAMPLES = 1 << 20
+
+#: a number's default where the metadata lacks it: a number, or None for an optional one
+_Default = TypeVar("_Default", float, None)
 
 
 def slab_of(column, s0: int, s1: int) -> np.ndarray:
@@ -90,7 +93,7 @@ class RunMeta:
             if not isinstance(v, str) or not v.strip():
                 raise RunFormatError(f"metadata key {key!r} is missing or empty", path=path, stream="metadata")
 
-        def num(key: str, default: float | None) -> float | None:
+        def num(key: str, default: _Default) -> float | _Default:
             v = values.get(key)
             if v is None or (isinstance(v, str) and v.strip() == ""):
                 return default

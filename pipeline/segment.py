@@ -26,10 +26,12 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import polars as pl
 
+from pipeline.model import vector3
 from pipeline.positions import (
     ALL_POSITIONS,
     TEST_POSITIONS,
@@ -739,7 +741,7 @@ def segment_run(run: Run, settings: SegmentSettings = SegmentSettings()) -> Segm
     pieces = _cut_at_plateaus(t_ns, stretches, plateaus, settings)
     fixture = _fixture_labels(run, t_ns, pieces)
 
-    rows = []
+    rows: list[dict[str, Any]] = []
     for (i0, i1, p, settling), fix in zip(pieces, fixture):
         cols, tt = ch.slab(i0, i1), t_ns[i0:i1]
         fin = finite_columns(cols)
@@ -775,12 +777,12 @@ def segment_run(run: Run, settings: SegmentSettings = SegmentSettings()) -> Segm
                 fixture_label=r["fixture_label"],
                 label_conflict=nm["conflict"],
                 plateau=r["plateau"],
-                mean_v=_tuple3(r["mean_v"]),
-                std_v=_tuple3(r["std_v"]),
+                mean_v=vector3(r["mean_v"]),
+                std_v=vector3(r["std_v"]),
                 count=r["count"],
                 temp_c=r["temp_c"],
                 temp_std_c=r["temp_std_c"],
-                direction_g=_tuple3(nm["direction"]),
+                direction_g=vector3(nm["direction"]),
                 settling=r["settling"],
             )
         )
@@ -792,10 +794,6 @@ def segment_run(run: Run, settings: SegmentSettings = SegmentSettings()) -> Segm
         static_window_s=settings.static_window_s,
         static_min_s=settings.static_min_s,
     )
-
-
-def _tuple3(v) -> tuple[float, float, float]:
-    return (float(v[0]), float(v[1]), float(v[2]))
 
 
 def _cut_at_plateaus(
@@ -875,6 +873,7 @@ def _name_segments(run: Run, rows: list[dict], settings: SegmentSettings, warnin
     mean_v = np.array([r["mean_v"] for r in rows])
     fix = [r["fixture_label"] for r in rows]
     gain_v_per_g = run.meta.nominal_gain_v_per_g
+    gain: np.ndarray | None
     if gain_v_per_g is not None and gain_v_per_g != 0 and np.isfinite(gain_v_per_g):
         gain, offset = np.full(3, float(gain_v_per_g)), np.zeros(3)
     else:
@@ -917,7 +916,7 @@ def _nearest(
     norm = np.linalg.norm(a, axis=1, keepdims=True)
     with np.errstate(invalid="ignore", divide="ignore"):
         d = a / norm
-    out = []
+    out: list[tuple[str | None, np.ndarray]] = []
     for v in d:
         if not np.all(np.isfinite(v)):
             out.append((None, v))
@@ -942,7 +941,7 @@ def _scale_from_fixture(mean_v: np.ndarray, fix: list[str | None]) -> tuple[np.n
     rows = [k for k, f in enumerate(fix) if f is not None]
     if len(rows) < 2:
         return None, np.zeros(3)
-    a = np.array([gravity_vector_g(fix[k]) for k in rows])
+    a = np.array([gravity_vector_g(f) for f in fix if f is not None])
     u = mean_v[rows]
     gain, offset = np.zeros(3), np.zeros(3)
     for i in range(3):

@@ -19,6 +19,7 @@ fits them.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -307,7 +308,7 @@ class RateTerms:
         return self.alpha_rate.shape[1] - 1
 
     def to_dict(self) -> dict:
-        d = {
+        d: dict[str, Any] = {
             "order": self.order,
             "dt_order": self.dt_order,
             "rate_unit": RATE_UNIT,
@@ -350,10 +351,11 @@ def rate_basis(dt_c, rate, order: int, dt_order: int) -> np.ndarray:
 
 @dataclass
 class DifferentialModel:
-    """Constants K(T, r) and U0(T, r): the polynomial model ``static`` plus the ``rate`` terms (None: without).
-    With a lag, T is the element temperature (:meth:`pipeline.dynamics.Thermosensor.at` with ``lag_tau_s``)."""
+    """Constants K(T, r) and U0(T, r): the thermal model ``static`` (polynomial from the differential fit) plus the
+    ``rate`` terms (None: without). With a lag, T is the element temperature
+    (:meth:`pipeline.dynamics.Thermosensor.at` with ``lag_tau_s``)."""
 
-    static: PolynomialModel
+    static: ThermalModel
     rate: RateTerms | None = None
 
     @property

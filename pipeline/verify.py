@@ -84,7 +84,7 @@ def verify_positions(
                 dg_method2_simplified_g=float(dg2s[k]),
                 tolerance_g=lim,
                 passed=bool(abs(dg1[k]) <= lim),
-                plateau=None if plateaus is None or plateaus[k] is None else int(plateaus[k]),
+                plateau=None if plateaus is None or (p := plateaus[k]) is None else int(p),
             )
         )
     return rows

@@ -65,7 +65,8 @@ def _plain_type_words() -> None:
         return name + ("..." if self.nargs != 1 else "")
 
     if hasattr(getattr(core, "TyperArgument", None), "_usage_display_name"):
-        core.TyperArgument._usage_display_name = usage_name
+        # the method is replaced on purpose (the usage name above)
+        core.TyperArgument._usage_display_name = usage_name  # type: ignore[method-assign]
 
 
 _plain_type_words()

@@ -10,12 +10,12 @@ import typer
 from .app import app
 
 
-def _click_errors() -> tuple[type, ...]:
+def _click_errors() -> tuple[type[Exception], ...]:
     """The exception classes of a command-line usage error: click's, and typer's own copy of click's (newer typer
     vendors click)."""
     import click
 
-    found = [click.ClickException]
+    found: list[type[Exception]] = [click.ClickException]
     try:
         from typer._click.exceptions import ClickException as vendored
     except ImportError:
@@ -32,7 +32,7 @@ def _usage_line(e: Exception) -> str:
     """One line for a usage error: the message, the command it concerns and where help is."""
     msg = " ".join((e.format_message() if hasattr(e, "format_message") else str(e)).split())
     ctx = getattr(e, "ctx", None)
-    cmd = ctx.command_path if ctx is not None and getattr(ctx, "command_path", "") else "thermocal"
+    cmd = getattr(ctx, "command_path", None) or "thermocal"
     if not msg:  # a group called without its command
         msg = "missing command."
     return f"thermocal: usage error: {msg} (see `{cmd} --help`)"
@@ -63,7 +63,8 @@ def _main(server_checked: bool) -> int:
         return rc if isinstance(rc, int) else 0
     except _CLICK_ERRORS as e:  # usage: a missing or unknown command, option or value
         print(_usage_line(e), file=sys.stderr)
-        return 2 if getattr(e, "exit_code", 2) in (None, 2) else e.exit_code
+        code = getattr(e, "exit_code", None)
+        return code if isinstance(code, int) else 2
     except typer.Exit as e:
         return e.exit_code
     except typer.Abort:

@@ -170,6 +170,7 @@ def plan_fleet(
         if isinstance(digest, BaseException):  # one bad run must not stop the fleet
             plan.failed.append({"run": str(path), "reason": reason_of(digest)})
             continue
+        assert meta is not None  # _inspect_run gives None only beside the exception
         unit = meta.unit_serial
         warning = folder_warning(path, unit, Path(root).resolve())
         if warning:
@@ -321,6 +322,7 @@ def calibrate_group(
             continue
         good.append(path)
     if good:
+        assert rec is not None  # chosen on the first run read
         try:
             calibration = chosen.calibrate_observed(observed, settings, base_passport=base_passport)
             result = publish(

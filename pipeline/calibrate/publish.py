@@ -49,7 +49,7 @@ def calibration_json(result: CalibrationResult, published) -> dict:
 
 
 def publish(
-    registry_root: str | Path,
+    registry_root: str | os.PathLike,
     result: CalibrationResult,
     *,
     input_paths: list[str],

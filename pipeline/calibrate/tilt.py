@@ -315,6 +315,7 @@ def _referral_errors(thermal, groups, fits: list[PlateauConstants]) -> dict[int,
     K, U0 = np.array([f.K for f in fits]), np.array([f.U0 for f in fits])
     changes: dict[int, list[np.ndarray]] = {}
     for p, f in enumerate(fits):
+        assert f.K_sigma is not None and f.U0_sigma is not None  # set by _with_uncertainty before this is called
         for col in range(4):
             moved = []
             for sign in (1.0, -1.0):

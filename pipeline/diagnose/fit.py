@@ -76,7 +76,7 @@ class FitResult:
     tw: np.ndarray = field(repr=False)  # (B, 3, p) weighted unit-norm term columns
     evecs: np.ndarray = field(repr=False)
     evals: np.ndarray = field(repr=False)
-    scale: np.ndarray = field(repr=False, default=None)  # column norms (coef = normalised coef / scale)
+    scale: np.ndarray = field(repr=False)  # column norms (coef = normalised coef / scale)
 
     def coef_sigma(self) -> np.ndarray:
         """Standard uncertainty of every coefficient from the weighted normal matrix (the block sigmas as given;
@@ -405,13 +405,13 @@ def select_terms(
 
 def _refine(design: Design, state: tuple) -> tuple:
     """One pass re-optimising each accepted term's time constant with the other terms held."""
-    state = list(state)
-    if len(state) < 2:
-        return tuple(state)
-    for k, (effect_id, value) in enumerate(state):
+    terms = list(state)
+    if len(terms) < 2:
+        return state
+    for k, (effect_id, value) in enumerate(terms):
         if value is None or effect_id in design.extra:
             continue
-        others = tuple(s for j, s in enumerate(state) if j != k)
+        others = tuple(s for j, s in enumerate(terms) if j != k)
         grid = np.asarray(effect_class(effect_id).grid)
         x0 = np.log(value)
 
@@ -425,8 +425,8 @@ def _refine(design: Design, state: tuple) -> tuple:
             options={"xatol": 0.01},
         )
         if res.fun < chi2(x0):
-            state[k] = (effect_id, float(np.exp(res.x)))
-    return tuple(state)
+            terms[k] = (effect_id, float(np.exp(res.x)))
+    return tuple(terms)
 
 
 def block_noise_factor(design: Design, fit: FitResult, min_since_start_s: float = 64.0) -> np.ndarray:

@@ -3,6 +3,7 @@ after, with the windows of each finding shaded in a colour of its own."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +32,7 @@ def plot_residuals(
     after_v: np.ndarray,
     sigma_v: np.ndarray,
     windows_h: list[tuple[float, float]],
-    located_h: list[tuple[float, float]] = (),
+    located_h: Sequence[tuple[float, float]] = (),
     title: str = "",
     *,
     findings: list[tuple[str, list[tuple[float, float]]]] | None = None,

@@ -157,6 +157,7 @@ def find_shift(design: Design, passport: dict, threshold: float, state: tuple = 
                 best = (lv, mask, dbic, fr)
     finally:
         design.set_base_mask(saved)
+    assert best is not None  # levels() gives at least the passport's own levels
     lv, mask, dbic, fr = best
     if dbic >= -threshold:
         return ShiftResult(None, np.zeros_like(mask), none, 0.0, False, {}, 0.0)

@@ -330,10 +330,12 @@ def _named_stretches(
     a_ns, b_ns = _t_ns_at(run, np.clip(a_all, 0, n - 1)), _t_ns_at(run, np.clip(b_all - 1, 0, n - 1))
     seg_mid = np.array([(s.t_start_ns + s.t_end_ns) // 2 for s in segmentation.segments], dtype=np.int64)
     seg_name = [s.position for s in segmentation.segments]
-    stretches, kept, unnamed = [], [], 0
+    stretches: list[Stretch] = []
+    kept: list[tuple[int, int]] = []
+    unnamed = 0
     for k in range(len(raw)):
         inside = np.flatnonzero((seg_mid >= first_ns[k]) & (seg_mid <= last_ns[k]))
-        names = [seg_name[j] for j in inside if seg_name[j] is not None]
+        names = [nm for j in inside if (nm := seg_name[j]) is not None]
         if not names:
             unnamed += 1
             continue
@@ -383,9 +385,8 @@ def _moves(
         else:
             a0, a1 = (np.asarray(ALL_POSITIONS[p], dtype=float) for p in (prev.position, cur.position))
             angle = float(np.arccos(np.clip(a0 @ a1 / (np.linalg.norm(a0) * np.linalg.norm(a1)), -1.0, 1.0)))
-            arrive = _arrival_from_signal(run, start_ns, kept[k - 1], kept[k], angle, slab)
-            if arrive is None:
-                arrive = cur.detected_start_s - window_s / 2
+            found = _arrival_from_signal(run, start_ns, kept[k - 1], kept[k], angle, slab)
+            arrive = found if found is not None else cur.detected_start_s - window_s / 2
         starts.append(move_start)
         arrivals.append(max(arrive, move_start))
     return np.asarray(starts, dtype=float), np.asarray(arrivals, dtype=float)
@@ -502,7 +503,8 @@ def _count_and_sample(slabs, n_max: int, c: int) -> tuple[int, list[np.ndarray]]
     """Number of values per series in the slabs (each slab: ``c`` 1-D arrays of one length, one per series) and
     every k-th value of each slab (about ``_SAMPLE_SIZE`` in all when there are ``n_max``)."""
     every = max(1, n_max // _SAMPLE_SIZE)
-    n, parts = 0, [[] for _ in range(c)]
+    n = 0
+    parts: list[list[np.ndarray]] = [[] for _ in range(c)]
     for cols in slabs():
         n += cols[0].size
         for part, x in zip(parts, cols):

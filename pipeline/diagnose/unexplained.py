@@ -21,6 +21,9 @@ of the direction of temperature change, and of orientation.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from typing import Any
+
 import numpy as np
 from scipy.optimize import minimize_scalar
 from scipy.signal import lombscargle
@@ -82,7 +85,7 @@ def best_period_s(t_s: np.ndarray, r: np.ndarray, w: np.ndarray) -> float | None
 def families(design: Design, current: FitResult) -> dict[str, tuple[list[str], np.ndarray, dict]]:
     """The generic corrections: id -> (labels, (B, 3, p) columns, description)."""
     b = design.blocks
-    out = {}
+    out: dict[str, tuple[list[str], np.ndarray, dict]] = {}
     coarse = max(KNOT_S, float(np.ptp(b.t_s)) / MAX_KNOTS)
     for fid, knot in (("empirical:time", coarse), ("empirical:time_fine", coarse / 4)):
         tb = time_basis(b.t_s, knot)
@@ -125,7 +128,7 @@ def find_unexplained(
     if not np.any(z > locate_sigma):
         return None
     ln_n = float(np.log(design.n_values))
-    scores = []
+    scores: list[dict[str, Any]] = []
     fams = families(design, current)
     if "empirical:periodic" in fams:
         fams["empirical:periodic"] = _refined_periodic(design, current, fams["empirical:periodic"][2]["period_s"])
@@ -207,7 +210,7 @@ def shares(design: Design, signature: np.ndarray, flagged_axes: np.ndarray) -> t
     yc = y - mean * sw
     total = float(np.sum(yc**2))
 
-    def explained(names: list[str], extra: list[np.ndarray] = ()) -> float:
+    def explained(names: list[str], extra: Sequence[np.ndarray] = ()) -> float:
         """Weighted sum of squares (about the mean) a joint fit of the bases ``names`` (and ``extra``) explains."""
         if not (names or extra) or total <= 0:
             return 0.0

@@ -98,6 +98,7 @@ class Shown:
         return vec_uv(v, per, unit=self.unit)
 
 
+@dataclass(frozen=True)
 class Effect:
     """Base of the catalogue entries (see the module doc for the class attributes and methods)."""
 
@@ -129,6 +130,10 @@ class Effect:
     def rotation_vectors_rad(self) -> dict[str, np.ndarray]:
         """For ``acts_on == "specific_force"``: the rotation (3,) rad of every position's true specific force."""
         return {}
+
+    def nonlinear_value(self) -> float | None:
+        """The value of the nonlinear parameter named by ``nonlinear`` (a time constant, s); None without one."""
+        return None if self.nonlinear is None else float(getattr(self, self.nonlinear))
 
     def params(self) -> dict[str, Any]:
         """All parameters, JSON-able."""

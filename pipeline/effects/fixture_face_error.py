@@ -106,7 +106,7 @@ class FixtureFaceError(Effect):
         return labels, cols
 
     @classmethod
-    def fit_parameters(cls, coef, value, labels):
+    def fit_parameters(cls, coef: np.ndarray, value: float | None, labels: list[str]) -> dict[str, Any]:
         delta: dict[str, np.ndarray] = {}
         for c, lab in zip(coef, labels):
             name, k = lab.split(":")

@@ -47,7 +47,7 @@ class ExtendedModel:
     @property
     def lag_tau_s(self) -> float | None:
         lag = self._lag
-        return None if lag is None else lag.tau_s
+        return None if lag is None else lag.nonlinear_value()
 
     def element_temperature_c(self, ctx: SignalContext, element_temp_c: np.ndarray | None = None) -> np.ndarray:
         """T* of the samples: the lagged element temperature with thermal lag (``element_temp_c`` when given,

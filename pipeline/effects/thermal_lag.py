@@ -47,6 +47,8 @@ class ThermalLag(Effect):
 
     @classmethod
     def fit_parameters(cls, coef: np.ndarray, value: float | None, labels: list[str]) -> dict[str, Any]:
+        if value is None:  # diagnose fits a nonlinear effect at a value of its grid
+            raise ValueError(f"effect {cls.id!r}: fitted without a time constant")
         return {"tau_s": float(value)}
 
     @classmethod

@@ -37,7 +37,7 @@ def check_stream(stream: str, df: pl.DataFrame, *, path: str, warnings: list[str
     """
     t = df["t_ns"]
     if t.null_count():
-        row = int(t.is_null().arg_max())
+        row = t.is_null().arg_max() or 0  # None only for an empty column
         raise RunFormatError("t_ns is missing (null)", path=path, stream=stream, where=f"row {row}")
     if not t.is_sorted():
         t_ns = t.to_numpy()
@@ -53,7 +53,7 @@ def check_stream(stream: str, df: pl.DataFrame, *, path: str, warnings: list[str
     if stream == "fixture" and df.height:
         bad = ~df["position"].is_in(FIXTURE_LABELS) | df["position"].is_null()
         if bad.any():
-            row = int(bad.arg_max())
+            row = bad.arg_max() or 0  # None only for an empty column
             raise RunFormatError(
                 f"unknown fixture position {df['position'][row]!r} (expected one of {', '.join(FIXTURE_LABELS)})",
                 path=path,
@@ -188,7 +188,7 @@ def writable_streams(run: Run, *, path: str) -> dict[str, pl.DataFrame]:
         t = df["t_ns"]
         if t.null_count():
             raise RunFormatError("t_ns has nulls", path=path, stream=stream)
-        if df.height and t.min() < 0:
+        if (t < 0).any():
             raise RunFormatError("t_ns before the Unix epoch", path=path, stream=stream)
         if not t.is_sorted():
             raise RunFormatError("samples are not in time order", path=path, stream=stream)

@@ -22,7 +22,7 @@ import numpy as np
 from google.protobuf import descriptor_pool, message_factory
 from google.protobuf.descriptor import FieldDescriptor
 from google.protobuf.descriptor_pb2 import FileDescriptorSet
-from google.protobuf.message import DecodeError
+from google.protobuf.message import DecodeError, Message
 
 from pipeline.errors import RunFormatError
 from pipeline.io.codecs import SCHEMA_DIR, SCHEMA_NAMES, BlockCodec, BlockMismatch
@@ -53,7 +53,7 @@ def descriptor_set_bytes() -> bytes:
 
 
 @functools.cache
-def message_class(stream: str) -> type:
+def message_class(stream: str) -> type[Message]:
     """The generated protobuf message class of ``stream`` (e.g. ``thermocal.VoltageBlock`` for ``voltmeter``)."""
     pool = descriptor_pool.DescriptorPool()
     for fd in FileDescriptorSet.FromString(descriptor_set_bytes()).file:

@@ -136,11 +136,13 @@ def _int_array(values: object, name: str) -> np.ndarray:
     raise BlockMismatch(f"{name!r} holds values that are not int64 integers (e.g. {_first_non_integer(values)!r})")
 
 
-def _first_non_number(values: list) -> object:
+def _first_non_number(values: object) -> object:
+    assert isinstance(values, list)  # _as_1d has checked it
     return next((v for v in values if v is not None and type(v) not in (int, float)), None)
 
 
-def _first_non_integer(values: list) -> object:
+def _first_non_integer(values: object) -> object:
+    assert isinstance(values, list)  # _as_1d has checked it
     return next((v for v in values if type(v) is not int or not -(2**63) <= v < 2**63), None)
 
 

@@ -34,10 +34,11 @@ import struct
 import uuid
 import zlib
 from collections import deque
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Generator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import polars as pl
@@ -134,7 +135,7 @@ def write_mcap(
     if compression not in _COMPRESSIONS:
         raise RunFormatError(f"unknown compression {compression!r} (known: {', '.join(_COMPRESSIONS)})", path=str(path))
     streams = writable_streams(run, path=str(path))
-    options = (
+    options: dict[str, Any] = (
         {}
         if summary
         else dict(
@@ -424,7 +425,7 @@ class _McapRunReader:
             return True
         return False
 
-    def _opened_chunks(self, chunks: list[tuple[int, int, int]]) -> Iterator[tuple[memoryview, str]]:
+    def _opened_chunks(self, chunks: list[tuple[int, int, int]]) -> Generator[tuple[memoryview, str], None, None]:
         """Decompressed, CRC-checked chunks in order; the next few are opened in worker threads meanwhile
         (pread, zstd and crc32 release the GIL, so this overlaps with decoding). Each chunk in flight has its own
         :class:`_ChunkBuffers`, handed on to a later chunk once the caller has decoded this one (decoding copies
@@ -545,7 +546,7 @@ class _McapRunReader:
         if channel is None:
             self.undefined_channel_messages += 1
             return
-        if channel.stream is None:
+        if channel.stream is None or channel.decode is None:  # not a run topic
             self.skipped.add(channel.topic)
             return
         columns = self.columns[channel.stream]
@@ -571,7 +572,7 @@ class _McapRunReader:
             self.warnings.append(
                 f"{self.truncation}; dropped that record and anything after it; kept "
                 f"{chunks_read} complete chunk(s), voltmeter samples up to "
-                f"t_ns={frames['voltmeter']['t_ns'].max()}"
+                f"t_ns={int(frames['voltmeter']['t_ns'].to_numpy().max())}"
             )
         if self.meta is None and not frames:
             topics = sorted({c.topic for c in self.channels.values()})

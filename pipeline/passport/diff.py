@@ -86,7 +86,7 @@ def _entry(name: str, unit: str, old: Any, new: Any, scale: float | None, scaled
         "old": old,
         "new": new,
         "delta": delta,
-        "delta_scaled": delta * scale if numeric and scale is not None else None,
+        "delta_scaled": delta * scale if delta is not None and scale is not None else None,
         "scaled_unit": scaled_unit,
     }
 

@@ -132,7 +132,7 @@ def _os_errors(path: Path, doing: str) -> Iterator[None]:
         # name the file the user knows, not a temp file that is already removed
         named = exc.filename and not Path(os.fsdecode(exc.filename)).name.startswith(_TEMP_PREFIX)
         where = exc.filename if named else path
-        reason = _ERRNO_TEXT.get(exc.errno, exc.strerror or str(exc))
+        reason = _ERRNO_TEXT.get(exc.errno or 0, exc.strerror or str(exc))  # errno 0: none given
         raise RegistryError(f"cannot {doing}: {reason}", path=str(where)) from exc
 
 
@@ -545,7 +545,7 @@ class Registry:
         if info is None:
             return None
         by = tuple(a["by"] for a in approvals if a["version"] == v and a["sha256"] == info.sha256)
-        return VersionState(unit, v, info.status, by, v == self._current(unit, infos, approvals, ()))
+        return VersionState(unit, info.version, info.status, by, v == self._current(unit, infos, approvals, ()))
 
     def load_state(
         self, unit: str, version: int | None = None, *, exclude_methods: tuple[str, ...] = ()
@@ -696,7 +696,7 @@ class Registry:
             sig = verify_record(doc, trust) if doc_ok else None
             if not doc_ok or doc.get("parent_sha256") != parent or doc.get("version") != v:
                 why = "fails its own checks"
-            elif not (sig.ok and sig.own):
+            elif sig is not None and not (sig.ok and sig.own):  # (sig is None only when not doc_ok)
                 why = (
                     "is not this station's own signed version"
                     + (f" ({sig.problem})" if sig.problem else "")
@@ -864,7 +864,7 @@ class Registry:
                 if not check.ok:
                     problems.append(
                         f"{unit} v{v}: hashes are consistent but it is {check.problem}"
-                        if check.problem.startswith(("not signed", "signed by"))
+                        if (check.problem or "").startswith(("not signed", "signed by"))
                         else f"{unit} v{v}: {check.problem}"
                     )
                     unsigned.add(v)

@@ -9,6 +9,8 @@ reads or writes files.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 from pipeline.model import output_unit
 from pipeline.positions import AXES
 from pipeline.verify import verification_visits
@@ -177,7 +179,7 @@ def approval_text(approved: list[dict] | None) -> str:
     return "; ".join(f"approved by {a.get('by')} at {a.get('approved_utc')}" for a in approved)
 
 
-def passport_summary(doc: dict, *, approved: list[dict] | None = None, figures: list[str] = ()) -> str:
+def passport_summary(doc: dict, *, approved: list[dict] | None = None, figures: Sequence[str] = ()) -> str:
     """``passport show``: who, when, how, the verdict, the constants with their uncertainty, the thermal model, the
     verification table, the inputs with their hashes, the figures."""
     prov = doc.get("provenance") or {}

@@ -294,7 +294,7 @@ def _truth(
     case_c: np.ndarray,
     meta: RunMeta,
 ) -> dict[str, Any]:
-    holds = []
+    holds: list[dict[str, Any]] = []
     for h in timetable.holds():
         inside = (t1_s >= h.t_start_s) & (t1_s < h.t_end_s)
         holds.append(

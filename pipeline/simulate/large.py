@@ -68,6 +68,7 @@ def simulate_chunked(config: SimConfig, chunk_samples: int = 1_000_000) -> SimRe
         raise ValueError(f"chunk_samples must be >= 1, got {chunk_samples}")
     base = simulate(dataclasses.replace(config, rate_hz=THERMAL_RATE_HZ))
     ctx1 = base.context
+    assert ctx1 is not None  # simulate() returns the context it simulated with
     timetable = get_program(config.program).timetable()
     effects = [make_effect(eid, params) for eid, params in config.effects]
     disturbances = [make_disturbance(did, params) for did, params in config.disturbances]

@@ -168,7 +168,7 @@ class Program:
         )
 
 
-def _duration(step: Step) -> float:
+def _duration(step: Soak | Move | Hold) -> float:
     dur = float(step.duration_s)
     if not dur >= 0:
         raise ValueError(f"duration must be >= 0 s in {step!r}")
@@ -543,7 +543,7 @@ def variant(program: Program, soak_s: float | None = None, drop: tuple[str, ...]
             ):
                 gone.add(pos)
                 used[spec] = True
-        steps = []
+        steps: list[Step] = []
         for step in stage.steps:
             if isinstance(step, Soak) and soak_s is not None:
                 if soak_s > 0:
