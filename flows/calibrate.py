@@ -28,34 +28,47 @@ from prefect.cache_policies import NO_CACHE  # noqa: E402  (no input hashing: a 
 
 from pipeline.calibrate.inputs import select_runs  # noqa: E402
 from pipeline.calibrate.methods import by_name, default_base_passport, resolve_auto  # noqa: E402
-from pipeline.calibrate.observations import unit_of  # noqa: E402
+from pipeline.calibrate.observations import ObservedRun, unit_of  # noqa: E402
 from pipeline.calibrate.publish import publish  # noqa: E402
+from pipeline.calibrate.result import CalibrationResult  # noqa: E402
 from pipeline.calibrate.settings import CalibrationSettings  # noqa: E402
 from pipeline.errors import ThermocalError  # noqa: E402
 from pipeline.io import runs as runio  # noqa: E402
 from pipeline.passport.canonical import canonical_json  # noqa: E402
 from pipeline.passport.registry import Registry  # noqa: E402
+from pipeline.run import Run  # noqa: E402
+from pipeline.segment import Segmentation  # noqa: E402
 
 
 @task(name="ingest", cache_policy=NO_CACHE)
-def ingest(path: str):
+def ingest(path: str) -> Run:
     return runio.read_run(path)
 
 
 @task(name="choose", cache_policy=NO_CACHE)
-def choose(run, settings: CalibrationSettings, base_passport: dict | None):
+def choose(
+    run: Run, settings: CalibrationSettings, base_passport: dict | None
+) -> tuple[str, dict | None, Segmentation, str]:
     """``--method auto``: the method the run supports, the base passport if it needs one, the run's segmentation
     and why (``pipeline.calibrate.methods.resolve_auto``)."""
     return resolve_auto(run, settings, base_passport)
 
 
 @task(name="observe", cache_policy=NO_CACHE)
-def observe(run, method: str, settings: CalibrationSettings, base_passport: dict | None, segmentation=None):
+def observe(
+    run: Run,
+    method: str,
+    settings: CalibrationSettings,
+    base_passport: dict | None,
+    segmentation: Segmentation | None = None,
+) -> ObservedRun:
     return by_name(method).observe(run, settings, base_passport=base_passport, segmentation=segmentation)
 
 
 @task(name="fit", cache_policy=NO_CACHE)
-def fit(observed, method: str, settings: CalibrationSettings, base_passport: dict | None):
+def fit(
+    observed: list[ObservedRun], method: str, settings: CalibrationSettings, base_passport: dict | None
+) -> CalibrationResult:
     return by_name(method).calibrate_observed(observed, settings, base_passport=base_passport)
 
 
@@ -73,7 +86,13 @@ def record_head(registry: str) -> None:
 
 
 @task(name="write", cache_policy=NO_CACHE)
-def write(registry: str, calibration, paths: list[str], settings: CalibrationSettings, dry_run: bool = False):
+def write(
+    registry: str,
+    calibration: CalibrationResult,
+    paths: list[str],
+    settings: CalibrationSettings,
+    dry_run: bool = False,
+) -> dict:
     return publish(registry, calibration, input_paths=paths, settings=settings, constants_figure=True, dry_run=dry_run)
 
 

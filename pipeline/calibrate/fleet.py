@@ -322,7 +322,7 @@ def calibrate_group(
             continue
         good.append(path)
     if good:
-        assert rec is not None  # chosen on the first run read
+        assert chosen is not None  # chosen on the first run read
         try:
             calibration = chosen.calibrate_observed(observed, settings, base_passport=base_passport)
             result = publish(

@@ -97,10 +97,10 @@ class Method(ABC):
         *,
         base_passport: dict | None = None,
         segmentation=None,
-        **options,
     ) -> ObservedRun:
         """The per-run step (what a fleet isolates: a run that cannot be observed is dropped). ``segmentation``:
-        the run's, when already made with ``settings.segment`` (e.g. to choose the method)."""
+        the run's, when already made with ``settings.segment`` (e.g. to choose the method). A method may take
+        keyword options of its own after these (the differential method's settings)."""
 
     @abstractmethod
     def fit(
@@ -109,9 +109,9 @@ class Method(ABC):
         settings: CalibrationSettings = CalibrationSettings(),
         *,
         base_passport: dict | None = None,
-        **options,
     ) -> Fitted:
-        """The constants and thermal model of one unit from its observed runs."""
+        """The constants and thermal model of one unit from its observed runs (a method may take keyword options of
+        its own after these)."""
 
     def plateau_observations(self, observations: list[Observation]) -> list[Observation]:
         """The observations whose plateaus the passport's ``plateaus`` summary lists (default: all)."""

@@ -98,11 +98,11 @@ def static_poses(seg) -> tuple[list[dict[str, Any]], list[list[float]]]:
             centres.append(v.copy())
             hit = len(centres) - 1
         label[k] = hit
-    out = []
+    out: list[tuple[dict[str, Any], list[float]]] = []
     for j in range(len(centres)):
         idx = np.flatnonzero(label == j)
         holds: list[list[int]] = []
-        for k in idx:
+        for k in idx.tolist():
             if holds and holds[-1][-1] == k - 1:
                 holds[-1].append(k)
             else:

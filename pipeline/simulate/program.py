@@ -16,6 +16,7 @@ This timetable is the simulator's script only; the pipeline finds plateaus and p
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -168,7 +169,7 @@ class Program:
         )
 
 
-def _duration(step: Soak | Move | Hold) -> float:
+def _duration(step: Soak | Move | Hold | Tour) -> float:
     dur = float(step.duration_s)
     if not dur >= 0:
         raise ValueError(f"duration must be >= 0 s in {step!r}")
@@ -490,7 +491,7 @@ def parse_program(
     return Program(
         "stepped",
         tuple(stages),
-        start_setpoint_c=float(stages[0].steps[0].to_c),
+        start_setpoint_c=next(float(st.to_c) for st in stages[0].steps if isinstance(st, Ramp)),
         start_position=start_position,
         case_lag_s=case_lag_s,
         air_lag_s=air_lag_s,
@@ -595,7 +596,7 @@ def program_from(
     (:func:`parse_program`, recognised by its ``:``), with the ramp rate (C/min), holds and moves (s) where given
     (the fast program and stepped programs only), every soak made ``soak_s`` (s; the fast program: its dwells at
     the ends) and positions dropped (:func:`variant`). ValueError naming what is wrong."""
-    timing = {
+    timing: dict[str, Any] = {
         k: v for k, v in (("rate_c_per_min", rate_c_per_min), ("hold_s", hold_s), ("move_s", move_s)) if v is not None
     }
     for k, v in timing.items():
@@ -604,7 +605,8 @@ def program_from(
     if ":" in name:
         program = parse_program(name, **timing)
     elif name in TIMED:
-        program = fast_program(**timing, **({"dwell_s": soak_s} if soak_s is not None else {}))
+        dwell: dict[str, Any] = {"dwell_s": soak_s} if soak_s is not None else {}
+        program = fast_program(**timing, **dwell)
         soak_s = None
     elif name in PROGRAMS:
         if timing:
