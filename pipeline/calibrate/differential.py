@@ -14,6 +14,7 @@ the same passport without them).
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import numpy as np
 
@@ -47,7 +48,7 @@ from pipeline.uncertainty import ThermalSigma, as_json_list
 METHOD = "differential"
 
 
-def base_constants(base_passport: dict | None, unit: str) -> tuple[np.ndarray, np.ndarray, float]:
+def base_constants(base_passport: dict, unit: str) -> tuple[np.ndarray, np.ndarray, float]:
     """K0 (3, 3) V/g, U0 (3,) V and T0 (C) of the base passport the differential method starts from (any method;
     its thermal model is not used); CalibrationError when it is of another unit or has no usable constants."""
     if base_passport.get("unit") not in (None, unit):
@@ -175,7 +176,7 @@ class Differential(Method):
             data = [with_constants(d, K0, U0) for d in data]
         else:
             K0, U0, t0 = base_constants(base_passport, serial)
-        scores = []
+        scores: list[dict] = []
         if differential.select_model:
             differential, scores = select_model(data, K0, U0, t0, differential)
         fit = fit_differential(data, K0, U0, t0, differential)
@@ -203,9 +204,9 @@ class Differential(Method):
         summary = fit.summary()
         if scores:
             summary["model_selection"] = {"folds_s": FOLD_S, "score_mean_s": SCORE_MEAN_S, "candidates": scores}
-        fields = {
+        fields: dict[str, Any] = {
             "differential": summary,
-            "rate_terms": fit.model.rate.to_dict(),
+            "rate_terms": fit.model.rate.to_dict() if fit.model.rate is not None else None,
             "base_passport": (
                 {k: base_passport.get(k) for k in ("unit", "version", "method", "created_utc")}
                 if base_passport is not None

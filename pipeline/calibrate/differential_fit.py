@@ -56,7 +56,7 @@ from scipy.optimize import minimize_scalar
 
 from pipeline.dynamics import Thermosensor
 from pipeline.errors import CalibrationError
-from pipeline.model import specific_force_g
+from pipeline.model import specific_force_g, vector3
 from pipeline.passport.document import load_passport
 from pipeline.positions import AXES
 from pipeline.run import NS_PER_S as _NS
@@ -152,7 +152,7 @@ def orientation_windows(
         else:
             groups.append([i0, i1])
         last_dir = d
-    out = []
+    out: list[OrientationWindow] = []
     for i0, i1 in groups:
         j0 = int(np.searchsorted(t_ns, t_ns[i0] + settings.trim_s * _NS))
         j1 = int(np.searchsorted(t_ns, t_ns[i1 - 1] - settings.trim_s * _NS, side="right"))
@@ -166,7 +166,7 @@ def orientation_windows(
                 j1,
                 int(t_ns[j0]),
                 int(t_ns[j1 - 1]),
-                tuple(float(x) for x in a0),
+                vector3(a0),
                 float(np.nanmin(temp_c[j0:j1])),
                 float(np.nanmax(temp_c[j0:j1])),
             )
@@ -271,7 +271,7 @@ def with_constants(data: BlockData, K0: np.ndarray, U0: np.ndarray) -> BlockData
     for w in data.windows:
         sel = data.window == w.index
         a0 = specific_force_g(K0, U0, data.u_v[sel].mean(axis=0)) if sel.any() else np.array(w.a0_g)
-        windows.append(dataclasses.replace(w, a0_g=tuple(float(x) for x in a0)))
+        windows.append(dataclasses.replace(w, a0_g=vector3(a0)))
     return dataclasses.replace(data, windows=windows, constants=(np.asarray(K0, float), np.asarray(U0, float)))
 
 
@@ -294,12 +294,12 @@ class DifferentialFit:
     n_pairs: int
     windows: list[dict]
     settings: DifferentialSettings
-    notes: list[str] = field(default_factory=list)
     #: the standard uncertainty of every coefficient of ``model`` in the same layout (NaN: not fitted; its K0, U00
     #: are NaN too: they are the base's), conditional on the lag when it was fitted
-    sigma: DifferentialModel | None = None
+    sigma: DifferentialModel
     #: per channel c, the covariance of its least-squares vector (terms ``terms[c]``, relative to K0_cc)
-    covariance: list[np.ndarray] | None = None
+    covariance: list[np.ndarray]
+    notes: list[str] = field(default_factory=list)
 
     def summary(self) -> dict:
         st = self.settings
@@ -395,7 +395,7 @@ def _equations(
 ) -> _Equations:
     """The differenced equations; ``a_g`` holds each run's specific force per window (n_windows, 3)."""
     P, R, Kx = settings.poly_order, settings.rate_order, settings.rate_dt_order
-    parts = []
+    parts: list[tuple] = []
     for d, a in zip(data, a_g):
         i, j = _half_pairs(d.window)
         temp, rate = d.temperature(lag_tau_s)
@@ -516,7 +516,7 @@ def _fit_once(
         cov = regression_cov(X, r, eq.var[:, c] / K0[c, c] ** 2, eq.cluster)
         covs.append(cov)
         sigma.place(c, names[c], np.sqrt(np.diag(cov)), K0)
-    fitted_abs = np.any(value.cross_abs != 0)
+    fitted_abs = bool(np.any(value.cross_abs != 0))
     return (
         value.model(K0, U0, normal_temp_c, settings.temp_smooth_s, tau, fitted_abs),
         sigma.model(

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -75,7 +76,7 @@ def select_model(
     for d in data:
         odd = (np.floor(d.t_s / FOLD_S).astype(np.int64) % 2).astype(bool)
         folds.append((_fold(d, ~odd), _fold(d, odd)))
-    scores = []
+    scores: list[dict[str, Any]] = []
     grid = [
         (o, r, c)
         for r in range(settings.rate_order + 1)
@@ -88,7 +89,7 @@ def select_model(
             total = 0.0
             for k in (0, 1):
                 fit = fit_differential([f[k] for f in folds], K0, U0, normal_temp_c, cand)
-                total += np.mean([_spread_g(fit.model, f[1 - k]) for f in folds])
+                total += float(np.mean([_spread_g(fit.model, f[1 - k]) for f in folds]))
         except CalibrationError:
             continue
         scores.append({"poly_order": order, "rate_order": rate, "cross_axis": cross, "score_g": float(total / 2)})
@@ -162,7 +163,10 @@ def constants_from_orientations(
     propagated 0.15 ppm, an error no second orientation shows, so a number would claim what the data do not.
     """
     K_nom, U_nom = model.K0, model.U00
-    means, dirs, grads, noise = [], [], [], []
+    means: list[np.ndarray] = []
+    dir_rows: list[np.ndarray] = []
+    grads: list[list[np.ndarray]] = []  # empty without ``fit``
+    noise_rows: list[np.ndarray] = []
     for d in data:
         temp, rate = d.temperature(model.lag_tau_s)
         K, U0 = model.constants_at(temp, rate)
@@ -177,15 +181,15 @@ def constants_from_orientations(
             sel = d.window == w.index
             if sel.any():
                 means.append(corrected[sel].mean(axis=0))
-                dirs.append(a_unit[w.index])
+                dir_rows.append(a_unit[w.index])
                 # d(window mean of channel c) / d(channel c's coefficients), V; the noise of the mean, V^2
-                grads.append([r[sel].mean(axis=0) for r in rows] if fit is not None else None)
-                noise.append(d.u_var_v2[sel].mean(axis=0) / sel.sum() if d.u_var_v2 is not None else np.zeros(3))
-    m, dirs, noise = np.array(means), np.array(dirs), np.array(noise)
+                grads.append([r[sel].mean(axis=0) for r in rows] if fit is not None else [])
+                noise_rows.append(d.u_var_v2[sel].mean(axis=0) / sel.sum() if d.u_var_v2 is not None else np.zeros(3))
+    m, dirs, noise = np.array(means), np.array(dir_rows), np.array(noise_rows)
 
     def model_var(c: int, weights: np.ndarray) -> float:
         """Variance (V^2) of sum_w weights[w] * (window w's mean of channel c) from the model's coefficients."""
-        if fit is None or fit.covariance is None:
+        if fit is None:
             return 0.0
         gvec = sum(wt * grads[w][c] for w, wt in enumerate(weights) if wt)
         cov = np.nan_to_num(fit.covariance[c])
@@ -228,7 +232,7 @@ def constants_from_orientations(
             v = np.flatnonzero(vert[:, c])
             if v.size == 0 or not known_u0[c]:
                 continue
-            others = [j for j in range(3) if j != c]
+            others = np.array([j for j in range(3) if j != c])
             a_c = np.sign(dirs[v, c]) * np.sqrt(np.clip(1.0 - np.sum(a[np.ix_(v, others)] ** 2, axis=1), 0.0, 1.0))
             k = (m[v, c] - U0[c]) / a_c
             K[c, c] = k.mean()
@@ -256,8 +260,8 @@ def sweep_base(
     """The constants at T0 of a unit from its sweeps alone (no base passport): a first differential fit from the
     constants the block data were made with (the nominal gain, zero offsets: :func:`observe`) finds the temperature
     terms, :func:`constants_from_orientations` the constants."""
-    K_nom, U_nom = data[0].constants if data[0].constants is not None else (None, None)
-    if K_nom is None:
+    if data[0].constants is None:
         raise CalibrationError("block data without the constants they were made with")
+    K_nom, U_nom = data[0].constants
     first = fit_differential(data, K_nom, U_nom, float(normal_temp_c), settings)
     return constants_from_orientations(data, first.model, np.diag(K_nom), first)

@@ -169,7 +169,7 @@ def _diagnose(run: Run, passport: dict | None, settings: DiagnoseSettings, passp
     ]
     candidates = [e for e in EFFECTS if e not in in_base]
     sel = _select(design, candidates, settings, initial=held)
-    if given and sel.accepted:  # does the shift still hold with the effects found? (they may explain it)
+    if shift is not None and sel.accepted:  # does the shift still hold with the effects found? (they may explain it)
         again = find_shift(design, passport, settings.selection.threshold, tuple(s for s in sel.state if s not in held))
         if again.level != shift.level or again.significant != shift.significant:
             shift = again
@@ -312,7 +312,7 @@ def _drift_effects(sel: Selection) -> list:
     signal (``time_drift``, U0 += r t: the effect with an ``offset_rate_param``). A drift of K has no term there:
     it is reported, not modelled."""
     cls = next((c for c in EFFECTS.values() if c.offset_rate_param), None)
-    if RATE_U0 not in sel.final.slices or cls is None:
+    if RATE_U0 not in sel.final.slices or cls is None or cls.offset_rate_param is None:
         return []
     return [cls.make({cls.offset_rate_param: sel.final.term_coef(RATE_U0).tolist()})]
 

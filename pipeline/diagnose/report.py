@@ -108,7 +108,8 @@ def report(out: Outcome, settings: DiagnoseSettings) -> Diagnosis:
         out.unexplained,
     )
     blocks, excluded, notes, unit = design.blocks, out.excluded, list(out.notes), out.unit
-    predicted = blocks.mean(output_v(*out.model.constants_at(rec.temp_c), rec.a_g))
+    K_t, U0_t = out.model.constants_at(rec.temp_c)
+    predicted = blocks.mean(output_v(K_t, U0_t, rec.a_g))
     before = design.y - predicted
     after = design.y - sel.final.fitted
     w = (blocks.n * ~excluded)[:, None] * np.ones(3)
@@ -297,7 +298,7 @@ def _windows(blocks: Blocks, flagged: np.ndarray, start_ns: int, merge_gap_s: fl
 def _where(design: Design, flagged: np.ndarray, seg: Segmentation, settings: DiagnoseSettings) -> dict:
     """Windows, axes, temperatures and positions of the flagged (B, 3) block values."""
     blocks, rec = design.blocks, design.rec
-    any_axis = flagged.any(axis=1)
+    any_axis = np.any(flagged, axis=1)
     t_ns = rec.start_ns + blocks.t_s * _NS
     temps, on_ramps = set(), 0
     for i in np.flatnonzero(any_axis):
