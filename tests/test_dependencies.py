@@ -106,3 +106,21 @@ def test_the_checker_sees_what_it_must():
     assert "threadpoolctl" in found  # imported inside a function only (pipeline/diagnose/diagnosis.py)
     assert _declared(["dask[distributed]>=2024.1"]) >= {"dask", "distributed"}
     assert _requirement("mcap-protobuf-support>=0.5") == ("mcap-protobuf-support", set())
+
+
+def test_the_wheel_lists_every_package_and_maps_the_schemas():
+    """pyproject.toml lists the packages (so that the top-level schemas/ can be the data package
+    pipeline.io.schemas): the list holds every package of the tree and the two data packages (the schemas, the
+    simulator's published tables), and the mapping points at the one schemas folder."""
+    setup = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
+    tree = {
+        ".".join(p.parent.relative_to(REPO).parts)
+        for root in ("pipeline", "flows")
+        for p in (REPO / root).rglob("__init__.py")
+    }
+    assert set(setup["packages"]) == tree | {"pipeline.io.schemas", "pipeline.simulate.data"}
+    assert setup["package-dir"] == {"pipeline.io.schemas": "schemas"}
+    assert not (REPO / "pipeline" / "io" / "schemas").exists()  # no second copy
+    from pipeline.io.codecs import SCHEMA_DIR
+
+    assert SCHEMA_DIR == REPO / "schemas"

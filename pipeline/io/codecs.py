@@ -2,7 +2,7 @@
 
 A :class:`BlockCodec` per message encoding: ``json`` (schema encoding ``jsonschema``, here) and ``protobuf``
 (:mod:`pipeline.io.codec_protobuf`). :mod:`pipeline.io.mcap` registers both in its table of codecs. The schema files
-are package data in ``pipeline/io/schemas/``.
+are the files of the repository's ``schemas/`` (:data:`SCHEMA_DIR`; in the wheel, ``pipeline/io/schemas/``).
 """
 
 from __future__ import annotations
@@ -24,8 +24,19 @@ SCHEMA_NAMES: dict[str, str] = {
     "chamber": "thermocal.ChamberBlock",
     "fixture": "thermocal.FixtureEvent",
 }
-#: The schema files (JSON Schemas, the protobuf schema and its FileDescriptorSet), shipped inside the package.
-SCHEMA_DIR = Path(__file__).resolve().parent / "schemas"
+
+
+def _schema_dir() -> Path:
+    """The schema files (JSON Schemas, the protobuf schema and its FileDescriptorSet): the repository's top-level
+    ``schemas/`` in a source checkout (an editable install included), the data package ``pipeline/io/schemas/``
+    that the wheel maps it to once installed."""
+    here = Path(__file__).resolve().parent
+    installed = here / "schemas"
+    return installed if installed.is_dir() else here.parents[1] / "schemas"
+
+
+#: Where the schema files are (one folder, see :func:`_schema_dir`).
+SCHEMA_DIR = _schema_dir()
 
 
 class BlockMismatch(ValueError):

@@ -3,7 +3,7 @@
 Layout: one metadata record named ``run`` (string to string, written before any data); one channel per stream, topics
 ``/voltmeter``, ``/au/temperature``, ``/chamber``, ``/fixture``; message encoding ``json``, schema encoding
 ``jsonschema``, schema names ``thermocal.VoltageBlock`` ... with the schema files of the package's
-``pipeline/io/schemas/``. A message holds a block of samples (equal-length arrays) and is logged at its first sample's
+``schemas/``. A message holds a block of samples (equal-length arrays) and is logged at its first sample's
 ``t_ns``; ``/fixture`` messages hold one event each. Topics interleave in time order; chunks are zstd-compressed. JSON
 has no NaN or infinity: a non-finite sample is written as ``null`` and read back as NaN (so +-inf come back as NaN).
 

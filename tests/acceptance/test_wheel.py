@@ -37,7 +37,7 @@ def installed(tmp_path_factory):
     src = root / "src"
     src.mkdir()
     shutil.copy(REPO / "pyproject.toml", src)
-    for pkg in ("pipeline", "flows"):
+    for pkg in ("pipeline", "flows", "schemas"):
         shutil.copytree(REPO / pkg, src / pkg, ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
     env = {k: v for k, v in os.environ.items() if not k.startswith(("PYTHON", "VIRTUAL_ENV", "PIP_"))}
     env.update(PIP_NO_INDEX="1", PIP_DISABLE_PIP_VERSION_CHECK="1", PYTHONNOUSERSITE="1")
@@ -87,6 +87,24 @@ def test_pipeline_comes_from_the_wheel(installed):
     assert Path(out[2]) == venv
 
 
+def test_the_wheel_carries_the_schemas_and_reads_them(installed):
+    """The one schemas/ folder of the repository is the wheel's data package pipeline/io/schemas (every file,
+    byte for byte), and the installed reader takes its schemas from there, not from a source tree."""
+    venv, work, env, purelib = installed
+    shipped = purelib / "pipeline" / "io" / "schemas"
+    sources = sorted(p.name for p in (REPO / "schemas").iterdir() if p.is_file())
+    assert {"thermocal.passport.json", "thermocal.proto", "thermocal.binpb", "thermocal.VoltageBlock.json"} <= set(
+        sources
+    )
+    assert sorted(p.name for p in shipped.iterdir() if p.is_file()) == sources
+    for name in sources:
+        assert (shipped / name).read_bytes() == (REPO / "schemas" / name).read_bytes(), name
+    used = _run(
+        [venv / "bin" / "python", "-c", "from pipeline.io.codecs import SCHEMA_DIR; print(SCHEMA_DIR)"], work, env
+    ).stdout.strip()
+    assert Path(used) == shipped
+
+
 def test_simulate_inspect_calibrate_from_another_folder(installed):
     """The console script of the wheel: a short 2 Hz MCAP run (schemas and the seed-000 unit from package data),
     its inspection, and a calibration whose passport holds the simulated unit's constants at T0 within 20 ppm of
@@ -114,6 +132,12 @@ def test_simulate_inspect_calibrate_from_another_folder(installed):
         ).stdout
     )
     assert Path(work / "run.mcap").is_file() and sim["samples"] > 1000 and sim["unit"] == "AU-0001"
+    # the run's channels carry the wheel's schema files as their schema data
+    from mcap.reader import make_reader
+
+    with open(work / "run.mcap", "rb") as fh:
+        schemas = {s.name: s.data for s in make_reader(fh).get_summary().schemas.values()}
+    assert schemas["thermocal.VoltageBlock"] == (REPO / "schemas" / "thermocal.VoltageBlock.json").read_bytes()
     info = _run([thermocal, "inspect", "run.mcap", "--json"], work, env).stdout
     assert '"AU-0001"' in info and f"{sim['samples']}" in info and "TP6" in json.dumps(json.loads(info))
     res = json.loads(_run([thermocal, "calibrate", "run.mcap", "--registry", "reg", "--json"], work, env).stdout)

@@ -55,7 +55,7 @@ def test_flow_piecewise_reproduces_table3_end_to_end(noise_free_run, seed000, tm
     ref = seed000["table_1_2_constants"][0]
     np.testing.assert_allclose(passport["coefficients"]["K"], ref["K"], atol=2e-8)
     np.testing.assert_allclose(passport["coefficients"]["U0"], ref["U0"], atol=2e-8)
-    schema = json.loads((REPO / "pipeline" / "io" / "schemas" / "thermocal.passport.json").read_text())
+    schema = json.loads((REPO / "schemas" / "thermocal.passport.json").read_text())
     jsonschema.validate(passport, schema)
     assert Path(res["figure"]).exists() and Path(res["figure"]).stat().st_size > 10_000
     assert res["status"] in ("pass", "fail")

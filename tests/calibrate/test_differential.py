@@ -169,7 +169,7 @@ def test_passport_of_method_differential(runs, base, tmp_path):
     pub = Registry(tmp_path / "reg").publish(doc, inputs=[], settings={"method": "differential"}, code_version="test")
     stored = json.loads(pub.path.read_text())
     jsonschema.validate(
-        stored, json.loads((REPO / "pipeline" / "io" / "schemas" / "thermocal.passport.json").read_text())
+        stored, json.loads((REPO / "schemas" / "thermocal.passport.json").read_text())
     )
 
     t_ns, a = compensate_run(stored, held)

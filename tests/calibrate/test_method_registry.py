@@ -75,7 +75,7 @@ def test_built_in_methods_and_the_passport_schema():
     assert methods.names() == ("tilt", "scalar", "differential")
     assert [m.name for m in methods.all_methods()] == list(methods.names())
     assert methods.passport_methods_with_base() == ("differential",)
-    schema = json.loads((REPO / "pipeline" / "io" / "schemas" / "thermocal.passport.json").read_text())
+    schema = json.loads((REPO / "schemas" / "thermocal.passport.json").read_text())
     assert set(schema["properties"]["method"]["enum"]) == {m.passport_method for m in methods.all_methods()}
 
 

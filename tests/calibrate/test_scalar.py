@@ -241,7 +241,7 @@ def test_calibrate_scalar_passport_compensates(short_run, tmp_path):
 
     pub = Registry(tmp_path / "reg").publish(doc, inputs=[], settings={"method": "scalar"}, code_version="test")
     stored = json.loads(pub.path.read_text())
-    schema = json.loads((REPO / "pipeline" / "io" / "schemas" / "thermocal.passport.json").read_text())
+    schema = json.loads((REPO / "schemas" / "thermocal.passport.json").read_text())
     jsonschema.validate(stored, schema)
     model = load_model(stored)
     segs = [s for s in segment_run(run).segments if s.plateau is not None and abs(s.temp_c - T0) < 1.0]

@@ -85,7 +85,7 @@ def test_descriptor_set_matches_the_proto_file():
     """schemas/thermocal.binpb is the compiled schemas/thermocal.proto: same messages, fields, numbers, types."""
     files = FileDescriptorSet.FromString(descriptor_set_bytes()).file
     assert [f.name for f in files] == ["thermocal.proto"] and files[0].package == "thermocal"
-    proto_text = (REPO / "pipeline" / "io" / "schemas" / "thermocal.proto").read_text()
+    proto_text = (REPO / "schemas" / "thermocal.proto").read_text()
     types = {
         FieldDescriptorProto.TYPE_DOUBLE: "double",
         FieldDescriptorProto.TYPE_SFIXED64: "sfixed64",
