@@ -168,9 +168,7 @@ def test_passport_of_method_differential(runs, base, tmp_path):
     assert doc["rate_terms"]["lag_tau_s"] == pytest.approx(TAU_S, abs=2.0)
     pub = Registry(tmp_path / "reg").publish(doc, inputs=[], settings={"method": "differential"}, code_version="test")
     stored = json.loads(pub.path.read_text())
-    jsonschema.validate(
-        stored, json.loads((REPO / "schemas" / "thermocal.passport.json").read_text())
-    )
+    jsonschema.validate(stored, json.loads((REPO / "schemas" / "thermocal.passport.json").read_text()))
 
     t_ns, a = compensate_run(stored, held)
     d = block_data(held, *_k0_u0(base[1]))
