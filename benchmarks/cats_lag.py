@@ -1,4 +1,4 @@
-"""Is there a thermal lag in the real CATS tag recording (shared/reference/real/cats_tag)? Evidence from the data
+"""Is there a thermal lag in the real CATS tag recording (tests/data/real/cats_tag)? Evidence from the data
 alone, apart from ``diagnose`` (whose fine generic function of time absorbs what a lag would explain).
 
 If the sensing element lagged the thermosensor by tau, the output would follow the temperature the element had

@@ -1,4 +1,4 @@
-"""The real CATS tag recording (shared/reference/real/cats_tag): thermocal's sweep calibration against the peer tool's
+"""The real CATS tag recording (tests/data/real/cats_tag): thermocal's sweep calibration against the peer tool's
 method, on data neither was fitted on.
 
 The recording: a MEMS logger at 1 Hz, three periods of about a day, one axis vertical (pointing down) in each,
@@ -47,7 +47,7 @@ PERIODS = [
     ("2021-09-21T10:40", "2021-09-22T11:55", "-x"),
     ("2021-09-22T12:14", "2021-09-23T11:19", "-y"),
 ]
-DEFAULT_RUN = Path(__file__).resolve().parents[2] / "shared" / "reference" / "real" / "cats_tag" / "run"
+DEFAULT_RUN = Path(__file__).resolve().parents[1] / "tests" / "data" / "real" / "cats_tag" / "run"
 _NS = 1_000_000_000
 
 

@@ -1,4 +1,4 @@
-"""Shared fixtures: seed 000 reference tables, the shared/ folder, an isolated Prefect home."""
+"""Shared fixtures: seed 000 reference tables, the reference recordings of tests/data/, an isolated Prefect home."""
 
 from __future__ import annotations
 
@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-SHARED = REPO.parent / "shared"
+#: reference recordings made by others, each with its licence (tests/data/README.md)
+DATA = REPO / "tests" / "data"
 
 # Prefect: never the user's home, no telemetry (no network here); set before any test imports prefect.
 os.environ.setdefault("PREFECT_HOME", str(Path(os.environ.get("TMPDIR", "/tmp")) / f"thermocal-prefect-{os.getpid()}"))
@@ -57,10 +58,10 @@ def seed000_constants(seed000):
     return T, K, U0
 
 
-def shared_path(*parts: str) -> Path:
-    p = SHARED.joinpath(*parts)
-    if not p.exists():
-        pytest.skip(f"shared reference data not available: {p}")
+def data_path(*parts: str) -> Path:
+    """A file or folder of tests/data/ (the repository carries them: a missing one is an error, not a skip)."""
+    p = DATA.joinpath(*parts)
+    assert p.exists(), f"reference data missing from the repository: {p}"
     return p
 
 

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-from pathlib import Path
 
 import numpy as np
 import polars as pl
@@ -16,9 +15,9 @@ from pipeline.run import Run, RunMeta, make_frame
 from pipeline.segment import SegmentSettings, find_plateaus, find_static, segment_run
 from pipeline.simulate.chamber import SimConfig, simulate
 from pipeline.simulate.program import get_program
+from tests.conftest import DATA
 
-SHARED = Path(__file__).resolve().parents[2] / "shared"
-REAL = SHARED / "reference" / "real" / "imucal_ferraris"
+REAL = DATA / "real" / "imucal_ferraris"
 NS = 1_000_000_000
 STANDARD_PLATEAUS_C = [20.0, -40.0, -10.0, 20.0, 45.0, 70.0, 20.0]
 
@@ -242,7 +241,6 @@ def test_find_static_rejects_moves_and_short_holds():
     assert 30 < t_s[a1] <= 31.5 and t_s[b1 - 1] == t_s[-1]
 
 
-@pytest.mark.skipif(not REAL.exists(), reason="shared reference data not available")
 def test_real_recording_six_positions():
     run = read_run(REAL / "run")
     seg = segment_run(run)

@@ -22,10 +22,9 @@ from pipeline.calibrate.tilt import CalibrationSettings, fit_unit, observe_run, 
 from pipeline.errors import CalibrationError, RunFormatError, ThermocalError
 from pipeline.io.runs import read_run
 from tests.acceptance.badcorpus import BLOCK_SAMPLES, CASES, Case, build_corpus, truth_at_normal_temp, valid
-from tests.conftest import run_main
+from tests.conftest import DATA, run_main
 
-SHARED = Path(__file__).resolve().parents[3] / "shared"
-CONFORMANCE = SHARED / "reference" / "mcap-conformance"
+CONFORMANCE = DATA / "mcap-conformance"
 THERMOCAL = str(Path(sys.executable).parent / "thermocal")
 CASE_BY_NAME = {c.name: c for c in CASES}
 #: K (V/g) and U0 (V) at +20 C from a recovered run agree with the truth within this (measured: 0.6e-7 .. 3e-7)
@@ -235,8 +234,6 @@ def test_fleet_reports_every_broken_run_and_calibrates_the_rest(corpus_root, cor
 
 
 def conformance_files() -> list[Path]:
-    if not CONFORMANCE.exists():
-        pytest.skip(f"MCAP conformance corpus not available: {CONFORMANCE}")
     return sorted(p for p in CONFORMANCE.rglob("*.mcap"))
 
 
@@ -249,7 +246,7 @@ def test_conformance_corpus_refused_by_inspect(monkeypatch, capsys):
         assert code == 2 and out == "", (path, err)
         [line] = err.splitlines()
         assert line.startswith(f"thermocal: error: {path}: ")
-        if path.parent == CONFORMANCE:  # beside the scenario folders: the corpus's licence, a text file
+        if path.parent == CONFORMANCE:  # beside the scenario folders: its README and licence, text files
             assert "not an MCAP file" in line, line
         else:
             assert "no run topics or run metadata found" in line or "Git LFS pointer" in line, line

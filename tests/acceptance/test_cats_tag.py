@@ -9,12 +9,12 @@ import re
 import numpy as np
 import pytest
 
-from tests.conftest import REPO, shared_path
+from tests.conftest import REPO, data_path
 
 
 @pytest.fixture(scope="module")
 def result():
-    run_dir = shared_path("reference", "real", "cats_tag", "run")
+    run_dir = data_path("real", "cats_tag", "run")
     spec = importlib.util.spec_from_file_location("cats_tag_bench", REPO / "benchmarks" / "cats_tag.py")
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
@@ -83,7 +83,7 @@ def test_the_recording_shows_no_thermal_lag_of_the_sensing_element():
     spec = importlib.util.spec_from_file_location("cats_lag_bench", REPO / "benchmarks" / "cats_lag.py")
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
-    res = bench.analyse(shared_path("reference", "real", "cats_tag", "run"))
+    res = bench.analyse(data_path("real", "cats_tag", "run"))
     assert len(res["strong"]) == 6
     for key in ("plain", "drift"):
         j = res["joint"][key]

@@ -1,4 +1,4 @@
-"""Real recordings nobody here made (shared/reference/real/): what inspect says about them, and the static poses the
+"""Real recordings nobody here made (tests/data/real/): what inspect says about them, and the static poses the
 segmenter finds against the hand labels of imucal and the periods of the CATS authors."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import pytest
 
 from pipeline.inspect import format_summary, summarize_run
 from pipeline.io.runs import read_run
-from tests.conftest import shared_path
+from tests.conftest import data_path
 
 
 def _ns(text: str) -> int:
@@ -28,13 +28,13 @@ CATS_PERIODS = [
 
 @pytest.fixture(scope="module")
 def cats():
-    run = read_run(shared_path("reference", "real", "cats_tag", "run"))
+    run = read_run(data_path("real", "cats_tag", "run"))
     return run, summarize_run(run)
 
 
 @pytest.fixture(scope="module")
 def ferraris():
-    base = shared_path("reference", "real", "imucal_ferraris")
+    base = data_path("real", "imucal_ferraris")
     run = read_run(base / "run")
     return run, summarize_run(run), json.loads((base / "labels.json").read_text())
 

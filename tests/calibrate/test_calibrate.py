@@ -18,7 +18,7 @@ from pipeline.calibrate.tilt import CalibrationSettings, fit_unit, observe_run, 
 from pipeline.io.runs import read_run, write_run
 from pipeline.simulate.chamber import SimConfig, simulate
 from pipeline.simulate.unit import UnitTruth
-from tests.conftest import REPO, shared_path
+from tests.conftest import REPO, data_path
 
 T0 = 20.0
 
@@ -119,7 +119,7 @@ def test_real_recording_imucal(tmp_path):
     """The hand-held Ferraris session: six positions where its labels say, constants near its README, unverified."""
     from flows.calibrate import run_calibrate
 
-    run_dir = shared_path("reference", "real", "imucal_ferraris", "run")
+    run_dir = data_path("real", "imucal_ferraris", "run")
     labels = json.loads((run_dir.parent / "labels.json").read_text())["labels"]
     run = read_run(run_dir)
     obs, _ = observe_run(run)

@@ -21,7 +21,7 @@ from pipeline.passport.registry import Registry
 from pipeline.positions import ALL_POSITIONS
 from pipeline.simulate.chamber import SimConfig, simulate
 from pipeline.simulate.unit import random_unit, seed000_unit
-from tests.conftest import REPO, shared_path
+from tests.conftest import REPO, data_path
 
 T0 = 20.0
 GAIN = np.full(3, -0.55)
@@ -159,7 +159,7 @@ def test_too_few_or_badly_spread_positions_raise():
 
 @pytest.fixture(scope="module")
 def real_positions():
-    base = shared_path("reference", "real", "imucal_ferraris")
+    base = data_path("real", "imucal_ferraris")
     u = pl.read_parquet(base / "run" / "voltmeter.parquet").select(["ux", "uy", "uz"]).to_numpy()
     labels = [
         lab for lab in json.loads((base / "labels.json").read_text())["labels"] if lab["position"].startswith("TP")

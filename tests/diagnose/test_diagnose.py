@@ -24,6 +24,7 @@ from pipeline.passport.document import compensate_extended, load_extended
 from pipeline.segment import segment_run
 from pipeline.simulate.chamber import SimConfig, simulate
 from pipeline.thermal import PolynomialModel
+from tests.conftest import data_path
 
 
 def short(effects=(), seed=0, **kw):
@@ -275,11 +276,9 @@ def test_a_piecewise_passport_is_refined_not_blamed_on_the_catalogue(clean_short
 
 
 def test_real_hand_held_recording_shows_its_face_errors():
-    """imucal's Ferraris session (shared/reference/real): six orientations held by hand. Hand-held "faces" are
+    """imucal's Ferraris session (tests/data/real): six orientations held by hand. Hand-held "faces" are
     off by a fraction of a degree each, which is what diagnose finds, and modelling it improves the fit."""
-    run_dir = Path(__file__).resolve().parents[3] / "shared" / "reference" / "real" / "imucal_ferraris" / "run"
-    if not run_dir.exists():
-        pytest.skip(f"shared reference data not available: {run_dir}")
+    run_dir = data_path("real", "imucal_ferraris", "run")
     from pipeline.io.runs import read_run
 
     rep = diagnose_run(read_run(run_dir)).report

@@ -23,8 +23,8 @@ from pipeline.io.mcap import MAGIC, SCHEMA_NAMES, TOPICS, read_mcap, write_mcap
 from pipeline.io.parquet import read_parquet_run, write_parquet_run
 from pipeline.io.runs import read_run, run_format, write_run
 from pipeline.run import STREAM_COLUMNS, Run, RunMeta, make_frame
+from tests.conftest import DATA
 
-SHARED = Path(__file__).resolve().parents[3] / "shared"
 T0_NS = 1_793_491_200_000_000_000  # 2026-11-01T00:00:00Z
 META = RunMeta(
     unit_serial="AU-0007",
@@ -462,16 +462,14 @@ def test_shared_conformance_files_are_refused():
 
     (In a checkout without Git LFS the corpus holds LFS pointer files; those are refused as such.)
     """
-    root = SHARED / "reference" / "mcap-conformance"
-    if not root.exists():
-        pytest.skip(f"MCAP conformance corpus not available: {root}")
+    root = DATA / "mcap-conformance"
     files = sorted(p for p in root.rglob("*") if p.is_file())
     for path in files:
         with pytest.raises(RunFormatError) as info:
             read_mcap(path)
         text = str(info.value)
         assert str(path) in text
-        if path.parent != root:  # the scenario folders; beside them are README.md and LICENSE.mcap (text)
+        if path.parent != root:  # the scenario folders; beside them are README.md and LICENSE (text)
             assert "no run topics or run metadata found" in text or "Git LFS pointer" in text, text
     assert len(files) > 400
 
