@@ -4,7 +4,7 @@ For each effect, the catalogue's default parameters (pipeline/effects/) are scal
 ``thermal_lag`` the time constant, for ``fixture_face_error`` the angular sigma, for the others every size
 parameter; time constants of the other effects are kept). A size counts as named when, on every seed, diagnose's
 first finding is that effect (or a confounded group holding it) and the fit improves. The factor is bisected in
-log scale between a size that fails and one that passes. The run is the standard program (physics.md) written to
+log scale between a size that fails and one that passes. The run is the standard program (docs/physics.md) written to
 MCAP and read back, 5 uV per-sample noise, the passport fitted from the run.
 
 Prints a markdown table: the smallest named size, its parameters, the peak of the effect on static samples, and

@@ -5,7 +5,7 @@ The paper's simulation: normalised outputs of a triad in random static orientati
     B = D0 + (I + diag(D1) + M) a + noise,   |a| = 1,
 
 calibrated by the first-order connection equation (eq. 11); "calibration error" is the relative error of the
-estimated error coefficients D0_i, D1_i, psi_ij. Its conclusions (physics.md): worthwhile for noise up to
+estimated error coefficients D0_i, D1_i, psi_ij. Its conclusions (docs/physics.md): worthwhile for noise up to
 1e-4 m/s^2 (1 sigma) -- about 10 % error there; offset and scale errors up to 1 % give errors up to 5 %;
 misalignment terms of 0.005-0.01 degrade it to 10-20 %.
 

@@ -2,7 +2,7 @@
 
 Reads the run (and the passport when given: a file, or the unit's current passport in a registry, see
 :func:`current_passport`), runs :func:`pipeline.diagnose.diagnosis.diagnose_run`, writes the figure and the
-passport extended with the fitted effects, and returns the report (contract.md's ``diagnose --json`` object plus
+passport extended with the fitted effects, and returns the report (docs/contract.md's ``diagnose --json`` object plus
 ``figure`` and ``extended_passport`` paths). Both files go beside the run unless paths are given:
 ``<run>.diagnose.png`` and ``<run>.diagnose.passport.json``.
 """
@@ -29,7 +29,7 @@ def _beside(run: Path, suffix: str) -> Path:
 
 
 def current_passport(registry: Path, unit: str):
-    """The unit's current passport in ``registry`` (contract.md: the newest approved version, else the newest:
+    """The unit's current passport in ``registry`` (docs/contract.md: the newest approved version, else the newest:
     :meth:`pipeline.passport.registry.Registry.load_state`), a description of it (version, status, approval) and
     its :class:`pipeline.passport.registry.VersionState`."""
     doc, st = Registry(registry).load_state(unit)

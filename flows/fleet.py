@@ -26,7 +26,7 @@ Where the unit tasks run is a flow parameter, so that a deployment can choose it
   :data:`AUTO_PROCESS_MIN_UNITS` units on (starting the workers costs ~1 s of CPU each), threads below. Figures:
   benchmarks/fleet_throughput.py and the README.
 
-The flow returns the ``fleet --json`` object (contract.md) and leaves a table artifact ``thermocal-fleet``.
+The flow returns the ``fleet --json`` object (docs/contract.md) and leaves a table artifact ``thermocal-fleet``.
 """
 
 from __future__ import annotations
@@ -211,7 +211,7 @@ def fleet_flow(
 ) -> dict:
     """Calibrate every run under ``root`` into ``registry`` by ``method`` (``pipeline.calibrate.methods``): one
     task per unit, bad runs reported, done units skipped. Returns the ``fleet --json`` object: ``done``, ``failed``,
-    ``skipped`` (contract.md), ``flow_run_id`` and ``timing`` (wall, planning and in-task compute seconds, the
+    ``skipped`` (docs/contract.md), ``flow_run_id`` and ``timing`` (wall, planning and in-task compute seconds, the
     runner)."""
     logger = get_run_logger()
     t0 = time.perf_counter()

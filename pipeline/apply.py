@@ -1,4 +1,4 @@
-"""A passport applied to a recording: the compensated specific force at every voltmeter sample (contract.md,
+"""A passport applied to a recording: the compensated specific force at every voltmeter sample (docs/contract.md,
 "apply output").
 
 The passport's full model is used, whatever the method that made it: the constants at T0, the thermal model

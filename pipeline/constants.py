@@ -28,7 +28,7 @@ def six_position(u_by_position_v: dict[str, np.ndarray]) -> tuple[np.ndarray, np
     """Closed form of seed 000 eq. 11 from the mean outputs in TP1..TP6 (V).
 
     K_ix = (U_i6 - U_i5)/2, K_iy = (U_i4 - U_i2)/2, K_iz = (U_i1 - U_i3)/2 (V/g); U0_i = mean over the six positions
-    (the paper's eq. 11 line for U0y is a misprint, see physics.md).
+    (the paper's eq. 11 line for U0y is a misprint, see docs/physics.md).
     """
     missing = [p for p in TEST_POSITIONS if p not in u_by_position_v]
     if missing:

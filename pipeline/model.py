@@ -4,8 +4,8 @@ K is 3x3 in V/g (diagonal: gains, off-diagonal: cross-axis sensitivities), U0 th
 specific force along the AU axes in g. Functions take stacks: K of shape (n, 3, 3) or (3, 3), U0 and a of shape
 (n, 3) or (3,).
 
-The outputs may be in any linear unit (physics.md, "Real recordings"): volts as log-format.md says, or m/s^2 from a
-logger that records acceleration; K is then in that unit per g and U0 in that unit (:func:`output_unit`).
+The outputs may be in any linear unit (docs/physics.md, "Real recordings"): volts as docs/log-format.md says, or m/s^2
+from a logger that records acceleration; K is then in that unit per g and U0 in that unit (:func:`output_unit`).
 """
 
 from __future__ import annotations
@@ -25,8 +25,8 @@ _MPS2_GAIN_TOLERANCE = 0.1
 def output_unit(gains, g_local_mps2: float = 9.80665) -> str:
     """The unit of outputs whose gains |K_ii| (output unit per g) are ``gains`` (3,): ``"m/s^2"`` when every gain
     lies within 10 % of the local gravity ``g_local_mps2`` (an axis pointing up reads about +9.8: a logger that
-    records acceleration; no voltage output has such gains, physics.md's plausible range being 0.05..5 V/g),
-    else ``"V"`` (log-format.md's unit)."""
+    records acceleration; no voltage output has such gains, docs/physics.md's plausible range being 0.05..5 V/g),
+    else ``"V"`` (docs/log-format.md's unit)."""
     g = np.abs(np.asarray(gains, dtype=float))
     if g.size and np.all(np.abs(g / float(g_local_mps2) - 1.0) <= _MPS2_GAIN_TOLERANCE):
         return "m/s^2"

@@ -3,7 +3,7 @@
 A calibration fits whatever the numbers say: voltages logged in mV give gains of about -550 V/g, temperatures logged
 in kelvin give plateaus at 233..343 "C", a reversed axis gives a gain of the wrong sign, and the VP verification
 (which uses the same wrong numbers) still passes. These checks compare the fitted constants with the run's
-``nominal_gain_v_per_g`` (log-format.md; signed) and with the unit type's ranges (:class:`UnitTypeRanges`), and say
+``nominal_gain_v_per_g`` (docs/log-format.md; signed) and with the unit type's ranges (:class:`UnitTypeRanges`), and say
 what looks wrong, one line per finding. A calibration with any finding has status ``fail``
 (:func:`judged_status`), never ``pass``.
 

@@ -1,4 +1,4 @@
-"""Positions of the tilt fixture: specific force along the AU axes, in g (physics.md)."""
+"""Positions of the tilt fixture: specific force along the AU axes, in g (docs/physics.md)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The canonical in-memory form of a chamber run, whatever the file format (log-format.md).
+"""The canonical in-memory form of a chamber run, whatever the file format (docs/log-format.md).
 
 A :class:`Run` holds the run metadata and one polars table per stream. Column names and dtypes are fixed:
 
@@ -32,7 +32,7 @@ STREAM_COLUMNS: dict[str, dict[str, Any]] = {
 REQUIRED_STREAMS = ("voltmeter", "au_temperature")
 OPTIONAL_STREAMS = ("chamber", "fixture")
 
-#: Metadata keys that every run must carry (log-format.md); values are strings in the files.
+#: Metadata keys that every run must carry (docs/log-format.md); values are strings in the files.
 REQUIRED_META = ("unit_serial", "run_id")
 #: nanoseconds per second (times are Int64 ns since the Unix epoch)
 NS_PER_S = 1_000_000_000
@@ -55,7 +55,7 @@ def slab_of(column, s0: int, s1: int) -> np.ndarray:
 
 @dataclass(frozen=True)
 class RunMeta:
-    """Run metadata (log-format.md). Values are typed here; in files they are strings."""
+    """Run metadata (docs/log-format.md). Values are typed here; in files they are strings."""
 
     unit_serial: str
     run_id: str
@@ -154,7 +154,7 @@ class Run:
         return getattr(self, name)
 
     def streams(self) -> dict[str, pl.DataFrame]:
-        """The streams present, by name, in the order of log-format.md."""
+        """The streams present, by name, in the order of docs/log-format.md."""
         out = {}
         for name in STREAM_COLUMNS:
             df = self.stream(name)

@@ -1,7 +1,7 @@
 """Temperature plateaus and named static positions, found from the data of one chamber run.
 
-A chamber run (physics.md) alternates temperature ramps and soaks; on each soaked plateau the tilt fixture holds the
-unit in a sequence of positions. This module finds both from the recorded signals, not from a timetable:
+A chamber run (docs/physics.md) alternates temperature ramps and soaks; on each soaked plateau the tilt fixture
+holds the unit in a sequence of positions. This module finds both from the recorded signals, not from a timetable:
 
 - plateaus from the AU thermosensor: the local regression slope of the temperature stays below
   ``plateau_rate_c_per_min`` for at least ``plateau_min_s`` and the temperature stays within ``plateau_band_c`` of
@@ -312,7 +312,7 @@ def _local_slope_c_per_s(t_s: np.ndarray, y: np.ndarray, window_s: float) -> np.
 @dataclass(frozen=True)
 class TemperatureProgram:
     """What the AU temperature did over a run: ``kind`` is ``plateaus`` (soaks separated by ramps), ``sweep`` (a
-    continuous drift or ramp that never holds: physics.md, "Real recordings") or ``constant`` (one temperature
+    continuous drift or ramp that never holds: docs/physics.md, "Real recordings") or ``constant`` (one temperature
     throughout). ``range_c`` (lo, hi) C; ``max_rate_c_per_h`` the largest rate of the temperature smoothed over
     ``rate_window_s``; ``plateaus`` the plateaus that are soaks (found plateaus chained into a drift are not);
     ``drift_s`` the time spent in such chains."""

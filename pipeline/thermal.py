@@ -1,6 +1,6 @@
 """Temperature models of the 12 constants (seed 000, eq. 4-5, 12-13).
 
-Relative forms in dT = T - T0 (physics.md):
+Relative forms in dT = T - T0 (docs/physics.md):
 
     U0_i(T)  = U0_i + sum_n alpha_ni dT^n                 alpha in V/C^n
     K_ii(T)  = K_ii (1 + sum_n beta_nii dT^n)             beta  in 1/C^n

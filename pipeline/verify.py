@@ -13,7 +13,8 @@ from pipeline.model import gravity_module_error_g
 
 @dataclass(frozen=True)
 class Tolerances:
-    """|dg| limits in g (physics.md, launcher grade): within ``normal_band_c`` of T0 and over the operating range."""
+    """|dg| limits in g (docs/physics.md, launcher grade): within ``normal_band_c`` of T0 and over the operating
+    range."""
 
     normal_g: float = 3e-4
     operating_range_g: float = 1e-3

@@ -1,4 +1,4 @@
-"""``apply``: a passport's full model applied to every voltmeter sample (contract.md, "apply output")."""
+"""``apply``: a passport's full model applied to every voltmeter sample (docs/contract.md, "apply output")."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The ``thermocal`` command line (contract.md). Commands that take ``--json`` print one JSON object on stdout;
+"""The ``thermocal`` command line (docs/contract.md). Commands that take ``--json`` print one JSON object on stdout;
 logs and progress go to stderr; failures exit non-zero with a one-line reason on stderr.
 
 One module per command or command group, each registering its commands on the apps of :mod:`flows.cli.app`:

@@ -1,5 +1,5 @@
 """The console entry point :func:`main`: runs :data:`flows.cli.app.app` (every command registered by
-importing :mod:`flows.cli`) with one-line usage errors and exit statuses (contract.md)."""
+importing :mod:`flows.cli`) with one-line usage errors and exit statuses (docs/contract.md)."""
 
 from __future__ import annotations
 

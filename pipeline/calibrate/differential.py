@@ -160,8 +160,8 @@ class Differential(Method):
         ``base_passport`` the starting passport's unit, version and method. VP segments in the runs, if any, verify it
         as usual (without rate terms).
 
-        Without ``base_passport`` (temperature sweeps, physics.md "Real recordings") the constants at T0 come from the
-        orientations themselves (:func:`sweep_base`, default model :data:`SWEEP_SETTINGS`): the passport's
+        Without ``base_passport`` (temperature sweeps, docs/physics.md "Real recordings") the constants at T0 come from
+        the orientations themselves (:func:`sweep_base`, default model :data:`SWEEP_SETTINGS`): the passport's
         ``orientation_base`` says how, and ``undetermined`` lists what the orientations cannot determine (kept at
         nominal values, never guessed).
         """

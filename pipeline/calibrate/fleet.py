@@ -40,7 +40,7 @@ from pipeline.passport.provenance import RunDigest, hash_run
 from pipeline.passport.registry import Registry, identity_key
 from pipeline.run import RunMeta
 
-#: A directory holding one of these is a Parquet run directory (log-format.md).
+#: A directory holding one of these is a Parquet run directory (docs/log-format.md).
 PARQUET_RUN_MARKERS = ("voltmeter.parquet", PARQUET_META_FILE)
 MCAP_SUFFIX = ".mcap"
 ALREADY_PROCESSED = "already processed"

@@ -1,6 +1,6 @@
 """Which runs a calibration takes: one file per recording, and a warning where a run's folder names another unit.
 
-- :func:`resolve_run_ids`: two files with the same ``run_id`` (log-format.md: unique id of a recording) are never
+- :func:`resolve_run_ids`: two files with the same ``run_id`` (docs/log-format.md: unique id of a recording) are never
   merged: the same observations would count twice. When one is a truncated copy of the other (every stream's samples
   a prefix of the other's), the complete file is used and the copy is reported as failed with that reason; when
   they differ otherwise, neither is used (both reported, each naming the other).

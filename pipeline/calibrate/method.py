@@ -59,7 +59,7 @@ class Support:
 class Fitted:
     """What a method's fit makes, before the tail every method shares (:meth:`Method.finish`): ``fit``, the constants
     and the thermal model the VP verification compensates with (``fit.skipped``: the fit's notes, also warnings);
-    ``passport_fields``: the method's own fields of the passport (contract.md: ``scalar``, ``differential``,
+    ``passport_fields``: the method's own fields of the passport (docs/contract.md: ``scalar``, ``differential``,
     ``rate_terms``...); ``settings_extra``: what the passport's identity depends on besides the settings and the
     method (:attr:`pipeline.calibrate.result.CalibrationResult.settings_extra`)."""
 

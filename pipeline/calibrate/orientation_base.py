@@ -1,4 +1,4 @@
-"""The constants at T0 of a unit from its temperature sweeps alone, without a base passport (physics.md, "Real
+"""The constants at T0 of a unit from its temperature sweeps alone, without a base passport (docs/physics.md, "Real
 recordings"): the sweep model chosen by two-fold validation (:func:`select_model`), and K (diagonal) and U0 from
 the orientation windows whose temperature terms the model describes (:func:`constants_from_orientations`,
 :func:`sweep_base`), with what the orientations leave undetermined (:class:`OrientationBase`).

@@ -25,7 +25,7 @@ def recorded_settings(settings: CalibrationSettings | dict, method: str, extra: 
 
 
 def calibration_json(result: CalibrationResult, published) -> dict:
-    """The ``calibrate --json`` object of contract.md for a published passport (``published`` None: a dry run,
+    """The ``calibrate --json`` object of docs/contract.md for a published passport (``published`` None: a dry run,
     nothing written)."""
     return {
         "unit": result.unit,

@@ -64,7 +64,7 @@ class UnitFit:
 class CalibrationResult:
     """A calibration by any method, ready to publish.
 
-    ``passport``: the passport document (contract.md) without the registry's fields (version, parent, creation
+    ``passport``: the passport document (docs/contract.md) without the registry's fields (version, parent, creation
     time, provenance); ``fit``: the constants it was built from; ``rows``/``status``: the VP verification;
     ``plateaus``: the plateau summary of ``calibrate --json``; ``warnings``: the runs' and the fit's warnings, one
     line each; ``settings_extra``: what the passport's identity depends on besides the calibration settings and the

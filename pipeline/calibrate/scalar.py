@@ -7,7 +7,8 @@ normalised outputs are ``B_i = (U_i - u0_p_i) / k_p_i`` and the paper's signal m
     B = D0 + (I + diag(D1) + M) a + D2 a^2 + noise
 
 with offset errors D0 (g), scale-factor errors D1, quadratic errors D2 (1/g) and misalignments M (off-diagonal).
-Only the symmetric combinations of M change |B|, so the scalar method determines the pairwise combinations (physics.md)
+Only the symmetric combinations of M change |B|, so the scalar method determines the pairwise combinations
+(docs/physics.md, docs/methods.md)
 
     psi_xy = M_xy + M_yx,  psi_xz = M_xz + M_zx,  psi_yz = M_yz + M_zy
 
@@ -25,7 +26,7 @@ diagonal and zeros above it.
   lower-triangular (6 parameters) and d = D0 (3): 9 parameters by nonlinear least squares (Levenberg-Marquardt).
   ``model="diagonal"`` assumes orthogonal axes (3 gains and 3 offsets), which six positions can determine.
 
-Both return a :class:`ScalarFit` with K (3, 3) V/g, U0 (3,) V in the model of physics.md (U = K a + U0).
+Both return a :class:`ScalarFit` with K (3, 3) V/g, U0 (3,) V in the model of docs/physics.md (U = K a + U0).
 :func:`calibrate` makes a passport (method ``scalar``) from runs: all static segments on the normal-temperature
 plateau, named or not.
 """

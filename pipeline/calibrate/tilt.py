@@ -188,7 +188,7 @@ def _fit_plateaus(
         u = np.array([np.asarray(o.u_v) - shift_v.get(id(o), 0.0) for o in rows])
         # one weight per segment: a position carried through a ramp and soak is a long segment taken while the
         # unit settled; it should not outweigh the program's own hold of that position. Positions missing: least
-        # squares over those there are (physics.md)
+        # squares over those there are (docs/physics.md)
         cf = fit_constants(names, u, method="least_squares" if missing else method)
         fits.append(
             PlateauConstants(

@@ -1,5 +1,5 @@
 """Mismatch diagnosis: where a recording departs from the model its passport predicts, which left-out physics of
-the effect catalogue (physics.md) explains it, the extended model, and the fit before and after.
+the effect catalogue (docs/physics.md) explains it, the extended model, and the fit before and after.
 
 Steps (:func:`diagnose_run`):
 
@@ -19,7 +19,7 @@ Steps (:func:`diagnose_run`):
    module errors before and after; the extended model stored in the passport (:mod:`pipeline.effects.model`).
 
 This module runs the steps; :mod:`pipeline.diagnose.report` writes what they found
-(:func:`~pipeline.diagnose.report.report`): contract.md's ``diagnose --json`` object (``verdict`` is ``consistent``
+(:func:`~pipeline.diagnose.report.report`): docs/contract.md's ``diagnose --json`` object (``verdict`` is ``consistent``
 exactly when ``findings`` is empty) with extra keys, its sentences in the recording's output unit (given
 explicitly). RMS values are of block means (a block is ~30 s), where left-out physics stands out of the noise;
 per-sample RMS is dominated by the white noise.

@@ -1,4 +1,4 @@
-"""The report of a diagnosis (:mod:`pipeline.diagnose.diagnosis` runs its steps): contract.md's ``diagnose --json``
+"""The report of a diagnosis (:mod:`pipeline.diagnose.diagnosis` runs its steps): docs/contract.md's ``diagnose --json``
 object with its extra keys, the passport with the extended model, and the block series behind the figure.
 
 - :class:`DiagnoseSettings`: block length, where a finding shows (thresholds in block sigmas), the selection's
@@ -50,7 +50,7 @@ class DiagnoseSettings:
 
 @dataclass
 class Diagnosis:
-    """The report (contract.md's JSON object plus extras), the passport with its extended model, and the block
+    """The report (docs/contract.md's JSON object plus extras), the passport with its extended model, and the block
     series behind the figure: times (h), residuals before and after (B, 3) V, block sigma, the windows where the
     findings show and where the residual before exceeded the noise (h)."""
 

@@ -1,5 +1,5 @@
 """Has the unit's constants moved since its passport? The first question ``diagnose`` asks of a given passport
-(contract.md ``constants_shift``), before it looks for left-out physics on top.
+(docs/contract.md ``constants_shift``), before it looks for left-out physics on top.
 
 The passport's model predicts the recording; the residual is explained, in turn, by a change of the zero offsets
 U0 alone (3 per unit), of K and U0 at T0 (12), or of the whole thermal model (K, U0 and their temperature

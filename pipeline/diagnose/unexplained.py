@@ -1,5 +1,5 @@
-"""The open world: a located mismatch that no catalogue effect explains is reported as ``unexplained`` (contract.md),
-with its signature and the fit improvement of a generic empirical correction, labelled as empirical.
+"""The open world: a located mismatch that no catalogue effect explains is reported as ``unexplained``
+(docs/contract.md), with its signature and the fit improvement of a generic empirical correction, labelled as empirical.
 
 After the catalogue search, the residual is offered generic corrections (:func:`families`), each a set of block-level
 columns per axis, scored by BIC against the model with the accepted catalogue effects:

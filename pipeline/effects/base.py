@@ -1,6 +1,6 @@
 """What every catalogue effect is made of: the signal context it reads and the :class:`Effect` base class.
 
-An effect (one module of :mod:`pipeline.effects` each, physics.md "the effect catalogue") is a small frozen
+An effect (one module of :mod:`pipeline.effects` each, docs/physics.md "the effect catalogue") is a small frozen
 dataclass of named parameters (units in the names) with defaults at a size an engineer cares about. In one place it
 holds everything the project knows about it:
 
@@ -103,7 +103,7 @@ class Effect:
     """Base of the catalogue entries (see the module doc for the class attributes and methods)."""
 
     id: ClassVar[str] = ""
-    #: row of physics.md's catalogue table (the catalogue's order)
+    #: row of docs/physics.md's catalogue table (the catalogue's order)
     order: ClassVar[int] = 99
     acts_on: ClassVar[str] = "output"
     where: ClassVar[str] = ""

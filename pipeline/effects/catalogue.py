@@ -1,5 +1,5 @@
 """The effect catalogue by id: every :class:`~pipeline.effects.base.Effect` defined in a module of this package, in
-the order of physics.md's table, and the CLI syntax ``ID[:k=v,...]``.
+the order of docs/physics.md's table, and the CLI syntax ``ID[:k=v,...]``.
 
 Effects outside the catalogue (disturbances the simulator can add to test that ``diagnose`` does not force a
 catalogue name onto them) live in :mod:`pipeline.simulate.disturbances`, not here.

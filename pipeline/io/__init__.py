@@ -1,1 +1,2 @@
-"""Reading and writing chamber runs (log-format.md): MCAP and Parquet layouts, block codecs, shared checks, schemas."""
+"""Reading and writing chamber runs (docs/log-format.md): MCAP and Parquet layouts, block codecs, shared checks,
+schemas."""

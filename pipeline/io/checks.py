@@ -1,4 +1,5 @@
-"""The checks both run layouts share (log-format.md), so that MCAP and Parquet accept and refuse exactly the same runs.
+"""The checks both run layouts share (docs/log-format.md), so that MCAP and Parquet accept and refuse exactly the same
+runs.
 
 Stream tables in canonical form, time order and time base, gaps, fixture labels, required streams and metadata:
 :func:`assemble_run` turns what a reader decoded into a :class:`pipeline.run.Run`; :func:`writable_streams` checks a
@@ -16,7 +17,7 @@ from pipeline.errors import RunFormatError
 from pipeline.positions import MOVING, POSITION_NAMES
 from pipeline.run import REQUIRED_STREAMS, SLAB_SAMPLES, STREAM_COLUMNS, Run, RunMeta
 
-#: Labels a fixture event may carry (log-format.md).
+#: Labels a fixture event may carry (docs/log-format.md).
 FIXTURE_LABELS: tuple[str, ...] = (*POSITION_NAMES, MOVING)
 #: An interval longer than this many median intervals of a stream is a gap (warned about by the readers, listed by
 #: ``inspect``).
@@ -168,7 +169,7 @@ def assemble_run(
 def writable_streams(run: Run, *, path: str) -> dict[str, pl.DataFrame]:
     """The run's stream tables in canonical column order and dtypes, checked for writing.
 
-    Required streams must be present; times must be present, non-negative and in order (log-format.md).
+    Required streams must be present; times must be present, non-negative and in order (docs/log-format.md).
     """
     out = {}
     for stream in REQUIRED_STREAMS:

@@ -1,4 +1,4 @@
-"""Chamber runs as MCAP files (log-format.md): a writer, and a fast reader that says what is wrong with a bad file.
+"""Chamber runs as MCAP files (docs/log-format.md): a writer, and a fast reader that says what is wrong with a bad file.
 
 Layout: one metadata record named ``run`` (string to string, written before any data); one channel per stream, topics
 ``/voltmeter``, ``/au/temperature``, ``/chamber``, ``/fixture``; message encoding ``json``, schema encoding
@@ -119,7 +119,7 @@ def write_mcap(
     summary: bool = True,
     encoding: str = "json",
 ) -> Path:
-    """Write ``run`` as an MCAP file (log-format.md); return the path.
+    """Write ``run`` as an MCAP file (docs/log-format.md); return the path.
 
     ``block_samples``: samples per message (at most; ``/fixture`` has one event per message). ``chunk_size``: bytes
     of uncompressed messages per chunk. ``compression``: ``zstd``, ``lz4`` or ``none``. ``summary=False`` writes no

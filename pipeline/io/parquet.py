@@ -1,4 +1,4 @@
-"""Chamber runs as Parquet directories (log-format.md).
+"""Chamber runs as Parquet directories (docs/log-format.md).
 
 A run directory holds ``voltmeter.parquet``, ``au_temperature.parquet``, optional ``chamber.parquet`` and
 ``fixture.parquet`` (the columns of :data:`pipeline.run.STREAM_COLUMNS`), and ``run.json`` with the metadata as

@@ -1,4 +1,4 @@
-"""Reading and writing chamber runs, whatever the layout (log-format.md).
+"""Reading and writing chamber runs, whatever the layout (docs/log-format.md).
 
 :func:`read_run` opens a ``*.mcap`` file (:mod:`pipeline.io.mcap`) or a Parquet run directory
 (:mod:`pipeline.io.parquet`) and returns the one in-memory form, :class:`pipeline.run.Run`. :func:`write_run` writes

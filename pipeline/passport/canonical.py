@@ -1,8 +1,8 @@
 """Canonical JSON of registry records (passport versions, approvals, head statements) and the hashes over it.
 
 One encoding for everything that is hashed or signed: keys sorted, 2-space indent, ASCII, a final newline, no NaN or
-infinity (contract.md). A record's ``content_sha256`` and its ``signature`` cover the same bytes: the canonical JSON
-of the record without those two fields (:func:`signed_body`).
+infinity (docs/contract.md). A record's ``content_sha256`` and its ``signature`` cover the same bytes: the canonical
+JSON of the record without those two fields (:func:`signed_body`).
 """
 
 from __future__ import annotations

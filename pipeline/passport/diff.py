@@ -1,4 +1,4 @@
-"""The difference of two passport versions in physical units (physics.md): changed constants and thermal
+"""The difference of two passport versions in physical units (docs/physics.md): changed constants and thermal
 coefficients with their engineering scale (ppm of gain, micro-g) and significance, changed fields, settings and
 inputs. ``thermocal passport diff`` prints it (:meth:`pipeline.passport.registry.Registry.diff`)."""
 
@@ -13,7 +13,7 @@ from pipeline.positions import AXES
 
 def diff_passports(a: dict, b: dict, *, unit: str, v1: int, v2: int) -> dict:
     """What changed from passport ``a`` (version ``v1`` of ``unit``) to ``b`` (version ``v2``), in the units of
-    physics.md.
+    docs/physics.md.
 
     Returns {"unit", "v1", "v2", "constants", "thermal_model", "rate_terms", "fields", "settings", "inputs"}; the
     lists hold

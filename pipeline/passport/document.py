@@ -1,4 +1,4 @@
-"""The calibration passport (contract.md): one JSON document per version, and its typed form.
+"""The calibration passport (docs/contract.md): one JSON document per version, and its typed form.
 
 - :func:`build_passport` assembles the required content from a :class:`pipeline.calibrate.result.UnitFit` and its
   verification; the registry (``pipeline.passport.registry``) adds version, parent link, creation time and
@@ -88,7 +88,7 @@ def build_passport(
 
 
 def uncertainty_block(fit) -> dict | None:
-    """The passport's ``uncertainty`` (contract.md): standard uncertainties (1 sigma, same units) mirroring
+    """The passport's ``uncertainty`` (docs/contract.md): standard uncertainties (1 sigma, same units) mirroring
     ``coefficients``, ``per_plateau`` and ``thermal_model`` (and, for the differential method, ``rate_terms``), with
     ``undetermined`` / ``fixed_by_convention`` naming the fields without a measured uncertainty and why, and
     ``basis`` what the numbers rest on; None where the fit has none."""
@@ -133,7 +133,7 @@ class Passport:
     ``tilt_six_position``, ``scalar`` or ``differential``; ``K`` (3, 3) V/g and ``U0`` (3,) V at ``normal_temp_c``
     (C); ``thermal_model`` K(T), U0(T); ``rate_terms`` the differential method's rate terms and lag (None for the
     others); ``extended`` the model a ``diagnose`` fitted (None: none); ``valid_temp_c`` the calibration
-    temperatures the data covered (C); ``document`` the JSON object as stored (contract.md), unchanged."""
+    temperatures the data covered (C); ``document`` the JSON object as stored (docs/contract.md), unchanged."""
 
     format: str
     unit: str | None
@@ -192,7 +192,7 @@ class Passport:
         )
 
     def to_dict(self) -> dict[str, Any]:
-        """The JSON document (contract.md), as it was loaded."""
+        """The JSON document (docs/contract.md), as it was loaded."""
         return self.document
 
     def compensation_model(self):

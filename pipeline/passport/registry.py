@@ -201,7 +201,7 @@ class VersionInfo:
 @dataclass(frozen=True)
 class VersionState:
     """What a person must know of the version a command uses: its status, who approved it, and whether it is the
-    unit's current passport (contract.md: the newest approved version, else the newest; :meth:`Registry.state`)."""
+    unit's current passport (docs/contract.md: the newest approved version, else the newest; :meth:`Registry.state`)."""
 
     unit: str
     version: int
@@ -517,7 +517,7 @@ class Registry:
         return [r for r in records if r.get("content_sha256") == content_sha256(r) and verify_record(r, trust).ok]
 
     def current(self, unit: str, *, exclude_methods: tuple[str, ...] = ()) -> int | None:
-        """The unit's current passport version, the one rule every command uses (contract.md): the newest approved
+        """The unit's current passport version, the one rule every command uses (docs/contract.md): the newest approved
         version (a valid approval record whose sha256 is the version file's), else the newest version, whatever
         its status (say it: :meth:`state`); None for a unit without versions. ``exclude_methods``: leave out the
         versions made by these methods (the differential method's base is never a differential passport)."""
@@ -981,6 +981,6 @@ class Registry:
     # -- comparison ---------------------------------------------------------------------------------------------
 
     def diff(self, unit: str, v1: int, v2: int) -> dict:
-        """What changed from version ``v1`` to ``v2`` of ``unit``, in the units of physics.md
+        """What changed from version ``v1`` to ``v2`` of ``unit``, in the units of docs/physics.md
         (:func:`pipeline.passport.diff.diff_passports`)."""
         return diff_passports(self.load(unit, v1), self.load(unit, v2), unit=unit, v1=v1, v2=v2)

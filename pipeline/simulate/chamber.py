@@ -1,6 +1,6 @@
 """The chamber-run simulator: one unit through a chamber program, as an in-memory :class:`~pipeline.run.Run`.
 
-Physics (physics.md):
+Physics (docs/physics.md):
 
 - the chamber air follows the setpoint with a first-order lag (``air_lag_s``, about 1.5 min); the AU case follows
   the air with a first-order lag ``case_lag_s`` (the program's default: 600 s standard, 120 s short); both are

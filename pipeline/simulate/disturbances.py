@@ -1,5 +1,5 @@
-"""Mismatches outside the effect catalogue (physics.md, last paragraph of "Real recordings"): what the simulator can
-add to test that ``diagnose`` does not force a catalogue name onto them. They are not catalogue ids and ``diagnose``
+"""Mismatches outside the effect catalogue (docs/physics.md, last paragraph of "Real recordings"): what the simulator
+can add to test that ``diagnose`` does not force a catalogue name onto them. They are not catalogue ids and ``diagnose``
 never fits them by name: it must report ``constants_shift`` for the first and ``unexplained`` for the others.
 
 - ``constants_shift``: the unit's constants moved since its passport was made, U += dK a + dU0 with
@@ -12,7 +12,7 @@ never fits them by name: it must report ``constants_shift`` for the first and ``
 - ``periodic``: a periodic disturbance (the chamber's compressor cycling), U += amp_v sin(2 pi t / period_s + phase).
 
 Each is an :class:`~pipeline.effects.base.Effect` (same parameters syntax ``ID[:k=v,...]``), kept out of
-:mod:`pipeline.effects` so that the catalogue stays what physics.md lists.
+:mod:`pipeline.effects` so that the catalogue stays what docs/physics.md lists.
 """
 
 from __future__ import annotations

@@ -1,11 +1,11 @@
-"""Chamber programs: what the chamber setpoint and the tilt fixture do over a run (physics.md).
+"""Chamber programs: what the chamber setpoint and the tilt fixture do over a run (docs/physics.md).
 
 A :class:`Program` is a list of stages, each a list of steps: :class:`Ramp` and :class:`Soak` of the chamber
 setpoint (the unit stays in its last position), :class:`Move` to a position and :class:`Hold` of a position (the
 setpoint stays), and :class:`Tour`: the fixture cycles through positions while the setpoint ramps or stays (the fast
-programs of physics.md, "Fast programs"). :meth:`Program.timetable` expands it into a :class:`Timetable` of segments
-that answers vectorised questions for a time grid ``t_s`` (seconds since the start): setpoint, position per sample,
-moves, fixture events.
+programs of docs/physics.md, "Fast programs"). :meth:`Program.timetable` expands it into a :class:`Timetable` of
+segments that answers vectorised questions for a time grid ``t_s`` (seconds since the start): setpoint, position per
+sample, moves, fixture events.
 
 Programs by name (:data:`PROGRAMS`), and :func:`parse_program` for a stepped program written as text
 (``20@0:TP; -40@0:TP; -10@0:VP; ...``: setpoint C, soak min, positions per stage).
@@ -292,7 +292,7 @@ class Timetable:
 
     def ramp_sign(self, t_s) -> np.ndarray:
         """Direction the temperature last came from: +1 from the start of a heating ramp on, -1 from a cooling
-        ramp, 0 before the first ramp (physics.md, thermal_hysteresis). A ramp is any segment whose setpoint
+        ramp, 0 before the first ramp (docs/physics.md, thermal_hysteresis). A ramp is any segment whose setpoint
         changes (a ramp step, or the holds and moves of a tour on a ramp)."""
         sign = np.zeros(len(self.segments))
         last = 0.0
@@ -315,7 +315,7 @@ def _temperature_program(
     case_lag_s: float,
     air_lag_s: float,
 ) -> Program:
-    """The seven stages of physics.md with the given timings; soak_s = (normal soak, long soak at -40/+70 C)."""
+    """The seven stages of docs/physics.md with the given timings; soak_s = (normal soak, long soak at -40/+70 C)."""
     soak, long_soak = soak_s
     plan = [  # (setpoint C, soak s, positions)
         (20.0, soak, TP),
@@ -335,7 +335,7 @@ def _temperature_program(
 
 
 def standard_program() -> Program:
-    """physics.md "The standard chamber program": 7 stages, holds 300 s, moves 20 s, ramps 1 C/min, soaks 60 min
+    """docs/physics.md "The standard chamber program": 7 stages, holds 300 s, moves 20 s, ramps 1 C/min, soaks 60 min
     (90 min at -40 and +70 C); about 16.5 h. Case lag 600 s."""
     return _temperature_program(
         "standard", (3600.0, 5400.0), hold_s=300.0, move_s=20.0, rate_c_per_min=1.0, case_lag_s=600.0, air_lag_s=90.0
@@ -374,7 +374,7 @@ def differential_program(orientations=("TP1", "TP2", "TP3", "TP4", "TP5", "TP6")
 
 
 def handheld_program(rounds: int = 3, hold_s: float = 3.0, move_s: float = 1.5) -> Program:
-    """A hand-turned multi-face fixture at room temperature (physics.md, "Real recordings"): the unit is turned by
+    """A hand-turned multi-face fixture at room temperature (docs/physics.md, "Real recordings"): the unit is turned by
     hand through the twelve positions (TP1..TP6, VP1..VP6) ``rounds`` times in a shuffled order, each pose held
     ``hold_s`` (3 s) with ``move_s`` (1.5 s) turns between them; the setpoint stays at 20 C (no ramp). Default:
     36 poses in about 2.7 min. Simulate it at ~100 Hz with timestamp jitter (``SimConfig.jitter_s``)."""
@@ -399,7 +399,7 @@ def sweep_program(
     cool_c_per_min: float = 0.75,
     warm_c_per_min: float = 0.05,
 ) -> Program:
-    """A temperature sweep with few orientations (physics.md, "Real recordings"; the shape of a logger put in a
+    """A temperature sweep with few orientations (docs/physics.md, "Real recordings"; the shape of a logger put in a
     fridge): in each orientation (default three, one axis vertical in each, pointing down) the unit cools from
     where it is to ``cold_c`` at ``cool_c_per_min`` and warms slowly to ``warm_c`` at ``warm_c_per_min``, never
     holding a plateau. About 7.2 h per orientation with the defaults. Case lag 600 s."""
@@ -421,7 +421,7 @@ def fast_program(
     move_s: float = 20.0,
     positions: tuple[str, ...] = TP + VP,
 ) -> Program:
-    """Positions held on continuous ramps up and then down (physics.md, "Fast programs"; Niu et al. 2013): from
+    """Positions held on continuous ramps up and then down (docs/physics.md, "Fast programs"; Niu et al. 2013): from
     +20 C (soaked) the setpoint ramps to ``high_c``, stays there ``dwell_s``, ramps down to ``low_c``, stays
     ``dwell_s`` and ramps back to +20 C, all at ``rate_c_per_min``, while the fixture cycles through ``positions``
     the whole time (holds ``hold_s``, moves ``move_s``). Every temperature between the ends is passed once heating

@@ -1,4 +1,4 @@
-"""The simulated accelerometer unit: its 12 constants as smooth functions of temperature (physics.md).
+"""The simulated accelerometer unit: its 12 constants as smooth functions of temperature (docs/physics.md).
 
 A :class:`UnitTruth` holds, for each of the 12 constants (K 3x3 in V/g, U0 in V), polynomial coefficients in
 ``dT = T - T0`` (absolute: ``K(T) = sum_n K_coef[n] dT^n``, units V/g/C^n and V/C^n). It implements
@@ -60,7 +60,7 @@ class UnitTruth:
         return (powers @ self.k_coef.reshape(-1, 9)).reshape(-1, 3, 3), powers @ self.u0_coef
 
     def relative_coefficients(self) -> dict[str, Any]:
-        """The same model in the relative form of physics.md / the passport (polynomial of ``order``).
+        """The same model in the relative form of docs/physics.md / the passport (polynomial of ``order``).
 
         alpha_n (V/C^n) = U0 coefficient n; beta_n = Kii coefficient n / Kii(T0); gamma_n = Kij coefficient n / Kij(T0).
         """
@@ -139,7 +139,7 @@ def random_unit(unit_seed: int, normal_temp_c: float = 20.0) -> UnitTruth:
 
     Drawn at T0 = +20 C: gains -0.55 V/g +-1 %, CAS of random sign with magnitudes log-uniform in 3e-4..0.016 V/g,
     U0 of random sign 1..5 mV. Then for each of the sub-bands -40..+20 and +20..+70 C an independent chord slope
-    (physics.md "Typical magnitudes"): alpha log-uniform 1.5e-5..1.5e-4 V/C, beta 1e-5..5e-5 /C, gamma log-uniform
+    (docs/physics.md "Typical magnitudes"): alpha log-uniform 1.5e-5..1.5e-4 V/C, beta 1e-5..5e-5 /C, gamma log-uniform
     1e-4..6e-3 /C, each of random sign; the unit is the quadratic through the three temperatures.
     """
     rng = np.random.default_rng(unit_seed)

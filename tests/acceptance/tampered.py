@@ -25,7 +25,7 @@ VERSIONS = 3
 
 
 def passport(unit: str, k: int) -> dict:
-    """A small passport (contract.md's required fields, seed 000's magnitudes); ``k`` varies one constant."""
+    """A small passport (docs/contract.md's required fields, seed 000's magnitudes); ``k`` varies one constant."""
     K = [[-0.5506, 0.0005 + 1e-5 * k, 0.0164], [-0.0132, -0.5485, -0.0007], [-0.0147, -0.0004, -0.5486]]
     return {
         "schema": "thermocal.passport/1",

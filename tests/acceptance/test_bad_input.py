@@ -24,6 +24,8 @@ from pipeline.io.runs import read_run
 from tests.acceptance.badcorpus import BLOCK_SAMPLES, CASES, Case, build_corpus, truth_at_normal_temp, valid
 from tests.conftest import DATA, run_main
 
+pytestmark = pytest.mark.slow  # an end-to-end proof on long or many recordings
+
 CONFORMANCE = DATA / "mcap-conformance"
 THERMOCAL = str(Path(sys.executable).parent / "thermocal")
 CASE_BY_NAME = {c.name: c for c in CASES}
@@ -178,7 +180,7 @@ def test_calibrate_command_in_process(corpus, tmp_path, monkeypatch, capsys):
     path = corpus["mcap-truncated-mid-chunk"]
     code, out, err = run_main(monkeypatch, capsys, "calibrate", str(path), "--registry", str(registry), "--json")
     result = json.loads(out)
-    assert code == (1 if result["status"] == "fail" else 0), err  # contract.md: a fail exits 1
+    assert code == (1 if result["status"] == "fail" else 0), err  # docs/contract.md: a fail exits 1
     assert result["version"] == 1 and result["unit"] == read_run(path).meta.unit_serial
     assert any("truncated at byte" in w and "kept" in w for w in result["warnings"])
 

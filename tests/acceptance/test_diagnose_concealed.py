@@ -1,6 +1,6 @@
 """Proof of ``diagnose`` on concealed effects (issue 5).
 
-Each case simulates the standard chamber program (physics.md) at a 1 Hz voltmeter with 5 uV noise, with one effect
+Each case simulates the standard chamber program (docs/physics.md) at a 1 Hz voltmeter with 5 uV noise, with one effect
 of the catalogue, two at once, or none, for the seed 000 unit or other units; writes it as a plain run (MCAP or
 Parquet) to a temporary folder; and diagnoses the file through the command, with the passport fitted from the run
 itself. The ground truth stays in this test and is never passed to diagnose. Checks: the effects named are exactly
@@ -27,6 +27,8 @@ from pipeline.diagnose.signal import segment_settings_for
 from pipeline.io.runs import read_run, write_run
 from pipeline.segment import segment_run
 from pipeline.simulate.chamber import SimConfig, simulate
+
+pytestmark = pytest.mark.slow  # an end-to-end proof on long or many recordings
 
 RATE_HZ = 1.0
 

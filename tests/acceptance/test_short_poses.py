@@ -1,4 +1,4 @@
-"""The short-poses proof (physics.md, "Real recordings"): a simulated hand-turned multi-face fixture recording --
+"""The short-poses proof (docs/physics.md, "Real recordings"): a simulated hand-turned multi-face fixture recording --
 36 poses of 3 s at 100 Hz with jittery timestamps, no fixture log -- is segmented into its poses, calibrated by the
 scalar method on its first half and compensated by ``apply`` on its second half, where |a| must be 1 g within what
 the noise allows."""
@@ -16,6 +16,8 @@ from pipeline.calibrate import scalar
 from pipeline.inspect import describe_recording
 from pipeline.segment import segment_run
 from pipeline.simulate.chamber import SimConfig, simulate
+
+pytestmark = pytest.mark.slow  # an end-to-end proof on long or many recordings
 
 RATE_HZ = 100.0
 NOISE_V = 5e-6

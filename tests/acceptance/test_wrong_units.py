@@ -16,6 +16,8 @@ from pipeline.io.runs import write_run
 from pipeline.simulate.chamber import SimConfig
 from pipeline.simulate.large import simulate_run
 
+pytestmark = pytest.mark.slow  # an end-to-end proof on long or many recordings
+
 
 @pytest.fixture(scope="module")
 def run():
@@ -68,5 +70,5 @@ def test_calibrate_command_reports_the_mistake(run, tmp_path, monkeypatch, capsy
     with pytest.raises(SystemExit) as info:
         main()
     out = json.loads(capsys.readouterr().out)
-    assert info.value.code in (0, 1)  # 1 once `fail` exits 1 (contract.md); never a pass
+    assert info.value.code in (0, 1)  # 1 once `fail` exits 1 (docs/contract.md); never a pass
     assert out["status"] == "fail" and any("voltages recorded in mV?" in w for w in out["warnings"])

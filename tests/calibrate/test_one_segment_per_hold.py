@@ -4,7 +4,7 @@ where the plateau's stable part begins; a soak whose slope hovers about the plat
 two plateaus; the position carried through a ramp and a soak neither verifies the thermal model nor shows as a
 verification result; ``inspect`` claims the thermal model ``calibrate`` accepts.
 
-Runs: the standard program's sequence (physics.md) at a 1 Hz voltmeter with 5 uV noise, with shorter soaks or
+Runs: the standard program's sequence (docs/physics.md) at a 1 Hz voltmeter with 5 uV noise, with shorter soaks or
 one position left out (the runs of ``test_short_soaks_and_missing_positions``, shared in one process).
 """
 

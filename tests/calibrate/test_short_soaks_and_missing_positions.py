@@ -5,7 +5,7 @@ verification does not exercise the thermal model over its range. ``diagnose`` on
 against the passport fitted from the run nor against the unit's passport from another, standard run (0 false
 alarms on clean runs, short-soak and missing-position programs included; the truth is never given to diagnose).
 
-Runs: the standard program's sequence of temperatures and positions (physics.md) at a 1 Hz voltmeter with 5 uV
+Runs: the standard program's sequence of temperatures and positions (docs/physics.md) at a 1 Hz voltmeter with 5 uV
 noise, with shorter soaks or one position left out; the seed 000 unit's true constants are the reference.
 """
 

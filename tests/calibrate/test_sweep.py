@@ -1,4 +1,4 @@
-"""Temperature sweeps with few orientations (physics.md, "Real recordings"): the differential method without a base
+"""Temperature sweeps with few orientations (docs/physics.md, "Real recordings"): the differential method without a base
 passport, on the simulator's sweep program (three orientations, one axis vertical pointing down in each, the
 temperature drifting 5 -> 25 C), judged on another run of the unit the way the CATS proof judges the real tag."""
 

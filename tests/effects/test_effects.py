@@ -1,4 +1,4 @@
-"""Each catalogue effect changes the simulated signal where physics.md says it shows, and nowhere else.
+"""Each catalogue effect changes the simulated signal where docs/physics.md says it shows, and nowhere else.
 
 Every test compares a noise-free standard run (1 Hz voltmeter) with and without one effect, same seed.
 """

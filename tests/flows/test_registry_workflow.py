@@ -21,6 +21,8 @@ from pipeline.passport.registry import Registry
 from pipeline.simulate.chamber import SimConfig, simulate
 from pipeline.verify import Tolerances
 
+pytestmark = pytest.mark.slow  # Prefect flows end to end
+
 REPO = Path(__file__).resolve().parents[2]
 EXE = str(Path(sys.executable).parent / "thermocal")
 
@@ -122,7 +124,7 @@ def test_cli_approve_and_differential_base_is_the_current_passport(calibrated, t
     registry.publish(failing, inputs=[{"path": "other", "sha256": "e" * 64}], settings={}, code_version="t")
     assert registry.current("AU-0001") == 2 and default_base_passport(reg, "AU-0001")[0]["version"] == 2
     # a registry whose only version failed, nothing approved: that version is the current passport (one rule,
-    # contract.md), said with its status; it is no base (the differential method then takes the constants at T0
+    # docs/contract.md), said with its status; it is no base (the differential method then takes the constants at T0
     # from the orientations themselves, and says why)
     reg2 = Registry(tmp_path / "reg2")
     reg2.publish(failing, inputs=[{"path": "other", "sha256": "e" * 64}], settings={}, code_version="t")

@@ -26,7 +26,7 @@ INPUTS = [{"path": "runs/a.mcap", "sha256": "a" * 64}, {"path": "runs/b.mcap", "
 def make_passport(
     unit: str = UNIT, *, kxy: float = 0.0123, u0z: float = 0.0031, alpha_x2: float = 2.0e-7, status: str = "pass"
 ) -> dict:
-    """A small passport as contract.md describes it (values of seed 000's magnitudes)."""
+    """A small passport as docs/contract.md describes it (values of seed 000's magnitudes)."""
     return {
         "schema": "thermocal.passport/1",
         "unit": unit,

@@ -122,7 +122,7 @@ def test_random_unit_magnitudes(seed):
     cas = np.abs(k[0][~diag])
     assert np.all((cas >= 3e-4) & (cas <= 0.016))
     assert np.all((np.abs(u0[0]) >= 1e-3) & (np.abs(u0[0]) <= 5e-3))
-    for i, dt in ((1, -60.0), (2, 50.0)):  # chord slopes of the two sub-bands (physics.md "Typical magnitudes")
+    for i, dt in ((1, -60.0), (2, 50.0)):  # chord slopes of the two sub-bands (docs/physics.md "Typical magnitudes")
         alpha = np.abs((u0[i] - u0[0]) / dt)
         rel = np.abs((k[i] - k[0]) / (k[0] * dt))
         assert np.all((alpha >= 1.5e-5 * 0.999) & (alpha <= 1.5e-4 * 1.001))
