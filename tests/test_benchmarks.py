@@ -7,6 +7,8 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+import pytest
+
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 
 
@@ -23,6 +25,7 @@ def _fleet_throughput():
     return fleet_throughput
 
 
+@pytest.mark.slow  # process pools
 def test_benchmark_pools_spawn_after_parquet_was_written(tmp_path):
     import polars as pl
 

@@ -11,6 +11,8 @@ import pytest
 
 from tests.conftest import REPO, data_path
 
+pytestmark = pytest.mark.slow  # an end-to-end proof on long or many recordings
+
 
 @pytest.fixture(scope="module")
 def result():

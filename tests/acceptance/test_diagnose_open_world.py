@@ -28,6 +28,8 @@ from pipeline.simulate.chamber import SimConfig, simulate
 from pipeline.simulate.disturbances import DISTURBANCES
 from pipeline.simulate.unit import seed000_unit
 
+pytestmark = pytest.mark.slow  # an end-to-end proof on long or many recordings
+
 RATE_HZ = 1.0
 UV = 1e-6
 

@@ -35,6 +35,8 @@ from pipeline.passport.registry import Registry, sha256_file
 from tests.acceptance.badcorpus import valid
 from tests.conftest import run_in_child
 
+pytestmark = pytest.mark.slow  # processes killed, disks filled, two writers at once
+
 UNIT = "BAD-00"
 THERMOCAL = str(Path(sys.executable).parent / "thermocal")
 PNG_END = b"IEND\xaeB`\x82"
@@ -229,7 +231,6 @@ def test_two_processes_calibrating_the_same_unit_at_once(calibration, tmp_path):
     assert len(Registry(tmp_path / "reg2").versions(UNIT)) == 1
 
 
-@pytest.mark.slow
 def test_two_calibrate_commands_at_once(calibration, tmp_path):
     """Two ``thermocal calibrate`` console scripts (two Prefect flows sharing one Prefect home) on the same unit at
     the same time: both exit 0, two chained versions."""

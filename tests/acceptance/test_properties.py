@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
+import pytest
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 from mcap.writer import CompressionType
@@ -34,6 +35,8 @@ from pipeline.positions import ALL_POSITIONS
 from pipeline.run import Run, RunMeta, make_frame
 from pipeline.segment import SegmentSettings, segment_run
 from tests.acceptance.badcorpus import rewrite_mcap
+
+pytestmark = pytest.mark.slow  # an end-to-end proof on long or many recordings
 
 T0_NS = 1_793_491_200_000_000_000
 META = RunMeta(unit_serial="AU-0042", run_id="prop-run", nominal_gain_v_per_g=-0.55)

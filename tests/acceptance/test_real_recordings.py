@@ -13,6 +13,8 @@ from pipeline.inspect import format_summary, summarize_run
 from pipeline.io.runs import read_run
 from tests.conftest import data_path
 
+pytestmark = pytest.mark.slow  # an end-to-end proof on long or many recordings
+
 
 def _ns(text: str) -> int:
     return int(datetime.fromisoformat(text).replace(tzinfo=UTC).timestamp()) * 10**9

@@ -14,6 +14,8 @@ from pipeline.simulate.chamber import SimConfig
 from pipeline.simulate.large import simulate_run
 from tests.conftest import run_main
 
+pytestmark = pytest.mark.slow  # an end-to-end proof on long or many recordings
+
 
 def sim(serial: str, seed: int):
     return simulate_run(SimConfig(program="short", rate_hz=2.0, seed=seed, unit_serial=serial)).run

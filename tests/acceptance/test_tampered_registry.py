@@ -18,6 +18,8 @@ from tests.acceptance import tampered
 from tests.acceptance.tampered import ATTACKS, UNITS, Attack, build_base, snapshot
 from tests.conftest import run_main
 
+pytestmark = pytest.mark.slow  # an end-to-end proof on long or many recordings
+
 ATTACK_BY_NAME = {a.name: a for a in ATTACKS}
 
 

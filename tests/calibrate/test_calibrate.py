@@ -39,6 +39,7 @@ def noisy_runs(tmp_path_factory):
     return [(write_run(a.run, d / "a.mcap", "mcap"), a.truth), (write_run(b.run, d / "b_parquet", "parquet"), b.truth)]
 
 
+@pytest.mark.slow  # the Prefect flow
 def test_flow_piecewise_reproduces_table3_end_to_end(noise_free_run, seed000, tmp_path):
     """thermocal's flow on a noise-free simulated run of seed 000's unit reproduces Table 3 (all values)."""
     from flows.calibrate import run_calibrate
@@ -115,6 +116,7 @@ def test_piecewise_vs_polynomial_on_vp(noisy_runs):
     assert far(rows_p2, "dg_method1_g") < 0.3 * far(rows_pw, "dg_method1_g")
 
 
+@pytest.mark.slow  # the Prefect flow
 def test_real_recording_imucal(tmp_path):
     """The hand-held Ferraris session: six positions where its labels say, constants near its README, unverified."""
     from flows.calibrate import run_calibrate
@@ -140,6 +142,7 @@ def test_real_recording_imucal(tmp_path):
     np.testing.assert_allclose(passport["coefficients"]["U0"], [0.551, -0.620, 0.386], atol=0.01)
 
 
+@pytest.mark.slow  # the console script through the local Prefect server
 def test_cli_calibrate_json_and_idempotence(tmp_path):
     """The console script: --json prints exactly one JSON object; the same inputs again make no new version."""
     sample = REPO / "sample_data" / "standard_short.mcap"
@@ -183,6 +186,7 @@ def _slice_run(run, t0_ns: int, t1_ns: int, run_id: str):
     )
 
 
+@pytest.mark.slow  # the Prefect flow
 def test_vp_only_run_verifies_tp_run(tmp_path):
     """Separate recordings of one unit: TP plateaus (+20, -40 C; +70, +20 C) in two, VP plateaus (-10 C; +45 C)
     in two VP-only runs; the VP runs verify the TP runs' passport."""
@@ -219,6 +223,7 @@ def test_vp_only_run_verifies_tp_run(tmp_path):
     assert len(passport["provenance"]["inputs"]) == 4
 
 
+@pytest.mark.slow  # the Prefect flow
 def test_flow_other_methods_record_method_and_compensate(tmp_path):
     """calibrate --method scalar / differential through the flow: passports say which method made them, the
     registry keeps them apart (same inputs, another method = another version) and compensation works for both."""

@@ -22,6 +22,8 @@ from pipeline.simulate.chamber import SimConfig, simulate
 from pipeline.simulate.unit import UnitTruth
 from tests.calibrate.test_calibrate import _slice_run
 
+pytestmark = pytest.mark.slow  # fleet flows on Prefect and a dask cluster
+
 RATE_HZ = 2.0
 T0 = 20.0
 

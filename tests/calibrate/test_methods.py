@@ -68,6 +68,7 @@ def test_methods_share_one_interface():
         by_name("sweep")
 
 
+@pytest.mark.slow  # fleet flows
 def test_fleet_runs_every_method(inboxes, tmp_path):
     """tilt, scalar, then differential over the same registry: each a new version with its method, the scalar and
     tilt passports equal to their recipes' (same constants), a second plan skips what is done; the differential
@@ -145,6 +146,7 @@ def test_cli_fleet_unknown_method_is_one_line(tmp_path):
     assert len(proc.stderr.strip().splitlines()) == 1 and "unknown method 'sweep'" in proc.stderr
 
 
+@pytest.mark.slow  # fleet flows
 def test_cli_fleet_method_tilt_then_differential(inboxes, tmp_path, monkeypatch, capsys):
     """``thermocal fleet --method`` through the Prefect flow: a tilt fleet, then a differential fleet starting
     from the tilt passports; each passport records its method, the fleet JSON lists the unit done."""
@@ -164,6 +166,7 @@ def test_cli_fleet_method_tilt_then_differential(inboxes, tmp_path, monkeypatch,
     assert doc["base_passport"]["version"] == 1 and doc["base_passport"]["method"] == "tilt_six_position"
 
 
+@pytest.mark.slow  # fleet flows
 def test_cli_fleet_defaults_to_auto(inboxes, tmp_path, monkeypatch, capsys):
     """``thermocal fleet`` without ``--method`` picks each unit's method as ``calibrate`` does (``auto``, the same
     default): the short program by tilt, the differential program by the differential method (starting from the

@@ -98,6 +98,7 @@ def _hold_bounds(res):
     return ([start + int(a * 1e9) for a in starts], [start + int(b * 1e9) for b in ends])
 
 
+@pytest.mark.slow  # the console script through the local Prefect server
 def test_cli_auto_picks_differential_and_apply_writes_every_row(sweeps, tmp_path):
     """``calibrate`` (method auto) on a sweep says it chose the differential method; ``apply`` to a run of the
     unit through -40..+70 C writes one row per voltmeter row and warns once on stderr about the samples outside the

@@ -33,6 +33,8 @@ from pipeline.simulate.chamber import SimConfig, simulate
 from pipeline.simulate.unit import UnitTruth, seed000_unit
 from tests.calibrate.test_short_soaks_and_missing_positions import program as soak_program
 
+pytestmark = pytest.mark.slow  # many simulated runs (coverage over noise seeds)
+
 N_CHAMBER = 16  # chamber cycles at 1 Hz, about 1 s each to simulate and calibrate
 N_SWEEP = 16  # sweeps at 0.5 Hz, about 0.6 s each
 N_SCALAR = 24  # short programs at 1 Hz, about 0.12 s each

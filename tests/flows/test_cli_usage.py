@@ -116,6 +116,7 @@ def _with_reader_gone(args: list[str], env: dict | None = None, cwd=None) -> sub
         os.close(w)
 
 
+@pytest.mark.slow  # the console script in a subprocess / a fleet flow
 def test_output_into_a_closed_pipe_ends_quietly():
     """`thermocal inspect RUN | head` and `export ... | head`: the reader gone is no error (exit 0, nothing on
     stderr), where it was an internal error (BrokenPipeError, exit 3)."""
@@ -125,6 +126,7 @@ def test_output_into_a_closed_pipe_ends_quietly():
         assert (p.returncode, p.stderr) == (0, ""), (args, p.returncode, p.stderr)
 
 
+@pytest.mark.slow  # the console script in a subprocess / a fleet flow
 def test_fleet_summary_names_each_failed_run_once():
     """The fleet's text: counts in words, and a failed run's one-line reason (which names its file) not preceded by
     the same path again."""

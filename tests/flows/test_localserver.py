@@ -21,6 +21,8 @@ from flows.localserver import ensure_server, read_state, stop_server
 from pipeline.io.runs import write_run
 from pipeline.simulate.chamber import SimConfig, simulate
 
+pytestmark = pytest.mark.slow  # a real Prefect server and its workers
+
 BIN = Path(sys.executable).parent
 THERMOCAL = str(BIN / "thermocal")
 

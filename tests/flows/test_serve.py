@@ -20,6 +20,8 @@ import pytest
 from pipeline.io.runs import write_run
 from pipeline.simulate.chamber import SimConfig, simulate
 
+pytestmark = pytest.mark.slow  # a real Prefect server and the nightly serve loop
+
 BIN = Path(sys.executable).parent
 
 

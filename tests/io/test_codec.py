@@ -297,6 +297,7 @@ def test_codec_is_registered():
     assert CODECS["protobuf"] is PROTOBUF_CODEC and CODECS["json"] is JSON_CODEC
 
 
+@pytest.mark.slow  # the console script in a subprocess
 def test_cli_simulate_writes_protobuf_that_all_readers_take(tmp_path):
     """``thermocal simulate --encoding protobuf`` writes protobuf channels holding the same run as the JSON form."""
 

@@ -132,6 +132,7 @@ def _probe(page: Path) -> Path:
     not Path(CHROMIUM).exists(),
     reason="Chromium is not installed (apt-get install chromium): the certificate is not rendered in a browser",
 )
+@pytest.mark.slow  # a headless browser
 def test_chromium_renders_the_certificate_with_its_figures(certificate):
     assert chromium() is not None
     probe = _probe(certificate["path"])
