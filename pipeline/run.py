@@ -10,6 +10,11 @@ stream                    columns (dtype)
 ``chamber`` (optional)    ``t_ns`` (Int64), ``setpoint_c``, ``air_c`` (Float64, C)
 ``fixture`` (optional)    ``t_ns`` (Int64), ``position`` (String: TP1..TP6, VP1..VP6, MOVING)
 ========================  ==============================================================
+
+A run holding several units (log-format.md, "Runs with several units") is a :class:`UnitRuns`: one :class:`Run` per
+unit, each with its own voltmeter and thermosensor tables and the unit's metadata (shared keys, ``<serial>.<key>``
+overrides applied), all sharing the one ``chamber`` and ``fixture`` table objects (decoded once, never copied per
+unit), plus the units that failed the input checks with their one-line reasons.
 """
 
 from __future__ import annotations
@@ -34,6 +39,10 @@ OPTIONAL_STREAMS = ("chamber", "fixture")
 
 #: Metadata keys that every run must carry (docs/log-format.md); values are strings in the files.
 REQUIRED_META = ("unit_serial", "run_id")
+#: Metadata key of a run holding several units: their serials, comma-separated (log-format.md)
+UNITS_KEY = "units"
+#: Streams each unit of a run with several units has its own of; the others are shared by all units
+PER_UNIT_STREAMS = REQUIRED_STREAMS
 #: nanoseconds per second (times are Int64 ns since the Unix epoch)
 NS_PER_S = 1_000_000_000
 #: per-sample passes over a long run read it this many samples at a time (a slab's temporaries, not the record's)
@@ -201,3 +210,142 @@ def make_frame(stream: str, columns: dict[str, Any]) -> pl.DataFrame:
 
 def empty_frame(stream: str) -> pl.DataFrame:
     return pl.DataFrame(schema=STREAM_COLUMNS[stream])
+
+
+def listed_units(values: dict[str, str]) -> list[str] | None:
+    """The serials the metadata's ``units`` key lists, in its order (None: a single-unit run, no ``units`` key).
+    RunFormatError for an empty list or a serial listed twice."""
+    text = values.get(UNITS_KEY)
+    if text is None:
+        return None
+    serials = [s.strip() for s in str(text).split(",")]
+    if not any(serials) or not all(serials):
+        raise RunFormatError(f"metadata key {UNITS_KEY!r} has an empty serial: {text!r}", stream="metadata")
+    twice = sorted({s for s in serials if serials.count(s) > 1})
+    if twice:
+        raise RunFormatError(f"metadata key {UNITS_KEY!r} lists {', '.join(twice)} more than once", stream="metadata")
+    return serials
+
+
+def unit_meta_values(values: dict[str, str], serial: str, serials: list[str]) -> dict[str, str]:
+    """One unit's metadata in a run with several units: the shared keys, overridden by the ``<serial>.<key>`` keys of
+    this unit, with ``unit_serial`` set to ``serial``; ``units`` and the other units' overrides left out."""
+    prefixes = tuple(f"{s}." for s in serials)
+    out = {k: v for k, v in values.items() if k != UNITS_KEY and not k.startswith(prefixes)}
+    mine = f"{serial}."
+    out.update({k[len(mine) :]: v for k, v in values.items() if k.startswith(mine)})
+    out["unit_serial"] = serial
+    return out
+
+
+def shared_meta_values(metas: list[RunMeta]) -> dict[str, str]:
+    """The metadata strings of a run with several units made of the units' metadata (``metas``, one per unit, the
+    same run_id): the first unit's keys, ``units`` listing the serials, and a ``<serial>.<key>`` for each key in which
+    a unit differs from the first."""
+    first = metas[0].to_strings()
+    out = {k: v for k, v in first.items() if k != "unit_serial"}
+    out[UNITS_KEY] = ",".join(m.unit_serial for m in metas)
+    for m in metas:
+        for k, v in m.to_strings().items():
+            if k != "unit_serial" and out.get(k) != v:
+                out[f"{m.unit_serial}.{k}"] = v
+        for k in first.keys() - m.to_strings().keys():
+            if k != "unit_serial":
+                out[f"{m.unit_serial}.{k}"] = ""
+    return out
+
+
+@dataclass
+class UnitRuns:
+    """A recording of one or more units in one file (log-format.md, "Runs with several units").
+
+    ``units``: the units that passed the input checks, by serial in the metadata's order, each a :class:`Run` of its
+    own whose ``chamber`` and ``fixture`` are the one shared table objects; ``failed``: the units that did not (a
+    unit listed without samples, samples of an unlisted unit, a bad per-unit stream, a dead channel), each with its
+    one-line reason; ``several``: True for the layout with several units (even when it lists one), False for a
+    single-unit run (then ``units`` holds that run). ``meta_values``: the metadata strings as in the file.
+    """
+
+    units: dict[str, Run]
+    failed: dict[str, str] = field(default_factory=dict)
+    several: bool = False
+    meta_values: dict[str, str] = field(default_factory=dict)
+    source: str = ""
+    warnings: list[str] = field(default_factory=list)
+
+    @classmethod
+    def of_units(cls, runs: list[Run], source: str = "") -> UnitRuns:
+        """A run with several units made in memory from per-unit runs of one recording (same run_id); the first
+        run's chamber and fixture are the shared ones."""
+        if not runs:
+            raise RunFormatError("a run with several units needs at least one unit", path=source or None)
+        serials = [r.meta.unit_serial for r in runs]
+        if len(set(serials)) != len(serials):
+            raise RunFormatError(f"units listed twice: {', '.join(serials)}", path=source or None)
+        first = runs[0]
+        units = {
+            r.meta.unit_serial: Run(
+                meta=r.meta,
+                voltmeter=r.voltmeter,
+                au_temperature=r.au_temperature,
+                chamber=first.chamber,
+                fixture=first.fixture,
+                source=source,
+            )
+            for r in runs
+        }
+        return cls(units, several=True, meta_values=shared_meta_values([r.meta for r in runs]), source=source)
+
+    @property
+    def serials(self) -> list[str]:
+        """Every unit the recording names: the checked ones in order, then the failed ones."""
+        return [*self.units, *(s for s in self.failed if s not in self.units)]
+
+    @property
+    def chamber(self) -> pl.DataFrame | None:
+        return next(iter(self.units.values())).chamber if self.units else None
+
+    @property
+    def fixture(self) -> pl.DataFrame | None:
+        return next(iter(self.units.values())).fixture if self.units else None
+
+    def select(self, serials: list[str] | None) -> UnitRuns:
+        """Only the named units (None: all); RunFormatError naming a serial the recording does not hold."""
+        if not serials:
+            return self
+        unknown = [s for s in serials if s not in self.units and s not in self.failed]
+        if unknown:
+            raise RunFormatError(
+                f"no unit {', '.join(unknown)} in this run (units: {', '.join(self.serials)})",
+                path=self.source or None,
+                where="--unit",
+            )
+        return UnitRuns(
+            {s: r for s, r in self.units.items() if s in serials},
+            {s: why for s, why in self.failed.items() if s in serials},
+            self.several,
+            self.meta_values,
+            self.source,
+            self.warnings,
+        )
+
+    def one(self, serial: str | None = None) -> Run:
+        """The run of one unit: ``serial``'s, or the only unit's. RunFormatError when the unit failed its checks
+        (its reason), or when ``serial`` is None and the run holds several units."""
+        if serial is None:
+            if len(self.units) + len(self.failed) != 1:
+                raise RunFormatError(
+                    f"the run holds {len(self.serials)} units ({', '.join(self.serials)}): name one with --unit",
+                    path=self.source or None,
+                )
+            serial = self.serials[0]
+        if serial in self.failed:
+            raise UnitFailed(self.failed[serial])
+        return self.select([serial]).units[serial]
+
+
+class UnitFailed(RunFormatError):
+    """A unit of a run with several units that failed its input checks; the message is its one-line reason."""
+
+    def __init__(self, line: str):
+        super().__init__(line)

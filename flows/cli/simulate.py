@@ -15,7 +15,16 @@ from .app import JsonFlag, app, emit
 def simulate(
     out: Path = typer.Option(..., "--out", help="output .mcap file or Parquet directory"),
     fmt: str = typer.Option("mcap", "--format", help="file format: mcap (one file) | parquet (a folder)"),
-    unit: str = typer.Option("AU-0001", "--unit", help="unit serial number written into the run"),
+    unit: str = typer.Option(
+        "AU-0001", "--unit", help="unit serial number written into the run (with --units: the first unit's)"
+    ),
+    units: int | None = typer.Option(
+        None,
+        "--units",
+        metavar="N",
+        help="N units of one type on one fixture in one run (one file): serials counting up from --unit, the "
+        "first unit as without --units, the others random units of the type, each its own noise and thermosensor",
+    ),
     seed: int = typer.Option(0, "--seed", help="random seed of the measurement noise"),
     unit_seed: int | None = typer.Option(
         None,
@@ -141,20 +150,29 @@ def simulate(
         disturbances=disturbances,
         with_fixture_log=not no_fixture_log,
     )
-    res = simulate_run(cfg)
     opts = {"encoding": encoding} if fmt == "mcap" and encoding != "json" else {}
-    path = write_run(res.run, out, fmt, **opts)
+    if units is None:
+        res = simulate_run(cfg)
+        path = write_run(res.run, out, fmt, **opts)
+        truth_doc, n, serials = res.truth, res.run.voltmeter.height, None
+    else:
+        from pipeline.simulate.units import simulate_units
+
+        if units < 1:
+            raise ThermocalError(f"--units must be at least 1, got {units}", where="--units")
+        runs, truths = simulate_units(cfg, units)
+        path = write_run(runs, out, fmt, **opts)
+        truth_doc, serials = {"units": truths}, list(runs.units)
+        n = sum(r.voltmeter.height for r in runs.units.values())
     truth_path = truth or _truth_path(path)
     try:
-        write_truth(res.truth, truth_path)
+        write_truth(truth_doc, truth_path)
     except OSError as e:
         raise ThermocalError(f"cannot write the ground truth ({e.strerror or e})", path=str(truth_path)) from None
-    n = res.run.voltmeter.height
-    emit(
-        {"run": str(path), "truth": str(truth_path), "samples": n, "unit": unit},
-        as_json,
-        f"wrote {path} ({n} voltmeter samples) and {truth_path}",
-    )
+    doc = {"run": str(path), "truth": str(truth_path), "samples": n}
+    doc.update({"unit": unit} if serials is None else {"units": serials})
+    what = f"{n} voltmeter samples" if serials is None else f"{len(serials)} units, {n} voltmeter samples"
+    emit(doc, as_json, f"wrote {path} ({what}) and {truth_path}")
 
 
 def _truth_path(run_path: Path) -> Path:

@@ -15,7 +15,18 @@ import polars as pl
 
 from pipeline.errors import RunFormatError
 from pipeline.positions import MOVING, POSITION_NAMES
-from pipeline.run import REQUIRED_STREAMS, SLAB_SAMPLES, STREAM_COLUMNS, Run, RunMeta
+from pipeline.run import (
+    PER_UNIT_STREAMS,
+    REQUIRED_STREAMS,
+    SLAB_SAMPLES,
+    STREAM_COLUMNS,
+    UNITS_KEY,
+    Run,
+    RunMeta,
+    UnitRuns,
+    listed_units,
+    unit_meta_values,
+)
 
 #: Labels a fixture event may carry (docs/log-format.md).
 FIXTURE_LABELS: tuple[str, ...] = (*POSITION_NAMES, MOVING)
@@ -27,30 +38,34 @@ GAP_FACTOR = 5.0
 MAX_JUMP_S = 86_400.0
 
 
-def check_stream(stream: str, df: pl.DataFrame, *, path: str, warnings: list[str]) -> pl.DataFrame:
+def check_stream(
+    stream: str, df: pl.DataFrame, *, path: str, warnings: list[str], label: str | None = None
+) -> pl.DataFrame:
     """Check a stream table read from a file; return it in time order.
 
     ``df`` must already hold the canonical columns and dtypes. Null times and unknown fixture labels are errors;
     samples out of time order are sorted (stable) with a warning. In the sampled streams (all but ``fixture``),
     repeated samples (same ``t_ns``, same values) are dropped with a warning, while two different samples at one
     ``t_ns`` or a jump forward by more than :data:`MAX_JUMP_S` are errors; gaps are warned about. Non-finite values
-    are kept.
+    are kept. ``label`` names the stream in errors and warnings (default: ``stream``; one unit's stream of a run with
+    several units is named with its unit).
     """
+    label = label or stream
     t = df["t_ns"]
     if t.null_count():
         row = t.is_null().arg_max() or 0  # None only for an empty column
-        raise RunFormatError("t_ns is missing (null)", path=path, stream=stream, where=f"row {row}")
+        raise RunFormatError("t_ns is missing (null)", path=path, stream=label, where=f"row {row}")
     if not t.is_sorted():
         t_ns = t.to_numpy()
         back = t_ns[1:] < t_ns[:-1]
         row = int(back.argmax()) + 1
         df = df.sort("t_ns", maintain_order=True)
         warnings.append(
-            f"{stream}: {int(np.count_nonzero(back))} samples were out of time order (first at row {row}: "
+            f"{label}: {int(np.count_nonzero(back))} samples were out of time order (first at row {row}: "
             f"t_ns={t_ns[row]} after t_ns={t_ns[row - 1]}); sorted by t_ns"
         )
     if stream != "fixture" and df.height > 1:
-        df = _check_time_base(stream, df, path=path, warnings=warnings)
+        df = _check_time_base(label, df, path=path, warnings=warnings)
     if stream == "fixture" and df.height:
         bad = ~df["position"].is_in(FIXTURE_LABELS) | df["position"].is_null()
         if bad.any():
@@ -164,6 +179,140 @@ def assemble_run(
         source=path,
         warnings=warnings,
     )
+
+
+def assemble_units(
+    meta_values: dict[str, str] | None,
+    shared: dict[str, pl.DataFrame],
+    per_unit: dict[str, dict[str, pl.DataFrame]],
+    *,
+    path: str,
+    warnings: list[str],
+    stream_label,
+    only: set[str] | None = None,
+) -> UnitRuns:
+    """Build the :class:`UnitRuns` of a run with several units (log-format.md) from what a reader found.
+
+    ``shared``: the shared streams (``chamber``, ``fixture``), checked once; ``per_unit``: each unit's own streams
+    (``voltmeter``, ``au_temperature``) by serial. ``stream_label(serial, stream)`` names a unit's stream as the
+    layout does (the MCAP topic, or the Parquet file and unit). ``only``: the units wanted (the reader decoded no
+    others). Whole-run problems (no metadata, no ``units`` key, ``unit_serial`` beside it, a bad shared stream) are
+    a RunFormatError; a unit's own problem fails that unit alone, with a one-line reason naming the file, the stream
+    and the time: listed in ``units`` without samples, a required stream of its own missing or empty, a stream
+    refused by :func:`check_stream`, a dead channel (:func:`dead_channels`), a bad metadata override; samples of a
+    unit ``units`` does not list. Warnings of a unit's streams name the unit.
+    """
+    if meta_values is None:
+        raise RunFormatError(
+            "no run metadata (an MCAP metadata record named 'run' or run.json)", path=path, stream="metadata"
+        )
+    try:
+        serials = listed_units(meta_values)
+    except RunFormatError as e:
+        raise RunFormatError(e.message, path=path, stream="metadata") from None
+    if serials is None:
+        raise RunFormatError(
+            f"the file has streams of units {', '.join(sorted(per_unit))} but its metadata has no {UNITS_KEY!r} key",
+            path=path,
+            stream="metadata",
+        )
+    if "unit_serial" in meta_values:
+        raise RunFormatError(
+            f"metadata has both 'unit_serial' and {UNITS_KEY!r}: a run holds one unit or lists several",
+            path=path,
+            stream="metadata",
+        )
+    checked = {name: check_stream(name, df, path=path, warnings=warnings) for name, df in shared.items()}
+    units: dict[str, Run] = {}
+    failed: dict[str, str] = {}
+    for serial in serials:
+        if only is not None and serial not in only:
+            continue
+        frames = per_unit.get(serial, {})
+        if not any(df.height for df in frames.values()):
+            failed[serial] = RunFormatError(
+                f"unit {serial} is listed in the metadata's {UNITS_KEY!r} but the file has no samples of it",
+                path=path,
+                stream=stream_label(serial, "voltmeter"),
+            ).one_line()
+            continue
+        try:
+            units[serial] = _unit_run(meta_values, serial, serials, frames, checked, path, warnings, stream_label)
+        except RunFormatError as e:
+            failed[serial] = e.one_line()
+    for serial in sorted(per_unit.keys() - set(serials)):
+        if only is None or serial in only:
+            first = min(int(df["t_ns"].min()) for df in per_unit[serial].values() if df.height)
+            failed[serial] = RunFormatError(
+                f"samples of unit {serial}, which the metadata's {UNITS_KEY!r} does not list "
+                f"({meta_values.get(UNITS_KEY)!r})",
+                path=path,
+                stream=stream_label(serial, "voltmeter"),
+                where=f"t_ns={first}",
+            ).one_line()
+    return UnitRuns(units, failed, several=True, meta_values=dict(meta_values), source=path, warnings=warnings)
+
+
+def _unit_run(meta_values, serial, serials, frames, shared, path, warnings, stream_label) -> Run:
+    """One unit's checked :class:`Run` (see :func:`assemble_units`)."""
+    for stream in PER_UNIT_STREAMS:
+        df = frames.get(stream)
+        what = "thermosensor" if stream == "au_temperature" else "voltmeter"
+        if df is None or df.height == 0:
+            raise RunFormatError(
+                f"unit {serial} has no {what} samples: it cannot be calibrated",
+                path=path,
+                stream=stream_label(serial, stream),
+            )
+    own: list[str] = []
+    checked = {
+        s: check_stream(s, df, path=path, warnings=own, label=stream_label(serial, s)) for s, df in frames.items()
+    }
+    dead = dead_channels(checked["voltmeter"])
+    if dead:
+        raise RunFormatError(
+            f"unit {serial} has a dead channel: {dead[0]}", path=path, stream=stream_label(serial, "voltmeter")
+        )
+    meta = RunMeta.from_strings(unit_meta_values(meta_values, serial, serials), path=path)
+    warnings.extend(own)
+    return Run(
+        meta=meta,
+        voltmeter=checked["voltmeter"],
+        au_temperature=checked["au_temperature"],
+        chamber=shared.get("chamber"),
+        fixture=shared.get("fixture"),
+        source=path,
+        warnings=list(own),
+    )
+
+
+def dead_channels(voltmeter: pl.DataFrame) -> list[str]:
+    """The voltmeter channels that carry no signal, one phrase each: no finite sample, or every finite sample the
+    same value (a channel that is not connected or stuck reads so; a live one has at least its noise)."""
+    out = []
+    for c in ("ux", "uy", "uz"):
+        col = voltmeter[c]
+        finite = col.filter(col.is_finite())
+        if finite.len() == 0:
+            out.append(f"{c} has no finite sample")
+        elif finite.min() == finite.max():
+            out.append(f"{c} reads {finite.min()!r} V in every sample")
+    return out
+
+
+def writable_units(runs: UnitRuns, *, path: str) -> tuple[dict[str, pl.DataFrame], dict[str, dict[str, pl.DataFrame]]]:
+    """The shared streams and each unit's own streams of a run with several units, checked for writing
+    (:func:`writable_streams` per unit)."""
+    if not runs.units:
+        raise RunFormatError("cannot write a run with several units without a unit", path=path)
+    per_unit = {}
+    shared: dict[str, pl.DataFrame] = {}
+    for serial, run in runs.units.items():
+        streams = writable_streams(run, path=path)
+        per_unit[serial] = {s: df for s, df in streams.items() if s in PER_UNIT_STREAMS}
+        if not shared:
+            shared = {s: df for s, df in streams.items() if s not in PER_UNIT_STREAMS}
+    return shared, per_unit
 
 
 def writable_streams(run: Run, *, path: str) -> dict[str, pl.DataFrame]:

@@ -4,8 +4,11 @@ Layout: one metadata record named ``run`` (string to string, written before any 
 ``/voltmeter``, ``/au/temperature``, ``/chamber``, ``/fixture``; message encoding ``json``, schema encoding
 ``jsonschema``, schema names ``thermocal.VoltageBlock`` ... with the schema files of the package's
 ``schemas/``. A message holds a block of samples (equal-length arrays) and is logged at its first sample's
-``t_ns``; ``/fixture`` messages hold one event each. Topics interleave in time order; chunks are zstd-compressed. JSON
-has no NaN or infinity: a non-finite sample is written as ``null`` and read back as NaN (so +-inf come back as NaN).
+``t_ns``; ``/fixture`` messages hold one event each. A run with several units (:class:`pipeline.run.UnitRuns`) has per
+unit the topics ``/unit/<serial>/voltmeter`` and ``/unit/<serial>/au/temperature`` (:func:`unit_topic`), and the
+shared ``/chamber`` and ``/fixture``; the metadata lists the units (``units``). Topics interleave in time order; chunks
+are zstd-compressed. JSON has no NaN or infinity: a non-finite sample is written as ``null`` and read back as NaN (so
++-inf come back as NaN).
 
 The reader works on the memory-mapped file at the level of MCAP records, so it can say at which byte a file is cut or
 corrupt, and read what is complete:
@@ -47,10 +50,10 @@ from mcap.writer import CompressionType, IndexType, Writer
 
 import pipeline
 from pipeline.errors import RunFormatError
-from pipeline.io.checks import assemble_run, writable_streams
+from pipeline.io.checks import assemble_run, assemble_units, writable_streams, writable_units
 from pipeline.io.codec_protobuf import PROTOBUF_CODEC
 from pipeline.io.codecs import JSON_CODEC, SCHEMA_NAMES, BlockCodec, BlockMismatch
-from pipeline.run import REQUIRED_STREAMS, SLAB_SAMPLES, STREAM_COLUMNS, Run
+from pipeline.run import PER_UNIT_STREAMS, REQUIRED_STREAMS, SLAB_SAMPLES, STREAM_COLUMNS, UNITS_KEY, Run, UnitRuns
 
 MAGIC = b"\x89MCAP0\r\n"
 RUN_METADATA_NAME = "run"
@@ -61,6 +64,24 @@ TOPICS: dict[str, str] = {
     "fixture": "/fixture",
 }
 STREAM_OF_TOPIC: dict[str, str] = {topic: stream for stream, topic in TOPICS.items()}
+#: topics of one unit of a run with several units start with this, then the serial, then the stream's topic
+UNIT_TOPIC_PREFIX = "/unit/"
+
+
+def unit_topic(serial: str, stream: str) -> str:
+    """The topic of one unit's own stream in a run with several units (``/unit/AU-0102/voltmeter``)."""
+    return f"{UNIT_TOPIC_PREFIX}{serial}{TOPICS[stream]}"
+
+
+def parse_topic(topic: str) -> tuple[str | None, str | None]:
+    """(unit serial or None, stream or None) of a topic: ``/voltmeter`` is (None, "voltmeter"),
+    ``/unit/AU-0102/au/temperature`` ("AU-0102", "au_temperature"); (None, None) for a topic not part of a run."""
+    if topic.startswith(UNIT_TOPIC_PREFIX):
+        serial, sep, rest = topic[len(UNIT_TOPIC_PREFIX) :].partition("/")
+        stream = STREAM_OF_TOPIC.get("/" + rest) if sep and serial else None
+        return (serial, stream) if stream in PER_UNIT_STREAMS else (None, None)
+    return None, STREAM_OF_TOPIC.get(topic)
+
 
 # MCAP record opcodes (MCAP specification).
 _HEADER, _FOOTER, _SCHEMA, _CHANNEL, _MESSAGE, _CHUNK, _MESSAGE_INDEX, _CHUNK_INDEX = 1, 2, 3, 4, 5, 6, 7, 8
@@ -110,7 +131,7 @@ _COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none
 
 
 def write_mcap(
-    run: Run,
+    run: Run | UnitRuns,
     path: str | Path,
     *,
     block_samples: int = 1000,
@@ -119,7 +140,8 @@ def write_mcap(
     summary: bool = True,
     encoding: str = "json",
 ) -> Path:
-    """Write ``run`` as an MCAP file (docs/log-format.md); return the path.
+    """Write ``run`` (one unit's, or a :class:`UnitRuns` of several) as an MCAP file (docs/log-format.md); return
+    the path.
 
     ``block_samples``: samples per message (at most; ``/fixture`` has one event per message). ``chunk_size``: bytes
     of uncompressed messages per chunk. ``compression``: ``zstd``, ``lz4`` or ``none``. ``summary=False`` writes no
@@ -134,7 +156,14 @@ def write_mcap(
         raise RunFormatError(f"unknown message encoding {encoding!r} (known: {', '.join(CODECS)})", path=str(path))
     if compression not in _COMPRESSIONS:
         raise RunFormatError(f"unknown compression {compression!r} (known: {', '.join(_COMPRESSIONS)})", path=str(path))
-    streams = writable_streams(run, path=str(path))
+    if isinstance(run, UnitRuns):
+        shared, per_unit = writable_units(run, path=str(path))
+        channels = [(TOPICS[s], s, df) for s, df in shared.items()]
+        channels += [(unit_topic(u, s), s, df) for u, streams in per_unit.items() for s, df in streams.items()]
+        meta = run.meta_values
+    else:
+        channels = [(TOPICS[s], s, df) for s, df in writable_streams(run, path=str(path)).items()]
+        meta = run.meta.to_strings()
     options: dict[str, Any] = (
         {}
         if summary
@@ -154,7 +183,7 @@ def write_mcap(
             writer = Writer(f, chunk_size=chunk_size, compression=_COMPRESSIONS[compression], **options)
             writer.start(profile="", library=f"thermocal {pipeline.__version__}")
             try:
-                _write_records(writer, codec, run, streams, int(block_samples))
+                _write_records(writer, codec, meta, channels, int(block_samples))
             finally:
                 writer.finish()
             f.flush()
@@ -167,30 +196,38 @@ def write_mcap(
 
 
 def _write_records(
-    writer: Writer, codec: BlockCodec, run: Run, streams: dict[str, pl.DataFrame], block_samples: int
+    writer: Writer,
+    codec: BlockCodec,
+    meta: dict[str, str],
+    channels: list[tuple[str, str, pl.DataFrame]],
+    block_samples: int,
 ) -> None:
-    channel_ids = {}
-    for stream in streams:
-        schema_id = writer.register_schema(SCHEMA_NAMES[stream], codec.schema_encoding, codec.schema_data(stream))
-        channel_ids[stream] = writer.register_channel(TOPICS[stream], codec.message_encoding, schema_id)
+    """``channels``: (topic, stream, table) of every channel, in the order they are registered."""
+    schema_ids: dict[str, int] = {}
+    channel_ids = []
+    for topic, stream, _ in channels:
+        if stream not in schema_ids:
+            schema_ids[stream] = writer.register_schema(
+                SCHEMA_NAMES[stream], codec.schema_encoding, codec.schema_data(stream)
+            )
+        channel_ids.append(writer.register_channel(topic, codec.message_encoding, schema_ids[stream]))
     # The metadata goes out before the first chunk, so a truncated file still has it.
-    writer.add_metadata(RUN_METADATA_NAME, run.meta.to_strings())
+    writer.add_metadata(RUN_METADATA_NAME, meta)
 
-    arrays = {stream: {c: df[c].to_numpy() for c in df.columns} for stream, df in streams.items()}
-    for stream, start, stop in _blocks_in_time_order(streams, block_samples):
-        block = {c: a[start:stop] for c, a in arrays[stream].items()}
+    arrays = [{c: df[c].to_numpy() for c in df.columns} for _, _, df in channels]
+    for k, start, stop in _blocks_in_time_order([(s, df) for _, s, df in channels], block_samples):
+        stream = channels[k][1]
+        block = {c: a[start:stop] for c, a in arrays[k].items()}
         log_time_ns = int(block["t_ns"][0])
         sequence = start // (1 if stream == "fixture" else block_samples)
-        writer.add_message(
-            channel_ids[stream], log_time_ns, codec.encode(stream, block), log_time_ns, sequence & 0xFFFFFFFF
-        )
+        writer.add_message(channel_ids[k], log_time_ns, codec.encode(stream, block), log_time_ns, sequence & 0xFFFFFFFF)
 
 
-def _blocks_in_time_order(streams: dict[str, pl.DataFrame], block_samples: int) -> list[tuple[str, int, int]]:
-    """(stream, start row, stop row) of every message, ordered by first-sample time (ties: stream order)."""
-    names = list(streams)
+def _blocks_in_time_order(channels: list[tuple[str, pl.DataFrame]], block_samples: int) -> list[tuple[int, int, int]]:
+    """(channel index, start row, stop row) of every message of the (stream, table) ``channels``, ordered by
+    first-sample time (ties: channel order)."""
     t0, rank, starts, stops = [], [], [], []
-    for k, (stream, df) in enumerate(streams.items()):
+    for k, (stream, df) in enumerate(channels):
         size = 1 if stream == "fixture" else block_samples
         s = np.arange(0, df.height, size)
         t0.append(df["t_ns"].to_numpy()[s])
@@ -199,14 +236,22 @@ def _blocks_in_time_order(streams: dict[str, pl.DataFrame], block_samples: int) 
         stops.append(np.minimum(s + size, df.height))
     t0_a, rank_a, starts_a, stops_a = (np.concatenate(x) for x in (t0, rank, starts, stops))
     order = np.lexsort((starts_a, rank_a, t0_a))
-    return [(names[rank_a[i]], int(starts_a[i]), int(stops_a[i])) for i in order]
+    return [(int(rank_a[i]), int(starts_a[i]), int(stops_a[i])) for i in order]
 
 
 # --- reader -----------------------------------------------------------------------------------------------------
 
 
 def read_mcap(path: str | Path) -> Run:
-    """Read a chamber run from an MCAP file (with or without summary and indexes); see the module doc."""
+    """Read a single-unit chamber run from an MCAP file (with or without summary and indexes); see the module doc.
+    A run with several units is refused unless it holds one (:func:`read_mcap_units` reads every unit)."""
+    return read_mcap_units(path).one()
+
+
+def read_mcap_units(path: str | Path, only: set[str] | None = None) -> UnitRuns:
+    """Read an MCAP run of one or several units as a :class:`UnitRuns` (a single-unit run: one unit,
+    ``several`` False). ``only``: the serials wanted, of a run with several units (the other units' messages are
+    not decoded)."""
     p = Path(path)
     name = str(p)
     if p.is_dir():
@@ -219,7 +264,7 @@ def read_mcap(path: str | Path) -> Run:
         if os.fstat(f.fileno()).st_size == 0:
             raise RunFormatError("empty file (0 bytes), not an MCAP run", path=name)
         with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as buf:
-            return _McapRunReader(name, buf, f.fileno()).read()
+            return _McapRunReader(name, buf, f.fileno(), only).read()
 
 
 class _Malformed(ValueError):
@@ -231,12 +276,17 @@ class _Channel:
     topic: str
     stream: str | None  # the run stream it feeds; None: not a run topic, its messages are skipped
     decode: Callable[[str, bytes | memoryview], dict[str, np.ndarray]] | None = None
+    unit: str | None = None  # the unit whose own stream it is (run with several units); None: single or shared
+
+    @property
+    def key(self) -> tuple[str | None, str | None]:
+        return self.unit, self.stream
 
 
 class _McapRunReader:
     """One pass over one file: top-level walk (:meth:`_scan`), then the data records in file order."""
 
-    def __init__(self, path: str, buf: mmap.mmap, fd: int):
+    def __init__(self, path: str, buf: mmap.mmap, fd: int, only: set[str] | None = None):
         self.path = path
         self.buf = buf
         self.fd = fd  # chunk data is read with pread into reused buffers, not through the map
@@ -247,7 +297,8 @@ class _McapRunReader:
         self.chunk_channels: dict[int, set[int]] = {}  # chunk record offset -> channel ids, from the indexes
         self.data_records: list[tuple[int, int, int, int]] = []  # (opcode, offset, body start, body end)
         self.meta: dict[str, str] | None = None
-        self.columns: dict[str, _StreamColumns] = {}  # stream -> its decoded samples
+        self.columns: dict[tuple[str | None, str], _StreamColumns] = {}  # (unit, stream) -> its decoded samples
+        self.only = only  # units wanted (None: all)
         self.skipped: set[str] = set()  # topics whose messages were not decoded
         self.undefined_channel_messages = 0
         self.truncation = ""
@@ -256,7 +307,7 @@ class _McapRunReader:
     def fail(self, message: str, *, stream: str | None = None, where: str | None = None) -> RunFormatError:
         return RunFormatError(message, path=self.path, stream=stream, where=where)
 
-    def read(self) -> Run:
+    def read(self) -> UnitRuns:
         self._check_magic()
         self._scan()
         chunks = [
@@ -368,9 +419,9 @@ class _McapRunReader:
         channel_id, schema_id = _CHANNEL_HEAD.unpack_from(buf, start)
         topic, p = _string(buf, start + 4, end)
         encoding, _ = _string(buf, p, end)
-        stream = STREAM_OF_TOPIC.get(topic)
-        if stream is None:
-            self.channels[channel_id] = _Channel(topic, None)
+        unit, stream = parse_topic(topic)
+        if stream is None or (unit is not None and self.only is not None and unit not in self.only):
+            self.channels[channel_id] = _Channel(topic, None, unit=unit)
             return
         codec = CODECS.get(encoding)
         if codec is None:
@@ -389,9 +440,9 @@ class _McapRunReader:
                 raise self.fail(
                     f"{encoding} channel with an unreadable schema: {exc}", stream=topic, where=where
                 ) from None
-        self.channels[channel_id] = _Channel(topic, stream, codec.decode)
-        if stream not in self.columns:
-            self.columns[stream] = _StreamColumns(stream)
+        self.channels[channel_id] = _Channel(topic, stream, codec.decode, unit)
+        if (unit, stream) not in self.columns:
+            self.columns[unit, stream] = _StreamColumns(stream)
 
     def _metadata(self, buf, start: int, end: int) -> None:
         name, p = _string(buf, start, end)
@@ -421,7 +472,7 @@ class _McapRunReader:
         if not (self.summary_has_channels and ids):
             return False
         if all(i in self.channels and self.channels[i].stream is None for i in ids):
-            self.skipped.update(self.channels[i].topic for i in ids)
+            self.skipped.update(self.channels[i].topic for i in ids if self.channels[i].unit is None)
             return True
         return False
 
@@ -546,10 +597,11 @@ class _McapRunReader:
         if channel is None:
             self.undefined_channel_messages += 1
             return
-        if channel.stream is None or channel.decode is None:  # not a run topic
-            self.skipped.add(channel.topic)
+        if channel.stream is None or channel.decode is None:
+            if channel.unit is None:  # not a run topic (another unit's topic, when some units are wanted, is)
+                self.skipped.add(channel.topic)
             return
-        columns = self.columns[channel.stream]
+        columns = self.columns[channel.key]
         try:
             decoded = channel.decode(channel.stream, buf[start + _MESSAGE_HEAD.size : end])
         except BlockMismatch as exc:
@@ -562,17 +614,25 @@ class _McapRunReader:
 
     # -- result ----------------------------------------------------------------------------------------------------
 
-    def _assemble(self, chunks_read: int) -> Run:
-        frames = {stream: columns.frame() for stream, columns in self.columns.items()}
+    def _assemble(self, chunks_read: int) -> UnitRuns:
+        frames = {stream: columns.frame() for (unit, stream), columns in self.columns.items() if unit is None}
+        per_unit: dict[str, dict[str, pl.DataFrame]] = {}
+        for (unit, stream), columns in self.columns.items():
+            if unit is not None:
+                per_unit.setdefault(unit, {})[stream] = columns.frame()
+        several = bool(per_unit) or (self.meta is not None and UNITS_KEY in self.meta)
         if self.truncation:
             missing = ["'run' metadata"] if self.meta is None else []
-            missing += [f"{TOPICS[s]} samples" for s in REQUIRED_STREAMS if s not in frames or not frames[s].height]
-            if missing:
+            if not several:
+                missing += [f"{TOPICS[s]} samples" for s in REQUIRED_STREAMS if s not in frames or not frames[s].height]
+            voltmeters = [f["voltmeter"] for f in (frames, *per_unit.values()) if "voltmeter" in f]
+            if missing or not any(v.height for v in voltmeters):
+                missing = missing or ["voltmeter samples"]
                 raise self.fail(f"{self.truncation}; no {' and no '.join(missing)} before that point")
             self.warnings.append(
                 f"{self.truncation}; dropped that record and anything after it; kept "
                 f"{chunks_read} complete chunk(s), voltmeter samples up to "
-                f"t_ns={int(frames['voltmeter']['t_ns'].to_numpy().max())}"
+                f"t_ns={max(int(v['t_ns'].to_numpy().max()) for v in voltmeters if v.height)}"
             )
         if self.meta is None and not frames:
             topics = sorted({c.topic for c in self.channels.values()})
@@ -585,7 +645,26 @@ class _McapRunReader:
             self.warnings.append(f"ignored topics that are not part of a run: {', '.join(sorted(self.skipped))}")
         if self.undefined_channel_messages:
             self.warnings.append(f"ignored {self.undefined_channel_messages} messages on undefined channels")
-        return assemble_run(self.meta, frames, path=self.path, warnings=self.warnings)
+        if several:
+            shared = {s: df for s, df in frames.items() if s not in PER_UNIT_STREAMS}
+            stray = sorted(TOPICS[s] for s in frames if s in PER_UNIT_STREAMS)
+            if stray:
+                raise self.fail(
+                    f"a run with several units has unit topics (/unit/<serial>/...), but the file also has "
+                    f"{', '.join(stray)}: which unit they belong to is unknown",
+                    stream=stray[0],
+                )
+            return assemble_units(
+                self.meta,
+                shared,
+                per_unit,
+                path=self.path,
+                warnings=self.warnings,
+                stream_label=unit_topic,
+                only=self.only,
+            )
+        run = assemble_run(self.meta, frames, path=self.path, warnings=self.warnings)
+        return UnitRuns({run.meta.unit_serial: run}, source=self.path, warnings=run.warnings)
 
 
 class _ChunkBuffers:

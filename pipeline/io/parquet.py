@@ -11,6 +11,11 @@ writers, older thermocal runs) are read unchecked. Then polars' reader decodes (
 where the file already has the canonical types; integer or narrower float columns are widened, a timestamp column
 is taken as nanoseconds; anything else (e.g. strings where numbers are expected) is a RunFormatError naming the file
 and the column.
+
+A run with several units (log-format.md) has a string column ``unit`` in ``voltmeter.parquet`` and
+``au_temperature.parquet`` (written unit after unit, each unit's rows in row groups of their own) and ``units`` in
+``run.json``; ``chamber.parquet`` and ``fixture.parquet`` are shared. Reading splits those tables by unit: a unit's rows
+in one contiguous stretch (as written here) are a slice of the table, not a copy.
 """
 
 from __future__ import annotations
@@ -26,32 +31,41 @@ import polars as pl
 import pyarrow.parquet as pq
 
 from pipeline.errors import RunFormatError
-from pipeline.io.checks import assemble_run, writable_streams
-from pipeline.run import REQUIRED_STREAMS, STREAM_COLUMNS, Run
+from pipeline.io.checks import assemble_run, assemble_units, writable_streams, writable_units
+from pipeline.run import PER_UNIT_STREAMS, REQUIRED_STREAMS, STREAM_COLUMNS, UNITS_KEY, Run, UnitRuns
 
 META_FILE = "run.json"
 #: Rows per row group written (polars' reader gives one chunk per row group; the segmenter reads slabs of them).
 ROW_GROUP_ROWS = 1 << 17
 RUN_FILES = frozenset({META_FILE, *(f"{s}.parquet" for s in STREAM_COLUMNS)})
+#: the column naming each row's unit in the per-unit streams of a run with several units
+UNIT_COLUMN = "unit"
 
 
-def write_parquet_run(run: Run, directory: str | Path) -> Path:
-    """Write ``run`` as a Parquet run directory; return its path.
+def write_parquet_run(run: Run | UnitRuns, directory: str | Path) -> Path:
+    """Write ``run`` (one unit's, or a :class:`UnitRuns` of several) as a Parquet run directory; return its path.
 
     The directory is written beside its final place under a temporary name, then renamed. An existing run directory
     (holding only run files) is replaced; any other existing non-empty directory is refused.
     """
     target = Path(directory)
-    streams = writable_streams(run, path=str(target))
+    if isinstance(run, UnitRuns):
+        shared, per_unit = writable_units(run, path=str(target))
+        meta_values = run.meta_values
+    else:
+        shared, per_unit = writable_streams(run, path=str(target)), {}
+        meta_values = run.meta.to_strings()
     if target.exists():
         if not target.is_dir() or not {p.name for p in target.iterdir()} <= RUN_FILES:
             raise RunFormatError("exists and is not a Parquet run directory; not replacing it", path=str(target))
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent))
     try:
-        for stream, df in streams.items():
+        for stream, df in shared.items():
             _write_stream(df, tmp / f"{stream}.parquet")
-        meta = orjson.dumps(run.meta.to_strings(), option=orjson.OPT_INDENT_2 | orjson.OPT_SORT_KEYS)
+        for stream in PER_UNIT_STREAMS if per_unit else ():
+            _write_unit_stream({u: streams[stream] for u, streams in per_unit.items()}, tmp / f"{stream}.parquet")
+        meta = orjson.dumps(meta_values, option=orjson.OPT_INDENT_2 | orjson.OPT_SORT_KEYS)
         (tmp / META_FILE).write_bytes(meta + b"\n")
         tmp.chmod(0o755)
         if target.exists():
@@ -67,23 +81,41 @@ def write_parquet_run(run: Run, directory: str | Path) -> Path:
     return target
 
 
+_WRITE_OPTIONS = dict(compression="zstd", compression_level=3, write_statistics=True, write_page_checksum=True)
+
+
 def _write_stream(df: pl.DataFrame, path: Path) -> None:
     """One stream's file: zstd, statistics, a CRC-32 in every page header; dictionary encoding for strings only."""
     strings = [c for c, dt in df.schema.items() if dt == pl.String]
     pq.write_table(
-        df.to_arrow(),
-        path,
-        compression="zstd",
-        compression_level=3,
-        use_dictionary=strings or False,
-        write_statistics=True,
-        write_page_checksum=True,
-        row_group_size=ROW_GROUP_ROWS,
+        df.to_arrow(), path, use_dictionary=strings or False, row_group_size=ROW_GROUP_ROWS, **_WRITE_OPTIONS
     )
 
 
+def _write_unit_stream(tables: dict[str, pl.DataFrame], path: Path) -> None:
+    """One per-unit stream of a run with several units: the units' tables one after the other with their ``unit``
+    column (dictionary-encoded), each unit's rows in row groups of their own (no table of all units is built)."""
+    writer = None
+    try:
+        for serial, df in tables.items():
+            table = df.with_columns(pl.lit(serial, dtype=pl.String).alias(UNIT_COLUMN)).to_arrow()
+            if writer is None:
+                writer = pq.ParquetWriter(path, table.schema, use_dictionary=[UNIT_COLUMN], **_WRITE_OPTIONS)
+            writer.write_table(table, row_group_size=ROW_GROUP_ROWS)
+    finally:
+        if writer is not None:
+            writer.close()
+
+
 def read_parquet_run(directory: str | Path) -> Run:
-    """Read a Parquet run directory into a :class:`Run` (see the module doc for what is accepted)."""
+    """Read a single-unit Parquet run directory into a :class:`Run` (see the module doc for what is accepted); a
+    run with several units is refused unless it holds one (:func:`read_parquet_units` reads every unit)."""
+    return read_parquet_units(directory).one()
+
+
+def read_parquet_units(directory: str | Path, only: set[str] | None = None) -> UnitRuns:
+    """Read a Parquet run directory of one or several units as a :class:`UnitRuns` (a single-unit run: one unit,
+    ``several`` False); ``only``: the serials wanted, of a run with several units."""
     d = Path(directory)
     if not d.is_dir():
         raise RunFormatError("not a directory (a Parquet run is a directory)", path=str(d))
@@ -91,14 +123,36 @@ def read_parquet_run(directory: str | Path) -> Run:
     if not meta_path.is_file():
         raise RunFormatError(f"not a Parquet run directory: {META_FILE} is missing", path=str(d))
     meta = _read_meta(meta_path)
-    frames = {}
+    several = UNITS_KEY in meta
+    frames, per_unit = {}, {}
     for stream in STREAM_COLUMNS:
         f = d / f"{stream}.parquet"
         if f.exists():
-            frames[stream] = _read_stream(f, stream)
+            if several and stream in PER_UNIT_STREAMS:
+                for serial, df in _read_unit_stream(f, stream, only).items():
+                    per_unit.setdefault(serial, {})[stream] = df
+            else:
+                frames[stream] = _read_stream(f, stream)
         elif stream in REQUIRED_STREAMS:
             raise RunFormatError(f"required stream file {f.name} is missing", path=str(d), stream=stream)
-    return assemble_run(meta, frames, path=str(d), warnings=[])
+    if several:
+        return assemble_units(
+            meta,
+            frames,
+            per_unit,
+            path=str(d),
+            warnings=[],
+            stream_label=lambda serial, stream: f"{stream}.parquet unit {serial}",
+            only=only,
+        )
+    if any(UNIT_COLUMN in pq.read_schema(d / f"{s}.parquet").names for s in frames if s in PER_UNIT_STREAMS):
+        raise RunFormatError(
+            f"the streams have a {UNIT_COLUMN!r} column but {META_FILE} has no {UNITS_KEY!r} key",
+            path=str(d),
+            stream="metadata",
+        )
+    run = assemble_run(meta, frames, path=str(d), warnings=[])
+    return UnitRuns({run.meta.unit_serial: run}, source=str(d), warnings=run.warnings)
 
 
 def _read_meta(path: Path) -> dict[str, str]:
@@ -118,14 +172,53 @@ def _read_meta(path: Path) -> dict[str, str]:
     return out
 
 
-def _read_stream(path: Path, stream: str) -> pl.DataFrame:
+def _read_unit_stream(path: Path, stream: str, only: set[str] | None) -> dict[str, pl.DataFrame]:
+    """A per-unit stream of a run with several units, split by its ``unit`` column: {serial: canonical table}.
+    A unit's rows in one contiguous stretch are a slice of the table read (no copy); rows of units interleaved are
+    gathered per unit (a copy). A missing or null ``unit`` is a RunFormatError naming the file and the row."""
+    df = _read_frame(path, stream)
+    if UNIT_COLUMN not in df.columns:
+        raise RunFormatError(
+            f"column {UNIT_COLUMN!r} is missing: {META_FILE} lists units (columns: {', '.join(df.columns)})",
+            path=str(path),
+            stream=stream,
+        )
+    units = _canonical_column(df[UNIT_COLUMN], pl.String, path=str(path), stream=stream)
+    if units.null_count():
+        raise RunFormatError(
+            f"column {UNIT_COLUMN!r} is missing (null)",
+            path=str(path),
+            stream=stream,
+            where=f"row {units.is_null().arg_max()}",
+        )
+    table = _canonical(df, stream, path)
+    change = (units != units.shift(1)).fill_null(True)
+    starts = change.arg_true().to_list()
+    values = units.gather(starts).to_list()
+    if len(set(values)) == len(values):  # each unit one contiguous stretch: slices
+        bounds = [*starts, table.height]
+        out = {u: table.slice(a, b - a) for u, a, b in zip(values, bounds[:-1], bounds[1:])}
+    else:
+        out = {u: table.filter(units == u) for u in dict.fromkeys(values)}
+    return {u: t for u, t in out.items() if only is None or u in only}
+
+
+def _read_frame(path: Path, stream: str) -> pl.DataFrame:
     # polars' own reader decodes straight into the frame's memory, one chunk per row group (no rechunking copy):
     # at 59 M rows it needs half the memory and a third of the CPU time of pyarrow.read_table + from_arrow.
     verify_page_checksums(path, stream)
     try:
-        df = pl.read_parquet(path)
+        return pl.read_parquet(path)
     except (pl.exceptions.PolarsError, OSError) as exc:
         raise RunFormatError(f"not a readable Parquet file ({_one_line(exc)})", path=str(path), stream=stream) from None
+
+
+def _read_stream(path: Path, stream: str) -> pl.DataFrame:
+    return _canonical(_read_frame(path, stream), stream, path)
+
+
+def _canonical(df: pl.DataFrame, stream: str, path: Path) -> pl.DataFrame:
+    """The stream's canonical columns of ``df`` (see the module doc)."""
     columns = []
     for name, dtype in STREAM_COLUMNS[stream].items():
         if name not in df.columns:

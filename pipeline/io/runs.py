@@ -1,7 +1,9 @@
 """Reading and writing chamber runs, whatever the layout (docs/log-format.md).
 
 :func:`read_run` opens a ``*.mcap`` file (:mod:`pipeline.io.mcap`) or a Parquet run directory
-(:mod:`pipeline.io.parquet`) and returns the one in-memory form, :class:`pipeline.run.Run`. :func:`write_run` writes
+(:mod:`pipeline.io.parquet`) and returns the one in-memory form, :class:`pipeline.run.Run`; :func:`read_units` reads a
+run of one or several units (log-format.md, "Runs with several units") as a :class:`pipeline.run.UnitRuns`, one
+``Run`` per unit sharing the chamber and fixture tables. :func:`write_run` writes
 either layout; :func:`read_run_meta` reads only the metadata. The checks both layouts share are in
 :mod:`pipeline.io.checks`.
 """
@@ -16,9 +18,9 @@ import orjson
 from mcap.reader import make_reader
 
 from pipeline.errors import RunFormatError, ThermocalError
-from pipeline.io.mcap import MAGIC, read_mcap, write_mcap
-from pipeline.io.parquet import META_FILE, read_parquet_run, write_parquet_run
-from pipeline.run import Run, RunMeta
+from pipeline.io.mcap import MAGIC, read_mcap_units, write_mcap
+from pipeline.io.parquet import META_FILE, read_parquet_units, write_parquet_run
+from pipeline.run import Run, RunMeta, UnitRuns, listed_units, unit_meta_values
 
 FORMATS = ("mcap", "parquet")
 
@@ -37,16 +39,32 @@ def run_format(path: str | Path) -> str:
     raise RunFormatError("not a run: expected a .mcap file or a Parquet run directory", path=str(p))
 
 
-def read_run(path: str | Path) -> Run:
-    """Read one chamber run from a ``*.mcap`` file or a Parquet run directory."""
+def read_run(path: str | Path, unit: str | None = None) -> Run:
+    """Read one unit's chamber run from a ``*.mcap`` file or a Parquet run directory: the run's only unit, or
+    ``unit`` of a run with several (only its streams and the shared ones are decoded). RunFormatError when the run
+    holds several units and none is named, or when the named unit failed its input checks (its reason)."""
+    return read_units(path, None if unit is None else [unit]).one(unit)
+
+
+def read_units(path: str | Path, units: list[str] | None = None) -> UnitRuns:
+    """Read a run of one or several units as a :class:`UnitRuns` (the streams decoded once; each unit's ``Run``
+    shares the chamber and fixture tables). ``units``: only these serials of a run with several units (an unknown
+    one is a RunFormatError naming the units the run holds)."""
+    only = set(units) if units else None
     fmt = run_format(path)
-    if fmt == "mcap":
-        return read_mcap(path)
+    got = read_mcap_units(path, only) if fmt == "mcap" else read_parquet_units(path, only)
+    if units and got.several:
+        missing = [u for u in units if u not in got.units and u not in got.failed]
+        if missing:
+            held = listed_units(got.meta_values) or []
+            raise RunFormatError(
+                f"no unit {', '.join(missing)} in this run (units: {', '.join(held)})", path=str(path), where="--unit"
+            )
+        return got
+    return got.select(units)
 
-    return read_parquet_run(path)
 
-
-def write_run(run: Run, path: str | Path, fmt: str = "mcap", **opts: Any) -> Path:
+def write_run(run: Run | UnitRuns, path: str | Path, fmt: str = "mcap", **opts: Any) -> Path:
     """Write ``run`` as an MCAP file (``fmt="mcap"``) or a Parquet run directory (``fmt="parquet"``).
 
     ``opts`` go to :func:`pipeline.io.mcap.write_mcap` (block size, chunk size, compression, summary). Returns the
@@ -67,7 +85,21 @@ def write_run(run: Run, path: str | Path, fmt: str = "mcap", **opts: Any) -> Pat
 
 
 def read_run_meta(path: str | os.PathLike) -> RunMeta:
-    """A run's metadata without reading its samples (about a millisecond); RunFormatError if it cannot be had.
+    """A single-unit run's metadata without reading its samples (about a millisecond); RunFormatError if it cannot
+    be had, or if the run holds several units (:func:`read_units_meta`).
+    """
+    metas = read_units_meta(path)
+    if len(metas) != 1:
+        raise RunFormatError(
+            f"the run holds {len(metas)} units ({', '.join(m.unit_serial for m in metas)}): name one with --unit",
+            path=str(path),
+        )
+    return metas[0]
+
+
+def read_units_meta(path: str | os.PathLike) -> list[RunMeta]:
+    """The metadata of each unit of a run (one for a single-unit run; per unit of a run with several, its shared
+    keys with its ``<serial>.<key>`` overrides) without reading its samples; RunFormatError if it cannot be had.
 
     MCAP: the ``run`` metadata record, through the summary's metadata index (files without a summary: read from
     the start up to that record, which thermocal's writer puts before the data). Parquet: ``run.json``. For a
@@ -96,4 +128,10 @@ def read_run_meta(path: str | os.PathLike) -> RunMeta:
         ) from None
     if values is None:
         raise RunFormatError("no run metadata (an MCAP metadata record named 'run')", path=str(p), stream="metadata")
-    return RunMeta.from_strings(values, path=str(p))
+    try:
+        serials = listed_units(values) if isinstance(values, dict) else None
+    except RunFormatError as e:
+        raise RunFormatError(e.message, path=str(p), stream="metadata") from None
+    if serials is None:
+        return [RunMeta.from_strings(values, path=str(p))]
+    return [RunMeta.from_strings(unit_meta_values(values, s, serials), path=str(p)) for s in serials]

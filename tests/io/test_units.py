@@ -1,0 +1,177 @@
+"""Runs with several units (log-format.md): both layouts written and read back, the mcap library's own reader on a
+file simulate writes, and the per-unit input checks (a unit without samples, samples of an unlisted unit, a unit's
+gaps, a dead channel: each one line, the other units read)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import polars as pl
+import pytest
+from mcap.reader import make_reader
+
+from pipeline.errors import RunFormatError
+from pipeline.io.runs import read_run, read_units, read_units_meta, write_run
+from pipeline.run import Run, UnitRuns
+from pipeline.simulate.chamber import SimConfig
+from pipeline.simulate.units import simulate_units, unit_serials
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="module")
+def three():
+    """Three units through the short program at 2 Hz (the second with another nominal gain: an override)."""
+    runs, truths = simulate_units(SimConfig(unit_serial="AU-0101", program="short", rate_hz=2.0), 3)
+    r = runs.units["AU-0102"]
+    runs = UnitRuns.of_units(
+        [
+            runs.units["AU-0101"],
+            dataclasses.replace(r, meta=dataclasses.replace(r.meta, nominal_gain_v_per_g=-0.5)),
+            runs.units["AU-0103"],
+        ]
+    )
+    return runs, truths
+
+
+def _edit(runs: UnitRuns, serial: str, **changes) -> UnitRuns:
+    units = [dataclasses.replace(r, **changes) if s == serial else r for s, r in runs.units.items()]
+    return UnitRuns.of_units(units)
+
+
+def test_serials_count_up():
+    assert unit_serials("AU-0101", 3) == ["AU-0101", "AU-0102", "AU-0103"]
+    assert unit_serials("AU-0099", 2) == ["AU-0099", "AU-0100"]
+    assert unit_serials("X", 2) == ["X-1", "X-2"]
+
+
+@pytest.mark.parametrize("fmt", ["mcap", "parquet"])
+def test_both_layouts_round_trip(three, tmp_path, fmt):
+    runs, truths = three
+    assert runs.meta_values["units"] == "AU-0101,AU-0102,AU-0103"
+    assert runs.meta_values["AU-0102.nominal_gain_v_per_g"] == "-0.5"
+    assert "unit_serial" not in runs.meta_values
+    path = write_run(runs, tmp_path / ("r.mcap" if fmt == "mcap" else "r"), fmt)
+    got = read_units(path)
+    assert got.several and not got.failed and list(got.units) == ["AU-0101", "AU-0102", "AU-0103"]
+    for serial, run in got.units.items():
+        want = runs.units[serial]
+        assert run.voltmeter.equals(want.voltmeter) and run.au_temperature.equals(want.au_temperature)
+        assert run.meta == want.meta and run.meta.unit_serial == serial
+        assert run.fixture is got.units["AU-0101"].fixture  # shared tables: decoded once, one object
+        assert run.chamber is got.units["AU-0101"].chamber
+    assert got.units["AU-0102"].meta.nominal_gain_v_per_g == -0.5
+    assert got.units["AU-0103"].meta.nominal_gain_v_per_g == -0.55
+    assert [m.unit_serial for m in read_units_meta(path)] == ["AU-0101", "AU-0102", "AU-0103"]
+    # each unit its own constants and thermosensor
+    k = [np.array(truths[s]["unit"]["K_coef"]) for s in truths]
+    assert len({a.tobytes() for a in k}) == 3
+    temps = [got.units[s].au_temperature["temp_c"].to_numpy() for s in got.units]
+    assert not np.array_equal(temps[0], temps[1])
+    # one unit, only its streams decoded
+    one = read_run(path, "AU-0103")
+    assert one.meta.unit_serial == "AU-0103" and one.voltmeter.equals(runs.units["AU-0103"].voltmeter)
+    with pytest.raises(RunFormatError, match=r"holds 3 units .*name one with --unit"):
+        read_run(path)
+    with pytest.raises(RunFormatError, match=r"no unit AU-0999 in this run \(units: AU-0101, AU-0102, AU-0103\)"):
+        read_run(path, "AU-0999")
+
+
+def test_simulate_units_mcap_read_by_the_mcap_library(tmp_path):
+    """A file written by ``thermocal simulate --units`` read back by the mcap library's own reader: the topics of
+    log-format.md, every unit's samples, the shared streams once, the metadata."""
+    out = tmp_path / "four.mcap"
+    proc = subprocess.run(
+        [sys.executable, "-m", "flows.cli", "simulate", "--out", str(out), "--units", "4", "--unit", "AU-0201",
+         "--program", "short", "--rate-hz", "2", "--json"],
+        capture_output=True, text=True, cwd=REPO, check=False,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    doc = json.loads(proc.stdout)
+    assert doc["units"] == ["AU-0201", "AU-0202", "AU-0203", "AU-0204"]
+    truth = json.loads(Path(doc["truth"]).read_text())
+    assert sorted(truth["units"]) == doc["units"]
+    ours = read_units(out)
+    samples: dict[str, int] = {}
+    values: dict[str, list] = {}
+    with open(out, "rb") as f:
+        reader = make_reader(f)
+        meta = [dict(m.metadata) for m in reader.iter_metadata() if m.name == "run"]
+        for schema, channel, message in reader.iter_messages():
+            block = json.loads(message.data)
+            samples[channel.topic] = samples.get(channel.topic, 0) + len(np.atleast_1d(block["t_ns"]))
+            if channel.topic.endswith("/voltmeter"):
+                values.setdefault(channel.topic, []).extend(block["ux"])
+            assert schema.name.startswith("thermocal.")
+    assert meta[0]["units"] == "AU-0201,AU-0202,AU-0203,AU-0204" and "unit_serial" not in meta[0]
+    expected = {"/chamber", "/fixture"} | {
+        f"/unit/{s}/{t}" for s in doc["units"] for t in ("voltmeter", "au/temperature")
+    }
+    assert set(samples) == expected
+    for s, run in ours.units.items():
+        assert samples[f"/unit/{s}/voltmeter"] == run.voltmeter.height
+        assert samples[f"/unit/{s}/au/temperature"] == run.au_temperature.height
+        assert np.array_equal(np.array(values[f"/unit/{s}/voltmeter"]), run.voltmeter["ux"].to_numpy())
+    assert samples["/fixture"] == ours.fixture.height and samples["/chamber"] == ours.chamber.height
+    assert doc["samples"] == sum(r.voltmeter.height for r in ours.units.values())
+
+
+@pytest.mark.parametrize("fmt", ["mcap", "parquet"])
+def test_unit_checks_fail_alone(three, tmp_path, fmt):
+    """A unit listed without samples, samples of an unlisted unit, a unit without a thermosensor, a dead channel: a
+    one-line reason each naming the file and the unit's stream; the good unit is read, its gap warned about by name."""
+    runs, _ = three
+    good = runs.units["AU-0101"]
+    v = good.voltmeter
+    gappy = v.filter((pl.col("t_ns") < v["t_ns"][200]) | (pl.col("t_ns") > v["t_ns"][400]))
+    dead = runs.units["AU-0102"].voltmeter.with_columns(uy=pl.lit(float("nan")))
+    units = [
+        dataclasses.replace(good, voltmeter=gappy),
+        dataclasses.replace(runs.units["AU-0102"], voltmeter=dead),
+        runs.units["AU-0103"],
+        dataclasses.replace(
+            runs.units["AU-0103"], meta=dataclasses.replace(runs.units["AU-0103"].meta, unit_serial="AU-0104")
+        ),
+    ]
+    bad = UnitRuns.of_units(units)
+    bad.meta_values["units"] = "AU-0101,AU-0102,AU-0104,AU-0105"  # AU-0103 unlisted, AU-0105 without samples
+    path = write_run(bad, tmp_path / ("b.mcap" if fmt == "mcap" else "b"), fmt)
+    got = read_units(path)
+    assert list(got.units) == ["AU-0101", "AU-0104"]
+    assert set(got.failed) == {"AU-0102", "AU-0103", "AU-0105"}
+    for serial, line in got.failed.items():
+        assert "\n" not in line and line.startswith(str(path)) and serial in line
+    assert "dead channel: uy has no finite sample" in got.failed["AU-0102"]
+    assert "which the metadata's 'units' does not list" in got.failed["AU-0103"]
+    assert "t_ns=" in got.failed["AU-0103"]
+    assert "listed in the metadata's 'units' but the file has no samples of it" in got.failed["AU-0105"]
+    gap = [w for w in got.warnings if "gap" in w]
+    assert len(gap) == 1 and "AU-0101" in gap[0]
+    with pytest.raises(RunFormatError, match="dead channel"):
+        read_run(path, "AU-0102")
+    # no thermosensor
+    nothermo = _edit(runs, "AU-0103", au_temperature=runs.units["AU-0103"].au_temperature.head(0))
+    path2 = write_run(nothermo, tmp_path / ("c.mcap" if fmt == "mcap" else "c"), fmt)
+    got2 = read_units(path2)
+    assert list(got2.units) == ["AU-0101", "AU-0102"]
+    assert "AU-0103" in got2.failed and ("no thermosensor samples" in got2.failed["AU-0103"]
+                                         or "no samples of it" in got2.failed["AU-0103"])  # fmt: skip
+
+
+def test_single_unit_run_keeps_its_layout(tmp_path):
+    runs, _ = simulate_units(SimConfig(program="short", rate_hz=2.0), 1)
+    run = runs.units["AU-0001"]
+    single = Run(run.meta, run.voltmeter, run.au_temperature, run.chamber, run.fixture)
+    path = write_run(single, tmp_path / "one.mcap")
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        topics = {c.topic for c in reader.get_summary().channels.values()}
+    assert topics == {"/voltmeter", "/au/temperature", "/chamber", "/fixture"}
+    got = read_units(path)
+    assert not got.several and list(got.units) == ["AU-0001"]
+    assert read_run(path).voltmeter.equals(run.voltmeter)
