@@ -698,11 +698,35 @@ def median_interval_ns(t_ns, pairs: int = 100_000) -> float:
     return float(np.median(d))
 
 
-def segment_run(run: Run, settings: SegmentSettings = SegmentSettings()) -> Segmentation:
+@dataclass(frozen=True)
+class StaticStretches:
+    """A run's static stretches as :func:`segment_run` finds them: voltmeter index ranges ``(i0, i1)`` in time order,
+    the indices of the non-finite samples, and the settings (window adapted to the rate and the poses) they were
+    found with."""
+
+    stretches: list[tuple[int, int]]
+    bad: np.ndarray
+    settings: SegmentSettings
+
+
+def static_stretches(run: Run, settings: SegmentSettings = SegmentSettings()) -> StaticStretches:
+    """The static stretches of ``run``'s voltages (the step of :func:`segment_run` that reads every sample), for a
+    caller that decides them across several units (:mod:`pipeline.segment_units`) and hands them back to
+    :func:`segment_run`. The run's voltmeter must be in time order (the readers sort it)."""
+    t_ns = run.t_ns()
+    ch = Channels([run.voltmeter[c] for c in ("ux", "uy", "uz")])
+    return StaticStretches(*_adaptive_static(t_ns, ch, for_rate(settings, t_ns)))
+
+
+def segment_run(
+    run: Run, settings: SegmentSettings = SegmentSettings(), static: StaticStretches | None = None
+) -> Segmentation:
     """Plateaus, static segments (cut at plateau boundaries, trimmed, averaged, named) and warnings of ``run``.
 
     The voltages are read from the run's table a slab at a time (:class:`Channels`): besides the table, the
-    per-sample memory is the times (8 bytes per sample) and a few masks (1 byte per sample).
+    per-sample memory is the times (8 bytes per sample) and a few masks (1 byte per sample). ``static``: the static
+    stretches decided elsewhere (:func:`static_stretches`, e.g. across the units of one fixture), used instead of
+    finding them here.
     """
     warnings: list[str] = []
     t_ns = run.t_ns()
@@ -733,7 +757,10 @@ def segment_run(run: Run, settings: SegmentSettings = SegmentSettings()) -> Segm
             f"{settings.plateau_rate_c_per_min} C/min for {settings.plateau_min_s:.0f} s)"
         )
 
-    stretches, bad_u, settings = _adaptive_static(t_ns, ch, settings)
+    if static is None:
+        stretches, bad_u, settings = _adaptive_static(t_ns, ch, settings)
+    else:
+        stretches, bad_u, settings = static.stretches, static.bad, static.settings
     if bad_u.size:
         warnings.append(
             f"voltmeter: {bad_u.size} non-finite samples excluded (not static), first at t_ns={int(t_ns[bad_u[0]])}"
