@@ -1,0 +1,194 @@
+"""Segmentation of a run with several units on one fixture (log-format.md, "Runs with several units"), done once
+for the run where it can be and per unit where the signal must decide.
+
+The fixture turns every unit together, so when the units are still and where they move is one question for the
+run: each unit's static stretches are found from its own voltages (:func:`pipeline.segment.static_stretches`); the
+run's still times are those where a majority of the units are still (a consensus of the units' signals), cut
+where the fixture log says the table started moving. Each unit then averages over the still times that are its own
+too (its stretches within the consensus), so every unit's segments cover the same holds and a unit that disagrees
+only loses what it disagrees on. Per unit, as the signal must decide: the temperature plateaus (its own
+thermosensor), the averages and the naming of each position from its own gravity direction
+(:func:`pipeline.segment.segment_run`).
+
+A unit whose signal disagrees with the others is named, in one warning line each (in the run's warnings and in the
+unit's segmentation): a unit not still in holds where the others are, and a unit naming a position otherwise than
+the majority of the units at the same time (a unit mounted turned on the table, a slipped clamp), with the
+position and the time.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.positions import MOVING
+from pipeline.run import NS_PER_S, Run
+from pipeline.segment import Segmentation, SegmentSettings, StaticStretches, segment_run, static_stretches
+
+#: a unit is "not still" in a hold of the others when its own still time covers less than this fraction of it
+_STILL_COVER = 0.5
+
+
+def segment_units(
+    units: dict[str, Run], settings: SegmentSettings = SegmentSettings()
+) -> tuple[dict[str, Segmentation], list[str]]:
+    """Each unit's :class:`Segmentation`, and the run's warnings naming units that disagree (see the module doc).
+    One unit: its own :func:`segment_run`, no consensus."""
+    if len(units) < 2:
+        return {s: segment_run(r, settings) for s, r in units.items()}, []
+    own = {s: static_stretches(r, settings) for s, r in units.items()}
+    times = {s: r.t_ns() for s, r in units.items()}
+    spans = {s: _spans_ns(times[s], st.stretches) for s, st in own.items()}
+    min_ns = int(max(st.settings.static_min_s for st in own.values()) * NS_PER_S)
+    consensus = _cut_at_moves(_majority(list(spans.values()), len(units)), _fixture_moves_ns(units))
+    consensus = consensus[consensus[:, 1] - consensus[:, 0] >= min_ns]
+    warnings: list[str] = []
+    segs: dict[str, Segmentation] = {}
+    for serial, run in units.items():
+        mine = _intersect(spans[serial], consensus)
+        t = times[serial]
+        i0 = np.searchsorted(t, mine[:, 0], side="left")
+        i1 = np.searchsorted(t, mine[:, 1], side="right")
+        keep = (i1 > i0) & (mine[:, 1] - mine[:, 0] >= int(own[serial].settings.static_min_s * NS_PER_S))
+        stretches = [(int(a), int(b)) for a, b in zip(i0[keep], i1[keep])]
+        segs[serial] = segment_run(run, settings, StaticStretches(stretches, own[serial].bad, own[serial].settings))
+        line = _not_still(serial, spans[serial], consensus, units[serial])
+        if line:
+            warnings.append(line)
+            segs[serial].warnings.append(line)
+    for serial, line in _name_disagreements(segs).items():
+        warnings.append(line)
+        segs[serial].warnings.append(line)
+    return segs, warnings
+
+
+def _spans_ns(t_ns: np.ndarray, stretches: list[tuple[int, int]]) -> np.ndarray:
+    """(k, 2) int64 [first, last] sample times of index stretches."""
+    if not stretches:
+        return np.zeros((0, 2), dtype=np.int64)
+    a = np.array(stretches, dtype=np.int64)
+    return np.column_stack((t_ns[a[:, 0]], t_ns[a[:, 1] - 1]))
+
+
+def _majority(spans: list[np.ndarray], n_units: int) -> np.ndarray:
+    """Time intervals (k, 2) where more than half of ``n_units`` units are inside one of their spans (a sweep over
+    the spans' ends)."""
+    starts = np.concatenate([s[:, 0] for s in spans])
+    ends = np.concatenate([s[:, 1] for s in spans])
+    if starts.size == 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    t = np.concatenate((starts, ends))
+    step = np.concatenate((np.ones(starts.size, dtype=np.int64), -np.ones(ends.size, dtype=np.int64)))
+    order = np.lexsort((-step, t))  # at one time, starts before ends: touching spans stay joined
+    t, count = t[order], np.cumsum(step[order])
+    inside = count > n_units // 2
+    rising = np.flatnonzero(inside & ~np.concatenate(([False], inside[:-1])))
+    falling = np.flatnonzero(~inside & np.concatenate(([False], inside[:-1])))
+    return np.column_stack((t[rising], t[falling])).astype(np.int64)
+
+
+def _fixture_moves_ns(units: dict[str, Run]) -> np.ndarray:
+    """Times the shared fixture log says the table started moving (empty without a log)."""
+    fx = next(iter(units.values())).fixture
+    if fx is None or fx.height == 0:
+        return np.zeros(0, dtype=np.int64)
+    return np.sort(fx.filter(fx["position"] == MOVING)["t_ns"].to_numpy())
+
+
+def _cut_at_moves(spans: np.ndarray, moves_ns: np.ndarray) -> np.ndarray:
+    """``spans`` cut where a logged move starts inside one (the log may be late or missing, so it only cuts)."""
+    if spans.size == 0 or moves_ns.size == 0:
+        return spans
+    out = []
+    for a, b in spans:
+        inner = moves_ns[(moves_ns > a) & (moves_ns < b)]
+        edges = np.concatenate(([a], inner, [b]))
+        out += [(edges[k], edges[k + 1] - (1 if k + 1 < len(edges) - 1 else 0)) for k in range(len(edges) - 1)]
+    return np.array(out, dtype=np.int64).reshape(-1, 2)
+
+
+def _intersect(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Intersection of two sorted lists of disjoint closed intervals (k, 2)."""
+    out = []
+    i = j = 0
+    while i < len(a) and j < len(b):
+        lo, hi = max(a[i, 0], b[j, 0]), min(a[i, 1], b[j, 1])
+        if lo <= hi:
+            out.append((lo, hi))
+        if a[i, 1] < b[j, 1]:
+            i += 1
+        else:
+            j += 1
+    return np.array(out, dtype=np.int64).reshape(-1, 2)
+
+
+def _covered_ns(spans: np.ndarray, a: int, b: int) -> int:
+    """How much of [a, b] the sorted disjoint ``spans`` cover (ns)."""
+    lo = np.clip(spans[:, 0], a, b)
+    hi = np.clip(spans[:, 1], a, b)
+    return int(np.sum(hi - lo))
+
+
+def _fixture_label_at(run: Run, t_ns: int) -> str | None:
+    fx = run.fixture
+    if fx is None or fx.height == 0:
+        return None
+    ft = fx["t_ns"].to_numpy()
+    k = int(np.searchsorted(ft, t_ns, side="right")) - 1
+    return str(fx["position"][k]) if k >= 0 else None
+
+
+def _not_still(serial: str, mine: np.ndarray, consensus: np.ndarray, run: Run) -> str | None:
+    """A line naming ``serial`` when it is not still in some of the run's still times (the others are)."""
+    missed = [
+        (int(a), int(b)) for a, b in consensus if _covered_ns(mine, int(a), int(b)) < _STILL_COVER * (int(b) - int(a))
+    ]
+    if not missed:
+        return None
+    a, b = missed[0]
+    label = _fixture_label_at(run, (a + b) // 2)
+    where = f" (fixture: {label})" if label and label != MOVING else ""
+    return (
+        f"unit {serial}: not still in {len(missed)} of the {len(consensus)} holds where the other units are, first "
+        f"at t_ns={a}..{b}{where}: its signal disagrees with the others' positions; those holds are left out of it"
+    )
+
+
+def _name_disagreements(segs: dict[str, Segmentation]) -> dict[str, str]:
+    """A line per unit that names a position otherwise than the majority of the units holding one at the same
+    time (the middle of its segment), with its first such position and time."""
+    mids = {
+        s: np.array([(g.t_start_ns + g.t_end_ns) // 2 for g in seg.segments], dtype=np.int64) for s, seg in segs.items()
+    }
+    out: dict[str, str] = {}
+    for serial, seg in segs.items():
+        first, count = None, 0
+        for g in seg.segments:
+            if g.position is None:
+                continue
+            mid = (g.t_start_ns + g.t_end_ns) // 2
+            names = []
+            for other, oseg in segs.items():
+                if other == serial:
+                    continue
+                k = int(np.searchsorted(mids[other], mid))
+                for j in (k - 1, k):
+                    if 0 <= j < len(oseg.segments):
+                        h = oseg.segments[j]
+                        if h.t_start_ns <= mid <= h.t_end_ns and h.position is not None:
+                            names.append(h.position)
+            if not names:
+                continue
+            values, counts = np.unique(np.array(names, dtype=object), return_counts=True)
+            top = values[np.argmax(counts)]
+            if counts.max() * 2 > len(names) and top != g.position:
+                count += 1
+                if first is None:
+                    first = (g.position, top, g.t_start_ns, g.t_end_ns)
+        if first is not None:
+            pos, theirs, a, b = first
+            out[serial] = (
+                f"unit {serial}: its signal names {count} of its {len(seg.segments)} positions otherwise than the "
+                f"other units, first {pos} at t_ns={a}..{b} where they hold {theirs}: mounted turned on the "
+                "fixture, or a slipped clamp? (its own naming is used)"
+            )
+    return out
