@@ -12,6 +12,11 @@ supplies observe and fit:
 - fit:     ``Method.calibrate_observed`` (the method's fit: constants, thermal model; then the tail every method
   shares, ``Method.finish``: VP verification, plausibility, passport document)
 - write:   ``pipeline.calibrate.publish.publish`` (``pipeline.passport.registry``, ``pipeline.plots``)
+
+A run holding several units (log-format.md) is read once (``pipeline.io.runs.read_units``), segmented once for the
+run (``segment``: ``pipeline.segment_units.segment_units``, the still times by consensus of the units), then each
+unit goes through choose, observe, fit and write as above; a unit that fails (its input checks, or its
+calibration) is reported with its reason and the others go on (:func:`calibrate_units`).
 """
 
 from __future__ import annotations
@@ -36,22 +41,30 @@ from pipeline.errors import ThermocalError  # noqa: E402
 from pipeline.io import runs as runio  # noqa: E402
 from pipeline.passport.canonical import canonical_json  # noqa: E402
 from pipeline.passport.registry import Registry  # noqa: E402
-from pipeline.run import Run  # noqa: E402
+from pipeline.run import Run, UnitRuns  # noqa: E402
 from pipeline.segment import Segmentation  # noqa: E402
 
 
 @task(name="ingest", cache_policy=NO_CACHE)
-def ingest(path: str) -> Run:
-    return runio.read_run(path)
+def ingest(path: str, units: list[str] | None = None) -> UnitRuns:
+    return runio.read_units(path, units)
+
+
+@task(name="segment", cache_policy=NO_CACHE)
+def segment(units: dict[str, Run], settings: CalibrationSettings) -> tuple[dict[str, Segmentation], list[str]]:
+    """The segmentation of every unit of a run with several units, once for the run."""
+    from pipeline.segment_units import segment_units
+
+    return segment_units(units, settings.segment)
 
 
 @task(name="choose", cache_policy=NO_CACHE)
 def choose(
-    run: Run, settings: CalibrationSettings, base_passport: dict | None
+    run: Run, settings: CalibrationSettings, base_passport: dict | None, segmentation: Segmentation | None = None
 ) -> tuple[str, dict | None, Segmentation, str]:
     """``--method auto``: the method the run supports, the base passport if it needs one, the run's segmentation
     and why (``pipeline.calibrate.methods.resolve_auto``)."""
-    return resolve_auto(run, settings, base_passport)
+    return resolve_auto(run, settings, base_passport, segmentation)
 
 
 @task(name="observe", cache_policy=NO_CACHE)
@@ -92,8 +105,19 @@ def write(
     paths: list[str],
     settings: CalibrationSettings,
     dry_run: bool = False,
+    digests: dict | None = None,
+    within: dict | None = None,
 ) -> dict:
-    return publish(registry, calibration, input_paths=paths, settings=settings, constants_figure=True, dry_run=dry_run)
+    return publish(
+        registry,
+        calibration,
+        input_paths=paths,
+        settings=settings,
+        constants_figure=True,
+        input_digests=digests,
+        input_units=within,
+        dry_run=dry_run,
+    )
 
 
 @flow(name="thermocal-calibrate", log_prints=False)
@@ -104,49 +128,135 @@ def calibrate_flow(
     method: str = "tilt",
     base_passport: dict | None = None,
     dry_run: bool = False,
+    units: list[str] | None = None,
 ) -> dict:
-    """Calibrate one unit from one or more runs (TP runs, and runs with VP data that verify them).
+    """Calibrate one unit from one or more runs (TP runs, and runs with VP data that verify them); runs holding
+    several units: each unit (``units``: only these), :func:`calibrate_units`.
 
     ``method``: ``tilt`` (seed 000, default), ``scalar`` (seed 004), ``differential`` (seed 003, starting from
     ``base_passport``'s normal-temperature constants; without one, from the unit's current passport in the
     registry, else from the orientations alone) or ``auto`` (the method the first run supports: the result's
     ``method_auto`` says which and why). ``dry_run``: compute everything, write nothing to the registry."""
-    logger = get_run_logger()
     step = Steps("calibrate")  # progress lines on stderr when it is a terminal
     if method != "auto":
         by_name(method)  # an unknown method fails before any run is read
-    runs = []
+    read = []
     for p in paths:
         step(f"ingest {os.path.basename(p)}")
-        runs.append(ingest(p))
-    path_of = {r.source: p for p, r in zip(paths, runs)}
+        read.append(ingest(p, units))
+    if any(r.several for r in read):
+        return calibrate_units(paths, read, registry, settings, method, base_passport, dry_run, step)
+    result = _calibrate_unit(
+        [r.one() for r in read], list(paths), registry, settings, method, base_passport, dry_run, step
+    )
+    if not dry_run:
+        record_head(registry)
+    return result
+
+
+def calibrate_units(paths, read, registry, settings, method, base_passport, dry_run, step) -> dict:
+    """The runs ``read`` (:class:`pipeline.run.UnitRuns`, one per path) of which some hold several units: each
+    unit calibrated from its runs (segmented once per run with several units), one after the other, the samples of
+    a unit let go once it is observed. Returns ``{"units": [the calibrate object of each unit], "failed": [{"unit",
+    "run", "reason"}]}`` (contract.md): a unit that failed its input checks or its calibration is listed with its
+    one-line reason and the others go on."""
+    from pipeline.passport.provenance import hash_run
+
+    logger = get_run_logger()
+    failed: list[dict] = []
+    by_unit: dict[str, list] = {}  # serial -> [(path, UnitRuns, segmentation or None)]
+    digests = {}
+    for p, got in zip(paths, read):
+        failed += [{"unit": u, "run": p, "reason": why} for u, why in got.failed.items()]
+        segs: dict = {}
+        if got.several:
+            digests[p] = hash_run(p)  # once for the file, not once per unit
+            if len(got.units) > 1:
+                step(f"segment {len(got.units)} units of {os.path.basename(p)} (still times once for the run)")
+                segs, run_warnings = segment(got.units, settings)
+                for w in run_warnings:
+                    logger.warning(w)
+        for serial in got.units:
+            by_unit.setdefault(serial, []).append((p, got, segs.get(serial)))
+    results = []
+    for serial, items in by_unit.items():
+        runs = [got.units[serial] for _, got, _ in items]
+        within = {p: {"unit": serial, "run_id": got.units[serial].meta.run_id} for p, got, _ in items if got.several}
+        try:
+            results.append(
+                _calibrate_unit(
+                    runs,
+                    [p for p, _, _ in items],
+                    registry,
+                    settings,
+                    method,
+                    base_passport,
+                    dry_run,
+                    step,
+                    segmentations=[seg for _, _, seg in items],
+                    digests=digests,
+                    within=within,
+                    release=lambda serial=serial, items=items: [got.units.pop(serial, None) for _, got, _ in items],
+                )
+            )
+        except ThermocalError as e:
+            failed.append({"unit": serial, "reason": e.one_line()})
+            logger.warning(e.one_line())
+        del runs
+    if not dry_run:
+        record_head(registry)
+    return {"units": results, "failed": failed}
+
+
+def _calibrate_unit(
+    runs,
+    paths: list[str],
+    registry: str,
+    settings: CalibrationSettings,
+    method: str,
+    base_passport: dict | None,
+    dry_run: bool,
+    step,
+    segmentations: list | None = None,
+    digests=None,
+    within: dict | None = None,
+    release=None,
+) -> dict:
+    """One unit from its runs (one per path; ``segmentations``: each run's, where already made): select, choose,
+    observe, fit, write; ``release()`` is called once the samples are no longer needed."""
+    logger = get_run_logger()
+    segmentations = segmentations or [None] * len(runs)
+    seg_of = {id(r): seg for r, seg in zip(runs, segmentations)}
+    path_of = {id(r): p for p, r in zip(paths, runs)}
     runs, selection_warnings = select_runs(runs)  # one file per run_id (a truncated copy is left out)
-    paths = [path_of[r.source] for r in runs]
+    paths = [path_of[id(r)] for r in runs]
+    segmentations = [seg_of[id(r)] for r in runs]
     unit = unit_of(runs)
-    segmentation, chosen = None, None  # the first run's, when made to choose the method
+    segmentation, chosen = segmentations[0], None  # the first run's, when made to choose the method
     if method == "auto":
-        step(f"choose the method (segment {os.path.basename(paths[0])})")
-        method, base_passport, segmentation, chosen = choose(runs[0], settings, base_passport)
+        what = "" if segmentation is not None else f" (segment {os.path.basename(paths[0])})"
+        step(f"choose the method for {unit}{what}")
+        method, base_passport, segmentation, chosen = choose(runs[0], settings, base_passport, segmentation)
+        segmentations[0] = segmentation
     base_line = None  # which version the differential method starts from, and its status
     if not by_name(method).uses_base_passport:
         base_passport = None
     elif base_passport is None:
         base_passport, base_line = default_base_passport(registry, unit)
     observed = []
-    for k, (run, p) in enumerate(zip(runs, paths)):
-        seg = segmentation if k == 0 else None
-        step(f"observe ({'average' if seg else 'segment, average'}) {os.path.basename(p)}")
+    for run, p, seg in zip(runs, paths, segmentations):
+        step(f"observe ({'average' if seg else 'segment, average'}) {unit} in {os.path.basename(p)}")
         observed.append(observe(run, method, settings, base_passport, seg))
     del runs  # the samples are not needed past the observations
+    if release is not None:
+        release()
     step(f"fit ({method}: constants, thermal model, VP verification)")
     calibration = fit(observed, method, settings, base_passport)
     calibration.warnings[:0] = selection_warnings + ([base_line] if base_line and base_passport is None else [])
     for w in calibration.warnings:
         logger.warning(w)
     step("write" if not dry_run else "dry run (nothing written)")
-    result = write(registry, calibration, list(paths), settings, dry_run)
-    if not dry_run:
-        record_head(registry)
+    result = write(registry, calibration, list(paths), settings, dry_run, digests, within)
     create_markdown_artifact(
         key=_artifact_key(unit), markdown=result_markdown(result), description=f"thermocal calibration of {unit}"
     )
@@ -190,10 +300,11 @@ def run_calibrate(
     method: str = "tilt",
     base_passport: dict | None = None,
     dry_run: bool = False,
+    units: list[str] | None = None,
 ) -> dict:
     """Run the flow in this process, recorded on thermocal's local Prefect server
     (:func:`flows.runtime.flow_settings`)."""
     from .runtime import flow_settings, quiet_task_failures
 
     with flow_settings(), quiet_task_failures():
-        return calibrate_flow(paths, registry, settings, method, base_passport, dry_run)
+        return calibrate_flow(paths, registry, settings, method, base_passport, dry_run, units)

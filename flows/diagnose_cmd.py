@@ -43,17 +43,19 @@ def diagnose_command(
     out_png: Path | None,
     out_passport: Path | None = None,
     registry: Path | None = None,
+    unit: str | None = None,
 ) -> dict:
     """Diagnose ``run`` against ``passport``, or the unit's current passport in ``registry``, or one fitted from
     the run when neither is given; write the PNG to ``out_png`` and the extended passport to ``out_passport``
-    (default: beside the run). Progress on stderr when it is a terminal (``as_json`` is not used). Returns the
-    report."""
+    (default: beside the run; of one unit of a run holding several, named with the unit). ``unit``: the unit of a
+    run holding several (only its streams are read). Progress on stderr when it is a terminal (``as_json`` is not
+    used). Returns the report."""
     run = Path(run)
     step = Steps("diagnose")
     if passport is not None and registry is not None:
         raise ThermocalError("give --passport or --registry, not both", where="diagnose")
     step(f"ingest {run.name}")
-    the_run = read_run(run)
+    the_run = read_run(run, unit)
     doc, source, state = None, None, None
     if passport is not None:
         doc, source = read_passport(passport), str(passport)
@@ -62,8 +64,9 @@ def diagnose_command(
     step("segment, fit and search the residual" if doc is None else "segment and search the residual")
     result = diagnose_run(the_run, doc, passport_source=source)
     step("write figure and extended passport")
-    png = Path(out_png) if out_png is not None else _beside(run, ".diagnose.png")
-    ext = Path(out_passport) if out_passport is not None else _beside(run, ".diagnose.passport.json")
+    tag = f".{unit}" if unit else ""
+    png = Path(out_png) if out_png is not None else _beside(run, f"{tag}.diagnose.png")
+    ext = Path(out_passport) if out_passport is not None else _beside(run, f"{tag}.diagnose.passport.json")
     try:
         from pipeline.diagnose.plot import plot_diagnosis
 

@@ -71,9 +71,10 @@ def calibrate_unit(
     digests: dict | None = None,
     method: str = "tilt",
     base_passport: dict | None = None,
+    within: dict | None = None,
 ) -> fleet_plan.UnitOutcome:
     """:func:`pipeline.calibrate.fleet.calibrate_group`, in the flow's process pool when it has one."""
-    return _calibrate_group(unit, runs, registry, settings, figure, digests, method, base_passport)
+    return _calibrate_group(unit, runs, registry, settings, figure, digests, method, base_passport, within)
 
 
 def _calibrate_group(*args) -> fleet_plan.UnitOutcome:
@@ -254,6 +255,7 @@ def fleet_flow(
                         "digests": g.digests,
                         "method": method,
                         "base_passport": g.base_passport,
+                        "within": g.within,
                     },
                 ): g
                 for g in plan.groups

@@ -2,7 +2,8 @@
 samples; and the plateaus and static positions the segmenter finds.
 
 :func:`summarize_run` returns a JSON-ready dict (plain ints, floats, strings and lists); :func:`format_summary`
-renders it as a few lines per stream.
+renders it as a few lines per stream. A run holding several units: :func:`summarize_units` and :func:`format_units`,
+each unit as above.
 """
 
 from __future__ import annotations
@@ -15,13 +16,56 @@ from pipeline.calibrate.recording import KIND_WORDS, Recording
 from pipeline.errors import ThermocalError
 from pipeline.io.checks import GAP_FACTOR, gap_indices  # noqa: F401  (GAP_FACTOR: the gap definition, shared with the readers)
 from pipeline.jsonable import to_jsonable
-from pipeline.run import Run
+from pipeline.run import Run, UnitRuns
 from pipeline.utc import utc_text
 from pipeline.words import count_words
 
 
-def summarize_run(run: Run) -> dict[str, Any]:
-    """Metadata, per-stream statistics and the segmentation summary of ``run`` (JSON-ready)."""
+def summarize_units(got: UnitRuns) -> dict[str, Any]:
+    """What a run holding several units holds (JSON-ready): its metadata as in the file, each unit's
+    :func:`summarize_run` (poses, plateaus, the methods it supports) in ``units``, segmented once for the run
+    (:func:`pipeline.segment_units.segment_units`), the units that failed their input checks with their reasons in
+    ``failed``, and the run's warnings (a unit whose signal disagrees with the others' is named there)."""
+    from pipeline.segment_units import segment_units
+
+    try:
+        segs, disagree = segment_units(got.units)
+    except ThermocalError as exc:
+        segs, disagree = {}, [f"segmentation of the run failed: {exc.one_line()}"]
+    return {
+        "source": got.source,
+        "metadata": dict(got.meta_values),
+        "units": [summarize_run(run, segs.get(serial)) for serial, run in got.units.items()],
+        "failed": [{"unit": u, "reason": why} for u, why in got.failed.items()],
+        "warnings": [*got.warnings, *disagree],
+    }
+
+
+def format_units(summary: dict[str, Any]) -> str:
+    """Human-readable text of :func:`summarize_units`'s result: the run, then each unit as :func:`format_summary`
+    says it (indented), the failed units and the run's warnings."""
+    meta = summary["metadata"]
+    serials = [u["metadata"]["unit_serial"] for u in summary["units"]] + [f["unit"] for f in summary["failed"]]
+    lines = [
+        f"run {meta.get('run_id', '?')}  {count_words(len(serials), 'unit')} ({', '.join(serials)})  station "
+        f"{meta.get('station') or '-'}  fixture {meta.get('fixture') or '-'}",
+    ]
+    if summary.get("source"):
+        lines.append(f"  source: {summary['source']}")
+    for unit in summary["units"]:
+        text = format_summary({**unit, "warnings": []})
+        lines += ["", f"unit {unit['metadata']['unit_serial']}:"] + ["  " + line for line in text.splitlines()]
+    for f in summary["failed"]:
+        lines += ["", f"unit {f['unit']}: not usable: {f['reason']}"]
+    if summary["warnings"]:
+        lines.append("")
+    lines += [f"warning: {w}" for w in summary["warnings"]]
+    return "\n".join(lines)
+
+
+def summarize_run(run: Run, seg=None) -> dict[str, Any]:
+    """Metadata, per-stream statistics and the segmentation summary of ``run`` (JSON-ready); ``seg``: its
+    segmentation, when already made."""
     summary: dict[str, Any] = {
         "source": run.source,
         "metadata": run.meta.to_strings(),
@@ -32,7 +76,7 @@ def summarize_run(run: Run) -> dict[str, Any]:
     }
     if run.fixture is not None:
         summary["streams"]["fixture"]["positions"] = sorted(run.fixture["position"].unique().to_list())
-    summary.update(_segmentation_summary(run))
+    summary.update(_segmentation_summary(run, seg))
     return summary
 
 
@@ -73,7 +117,7 @@ def _non_finite(df) -> int:
     return int(sum(np.count_nonzero(~np.isfinite(df[c].to_numpy())) for c in floats))
 
 
-def _segmentation_summary(run: Run) -> dict[str, Any]:
+def _segmentation_summary(run: Run, seg=None) -> dict[str, Any]:
     """``plateaus`` and ``static_positions`` found by :func:`pipeline.segment.segment_run`, and ``recording``: what
     the recording is (:func:`describe_recording`).
 
@@ -84,7 +128,7 @@ def _segmentation_summary(run: Run) -> dict[str, Any]:
     from pipeline.segment import segment_run
 
     try:
-        result = segment_run(run)
+        result = seg if seg is not None else segment_run(run)
     except ThermocalError as exc:
         return {"plateaus": [], "static_positions": [], "segmentation": f"failed: {exc}"}
     recording = describe_recording(run, result)

@@ -24,8 +24,9 @@ from pipeline.positions import MOVING
 from pipeline.run import NS_PER_S, Run
 from pipeline.segment import Segmentation, SegmentSettings, StaticStretches, segment_run, static_stretches
 
-#: a unit is "not still" in a hold of the others when its own still time covers less than this fraction of it
-_STILL_COVER = 0.5
+#: a unit is "not still" in a hold of the others when it is not still for longer than this many times the shortest
+#: static stretch inside it (a window or so at the edges of a hold differs from unit to unit)
+_NOT_STILL_MIN = 3.0
 
 
 def segment_units(
@@ -51,7 +52,7 @@ def segment_units(
         keep = (i1 > i0) & (mine[:, 1] - mine[:, 0] >= int(own[serial].settings.static_min_s * NS_PER_S))
         stretches = [(int(a), int(b)) for a, b in zip(i0[keep], i1[keep])]
         segs[serial] = segment_run(run, settings, StaticStretches(stretches, own[serial].bad, own[serial].settings))
-        line = _not_still(serial, spans[serial], consensus, units[serial])
+        line = _not_still(serial, spans[serial], consensus, units[serial], _NOT_STILL_MIN * min_ns)
         if line:
             warnings.append(line)
             segs[serial].warnings.append(line)
@@ -121,11 +122,11 @@ def _intersect(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.array(out, dtype=np.int64).reshape(-1, 2)
 
 
-def _covered_ns(spans: np.ndarray, a: int, b: int) -> int:
-    """How much of [a, b] the sorted disjoint ``spans`` cover (ns)."""
-    lo = np.clip(spans[:, 0], a, b)
-    hi = np.clip(spans[:, 1], a, b)
-    return int(np.sum(hi - lo))
+def _longest_uncovered_ns(spans: np.ndarray, a: int, b: int) -> int:
+    """The longest part of [a, b] that the sorted disjoint ``spans`` leave uncovered (ns)."""
+    inside = spans[(spans[:, 1] >= a) & (spans[:, 0] <= b)]
+    edges = np.concatenate(([a], np.clip(inside, a, b).ravel(), [b]))
+    return int(np.max(edges[1::2] - edges[0::2]))
 
 
 def _fixture_label_at(run: Run, t_ns: int) -> str | None:
@@ -137,11 +138,10 @@ def _fixture_label_at(run: Run, t_ns: int) -> str | None:
     return str(fx["position"][k]) if k >= 0 else None
 
 
-def _not_still(serial: str, mine: np.ndarray, consensus: np.ndarray, run: Run) -> str | None:
-    """A line naming ``serial`` when it is not still in some of the run's still times (the others are)."""
-    missed = [
-        (int(a), int(b)) for a, b in consensus if _covered_ns(mine, int(a), int(b)) < _STILL_COVER * (int(b) - int(a))
-    ]
+def _not_still(serial: str, mine: np.ndarray, consensus: np.ndarray, run: Run, limit_ns: float) -> str | None:
+    """A line naming ``serial`` when it is not still for longer than ``limit_ns`` within one of the run's still
+    times (the others are)."""
+    missed = [(int(a), int(b)) for a, b in consensus if _longest_uncovered_ns(mine, int(a), int(b)) > limit_ns]
     if not missed:
         return None
     a, b = missed[0]

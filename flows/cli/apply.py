@@ -20,11 +20,11 @@ def apply(
     """The passport's model (thermal model included) applied to every voltmeter sample: specific force in g, one
     row per input row, in_range per the passport's valid temperatures (a warning when some are outside)."""
     from pipeline.apply import apply_passport, write_applied
-    from pipeline.io.runs import read_run
+    from pipeline.io.runs import read_run, read_units_meta
     from pipeline.passport.document import read_passport
 
     doc = read_passport(passport)
-    r = read_run(run)
+    r = read_run(run, str(doc.get("unit")) if read_units_meta(run)[1] else None)  # several units: the passport's
     applied = apply_passport(doc, r)
     path = write_applied(applied, out, passport=doc, run=r)
     for w in applied.warnings:

@@ -1,5 +1,6 @@
 """``thermocal calibrate RUN...``: one unit's runs into a new passport version (the Prefect flow
-:func:`flows.calibrate.calibrate_flow`, run by :func:`flows.calibrate.run_calibrate`)."""
+:func:`flows.calibrate.calibrate_flow`, run by :func:`flows.calibrate.run_calibrate`); a run holding several units:
+one passport per unit."""
 
 from __future__ import annotations
 
@@ -61,11 +62,19 @@ def calibrate(
     dry_run: bool = typer.Option(
         False, "--dry-run", help="compute and print everything, write nothing to the registry"
     ),
+    unit: list[str] = typer.Option(
+        [],
+        "--unit",
+        metavar="SERIAL",
+        help="of a run holding several units, calibrate only this unit (repeat for several; default: every unit)",
+    ),
     as_json: JsonFlag = False,
 ):
     """Ingest, segment, average, fit, verify on the VP segments, write a new passport version (Prefect flow).
 
-    Exit status 1 (with the result printed) when the calibration's status is fail."""
+    A run holding several units gives one passport per unit: {"units": [...], "failed": [...]}.
+    Exit status 1 (with the result printed) when the calibration's status is fail; with several units, the worst
+    of the units' (2 when a unit's input was bad)."""
     settings = calibration_settings(thermal_model, constants_method, tol_normal_g, tol_range_g)
     if method != "auto":
         check_method(method)
@@ -79,7 +88,10 @@ def calibrate(
         base = read_passport(base_passport)
     from ..calibrate import run_calibrate
 
-    result = run_calibrate([str(r) for r in runs], str(registry), settings, method, base, dry_run)
+    result = run_calibrate([str(r) for r in runs], str(registry), settings, method, base, dry_run, unit or None)
+    if "units" in result:
+        _units_outcome(result, as_json)
+        return
     emit(result, as_json, None if as_json else calibrate_text(result))
     if result.get("status") == "fail":
         print(
@@ -87,6 +99,30 @@ def calibrate(
             "exceeds its limit at a verification position)",
             file=sys.stderr,
         )
+        raise typer.Exit(1)
+
+
+def _units_outcome(result: dict, as_json: bool) -> None:
+    """Print the result of a run with several units (contract.md) and exit with the worst of the units' statuses:
+    2 when a unit's input was bad (one line each on stderr), 1 when a unit's calibration failed, else 0."""
+    text = None
+    if not as_json:
+        parts = [calibrate_text(r) for r in result["units"]]
+        parts += [f"{f['unit']}: not calibrated: {f['reason']}" for f in result["failed"]]
+        text = "\n\n".join(parts)
+    emit(result, as_json, text)
+    for f in result["failed"]:
+        print(f"thermocal: calibrate: {f['reason']}", file=sys.stderr)
+    failing = [r["unit"] for r in result["units"] if r.get("status") == "fail"]
+    if failing and not result["failed"]:
+        print(
+            f"thermocal: calibrate: {', '.join(failing)}: status fail (the compensated gravity-module error "
+            "exceeds its limit at a verification position)",
+            file=sys.stderr,
+        )
+    if result["failed"]:
+        raise typer.Exit(2)
+    if failing:
         raise typer.Exit(1)
 
 

@@ -30,10 +30,13 @@ def diagnose(
         help="where to write the passport extended by the findings (default: "
         "RUN.diagnose.passport.json beside the run)",
     ),
+    unit: str | None = typer.Option(
+        None, "--unit", metavar="SERIAL", help="the unit to diagnose, of a run holding several units"
+    ),
     as_json: JsonFlag = False,
 ):
     """Compare the recording with the model its passport predicts: locate, name and model the mismatch."""
     from ..diagnose_cmd import diagnose_command, diagnose_text
 
-    report = diagnose_command(run, passport, as_json, png, out_passport, registry)  # a failed passport: its notes
+    report = diagnose_command(run, passport, as_json, png, out_passport, registry, unit)  # a failed passport: its notes
     emit(report, as_json, None if as_json else diagnose_text(report))

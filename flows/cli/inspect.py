@@ -14,9 +14,15 @@ def inspect(
     run: Path = typer.Argument(..., metavar="RUN", help="an .mcap file or a Parquet run directory"),
     as_json: JsonFlag = False,
 ):
-    """What a run holds: metadata, streams, rates, gaps, the plateaus and static positions found (no Prefect)."""
-    from pipeline.inspect import format_summary, summarize_run
-    from pipeline.io.runs import read_run
+    """What a run holds: metadata, streams, rates, gaps, the plateaus and static positions found (no Prefect); a run
+    holding several units: each unit."""
+    from pipeline.inspect import format_summary, format_units, summarize_run, summarize_units
+    from pipeline.io.runs import read_units
 
-    summary = summarize_run(read_run(run))
+    got = read_units(run)
+    if got.several:
+        summary = summarize_units(got)
+        emit(summary, as_json, None if as_json else format_units(summary))
+        return
+    summary = summarize_run(got.one())
     emit(summary, as_json, None if as_json else format_summary(summary))

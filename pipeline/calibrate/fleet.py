@@ -17,6 +17,10 @@ calibrate one unit's group while isolating a bad run.
   for a bad input: failures come back as ``{"run", "reason"}`` rows with the one-line reason.
 
 The Prefect flow (``flows/fleet.py``) runs :func:`plan_fleet` once and :func:`calibrate_group` as one task per unit.
+
+A run holding several units (log-format.md) counts once per unit: each of its units is grouped with that unit's
+other runs, calibrated from its own streams (``read_run(path, unit)``: the other units' messages are not decoded),
+and its passport's provenance names the run and the unit; a unit of it whose data is bad fails alone.
 """
 
 from __future__ import annotations
@@ -35,7 +39,13 @@ from pipeline.calibrate.result import base_reference
 from pipeline.calibrate.settings import CalibrationSettings
 from pipeline.errors import CalibrationError, ThermocalError
 from pipeline.io.parquet import META_FILE as PARQUET_META_FILE
-from pipeline.io.runs import read_run, read_run_meta, run_format  # noqa: F401  (read_run_meta: part of this API)
+from pipeline.io.runs import (  # noqa: F401  (read_run_meta: part of this API)
+    read_run,
+    read_run_meta,
+    read_units,
+    read_units_meta,
+    run_format,
+)
 from pipeline.passport.provenance import RunDigest, hash_run
 from pipeline.passport.registry import Registry, identity_key
 from pipeline.run import RunMeta
@@ -53,13 +63,15 @@ PLAN_THREADS = min(4, os.cpu_count() or 1)
 @dataclass(frozen=True)
 class UnitGroup:
     """The runs of one unit to calibrate together (absolute paths), the identity their passport will have, the
-    runs' hashes by path and the base passport of a method that needs one (for :func:`calibrate_group`)."""
+    runs' hashes by path, the base passport of a method that needs one (for :func:`calibrate_group`) and, for the
+    runs that hold several units, ``{"unit", "run_id"}`` by path (``within``)."""
 
     unit: str
     runs: tuple[str, ...]
     identity: str
     digests: dict[str, RunDigest] = field(default_factory=dict, compare=False)
     base_passport: dict | None = field(default=None, compare=False)
+    within: dict[str, dict] = field(default_factory=dict, compare=False)
 
 
 @dataclass
@@ -130,13 +142,15 @@ def discover_runs(root: str | os.PathLike) -> list[Path]:
     return sorted(found)
 
 
-def _meta_of(path: Path) -> RunMeta:
-    """A run's metadata: alone, or, if that fails, from reading the whole run (which raises the reader's precise
+def _meta_of(path: Path) -> tuple[list[RunMeta], bool]:
+    """The metadata of each unit of a run, and whether the run holds several units (its metadata lists
+    ``units``): read alone, or, if that fails, from reading the whole run (which raises the reader's precise
     one-line error for a bad run)."""
     try:
-        return read_run_meta(path)
+        return read_units_meta(path)
     except Exception:
-        return read_run(path).meta
+        got = read_units(path)
+        return [r.meta for r in got.units.values()], got.several
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -166,18 +180,26 @@ def plan_fleet(
     paths = [p.resolve() for p in discover_runs(root)]
     with ThreadPoolExecutor(max_workers=PLAN_THREADS) as pool:
         inspected = list(pool.map(_inspect_run, paths))
-    for path, (meta, digest) in zip(paths, inspected):
+    for path, (found, digest) in zip(paths, inspected):
         if isinstance(digest, BaseException):  # one bad run must not stop the fleet
             plan.failed.append({"run": str(path), "reason": reason_of(digest)})
             continue
-        assert meta is not None  # _inspect_run gives None only beside the exception
-        unit = meta.unit_serial
-        warning = folder_warning(path, unit, Path(root).resolve())
-        if warning:
-            plan.warnings.append({"run": str(path), "warning": warning})
-        by_unit.setdefault(unit, []).append(
-            {"path": str(path), "sha256": digest.sha256, "digest": digest, "run_id": meta.run_id}
-        )
+        assert found is not None  # _inspect_run gives None only beside the exception
+        metas, several = found
+        for meta in metas:
+            unit = meta.unit_serial
+            warning = None if several else folder_warning(path, unit, Path(root).resolve())
+            if warning:
+                plan.warnings.append({"run": str(path), "warning": warning})
+            by_unit.setdefault(unit, []).append(
+                {
+                    "path": str(path),
+                    "sha256": digest.sha256,
+                    "digest": digest,
+                    "run_id": meta.run_id,
+                    "several": several,
+                }
+            )
     candidates = all_methods() if method == "auto" else [by_name(method)]
     for unit, inputs in sorted(by_unit.items()):
         unique: dict[str, dict] = {}
@@ -186,7 +208,9 @@ def plan_fleet(
             if first is not item:
                 plan.skipped.append({"run": item["path"], "why": f"duplicate of {first['path']}", "unit": unit})
         kept = list(unique.values())
-        usable, dropped = resolve_run_ids([RunInput(i["path"], unit, i["run_id"]) for i in kept], read_run)
+        usable, dropped = resolve_run_ids(
+            [RunInput(i["path"], unit, i["run_id"]) for i in kept], lambda p, unit=unit: read_run(p, unit)
+        )
         if dropped:
             plan.failed += [{**f, "unit": unit} for f in dropped]
             paths_kept = {u.path for u in usable}
@@ -232,13 +256,15 @@ def plan_fleet(
                 identity=identity,
                 digests={i["path"]: i["digest"] for i in kept},
                 base_passport=base,
+                within={i["path"]: {"unit": unit, "run_id": i["run_id"]} for i in kept if i["several"]},
             )
         )
     return plan
 
 
-def _inspect_run(path: Path) -> tuple[RunMeta | None, RunDigest | Exception]:
-    """A run's metadata and :func:`pipeline.passport.provenance.hash_run`; or (None, the exception) if unreadable."""
+def _inspect_run(path: Path) -> tuple[tuple[list[RunMeta], bool] | None, RunDigest | Exception]:
+    """A run's units' metadata (:func:`_meta_of`) and :func:`pipeline.passport.provenance.hash_run`; or (None, the
+    exception) if unreadable."""
     try:
         return _meta_of(path), hash_run(path)
     except Exception as exc:
@@ -280,12 +306,14 @@ def calibrate_group(
     digests: Mapping[str, RunDigest] | None = None,
     method: str = "tilt",
     base_passport: dict | None = None,
+    within: Mapping[str, dict] | None = None,
 ) -> UnitOutcome:
     """Calibrate ``unit`` from ``runs`` by ``method`` and publish the passport into ``registry`` (as ``thermocal
     calibrate``; ``figure``: the PNG of the VP errors beside a new passport, ~0.1 s of CPU of a standard 10 Hz
     unit's ~0.9 s (JSON blocks; ~0.55 s protobuf); ``digests``: the runs' hashes from the planning,
     :attr:`UnitGroup.digests`, reused for the runs unchanged since; ``base_passport``: the differential method's
-    starting passport, :attr:`UnitGroup.base_passport`).
+    starting passport, :attr:`UnitGroup.base_passport`; ``within``: :attr:`UnitGroup.within`, the runs holding
+    several units, of which the unit's own streams are read).
 
     Runs that cannot be read or observed (the method's per-run step), or belong to another unit, are dropped
     (listed in ``failed``); the rest are calibrated together. If the unit cannot be calibrated at all, every
@@ -309,7 +337,7 @@ def calibrate_group(
         )
     for path in runs:
         try:
-            run = read_run(path)
+            run = read_run(path, unit) if path in (within or {}) else read_run(path)
             if run.meta.unit_serial != unit:
                 raise CalibrationError(f"run is of unit {run.meta.unit_serial!r}, not {unit!r}", path=path)
             seg = None
@@ -326,7 +354,13 @@ def calibrate_group(
         try:
             calibration = chosen.calibrate_observed(observed, settings, base_passport=base_passport)
             result = publish(
-                registry, calibration, input_paths=good, settings=settings, figure=figure, input_digests=digests
+                registry,
+                calibration,
+                input_paths=good,
+                settings=settings,
+                figure=figure,
+                input_digests=digests,
+                input_units=within,
             )
         except Exception as exc:
             reason = reason_of(exc)

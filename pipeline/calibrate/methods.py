@@ -105,14 +105,15 @@ def auto_method(run, seg) -> tuple[str, str]:
     return m.name, f"{m.name} ({kind}: {s.why})"
 
 
-def resolve_auto(run, settings, base_passport: dict | None = None):
+def resolve_auto(run, settings, base_passport: dict | None = None, seg=None):
     """The ``--method auto`` steps on a unit's first run, for the calibrate flow and the fleet alike: segment
-    ``run`` (``settings.segment``), choose the method it supports (:func:`auto_method`) and keep ``base_passport``
-    only when that method starts from one. Returns (the method's name, for :func:`by_name`; the base passport or
-    None; the segmentation for the method's ``observe``; the line saying which method and why)."""
+    ``run`` (``settings.segment``; ``seg``: its segmentation, when already made), choose the method it supports
+    (:func:`auto_method`) and keep ``base_passport`` only when that method starts from one. Returns (the method's
+    name, for :func:`by_name`; the base passport or None; the segmentation for the method's ``observe``; the line
+    saying which method and why)."""
     from pipeline.segment import segment_run
 
-    seg = segment_run(run, settings.segment)
+    seg = seg if seg is not None else segment_run(run, settings.segment)
     method, why = auto_method(run, seg)
     return method, (base_passport if by_name(method).uses_base_passport else None), seg, why
 

@@ -57,6 +57,7 @@ def publish(
     figure: bool = True,
     constants_figure: bool = False,
     input_digests: Mapping[str, RunDigest] | None = None,
+    input_units: Mapping[str, dict] | None = None,
     dry_run: bool = False,
 ) -> dict:
     """Publish a calibration of any method as a new version (or find the identical existing one: same input hashes,
@@ -68,11 +69,17 @@ def publish(
     ``input_digests``: hashes of the input paths made earlier (:func:`pipeline.passport.provenance.hash_run`, by the
     fleet's planning), reused for the runs not changed since (else the run is hashed again).
 
+    ``input_units``: for an input path that is one unit of a run with several units, ``{"unit", "run_id"}``
+    recorded with it in the provenance (the run and the unit within it, log-format.md).
+
     ``dry_run`` (``calibrate --dry-run``): nothing is written (no version, no figure); the result says which
     version would be written (``version``) or which existing one has the same inputs and settings
     (``existing``: true), with ``dry_run``: true and the passport's content (``passport_content``)."""
-    known = input_digests or {}
-    inputs = [{"path": str(Path(p).resolve()), "sha256": input_digest(p, known.get(str(p)))} for p in input_paths]
+    known, within = input_digests or {}, input_units or {}
+    inputs = [
+        {"path": str(Path(p).resolve()), "sha256": input_digest(p, known.get(str(p))), **within.get(str(p), {})}
+        for p in input_paths
+    ]
     recorded = recorded_settings(settings, result.method, result.settings_extra)
     if dry_run:
         version, existing = Registry(Path(registry_root)).planned(result.passport, inputs=inputs, settings=recorded)

@@ -88,7 +88,7 @@ def read_run_meta(path: str | os.PathLike) -> RunMeta:
     """A single-unit run's metadata without reading its samples (about a millisecond); RunFormatError if it cannot
     be had, or if the run holds several units (:func:`read_units_meta`).
     """
-    metas = read_units_meta(path)
+    metas, _ = read_units_meta(path)
     if len(metas) != 1:
         raise RunFormatError(
             f"the run holds {len(metas)} units ({', '.join(m.unit_serial for m in metas)}): name one with --unit",
@@ -97,9 +97,10 @@ def read_run_meta(path: str | os.PathLike) -> RunMeta:
     return metas[0]
 
 
-def read_units_meta(path: str | os.PathLike) -> list[RunMeta]:
+def read_units_meta(path: str | os.PathLike) -> tuple[list[RunMeta], bool]:
     """The metadata of each unit of a run (one for a single-unit run; per unit of a run with several, its shared
-    keys with its ``<serial>.<key>`` overrides) without reading its samples; RunFormatError if it cannot be had.
+    keys with its ``<serial>.<key>`` overrides), and whether the run has the layout of several units (its metadata
+    lists ``units``), without reading its samples; RunFormatError if it cannot be had.
 
     MCAP: the ``run`` metadata record, through the summary's metadata index (files without a summary: read from
     the start up to that record, which thermocal's writer puts before the data). Parquet: ``run.json``. For a
@@ -133,5 +134,5 @@ def read_units_meta(path: str | os.PathLike) -> list[RunMeta]:
     except RunFormatError as e:
         raise RunFormatError(e.message, path=str(p), stream="metadata") from None
     if serials is None:
-        return [RunMeta.from_strings(values, path=str(p))]
-    return [RunMeta.from_strings(unit_meta_values(values, s, serials), path=str(p)) for s in serials]
+        return [RunMeta.from_strings(values, path=str(p))], False
+    return [RunMeta.from_strings(unit_meta_values(values, s, serials), path=str(p)) for s in serials], True

@@ -94,6 +94,18 @@ _ERRNO_TEXT = {
 # hashing and canonical serialisation
 
 
+#: optional keys of a provenance input: the unit within a run with several units (log-format.md) and its run_id
+_INPUT_EXTRA_KEYS = ("unit", "run_id")
+
+
+def _input_record(item: dict) -> dict:
+    """A provenance input as stored: ``path`` and ``sha256``, and ``unit`` / ``run_id`` when given (an input that
+    is one unit of a run with several names the unit)."""
+    out = {"path": str(item["path"]), "sha256": str(item["sha256"])}
+    out.update({k: str(item[k]) for k in _INPUT_EXTRA_KEYS if item.get(k) is not None})
+    return out
+
+
 def identity_key(inputs: list[dict], settings: dict) -> str:
     """What makes two calibrations "the same": sha256 of the canonical JSON of the sorted input hashes and settings."""
     return sha256_bytes(canonical_json({"inputs": sorted(str(i["sha256"]) for i in inputs), "settings": settings}))
@@ -566,7 +578,7 @@ class Registry:
         write, False), or (the existing version with the same identity, True)."""
         unit = safe_unit_name(passport.get("unit"))
         try:
-            inputs = [{"path": str(i["path"]), "sha256": str(i["sha256"])} for i in inputs]
+            inputs = [_input_record(i) for i in inputs]
             settings = json.loads(canonical_json(settings))
         except (KeyError, TypeError, ValueError) as exc:
             raise RegistryError(f"inputs or settings are not valid JSON content ({exc})") from exc
@@ -603,7 +615,7 @@ class Registry:
             raise RegistryError("a passport must be a JSON object (dict)")
         unit = safe_unit_name(passport.get("unit"))
         try:
-            inputs = [{"path": str(i["path"]), "sha256": str(i["sha256"])} for i in inputs]
+            inputs = [_input_record(i) for i in inputs]
             settings = json.loads(canonical_json(settings))
             doc = json.loads(canonical_json(passport))
         except (KeyError, TypeError, ValueError) as exc:

@@ -67,7 +67,8 @@ def test_both_layouts_round_trip(three, tmp_path, fmt):
         assert run.chamber is got.units["AU-0101"].chamber
     assert got.units["AU-0102"].meta.nominal_gain_v_per_g == -0.5
     assert got.units["AU-0103"].meta.nominal_gain_v_per_g == -0.55
-    assert [m.unit_serial for m in read_units_meta(path)] == ["AU-0101", "AU-0102", "AU-0103"]
+    metas, several = read_units_meta(path)
+    assert several and [m.unit_serial for m in metas] == ["AU-0101", "AU-0102", "AU-0103"]
     # each unit its own constants and thermosensor
     k = [np.array(truths[s]["unit"]["K_coef"]) for s in truths]
     assert len({a.tobytes() for a in k}) == 3

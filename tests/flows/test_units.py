@@ -1,0 +1,138 @@
+"""Runs with several units from the command line (contract.md, "Runs with several units"): calibrate gives one
+passport per unit, each unit's constants its own truth's within 3 micro-V, a dead unit and a unit without
+thermosensor fail alone with their reasons (exit 2, the JSON printed), --unit selects, both layouts; fleet counts
+every unit; inspect lists each unit's poses and methods; diagnose --unit."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import polars as pl
+import pytest
+
+from pipeline.io.runs import write_run
+from pipeline.run import UnitRuns
+from pipeline.simulate.chamber import SimConfig
+from pipeline.simulate.unit import UnitTruth
+from pipeline.simulate.units import simulate_units
+
+EXE = str(Path(sys.executable).parent / "thermocal")
+GOOD = ("AU-0301", "AU-0304")
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([EXE, *args], capture_output=True, text=True, env=dict(os.environ), timeout=900)
+
+
+@pytest.fixture(scope="module")
+def chamber(tmp_path_factory):
+    """Four units through the short program at 2 Hz in one run, both layouts: AU-0302's uy channel dead (NaN),
+    AU-0303 without thermosensor samples."""
+    d = tmp_path_factory.mktemp("units")
+    runs, truths = simulate_units(SimConfig(unit_serial="AU-0301", program="short", rate_hz=2.0), 4)
+    u = runs.units
+    units = [
+        u["AU-0301"],
+        dataclasses.replace(u["AU-0302"], voltmeter=u["AU-0302"].voltmeter.with_columns(uy=pl.lit(float("nan")))),
+        dataclasses.replace(u["AU-0303"], au_temperature=u["AU-0303"].au_temperature.head(0)),
+        u["AU-0304"],
+    ]
+    bad = UnitRuns.of_units(units)
+    (d / "fleet").mkdir()
+    mcap = write_run(bad, d / "fleet" / "chamber4.mcap", "mcap")
+    parquet = write_run(bad, d / "chamber4", "parquet")
+    return d, mcap, parquet, truths
+
+
+def _check_constants(result: dict, truths: dict) -> None:
+    """Every plateau's K and U0 within 3 micro-V (per g) of the unit's own true constants."""
+    doc = json.loads(Path(result["passport"]).read_text())
+    truth = UnitTruth.from_dict(truths[result["unit"]]["unit"])
+    assert len(doc["per_plateau"]) >= 3
+    for p in doc["per_plateau"]:
+        k, u0 = truth.constants_at(np.array([p["temp_c"]]))
+        np.testing.assert_allclose(p["K"], k[0], atol=3e-6)
+        np.testing.assert_allclose(p["U0"], u0[0], atol=3e-6)
+
+
+def test_calibrate_gives_one_passport_per_unit_and_bad_units_fail_alone(chamber):
+    d, mcap, _, truths = chamber
+    p = _cli("calibrate", str(mcap), "--registry", str(d / "reg"), "--json")
+    assert p.returncode == 2, p.stderr  # the worst of the units': a bad input
+    r = json.loads(p.stdout)
+    assert [u["unit"] for u in r["units"]] == list(GOOD)
+    assert all(u["status"] == "pass" and u["version"] == 1 for u in r["units"])
+    failed = {f["unit"]: f["reason"] for f in r["failed"]}
+    assert set(failed) == {"AU-0302", "AU-0303"}
+    assert "dead channel: uy has no finite sample" in failed["AU-0302"] and str(mcap) in failed["AU-0302"]
+    assert "/unit/AU-0303/" in failed["AU-0303"]
+    ours = [line for line in p.stderr.splitlines() if line.startswith("thermocal: calibrate:")]
+    assert len(ours) == 2 and all("\n" not in x for x in ours)
+    for u in r["units"]:
+        _check_constants(u, truths)
+        inputs = json.loads(Path(u["passport"]).read_text())["provenance"]["inputs"]
+        assert inputs == [
+            {
+                "path": str(mcap.resolve()),
+                "sha256": inputs[0]["sha256"],
+                "unit": u["unit"],
+                "run_id": inputs[0]["run_id"],
+            }
+        ]
+    assert (
+        len({json.loads(Path(u["passport"]).read_text())["provenance"]["inputs"][0]["sha256"] for u in r["units"]}) == 1
+    )
+
+
+def test_calibrate_unit_selects_on_the_parquet_layout(chamber):
+    d, _, parquet, truths = chamber
+    p = _cli("calibrate", str(parquet), "--unit", "AU-0304", "--registry", str(d / "reg-pq"), "--json")
+    assert p.returncode == 0, p.stderr
+    r = json.loads(p.stdout)
+    assert [u["unit"] for u in r["units"]] == ["AU-0304"] and r["failed"] == []
+    _check_constants(r["units"][0], truths)
+    p = _cli("calibrate", str(parquet), "--unit", "AU-0999", "--registry", str(d / "reg-pq"), "--json")
+    assert p.returncode == 2 and "no unit AU-0999 in this run" in p.stderr and p.stdout == ""
+
+
+def test_fleet_counts_every_unit(chamber):
+    d, mcap, _, _ = chamber
+    single = simulate_units(SimConfig(unit_serial="AU-0400", program="short", rate_hz=2.0), 1)[0].units["AU-0400"]
+    write_run(dataclasses.replace(single, source=""), d / "fleet" / "single.mcap")
+    p = _cli("fleet", str(d / "fleet"), "--registry", str(d / "reg-fleet"), "--json")
+    assert p.returncode == 1, p.stderr  # a fleet with failed units
+    r = json.loads(p.stdout)
+    assert sorted(u["unit"] for u in r["done"]) == ["AU-0301", "AU-0304", "AU-0400"]
+    assert sorted(f["unit"] for f in r["failed"]) == ["AU-0302", "AU-0303"]
+    assert all(f["run"] == str(mcap.resolve()) for f in r["failed"])
+    again = json.loads(_cli("fleet", str(d / "fleet"), "--registry", str(d / "reg-fleet"), "--json").stdout)
+    assert sorted(s.get("unit") for s in again["skipped"] if s["why"] == "already processed") == [
+        "AU-0301",
+        "AU-0304",
+        "AU-0400",
+    ]
+
+
+def test_inspect_lists_each_unit_and_diagnose_one(chamber):
+    d, mcap, _, _ = chamber
+    p = _cli("inspect", str(mcap), "--json")
+    assert p.returncode == 0, p.stderr
+    r = json.loads(p.stdout)
+    assert [u["metadata"]["unit_serial"] for u in r["units"]] == list(GOOD)
+    assert {f["unit"] for f in r["failed"]} == {"AU-0302", "AU-0303"}
+    for u in r["units"]:
+        assert u["recording"]["method_auto"] == "tilt"
+        assert {m["method"] for m in u["recording"]["methods"]} >= {"tilt", "scalar"}
+        assert len(u["plateaus"]) >= 3 and len(u["static_positions"]) > 20
+    text = _cli("inspect", str(mcap)).stdout
+    assert "unit AU-0301:" in text and "unit AU-0302: not usable" in text
+    p = _cli("diagnose", str(mcap), "--unit", "AU-0304", "--json")
+    assert p.returncode == 0, p.stderr
+    assert json.loads(p.stdout)["verdict"] == "consistent"
+    assert (d / "fleet" / "chamber4.AU-0304.diagnose.png").exists()

@@ -1,0 +1,72 @@
+"""Segmentation of a run with several units (pipeline.segment_units): the still times once for the run, the same
+segments per unit as each unit alone; a unit turned on the table, or moving while the others hold still, is named
+with the position and the time."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import polars as pl
+import pytest
+
+from pipeline.run import UnitRuns
+from pipeline.segment import segment_run
+from pipeline.segment_units import _majority, segment_units
+from pipeline.simulate.chamber import SimConfig
+from pipeline.simulate.units import simulate_units
+
+
+@pytest.fixture(scope="module")
+def four():
+    return simulate_units(SimConfig(unit_serial="AU-0501", program="short", rate_hz=5.0), 4)[0]
+
+
+def test_majority_of_spans():
+    a = np.array([[0, 10], [20, 30]])
+    b = np.array([[2, 12], [25, 40]])
+    c = np.array([[5, 8]])
+    assert _majority([a, b, c], 3).tolist() == [[2, 10], [25, 30]]
+
+
+def test_same_segments_as_each_unit_alone(four):
+    """The segments a calibration uses (on a plateau or in its settling) are each unit's own, named alike, with the
+    same averages (a consensus break may cut a hold on a ramp once more: such pieces are not observations)."""
+    segs, warnings = segment_units(four.units)
+    assert warnings == []
+
+    def used(seg):
+        return [s for s in seg.segments if s.plateau is not None or s.settling is not None]
+
+    for serial, run in four.units.items():
+        alone = segment_run(run)
+        assert segs[serial].plateaus == alone.plateaus
+        a, b = used(segs[serial]), used(alone)
+        assert [(s.position, s.plateau, s.settling) for s in a] == [(s.position, s.plateau, s.settling) for s in b]
+        assert len(a) > 40
+        np.testing.assert_allclose([s.mean_v for s in a], [s.mean_v for s in b], atol=2e-6)
+
+
+def test_a_unit_that_disagrees_is_named(four):
+    u = four.units
+    v = u["AU-0503"].voltmeter
+    turned = dataclasses.replace(u["AU-0503"], voltmeter=v.with_columns(ux=-v["uy"], uy=v["ux"]))
+    segs, warnings = segment_units(UnitRuns.of_units([u["AU-0501"], u["AU-0502"], turned, u["AU-0504"]]).units)
+    assert len(warnings) == 1
+    assert warnings[0].startswith("unit AU-0503: its signal names") and "t_ns=" in warnings[0]
+    assert " where they hold TP" in warnings[0]
+    assert warnings[0] in segs["AU-0503"].warnings and not segs["AU-0501"].warnings
+
+    # AU-0502 shaken for 2 minutes in the middle of a hold, the others still
+    alone = segment_run(u["AU-0502"])
+    hold = max(alone.segments, key=lambda s: s.duration_s)
+    mid = (hold.t_start_ns + hold.t_end_ns) // 2
+    t = u["AU-0502"].voltmeter["t_ns"]
+    shake = ((t - mid).abs() < 60_000_000_000).cast(pl.Float64) * (t.cast(pl.Float64) * 1e-9 * 3.0).sin() * 0.05
+    shaken = dataclasses.replace(u["AU-0502"], voltmeter=u["AU-0502"].voltmeter.with_columns(ux=pl.col("ux") + shake))
+    segs, warnings = segment_units(UnitRuns.of_units([u["AU-0501"], shaken, u["AU-0503"], u["AU-0504"]]).units)
+    named = [w for w in warnings if w.startswith("unit AU-0502: not still in 1 of the")]
+    assert len(named) == 1 and "(fixture: " in named[0], warnings
+    # the others keep that hold; the shaken unit has no segment across the shaking
+    assert any(s.t_start_ns <= mid <= s.t_end_ns for s in segs["AU-0501"].segments)
+    assert not any(s.t_start_ns <= mid <= s.t_end_ns for s in segs["AU-0502"].segments)
