@@ -1,0 +1,187 @@
+"""Many units in one chamber run (issue 22): 16 units at 100 Hz over the standard program in one file, calibrated
+by ``thermocal calibrate`` (one passport per unit), side by side with the time to just decode the same file and
+with the same 16 units as 16 single-unit runs through ``thermocal fleet``.
+
+    .venv/bin/python benchmarks/multiunit.py [--units 16] [--rate-hz 100] [--encoding protobuf|json]
+                                             [--steps decode,calibrate,fleet] [--dir /tmp/thermocal-bench]
+
+Makes the runs once (``pipeline.simulate.units.simulate_units``) under ``--dir`` (not in git: ~2-3 GB): the
+16-unit file and the 16 single-unit files of the same units (same samples). Then each step in a fresh Python
+process, so that its peak RSS (``ru_maxrss``) is its own:
+
+- decode: ``pipeline.io.runs.read_units`` of the 16-unit file (every unit's streams decoded, the shared ones once):
+  the floor;
+- calibrate: the Prefect calibrate flow on the 16-unit file (``flows.calibrate.run_calibrate``, as ``thermocal
+  calibrate RUN``: read once, hashed once, segmented once, 16 passports into a fresh registry), after a warm-up
+  flow has started Prefect;
+- fleet: the fleet flow over the folder of 16 single-unit runs (``flows.fleet.run_fleet``, as ``thermocal fleet``,
+  2 worker processes), after the same warm-up; peak RSS: the flow process and the largest worker.
+
+Prints the load average, and a markdown table: wall and CPU seconds, peak RSS against the decoded samples
+(t_ns + 3 voltages, 8 bytes each, of every unit), the ratio to the decode floor, and chamber hours per unit.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+
+def make(directory: Path, units: int, rate_hz: float, encoding: str) -> tuple[Path, Path]:
+    """The multi-unit file and the folder of single-unit files (made once)."""
+    multi = directory / f"units{units}-{rate_hz:g}hz-{encoding}.mcap"
+    singles = directory / f"singles{units}-{rate_hz:g}hz-{encoding}"
+    if multi.exists() and singles.is_dir() and len(list(singles.glob("*.mcap"))) == units:
+        return multi, singles
+    import dataclasses
+
+    from pipeline.io.runs import write_run
+    from pipeline.simulate.chamber import SimConfig
+    from pipeline.simulate.units import simulate_units
+
+    t = time.perf_counter()
+    runs, _ = simulate_units(SimConfig(unit_serial="AU-1001", rate_hz=rate_hz), units)
+    print(f"simulated {units} units in {time.perf_counter() - t:.0f} s", file=sys.stderr)
+    t = time.perf_counter()
+    write_run(runs, multi, "mcap", encoding=encoding)
+    print(f"wrote {multi} ({multi.stat().st_size / 1e9:.2f} GB) in {time.perf_counter() - t:.0f} s", file=sys.stderr)
+    singles.mkdir(parents=True, exist_ok=True)
+    for serial, run in runs.units.items():
+        meta = dataclasses.replace(run.meta, run_id=f"{run.meta.run_id}-{serial}")
+        write_run(dataclasses.replace(run, meta=meta, source=""), singles / f"{serial}.mcap", "mcap", encoding=encoding)
+    print(f"wrote {units} single-unit runs in {singles}", file=sys.stderr)
+    return multi, singles
+
+
+def _warm_prefect() -> float:
+    from prefect import flow as prefect_flow
+
+    t = time.perf_counter()
+    prefect_flow(name="warm-up")(lambda: None)()
+    return time.perf_counter() - t
+
+
+def step_decode(path: Path) -> dict:
+    from pipeline.io.runs import read_units
+
+    got = read_units(path)
+    return {"units": len(got.units), "samples": sum(r.voltmeter.height for r in got.units.values())}
+
+
+def step_calibrate(path: Path) -> dict:
+    from flows.calibrate import run_calibrate
+    from pipeline.calibrate.settings import CalibrationSettings
+
+    warm = _warm_prefect()
+    _CLOCK.update(wall=time.perf_counter(), usage=resource.getrusage(resource.RUSAGE_SELF))
+    with tempfile.TemporaryDirectory() as registry:
+        r = run_calibrate([str(path)], registry, CalibrationSettings(), method="auto")
+    return {
+        "units": len(r["units"]),
+        "passed": sum(u["status"] == "pass" for u in r["units"]),
+        "failed": len(r["failed"]),
+        "prefect_warm_up_s": round(warm, 2),
+    }
+
+
+def step_fleet(folder: Path) -> dict:
+    from flows.fleet import run_fleet
+    from pipeline.calibrate.settings import CalibrationSettings
+
+    warm = _warm_prefect()
+    _CLOCK.update(wall=time.perf_counter(), usage=resource.getrusage(resource.RUSAGE_SELF))
+    with tempfile.TemporaryDirectory() as registry:
+        r = run_fleet(str(folder), registry, CalibrationSettings(), workers=2, pool="process", method="auto")
+    return {
+        "units": len(r["done"]),
+        "passed": sum(u["status"] == "pass" for u in r["done"]),
+        "failed": len(r["failed"]),
+        "prefect_warm_up_s": round(warm, 2),
+    }
+
+
+STEPS = {"decode": step_decode, "calibrate": step_calibrate, "fleet": step_fleet}
+_CLOCK: dict = {}
+
+
+def child(step: str, path: Path) -> None:
+    _CLOCK.update(wall=time.perf_counter(), usage=resource.getrusage(resource.RUSAGE_SELF))
+    out = STEPS[step](path)
+    wall = time.perf_counter() - _CLOCK["wall"]
+    r0, r1 = _CLOCK["usage"], resource.getrusage(resource.RUSAGE_SELF)
+    kids = resource.getrusage(resource.RUSAGE_CHILDREN)
+    out.update(
+        wall_s=round(wall, 2),
+        cpu_s=round(r1.ru_utime + r1.ru_stime - r0.ru_utime - r0.ru_stime + kids.ru_utime + kids.ru_stime, 1),
+        peak_rss_gb=round(r1.ru_maxrss / 2**20, 2),
+        peak_child_rss_gb=round(kids.ru_maxrss / 2**20, 2),
+    )
+    print(json.dumps(out))
+
+
+def measure(step: str, path: Path) -> dict:
+    proc = subprocess.run([sys.executable, __file__, "--child", step, str(path)], capture_output=True, text=True)
+    if proc.returncode:
+        raise SystemExit(f"{step} failed:\n{proc.stderr[-3000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--units", type=int, default=16)
+    ap.add_argument("--rate-hz", type=float, default=100.0)
+    ap.add_argument("--encoding", default="protobuf", choices=("protobuf", "json"))
+    ap.add_argument("--steps", default="decode,calibrate,fleet")
+    ap.add_argument("--dir", type=Path, default=Path("/tmp/thermocal-bench"))
+    ap.add_argument("--child", nargs=2, metavar=("STEP", "PATH"))
+    args = ap.parse_args()
+    if args.child:
+        child(args.child[0], Path(args.child[1]))
+        return
+    from pipeline.simulate.program import get_program
+
+    hours = get_program("standard").timetable().duration_s / 3600
+    args.dir.mkdir(parents=True, exist_ok=True)
+    multi, singles = make(args.dir, args.units, args.rate_hz, args.encoding)
+    load0 = os.getloadavg()
+    results = {s: measure(s, singles if s == "fleet" else multi) for s in args.steps.split(",")}
+    load1 = os.getloadavg()
+    samples = results.get("decode", {}).get("samples") or args.units * int(hours * 3600 * args.rate_hz)
+    decoded_gb = samples * 4 * 8 / 2**30
+    floor = results.get("decode", {}).get("wall_s")
+    print(
+        f"\n{args.units} units x {samples // args.units} voltmeter samples ({args.rate_hz:g} Hz, standard program "
+        f"{hours:.1f} h), MCAP {args.encoding} {multi.stat().st_size / 1e9:.2f} GB; decoded samples "
+        f"{decoded_gb:.2f} GB; 1-min load {load0[0]:.1f} at the start, {load1[0]:.1f} at the end; "
+        f"{os.cpu_count()} CPUs\n"
+    )
+    print(
+        "| step | units (pass) | wall s | CPU s | peak RSS GB | peak / decoded | wall / decode | chamber h per unit |"
+    )
+    print("|---|---:|---:|---:|---:|---:|---:|---:|")
+    n_units = args.units
+    names = {
+        "decode": f"decode the {n_units}-unit file (floor)",
+        "calibrate": f"calibrate the {n_units}-unit file (flow)",
+        "fleet": f"fleet of {n_units} single-unit runs (flow, 2 workers)",
+    }
+    for step, r in results.items():
+        peak = max(r["peak_rss_gb"], r.get("peak_child_rss_gb", 0.0))
+        n = r.get("units", args.units)
+        per_unit = hours / args.units if step != "fleet" else hours
+        print(
+            f"| {names[step]} | {n} ({r.get('passed', '-')}) | {r['wall_s']:.1f} | {r['cpu_s']:.1f} | {peak:.2f} | "
+            f"{peak / decoded_gb:.2f} | {r['wall_s'] / floor if floor else float('nan'):.2f} | {per_unit:.2f} |"
+        )
+    print("\n" + json.dumps(results))
+
+
+if __name__ == "__main__":
+    main()
