@@ -18,12 +18,17 @@ position and the time.
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 
 from pipeline.positions import MOVING
 from pipeline.run import NS_PER_S, Run
 from pipeline.segment import Segmentation, SegmentSettings, StaticStretches, segment_run, static_stretches
 
+#: threads segmenting units side by side (numpy's passes over the slabs release the GIL)
+THREADS = min(2, os.cpu_count() or 1)
 #: a unit is "not still" in a hold of the others when it is not still for longer than this many times the shortest
 #: static stretch inside it (a window or so at the edges of a hold differs from unit to unit)
 _NOT_STILL_MIN = 3.0
@@ -33,25 +38,34 @@ def segment_units(
     units: dict[str, Run], settings: SegmentSettings = SegmentSettings()
 ) -> tuple[dict[str, Segmentation], list[str]]:
     """Each unit's :class:`Segmentation`, and the run's warnings naming units that disagree (see the module doc).
-    One unit: its own :func:`segment_run`, no consensus."""
+    One unit: its own :func:`segment_run`, no consensus. The units' passes over their samples run in
+    :data:`THREADS` threads."""
     if len(units) < 2:
         return {s: segment_run(r, settings) for s, r in units.items()}, []
-    own = {s: static_stretches(r, settings) for s, r in units.items()}
+    with ThreadPoolExecutor(THREADS) as pool:
+        return _segment_units(units, settings, pool)
+
+
+def _segment_units(units: dict[str, Run], settings: SegmentSettings, pool) -> tuple[dict, list[str]]:
+    own = dict(zip(units, pool.map(lambda r: static_stretches(r, settings), units.values())))
     times = {s: r.t_ns() for s, r in units.items()}
     spans = {s: _spans_ns(times[s], st.stretches) for s, st in own.items()}
     min_ns = int(max(st.settings.static_min_s for st in own.values()) * NS_PER_S)
     consensus = _cut_at_moves(_majority(list(spans.values()), len(units)), _fixture_moves_ns(units))
     consensus = consensus[consensus[:, 1] - consensus[:, 0] >= min_ns]
     warnings: list[str] = []
-    segs: dict[str, Segmentation] = {}
-    for serial, run in units.items():
+
+    def unit_segmentation(serial: str) -> Segmentation:
         mine = _intersect(spans[serial], consensus)
         t = times[serial]
         i0 = np.searchsorted(t, mine[:, 0], side="left")
         i1 = np.searchsorted(t, mine[:, 1], side="right")
         keep = (i1 > i0) & (mine[:, 1] - mine[:, 0] >= int(own[serial].settings.static_min_s * NS_PER_S))
         stretches = [(int(a), int(b)) for a, b in zip(i0[keep], i1[keep])]
-        segs[serial] = segment_run(run, settings, StaticStretches(stretches, own[serial].bad, own[serial].settings))
+        return segment_run(units[serial], settings, StaticStretches(stretches, own[serial].bad, own[serial].settings))
+
+    segs: dict[str, Segmentation] = dict(zip(units, pool.map(unit_segmentation, units)))
+    for serial in units:
         line = _not_still(serial, spans[serial], consensus, units[serial], _NOT_STILL_MIN * min_ns)
         if line:
             warnings.append(line)
