@@ -126,11 +126,17 @@ def child(step: str, path: Path) -> None:
     print(json.dumps(out))
 
 
-def measure(step: str, path: Path) -> dict:
-    proc = subprocess.run([sys.executable, __file__, "--child", step, str(path)], capture_output=True, text=True)
+def measure(step: str, path: Path, prefect_home: Path) -> dict:
+    """One step in a fresh process (its own Prefect home: its own local server, started by the warm-up flow)."""
+    env = dict(os.environ, PREFECT_HOME=str(prefect_home / step))
+    proc = subprocess.run(
+        [sys.executable, __file__, "--child", step, str(path)], capture_output=True, text=True, env=env
+    )
     if proc.returncode:
         raise SystemExit(f"{step} failed:\n{proc.stderr[-3000:]}")
-    return json.loads(proc.stdout.strip().splitlines()[-1])
+    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    print(f"{step}: {json.dumps(out)} (1-min load {os.getloadavg()[0]:.1f})", file=sys.stderr, flush=True)
+    return out
 
 
 def main() -> None:
@@ -151,7 +157,8 @@ def main() -> None:
     args.dir.mkdir(parents=True, exist_ok=True)
     multi, singles = make(args.dir, args.units, args.rate_hz, args.encoding)
     load0 = os.getloadavg()
-    results = {s: measure(s, singles if s == "fleet" else multi) for s in args.steps.split(",")}
+    with tempfile.TemporaryDirectory(prefix="prefect-", dir=args.dir) as homes:
+        results = {s: measure(s, singles if s == "fleet" else multi, Path(homes)) for s in args.steps.split(",")}
     load1 = os.getloadavg()
     samples = results.get("decode", {}).get("samples") or args.units * int(hours * 3600 * args.rate_hz)
     decoded_gb = samples * 4 * 8 / 2**30
