@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -48,7 +48,7 @@ from pipeline.io.runs import (  # noqa: F401  (read_run_meta: part of this API)
 )
 from pipeline.passport.provenance import RunDigest, hash_run
 from pipeline.passport.registry import Registry, identity_key
-from pipeline.run import RunMeta
+from pipeline.run import Run, RunMeta
 
 #: A directory holding one of these is a Parquet run directory (docs/log-format.md).
 PARQUET_RUN_MARKERS = ("voltmeter.parquet", PARQUET_META_FILE)
@@ -208,9 +208,7 @@ def plan_fleet(
             if first is not item:
                 plan.skipped.append({"run": item["path"], "why": f"duplicate of {first['path']}", "unit": unit})
         kept = list(unique.values())
-        usable, dropped = resolve_run_ids(
-            [RunInput(i["path"], unit, i["run_id"]) for i in kept], lambda p, unit=unit: read_run(p, unit)
-        )
+        usable, dropped = resolve_run_ids([RunInput(i["path"], unit, i["run_id"]) for i in kept], _unit_reader(unit))
         if dropped:
             plan.failed += [{**f, "unit": unit} for f in dropped]
             paths_kept = {u.path for u in usable}
@@ -260,6 +258,15 @@ def plan_fleet(
             )
         )
     return plan
+
+
+def _unit_reader(unit: str) -> Callable[[str], Run]:
+    """Reads ``unit``'s run from a path (its own streams, in a run holding several units)."""
+
+    def read(path: str) -> Run:
+        return read_run(path, unit)
+
+    return read
 
 
 def _inspect_run(path: Path) -> tuple[tuple[list[RunMeta], bool] | None, RunDigest | Exception]:

@@ -242,7 +242,7 @@ def assemble_units(
             failed[serial] = e.one_line()
     for serial in sorted(per_unit.keys() - set(serials)):
         if only is None or serial in only:
-            first = min(int(df["t_ns"].min()) for df in per_unit[serial].values() if df.height)
+            first = min(int(df["t_ns"].to_numpy().min()) for df in per_unit[serial].values() if df.height)
             failed[serial] = RunFormatError(
                 f"samples of unit {serial}, which the metadata's {UNITS_KEY!r} does not list "
                 f"({meta_values.get(UNITS_KEY)!r})",

@@ -278,10 +278,6 @@ class _Channel:
     decode: Callable[[str, bytes | memoryview], dict[str, np.ndarray]] | None = None
     unit: str | None = None  # the unit whose own stream it is (run with several units); None: single or shared
 
-    @property
-    def key(self) -> tuple[str | None, str | None]:
-        return self.unit, self.stream
-
 
 class _McapRunReader:
     """One pass over one file: top-level walk (:meth:`_scan`), then the data records in file order."""
@@ -601,7 +597,7 @@ class _McapRunReader:
             if channel.unit is None:  # not a run topic (another unit's topic, when some units are wanted, is)
                 self.skipped.add(channel.topic)
             return
-        columns = self.columns[channel.key]
+        columns = self.columns[channel.unit, channel.stream]
         try:
             decoded = channel.decode(channel.stream, buf[start + _MESSAGE_HEAD.size : end])
         except BlockMismatch as exc:

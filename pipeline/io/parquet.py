@@ -124,7 +124,8 @@ def read_parquet_units(directory: str | Path, only: set[str] | None = None) -> U
         raise RunFormatError(f"not a Parquet run directory: {META_FILE} is missing", path=str(d))
     meta = _read_meta(meta_path)
     several = UNITS_KEY in meta
-    frames, per_unit = {}, {}
+    frames: dict[str, pl.DataFrame] = {}
+    per_unit: dict[str, dict[str, pl.DataFrame]] = {}
     for stream in STREAM_COLUMNS:
         f = d / f"{stream}.parquet"
         if f.exists():
@@ -183,7 +184,7 @@ def _read_unit_stream(path: Path, stream: str, only: set[str] | None) -> dict[st
             path=str(path),
             stream=stream,
         )
-    units = _canonical_column(df[UNIT_COLUMN], pl.String, path=str(path), stream=stream)
+    units = _canonical_column(df[UNIT_COLUMN], pl.String(), path=str(path), stream=stream)
     if units.null_count():
         raise RunFormatError(
             f"column {UNIT_COLUMN!r} is missing (null)",
