@@ -11,6 +11,9 @@ process, so that its peak RSS (``ru_maxrss``) is its own:
 
 - decode: ``pipeline.io.runs.read_units`` of the 16-unit file (every unit's streams decoded, the shared ones once):
   the floor;
+- floor-mcap: the ``mcap`` library's message iteration plus the plainest decode of each block (``numpy.frombuffer``
+  of the packed fields, as ``ingest_1khz.py``'s floor; ``--encoding protobuf`` only) and one concatenation per
+  column: the floor a plain reader of the same file has;
 - calibrate: the Prefect calibrate flow on the 16-unit file (``flows.calibrate.run_calibrate``, as ``thermocal
   calibrate RUN``: read once, hashed once, segmented once, 16 passports into a fresh registry), after a warm-up
   flow has started Prefect;
@@ -32,6 +35,8 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # ingest_1khz's floor decoder
 
 
 def make(directory: Path, units: int, rate_hz: float, encoding: str) -> tuple[Path, Path]:
@@ -107,7 +112,25 @@ def step_fleet(folder: Path) -> dict:
     }
 
 
-STEPS = {"decode": step_decode, "calibrate": step_calibrate, "fleet": step_fleet}
+def step_floor_mcap(path: Path) -> dict:
+    import numpy as np
+    from ingest_1khz import _packed_fields
+    from mcap.reader import make_reader
+
+    parts: dict[str, dict[int, list]] = {}
+    with open(path, "rb") as f:
+        for _, channel, message in make_reader(f).iter_messages():
+            if channel.topic == "/fixture":
+                continue
+            cols = parts.setdefault(channel.topic, {})
+            for field, values in _packed_fields(message.data, np):
+                cols.setdefault(field, []).append(values)
+    out = {topic: {k: np.concatenate(v) for k, v in cols.items()} for topic, cols in parts.items()}
+    volts = [cols for topic, cols in out.items() if topic.endswith("/voltmeter")]
+    return {"units": len(volts), "samples": sum(len(c[1]) for c in volts)}
+
+
+STEPS = {"decode": step_decode, "floor-mcap": step_floor_mcap, "calibrate": step_calibrate, "fleet": step_fleet}
 _CLOCK: dict = {}
 
 
@@ -176,6 +199,7 @@ def main() -> None:
     n_units = args.units
     names = {
         "decode": f"decode the {n_units}-unit file (floor)",
+        "floor-mcap": f"mcap library + frombuffer, the {n_units}-unit file",
         "calibrate": f"calibrate the {n_units}-unit file (flow)",
         "fleet": f"fleet of {n_units} single-unit runs (flow, 2 workers)",
     }
