@@ -53,17 +53,17 @@ def simulate(
         "through a temperature cycle) | handheld (36 hand-turned poses of "
         "3 s at 20 C; use ~100 Hz and --jitter-ms) | sweep (three "
         "orientations, the temperature drifting 5-25 C, no plateau) | fast (positions cycled on continuous "
-        "ramps +20 -> +70 -> -40 -> +20 C, 2.8 h) | a stepped program SETPOINT@SOAK_MIN:POSITIONS; ... "
+        "ramps +20 -> +70 -> -40 -> +20 C, 3.4 h) | a stepped program SETPOINT@SOAK_MIN:POSITIONS; ... "
         "(e.g. '20@0:TP; -40@0:TP; -10@0:VP; 20@0:TP+VP; 45@0:VP; 70@0:TP; 20@0:TP+VP')",
     ),
     ramp_c_per_min: float | None = typer.Option(
         None,
         "--ramp-c-per-min",
         metavar="C_PER_MIN",
-        help="ramp rate of the fast program (default 2) or a stepped program (default 1)",
+        help="ramp rate of the fast program (default 1.5) or a stepped program (default 1)",
     ),
     hold_s: float | None = typer.Option(
-        None, "--hold-s", help="hold of each position, s: fast program (default 120), stepped program (default 300)"
+        None, "--hold-s", help="hold of each position, s: fast program (default 240), stepped program (default 300)"
     ),
     move_s: float | None = typer.Option(
         None, "--move-s", help="move between positions, s: fast program or stepped program (default 20)"

@@ -61,11 +61,14 @@ class Fitted:
     and the thermal model the VP verification compensates with (``fit.skipped``: the fit's notes, also warnings);
     ``passport_fields``: the method's own fields of the passport (docs/contract.md: ``scalar``, ``differential``,
     ``rate_terms``...); ``settings_extra``: what the passport's identity depends on besides the settings and the
-    method (:attr:`pipeline.calibrate.result.CalibrationResult.settings_extra`)."""
+    method (:attr:`pipeline.calibrate.result.CalibrationResult.settings_extra`); ``observations``: the observations
+    the tail verifies and summarises when the fit made its own (the ramp method's holds at the element temperature
+    it fitted), None: the runs'."""
 
     fit: UnitFit
     passport_fields: dict[str, Any] = field(default_factory=dict)
     settings_extra: dict[str, Any] = field(default_factory=dict)
+    observations: list[Observation] | None = None
 
 
 class Method(ABC):
@@ -130,7 +133,9 @@ class Method(ABC):
         :meth:`verification_notes`."""
         unit_fit = fitted.fit
         meta = observed[0].meta
-        observations = [o for r in observed for o in r.observations]
+        observations = (
+            fitted.observations if fitted.observations is not None else [o for r in observed for o in r.observations]
+        )
         rows, status = verify_unit(unit_fit.model, observations, unit_fit.normal_temp_c, settings.tolerances)
         run_warnings = [w for r in observed for w in r.warnings]
         status, implausible = assess(unit_fit, status, meta.nominal_gain_v_per_g, run_warnings)

@@ -31,6 +31,7 @@ BUILTIN: dict[str, str] = {
     "tilt": "pipeline.calibrate.tilt",
     "scalar": "pipeline.calibrate.scalar",
     "differential": "pipeline.calibrate.differential",
+    "ramp": "pipeline.calibrate.ramp",
 }
 _loaded: dict[str, Method] = {}  # the methods imported or registered so far, by name
 

@@ -72,7 +72,7 @@ def inbox(tmp_path_factory):
 
 def test_built_in_methods_and_the_passport_schema():
     """The built-in methods by name, in order; the passport schema's ``method`` lists each one's passport method."""
-    assert methods.names() == ("tilt", "scalar", "differential")
+    assert methods.names() == ("tilt", "scalar", "differential", "ramp")
     assert [m.name for m in methods.all_methods()] == list(methods.names())
     assert methods.passport_methods_with_base() == ("differential",)
     schema = json.loads((REPO / "schemas" / "thermocal.passport.json").read_text())
@@ -84,13 +84,15 @@ def test_a_fourth_method_is_seen_by_inspect_auto_the_command_line_and_the_fleet(
 
     run = read_run(inbox / "short.mcap")
     seg = segment_run(run)
-    assert methods.names() == ("tilt", "scalar", "differential", "nominal")
+    assert methods.names() == ("tilt", "scalar", "differential", "ramp", "nominal")
     check_method("nominal")  # the command line's --method takes it
-    with pytest.raises(ThermocalError, match=r"unknown method 'sweep' \(auto, tilt, scalar, differential, nominal\)"):
+    with pytest.raises(
+        ThermocalError, match=r"unknown method 'sweep' \(auto, tilt, scalar, differential, ramp, nominal\)"
+    ):
         check_method("sweep")
 
     rec = describe_recording(run, seg)  # inspect lists it first (the most preferred) and auto takes it
-    assert [m["method"] for m in rec["methods"]] == ["nominal", "tilt", "differential", "scalar"]
+    assert [m["method"] for m in rec["methods"]] == ["nominal", "tilt", "differential", "ramp", "scalar"]
     assert rec["methods"][0] == {
         "method": "nominal",
         "supported": True,
@@ -130,7 +132,7 @@ def _support(supported: bool, preference: float, insists: str | None = None) -> 
 
 
 def test_auto_takes_the_first_supported_or_insisting_method():
-    a, b, c = (methods.by_name(n) for n in methods.names())
+    a, b, c = (methods.by_name(n) for n in methods.names()[:3])
     assert methods.auto_choice([(a, _support(False, 3)), (b, _support(True, 2)), (c, _support(True, 1))])[0] is b
     insisting = _support(False, 2, insists="the fixture log says so")
     assert methods.auto_choice([(a, _support(False, 3)), (b, insisting), (c, _support(True, 1))])[0] is b

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.calibrate import differential, scalar, tilt
+from pipeline.calibrate import differential, ramp, scalar, tilt
 from pipeline.calibrate.fleet import ALREADY_PROCESSED, calibrate_group, plan_fleet
 from pipeline.calibrate.methods import base_passport_of, by_name, names
 from pipeline.calibrate.settings import CalibrationSettings
@@ -56,15 +56,15 @@ def _fleet(inbox: Path, registry: Path, method: str) -> tuple:
 
 def test_methods_share_one_interface():
     """Each recipe module's functions are its method's (one implementation each)."""
-    assert names() == ("tilt", "scalar", "differential")
-    for name, module in zip(names(), (tilt, scalar, differential)):
+    assert names() == ("tilt", "scalar", "differential", "ramp")
+    for name, module in zip(names(), (tilt, scalar, differential, ramp)):
         m = by_name(name)
         assert m is module.CALIBRATION_METHOD and m.passport_method == module.METHOD
         assert module.observe == m.observe and module.calibrate_observed == m.calibrate_observed
         assert module.calibrate == m.calibrate
-    assert [by_name(n).passport_method for n in names()] == ["tilt_six_position", "scalar", "differential"]
-    assert [by_name(n).uses_base_passport for n in names()] == [False, False, True]
-    with pytest.raises(CalibrationError, match="unknown method 'sweep' \\(tilt, scalar, differential\\)"):
+    assert [by_name(n).passport_method for n in names()] == ["tilt_six_position", "scalar", "differential", "ramp"]
+    assert [by_name(n).uses_base_passport for n in names()] == [False, False, True, False]
+    with pytest.raises(CalibrationError, match="unknown method 'sweep' \\(tilt, scalar, differential, ramp\\)"):
         by_name("sweep")
 
 

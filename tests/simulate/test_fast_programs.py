@@ -65,7 +65,7 @@ def test_bad_stepped_programs(spec, says):
 def test_the_fast_program_cycles_positions_on_ramps_up_and_down():
     prog = fast_program()
     tt = prog.timetable()
-    assert tt.duration_s == pytest.approx(220 * 30.0 + 2 * 1800.0)  # 2.83 h: 17 % of the standard program
+    assert tt.duration_s == pytest.approx(220 / 1.5 * 60.0 + 2 * 1800.0)  # 3.44 h: 21 % of the standard program
     assert tt.duration_s < standard_program().timetable().duration_s / 4
     assert {s.kind for s in tt.segments} == {"hold", "move"}  # the fixture never stops turning
     holds, moves = tt.holds(), tt.moves()
@@ -74,21 +74,22 @@ def test_the_fast_program_cycles_positions_on_ramps_up_and_down():
     assert [h.position for h in holds] == [names[k % 12] for k in range(len(holds))]
     assert all(m.t_end_s - m.t_start_s == 20.0 for m in moves)
     lengths = np.array([h.t_end_s - h.t_start_s for h in holds])
-    assert np.all(lengths >= 120.0) and np.all(lengths < 2 * 120.0 + 20.0)
-    assert np.sum(lengths > 120.0) <= len(prog.stages)  # only the last hold of a stage is stretched to its end
+    assert np.all(lengths >= 240.0 - 1e-6) and np.all(lengths < 2 * 240.0 + 20.0)
+    assert np.sum(lengths > 240.0 + 1e-6) <= len(prog.stages)  # only the last hold of a stage is stretched to its end
     t = np.arange(0.0, tt.duration_s, 30.0)
     sp = tt.setpoint_c(t)
     assert sp.max() == pytest.approx(70.0) and sp.min() == pytest.approx(-40.0)
     # every setpoint between the ends passed heating and cooling, each position held on both legs
     rate = np.diff(sp) / np.diff(t) * 60.0
-    assert np.all(np.abs(rate) <= 2.0 + 1e-9) and np.isclose(np.abs(rate), 2.0).mean() > 0.6
+    assert np.all(np.abs(rate) <= 1.5 + 1e-9) and np.isclose(np.abs(rate), 1.5).mean() > 0.6
     sign = tt.ramp_sign((t[1:] + t[:-1]) / 2)
-    assert np.all(sign[rate > 0.1] == 1.0) and np.all(sign[rate < -0.1] == -1.0)
+    full = np.isclose(np.abs(rate), 1.5)  # intervals wholly inside a ramp
+    assert np.all(sign[full & (rate > 0)] == 1.0) and np.all(sign[full & (rate < 0)] == -1.0)
     mid = np.array([(h.t_start_s + h.t_end_s) / 2 for h in holds])
     leg = tt.ramp_sign(mid)
     for p in names:
         on = np.array([h.position == p for h in holds])
-        assert (on & (leg > 0)).sum() >= 2 and (on & (leg < 0)).sum() >= 2
+        assert (on & (leg > 0)).sum() >= 1 and (on & (leg < 0)).sum() >= 1
     # other ends, rate and timing; a tour that only stays
     short = fast_program(low_c=0.0, high_c=40.0, rate_c_per_min=4.0, dwell_s=0.0, hold_s=60.0, move_s=10.0)
     assert short.timetable().duration_s == pytest.approx(80 / 4 * 60.0) and len(short.stages) == 3
