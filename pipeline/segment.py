@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 import polars as pl
 
+from pipeline.io.checks import gap_indices as reader_gap_indices
 from pipeline.model import vector3
 from pipeline.positions import (
     ALL_POSITIONS,
@@ -550,8 +551,9 @@ def find_static(t_ns: np.ndarray, u_v, settings: SegmentSettings = SegmentSettin
     ``u_v`` (V) is an (n, 3) array, three 1-D columns (numpy arrays or polars Series) or :class:`Channels`; it is
     read a slab at a time. A sample is static when the window of ``static_window_s`` around it has every channel's
     standard deviation below :func:`static_threshold_v` and the sample is finite. Stretches interrupted only by
-    non-finite samples for less than a window are joined; stretches shorter than ``static_min_s`` are dropped. Not
-    trimmed, not cut at plateaus.
+    non-finite samples for less than a window are joined; no stretch spans a gap in time longer than half a window
+    (:func:`gap_indices`: the windows either side of it do not see what happened in it); stretches shorter than
+    ``static_min_s`` are dropped. Not trimmed, not cut at plateaus.
     """
     return _static_and_bad(
         np.asarray(t_ns, dtype=np.int64), u_v if isinstance(u_v, Channels) else Channels(u_v), settings
@@ -630,9 +632,49 @@ def _static_at(t_ns: np.ndarray, ch: Channels, settings: SegmentSettings) -> tup
     keep_start = np.concatenate(([True], ~join))
     keep_end = np.concatenate((~join, [True]))
     runs = np.column_stack((runs[keep_start, 0], runs[keep_end, 1]))
+    # no stretch spans a gap longer than half a window: the windows either side of it do not see across it
+    runs = split_runs(runs, gap_indices(t_ns, settings.static_window_s / 2) + 1)
     dur_ns = t_ns[runs[:, 1] - 1] - t_ns[runs[:, 0]]
     runs = runs[dur_ns >= settings.static_min_s * _NS]
     return [(int(a), int(b)) for a, b in runs], bad
+
+
+def gap_indices(t_ns, min_gap_s: float) -> np.ndarray:
+    """Indices ``i`` of the sorted times ``t_ns`` (ns) after which comes a gap the segmenter does not look across:
+    ``t_ns[i + 1] - t_ns[i]`` longer than ``min_gap_s`` and than the readers' gap (``GAP_FACTOR`` median
+    intervals, :func:`pipeline.io.checks.gap_indices`: every gap cut here is one ``inspect`` lists)."""
+    t_ns = np.asarray(t_ns, dtype=np.int64)
+    if t_ns.size < 2:
+        return np.empty(0, dtype=np.intp)
+    readers = reader_gap_indices(t_ns)
+    if not readers.size:
+        return readers
+    return readers[t_ns[readers + 1] - t_ns[readers] > np.int64(min_gap_s * _NS)]
+
+
+def gap_spans(t_ns, min_gap_s: float) -> np.ndarray:
+    """The gaps of :func:`gap_indices` as (k, 2) int64 ns: the last sample before and the first after each."""
+    t_ns = np.asarray(t_ns, dtype=np.int64)
+    i = gap_indices(t_ns, min_gap_s)
+    return np.column_stack((t_ns[i], t_ns[i + 1])) if i.size else np.zeros((0, 2), dtype=np.int64)
+
+
+def split_runs(runs: np.ndarray, starts: np.ndarray) -> np.ndarray:
+    """Index ranges ``runs`` ((k, 2), [i0, i1)) split where a piece must begin: at each of the sorted indices
+    ``starts`` strictly inside a range (the first sample after a gap)."""
+    runs = np.asarray(runs, dtype=np.int64).reshape(-1, 2)
+    starts = np.asarray(starts, dtype=np.int64)
+    if not runs.size or not starts.size:
+        return runs
+    lo = np.searchsorted(starts, runs[:, 0], side="right")
+    hi = np.searchsorted(starts, runs[:, 1], side="left")
+    if not np.any(hi > lo):
+        return runs
+    pieces = []
+    for (a, b), j0, j1 in zip(runs, lo, hi):  # per range (a few hundred), not per sample
+        bounds = np.concatenate(([a], starts[j0:j1], [b]))
+        pieces.append(np.column_stack((bounds[:-1], bounds[1:])))
+    return np.concatenate(pieces)
 
 
 def finite_rows(x: np.ndarray) -> np.ndarray:
