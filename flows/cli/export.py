@@ -1,5 +1,5 @@
 """``thermocal export UNIT [V] --format px4|ardupilot|csv``: a passport in a format flight software or a
-spreadsheet loads."""
+spreadsheet loads; ``--compare PARAMS_FILE``: a vehicle's existing temperature calibration against the passport."""
 
 from __future__ import annotations
 
@@ -13,6 +13,18 @@ from pipeline.errors import ThermocalError
 from .app import REGISTRY_HELP, UNIT_HELP, JsonFlag, app, emit
 
 
+def _device_id(text: str | None) -> int | None:
+    """``--px4-device-id``: decimal or 0x-hexadecimal."""
+    if text is None:
+        return None
+    try:
+        return int(text.strip(), 0)
+    except ValueError:
+        raise ThermocalError(
+            f"{text!r} is not a device id (a number, decimal or 0x hexadecimal)", where="--px4-device-id"
+        ) from None
+
+
 @app.command()
 def export(
     unit: str = typer.Argument(..., metavar="UNIT", help=UNIT_HELP),
@@ -22,23 +34,79 @@ def export(
         help="version number (default: the unit's current passport: its newest approved version, else its newest)",
     ),
     registry: Path = typer.Option(..., "--registry", help=REGISTRY_HELP),
-    fmt: str = typer.Option(
-        ...,
+    fmt: str | None = typer.Option(
+        None,
         "--format",
-        help="px4 (TC_A0_* parameters) | ardupilot (INS_TCAL1_* parameters) | csv (every constant and coefficient)",
+        help="px4 (TC_A<K>_* parameters, a QGroundControl file) | ardupilot (INS_TCAL<K>_* parameters) | csv (every "
+        "constant and coefficient); with --compare, the firmware is read from the file",
     ),
     out: Path | None = typer.Option(None, "--out", help="write the file here (default: print it)"),
+    px4_device_id: str | None = typer.Option(
+        None,
+        "--px4-device-id",
+        metavar="N",
+        help="PX4: the device id of the accelerometer to correct (its CAL_ACC<n>_ID, or device_id in 'listener "
+        "sensor_accel'); written as TC_A<K>_ID with TC_A_ENABLE 1. Without it the file corrects nothing",
+    ),
+    instance: int | None = typer.Option(
+        None,
+        "--instance",
+        metavar="K",
+        help="PX4: the parameter slot TC_A<K>_* (0..3, default 0); ArduPilot: the IMU INS_TCAL<K>_* (1..3, or 4, 5 "
+        "for INS4_/INS5_TCAL_*; default 1)",
+    ),
+    set_caltemp: bool = typer.Option(
+        False,
+        "--set-caltemp",
+        help="ArduPilot: also write INS_ACC<K>_CALTEMP = the passport's T0 (it belongs to the vehicle's own "
+        "accelerometer calibration, which writes it: only when the vehicle's accelerometer offsets and scales are "
+        "this passport's T0 constants)",
+    ),
+    rotation: str | None = typer.Option(
+        None,
+        "--rotation",
+        metavar="R",
+        help="the unit's axes in the firmware's accelerometer frame: a rotation name of the firmware (e.g. "
+        "ROTATION_ROLL_180, ROTATION_YAW_90) or its number, or nine numbers 'r11,r12,...,r33' (the matrix taking "
+        "the unit's x, y, z into the IMU's axes, row by row); default: they are the same",
+    ),
+    compare: Path | None = typer.Option(
+        None,
+        "--compare",
+        metavar="PARAMS_FILE",
+        help="evaluate a vehicle's existing PX4 or ArduPilot temperature calibration (a parameter file as "
+        "QGroundControl or MAVProxy saves it) against the passport over its valid range: the largest difference "
+        "per axis, micro-g; writes nothing",
+    ),
     as_json: JsonFlag = False,
 ):
-    """The passport in a format flight software or a spreadsheet loads, with what the format cannot hold and the
-    error that leaves over the passport's valid temperature range."""
-    from pipeline.passport.export import export_passport
+    """The passport in a format flight software or a spreadsheet loads, with the steps left to you on the vehicle,
+    what the format cannot hold and the error that leaves over the passport's valid temperature range."""
+    from pipeline.passport.export import ExportOptions, compare_params, compare_text, export_passport
+    from pipeline.passport.firmware import read_params_file
     from pipeline.passport.registry import Registry
 
+    if compare is None and fmt is None:
+        raise ThermocalError("give --format px4|ardupilot|csv (or --compare PARAMS_FILE)", where="--format")
+    if compare is not None and out is not None:
+        raise ThermocalError("--compare writes nothing: leave out --out", where="--compare")
+    options = ExportOptions(_device_id(px4_device_id), instance, set_caltemp, rotation)
     doc, state = Registry(registry).load_state(unit, version)
-    exp = export_passport(doc, fmt, state=state)
+    if compare is not None:
+        params = read_params_file(compare)
+        result = compare_params(doc, params, fmt=fmt, options=options, path=str(compare))
+        if state.warning():
+            print(f"thermocal: warning: comparison with {state.warning()}", file=sys.stderr)
+        emit({**result, "passport_used": state.as_dict()}, as_json, compare_text(result, str(compare), state.text()))
+        return
+    assert fmt is not None
+    exp = export_passport(doc, fmt, state=state, options=options)
     if state.warning():
         print(f"thermocal: warning: export of {state.warning()}", file=sys.stderr)
+    for line in exp.warnings:
+        print(f"thermocal: warning: {line}", file=sys.stderr)
+    if exp.order:
+        print(f"thermocal: {exp.order}", file=sys.stderr)
     if out is not None:
         try:
             out.write_text(exp.text)
@@ -58,11 +126,4 @@ def export(
         sys.stdout.write(exp.text)
         sys.stdout.flush()
     else:
-        res = exp.residual
-        tail = (
-            f"; not held: scale/cross-axis temperature terms, worst {res['total_worst_ug']:.0f} micro-g over "
-            f"{exp.valid_temp_c[0]:g}..{exp.valid_temp_c[1]:g} C"
-            if res
-            else ""
-        )
-        emit(None, False, f"wrote {out} ({fmt}, {state.text()}){tail}")
+        emit(None, False, exp.summary_text(str(out), state.text()))
