@@ -9,8 +9,9 @@ axis, no cross-axis terms) made at a calibration temperature Tc, in the firmware
 
 - PX4 (``TemperatureCompensation``): only with ``TC_A_ENABLE`` 1; the slot k of 0..3 whose ``TC_A<k>_ID`` (an int32
   parameter, compared as unsigned 32-bit) equals the accelerometer's device id, none for no match; float32
-  ``dT = clamp(T, TMIN, TMAX) - TREF``, ``offset = X3 dT^3 + X2 dT^2 + X1 dT + X0``, subtracted; new offsets only
-  when T moved more than 1 C since the last ones.
+  ``dT = clamp(T, TMIN, TMAX) - TREF``, ``offset = X0 + X1 dT + X2 dT^2 + X3 dT^3`` (summed in that order,
+  ``dT^2 = dT dT``, ``dT^3 = dT^2 dT``), subtracted; new offsets published only when T moved more than 1 C since the
+  last publication (the first reading publishes).
 - ArduPilot (``AP_InertialSensor_tempcal``): only with ``INS_TCAL<n>_ENABLE`` 1; float32 ``p(x) = (c1 + (c2 + c3 x)
   x) x 1e-6`` (``c_k = ACC<k>_*``); ``v - p(T' - 35) + p(Tc' - 35)``, T' and Tc' (``INS_ACC<n>_CALTEMP``) clamped
   to [TMIN, TMAX]; IMUs 4 and 5 named ``INS<n>_TCAL_*``, ``INS<n>_ACC_CALTEMP``.
@@ -107,8 +108,8 @@ def px4_offsets(params: dict, device_id: int, temps, *, step_c: float | None = N
         dt = (tmax - tref) if t > tmax else (tmin - tref) if t < tmin else (t - tref)
         dt2 = dt * dt
         dt3 = dt2 * dt
-        return [F32(p.get(f"X3_{i}", 0)) * dt3 + F32(p.get(f"X2_{i}", 0)) * dt2 + F32(p.get(f"X1_{i}", 0)) * dt
-                + F32(p.get(f"X0_{i}", 0)) for i in range(3)]  # fmt: skip
+        return [F32(p.get(f"X0_{i}", 0)) + F32(p.get(f"X1_{i}", 0)) * dt + F32(p.get(f"X2_{i}", 0)) * dt2
+                + F32(p.get(f"X3_{i}", 0)) * dt3 for i in range(3)]  # fmt: skip
 
     out, last_t, last = [], None, None
     for t in temps:
