@@ -27,21 +27,32 @@ def sigma_of(passport: dict, name: str) -> float | None:
     """The standard uncertainty a passport records for the diff entry ``name`` (``K.xy``, ``U0.z``,
     ``alpha.x[2]``, ``segments[0].beta.yy``, ``rate_terms.alpha_rate.x[1][0]``, ``rate_terms.cross_axis_abs.xy[2]``),
     in the entry's own unit; None when it records none."""
-    unc = passport.get("uncertainty") or {}
+    return _number_at(passport.get("uncertainty") or {}, name)
+
+
+def value_of(passport: dict, name: str) -> float | None:
+    """The passport's value of the diff entry ``name`` (the names of :func:`sigma_of`), in the entry's own unit;
+    None when it has none."""
+    return _number_at(passport, name)
+
+
+def _number_at(block: dict, name: str) -> float | None:
+    """The number named ``name`` in a passport (``block`` the passport) or its ``uncertainty`` block, which mirrors
+    the passport's ``coefficients``, ``thermal_model`` and ``rate_terms``."""
     ax = "xyz"
     try:
         m = _CONST.match(name)
         if m:
-            c = unc["coefficients"]
+            c = block["coefficients"]
             value = c["K"][ax.index(m.group(2))][ax.index(m.group(3))] if m.group(1) else c["U0"][ax.index(m.group(5))]
         elif m := _POLY.match(name):
-            value = unc["thermal_model"][m.group(1)][m.group(2)][int(m.group(3)) - 1]
+            value = block["thermal_model"][m.group(1)][m.group(2)][int(m.group(3)) - 1]
         elif m := _PIECE.match(name):
-            value = unc["thermal_model"]["segments"][int(m.group(1))][m.group(2)][m.group(3)]
+            value = block["thermal_model"]["segments"][int(m.group(1))][m.group(2)][m.group(3)]
         elif m := _RATE.match(name):
-            value = unc["rate_terms"][m.group(1)][m.group(2)][int(m.group(3)) - 1][int(m.group(4))]
+            value = block["rate_terms"][m.group(1)][m.group(2)][int(m.group(3)) - 1][int(m.group(4))]
         elif m := _CROSS_ABS.match(name):
-            value = unc["rate_terms"]["cross_axis_abs"][m.group(1)][int(m.group(2)) - 1]
+            value = block["rate_terms"]["cross_axis_abs"][m.group(1)][int(m.group(2)) - 1]
         else:
             return None
     except (KeyError, IndexError, TypeError, ValueError):

@@ -1,0 +1,108 @@
+"""``thermocal trends`` on a large registry, side by side with just listing and reading it.
+
+    .venv/bin/python benchmarks/trends.py [--units 1000] [--versions 5] [--registry DIR] [--workers 2]
+
+Writes (unless ``--registry`` names one already written by this script) a registry of ``--units`` simulated units
+of seed 000's type with ``--versions`` passports each, 120 days apart, through the registry's one writing path
+(:func:`pipeline.simulate.history.write_fleet`: signed, hash-chained; ``--workers`` processes, units split between
+them), with two units drifting and one outlier planted. Then times (wall and CPU seconds, best of ``--repeat``):
+
+- ``list+read``: the floor: list the units, read every version file's bytes and parse its JSON;
+- ``verified read``: every unit's versions after the registry's verification (the verification trends
+  relies on: hashes, signature, parent link), as :func:`pipeline.passport.trends.read_fleet`;
+- ``analyse``: drift, unsteady and outlier tests on what was read (:func:`pipeline.passport.trends.analyse`);
+- ``trends``: the whole of :func:`pipeline.passport.trends.fleet_trends` (what the command runs).
+
+Prints a markdown table, what was found and the machine's load average (the machine may be shared).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing
+import os
+import tempfile
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+from pipeline.passport.registry import Registry
+from pipeline.passport.trends import analyse, fleet_trends, read_fleet
+from pipeline.simulate.history import FleetSpec, Plant, write_fleet
+
+PLANTS = {
+    "AU-0017": Plant(u0_rate_v_per_year=(1.2e-4, 0.0, 0.0)),
+    "AU-0101": Plant(gain_rate_rel_per_year=(0.0, 0.0, 2e-4)),
+    "AU-0333": Plant(u0_offset_v=(0.0, 0.06, 0.0)),
+}
+
+
+def _write(root: str, spec: FleetSpec, serials: list[str]) -> int:
+    return sum(write_fleet(root, spec, only=set(serials)).values())
+
+
+def make_registry(root: Path, units: int, versions: int, workers: int) -> float:
+    """Write the registry (units split between ``workers`` spawned processes); returns the wall seconds."""
+    spec = FleetSpec(units=units, versions=versions, plants=PLANTS)
+    serials = spec.serials()
+    chunks = [serials[i::workers] for i in range(workers)]
+    t = time.perf_counter()
+    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+        written = sum(pool.map(_write, [str(root)] * workers, [spec] * workers, chunks))
+    assert written == units * versions, written
+    return time.perf_counter() - t
+
+
+def list_and_read(root: Path) -> int:
+    reg = Registry(root)
+    n = 0
+    for unit in reg.units():
+        for path in sorted(reg.unit_dir(unit).glob("v*.json")):
+            json.loads(path.read_bytes())
+            n += 1
+    return n
+
+
+def best(fn, repeat: int):
+    walls, cpus, out = [], [], None
+    for _ in range(repeat):
+        w, c = time.perf_counter(), time.process_time()
+        out = fn()
+        walls.append(time.perf_counter() - w)
+        cpus.append(time.process_time() - c)
+    return min(walls), min(cpus), out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--units", type=int, default=1000)
+    ap.add_argument("--versions", type=int, default=5)
+    ap.add_argument("--registry", type=Path, default=None, help="a registry this script wrote before (reused)")
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--repeat", type=int, default=2)
+    args = ap.parse_args()
+    root = args.registry or Path(tempfile.mkdtemp(prefix="trends-bench-")) / "registry"
+    if not root.is_dir():
+        wrote = make_registry(root, args.units, args.versions, args.workers)
+        print(f"wrote {args.units} units x {args.versions} versions in {wrote:.0f} s ({root})", flush=True)
+    rows = []
+    w, c, n = best(lambda: list_and_read(root), args.repeat)
+    rows.append(("list+read (floor)", w, c))
+    w, c, fleet = best(lambda: read_fleet(Registry(root)), args.repeat)
+    rows.append(("verified read", w, c))
+    w, c, _ = best(lambda: analyse(fleet), args.repeat)
+    rows.append(("analyse", w, c))
+    w, c, result = best(lambda: fleet_trends(root), args.repeat)
+    rows.append(("trends (verified read + analyse)", w, c))
+    print(f"\n{len(fleet)} units, {n} versions; best of {args.repeat}; load average {os.getloadavg()[0]:.1f}\n")
+    print("| step | wall s | CPU s | x floor (wall) |\n|---|---:|---:|---:|")
+    floor = rows[0][1]
+    for name, w, c in rows:
+        print(f"| {name} | {w:.2f} | {c:.2f} | {w / floor:.1f} |")
+    r = result.report
+    print("\nfound:", {k: [(e["unit"], e["constant"]) for e in r[k]] for k in ("drifting", "unsteady", "outliers")})
+
+
+if __name__ == "__main__":
+    main()
