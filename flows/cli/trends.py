@@ -1,10 +1,13 @@
-"""``thermocal trends --registry DIR``: the fleet over time (docs/contract.md "trends")."""
+"""``thermocal trends --registry DIR [--html FILE]``: the fleet over time (docs/contract.md "trends")."""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import typer
+
+from pipeline.errors import ThermocalError
 
 from .app import REGISTRY_HELP, JsonFlag, app, emit
 
@@ -12,13 +15,30 @@ from .app import REGISTRY_HELP, JsonFlag, app, emit
 @app.command()
 def trends(
     registry: Path = typer.Option(..., "--registry", help=REGISTRY_HELP),
+    html: Path | None = typer.Option(
+        None, "--html", help="also write the findings as one HTML page with a figure per finding"
+    ),
     as_json: JsonFlag = False,
 ):
     """The fleet over time: constants drifting across a unit's passports (and when they reach the grade's limit),
     units far from the fleet of their type. Exit status 1 when a unit's passports did not all verify."""
     from pipeline.passport.trends import fleet_trends, trends_text
 
-    report = fleet_trends(registry).report
-    emit(report, as_json, trends_text(report))
+    result = fleet_trends(registry)
+    report = result.report
+    text = trends_text(report)
+    if html is not None:
+        from pipeline.passport.trends_page import trends_html
+
+        page = trends_html(result, registry=str(registry))
+        try:
+            html.parent.mkdir(parents=True, exist_ok=True)
+            tmp = html.with_name(f".{html.name}.tmp")
+            tmp.write_text(page, encoding="utf-8")
+            os.replace(tmp, html)
+        except OSError as e:
+            raise ThermocalError(f"cannot write the page ({e.strerror or e})", path=str(html)) from None
+        text += f"\npage: {html}"
+    emit(report, as_json, text)
     if report["not_verified"]:
         raise typer.Exit(1)

@@ -245,3 +245,39 @@ def test_command_json_text_and_exit_status(planted, monkeypatch, capsys, tmp_pat
     assert "AU-0007 v4 U0.z: " in out
     code, out, err = run_main(monkeypatch, capsys, "trends", "--registry", str(tmp_path / "none"))
     assert (code, out) == (2, "") and err.count("\n") == 1 and "no registry here" in err
+
+
+@pytest.mark.slow  # a headless browser
+def test_page_renders_a_table_per_kind_and_a_figure_per_finding(planted, monkeypatch, capsys, tmp_path):
+    """``trends --html``: the page of the planted fleet, rendered by headless Chromium: its 7 figures (2 drifting,
+    1 unsteady, 4 outliers) decode (natural size > 0), its 3 tables hold one row per finding."""
+    import re
+    import subprocess
+    import tempfile
+    from pathlib import Path
+
+    from pipeline.passport.report import chromium_args
+    from tests.conftest import run_main
+    from tests.passport.test_report import CHROMIUM, _probe
+
+    if not Path(CHROMIUM).exists():
+        pytest.fail("Chromium is not installed (apt-get install chromium): the page cannot be rendered")
+    page = tmp_path / "trends.html"
+    code, out, err = run_main(monkeypatch, capsys, "trends", "--registry", str(planted["root"]), "--html", str(page))
+    assert code == 0 and err == "" and out.rstrip().endswith(f"page: {page}")
+    text = page.read_text()
+    assert text.count("<table>") == 3 and "<script" not in text
+    rows = [t.count("<tr>") - 1 for t in text.split("<table>")[1:]]
+    assert rows == [2, 1, 4]
+    with tempfile.TemporaryDirectory() as profile:
+        dom = subprocess.run(
+            [CHROMIUM, *chromium_args(profile), "--virtual-time-budget=10000", "--dump-dom", _probe(page).as_uri()],
+            capture_output=True,
+            text=True,
+            timeout=180,
+        )
+    assert dom.returncode == 0, dom.stderr[-2000:]
+    m = re.search(r'data-images="([^"]*)"', dom.stdout)
+    assert m, dom.stdout[:500]
+    images = json.loads(m.group(1).replace("&quot;", '"'))
+    assert len(images) == 7 and all(done and w > 300 and h > 150 for done, w, h in images), images
