@@ -41,6 +41,9 @@ OPTIONAL_STREAMS = ("chamber", "fixture")
 REQUIRED_META = ("unit_serial", "run_id")
 #: Metadata key of a run holding several units: their serials, comma-separated (log-format.md)
 UNITS_KEY = "units"
+#: Optional metadata key: the PX4 device id of the unit's accelerometer (decimal or 0x hexadecimal, 1 .. 2^32 - 1),
+#: recorded in the passport's provenance and used by ``thermocal export --format px4`` (log-format.md)
+PX4_DEVICE_ID_KEY = "px4_accel_device_id"
 #: Streams each unit of a run with several units has its own of; the others are shared by all units
 PER_UNIT_STREAMS = REQUIRED_STREAMS
 #: nanoseconds per second (times are Int64 ns since the Unix epoch)
@@ -126,6 +129,13 @@ class RunMeta:
             "started_utc",
             "nominal_gain_v_per_g",
         }
+        if values.get(PX4_DEVICE_ID_KEY) not in (None, "") and px4_device_id(values[PX4_DEVICE_ID_KEY]) is None:
+            raise RunFormatError(
+                f"metadata key {PX4_DEVICE_ID_KEY!r} is not a device id (1 .. 2^32 - 1, decimal or 0x hexadecimal): "
+                f"{values[PX4_DEVICE_ID_KEY]!r}",
+                path=path,
+                stream="metadata",
+            )
         return cls(
             unit_serial=str(values["unit_serial"]).strip(),
             run_id=str(values["run_id"]).strip(),
@@ -137,6 +147,15 @@ class RunMeta:
             nominal_gain_v_per_g=num("nominal_gain_v_per_g", None),
             extra={str(k): str(v) for k, v in values.items() if k not in known},
         )
+
+
+def px4_device_id(value: Any) -> int | None:
+    """A PX4 device id from text (decimal or 0x hexadecimal) or a number: 1 .. 2^32 - 1, else None."""
+    try:
+        n = int(str(value).strip(), 0)
+    except ValueError:
+        return None
+    return n if 0 < n < 1 << 32 else None
 
 
 def _fmt_float(x: float) -> str:

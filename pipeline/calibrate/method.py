@@ -31,6 +31,7 @@ from pipeline.calibrate.result import CalibrationResult, UnitFit
 from pipeline.calibrate.settings import CalibrationSettings
 from pipeline.passport.document import build_passport
 from pipeline.plausibility import assess
+from pipeline.run import PX4_DEVICE_ID_KEY
 from pipeline.verify import VerificationRow
 
 if TYPE_CHECKING:
@@ -160,6 +161,11 @@ class Method(ABC):
             + [p for p in implausible if p not in run_warnings]
             + self.verification_notes(observations, rows, unit_fit.normal_temp_c),
             settings_extra=dict(fitted.settings_extra),
+            input_notes={
+                r.source: {PX4_DEVICE_ID_KEY: r.meta.extra[PX4_DEVICE_ID_KEY]}
+                for r in observed
+                if r.source and r.meta.extra.get(PX4_DEVICE_ID_KEY)
+            },
         )
 
     def calibrate_observed(

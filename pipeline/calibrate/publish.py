@@ -76,8 +76,14 @@ def publish(
     version would be written (``version``) or which existing one has the same inputs and settings
     (``existing``: true), with ``dry_run``: true and the passport's content (``passport_content``)."""
     known, within = input_digests or {}, input_units or {}
+    notes = {str(Path(src).resolve()): v for src, v in result.input_notes.items()}
     inputs = [
-        {"path": str(Path(p).resolve()), "sha256": input_digest(p, known.get(str(p))), **within.get(str(p), {})}
+        {
+            "path": str(Path(p).resolve()),
+            "sha256": input_digest(p, known.get(str(p))),
+            **within.get(str(p), {}),
+            **notes.get(str(Path(p).resolve()), {}),
+        }
         for p in input_paths
     ]
     recorded = recorded_settings(settings, result.method, result.settings_extra)

@@ -77,6 +77,8 @@ class CalibrationResult:
     plateaus: list[dict]
     warnings: list[str] = field(default_factory=list)
     settings_extra: dict = field(default_factory=dict)
+    #: per input run (its ``source``), what its metadata adds to its provenance record (``px4_accel_device_id``)
+    input_notes: dict[str, dict] = field(default_factory=dict)
 
     @property
     def unit(self) -> str:

@@ -68,6 +68,7 @@ from pipeline.passport.firmware import (
 )
 from pipeline.passport.significance import sigma_of
 from pipeline.passport.text import output_unit_of, per
+from pipeline.run import PX4_DEVICE_ID_KEY, px4_device_id
 
 FORMATS = ("px4", "ardupilot", "csv")
 GRID_STEP_C = 0.1
@@ -177,6 +178,29 @@ class VehicleModel:
     rel: np.ndarray
     cross0: np.ndarray
     g: float
+
+
+def recorded_device_id(passport: dict) -> tuple[int | None, str | None]:
+    """The PX4 device id the passport's input runs recorded (run metadata ``px4_accel_device_id``, kept in the
+    provenance's inputs) and where it comes from; (None, None) when none did, (None, why) when they disagree."""
+    inputs = (passport.get("provenance") or {}).get("inputs") or []
+    found = [px4_device_id(i.get(PX4_DEVICE_ID_KEY)) for i in inputs if isinstance(i, dict)]
+    ids = {d for d in found if d is not None}
+    if not ids:
+        return None, None
+    if len(ids) > 1:
+        return None, f"the input runs record different device ids ({', '.join(str(i) for i in sorted(ids))})"
+    (device,) = ids
+    return device, f"the run metadata ({PX4_DEVICE_ID_KEY})"
+
+
+def device_id_for(passport: dict, options: ExportOptions) -> tuple[int | None, str]:
+    """The PX4 device id an export or comparison uses: ``--px4-device-id``, else the one the input runs recorded;
+    and where it came from (or why there is none)."""
+    if options.px4_device_id is not None:
+        return options.px4_device_id, "--px4-device-id"
+    device, source = recorded_device_id(passport)
+    return device, source or "none given (--px4-device-id) nor recorded in the run metadata"
 
 
 def valid_range_c(passport: dict) -> tuple[float, float]:
@@ -332,7 +356,7 @@ def export_px4(passport: dict, state=None, options: ExportOptions | None = None)
     temps = _grid(lo, hi)
     vm = vehicle_model(passport, temps, R)
     coef = _cubic_fit(temps - tref, vm.bias).astype(np.float32)  # PX4 parameters are float32
-    device = opts.px4_device_id
+    device, device_source = device_id_for(passport, opts)
     params: dict[str, float] = {
         slot.enable: 1,
         slot.id: px4_int32(device) if device else 0,
@@ -347,8 +371,9 @@ def export_px4(passport: dict, state=None, options: ExportOptions | None = None)
     residual = _residual(vm, held, max_change(held, temps), update_step=True)
     warnings, steps = [], []
     if not device:
+        why = "" if device_source.startswith("none") else f" ({device_source})"
         warnings.append(
-            f"the PX4 file will not be applied: {slot.id} is 0, which matches no accelerometer; export with "
+            f"the PX4 file will not be applied: {slot.id} is 0{why}, which matches no accelerometer; export with "
             f"--px4-device-id N (the accelerometer's device id: the vehicle's CAL_ACC<n>_ID, or device_id in "
             f"'listener sensor_accel') or set {slot.id} before loading"
         )
@@ -365,6 +390,11 @@ def export_px4(passport: dict, state=None, options: ExportOptions | None = None)
         f"leaves up to {_ug3(residual['stale_calibration_max_ug'])}",
     ]
     notes = _notes("px4", frame, residual)
+    if device:
+        notes["device"] = (
+            f"{slot.id} = {device} (0x{device:08X}), from {device_source}: PX4 corrects only the accelerometer "
+            "with that device id"
+        )
     not_held = _not_held(passport, [])
     text = _header(
         passport,
@@ -529,10 +559,11 @@ def compare_params(
     out: dict = {"firmware": fw}
     if fw == "px4":
         slot = 0 if opts.instance is None else opts.instance
-        if opts.px4_device_id is not None:
-            found = px4_matching_slot(params, opts.px4_device_id)
+        device, device_source = device_id_for(passport, opts)
+        if device is not None:
+            found = px4_matching_slot(params, device)
             if found is None:
-                why_not = f"no TC_A<k>_ID equals the device id {opts.px4_device_id}"
+                why_not = f"no TC_A<k>_ID equals the device id {device} (from {device_source})"
             slot = slot if found is None else found
         names = px4_slot(slot)
         dev = as_uint32(params.get(names.id, 0))

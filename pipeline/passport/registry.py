@@ -94,8 +94,9 @@ _ERRNO_TEXT = {
 # hashing and canonical serialisation
 
 
-#: optional keys of a provenance input: the unit within a run with several units (log-format.md) and its run_id
-_INPUT_EXTRA_KEYS = ("unit", "run_id")
+#: optional keys of a provenance input: the unit within a run with several units (log-format.md) and its run_id;
+#: the PX4 device id of the unit's accelerometer from the run's metadata (``thermocal export --format px4``)
+_INPUT_EXTRA_KEYS = ("unit", "run_id", "px4_accel_device_id")
 
 
 def _input_record(item: dict) -> dict:

@@ -20,19 +20,24 @@ axis, no cross-axis terms) made at a calibration temperature Tc, in the firmware
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from pipeline.calibrate import tilt
-from pipeline.errors import ThermocalError
+from pipeline.calibrate.publish import publish
+from pipeline.errors import RunFormatError, ThermocalError
+from pipeline.io.runs import read_run, write_run
 from pipeline.passport.document import build_passport, load_model
 from pipeline.passport.export import ExportOptions, compare_params, export_passport
 from pipeline.passport.firmware import read_params_file
 from pipeline.passport.registry import Registry
 from pipeline.positions import TEST_POSITIONS, VERIFICATION_POSITIONS, gravity_vector_g
+from pipeline.run import RunMeta
 from pipeline.simulate.chamber import SimConfig, simulate
 from tests.conftest import run_main
 
@@ -43,9 +48,13 @@ TEMPS = np.linspace(-40.0, 70.0, 221)
 
 
 @pytest.fixture(scope="module")
-def passports():
-    res = simulate(SimConfig(seed=11, program="short", rate_hz=1.0))
-    obs, _ = tilt.observe_run(res.run)
+def sim_run():
+    return simulate(SimConfig(seed=11, program="short", rate_hz=1.0)).run
+
+
+@pytest.fixture(scope="module")
+def passports(sim_run):
+    obs, _ = tilt.observe_run(sim_run)
     out = {}
     for kind in ("auto", "piecewise"):
         fit = tilt.fit_unit("AU-0001", obs, tilt.CalibrationSettings(thermal_model=kind), 20.0)
@@ -200,6 +209,26 @@ def test_px4_update_step_is_in_the_stated_residual(passports):
     assert np.all(lag <= stated * (1 + 1e-3) + 0.01) and np.all(lag > 0.9 * stated), (lag, stated)
     assert stated.max() > 100  # a real cost: hundreds of micro-g per 1 C on this unit
     assert exp.residual["temperature_cost_ug_per_c"] == exp.residual["update_step_max_ug"]
+
+
+def test_px4_device_id_from_the_run_metadata(sim_run, tmp_path):
+    """A run whose metadata records ``px4_accel_device_id``: calibrated and published, its provenance input keeps
+    the id and the PX4 export writes it without --px4-device-id (which still wins); a bad id is refused on reading."""
+    meta = dataclasses.replace(sim_run.meta, extra={**sim_run.meta.extra, "px4_accel_device_id": "0xB2D05E00"})
+    path = write_run(dataclasses.replace(sim_run, meta=meta), tmp_path / "run.mcap")
+    result = tilt.calibrate([read_run(path)], tilt.CalibrationSettings())
+    out = publish(tmp_path / "reg", result, input_paths=[str(path)], settings=tilt.CalibrationSettings(), figure=False)
+    doc = json.loads(Path(out["passport"]).read_text())
+    assert doc["provenance"]["inputs"][0]["px4_accel_device_id"] == "0xB2D05E00"
+    exp = export_passport(doc, "px4")
+    p = qgc_params(exp.text)
+    assert p["TC_A0_ID"] % 2**32 == DEVICE and exp.warnings == [] and not exp.steps[0].startswith("set TC_A0_ID")
+    assert "from the run metadata (px4_accel_device_id)" in exp.notes["device"]
+    assert qgc_params(export_passport(doc, "px4", options=ExportOptions(px4_device_id=77)).text)["TC_A0_ID"] == 77
+    r = compare_params(doc, p)
+    assert r["applied"] and r["device_id"] == DEVICE and max(r["max_diff_ug"]) < 0.01
+    with pytest.raises(RunFormatError, match="px4_accel_device_id"):
+        RunMeta.from_strings({**meta.to_strings(), "px4_accel_device_id": "accel0"}, path="x.mcap")
 
 
 # --- ArduPilot -------------------------------------------------------------------------------------------------
