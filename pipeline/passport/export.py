@@ -270,6 +270,7 @@ def _residual(vm: VehicleModel, held: np.ndarray, change: np.ndarray, update_ste
     scale = np.linalg.norm(vm.rel + vm.cross0[None], axis=2)  # both multiply a: their worst orientation together
     step = change if update_step else np.zeros(3)
     total = fit_err + g * scale + step  # (n, 3) m/s^2
+    thermal = fit_err + g * unheld + step  # the same without the cross-axis terms at T0 (not a temperature effect)
     worst = np.unravel_index(int(np.argmax(total)), total.shape)
     return {
         "bias_fit_max_mps2": fit_err.max(axis=0).tolist(),
@@ -281,6 +282,8 @@ def _residual(vm: VehicleModel, held: np.ndarray, change: np.ndarray, update_ste
         "total_max_ug": (total.max(axis=0) * ug).tolist(),
         "total_worst_ug": float(total.max() * ug),
         "total_worst_mps2": float(total.max()),
+        "temperature_max_ug": (thermal.max(axis=0) * ug).tolist(),
+        "temperature_worst_ug": float(thermal.max() * ug),
         "worst_at_temp_c": float(temps[worst[0]]),
         "temperature_cost_ug_per_c": (change * ug).tolist(),
         "stale_calibration_max_ug": (np.abs(vm.bias).max(axis=0) * ug).tolist(),
@@ -339,7 +342,8 @@ def _residual_line(res: dict, valid: tuple[float, float]) -> str:
         parts.append(f"PX4's 1 C update step {_ug3(res['update_step_max_ug'])}")
     return (
         f"residual over {valid[0]:g}..{valid[1]:g} C at |a| = 1 g: " + "; ".join(parts) + f"; worst total "
-        f"{res['total_worst_ug']:.3g} micro-g at {res['worst_at_temp_c']:g} C"
+        f"{res['total_worst_ug']:.3g} micro-g at {res['worst_at_temp_c']:g} C; without the cross-axis terms at T0 "
+        f"(there with or without this file) {_ug3(res['temperature_max_ug'])}"
     )
 
 
@@ -762,6 +766,8 @@ def _header(
             lines.append("#   PX4's 1 C update step: " + _ug_list(residual["update_step_max_ug"]))
         lines += [
             "#   total: " + _ug_list(residual["total_max_ug"]),
+            "#   total without the cross-axis terms at T0 (there with or without this file): "
+            + _ug_list(residual["temperature_max_ug"]),
             f"#   worst: {residual['total_worst_ug']:.3g} micro-g ({residual['total_worst_mps2']:.3g} m/s^2) at "
             f"{residual['worst_at_temp_c']:g} C",
         ]

@@ -340,13 +340,19 @@ def test_stated_residual_is_the_error_left_on_the_vehicle(passports):
     p = qgc_params(exp.text)
     ramp = np.concatenate([np.arange(-40.0, 70.0, 0.1), np.arange(70.0, -40.0, -0.1)])
     offsets = px4_offsets(p, 9, ramp, step_c=1.0)
-    worst = 0.0
+    g = doc["g_local_mps2"]
+    worst, thermal = 0.0, 0.0
     for pos in [*TEST_POSITIONS, *VERIFICATION_POSITIONS]:
         a = gravity_vector_g(pos)
-        err = vehicle_reading(doc, ramp, a, 20.0) - offsets - doc["g_local_mps2"] * a
+        err = vehicle_reading(doc, ramp, a, 20.0) - offsets - g * a
         worst = max(worst, float(np.abs(err).max()))
+        # less what the vehicle's reading at T0 already had at that orientation (the cross-axis terms at T0)
+        at_t0 = vehicle_reading(doc, np.array([20.0]), a, 20.0) - g * a
+        thermal = max(thermal, float(np.abs(err - at_t0).max()))
     stated = exp.residual["total_worst_mps2"]
     assert 0.3 * stated < worst <= stated * (1 + 1e-6), (worst, stated)
+    stated_thermal = exp.residual["temperature_worst_ug"] / UG
+    assert 0.3 * stated_thermal < thermal <= stated_thermal * (1 + 1e-6) < 0.2 * stated, (thermal, stated_thermal)
     assert max(exp.residual["bias_fit_max_ug"]) < 0.005 and any("beta" in t and "gamma" in t for t in exp.not_held)
 
 
