@@ -11,19 +11,68 @@ import sys
 from typing import Annotated
 
 import typer
+import typer.core
 
 from pipeline.calibrate.methods import names as method_names
 from pipeline.errors import ThermocalError
 from pipeline.jsonable import json_default
 
-app = typer.Typer(
+#: The words help shows for an option's value (by its Python type), where typer shows type tags (``<float>``,
+#: ``<list[Path]>``); an option's ``metavar`` wins.
+_VALUE_WORDS = {"float": "NUMBER", "int": "INTEGER", "str": "TEXT", "Path": "PATH"}
+
+
+class PlainCommand(typer.core.TyperCommand):
+    """A command whose help is in plain words: an argument by its name (``RUN``, ``[V]``, ``RUN...`` in the usage
+    line, where typer writes ``{RUN}``, which reads as a set of choices), an option's value as a word (``PATH``,
+    ``NUMBER``, its ``metavar``), a flag alone. Through click's public hooks (``collect_usage_pieces``,
+    ``format_options``) and each parameter's own help text (``get_help_record``)."""
+
+    def collect_usage_pieces(self, ctx) -> list[str]:
+        pieces = [self.options_metavar] if self.options_metavar else []
+        return pieces + [_name(p) for p in self.get_params(ctx) if p.param_type_name == "argument"]
+
+    def format_options(self, ctx, formatter) -> None:
+        sections: dict[str, list[tuple[str, str]]] = {"Arguments": [], "Options": []}
+        for p in self.get_params(ctx):
+            record = p.get_help_record(ctx)
+            if record is not None:
+                sections["Arguments" if p.param_type_name == "argument" else "Options"].append((_name(p), record[1]))
+        for title, rows in sections.items():
+            if rows:
+                with formatter.section(title):
+                    formatter.write_dl(rows)
+
+
+def _name(p) -> str:
+    """A parameter as help shows it: ``RUN``/``[V]``/``RUN...``; ``--out PATH``; ``--figures / --no-figures``."""
+    if p.param_type_name == "argument":
+        name = p.metavar or p.name.upper()
+        return (name if p.required else f"[{name}]") + ("..." if p.nargs != 1 else "")
+    names = ", ".join(p.opts)
+    if not p.is_flag:
+        names += " " + (p.metavar or _VALUE_WORDS.get(p.bare_type().removeprefix("list[").removesuffix("]"), "VALUE"))
+    return names + "".join(f" / {o}" for o in p.secondary_opts)
+
+
+class PlainTyper(typer.Typer):
+    """typer's app whose commands are :class:`PlainCommand` and whose help is plain text (no boxes)."""
+
+    def __init__(self, **kwargs):
+        super().__init__(rich_markup_mode=None, context_settings={"max_content_width": 120}, **kwargs)
+
+    def command(self, *args, **kwargs):
+        return super().command(*args, cls=kwargs.pop("cls", PlainCommand), **kwargs)
+
+
+app = PlainTyper(
     add_completion=False,
     pretty_exceptions_enable=False,
     help="thermocal: thermal-chamber calibration of accelerometer units.",
 )
-passport_app = typer.Typer(help="The passport audit trail: log, show, diff, approve, verify, head.")
+passport_app = PlainTyper(help="The passport audit trail: log, show, diff, approve, verify, head.")
 app.add_typer(passport_app, name="passport")
-server_app = typer.Typer(no_args_is_help=True, help="thermocal's local Prefect server: where flow runs are recorded.")
+server_app = PlainTyper(no_args_is_help=True, help="thermocal's local Prefect server: where flow runs are recorded.")
 app.add_typer(server_app, name="server")
 
 #: The help texts of options and arguments that several commands share.
@@ -33,43 +82,6 @@ UNIT_HELP = "the unit's serial number, e.g. AU-0001"
 
 #: ``--json``, the flag of every command that can print its result as one JSON object: ``as_json: JsonFlag = False``
 JsonFlag = Annotated[bool, typer.Option("--json", help=JSON_HELP)]
-
-
-def _plain_type_words() -> None:
-    """Help shows an option's value as a plain word (``PATH``, ``NUMBER``, ...) or its ``metavar``, and nothing for
-    a flag or an argument (its name is shown), where typer's default shows Python type tags (``<bool>``,
-    ``<list[Path]>``); arguments in the usage line as ``RUN`` and ``[V]``."""
-    from typer import core
-
-    words = {"float": "NUMBER", "int": "INTEGER", "str": "TEXT"}
-
-    def display(self, ctx):
-        if isinstance(self, core.TyperArgument) or getattr(self, "is_flag", False):
-            return None
-        if self.metavar is not None:
-            return self.metavar
-        desc = getattr(self, "type_descriptor", None)
-        if desc is None:
-            return None
-        word = "PATH" if desc.is_path else words.get(self.bare_type().removeprefix("list[").removesuffix("]"), "VALUE")
-        return word
-
-    for cls in (getattr(core, "TyperArgument", None), getattr(core, "TyperOption", None)):
-        if cls is not None and hasattr(cls, "display_type_rich"):
-            cls.display_type_rich = display
-
-    def usage_name(self) -> str:
-        """``RUN`` (required), ``[V]`` (optional), ``RUN...`` in the usage line, where newer typer writes
-        ``{RUN}``, which reads as a set of choices."""
-        name = self.display_name_raw if self.required else f"[{self.display_name_raw}]"
-        return name + ("..." if self.nargs != 1 else "")
-
-    if hasattr(getattr(core, "TyperArgument", None), "_usage_display_name"):
-        # the method is replaced on purpose (the usage name above)
-        core.TyperArgument._usage_display_name = usage_name  # type: ignore[method-assign]
-
-
-_plain_type_words()
 
 
 def _version() -> str:

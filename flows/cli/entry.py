@@ -10,24 +10,6 @@ import typer
 from .app import app
 
 
-def _click_errors() -> tuple[type[Exception], ...]:
-    """The exception classes of a command-line usage error: click's, and typer's own copy of click's (newer typer
-    vendors click)."""
-    import click
-
-    found: list[type[Exception]] = [click.ClickException]
-    try:
-        from typer._click.exceptions import ClickException as vendored
-    except ImportError:
-        pass
-    else:
-        found.append(vendored)
-    return tuple(found)
-
-
-_CLICK_ERRORS = _click_errors()
-
-
 def _usage_line(e: Exception) -> str:
     """One line for a usage error: the message, the command it concerns and where help is."""
     msg = " ".join((e.format_message() if hasattr(e, "format_message") else str(e)).split())
@@ -61,7 +43,7 @@ def _main(server_checked: bool) -> int:
         if rc == 130:  # typer's answer to Ctrl-C (KeyboardInterrupt) in a command
             raise KeyboardInterrupt
         return rc if isinstance(rc, int) else 0
-    except _CLICK_ERRORS as e:  # usage: a missing or unknown command, option or value
+    except typer.TyperException as e:  # usage: a missing or unknown command, option or value (typer's click errors)
         print(_usage_line(e), file=sys.stderr)
         code = getattr(e, "exit_code", None)
         return code if isinstance(code, int) else 2
