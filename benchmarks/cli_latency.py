@@ -1,8 +1,9 @@
 """Latency of the ``thermocal`` command, whole processes side by side in one run: ``inspect``, ``calibrate`` of a
 10 Hz standard run with the embedded default (thermocal's local Prefect server, flows/localserver.py: its first
 call on a fresh Prefect home, which starts the server, and later calls), ``calibrate`` against a running
-``prefect server`` (``PREFECT_API_URL``), ``calibrate`` in Prefect's own ephemeral mode (``THERMOCAL_PREFECT=
-ephemeral``: the default before the local server), and a no-op ``fleet`` of 200 runs (all already calibrated).
+``prefect server`` (``PREFECT_API_URL``), the calibrate flow in Prefect's own ephemeral mode (a Python process
+calling :func:`flows.calibrate.run_calibrate` with ``local_server=False``: the default before the local server),
+and a no-op ``fleet`` of 200 runs (all already calibrated).
 
     .venv/bin/python benchmarks/cli_latency.py [--repeat 5] [--fleet-runs 200] [--fleet-program short]
         [--fleet-rate-hz 2] [--no-ephemeral]
@@ -10,14 +11,14 @@ ephemeral``: the default before the local server), and a no-op ``fleet`` of 200 
 ``inspect`` and the warm embedded ``calibrate`` are timed in turn (inspect, calibrate, inspect, ...: the same load
 for both), ``--repeat`` times each after one warm-up call each; their rows give the median wall time (min-max), the
 ratio of the medians and the median of the pairwise ratios, and the CPU seconds of every process a call used: the
-command itself and, for ``calibrate``, its job process on the local server's warm worker and the Prefect server's
-share (from /proc: robust to other jobs on the machine, unlike wall time). ``calibrate`` back to back (no inspect
-between the calls) is timed too. The other rows are single or least-of-``--repeat`` figures, started the way a user
-starts them (the ``thermocal`` console script). The script checks that every embedded calibrate and the fleet were
-recorded on the local server (its flow-run count), and stops every server it started. The runs are made by
-:mod:`make_runs` (``benchmarks/out/std_10hz_json.mcap``) and, for the fleet, simulated into
-``benchmarks/out/fleet_<program>_<rate>hz_<n>/`` (kept for the next time) and calibrated once before timing.
-Prints a markdown table.
+command itself and, for ``calibrate``, its job process (forked by the local server's forkserver) and the local
+server's share (Prefect's API runs in it; from /proc: robust to other jobs on the machine, unlike wall time).
+``calibrate`` back to back (no inspect between the calls) is timed too. The other rows are single or
+least-of-``--repeat`` figures, started the way a user starts them (the ``thermocal`` console script). The script
+checks that every embedded calibrate and the fleet were recorded on the local server (its flow-run count), and
+stops every server it started. The runs are made by :mod:`make_runs` (``benchmarks/out/std_10hz_json.mcap``) and,
+for the fleet, simulated into ``benchmarks/out/fleet_<program>_<rate>hz_<n>/`` (kept for the next time) and
+calibrated once before timing. Prints a markdown table.
 """
 
 from __future__ import annotations
@@ -43,6 +44,11 @@ sys.path.insert(0, str(HERE))
 from make_runs import OUT, make_runs  # noqa: E402
 
 THERMOCAL = str(Path(sys.executable).parent / "thermocal")
+#: the calibrate flow of RUN into REGISTRY (``python -c ... RUN REGISTRY``) in Prefect's own ephemeral mode
+EPHEMERAL_CALIBRATE = (
+    "import sys; from flows.calibrate import run_calibrate; from pipeline.calibrate.settings import "
+    "CalibrationSettings; run_calibrate([sys.argv[1]], sys.argv[2], CalibrationSettings(), 'auto', local_server=False)"
+)
 
 
 def timed(cmd: list[str], env: dict, repeat: int = 1, ok=(0,)) -> tuple[float, str]:
@@ -92,23 +98,25 @@ class Sample:
 
 
 def call(cmd: list[str], env: dict, sample: Sample, server: dict | None = None, ok=(0,)) -> str:
-    """One timed call of ``cmd``; ``server``: the local server's processes (``worker`` pid, ``server`` pid), whose
-    CPU spent meanwhile (the job process the worker forked and reaped, the Prefect server's) is counted too."""
-    c0 = own_children_cpu_s()
-    s0 = (proc_cpu_s(server["worker"], children=True) + proc_cpu_s(server["server"])) if server else 0.0
+    """One timed call of ``cmd``; ``server``: the local server's processes (``server`` pid, its ``forkserver``),
+    whose CPU spent meanwhile (the job process the forkserver forked and reaped, the server's) is counted too."""
+
+    def server_cpu_s() -> float:
+        return proc_cpu_s(server["forkserver"], children=True) + proc_cpu_s(server["server"]) if server else 0.0
+
+    c0, s0 = own_children_cpu_s(), server_cpu_s()
     t = time.perf_counter()
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
     wall = time.perf_counter() - t
     if proc.returncode not in ok:
         raise SystemExit(f"{' '.join(cmd)} failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
-    if server:  # the job process ends (and is reaped by the worker) a moment after the client has its answer
+    if server:  # the job process ends (and is reaped by the forkserver) a moment after the client has its answer
         deadline = time.monotonic() + 60
-        while children_of(server["worker"]) and time.monotonic() < deadline:
+        while children_of(server["forkserver"]) and time.monotonic() < deadline:
             time.sleep(0.05)
         time.sleep(0.25)
-    s1 = (proc_cpu_s(server["worker"], children=True) + proc_cpu_s(server["server"])) if server else 0.0
     sample.wall_s.append(wall)
-    sample.cpu_s.append(own_children_cpu_s() - c0 + s1 - s0)
+    sample.cpu_s.append(own_children_cpu_s() - c0 + server_cpu_s() - s0)
     return proc.stdout
 
 
@@ -126,12 +134,12 @@ def children_of(pid: int) -> list[int]:
 
 
 def local_server_processes(state: dict) -> dict:
-    """The pids of the local server's warm worker and Prefect server (children of its supervisor)."""
+    """The pids of the local server (Prefect's API runs in it) and of its forkserver (which forks the jobs)."""
     for pid in children_of(state["pid"]):
         with open(f"/proc/{pid}/cmdline", "rb") as f:
-            if b"flows.worker" in f.read():
-                return {"worker": pid, "server": state["server_pid"]}
-    raise SystemExit("the local server has no warm worker")
+            if b"multiprocessing.forkserver" in f.read():
+                return {"server": state["pid"], "forkserver": pid}
+    raise SystemExit("the local server has no forkserver")
 
 
 def free_port() -> int:
@@ -201,7 +209,7 @@ def main() -> None:
     fleet_dir = make_fleet_runs(args.fleet_runs, args.fleet_program, args.fleet_rate_hz, args.out)
     work = Path(tempfile.mkdtemp(prefix="thermocal-cli-latency-"))
     home = work / "prefect-home"  # the embedded default's Prefect home, fresh
-    env = {k: v for k, v in os.environ.items() if k not in ("PREFECT_API_URL", "THERMOCAL_PREFECT")}
+    env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}
     env.update(PREFECT_HOME=str(home), PREFECT_SERVER_ANALYTICS_ENABLED="false", DO_NOT_TRACK="1")
     rows: list[tuple[str, float, str]] = []
     load0 = os.getloadavg()[0]
@@ -284,11 +292,12 @@ def main() -> None:
             f"{wall / inspect_s:.1f}x inspect; flow runs recorded on that server: {before} -> {after}",
         )
         if not args.no_ephemeral:
-            eph_home = work / "ephemeral-home"
-            calibrate(dict(env, PREFECT_HOME=str(eph_home), THERMOCAL_PREFECT="ephemeral"), 1)  # creates its DB
-            wall = calibrate(dict(env, PREFECT_HOME=str(eph_home), THERMOCAL_PREFECT="ephemeral"), 1)[0]
+            eph_env = dict(env, PREFECT_HOME=str(work / "ephemeral-home"))
+            eph = [sys.executable, "-c", EPHEMERAL_CALIBRATE, run]
+            timed([*eph, str(work / f"reg{next(k)}")], eph_env)  # creates its database
+            wall = timed([*eph, str(work / f"reg{next(k)}")], eph_env)[0]
             add(
-                "thermocal calibrate, THERMOCAL_PREFECT=ephemeral (Prefect's per-process server: the old default)",
+                "calibrate flow in Prefect's own ephemeral mode (run_calibrate(local_server=False): the old default)",
                 wall,
                 f"{wall / inspect_s:.1f}x inspect",
             )

@@ -21,9 +21,9 @@ Every mode calibrates the whole fleet into a fresh registry:
   ``--dask-address``; the cluster start is timed apart;
 - ``cli``:     ``thermocal fleet FOLDER --registry R --json --workers N`` in a fresh process, end to end (Python
   start, imports, flow, pool, planning), with ``PREFECT_API_URL`` set to the running local API (as nightly runs
-  under ``thermocal serve`` or with a server); ``cli-ephemeral``: the same without ``PREFECT_API_URL``, so the
-  command starts its own temporary API (Prefect home made once before, untimed: the usual case after the first
-  command on a machine).
+  under ``thermocal serve`` or with a server); ``cli-ephemeral``: the fleet flow in a fresh Python process
+  without ``PREFECT_API_URL`` (``run_fleet(..., local_server=False)``), so it starts its own temporary API
+  (Prefect home made once before, untimed: the usual case after the first command on a machine).
 
 Columns: wall time, units per minute, the mean compute per unit measured inside the tasks (it grows when workers
 compete for the cores), the overhead per unit = (workers x wall - sum of in-task compute) / units: the worker
@@ -51,6 +51,17 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 MODES = ("plain", "pool", "thread1", "thread", "process", "dask", "cli", "cli-ephemeral")
+#: the fleet flow over FOLDER into REGISTRY on WORKERS (``python -c ... FOLDER REGISTRY WORKERS``) in Prefect's own
+#: ephemeral mode, its summary as JSON on stdout
+EPHEMERAL_FLEET = (
+    "import json, sys; from flows.fleet import run_fleet; s = run_fleet(sys.argv[1], sys.argv[2], "
+    "workers=int(sys.argv[3]), method='auto', local_server=False); print(json.dumps(s, default=str))"
+)
+#: the calibrate flow of RUN into REGISTRY (``python -c ... RUN REGISTRY``) in Prefect's own ephemeral mode
+EPHEMERAL_CALIBRATE = (
+    "import sys; from flows.calibrate import run_calibrate; from pipeline.calibrate.settings import "
+    "CalibrationSettings; run_calibrate([sys.argv[1]], sys.argv[2], CalibrationSettings(), 'auto', local_server=False)"
+)
 
 
 def _make_unit(args: tuple[Path, int, float, str, str]) -> str:
@@ -150,24 +161,17 @@ def run_flow(folder: Path, registry: Path, workers: int, **options) -> dict:
 
 
 def run_cli(folder: Path, registry: Path, workers: int, api_url: str | None, home: Path) -> dict:
-    """``thermocal fleet`` in a fresh process (see the module doc), with ``api_url`` or else its own temporary API
-    using the Prefect home ``home``."""
+    """``thermocal fleet`` in a fresh process (see the module doc), with ``api_url``; or else the fleet flow in a
+    fresh Python process with its own temporary API using the Prefect home ``home`` (``run_fleet(...,
+    local_server=False)``: Prefect's per-process ephemeral mode; thermocal's default is its local server)."""
     env = dict(os.environ, PREFECT_HOME=str(home))
+    env.pop("PREFECT_API_URL", None)
     if api_url:
         env["PREFECT_API_URL"] = api_url
-    else:  # Prefect's own per-process ephemeral API (thermocal's default is its local server: cli_latency.py)
-        env.pop("PREFECT_API_URL", None)
-        env["THERMOCAL_PREFECT"] = "ephemeral"
-    cmd = [
-        str(Path(sys.executable).parent / "thermocal"),
-        "fleet",
-        str(folder),
-        "--registry",
-        str(registry),
-        "--json",
-        "--workers",
-        str(workers),
-    ]
+        cmd = [str(Path(sys.executable).parent / "thermocal"), "fleet", str(folder), "--registry", str(registry)]
+        cmd += ["--json", "--workers", str(workers)]
+    else:
+        cmd = [sys.executable, "-c", EPHEMERAL_FLEET, str(folder), str(registry), str(workers)]
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=3600)
     wall = time.perf_counter() - t0
@@ -211,20 +215,21 @@ def run_dask(folder: Path, registry: Path, workers: int) -> dict:
 
 
 def cli_latency(run: str, repeats: int, workdir: Path, api_url: str | None) -> list[float]:
-    """Wall seconds of `thermocal calibrate RUN --registry <fresh> --json`, ``repeats`` times."""
+    """Wall seconds of `thermocal calibrate RUN --registry <fresh> --json` with ``api_url``, or else of the calibrate
+    flow in a fresh Python process in Prefect's ephemeral mode, ``repeats`` times."""
     exe = str(Path(sys.executable).parent / "thermocal")
     env = dict(os.environ)
+    env.pop("PREFECT_API_URL", None)
     if api_url:
         env["PREFECT_API_URL"] = api_url
-    else:
-        env.pop("PREFECT_API_URL", None)
-        env["THERMOCAL_PREFECT"] = "ephemeral"
     times = []
     for k in range(repeats):
         reg = workdir / f"cli-reg-{'server' if api_url else 'ephemeral'}-{k}"
         t0 = time.perf_counter()
         proc = subprocess.run(
-            [exe, "calibrate", run, "--registry", str(reg), "--json"],
+            [exe, "calibrate", run, "--registry", str(reg), "--json"]
+            if api_url
+            else [sys.executable, "-c", EPHEMERAL_CALIBRATE, run, str(reg)],
             env=env,
             capture_output=True,
             text=True,

@@ -301,10 +301,11 @@ def run_calibrate(
     base_passport: dict | None = None,
     dry_run: bool = False,
     units: list[str] | None = None,
+    local_server: bool = True,
 ) -> dict:
-    """Run the flow in this process, recorded on thermocal's local Prefect server
-    (:func:`flows.runtime.flow_settings`)."""
+    """Run the flow in this process, recorded on ``PREFECT_API_URL`` or thermocal's local Prefect server
+    (``local_server=False``: Prefect's own choice; :func:`flows.runtime.flow_settings`)."""
     from .runtime import flow_settings, quiet_task_failures
 
-    with flow_settings(), quiet_task_failures():
+    with flow_settings(local_server), quiet_task_failures():
         return calibrate_flow(paths, registry, settings, method, base_passport, dry_run, units)

@@ -1,8 +1,8 @@
 """The ``thermocal`` console script. A command that runs a flow on thermocal's local Prefect server (``calibrate``,
-``fleet``: :func:`flows.localserver.runs_on_local_server`) is handed to the server's warm worker from here, without
-importing the command line (typer) or the pipeline (numpy): ~0.15 s of start-up less for a command whose work is
-done elsewhere. Every other command, and a flow command with ``PREFECT_API_URL`` set, runs in this process through
-:func:`flows.cli.main`.
+``fleet``: :func:`flows.localserver.runs_on_local_server`) is handed to a warm job process of the server from here,
+without importing the command line (typer) or the pipeline (numpy): ~0.15 s of start-up less for a command whose
+work is done elsewhere. Every other command, and a flow command with ``PREFECT_API_URL`` set, runs in this process
+through :func:`flows.cli.main`.
 """
 
 from __future__ import annotations

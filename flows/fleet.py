@@ -8,14 +8,14 @@ calibrated together. Planning (discovery, metadata, content hashes, the registry
 Where the unit tasks run is a flow parameter, so that a deployment can choose it too:
 
 - ``dask_address="tcp://host:8786"``: on an existing dask.distributed cluster, through prefect-dask's
-  ``DaskTaskRunner(address=...)``. The workers need thermocal installed and must reach the Prefect API: with
-  ``PREFECT_API_URL`` unset the flow's local API on 127.0.0.1 (thermocal's local server, or Prefect's ephemeral one
-  with ``THERMOCAL_PREFECT=ephemeral``) is handed to them, which serves workers on this machine only; for workers
-  on other machines run ``prefect server start --host 0.0.0.0`` and set ``PREFECT_API_URL`` to it.
+  ``DaskTaskRunner(address=...)``. The workers need thermocal installed and must reach the Prefect API: the flow's
+  (:func:`run_fleet`: ``PREFECT_API_URL``, else thermocal's local server on 127.0.0.1, which serves workers on this
+  machine only; for workers on other machines run ``prefect server start --host 0.0.0.0`` and set
+  ``PREFECT_API_URL`` to it).
 - else a local pool of ``workers`` (default: the machine's CPU count). ``pool="process"``: the unit tasks run in
   Prefect's ThreadPoolTaskRunner and each hands its calibration to a process pool of the flow's own
   (``concurrent.futures``, spawn, workers warmed by :func:`pipeline.calibrate.fleet.prepare_worker`, each leaving
-  when the flow's process is gone: :func:`flows.localserver.pool_worker_init`), so the
+  when the flow's process is gone: :func:`flows.runtime.pool_worker_init`), handed to the tasks as a parameter, so the
   computation runs in parallel past the GIL while Prefect's side of a task run (states, events) stays in the flow
   process. Prefect's ProcessPoolTaskRunner was dropped for this: it rebuilds Prefect's settings for every task
   run in the worker (~0.13 s of CPU per task, 15 % of a unit) and its workers import Prefect (~4 s to start).
@@ -32,7 +32,6 @@ The flow returns the ``fleet --json`` object (docs/contract.md) and leaves a tab
 from __future__ import annotations
 
 import contextlib
-import contextvars
 import multiprocessing
 import os
 import sys
@@ -57,8 +56,6 @@ from .calibrate import record_head  # noqa: E402
 #: ``pool="auto"``: a process pool from this many units on (its start-up pays off), else threads.
 AUTO_PROCESS_MIN_UNITS = 4
 ARTIFACT_KEY = "thermocal-fleet"
-#: The flow's process pool, if any, to which the unit tasks (threads of the flow process) hand their calibration.
-_COMPUTE_POOL: contextvars.ContextVar[Executor | None] = contextvars.ContextVar("thermocal_compute_pool", default=None)
 
 
 @task(name="calibrate-unit", task_run_name="calibrate-{unit}", cache_policy=NO_CACHE)
@@ -72,15 +69,11 @@ def calibrate_unit(
     method: str = "tilt",
     base_passport: dict | None = None,
     within: dict | None = None,
+    pool: Executor | None = None,
 ) -> fleet_plan.UnitOutcome:
-    """:func:`pipeline.calibrate.fleet.calibrate_group`, in the flow's process pool when it has one."""
-    return _calibrate_group(unit, runs, registry, settings, figure, digests, method, base_passport, within)
-
-
-def _calibrate_group(*args) -> fleet_plan.UnitOutcome:
-    """``calibrate_group(*args)`` in the flow's process pool if it has one, else here. (A function of its own, so
-    that a task shipped to dask by value does not take the pool's context variable along.)"""
-    pool = _COMPUTE_POOL.get()
+    """:func:`pipeline.calibrate.fleet.calibrate_group`, in the process ``pool`` when given (the flow's), else
+    here."""
+    args = (unit, runs, registry, settings, figure, digests, method, base_passport, within)
     return pool.submit(fleet_plan.calibrate_group, *args).result() if pool else fleet_plan.calibrate_group(*args)
 
 
@@ -93,12 +86,12 @@ def default_workers() -> int:
 
 
 def make_task_runner(dask_address: str | None, workers: int | None, pool: str, n_units: int):
-    """The task runner for the unit tasks (see the module doc), its description, whether its tasks run in other
-    processes, and the size of the process pool the tasks hand their calibration to (0: none)."""
+    """The task runner for the unit tasks (see the module doc), its description, and the size of the process pool
+    the tasks hand their calibration to (0: none)."""
     if dask_address:
         from prefect_dask import DaskTaskRunner
 
-        return DaskTaskRunner(address=dask_address), f"DaskTaskRunner({dask_address})", True, 0
+        return DaskTaskRunner(address=dask_address), f"DaskTaskRunner({dask_address})", 0
     from prefect.task_runners import ThreadPoolTaskRunner
 
     if pool not in fleet_plan.POOLS:
@@ -113,44 +106,24 @@ def make_task_runner(dask_address: str | None, workers: int | None, pool: str, n
         return (
             ThreadPoolTaskRunner(max_workers=threads),
             f"ThreadPoolTaskRunner({threads}) + ProcessPoolExecutor({n})",
-            False,
             n,
         )
-    return ThreadPoolTaskRunner(max_workers=n), f"ThreadPoolTaskRunner({n})", False, 0
+    return ThreadPoolTaskRunner(max_workers=n), f"ThreadPoolTaskRunner({n})", 0
 
 
 @contextlib.contextmanager
 def _compute_pool(processes: int):
-    """The flow's process pool of ``processes`` workers for the unit tasks (none if 0), for the duration."""
+    """The flow's process pool of ``processes`` workers for the unit tasks (None if 0), for the duration."""
     if not processes:
-        yield
+        yield None
         return
-    from .localserver import pool_worker_init  # warms up, and leaves with this process (no orphans if killed)
+    from .runtime import pool_worker_init  # a light module: its workers watch this process from their first second
 
     pool = ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("spawn"), initializer=pool_worker_init)
-    token = _COMPUTE_POOL.set(pool)
     try:
-        yield
+        yield pool
     finally:
-        _COMPUTE_POOL.reset(token)
         pool.shutdown(wait=True, cancel_futures=True)
-
-
-@contextlib.contextmanager
-def _api_for_workers():
-    """Tasks in other processes report to the Prefect API: in Prefect's ephemeral mode (``THERMOCAL_PREFECT=
-    ephemeral``), hand them its URL (else each worker would start a private temporary server)."""
-    from prefect.settings import PREFECT_API_URL, temporary_settings
-
-    if PREFECT_API_URL.value():
-        yield
-        return
-    from prefect.server.api.server import SubprocessASGIServer
-
-    server = SubprocessASGIServer()  # the one this process already uses for the flow run
-    server.start()
-    with temporary_settings({PREFECT_API_URL: server.api_url}):
-        yield
 
 
 class _Progress:
@@ -236,13 +209,8 @@ def fleet_flow(
     outcomes: list[fleet_plan.UnitOutcome] = []
     runner_name = "none"
     if plan.groups:
-        runner, runner_name, remote, processes = make_task_runner(dask_address, workers, pool, len(plan.groups))
-        with (
-            _api_for_workers() if remote else contextlib.nullcontext(),
-            runner,
-            _compute_pool(processes),
-            _Progress(step.on, len(plan.groups), logger) as bar,
-        ):
+        runner, runner_name, processes = make_task_runner(dask_address, workers, pool, len(plan.groups))
+        with runner, _compute_pool(processes) as compute_pool, _Progress(step.on, len(plan.groups), logger) as bar:
             futures = {
                 runner.submit(
                     calibrate_unit,
@@ -256,6 +224,7 @@ def fleet_flow(
                         "method": method,
                         "base_passport": g.base_passport,
                         "within": g.within,
+                        "pool": compute_pool,
                     },
                 ): g
                 for g in plan.groups
@@ -383,13 +352,15 @@ def run_fleet(
     figures: bool = True,
     progress: bool = False,
     method: str = "tilt",
+    local_server: bool = True,
 ) -> dict:
-    """Run the fleet flow in this process, recorded on thermocal's local Prefect server
-    (:func:`flows.runtime.flow_settings`). Progress (when asked for) and the flow's log lines reach stderr only
-    when it is a terminal; the flow run's logs in Prefect are kept either way."""
+    """Run the fleet flow in this process, recorded on ``PREFECT_API_URL`` or thermocal's local Prefect server
+    (``local_server=False``: Prefect's own choice; :func:`flows.runtime.flow_settings`). Progress (when asked for)
+    and the flow's log lines reach stderr only when it is a terminal; the flow run's logs in Prefect are kept either
+    way."""
     from .runtime import flow_settings, run_logs_off_console
 
-    with flow_settings(), run_logs_off_console(not Steps("fleet").on):
+    with flow_settings(local_server), run_logs_off_console(not Steps("fleet").on):
         return fleet_flow(
             str(root),
             str(registry),

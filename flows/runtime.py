@@ -1,8 +1,9 @@
 """Prefect defaults of thermocal: where flow runs are recorded, no telemetry, no heartbeat thread; progress lines.
 
 Call :func:`prefect_defaults` before importing prefect. Flow runs are recorded on ``PREFECT_API_URL`` when it is
-set (a server of the user's), else on thermocal's local server (:mod:`flows.localserver`, started on first use),
-or with ``THERMOCAL_PREFECT=ephemeral`` in Prefect's own per-process ephemeral mode.
+set (a server of the user's), else on thermocal's local server (:mod:`flows.localserver`, started on first use);
+a program that calls :func:`flows.calibrate.run_calibrate` or :func:`flows.fleet.run_fleet` with
+``local_server=False`` leaves the choice to Prefect (without ``PREFECT_API_URL``: its per-process ephemeral mode).
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import time
 _DEFAULTS = {
     "PREFECT_SERVER_ANALYTICS_ENABLED": "false",
     "DO_NOT_TRACK": "1",
-    # the ephemeral server (THERMOCAL_PREFECT=ephemeral) starts in ~8-13 s here; give slow machines room
+    # Prefect's ephemeral server (``local_server=False``) starts in ~8-13 s here; give slow machines room
     "PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS": "120",
     "PREFECT_LOGGING_LEVEL": "WARNING",
 }
@@ -31,33 +32,22 @@ def prefect_defaults() -> None:
 
 
 @contextlib.contextmanager
-def flow_settings():
-    """Settings in force while a flow runs: the API it is recorded on (see the module doc), no heartbeat thread
-    (it costs ~1 s per flow run)."""
+def flow_settings(local_server: bool = True):
+    """Settings in force while a flow runs: the API it is recorded on (``PREFECT_API_URL``, else thermocal's local
+    server; with ``local_server=False`` Prefect's own choice, see the module doc), no heartbeat thread (it costs
+    ~1 s per flow run)."""
     prefect_defaults()
     from prefect.settings import PREFECT_API_URL, PREFECT_FLOWS_HEARTBEAT_FREQUENCY, temporary_settings
-
-    from .localserver import ensure_server, uses_local_server
 
     updates = {}
     if PREFECT_FLOWS_HEARTBEAT_FREQUENCY.value() is not None:
         updates[PREFECT_FLOWS_HEARTBEAT_FREQUENCY] = None
-    if uses_local_server() and not PREFECT_API_URL.value():
+    if local_server and not PREFECT_API_URL.value():
+        from .localserver import ensure_server
+
         updates[PREFECT_API_URL] = ensure_server()["api_url"]
-    if not updates:  # already in force (the local server's worker: :func:`no_heartbeat`); a new settings object
-        yield  # costs ~0.05 s
-        return
     with temporary_settings(updates):
         yield
-
-
-def no_heartbeat() -> None:
-    """For the rest of this process: no flow-run heartbeat thread (:func:`flow_settings` then has nothing to
-    change). The local server's warm worker calls it once, before it forks its job processes."""
-    prefect_defaults()
-    from prefect.settings import PREFECT_FLOWS_HEARTBEAT_FREQUENCY, temporary_settings
-
-    temporary_settings({PREFECT_FLOWS_HEARTBEAT_FREQUENCY: None}).__enter__()
 
 
 @contextlib.contextmanager
@@ -94,6 +84,27 @@ def run_logs_off_console(off: bool = True):
     finally:
         for lg, p in zip(loggers, before):
             lg.propagate = p
+
+
+def pool_worker_init() -> None:
+    """Initializer of a process pool of thermocal's (the fleet's): leave at once when the process that made the
+    pool is gone (killed: no orphan keeps computing), then warm up (:func:`pipeline.calibrate.fleet.prepare_worker`).
+    This module imports little, so a worker watches its parent within its first second."""
+    import multiprocessing
+    import threading
+    from multiprocessing.connection import wait
+
+    parent = multiprocessing.parent_process()
+
+    def leave_with_parent():
+        wait([parent.sentinel])
+        os._exit(1)
+
+    if parent is not None:
+        threading.Thread(target=leave_with_parent, daemon=True, name="thermocal-parent-watch").start()
+    from pipeline.calibrate.fleet import prepare_worker
+
+    prepare_worker()
 
 
 class Steps:

@@ -9,7 +9,7 @@ the calibration options' checks) and :mod:`flows.cli.entry` the console entry po
 a new module here, imported below.
 
 Prefect is imported only by the commands that run a flow (``calibrate``, ``fleet``, ``serve``). Without
-``PREFECT_API_URL``, ``calibrate`` and ``fleet`` run on the warm worker of thermocal's local Prefect server
+``PREFECT_API_URL``, ``calibrate`` and ``fleet`` run in a warm job process of thermocal's local Prefect server
 (:mod:`flows.localserver`, started on first use; ``thermocal server ...``), which records their flow runs.
 """
 

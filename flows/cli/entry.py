@@ -23,15 +23,16 @@ def _usage_line(e: Exception) -> str:
 def main(server_checked: bool = False) -> None:
     """Console entry point: one-line errors, no tracebacks (set THERMOCAL_DEBUG=1 to see them); a closed stdout
     (``| head``) ends the output quietly (:func:`flows.runtime.exit_guarded`). Commands that run a flow go to the
-    local server's warm worker unless PREFECT_API_URL is set (:mod:`flows.localserver`; ``server_checked``: the
+    local server's warm job processes unless PREFECT_API_URL is set (:mod:`flows.localserver`; ``server_checked``: the
     caller, :func:`flows.console.main`, has already found that this command is not one of them)."""
     from ..runtime import exit_guarded
 
-    exit_guarded(lambda: _main(server_checked))
+    exit_guarded(lambda: run(server_checked))
 
 
-def _main(server_checked: bool) -> int:
-    """The command's exit status (usage errors: their one line and 2)."""
+def run(server_checked: bool = False) -> int:
+    """The command ``sys.argv[1:]``; its exit status (usage errors: their one line and 2). :func:`main` without
+    its guard (a job process of the local server guards it itself: :mod:`flows.jobs`)."""
     try:
         argv = sys.argv[1:]
         if not server_checked:

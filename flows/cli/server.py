@@ -57,7 +57,7 @@ def server_url():
 
 @server_app.command("stop")
 def server_stop():
-    """Stop the local server (and its warm worker); commands running on it are interrupted."""
+    """Stop the local server (and its warm processes); commands running on it are interrupted."""
     from ..localserver import stop_server
 
     print("stopped" if stop_server() else "not running")

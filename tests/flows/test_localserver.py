@@ -1,7 +1,7 @@
 """thermocal's local Prefect server (flows/localserver.py) with real processes: commands record their flow runs,
 task runs and artifacts on it and Prefect's own CLI lists them (the pinned versions); a killed or interrupted
-command leaves no process behind; the server exits by itself when idle and with its supervisor; progress lines on
-a terminal only; a failing command prints one line. Every wait is bounded."""
+command leaves no process behind; the server exits by itself when idle, and its processes with it when killed;
+progress lines on a terminal only; a failing command prints one line. Every wait is bounded."""
 
 from __future__ import annotations
 
@@ -86,15 +86,15 @@ def _without_key_notice(stderr: str) -> str:
     return "".join(ln for ln in stderr.splitlines(keepends=True) if "created this station's signing key" not in ln)
 
 
-def _workers(supervisor: int) -> list[int]:
-    """The supervisor's warm worker (one)."""
-    return sorted(p for p in _children(supervisor).get(supervisor, []) if "flows.worker" in _cmdline(p))
+def _workers(server: int) -> list[int]:
+    """The server's warm process (one): multiprocessing's forkserver, which forks the job processes."""
+    return sorted(p for p in _children(server).get(server, []) if "multiprocessing.forkserver" in _cmdline(p))
 
 
-def _jobs(supervisor: int) -> list[int]:
-    """The job processes the warm worker forked (one per command running)."""
-    kids = _children(supervisor)
-    return sorted(j for w in _workers(supervisor) for j in kids.get(w, []))
+def _jobs(server: int) -> list[int]:
+    """The job processes the forkserver forked (one per command running)."""
+    kids = _children(server)
+    return sorted(j for w in _workers(server) for j in kids.get(w, []))
 
 
 @pytest.fixture(scope="module")
@@ -174,7 +174,7 @@ def test_commands_recorded_and_listed_by_prefects_cli(short_run, tmp_path):
 
 def test_killed_fleet_leaves_no_process(tmp_path):
     """kill -9 of `thermocal fleet` while its process pool calibrates: the job process that ran it and the pool's
-    processes are gone within seconds; the server and its warm worker stay for the next commands."""
+    processes are gone within seconds; the server and its warm forkserver stay for the next commands."""
     inbox = tmp_path / "inbox"
     for k in range(4):
         res = simulate(SimConfig(unit_serial=f"AU-05{k:02d}", unit_seed=500 + k, program="standard", rate_hz=4.0))
@@ -182,7 +182,7 @@ def test_killed_fleet_leaves_no_process(tmp_path):
     env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}
     st = ensure_server()
     sup = st["pid"]
-    warm = _wait("the warm worker", lambda: _workers(sup), 60)
+    warm = _wait("the warm forkserver", lambda: _workers(sup), 60)
     cli = subprocess.Popen(
         [
             THERMOCAL,
@@ -213,7 +213,7 @@ def test_killed_fleet_leaves_no_process(tmp_path):
         cli.kill()
         cli.wait(timeout=10)
         _wait("the killed command's job process and pool gone", lambda: not _alive({busy, *kids}), 15)
-        assert _workers(sup) == warm and not _jobs(sup)  # the warm worker, waiting for the next commands
+        assert _workers(sup) == warm and not _jobs(sup)  # the forkserver, waiting for the next commands
         assert read_state(Path(os.environ["PREFECT_HOME"]))["pid"] == sup
     finally:
         if cli.poll() is None:
@@ -221,12 +221,12 @@ def test_killed_fleet_leaves_no_process(tmp_path):
 
 
 def test_ctrl_c_stops_cleanly(standard_run, tmp_path):
-    """SIGINT (Ctrl-C) to `thermocal calibrate` while it runs in a job process of the warm worker: exit 130, one
-    line on stderr, the job process gone, the warm worker still there."""
+    """SIGINT (Ctrl-C) to `thermocal calibrate` while it runs in a job process of the local server: exit 130, one
+    line on stderr, the job process gone, the forkserver still there."""
     env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}
     st = ensure_server()
     sup = st["pid"]
-    warm = _wait("the warm worker", lambda: _workers(sup), 60)
+    warm = _wait("the warm forkserver", lambda: _workers(sup), 60)
     cli = subprocess.Popen(
         [THERMOCAL, "calibrate", str(standard_run), "--registry", str(tmp_path / "reg")],
         env=env,
@@ -245,12 +245,12 @@ def test_ctrl_c_stops_cleanly(standard_run, tmp_path):
 
 def test_commands_back_to_back_and_at_once_each_get_a_job_process(short_run, tmp_path):
     """Three calibrates started at once, then one more: each runs in a job process of its own forked by the one
-    warm worker (no worker is started for them), each is recorded (versions 1 of three registries, one flow run
+    forkserver (no process is warmed up for them), each is recorded (versions 1 of three registries, one flow run
     each), and no job process is left."""
     env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}
     st = ensure_server()
     sup = st["pid"]
-    warm = _wait("the warm worker", lambda: _workers(sup), 60)
+    warm = _wait("the warm forkserver", lambda: _workers(sup), 60)
     regs = [tmp_path / f"reg{k}" for k in range(3)]
     procs = [
         subprocess.Popen(
@@ -280,19 +280,19 @@ def test_commands_back_to_back_and_at_once_each_get_a_job_process(short_run, tmp
     _wait("no job process left", lambda: not _jobs(sup), 30)
 
 
-def test_server_exits_when_idle_and_with_its_supervisor(tmp_path):
-    """The supervisor killed (-9): its Prefect server and warm worker follow within seconds. Started again with
-    a 2 s idle timeout, it exits by itself, with everything it started, and removes its state file."""
+def test_server_exits_when_idle_and_its_processes_when_it_is_killed(tmp_path):
+    """The server killed (-9): its warm forkserver follows within seconds. Started again with a 2 s idle timeout,
+    it exits by itself, with everything it started, and removes its state file and socket."""
     home = tmp_path / "home"
     env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}
     env["PREFECT_HOME"] = str(home)
     subprocess.run([THERMOCAL, "server", "start"], env=env, check=True, capture_output=True, timeout=240)
     st = read_state(home)
-    warm = _wait("the warm worker", lambda: _workers(st["pid"]), 60)
+    warm = _wait("the warm forkserver", lambda: _workers(st["pid"]), 60)
     family = _descendants(st["pid"])
-    assert st["server_pid"] in family and warm[0] in family
+    assert warm[0] in family
     os.kill(st["pid"], signal.SIGKILL)
-    _wait("the server and worker of a killed supervisor gone", lambda: not _alive(family), 15)
+    _wait("the warm processes of a killed server gone", lambda: not _alive(family), 15)
 
     env["THERMOCAL_SERVER_IDLE_S"] = "2"
     subprocess.run([THERMOCAL, "server", "start"], env=env, check=True, capture_output=True, timeout=240)
@@ -300,6 +300,7 @@ def test_server_exits_when_idle_and_with_its_supervisor(tmp_path):
     family = _descendants(st["pid"]) | {st["pid"]}
     _wait("an idle server gone by itself", lambda: not _alive(family), 60)
     assert not (home / "thermocal-server.json").exists() and read_state(home) is None
+    assert not Path(st["socket"]).exists()
     assert stop_server(home) is False
 
 
@@ -385,8 +386,9 @@ def test_failing_command_prints_one_line(short_run, tmp_path):
 
 
 def test_calibrate_into_a_closed_pipe_ends_quietly_and_writes_its_passport(short_run, tmp_path):
-    """`thermocal calibrate RUN | head -3` (its output relayed from the warm worker): the reader gone ends the
-    output quietly (exit 0, nothing on stderr but the key notice) and the passport is written all the same."""
+    """`thermocal calibrate RUN | head -3` (its output written by a job process of the local server): the reader
+    gone ends the output quietly (exit 0, nothing on stderr but the key notice) and the passport is written all the
+    same."""
     env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}
     r, w = os.pipe()
     os.close(r)
@@ -404,19 +406,3 @@ def test_calibrate_into_a_closed_pipe_ends_quietly_and_writes_its_passport(short
     assert p.returncode == 0 and _without_key_notice(p.stderr) == "", (p.returncode, p.stderr)
     assert (tmp_path / "reg" / "units" / "AU-0401" / "v0001.json").is_file()
     assert (tmp_path / "reg" / "units" / "AU-0401" / "v0001.png").is_file()
-
-
-def test_a_job_process_exits_with_its_status_with_or_without_cpython_exit_hooks():
-    """The job process's fast exit uses CPython's own exit hooks; where they are missing it exits the ordinary way,
-    with the same status and its atexit functions run."""
-    import subprocess
-    import sys
-
-    for drop in ("", "del threading._shutdown; "):
-        code = (
-            "import atexit, threading; from flows.worker import _exit_job_process; "
-            "atexit.register(lambda: print('atexit ran', flush=True)); " + drop + "_exit_job_process(3)"
-        )
-        done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
-        assert done.returncode == 3, (drop, done.stderr)
-        assert done.stdout.strip() == "atexit ran", (drop, done.stdout, done.stderr)
