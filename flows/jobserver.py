@@ -92,10 +92,13 @@ def _watch_client(reader, started: threading.Event, done: threading.Event) -> No
     """Ctrl-C from the client (``INT``) interrupts the command; the client gone (killed) too, and then the job
     leaves after :data:`CLIENT_GONE_GRACE_S` whatever the command is doing."""
 
+    main = threading.main_thread().ident
+    assert main is not None  # the main thread has started
+
     def interrupt() -> None:
         started.wait()
         if not done.is_set():
-            signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)
+            signal.pthread_kill(main, signal.SIGINT)
 
     with contextlib.suppress(OSError, ValueError):
         for line in reader:

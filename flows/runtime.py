@@ -12,6 +12,7 @@ import contextlib
 import os
 import sys
 import time
+from typing import Any
 
 _DEFAULTS = {
     "PREFECT_SERVER_ANALYTICS_ENABLED": "false",
@@ -39,7 +40,7 @@ def flow_settings(local_server: bool = True):
     prefect_defaults()
     from prefect.settings import PREFECT_API_URL, PREFECT_FLOWS_HEARTBEAT_FREQUENCY, temporary_settings
 
-    updates = {}
+    updates: dict[Any, Any] = {}
     if PREFECT_FLOWS_HEARTBEAT_FREQUENCY.value() is not None:
         updates[PREFECT_FLOWS_HEARTBEAT_FREQUENCY] = None
     if local_server and not PREFECT_API_URL.value():
