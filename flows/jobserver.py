@@ -27,20 +27,8 @@ from pathlib import Path
 
 from .localserver import DEFAULT_IDLE_S, LOCK, LOG, SOCKET, STATE, code_fingerprint
 
-#: what the forkserver imports before it forks a job process (a job imports nothing of its own then)
-PRELOAD = [
-    "flows.jobserver",
-    "flows.cli",
-    "flows.calibrate",
-    "flows.fleet",
-    "pipeline.inspect",
-    "pipeline.plots",
-    "pipeline.io.mcap",
-    "pipeline.io.parquet",
-    "prefect.flow_engine",
-    "prefect.task_engine",
-    "matplotlib.backends.backend_agg",
-]
+#: what the forkserver imports before it forks a job process: this module and the warm-up (:mod:`flows.warmup`)
+PRELOAD = ["flows.jobserver", "flows.warmup"]
 #: seconds a job whose command was killed gets to wind its flow down before it exits anyway
 CLIENT_GONE_GRACE_S = 5.0
 
@@ -198,39 +186,41 @@ def serve(home: Path) -> int:
 def _dispatch(listener: socket.socket, state: dict, jobs: list) -> None:
     """Warm the forkserver up, publish the state file once the API answers, then start a job process per
     command; stop the server (SIGTERM to this process, as ``thermocal server stop``) after ``idle_s`` without a
-    command."""
+    command, or when a job cannot be started (its reason in the log)."""
     import multiprocessing
+    import traceback
 
     ctx = multiprocessing.get_context("forkserver")
     ctx.set_forkserver_preload(PRELOAD)
-    warm = ctx.Process(target=nothing)  # starts the forkserver, which imports PRELOAD
-    warm.start()
-    warm.join()
-    home = Path(state["home"])
-    while not _health(state["api_url"]):
-        time.sleep(0.1)
-    tmp = home / f".{STATE}.tmp"
-    tmp.write_text(json.dumps(state))
-    tmp.chmod(0o600)
-    tmp.replace(home / STATE)
-    listener.settimeout(0.25)
-    last = time.monotonic()
-    while True:
-        try:
-            conn, _ = listener.accept()
-        except TimeoutError:
-            conn = None
-        if conn is not None:
-            with conn:
-                job = ctx.Process(target=run_job, args=(conn,), name="thermocal-job")
-                job.start()
-            jobs.append(job)
-        jobs[:] = [j for j in jobs if j.is_alive()]
-        if jobs or conn is not None:
-            last = time.monotonic()
-        elif time.monotonic() - last > state["idle_s"]:
-            os.kill(os.getpid(), signal.SIGTERM)
-            return
+    try:
+        warm = ctx.Process(target=nothing)  # starts the forkserver, which imports PRELOAD
+        warm.start()
+        warm.join()
+        home = Path(state["home"])
+        while not _health(state["api_url"]):
+            time.sleep(0.1)
+        tmp = home / f".{STATE}.tmp"
+        tmp.write_text(json.dumps(state))
+        tmp.chmod(0o600)
+        tmp.replace(home / STATE)
+        listener.settimeout(0.25)
+        last = time.monotonic()
+        while jobs or time.monotonic() - last < state["idle_s"]:
+            try:
+                conn, _ = listener.accept()
+            except TimeoutError:
+                conn = None
+            if conn is not None:
+                with conn:
+                    job = ctx.Process(target=run_job, args=(conn,), name="thermocal-job")
+                    job.start()
+                jobs.append(job)
+            jobs[:] = [j for j in jobs if j.is_alive()]
+            if jobs or conn is not None:
+                last = time.monotonic()
+    except Exception:
+        traceback.print_exc()
+    os.kill(os.getpid(), signal.SIGTERM)
 
 
 if __name__ == "__main__":
