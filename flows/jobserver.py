@@ -176,6 +176,8 @@ def serve(home: Path) -> int:
                 (home / STATE).unlink()
         listener.close()
         path.unlink(missing_ok=True)
+        if path.parent != home:  # the private temporary folder of a long home's socket
+            path.parent.rmdir()
         for job in list(jobs):  # a stopped server interrupts its commands
             job.terminate()
         for job in list(jobs):
@@ -219,7 +221,8 @@ def _dispatch(listener: socket.socket, state: dict, jobs: list) -> None:
             if jobs or conn is not None:
                 last = time.monotonic()
     except Exception:
-        traceback.print_exc()
+        if listener.fileno() != -1:  # (not the server's own shutdown, which closes the listener)
+            traceback.print_exc()
     os.kill(os.getpid(), signal.SIGTERM)
 
 

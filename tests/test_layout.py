@@ -166,3 +166,59 @@ def test_back_arrow_finder_finds_one():
     assert _back_arrows({"pipeline.passport.document": {"pipeline.diagnose.model", "pipeline.thermal"}}) == [
         "pipeline.passport.document -> pipeline.diagnose.model"
     ]
+
+
+def test_no_private_api_of_python_or_other_packages():
+    """Supported APIs only (issue 27): ``pipeline`` and ``flows`` use no private name (``_x``) of the standard
+    library or another package (``threading._shutdown``, ``typer._click``, ``prefect._internal``, ...), neither
+    through an attribute nor in an import. ``os._exit`` is a documented function."""
+    allowed = {"os._exit"}
+    found = []
+    for pkg in PACKAGES:
+        for path in sorted((REPO / pkg).rglob("*.py")):
+            tree = ast.parse(path.read_text())
+            modules = {"os", "sys", "threading", "atexit", "signal", "socket", "multiprocessing"}
+            for node in ast.walk(tree):
+                if isinstance(node, ast.Import):
+                    modules |= {(a.asname or a.name).split(".")[0] for a in node.names}
+                    for a in node.names:
+                        if any(n.startswith("_") and not n.startswith("__") for n in a.name.split(".")):
+                            found.append(f"{path.relative_to(REPO)}:{node.lineno} import {a.name}")
+                elif isinstance(node, ast.ImportFrom) and not node.level and node.module:
+                    if node.module.split(".")[0] in PACKAGES:
+                        continue
+                    names = [*node.module.split("."), *(a.name for a in node.names)]
+                    if any(n.startswith("_") and not n.startswith("__") for n in names):
+                        found.append(f"{path.relative_to(REPO)}:{node.lineno} from {node.module} import ...")
+                    modules |= {a.asname or a.name for a in node.names}  # (a module or an object of one)
+            modules -= set(PACKAGES)
+            for node in ast.walk(tree):
+                if (  # getattr(threading, "_shutdown"), hasattr(core.X, "_y"), setattr(...)
+                    isinstance(node, ast.Call)
+                    and isinstance(node.func, ast.Name)
+                    and node.func.id in ("getattr", "hasattr", "setattr")
+                    and len(node.args) >= 2
+                    and isinstance(node.args[1], ast.Constant)
+                    and str(node.args[1].value).startswith("_")
+                    and not str(node.args[1].value).startswith("__")
+                    and isinstance(root := node.args[0], ast.Attribute | ast.Name)
+                ):
+                    while isinstance(root, ast.Attribute):
+                        root = root.value
+                    if isinstance(root, ast.Name) and root.id in modules:
+                        found.append(
+                            f"{path.relative_to(REPO)}:{node.lineno} {node.func.id}(..., {node.args[1].value!r})"
+                        )
+                if not isinstance(node, ast.Attribute):
+                    continue
+                chain, base = [node.attr], node.value
+                while isinstance(base, ast.Attribute):
+                    chain.insert(0, base.attr)
+                    base = base.value
+                if not (isinstance(base, ast.Name) and base.id in modules):
+                    continue
+                dotted = ".".join([base.id, *chain])
+                private = any(c.startswith("_") and not c.startswith("__") for c in chain)
+                if private and dotted not in allowed:
+                    found.append(f"{path.relative_to(REPO)}:{node.lineno} {dotted}")
+    assert not found, found

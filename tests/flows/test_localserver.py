@@ -281,8 +281,9 @@ def test_commands_back_to_back_and_at_once_each_get_a_job_process(short_run, tmp
 
 
 def test_server_exits_when_idle_and_its_processes_when_it_is_killed(tmp_path):
-    """The server killed (-9): its warm forkserver follows within seconds. Started again with a 2 s idle timeout,
-    it exits by itself, with everything it started, and removes its state file and socket."""
+    """The server killed (-9): its warm forkserver follows within seconds. Started again with a 2 s idle timeout
+    (in a Prefect home too long for a Unix socket's path: the socket goes to a private temporary folder), it exits
+    by itself, with everything it started, and removes its state file, socket and that folder."""
     home = tmp_path / "home"
     env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}
     env["PREFECT_HOME"] = str(home)
@@ -294,13 +295,15 @@ def test_server_exits_when_idle_and_its_processes_when_it_is_killed(tmp_path):
     os.kill(st["pid"], signal.SIGKILL)
     _wait("the warm processes of a killed server gone", lambda: not _alive(family), 15)
 
-    env["THERMOCAL_SERVER_IDLE_S"] = "2"
+    home = tmp_path / ("long-" * 20)
+    env.update(THERMOCAL_SERVER_IDLE_S="2", PREFECT_HOME=str(home))
     subprocess.run([THERMOCAL, "server", "start"], env=env, check=True, capture_output=True, timeout=240)
     st = read_state(home)
+    assert home not in Path(st["socket"]).parents and Path(st["socket"]).exists()
     family = _descendants(st["pid"]) | {st["pid"]}
     _wait("an idle server gone by itself", lambda: not _alive(family), 60)
     assert not (home / "thermocal-server.json").exists() and read_state(home) is None
-    assert not Path(st["socket"]).exists()
+    assert not Path(st["socket"]).parent.exists()
     assert stop_server(home) is False
 
 
