@@ -387,7 +387,9 @@ def export_px4(passport: dict, state=None, options: ExportOptions | None = None)
             "corrects nothing"
         )
     steps += [
-        "load this file (QGroundControl: Vehicle Setup > Parameters > Tools > Load from file)",
+        "load this file (QGroundControl: Vehicle Setup > Parameters > Tools > Load from file; it refuses a file whose "
+        "first column, the system id, is not the vehicle's MAV_SYS_ID: written here as 1, edit that column for "
+        "another)",
         "reboot: PX4 reads TC_A_ENABLE at boot",
         f"redo the vehicle's accelerometer calibration with the IMU between TMIN and TMAX ({lo:g} .. {hi:g} C), "
         f"best near T0 = {tref:g} C: PX4 computes it on thermally corrected readings, so one made before loading "
