@@ -46,7 +46,8 @@ def export(
         "--px4-device-id",
         metavar="N",
         help="PX4: the device id of the accelerometer to correct (its CAL_ACC<n>_ID, or device_id in 'listener "
-        "sensor_accel'); written as TC_A<K>_ID with TC_A_ENABLE 1. Without it the file corrects nothing",
+        "sensor_accel'), decimal or 0x hexadecimal; written as TC_A<K>_ID with TC_A_ENABLE 1. Default: the id the "
+        "run metadata recorded (px4_accel_device_id), else 0, and the file corrects nothing",
     ),
     instance: int | None = typer.Option(
         None,
