@@ -28,6 +28,7 @@ per-sample RMS is dominated by the white noise.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 
 import numpy as np
 
@@ -51,16 +52,23 @@ from pipeline.diagnose.signal import (
     temperature_noise_c,
 )
 from pipeline.diagnose.unexplained import find_unexplained
+from pipeline.dynamics import Thermosensor
 from pipeline.effects.catalogue import EFFECTS, effect_class, make_effect
 from pipeline.effects.model import ExtendedModel
 from pipeline.errors import CalibrationError
 from pipeline.model import output_v
-from pipeline.passport.document import compensate_extended, load_model
+from pipeline.passport.document import compensate_extended, load_model, load_passport
 from pipeline.passport.text import output_unit_of
 from pipeline.positions import AXES
 from pipeline.run import Run
 from pipeline.segment import Segmentation, segment_run
-from pipeline.thermal import add_polynomial_correction, default_order, polynomial_reference, raise_order
+from pipeline.thermal import (
+    DifferentialModel,
+    add_polynomial_correction,
+    default_order,
+    polynomial_reference,
+    raise_order,
+)
 
 #: sigma factor of blocks left out of the fits (they keep their place in the figure)
 _EXCLUDE = 1e3
@@ -150,6 +158,7 @@ def _diagnose(run: Run, passport: dict | None, settings: DiagnoseSettings, passp
         raise CalibrationError(
             "too few named static samples to compare with the model and estimate the noise", stream="voltmeter"
         )
+    rec, lag_s = _with_passport_dynamics(run, rec, passport, notes)
     blocks = make_blocks(rec, settings.block_s)
     sigma = _block_sigma(run, rec, blocks, reference)
     excluded = blocks.mean(rec.ramp_uncertain.astype(float)) > 0  # direction of the last ramp unknown there
@@ -211,7 +220,9 @@ def _diagnose(run: Run, passport: dict | None, settings: DiagnoseSettings, passp
     final_trials = _final_trials(sel)
     extended = ExtendedModel(
         add_polynomial_correction(reference, sel.final.base_coef),
-        [make_effect(t.effect, t.params) for t in final_trials] + _drift_effects(sel),
+        [make_effect(t.effect, t.params) for t in final_trials]
+        + _passport_lag(final_trials, lag_s)
+        + _drift_effects(sel),
         source={"run_id": run.meta.run_id, "run": run.source, "method": "thermocal diagnose"},
     )
     return report(
@@ -343,6 +354,50 @@ def _base_model(passport: dict):
         )
         reference = raise_order(reference, order)
     return model, reference, notes
+
+
+def _with_passport_dynamics(
+    run: Run, rec: StaticRecord, passport: dict, notes: list[str]
+) -> tuple[StaticRecord, float]:
+    """The record compared with the passport's whole model where the passport holds ``rate_terms`` (the ramp and
+    differential methods), as ``apply`` evaluates it: the model at the element temperature, through the passport's
+    element lag (``model_temp_c``), and the outputs without what its rate terms add (the rate the smoothed
+    thermosensor's). Returns the record and the lag (s; 0: none). A lag term the search then tries is the whole lag
+    of the element behind the thermosensor, named only where the recording needs a lag other than the passport's."""
+    p = load_passport(passport)
+    rate = p.rate_terms
+    if rate is None or rec.size == 0:
+        return rec, 0.0
+    lag_s = max(float(rate.lag_tau_s), 0.0)
+    changes: dict = {}
+    if lag_s > 0:
+        changes["model_temp_c"] = rec.element_temperature_c(lag_s)
+        notes.append(
+            f"the passport's model is compared at the element temperature, {lag_s:.0f} s behind the thermosensor "
+            "(its rate_terms.lag_tau_s); a thermal_lag finding gives the whole lag the recording shows"
+        )
+    if rate.order > 0 or rate.cross_abs is not None:
+        temp = changes.get("model_temp_c", rec.temp_c)
+        rate_c = None
+        if rate.order > 0:
+            rate_c = Thermosensor.from_run(run, rate.temp_smooth_s, t_ref_ns=rec.start_ns).at(rec.t_s)[1]
+        k, u0 = DifferentialModel(p.thermal_model, rate).constants_at(temp, rate_c)
+        k_s, u0_s = p.thermal_model.constants_at(temp)
+        changes["u_v"] = rec.u_v - output_v(k - k_s, u0 - u0_s, rec.a_g)
+        notes.append(
+            "what the passport's rate terms add (rate_terms) was taken off the recorded outputs before the "
+            "comparison; the extended model does not hold them"
+        )
+    return dataclasses.replace(rec, **changes), lag_s
+
+
+def _passport_lag(trials, lag_s: float) -> list:
+    """The passport's own element lag as a catalogue term of the extended model (which replaces the passport's
+    model in ``apply``), unless the search found a lag (the whole lag then)."""
+    cls = next((c for c in EFFECTS.values() if c.acts_on == "temperature"), None)
+    if lag_s <= 0 or cls is None or cls.nonlinear is None or any(t.effect == cls.id for t in trials):
+        return []
+    return [cls.make({cls.nonlinear: lag_s})]
 
 
 def _block_sigma(run: Run, rec: StaticRecord, blocks: Blocks, reference) -> np.ndarray:

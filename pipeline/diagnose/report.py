@@ -108,7 +108,7 @@ def report(out: Outcome, settings: DiagnoseSettings) -> Diagnosis:
         out.unexplained,
     )
     blocks, excluded, notes, unit = design.blocks, out.excluded, list(out.notes), out.unit
-    K_t, U0_t = out.model.constants_at(rec.temp_c)
+    K_t, U0_t = out.model.constants_at(rec.element_temperature_c(None))
     predicted = blocks.mean(output_v(K_t, U0_t, rec.a_g))
     before = design.y - predicted
     after = design.y - sel.final.fitted
@@ -418,7 +418,7 @@ def _vp_errors(seg: Segmentation, rec: StaticRecord, model, extended: ExtendedMo
     if not vp or rec.size == 0:
         return []
     t_ns = rec.start_ns + rec.t_s * _NS
-    k, u0 = model.constants_at(rec.temp_c)
+    k, u0 = model.constants_at(rec.element_temperature_c(None))
     a_before = specific_force_g(k, u0, rec.u_v)
     a_after = extended.specific_force_g(
         rec.u_v, rec.context(extended.base), rec.element_temperature_c(extended.lag_tau_s)

@@ -65,7 +65,9 @@ class StaticRecord:
     per-sample noise, ``rate_hz`` the voltmeter rate. ``ramp_source`` says where ``ramp_sign`` came from;
     ``ramp_uncertain`` marks micro-samples near a change of direction found from the thermosensor, whose onset is
     only known to a few minutes. ``thermo_t_s`` / ``thermo_c`` are the whole thermosensor series (finite samples),
-    for history-dependent effects that must not see the gaps of the moves.
+    for history-dependent effects that must not see the gaps of the moves. ``model_temp_c`` (m,) C is the
+    temperature the passport's own model is evaluated at where it differs from ``temp_c``: the element's, through
+    the element lag a passport holds (``rate_terms.lag_tau_s``, the ramp and differential methods); None: ``temp_c``.
     """
 
     start_ns: int
@@ -88,6 +90,7 @@ class StaticRecord:
     thermo_t_s: np.ndarray
     thermo_c: np.ndarray
     warnings: list[str] = field(default_factory=list)
+    model_temp_c: np.ndarray | None = None
 
     @property
     def size(self) -> int:
@@ -109,10 +112,11 @@ class StaticRecord:
         )
 
     def element_temperature_c(self, tau_s: float | None) -> np.ndarray:
-        """Temperature (m,) C of a sensing element lagging the thermosensor by ``tau_s`` (None: no lag), computed
-        on the whole thermosensor series (the simulator's first-order lag) and read at the micro-samples."""
+        """Temperature (m,) C of a sensing element lagging the thermosensor by ``tau_s``, computed on the whole
+        thermosensor series (the simulator's first-order lag) and read at the micro-samples. None: the temperature
+        the passport's model is evaluated at (``model_temp_c``: with the passport's own lag, if it holds one)."""
         if tau_s is None:
-            return self.temp_c
+            return self.temp_c if self.model_temp_c is None else self.model_temp_c
         return np.interp(self.t_s, self.thermo_t_s, first_order_lag(self.thermo_t_s, self.thermo_c, tau_s))
 
 

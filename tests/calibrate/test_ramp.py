@@ -285,7 +285,10 @@ def test_lag_and_hysteresis_told_apart():
     assert any("thermal_hysteresis" in w for w in res.warnings)
     dg = max(abs(row.dg_method1_g) for row in res.rows)
     assert 5e-5 < dg < 1.5e-4 and res.status == "pass"
-    report = diagnose_run(sim.run, doc).report
+    diagnosis = diagnose_run(sim.run, doc)
+    report = diagnosis.report
     named = {f["effect"]: f for f in report["findings"]}
-    assert "thermal_hysteresis" in named
+    assert "thermal_hysteresis" in named and "thermal_lag" not in named  # the passport's own lag is not found again
     np.testing.assert_allclose(named["thermal_hysteresis"]["parameters"]["h_v"], h, atol=3e-6)
+    effects = {e["effect"]: e["parameters"] for e in diagnosis.passport["extended_model"]["effects"]}
+    assert effects["thermal_lag"]["tau_s"] == doc["rate_terms"]["lag_tau_s"]  # kept in the extended model

@@ -6,15 +6,19 @@ whole catalogue is in test_diagnose_concealed.py.
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import json
 from pathlib import Path
 
 import numpy as np
+import polars as pl
 import pytest
 
 from flows.diagnose_cmd import diagnose_command, diagnose_text
 from pipeline.diagnose.diagnosis import diagnose_run, fit_passport
 from pipeline.diagnose.signal import make_blocks, segment_settings_for, static_record
+from pipeline.dynamics import Thermosensor
 from pipeline.effects.catalogue import make_effect
 from pipeline.effects.model import ExtendedModel
 from pipeline.errors import ThermocalError
@@ -23,7 +27,7 @@ from pipeline.model import gravity_module_error_g
 from pipeline.passport.document import compensate_extended, load_extended
 from pipeline.segment import segment_run
 from pipeline.simulate.chamber import SimConfig, simulate
-from pipeline.thermal import PolynomialModel
+from pipeline.thermal import PolynomialModel, RateTerms
 from tests.conftest import data_path
 
 
@@ -152,6 +156,30 @@ def test_clean_run_is_consistent_and_the_report_has_the_contract_shape(clean_sho
     # every candidate was scored and none passed
     assert {c["effect"] for c in rep["candidates"][0]} >= {"thermal_lag", "tilt_settling", "fixture_face_error"}
     assert all(c["delta_bic"] > -20 or c["implausible"] for c in rep["candidates"][0])
+
+
+def test_a_passports_rate_terms_are_part_of_the_model_it_is_compared_with(clean_short):
+    """A passport's rate terms (the differential method's: U0 += alpha r, r the smoothed thermosensor's rate in
+    C/min) are part of the model diagnose compares a recording with: the recording plus exactly what they add (up to
+    25 micro-V on the short program's 5 C/min ramps), diagnosed with them, departs from the passport as little as
+    the plain recording from the passport without them (block RMS within 10 %); with a passport without them the
+    same recording departs 5x as much (8.9x). (The added signal moves a few stretch edges, so the blocks differ.)"""
+    run = clean_short.run
+    passport = fit_passport(run, segment_run(run, segment_settings_for(run)))
+    alpha_v = np.array([6e-6, -4e-6, 5e-6])  # V/(C/min)
+    smooth_s = 301.0
+    with_rate = copy.deepcopy(passport)
+    with_rate["rate_terms"] = RateTerms(alpha_v.reshape(1, 1, 3), np.zeros((1, 1, 3)), smooth_s).to_dict()
+    t_ns = run.voltmeter["t_ns"].to_numpy()
+    _, rate = Thermosensor.from_run(run, smooth_s, t_ref_ns=int(t_ns[0])).at((t_ns - t_ns[0]) / 1e9)
+    added = run.voltmeter.with_columns([pl.col(c) + alpha_v[i] * rate for i, c in enumerate(("ux", "uy", "uz"))])
+    shifted = dataclasses.replace(run, voltmeter=added)
+    plain = diagnose_run(run, passport).report
+    held = diagnose_run(shifted, with_rate).report
+    assert held["rms_before_v"] == pytest.approx(plain["rms_before_v"], rel=0.1)
+    assert any("rate terms" in n for n in held["notes"])
+    ignored = diagnose_run(shifted, passport).report
+    assert ignored["verdict"] == "mismatch" and ignored["rms_before_v"] > 5 * plain["rms_before_v"]
 
 
 def test_finding_has_the_contract_fields():
