@@ -182,11 +182,13 @@ def fleet_flow(
     figures: bool = True,
     progress: bool = False,
     method: str = "tilt",
+    trends: bool = False,
 ) -> dict:
     """Calibrate every run under ``root`` into ``registry`` by ``method`` (``pipeline.calibrate.methods``): one
     task per unit, bad runs reported, done units skipped. Returns the ``fleet --json`` object: ``done``, ``failed``,
     ``skipped`` (docs/contract.md), ``flow_run_id`` and ``timing`` (wall, planning and in-task compute seconds, the
-    runner)."""
+    runner). ``trends``: then run the trends flow over the registry (:func:`flows.trends.trends_flow`, a subflow
+    with its own table artifact); the summary gets ``trends``, the number of findings of each kind."""
     logger = get_run_logger()
     t0 = time.perf_counter()
     step = Steps("fleet")  # progress only when asked and stderr is a terminal
@@ -257,6 +259,11 @@ def fleet_flow(
     )
     if outcomes:
         record_head(str(registry))
+    if trends and os.path.isdir(registry):
+        from .trends import KINDS, trends_flow
+
+        report = trends_flow(str(registry))
+        summary["trends"] = {k: len(report[k]) for k in KINDS}
     return summary
 
 

@@ -2,8 +2,9 @@
 
 ``thermocal serve --inbox DIR --registry R --cron "0 2 * * *"`` registers the deployment ``thermocal-fleet/<name>``
 with a running Prefect server and stays in the foreground executing its runs (``prefect.serve``: no work pool or
-worker to set up). Each run is ``fleet_flow(root=DIR, registry=R, ...)``: new runs in the inbox are calibrated,
-runs already processed are skipped by content hash, so the inbox may keep its old runs.
+worker to set up). Each run is ``fleet_flow(root=DIR, registry=R, trends=True, ...)``: new runs in the inbox are
+calibrated, runs already processed are skipped by content hash, so the inbox may keep its old runs; then the trends
+flow (:mod:`flows.trends`) reports the registry's drifting constants and outliers in its table artifact.
 
 It needs a Prefect server with its scheduler, reachable through ``PREFECT_API_URL``: ``prefect server start``
 (SQLite under ``PREFECT_HOME`` by default; for production set ``PREFECT_API_DATABASE_CONNECTION_URL`` to a
@@ -83,6 +84,7 @@ def nightly_deployment(
         "settings": settings.to_dict(),
         "dask_address": dask_address,
         "workers": workers,
+        "trends": True,
     }
     return fleet_flow.to_deployment(
         name=name,

@@ -2,12 +2,9 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import typer
-
-from pipeline.errors import ThermocalError
 
 from .app import REGISTRY_HELP, JsonFlag, app, emit
 
@@ -28,17 +25,9 @@ def trends(
     report = result.report
     text = trends_text(report)
     if html is not None:
-        from pipeline.passport.trends_page import trends_html
+        from pipeline.passport.trends_page import write_trends_page
 
-        page = trends_html(result, registry=str(registry))
-        try:
-            html.parent.mkdir(parents=True, exist_ok=True)
-            tmp = html.with_name(f".{html.name}.tmp")
-            tmp.write_text(page, encoding="utf-8")
-            os.replace(tmp, html)
-        except OSError as e:
-            raise ThermocalError(f"cannot write the page ({e.strerror or e})", path=str(html)) from None
-        text += f"\npage: {html}"
+        text += f"\npage: {write_trends_page(result, html, registry=str(registry))}"
     emit(report, as_json, text)
     if report["not_verified"]:
         raise typer.Exit(1)

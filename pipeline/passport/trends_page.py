@@ -9,10 +9,13 @@ from __future__ import annotations
 import base64
 import html
 import io
+import os
 from datetime import UTC, datetime
+from pathlib import Path
 
 import numpy as np
 
+from pipeline.errors import ThermocalError
 from pipeline.passport.trends import FleetValues, Series, TrendsResult, utc_of
 
 _CSS = """
@@ -208,3 +211,18 @@ def trends_html(result: TrendsResult, *, registry: str | None = None) -> str:
         parts.append(f"<figure><img alt='{e(caption)}' src='{uri}'><figcaption>{e(caption)}</figcaption></figure>")
     parts.append("</body></html>")
     return "\n".join(parts)
+
+
+def write_trends_page(result: TrendsResult, path: str | os.PathLike, *, registry: str | None = None) -> Path:
+    """Write :func:`trends_html` to ``path`` (whole or not at all: a temporary file renamed); ThermocalError (one
+    line naming the file) when it cannot be written."""
+    out = Path(path)
+    page = trends_html(result, registry=registry)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = out.with_name(f".{out.name}.tmp")
+        tmp.write_text(page, encoding="utf-8")
+        os.replace(tmp, out)
+    except OSError as e:
+        raise ThermocalError(f"cannot write the page ({e.strerror or e})", path=str(out)) from None
+    return out

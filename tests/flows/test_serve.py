@@ -64,7 +64,12 @@ def _stop(proc: subprocess.Popen | None) -> None:
 
 
 def test_serve_nightly_deployment_processes_the_inbox(tmp_path):
+    """... and, after the fleet, the trends flow reports the registry's planted drift in its table artifact."""
+    from pipeline.simulate.history import FleetSpec, Plant, write_fleet
+
     inbox, registry = tmp_path / "inbox", tmp_path / "registry"
+    plants = {"AU-1003": Plant(u0_rate_v_per_year=(1.2e-4, 0.0, 0.0))}  # +40 uV per 120 days
+    write_fleet(registry, FleetSpec(units=10, versions=3, serial_format="AU-1{:03d}", plants=plants))
     res = simulate(SimConfig(unit_serial="AU-0301", unit_seed=301, program="short", rate_hz=2.0))
     write_run(res.run, inbox / "AU-0301.mcap", "mcap")
     (inbox / "broken.mcap").write_bytes(b"not an mcap file")
@@ -162,6 +167,13 @@ def test_serve_nightly_deployment_processes_the_inbox(tmp_path):
         assert {(r["unit"], r["outcome"]) for r in rows} == {("AU-0301", "done"), ("", "failed")}
         assert "not an MCAP file" in next(r["detail"] for r in rows if r["outcome"] == "failed")
         assert "AU-0301: v1 pass" in (tmp_path / "serve.log").read_text()  # the per-unit log line
+        # then the trends flow (a subflow of the nightly run): its table names the planted drift, nothing else
+        (trends,) = httpx.post(
+            f"{api}/artifacts/filter", timeout=10, json={"artifacts": {"key": {"any_": ["thermocal-trends"]}}}
+        ).json()
+        rows = json.loads(trends["data"]) if isinstance(trends["data"], str) else trends["data"]
+        assert [(r["kind"], r["unit"], r["constant"]) for r in rows] == [("drifting", "AU-1003", "U0.x")]
+        assert "11 units" in (tmp_path / "serve.log").read_text()  # its log lines
     finally:
         _stop(serve)
         _stop(server)
