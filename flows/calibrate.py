@@ -40,6 +40,7 @@ from pipeline.calibrate.settings import CalibrationSettings  # noqa: E402
 from pipeline.errors import ThermocalError  # noqa: E402
 from pipeline.io import runs as runio  # noqa: E402
 from pipeline.passport.canonical import canonical_json  # noqa: E402
+from pipeline.passport.document import Passport, load_passport  # noqa: E402
 from pipeline.passport.registry import Registry  # noqa: E402
 from pipeline.run import Run, UnitRuns  # noqa: E402
 from pipeline.segment import Segmentation  # noqa: E402
@@ -60,8 +61,8 @@ def segment(units: dict[str, Run], settings: CalibrationSettings) -> tuple[dict[
 
 @task(name="choose", cache_policy=NO_CACHE)
 def choose(
-    run: Run, settings: CalibrationSettings, base_passport: dict | None, segmentation: Segmentation | None = None
-) -> tuple[str, dict | None, Segmentation, str]:
+    run: Run, settings: CalibrationSettings, base_passport: Passport | None, segmentation: Segmentation | None = None
+) -> tuple[str, Passport | None, Segmentation, str]:
     """``--method auto``: the method the run supports, the base passport if it needs one, the run's segmentation
     and why (``pipeline.calibrate.methods.resolve_auto``)."""
     return resolve_auto(run, settings, base_passport, segmentation)
@@ -72,7 +73,7 @@ def observe(
     run: Run,
     method: str,
     settings: CalibrationSettings,
-    base_passport: dict | None,
+    base_passport: Passport | None,
     segmentation: Segmentation | None = None,
 ) -> ObservedRun:
     return by_name(method).observe(run, settings, base_passport=base_passport, segmentation=segmentation)
@@ -80,7 +81,7 @@ def observe(
 
 @task(name="fit", cache_policy=NO_CACHE)
 def fit(
-    observed: list[ObservedRun], method: str, settings: CalibrationSettings, base_passport: dict | None
+    observed: list[ObservedRun], method: str, settings: CalibrationSettings, base_passport: Passport | None
 ) -> CalibrationResult:
     return by_name(method).calibrate_observed(observed, settings, base_passport=base_passport)
 
@@ -140,21 +141,20 @@ def calibrate_flow(
     step = Steps("calibrate")  # progress lines on stderr when it is a terminal
     if method != "auto":
         by_name(method)  # an unknown method fails before any run is read
+    base = None if base_passport is None else load_passport(base_passport)  # the document a parameter, typed once
     read = []
     for p in paths:
         step(f"ingest {os.path.basename(p)}")
         read.append(ingest(p, units))
     if any(r.several for r in read):
-        return calibrate_units(paths, read, registry, settings, method, base_passport, dry_run, step)
-    result = _calibrate_unit(
-        [r.one() for r in read], list(paths), registry, settings, method, base_passport, dry_run, step
-    )
+        return calibrate_units(paths, read, registry, settings, method, base, dry_run, step)
+    result = _calibrate_unit([r.one() for r in read], list(paths), registry, settings, method, base, dry_run, step)
     if not dry_run:
         record_head(registry)
     return result
 
 
-def calibrate_units(paths, read, registry, settings, method, base_passport, dry_run, step) -> dict:
+def calibrate_units(paths, read, registry, settings, method, base, dry_run, step) -> dict:
     """The runs ``read`` (:class:`pipeline.run.UnitRuns`, one per path) of which some hold several units: each
     unit calibrated from its runs (segmented once per run with several units), one after the other, the samples of
     a unit let go once it is observed. Returns ``{"units": [the calibrate object of each unit], "failed": [{"unit",
@@ -190,7 +190,7 @@ def calibrate_units(paths, read, registry, settings, method, base_passport, dry_
                     registry,
                     settings,
                     method,
-                    base_passport,
+                    base,
                     dry_run,
                     step,
                     segmentations=[seg for _, _, seg in items],
@@ -214,7 +214,7 @@ def _calibrate_unit(
     registry: str,
     settings: CalibrationSettings,
     method: str,
-    base_passport: dict | None,
+    base: Passport | None,
     dry_run: bool,
     step,
     segmentations: list | None = None,
@@ -236,23 +236,23 @@ def _calibrate_unit(
     if method == "auto":
         what = "" if segmentation is not None else f" (segment {os.path.basename(paths[0])})"
         step(f"choose the method for {unit}{what}")
-        method, base_passport, segmentation, chosen = choose(runs[0], settings, base_passport, segmentation)
+        method, base, segmentation, chosen = choose(runs[0], settings, base, segmentation)
         segmentations[0] = segmentation
     base_line = None  # which version the differential method starts from, and its status
     if not by_name(method).uses_base_passport:
-        base_passport = None
-    elif base_passport is None:
-        base_passport, base_line = default_base_passport(registry, unit)
+        base = None
+    elif base is None:
+        base, base_line = default_base_passport(registry, unit)
     observed = []
     for run, p, seg in zip(runs, paths, segmentations):
         step(f"observe ({'average' if seg else 'segment, average'}) {unit} in {os.path.basename(p)}")
-        observed.append(observe(run, method, settings, base_passport, seg))
+        observed.append(observe(run, method, settings, base, seg))
     del runs  # the samples are not needed past the observations
     if release is not None:
         release()
     step(f"fit ({method}: constants, thermal model, VP verification)")
-    calibration = fit(observed, method, settings, base_passport)
-    calibration.warnings[:0] = selection_warnings + ([base_line] if base_line and base_passport is None else [])
+    calibration = fit(observed, method, settings, base)
+    calibration.warnings[:0] = selection_warnings + ([base_line] if base_line and base is None else [])
     for w in calibration.warnings:
         logger.warning(w)
     step("write" if not dry_run else "dry run (nothing written)")
@@ -262,7 +262,7 @@ def _calibrate_unit(
     )
     if chosen:
         result["method_auto"] = chosen
-    if base_line and base_passport is not None:
+    if base_line and base is not None:
         result["base_passport_used"] = base_line
     step(f"done: {unit} v{result['version']} {result['status']}")
     return result

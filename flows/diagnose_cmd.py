@@ -16,9 +16,8 @@ from pipeline.diagnose.diagnosis import diagnose_run
 from pipeline.errors import ThermocalError
 from pipeline.io.runs import read_run
 from pipeline.model import OUTPUT_UNITS
-from pipeline.passport.document import read_passport
+from pipeline.passport.document import load_passport
 from pipeline.passport.registry import Registry
-from pipeline.passport.text import output_unit_of
 
 from .runtime import Steps
 
@@ -33,7 +32,7 @@ def current_passport(registry: Path, unit: str):
     :meth:`pipeline.passport.registry.Registry.load_state`), a description of it (version, status, approval) and
     its :class:`pipeline.passport.registry.VersionState`."""
     doc, st = Registry(registry).load_state(unit)
-    return doc, f"{registry}: {st.text()}", st
+    return load_passport(doc), f"{registry}: {st.text()}", st
 
 
 def diagnose_command(
@@ -56,13 +55,13 @@ def diagnose_command(
         raise ThermocalError("give --passport or --registry, not both", where="diagnose")
     step(f"ingest {run.name}")
     the_run = read_run(run, unit)
-    doc, source, state = None, None, None
+    given, source, state = None, None, None
     if passport is not None:
-        doc, source = read_passport(passport), str(passport)
+        given, source = load_passport(passport), str(passport)
     elif registry is not None:
-        doc, source, state = current_passport(registry, the_run.meta.unit_serial)
-    step("segment, fit and search the residual" if doc is None else "segment and search the residual")
-    result = diagnose_run(the_run, doc, passport_source=source)
+        given, source, state = current_passport(registry, the_run.meta.unit_serial)
+    step("segment, fit and search the residual" if given is None else "segment and search the residual")
+    result = diagnose_run(the_run, given, passport_source=source)
     step("write figure and extended passport")
     tag = f".{unit}" if unit else ""
     png = Path(out_png) if out_png is not None else _beside(run, f"{tag}.diagnose.png")
@@ -71,9 +70,9 @@ def diagnose_command(
         from pipeline.diagnose.plot import plot_diagnosis
 
         title = f"{the_run.meta.unit_serial} {the_run.meta.run_id}: residual of 30 s blocks, {result.report['verdict']}"
-        plot_diagnosis(png, result, the_run, title=title, output_unit=output_unit_of(result.passport))
+        plot_diagnosis(png, result, the_run, title=title, output_unit=result.passport.output_unit)
         ext.parent.mkdir(parents=True, exist_ok=True)
-        ext.write_text(json.dumps(result.passport, indent=1, sort_keys=True) + "\n")
+        ext.write_text(json.dumps(result.passport.document, indent=1, sort_keys=True) + "\n")
     except OSError as e:
         raise ThermocalError(f"cannot write: {e.strerror or e}", path=str(e.filename or png)) from None
     report = dict(result.report)
@@ -81,7 +80,7 @@ def diagnose_command(
         report["passport_used"] = state.as_dict()
         if state.warning():
             report["notes"] = [*report.get("notes", []), state.warning()]
-    report["output_unit"] = output_unit_of(result.passport)
+    report["output_unit"] = result.passport.output_unit
     report["figure"] = str(png)
     report["extended_passport"] = str(ext)
     return report

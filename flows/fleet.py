@@ -50,6 +50,7 @@ from prefect.runtime import flow_run  # noqa: E402
 
 from pipeline.calibrate import fleet as fleet_plan  # noqa: E402
 from pipeline.calibrate.settings import CalibrationSettings  # noqa: E402
+from pipeline.passport.document import Passport  # noqa: E402
 
 from .calibrate import record_head  # noqa: E402
 
@@ -67,7 +68,7 @@ def calibrate_unit(
     figure: bool = True,
     digests: dict | None = None,
     method: str = "tilt",
-    base_passport: dict | None = None,
+    base_passport: Passport | None = None,
     within: dict | None = None,
     pool: Executor | None = None,
 ) -> fleet_plan.UnitOutcome:

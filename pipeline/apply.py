@@ -15,9 +15,9 @@ error is the fixture's, not the unit's, and is never compensated (:mod:`pipeline
 
 The temperature at a sample is the AU thermosensor interpolated at its time (smoothed as when the passport was made
 where the passport has rate terms). One output row per input row, in the input's order; a sample whose voltages or
-temperature are not finite gives NaN, never a dropped row. ``in_range`` says whether the temperature lies within
-the passport's ``valid_temp_c`` (the range its data covered); outside it the model is still applied and
-:func:`apply_passport` returns one warning.
+temperature are not finite gives NaN, never a dropped row. ``in_range`` says whether the temperature lies within the
+passport's valid range (:attr:`pipeline.passport.document.Passport.valid_range_c`: the range its data covered);
+outside it the model is still applied and :func:`apply_passport` returns one warning.
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ import polars as pl
 from pipeline.dynamics import Thermosensor, first_order_lag, ramp_direction, smooth_temperature
 from pipeline.errors import ThermocalError
 from pipeline.model import specific_force_g
-from pipeline.passport.document import failed_verification
+from pipeline.passport.document import Passport, failed_verification, load_passport
 from pipeline.run import NS_PER_S as _NS
 from pipeline.run import SLAB_SAMPLES as _SLAB  # samples compensated at a time (the K(T) stack: 72 bytes a sample)
 from pipeline.run import Run
@@ -50,29 +50,12 @@ class Applied:
     warnings: list[str] = field(default_factory=list)
 
 
-def valid_range_c(passport: dict) -> tuple[float, float] | None:
-    """The temperature range (C) the passport's data covered: ``valid_temp_c``; for passports written before that
-    field, the range of its plateaus or of its differential orientation windows; None when it states none."""
-    v = passport.get("valid_temp_c")
-    if isinstance(v, (list, tuple)) and len(v) == 2 and all(isinstance(x, (int, float)) for x in v):
-        return float(v[0]), float(v[1])
-    temps = [float(p["temp_c"]) for p in passport.get("per_plateau") or [] if "temp_c" in p]
-    if temps:
-        return min(temps), max(temps)
-    windows = (passport.get("differential") or {}).get("windows") or []
-    if windows:
-        return (min(float(w["temp_min_c"]) for w in windows), max(float(w["temp_max_c"]) for w in windows))
-    return None
-
-
-def _model(passport: dict):
-    """(model with constants_at(T[, rate]), lag tau s, smoothing window s or None, warnings, extended) of a passport,
-    from the one passport loader (:func:`pipeline.passport.document.load_passport`); for a passport with an extended
-    model (``extended`` True), the part of that model apply can evaluate (:func:`_applicable_extended`)."""
-    from pipeline.passport.document import load_passport
+def _model(p: Passport):
+    """(model with constants_at(T[, rate]), lag tau s, smoothing window s or None, warnings, extended) of a passport;
+    for a passport with an extended model (``extended`` True), the part of that model apply can evaluate
+    (:func:`_applicable_extended`)."""
     from pipeline.thermal import DifferentialModel
 
-    p = load_passport(passport)
     warnings: list[str] = []
     if p.extended is not None:
         return _applicable_extended(p.extended, warnings), 0.0, None, warnings, True
@@ -167,9 +150,11 @@ def _temperature_at(
     return values, rate
 
 
-def apply_passport(passport: dict, run: Run) -> Applied:
+def apply_passport(passport: Passport | dict, run: Run) -> Applied:
     """The passport's model applied to every voltmeter sample of ``run`` (see the module doc): specific force in
-    g along the unit's axes, the AU temperature at each sample, ``in_range``."""
+    g along the unit's axes, the AU temperature at each sample, ``in_range``. ``passport``: a :class:`Passport` (a
+    document is loaded once here, :func:`pipeline.passport.document.load_passport`)."""
+    passport = load_passport(passport)
     model, lag_s, smooth_s, warnings, is_extended = _model(passport)
     t_ns = run.voltmeter["t_ns"].to_numpy()
     temp_c, rate = _temperature_at(run, t_ns, lag_s, smooth_s)
@@ -191,9 +176,9 @@ def apply_passport(passport: dict, run: Run) -> Applied:
                 out = specific_force_g(K, U0, u)
         out[~good] = np.nan
         a[s0:s1] = out
-    if passport.get("status") == "fail":
-        warnings.append(failed_verification(f"the passport ({passport.get('unit')} v{passport.get('version')})"))
-    rng = valid_range_c(passport)
+    if passport.status == "fail":
+        warnings.append(failed_verification(f"the passport ({passport.unit} v{passport.version})"))
+    rng = passport.valid_range_c
     if rng is None:
         in_range = np.isfinite(temp_c)
         warnings.append("the passport states no valid temperature range: in_range only marks a known temperature")
@@ -220,14 +205,19 @@ def apply_passport(passport: dict, run: Run) -> Applied:
     return Applied(table=table, valid_temp_c=rng, warnings=warnings)
 
 
-def write_applied(applied: Applied, path: str | Path, *, passport: dict | None = None, run: Run | None = None) -> Path:
+def write_applied(
+    applied: Applied, path: str | Path, *, passport: Passport | dict | None = None, run: Run | None = None
+) -> Path:
     """Write the compensated recording: Parquet (any name), or MCAP with ``.mcap`` (one JSON channel ``apply`` of
     row blocks). The file is written beside and renamed into place, so a failure leaves no partial file."""
     path = Path(path)
     tmp = path.with_name(f".{path.name}.partial")
+    passport = load_passport(passport) if passport is not None else None
     meta = {
-        "passport_unit": str((passport or {}).get("unit", "")),
-        "passport_version": str((passport or {}).get("version", "")),
+        "passport_unit": str(passport.unit or "") if passport is not None else "",
+        "passport_version": str(passport.version if passport.version is not None else "")
+        if passport is not None
+        else "",
         "run_id": run.meta.run_id if run is not None else "",
         "valid_temp_c": ""
         if applied.valid_temp_c is None

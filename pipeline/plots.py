@@ -4,8 +4,12 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from pipeline.passport.document import Passport
 
 #: The series of the verification figure: row field (g), legend label, matplotlib format, colour; the first on
 #: the upper axes (before compensation), the others on the lower axes (after).
@@ -185,7 +189,7 @@ def constant_changes(K: np.ndarray, U0: np.ndarray, K0: np.ndarray, U00: np.ndar
     }
 
 
-def plot_constants(passport: dict, path: str | Path, *, title: str = "") -> Path:
+def plot_constants(passport: Passport | dict, path: str | Path, *, title: str = "") -> Path:
     """:func:`constants_figure` written to ``path`` (PNG)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
 
@@ -196,28 +200,28 @@ def plot_constants(passport: dict, path: str | Path, *, title: str = "") -> Path
     return path
 
 
-def constants_figure(passport: dict, *, title: str = ""):
+def constants_figure(passport: Passport | dict, *, title: str = ""):
     """The core figure of a thermal calibration: the constants found on each plateau against temperature (points,
     with their standard uncertainty as error bars where the passport has it), the fitted thermal model (line) and
     its residuals (plateau minus model, the row under each), per axis (columns x, y, z): gain K_ii in ppm,
     cross-axis K_ij in ppm of the gain, offset U0_i in micro-g, all as changes from the normal-temperature
-    constants. ``passport``: a passport document (``per_plateau``, ``coefficients``, ``thermal_model``,
-    ``uncertainty``)."""
+    constants. ``passport``: a :class:`pipeline.passport.document.Passport` (a document is loaded once here); the
+    per-plateau constants are read from its document as stored (``per_plateau``)."""
     from matplotlib.figure import Figure
     from matplotlib.ticker import MaxNLocator, NullLocator
 
-    from pipeline.passport.document import load_model
+    from pipeline.passport.document import load_passport
 
-    pp = passport.get("per_plateau") or []
-    K0 = np.asarray(passport["coefficients"]["K"], float)
-    U00 = np.asarray(passport["coefficients"]["U0"], float)
+    passport = load_passport(passport)
+    pp = passport.document.get("per_plateau") or []
+    K0, U00 = passport.K, passport.U0
     fig = Figure(figsize=(12, 10.5), dpi=90)
     # not sharex: a shared x axis shares its tick locator, and every axes would make the bottom row's tick
     # objects (18 axes' ticks were most of the drawing time); the rows above take the bottom row's limits instead
     axes = fig.subplots(6, 3, gridspec_kw={"height_ratios": [3, 1.3] * 3})
     fig.subplots_adjust(left=0.09, right=0.99, bottom=0.05, top=0.92, hspace=0.12, wspace=0.22)
-    T0 = float(passport.get("normal_temp_c", 20.0))
-    span = passport.get("valid_temp_c") or [T0, T0]
+    T0 = passport.normal_temp_c
+    span = passport.valid_temp_c or (T0, T0)
     if pp or span[1] > span[0]:
         # a method without plateau constants (differential) shows its model over the valid range, no points
         T = np.array([p["temp_c"] for p in pp], float)
@@ -227,10 +231,10 @@ def constants_figure(passport: dict, *, title: str = ""):
             K0,
             U00,
         )
-        sig = _plateau_sigmas(passport, len(pp), K0)
+        sig = _plateau_sigmas(passport.uncertainty, len(pp), K0)
         lo, hi = min([T0, span[0], *T.tolist()]), max([T0, span[1], *T.tolist()])
         grid = np.linspace(lo, hi, 121)
-        model = load_model(passport)
+        model = passport.thermal_model
         at_grid = constant_changes(*model.constants_at(grid), K0, U00)
         at_T = constant_changes(*model.constants_at(T), K0, U00)
         axis = "xyz"
@@ -274,8 +278,8 @@ def constants_figure(passport: dict, *, title: str = ""):
         axes[0, 0].text(
             0.5, 0.5, "no plateau constants and no temperature range", ha="center", transform=axes[0, 0].transAxes
         )
-    kind = passport.get("thermal_model", {}).get("kind", "")
-    order = passport.get("thermal_model", {}).get("order")
+    described = passport.thermal_model.to_dict()
+    kind, order = described.get("kind", ""), described.get("order")
     model_name = f"polynomial of order {order}" if kind == "polynomial" else kind.replace("_", " ")
     title = title or f"Constants per plateau against temperature, thermal model: {model_name}"
     fig.suptitle(title + ("" if pp else " (no per-plateau constants: the model alone)"), fontsize=11)
@@ -291,10 +295,10 @@ def _points(ax, x: np.ndarray, y: np.ndarray, e: np.ndarray | None, colour: str,
         ax.plot(np.repeat(x, 3), bars, "-", color=colour, lw=1)
 
 
-def _plateau_sigmas(passport: dict, n: int, K0: np.ndarray) -> dict[str, np.ndarray] | None:
-    """The per-plateau standard uncertainties of the passport in the units of :func:`constant_changes`, or None
-    when it has none (NaN where one plateau has none)."""
-    rows = ((passport.get("uncertainty") or {}).get("per_plateau")) or []
+def _plateau_sigmas(uncertainty: dict | None, n: int, K0: np.ndarray) -> dict[str, np.ndarray] | None:
+    """The per-plateau standard uncertainties of a passport (its ``uncertainty``) in the units of
+    :func:`constant_changes`, or None when it has none (NaN where one plateau has none)."""
+    rows = ((uncertainty or {}).get("per_plateau")) or []
     if not n or len(rows) != n:
         return None
     K = np.array([r["K"] if r.get("K") is not None else np.full((3, 3), np.nan) for r in rows], float)

@@ -7,9 +7,9 @@ import polars as pl
 import pytest
 
 from pipeline import compensate
-from pipeline.apply import APPLY_COLUMNS, apply_passport, valid_range_c, write_applied
+from pipeline.apply import APPLY_COLUMNS, apply_passport, write_applied
 from pipeline.calibrate.tilt import fit_unit, observe_run, verify_unit
-from pipeline.passport.document import build_passport, load_model
+from pipeline.passport.document import build_passport, load_model, load_passport
 from pipeline.run import Run
 from pipeline.simulate.chamber import SimConfig, simulate
 from pipeline.utc import utc_text
@@ -80,7 +80,7 @@ def test_apply_is_method_1_of_the_passport_model(passport, other):
 
 def test_in_range_and_one_warning(passport, other):
     run, _ = other
-    assert valid_range_c(passport) == pytest.approx((-40.0, 70.0), abs=0.5)  # from the plateaus
+    assert load_passport(passport).valid_range_c == pytest.approx((-40.0, 70.0), abs=0.5)  # from the plateaus
     narrow = dict(passport, valid_temp_c=[0.0, 30.0])
     out = apply_passport(narrow, run)
     temp = out.table["temp_c"].to_numpy()
@@ -168,12 +168,12 @@ def test_extended_terms_that_need_the_fixture_are_named_in_one_warning(diagnosed
     """A settling term needs the fixture's moves, which apply does not locate: left out, the rest applied, and one
     warning line says which term and why."""
     _, extended, run, _ = diagnosed
-    ext_model = dict(extended["extended_model"])
+    ext_model = dict(extended.document["extended_model"])
     ext_model["effects"] = [
         *ext_model["effects"],
         {"effect": "tilt_settling", "parameters": {"f": 1e-4, "tau_s": 20.0}},
     ]
-    out = apply_passport({**extended, "extended_model": ext_model}, run)
+    out = apply_passport({**extended.document, "extended_model": ext_model}, run)
     said = [w for w in out.warnings if "extended model" in w]
     assert len(said) == 1 and "\n" not in said[0]
     assert "without tilt_settling" in said[0] and "fixture's moves" in said[0]

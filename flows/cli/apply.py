@@ -21,12 +21,12 @@ def apply(
     row per input row, in_range per the passport's valid temperatures (a warning when some are outside)."""
     from pipeline.apply import apply_passport, write_applied
     from pipeline.io.runs import read_run, read_units_meta
-    from pipeline.passport.document import read_passport
+    from pipeline.passport.document import load_passport
 
-    doc = read_passport(passport)
-    r = read_run(run, str(doc.get("unit")) if read_units_meta(run)[1] else None)  # several units: the passport's
-    applied = apply_passport(doc, r)
-    path = write_applied(applied, out, passport=doc, run=r)
+    p = load_passport(passport)
+    r = read_run(run, str(p.unit) if read_units_meta(run)[1] else None)  # several units: the passport's
+    applied = apply_passport(p, r)
+    path = write_applied(applied, out, passport=p, run=r)
     for w in applied.warnings:
         print(f"thermocal: warning: {w}", file=sys.stderr)
     t = applied.table
@@ -37,12 +37,7 @@ def apply(
         "in_range": inr,
         "out_of_range": t.height - inr,
         "valid_temp_c": list(applied.valid_temp_c) if applied.valid_temp_c else None,
-        "passport": {
-            "unit": doc.get("unit"),
-            "version": doc.get("version"),
-            "method": doc.get("method"),
-            "status": doc.get("status"),
-        },
+        "passport": {"unit": p.unit, "version": p.version, "method": p.method, "status": p.status},
         "warnings": applied.warnings,
     }
     emit(obj, as_json, f"wrote {path}: {t.height} rows, {t.height - inr} outside the valid temperature range")

@@ -28,6 +28,7 @@ def report(
     as_json: JsonFlag = False,
 ):
     """A calibration certificate a person reads and signs: one HTML file that stands alone (figures embedded)."""
+    from pipeline.passport.document import load_passport
     from pipeline.passport.registry import Registry
     from pipeline.passport.report import certificate_html, print_pdf
 
@@ -45,19 +46,20 @@ def report(
     except OSError as e:
         raise ThermocalError(f"cannot write the certificate ({e.strerror or e})", path=str(out)) from None
     pdf_path = str(print_pdf(out, pdf)) if pdf is not None else None
+    p = load_passport(doc)
     obj = {
         "unit": unit,
-        "version": doc.get("version"),
-        "status": doc.get("status"),
+        "version": p.version,
+        "status": p.status,
         "certificate": str(out),
         "pdf": pdf_path,
         "approved": bool(approved),
         "current": state.current,
-        "valid_temp_c": doc.get("valid_temp_c"),
+        "valid_temp_c": list(p.valid_temp_c) if p.valid_temp_c else None,
     }
-    valid = doc.get("valid_temp_c")
+    valid = p.valid_temp_c
     text = (
-        f"{unit} v{doc.get('version')} ({doc.get('status')}, "
+        f"{unit} v{p.version} ({p.status}, "
         + (f"valid {valid[0]:+.1f} .. {valid[1]:+.1f} C, " if valid else "")
         + f"{'approved' if approved else 'not approved'}): certificate {out}"
         + (f", PDF {pdf_path}" if pdf_path else "")

@@ -41,6 +41,7 @@ from pipeline.calibrate.recording import Recording, axis_roles
 from pipeline.calibrate.result import UnitFit, base_reference
 from pipeline.calibrate.settings import CalibrationSettings
 from pipeline.errors import CalibrationError
+from pipeline.passport.document import Passport
 from pipeline.positions import AXES, is_verification_position
 from pipeline.uncertainty import ThermalSigma, as_json_list
 
@@ -48,20 +49,15 @@ from pipeline.uncertainty import ThermalSigma, as_json_list
 METHOD = "differential"
 
 
-def base_constants(base_passport: dict, unit: str) -> tuple[np.ndarray, np.ndarray, float]:
+def base_constants(base_passport: Passport, unit: str) -> tuple[np.ndarray, np.ndarray, float]:
     """K0 (3, 3) V/g, U0 (3,) V and T0 (C) of the base passport the differential method starts from (any method;
-    its thermal model is not used); CalibrationError when it is of another unit or has no usable constants."""
-    if base_passport.get("unit") not in (None, unit):
-        raise CalibrationError(f"the base passport is for unit {base_passport.get('unit')}, the runs for {unit}")
-    try:
-        c = base_passport["coefficients"]
-        K0, U0 = np.asarray(c["K"], float), np.asarray(c["U0"], float)
-        t0 = float(base_passport.get("normal_temp_c", 20.0))
-    except (KeyError, TypeError, ValueError) as e:
-        raise CalibrationError(f"the base passport has no usable coefficients K, U0 ({e})") from None
-    if K0.shape != (3, 3) or U0.shape != (3,) or not np.all(np.isfinite(K0)) or not np.all(np.isfinite(U0)):
+    its thermal model is not used); CalibrationError when it is of another unit or its constants are not finite."""
+    if base_passport.unit not in (None, unit):
+        raise CalibrationError(f"the base passport is for unit {base_passport.unit}, the runs for {unit}")
+    K0, U0 = base_passport.K, base_passport.U0
+    if not np.all(np.isfinite(K0)) or not np.all(np.isfinite(U0)):
         raise CalibrationError("the base passport's K must be 3x3 and U0 a 3-vector of finite numbers")
-    return K0, U0, t0
+    return K0, U0, base_passport.normal_temp_c
 
 
 class Differential(Method):
@@ -124,7 +120,7 @@ class Differential(Method):
         run,
         settings: CalibrationSettings = CalibrationSettings(),
         *,
-        base_passport: dict | None = None,
+        base_passport: Passport | None = None,
         segmentation=None,
         differential: DifferentialSettings | None = None,
     ) -> ObservedRun:
@@ -150,7 +146,7 @@ class Differential(Method):
         observed: list[ObservedRun],
         settings: CalibrationSettings = CalibrationSettings(),
         *,
-        base_passport: dict | None = None,
+        base_passport: Passport | None = None,
         differential: DifferentialSettings | None = None,
     ) -> Fitted:
         """The differential fit of one unit's observed runs, from a normal-temperature passport.
@@ -208,7 +204,12 @@ class Differential(Method):
             "differential": summary,
             "rate_terms": fit.model.rate.to_dict() if fit.model.rate is not None else None,
             "base_passport": (
-                {k: base_passport.get(k) for k in ("unit", "version", "method", "created_utc")}
+                {
+                    "unit": base_passport.unit,
+                    "version": base_passport.version,
+                    "method": base_passport.method,
+                    "created_utc": base_passport.created_utc,
+                }
                 if base_passport is not None
                 else None
             ),
@@ -225,7 +226,7 @@ class Differential(Method):
         return [o for o in observations if is_verification_position(o.position)]
 
 
-def _settings_for(base_passport: dict | None) -> DifferentialSettings:
+def _settings_for(base_passport: Passport | None) -> DifferentialSettings:
     return DifferentialSettings() if base_passport is not None else SWEEP_SETTINGS
 
 
@@ -245,7 +246,7 @@ calibrate_observed = CALIBRATION_METHOD.calibrate_observed
 
 
 def fit_uncertainty(
-    fit: DifferentialFit, *, base_passport: dict | None = None, orientation_base: OrientationBase | None = None
+    fit: DifferentialFit, *, base_passport: Passport | None = None, orientation_base: OrientationBase | None = None
 ) -> ThermalSigma:
     """The passport's ``uncertainty`` of a differential calibration (standard uncertainties, 1 sigma, in the units
     of the fields they qualify):
@@ -288,13 +289,13 @@ def fit_uncertainty(
             "in quadrature"
         )
     else:
-        base_unc = ((base_passport or {}).get("uncertainty") or {}).get("coefficients") or {}
+        base_unc = ((base_passport.uncertainty if base_passport else None) or {}).get("coefficients") or {}
         K_sig = _as_sigma(base_unc.get("K"), (3, 3))
         U0_sig = _as_sigma(base_unc.get("U0"), (3,))
-        bp = base_passport or {}
-        ref = (
-            f"base passport v{bp['version']}" if bp.get("version") is not None else "base passport"
-        ) + f" ({bp.get('method', '-')})"
+        version = base_passport.version if base_passport else None
+        ref = (f"base passport v{version}" if version is not None else "base passport") + (
+            f" ({base_passport.method if base_passport else '-'})"
+        )
         for i in range(3):
             for j in range(3):
                 if not np.isfinite(K_sig[i, j]):

@@ -46,6 +46,7 @@ from pipeline.io.runs import (  # noqa: F401  (read_run_meta: part of this API)
     read_units_meta,
     run_format,
 )
+from pipeline.passport.document import Passport
 from pipeline.passport.provenance import RunDigest, hash_run
 from pipeline.passport.registry import Registry, identity_key
 from pipeline.run import Run, RunMeta
@@ -70,7 +71,7 @@ class UnitGroup:
     runs: tuple[str, ...]
     identity: str
     digests: dict[str, RunDigest] = field(default_factory=dict, compare=False)
-    base_passport: dict | None = field(default=None, compare=False)
+    base_passport: Passport | None = field(default=None, compare=False)
     within: dict[str, dict] = field(default_factory=dict, compare=False)
 
 
@@ -216,7 +217,7 @@ def plan_fleet(
             if not kept:
                 continue
 
-        def identities(base: dict | None, uses_base: bool, kept: list[dict] = kept) -> list[str]:
+        def identities(base: Passport | None, uses_base: bool, kept: list[dict] = kept) -> list[str]:
             return [
                 identity_key(
                     kept,
@@ -312,7 +313,7 @@ def calibrate_group(
     figure: bool = True,
     digests: Mapping[str, RunDigest] | None = None,
     method: str = "tilt",
-    base_passport: dict | None = None,
+    base_passport: Passport | None = None,
     within: Mapping[str, dict] | None = None,
 ) -> UnitOutcome:
     """Calibrate ``unit`` from ``runs`` by ``method`` and publish the passport into ``registry`` (as ``thermocal

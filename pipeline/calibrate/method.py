@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 from pipeline.calibrate.observations import Observation, ObservedRun, plateau_summary, unit_of, verify_unit
 from pipeline.calibrate.result import CalibrationResult, UnitFit
 from pipeline.calibrate.settings import CalibrationSettings
-from pipeline.passport.document import build_passport
+from pipeline.passport.document import Passport, build_passport, load_passport
 from pipeline.plausibility import assess
 from pipeline.run import PX4_DEVICE_ID_KEY
 from pipeline.verify import VerificationRow
@@ -99,7 +99,7 @@ class Method(ABC):
         run: Run,
         settings: CalibrationSettings = CalibrationSettings(),
         *,
-        base_passport: dict | None = None,
+        base_passport: Passport | None = None,
         segmentation=None,
     ) -> ObservedRun:
         """The per-run step (what a fleet isolates: a run that cannot be observed is dropped). ``segmentation``:
@@ -112,7 +112,7 @@ class Method(ABC):
         observed: list[ObservedRun],
         settings: CalibrationSettings = CalibrationSettings(),
         *,
-        base_passport: dict | None = None,
+        base_passport: Passport | None = None,
     ) -> Fitted:
         """The constants and thermal model of one unit from its observed runs (a method may take keyword options of
         its own after these)."""
@@ -173,23 +173,26 @@ class Method(ABC):
         observed: list[ObservedRun],
         settings: CalibrationSettings = CalibrationSettings(),
         *,
-        base_passport: dict | None = None,
+        base_passport: Passport | dict | None = None,
         **options,
     ) -> CalibrationResult:
-        """:meth:`fit` then :meth:`finish`: the calibration of one unit from its observed runs."""
-        return self.finish(observed, self.fit(observed, settings, base_passport=base_passport, **options), settings)
+        """:meth:`fit` then :meth:`finish`: the calibration of one unit from its observed runs (``base_passport``: a
+        document is loaded once here, :func:`pipeline.passport.document.load_passport`)."""
+        base = None if base_passport is None else load_passport(base_passport)
+        return self.finish(observed, self.fit(observed, settings, base_passport=base, **options), settings)
 
     def calibrate(
         self,
         runs,
         settings: CalibrationSettings = CalibrationSettings(),
         *,
-        base_passport: dict | None = None,
+        base_passport: Passport | dict | None = None,
         **options,
     ) -> CalibrationResult:
         """The calibration of one unit from its runs: :meth:`observe` each, then :meth:`calibrate_observed`
-        (``options``: the method's own, passed to both)."""
+        (``options``: the method's own, passed to both; ``base_passport``: a document is loaded once here)."""
         runs = list(runs)
         unit_of(runs)
-        observed = [self.observe(r, settings, base_passport=base_passport, **options) for r in runs]
-        return self.calibrate_observed(observed, settings, base_passport=base_passport, **options)
+        base = None if base_passport is None else load_passport(base_passport)
+        observed = [self.observe(r, settings, base_passport=base, **options) for r in runs]
+        return self.calibrate_observed(observed, settings, base_passport=base, **options)

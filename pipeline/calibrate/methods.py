@@ -25,6 +25,7 @@ from pipeline.errors import CalibrationError, ThermocalError
 if TYPE_CHECKING:
     from pipeline.calibrate.method import Method, Support
     from pipeline.calibrate.recording import Recording
+    from pipeline.passport.document import Passport
 
 #: the built-in methods by the name ``calibrate --method`` and ``fleet --method`` take: the module defining each
 BUILTIN: dict[str, str] = {
@@ -106,7 +107,7 @@ def auto_method(run, seg) -> tuple[str, str]:
     return m.name, f"{m.name} ({kind}: {s.why})"
 
 
-def resolve_auto(run, settings, base_passport: dict | None = None, seg=None):
+def resolve_auto(run, settings, base_passport: Passport | None = None, seg=None):
     """The ``--method auto`` steps on a unit's first run, for the calibrate flow and the fleet alike: segment
     ``run`` (``settings.segment``; ``seg``: its segmentation, when already made), choose the method it supports
     (:func:`auto_method`) and keep ``base_passport`` only when that method starts from one. Returns (the method's
@@ -119,7 +120,7 @@ def resolve_auto(run, settings, base_passport: dict | None = None, seg=None):
     return method, (base_passport if by_name(method).uses_base_passport else None), seg, why
 
 
-def default_base_passport(registry, unit: str) -> tuple[dict | None, str]:
+def default_base_passport(registry, unit: str) -> tuple[Passport | None, str]:
     """(:func:`base_passport_of`, a line saying which version and its status), or (None, a line saying why none)
     when the unit has no passport to start from: the differential method then takes the constants at T0 from the
     orientations themselves."""
@@ -139,6 +140,7 @@ def base_passport_of(registry, unit: str):
     among the versions not made by the differential method itself (a differential passport's constants at T0 are
     its base's, so starting from it changes nothing but the identity). CalibrationError when the unit has none, or
     when that version failed its verification (approve a passing version or name one with --base-passport)."""
+    from pipeline.passport.document import load_passport
     from pipeline.passport.registry import Registry
 
     reg = registry if isinstance(registry, Registry) else Registry(registry)
@@ -160,4 +162,4 @@ def base_passport_of(registry, unit: str):
             "differential method (approve a passing version, 'thermocal passport approve', or "
             "name one with --base-passport)"
         )
-    return reg.load(unit, st.version), st
+    return load_passport(reg.load(unit, st.version)), st

@@ -4,13 +4,14 @@ verification figure beside it (:func:`publish`), and the ``calibrate --json`` ob
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 from collections.abc import Mapping
 from pathlib import Path
 
 from pipeline.calibrate.result import CalibrationResult
 from pipeline.calibrate.settings import CalibrationSettings
+from pipeline.errors import ThermocalError
+from pipeline.passport.document import load_passport
 from pipeline.passport.provenance import RunDigest, code_version, input_digest
 from pipeline.passport.registry import Registry
 
@@ -123,7 +124,7 @@ def publish(
             True,
             published.created,
             lambda tmp: plot_constants(
-                json.loads(passport_path.read_text()),
+                load_passport(passport_path),
                 tmp,
                 title=f"{result.unit} v{published.version}: constants per plateau against "
                 "temperature, thermal model and residuals",
@@ -143,7 +144,7 @@ def _figure(path: Path, wanted: bool, redraw: bool, draw) -> str | None:
         try:
             draw(tmp)
             os.replace(tmp, path)
-        except (OSError, ValueError, KeyError):
+        except (OSError, ValueError, KeyError, ThermocalError):
             pass  # a figure is a convenience; the passport is written
         finally:
             with contextlib.suppress(OSError):

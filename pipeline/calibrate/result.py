@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from pipeline.passport.document import Passport
 from pipeline.thermal import ThermalModel
 from pipeline.uncertainty import ThermalSigma
 from pipeline.verify import VerificationRow
@@ -90,7 +91,7 @@ class CalibrationResult:
         return self.passport["method"]
 
 
-def base_reference(base_passport: dict) -> dict:
+def base_reference(base_passport: Passport) -> dict:
     """What a passport's identity records of the base passport its method started from (the differential method;
     :attr:`CalibrationResult.settings_extra`)."""
-    return {"base_passport_sha256": base_passport.get("content_sha256") or base_passport.get("unit")}
+    return {"base_passport_sha256": base_passport.content_sha256 or base_passport.unit}

@@ -45,6 +45,7 @@ from pipeline.calibrate.result import PlateauConstants, UnitFit
 from pipeline.calibrate.settings import CalibrationSettings
 from pipeline.errors import CalibrationError
 from pipeline.model import gravity_module_error_g, specific_force_g
+from pipeline.passport.document import Passport
 from pipeline.positions import AXES
 from pipeline.segment import segment_run
 from pipeline.thermal import PolynomialModel
@@ -476,7 +477,7 @@ class Scalar(Method):
         run,
         settings: CalibrationSettings = CalibrationSettings(),
         *,
-        base_passport: dict | None = None,
+        base_passport: Passport | None = None,
         segmentation=None,
         **fit_options,
     ) -> ObservedRun:
@@ -499,7 +500,7 @@ class Scalar(Method):
         observed: list[ObservedRun],
         settings: CalibrationSettings = CalibrationSettings(),
         *,
-        base_passport: dict | None = None,
+        base_passport: Passport | None = None,
         normal_temp_c: float | None = None,
         model: str = "auto",
         k_prelim_v_per_g=None,

@@ -39,6 +39,7 @@ from pipeline.calibrate.result import PlateauConstants, UnitFit
 from pipeline.calibrate.settings import CalibrationSettings
 from pipeline.constants import fit_constants
 from pipeline.errors import CalibrationError
+from pipeline.passport.document import Passport
 from pipeline.positions import TEST_POSITIONS, gravity_vector_g
 from pipeline.thermal import ThermalModel, cluster_temperatures, default_order, fit_thermal_model
 from pipeline.uncertainty import (
@@ -127,7 +128,7 @@ class Tilt(Method):
         run,
         settings: CalibrationSettings = CalibrationSettings(),
         *,
-        base_passport: dict | None = None,
+        base_passport: Passport | None = None,
         segmentation=None,
     ) -> ObservedRun:
         """The run's observations and warnings; CalibrationError for a run with no named static position on any
@@ -141,7 +142,7 @@ class Tilt(Method):
         observed: list[ObservedRun],
         settings: CalibrationSettings = CalibrationSettings(),
         *,
-        base_passport: dict | None = None,
+        base_passport: Passport | None = None,
     ) -> Fitted:
         """:func:`fit_unit` over the observations of one unit's observed runs."""
         observations = [o for r in observed for o in r.observations]

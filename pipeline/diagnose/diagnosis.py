@@ -57,8 +57,7 @@ from pipeline.effects.catalogue import EFFECTS, effect_class, make_effect
 from pipeline.effects.model import ExtendedModel
 from pipeline.errors import CalibrationError
 from pipeline.model import output_v
-from pipeline.passport.document import compensate_extended, load_model, load_passport
-from pipeline.passport.text import output_unit_of
+from pipeline.passport.document import Passport, compensate_extended, load_passport
 from pipeline.positions import AXES
 from pipeline.run import Run
 from pipeline.segment import Segmentation, segment_run
@@ -79,50 +78,55 @@ WITHIN_NOISE = 1.5
 LARGE_SHARE = 0.5
 
 
-def fit_passport(run: Run, segmentation: Segmentation, settings: CalibrationSettings = CalibrationSettings()) -> dict:
+def fit_passport(
+    run: Run, segmentation: Segmentation, settings: CalibrationSettings = CalibrationSettings()
+) -> Passport:
     """A passport fitted from the run itself by the tilt recipe (what ``calibrate`` would write, without registry
     fields), from the run's ``segmentation``."""
     observed = ObservedRun(
         meta=run.meta, source="", observations=observations_from_segmentation(run.meta.run_id, segmentation)
     )
-    return tilt.calibrate_observed([observed], settings).passport
+    return load_passport(tilt.calibrate_observed([observed], settings).passport)
 
 
 #: order of the temperature polynomial fitted to a recording the tilt recipe cannot calibrate
 OWN_MODEL_ORDER = 3
 
 
-def own_model_passport(meta, order: int = OWN_MODEL_ORDER) -> dict:
-    """A passport document with nominal constants (K = nominal gain x I, U0 = 0) and a zero polynomial thermal
+def own_model_passport(meta, order: int = OWN_MODEL_ORDER) -> Passport:
+    """A passport with nominal constants (K = nominal gain x I, U0 = 0) and a zero polynomial thermal
     model of ``order``: the reference a diagnosis refits to the recording itself when nothing calibrates it."""
     zeros = [0.0] * order
     pairs = [a + b for a in AXES for b in AXES if a != b]
-    return {
-        "schema": "thermocal.passport/1",
-        "unit": meta.unit_serial,
-        "normal_temp_c": float(meta.normal_temp_c),
-        "g_local_mps2": float(meta.g_local_mps2),
-        "coefficients": {"K": (float(meta.nominal_gain_v_per_g) * np.eye(3)).tolist(), "U0": [0.0, 0.0, 0.0]},
-        "thermal_model": {
-            "kind": "polynomial",
-            "order": order,
-            "alpha": {a: zeros for a in AXES},
-            "beta": {a + a: zeros for a in AXES},
-            "gamma": {p: zeros for p in pairs},
-        },
-        "per_plateau": [],
-    }
+    return Passport.from_dict(
+        {
+            "schema": "thermocal.passport/1",
+            "unit": meta.unit_serial,
+            "normal_temp_c": float(meta.normal_temp_c),
+            "g_local_mps2": float(meta.g_local_mps2),
+            "coefficients": {"K": (float(meta.nominal_gain_v_per_g) * np.eye(3)).tolist(), "U0": [0.0, 0.0, 0.0]},
+            "thermal_model": {
+                "kind": "polynomial",
+                "order": order,
+                "alpha": {a: zeros for a in AXES},
+                "beta": {a + a: zeros for a in AXES},
+                "gamma": {p: zeros for p in pairs},
+            },
+            "per_plateau": [],
+        }
+    )
 
 
 def diagnose_run(
     run: Run,
-    passport: dict | None = None,
+    passport: Passport | dict | None = None,
     settings: DiagnoseSettings = DiagnoseSettings(),
     passport_source: str | None = None,
 ) -> Diagnosis:
-    """Diagnose ``run`` against ``passport`` (fitted from the run when None). See the module doc."""
+    """Diagnose ``run`` against ``passport`` (fitted from the run when None; a document is loaded once here,
+    :func:`pipeline.passport.document.load_passport`). See the module doc."""
     with _one_blas_thread():
-        return _diagnose(run, passport, settings, passport_source)
+        return _diagnose(run, None if passport is None else load_passport(passport), settings, passport_source)
 
 
 def _one_blas_thread():
@@ -135,7 +139,9 @@ def _one_blas_thread():
     return threadpool_limits(1)
 
 
-def _diagnose(run: Run, passport: dict | None, settings: DiagnoseSettings, passport_source: str | None) -> Diagnosis:
+def _diagnose(
+    run: Run, passport: Passport | None, settings: DiagnoseSettings, passport_source: str | None
+) -> Diagnosis:
     seg_settings = segment_settings_for(run)
     seg = segment_run(run, seg_settings)
     given = passport is not None
@@ -150,7 +156,7 @@ def _diagnose(run: Run, passport: dict | None, settings: DiagnoseSettings, passp
                 f"K(T) a + U0(T), a polynomial of order {OWN_MODEL_ORDER} in temperature, is fitted "
                 "to the recording itself, as far as its orientations determine it"
             )
-    unit = output_unit_of(passport)  # the explanations' amounts in its unit (uV, mm/s^2)
+    unit = passport.output_unit  # the explanations' amounts in its unit (uV, mm/s^2)
     model, reference, notes = _base_model(passport)
     own_order = polynomial_reference(model).order
     rec = static_record(run, seg, micro_s=settings.micro_s, settings=seg_settings)
@@ -331,15 +337,15 @@ def _drift_effects(sel: Selection) -> list:
 # ---------------------------------------------------------------------------------------------------------------
 
 
-def _base_model(passport: dict):
+def _base_model(passport: Passport):
     """The passport's model, the polynomial base the fits refine, and notes on how one became the other.
 
     The base is of the order the passport's calibration temperatures warrant (distinct temperatures - 1, at most
     3): a cubic part is ``temperature_curvature`` only beyond that.
     """
-    model = load_model(passport)
+    model = passport.thermal_model
     reference = polynomial_reference(model)
-    cal_temps = np.array([p["temp_c"] for p in passport.get("per_plateau", []) if "temp_c" in p], dtype=float)
+    cal_temps = np.array(passport.plateau_temps_c, dtype=float)
     order = max(reference.order, default_order(cal_temps) if cal_temps.size else 0)
     notes = []
     if model is not reference:
@@ -356,15 +362,12 @@ def _base_model(passport: dict):
     return model, reference, notes
 
 
-def _with_passport_dynamics(
-    run: Run, rec: StaticRecord, passport: dict, notes: list[str]
-) -> tuple[StaticRecord, float]:
+def _with_passport_dynamics(run: Run, rec: StaticRecord, p: Passport, notes: list[str]) -> tuple[StaticRecord, float]:
     """The record compared with the passport's whole model where the passport holds ``rate_terms`` (the ramp and
     differential methods), as ``apply`` evaluates it: the model at the element temperature, through the passport's
     element lag (``model_temp_c``), and the outputs without what its rate terms add (the rate the smoothed
     thermosensor's). Returns the record and the lag (s; 0: none). A lag term the search then tries is the whole lag
     of the element behind the thermosensor, named only where the recording needs a lag other than the passport's."""
-    p = load_passport(passport)
     rate = p.rate_terms
     if rate is None or rec.size == 0:
         return rec, 0.0

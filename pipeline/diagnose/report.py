@@ -29,6 +29,7 @@ from pipeline.effects.base import Shown
 from pipeline.effects.catalogue import effect_class
 from pipeline.effects.model import ExtendedModel
 from pipeline.model import gravity_module_error_g, output_v, small, specific_force_g
+from pipeline.passport.document import Passport
 from pipeline.positions import AXES, POSITION_NAMES, is_verification_position
 from pipeline.run import NS_PER_S as _NS
 from pipeline.run import Run
@@ -55,7 +56,7 @@ class Diagnosis:
     findings show and where the residual before exceeded the noise (h)."""
 
     report: dict
-    passport: dict
+    passport: Passport
     extended: ExtendedModel
     t_h: np.ndarray
     before_v: np.ndarray
@@ -91,7 +92,7 @@ class Outcome:
     in_base: list[str]
     notes: list[str]
     extended: ExtendedModel
-    passport: dict
+    passport: Passport
     passport_source: str | None
     unit: str
 
@@ -131,8 +132,8 @@ def report(out: Outcome, settings: DiagnoseSettings) -> Diagnosis:
         findings.append(_unexplained_finding(design, sel, unexplained, after, seg, settings, unit))
     located = _where(design, np.abs(before) > settings.locate_sigma * design.sigma, seg, settings)
     vp = _vp_errors(seg, rec, out.model, out.extended)
-    out_passport = copy.deepcopy(out.passport)
-    out_passport["extended_model"] = out.extended.to_dict()
+    document = copy.deepcopy(out.passport.document)
+    document["extended_model"] = out.extended.to_dict()
     notes += rec.warnings
     for e in out.in_base:
         notes.append(
@@ -168,7 +169,7 @@ def report(out: Outcome, settings: DiagnoseSettings) -> Diagnosis:
         "vp": vp,
         "vp_max_abs_dg_before_g": max((abs(v["dg_before_g"]) for v in vp), default=None),
         "vp_max_abs_dg_after_g": max((abs(v["dg_after_g"]) for v in vp), default=None),
-        "extended_model": out_passport["extended_model"],
+        "extended_model": document["extended_model"],
         "candidates": sel.rounds,
         "empirical_corrections": unexplained[3] if unexplained is not None else [],
         "blocks": blocks.size,
@@ -176,7 +177,7 @@ def report(out: Outcome, settings: DiagnoseSettings) -> Diagnosis:
     }
     return Diagnosis(
         report=report,
-        passport=out_passport,
+        passport=Passport.from_dict(document),
         extended=out.extended,
         t_h=blocks.t_s / 3600.0,
         before_v=before,

@@ -28,6 +28,7 @@ import numpy as np
 
 from pipeline.diagnose.fit import Design, FitResult
 from pipeline.model import small, small_name, small_number
+from pipeline.passport.document import Passport
 from pipeline.positions import AXES
 
 #: the passport's standard uncertainty when it states none: U0 (V) and K (V/g)
@@ -119,10 +120,10 @@ class ShiftResult:
         return self.level.terms if self.level is not None else ()
 
 
-def passport_sigma(passport: dict) -> tuple[np.ndarray, np.ndarray]:
-    """The passport's standard uncertainty of K (3, 3) V/g and U0 (3,) V at T0 (its ``uncertainty`` field where
-    given, else the defaults)."""
-    unc = (passport.get("uncertainty") or {}).get("coefficients") or {}
+def passport_sigma(passport: Passport) -> tuple[np.ndarray, np.ndarray]:
+    """The passport's standard uncertainty of K (3, 3) V/g and U0 (3,) V at T0 (its ``uncertainty`` where given,
+    else the defaults)."""
+    unc = (passport.uncertainty or {}).get("coefficients") or {}
     k = np.full((3, 3), DEFAULT_PASSPORT_SIGMA["K"])
     u = np.full(3, DEFAULT_PASSPORT_SIGMA["U0"])
     try:
@@ -135,7 +136,7 @@ def passport_sigma(passport: dict) -> tuple[np.ndarray, np.ndarray]:
     return k, u
 
 
-def find_shift(design: Design, passport: dict, threshold: float, state: tuple = ()) -> ShiftResult:
+def find_shift(design: Design, passport: Passport, threshold: float, state: tuple = ()) -> ShiftResult:
     """Fit every level of constants shift against the passport as it is (with the terms of ``state``, e.g.
     catalogue effects already found, held in the model; drift terms in it are replaced); the best by BIC (see the
     module doc). Leaves ``design``'s base mask as it found it and its drift columns registered."""
@@ -184,7 +185,7 @@ def _kept(design: Design) -> np.ndarray:
     return (design.sigma < 100 * np.median(design.sigma, axis=0)).all(axis=1, keepdims=True)
 
 
-def departure_sigma(design: Design, passport: dict, change_v: np.ndarray, powers: int) -> float:
+def departure_sigma(design: Design, passport: Passport, change_v: np.ndarray, powers: int) -> float:
     """How far the refit model departs from the passport's, in the data (the joint test of a change of many
     correlated constants, which one by one may each look small): the RMS over blocks of the change ``change_v``
     (B, 3) V over its uncertainty, the block sigma and the passport's own uncertainty of its prediction there
@@ -199,7 +200,7 @@ def departure_sigma(design: Design, passport: dict, change_v: np.ndarray, powers
     return float(np.sqrt(np.sum(w * (change_v / sigma) ** 2) / max(np.sum(w), 1)))
 
 
-def _amounts(fr: FitResult, lv: Level, passport: dict, duration_h: float) -> tuple[dict, float]:
+def _amounts(fr: FitResult, lv: Level, passport: Passport, duration_h: float) -> tuple[dict, float]:
     """The shift of K (V/g) and U0 (V) at T0 (at the start of the recording when they drift) with 1-sigma
     uncertainties (the fit's, Birge-scaled when the residual scatters more than the block sigmas say), and the
     largest shift in combined sigmas (fit and passport; a drift against the fit's alone: a passport has no
@@ -309,7 +310,7 @@ def _drift(fr: FitResult, lv: Level, passport: dict, duration_h: float, nb: int,
         z = max(z, float(np.max(z_rate)))
         zs[name] = float(np.max(z_rate))
         if name == "dK":
-            kii = np.diagonal(np.asarray(passport["coefficients"]["K"], dtype=float))
+            kii = np.diagonal(passport.K)
             r = np.diagonal(rate.reshape(3, 3))
             out["gain_drift_ppm_over_run"] = (r * duration_h / kii * 1e6).tolist()
             out["gain_drift_sigma_ppm_over_run"] = (

@@ -6,8 +6,9 @@ from __future__ import annotations
 
 from typing import Any
 
+from pipeline.passport.document import output_unit_of
 from pipeline.passport.significance import annotate, significance_note
-from pipeline.passport.text import output_unit_of, per
+from pipeline.passport.text import per
 from pipeline.positions import AXES
 
 

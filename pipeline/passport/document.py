@@ -43,6 +43,23 @@ def failed_verification(subject: str) -> str:
     return f"{subject} failed its verification (status fail): its compensated errors exceeded the limits"
 
 
+def gains_v_per_g(doc: dict) -> list[float] | None:
+    """|K_ii| of the normal-temperature constants (output unit per g), for ppm of the gain and micro-g."""
+    try:
+        return [abs(float(doc["coefficients"]["K"][i][i])) for i in range(3)]
+    except (KeyError, IndexError, TypeError, ValueError):
+        return None
+
+
+def output_unit_of(doc: dict) -> str:
+    """The unit of the passport's outputs: its ``output_unit``, else (a passport written before it was recorded) the
+    one its gains say (:func:`pipeline.model.output_unit`)."""
+    if isinstance(doc.get("output_unit"), str) and doc["output_unit"]:
+        return doc["output_unit"]
+    gains = gains_v_per_g(doc)
+    return output_unit(gains, float(doc.get("g_local_mps2") or 9.80665)) if gains else "V"
+
+
 def build_passport(
     fit,
     verification_rows,
@@ -129,11 +146,17 @@ def uncertainty_block(fit) -> dict | None:
 
 @dataclass(frozen=True)
 class Passport:
-    """A passport, typed. ``format``: the format version (``thermocal.passport/1``); ``method``:
-    ``tilt_six_position``, ``scalar`` or ``differential``; ``K`` (3, 3) V/g and ``U0`` (3,) V at ``normal_temp_c``
-    (C); ``thermal_model`` K(T), U0(T); ``rate_terms`` the differential method's rate terms and lag (None for the
+    """A passport, typed: what every layer past the registry reads of it (apply, diagnose, export, the figures,
+    a method's base passport). ``format``: the format version (``thermocal.passport/1``); ``method``:
+    ``tilt_six_position``, ``scalar``, ``differential`` (:mod:`pipeline.calibrate.methods`); ``K`` (3, 3) and
+    ``U0`` (3,) at ``normal_temp_c`` (C) in the output unit ``output_unit`` (V or m/s^2: ``K`` per g);
+    ``thermal_model`` K(T), U0(T); ``rate_terms`` the differential method's rate terms and lag (None for the
     others); ``extended`` the model a ``diagnose`` fitted (None: none); ``valid_temp_c`` the calibration
-    temperatures the data covered (C); ``document`` the JSON object as stored (docs/contract.md), unchanged."""
+    temperatures the data covered (C) as stated; ``plateau_temps_c`` the calibration plateaus' temperatures (C);
+    ``window_range_c`` the temperatures the differential method's orientation windows covered (C; None: none);
+    ``uncertainty`` the standard uncertainties as stored (docs/contract.md; None: none); ``content_sha256`` and
+    ``created_utc`` the registry's identity and time of the version (None before it is published); ``document``
+    the JSON object as stored (docs/contract.md), unchanged: what the registry hashes, signs and writes."""
 
     format: str
     unit: str | None
@@ -148,6 +171,12 @@ class Passport:
     extended: ExtendedModel | None = None
     status: str | None = None
     valid_temp_c: tuple[float, float] | None = None
+    output_unit: str = "V"
+    plateau_temps_c: tuple[float, ...] = ()
+    window_range_c: tuple[float, float] | None = None
+    uncertainty: dict[str, Any] | None = field(default=None, repr=False, compare=False)
+    content_sha256: str | None = None
+    created_utc: str | None = None
     document: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
 
     @classmethod
@@ -174,6 +203,7 @@ class Passport:
         if rate is not None and not isinstance(thermal, PolynomialModel):
             raise ThermocalError("passport with rate terms needs a polynomial thermal model", path=path)
         valid = doc.get("valid_temp_c")
+        windows = (doc.get("differential") or {}).get("windows") or []
         return cls(
             format=fmt,
             unit=doc.get("unit"),
@@ -187,13 +217,38 @@ class Passport:
             rate_terms=rate,
             extended=extended,
             status=doc.get("status"),
-            valid_temp_c=(float(valid[0]), float(valid[1])) if valid else None,
+            valid_temp_c=_range_of(valid),
+            output_unit=output_unit_of(doc),
+            plateau_temps_c=tuple(
+                float(p["temp_c"])
+                for p in doc.get("per_plateau") or []
+                if isinstance(p, dict) and isinstance(p.get("temp_c"), (int, float))
+            ),
+            window_range_c=(
+                (min(float(w["temp_min_c"]) for w in windows), max(float(w["temp_max_c"]) for w in windows))
+                if windows
+                else None
+            ),
+            uncertainty=doc.get("uncertainty"),
+            content_sha256=doc.get("content_sha256"),
+            created_utc=doc.get("created_utc"),
             document=doc,
         )
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON document (docs/contract.md), as it was loaded."""
         return self.document
+
+    @property
+    def valid_range_c(self) -> tuple[float, float] | None:
+        """The temperature range (C) the passport's data covered: ``valid_temp_c``; for a passport written before
+        that field, the span of its calibration plateaus, else of its differential orientation windows; None when
+        it states none."""
+        if self.valid_temp_c is not None:
+            return self.valid_temp_c
+        if self.plateau_temps_c:
+            return min(self.plateau_temps_c), max(self.plateau_temps_c)
+        return self.window_range_c
 
     def compensation_model(self):
         """The model that compensates this passport's unit: the extended model when a ``diagnose`` wrote one
@@ -208,9 +263,18 @@ class Passport:
         return self.thermal_model
 
 
-def load_passport(source: dict | str | Path) -> Passport:
-    """The one passport loader: a JSON document (dict) or a passport file; ThermocalError naming the file when it
-    cannot be read or is not a passport."""
+def _range_of(v) -> tuple[float, float] | None:
+    """A stated [lo, hi] range of two numbers as a tuple; None otherwise."""
+    if isinstance(v, (list, tuple)) and len(v) == 2 and all(isinstance(x, (int, float)) for x in v):
+        return float(v[0]), float(v[1])
+    return None
+
+
+def load_passport(source: Passport | dict | str | Path) -> Passport:
+    """The one passport loader: a JSON document (dict) or a passport file (a :class:`Passport` is returned as it
+    is); ThermocalError naming the file when it cannot be read or is not a passport."""
+    if isinstance(source, Passport):
+        return source
     if isinstance(source, dict):
         return Passport.from_dict(source)
     try:
@@ -231,16 +295,16 @@ def read_passport(path: str | Path) -> dict:
     return load_passport(path).to_dict()
 
 
-def load_model(passport: dict) -> ThermalModel:
+def load_model(passport: Passport | dict) -> ThermalModel:
     """The passport's constants and base thermal model (with K0, U00, deltas, constants_at), for
     ``pipeline.compensate``: :attr:`Passport.thermal_model`. The rate terms and an extended model are left out;
     :meth:`Passport.compensation_model` gives them."""
-    return Passport.from_dict(passport).thermal_model
+    return load_passport(passport).thermal_model
 
 
-def load_extended(passport: dict) -> ExtendedModel | None:
-    """The passport's extended model (written by ``diagnose``), or None when it has none."""
-    d = passport.get("extended_model")
+def load_extended(document: dict) -> ExtendedModel | None:
+    """The extended model (written by ``diagnose``) of a passport document, or None when it has none."""
+    d = document.get("extended_model")
     if d is None:
         return None
     from pipeline.effects.model import ExtendedModel
@@ -248,7 +312,9 @@ def load_extended(passport: dict) -> ExtendedModel | None:
     return ExtendedModel.from_dict(d)
 
 
-def compensate_extended(passport: dict, u_v: np.ndarray, ctx, element_temp_c: np.ndarray | None = None) -> np.ndarray:
+def compensate_extended(
+    passport: Passport | dict, u_v: np.ndarray, ctx, element_temp_c: np.ndarray | None = None
+) -> np.ndarray:
     """Specific force (n, 3) g of outputs ``u_v`` (n, 3) V with the passport's extended model, falling back to
     method 1 with the passport's own thermal model when it has none.
 
@@ -258,7 +324,7 @@ def compensate_extended(passport: dict, u_v: np.ndarray, ctx, element_temp_c: np
     computed on a continuous thermosensor series when the samples have gaps (default: the lag of ``ctx.temp_c``
     over ``ctx.t_s``).
     """
-    ext = load_extended(passport)
+    ext = passport.extended if isinstance(passport, Passport) else load_extended(passport)
     if ext is not None:
         return ext.specific_force_g(u_v, ctx, element_temp_c)
     k, u0 = load_model(passport).constants_at(np.asarray(ctx.temp_c, float))

@@ -47,7 +47,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pipeline.errors import ThermocalError
-from pipeline.passport.document import failed_verification, load_model
+from pipeline.passport.document import failed_verification, load_model, load_passport, output_unit_of
 from pipeline.passport.firmware import (
     ARDUPILOT_DEFAULTS,
     ARDUPILOT_SCALE,
@@ -67,7 +67,7 @@ from pipeline.passport.firmware import (
     rotation_matrix,
 )
 from pipeline.passport.significance import sigma_of
-from pipeline.passport.text import output_unit_of, per
+from pipeline.passport.text import per
 from pipeline.run import PX4_DEVICE_ID_KEY, px4_device_id
 
 FORMATS = ("px4", "ardupilot", "csv")
@@ -204,15 +204,10 @@ def device_id_for(passport: dict, options: ExportOptions) -> tuple[int | None, s
 
 
 def valid_range_c(passport: dict) -> tuple[float, float]:
-    """The passport's ``valid_temp_c``; for an older passport without it, the span of its calibration plateaus."""
-    v = passport.get("valid_temp_c")
-    if isinstance(v, (list, tuple)) and len(v) == 2 and all(isinstance(x, (int, float)) for x in v):
-        return float(v[0]), float(v[1])
-    temps = [p.get("temp_c") for p in passport.get("per_plateau") or [] if isinstance(p.get("temp_c"), (int, float))]
-    if temps:
-        return float(min(temps)), float(max(temps))
-    t0 = float(passport.get("normal_temp_c", 20.0))
-    return t0, t0
+    """The range the export covers: the passport's valid range (:attr:`Passport.valid_range_c`: ``valid_temp_c``,
+    else its calibration plateaus' span), else T0 alone."""
+    p = load_passport(passport)
+    return p.valid_range_c or (p.normal_temp_c, p.normal_temp_c)
 
 
 def vehicle_model(passport: dict, temps_c: np.ndarray, rotation: np.ndarray | None = None) -> VehicleModel:

@@ -18,12 +18,11 @@ import tempfile
 from pathlib import Path
 
 from pipeline.errors import ThermocalError
+from pipeline.passport.document import gains_v_per_g, output_unit_of
 from pipeline.passport.text import (
     approval_text,
-    gains_v_per_g,
     max_error_g,
     model_text,
-    output_unit_of,
     per,
     reason_lines,
     sigma_reasons,

@@ -1,7 +1,7 @@
 """A passport for people: the text of ``calibrate``'s summary, ``passport show``, ``passport log`` and
 ``passport diff`` (plain lines, engineering units: K in the output unit per g (V/g, or m/s^2 per g for a logger that
-records acceleration: :func:`output_unit_of`) and U0 in the output unit, with their uncertainty in ppm of the gain and
-micro-g, gravity-module errors in micro-g against their limits, times in UTC).
+records acceleration: :func:`pipeline.passport.document.output_unit_of`) and U0 in the output unit, with their
+uncertainty in ppm of the gain and micro-g, gravity-module errors in micro-g against their limits, times in UTC).
 
 Every function takes documents and rows as the registry stores them (dicts) and returns lines or text; nothing here
 reads or writes files.
@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from pipeline.model import output_unit
+from pipeline.passport.document import gains_v_per_g, output_unit_of
 from pipeline.positions import AXES
 from pipeline.verify import verification_visits
 from pipeline.words import count_words
@@ -43,23 +43,6 @@ def max_error_g(doc: dict) -> float | None:
     """The largest |dg| after compensation (method 1, the verdict's) over the verification positions, g."""
     rows = doc.get("verification") or []
     return max((abs(r["dg_method1_g"]) for r in rows), default=None)
-
-
-def gains_v_per_g(doc: dict) -> list[float] | None:
-    """|K_ii| of the normal-temperature constants (output unit per g), for ppm of the gain and micro-g."""
-    try:
-        return [abs(float(doc["coefficients"]["K"][i][i])) for i in range(3)]
-    except (KeyError, IndexError, TypeError, ValueError):
-        return None
-
-
-def output_unit_of(doc: dict) -> str:
-    """The unit of the passport's outputs: its ``output_unit``, else (a passport written before it was recorded) the
-    one its gains say (:func:`pipeline.model.output_unit`)."""
-    if isinstance(doc.get("output_unit"), str) and doc["output_unit"]:
-        return doc["output_unit"]
-    gains = gains_v_per_g(doc)
-    return output_unit(gains, float(doc.get("g_local_mps2") or 9.80665)) if gains else "V"
 
 
 def per(unit: str, what: str) -> str:

@@ -37,7 +37,7 @@ UV = 1e-6
 @cache
 def _passport() -> str:
     calib = simulate(SimConfig(seed=41, rate_hz=RATE_HZ)).run
-    return json.dumps(fit_passport(calib, segment_run(calib, segment_settings_for(calib))))
+    return json.dumps(fit_passport(calib, segment_run(calib, segment_settings_for(calib))).document)
 
 
 def passport() -> dict:
@@ -159,7 +159,7 @@ def _poly1_passport() -> str:
     calib = simulate(SimConfig(seed=41, rate_hz=RATE_HZ)).run
     seg = segment_settings_for(calib)
     return json.dumps(
-        fit_passport(calib, segment_run(calib, seg), CalibrationSettings(thermal_model="poly1", segment=seg))
+        fit_passport(calib, segment_run(calib, seg), CalibrationSettings(thermal_model="poly1", segment=seg)).document
     )
 
 

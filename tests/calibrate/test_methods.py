@@ -102,13 +102,13 @@ def test_fleet_runs_every_method(inboxes, tmp_path):
     assert not outcomes and "failed its verification: not a base" in plan.failed[0]["reason"]
     Registry(reg).approve("AU-0001", 1, "A. Metrologist")
     plan, (outcome,) = _fleet(diff.parent, reg, "differential")
-    assert plan.groups[0].base_passport["version"] == 1 and not outcome.failed
+    assert plan.groups[0].base_passport.version == 1 and not outcome.failed
     doc = json.loads(Path(outcome.result["passport"]).read_text())
     assert outcome.result["version"] == 3 and doc["method"] == "differential"
     assert doc["base_passport"]["version"] == 1 and doc["thermal_model"]["order"] == 3
     base, state = base_passport_of(reg, "AU-0001")
     assert (
-        base["version"] == 1
+        base.version == 1
         and state.approved
         and state.text() == ("AU-0001 v1 (status pass, approved by A. Metrologist)")
     )
@@ -127,7 +127,7 @@ def test_diagnose_fits_with_the_tilt_recipe(inboxes):
     fitted = fit_passport(run, segment_run(run, settings.segment), settings)
     ref = tilt.calibrate([run], settings).passport
     for key in ("coefficients", "thermal_model", "verification", "method", "status", "plateaus"):
-        assert fitted[key] == ref[key], key
+        assert fitted.document[key] == ref[key], key
 
 
 def test_cli_fleet_unknown_method_is_one_line(tmp_path):

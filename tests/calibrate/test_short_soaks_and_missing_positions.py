@@ -56,7 +56,7 @@ def _run(soak_s: float, drop: tuple[int, str] | None = None, vp_temps=None, seed
 def _standard_passport_json() -> str:
     """The unit's passport from another run, on the standard program (what ``calibrate`` wrote some time ago)."""
     calib = simulate(SimConfig(seed=41, rate_hz=1.0)).run
-    return json.dumps(fit_passport(calib, segment_run(calib, segment_settings_for(calib))))
+    return json.dumps(fit_passport(calib, segment_run(calib, segment_settings_for(calib))).document)
 
 
 def check_no_false_alarm(run) -> None:

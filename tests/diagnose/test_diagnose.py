@@ -220,7 +220,7 @@ def test_explanations_are_in_the_recordings_unit():
         fixture=r.fixture,
     )
     diag = diagnose_run(run)
-    assert diag.passport["output_unit"] == "m/s^2"
+    assert diag.passport.output_unit == "m/s^2"
     f = diag.report["findings"][0]
     assert f["effect"] == "warmup_transient"
     text = f["explanation"]
@@ -253,7 +253,7 @@ def test_small_amounts_in_either_unit():
 
 def test_command_writes_figure_and_extended_passport(tmp_path: Path):
     calib = short(seed=5)  # a clean calibration run of the same unit
-    passport = fit_passport(calib.run, segment_run(calib.run, segment_settings_for(calib.run)))
+    passport = fit_passport(calib.run, segment_run(calib.run, segment_settings_for(calib.run))).document
     pp = tmp_path / "passport.json"
     pp.write_text(json.dumps(passport))
     res = short([("scale_nonlinearity", {"k2_v_per_g2": [20e-6, -15e-6, 10e-6]})], seed=6)

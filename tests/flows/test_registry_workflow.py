@@ -94,7 +94,7 @@ def test_cli_approve_and_differential_base_is_the_current_passport(calibrated, t
     registry = Registry(reg)
     # v2 (pass) is the newest: the base; a failed newest version with nothing approved is refused
     base, line = default_base_passport(reg, "AU-0001")
-    assert base["version"] == 2
+    assert base.version == 2
     assert line == (
         "differential base: AU-0001 v2 (status pass, not approved; the current passport: the newest "
         "version, none is approved)"
@@ -122,7 +122,7 @@ def test_cli_approve_and_differential_base_is_the_current_passport(calibrated, t
     failing = registry.load("AU-0001", 1)
     failing = {k: v for k, v in failing.items() if k not in ("signature", "content_sha256")}
     registry.publish(failing, inputs=[{"path": "other", "sha256": "e" * 64}], settings={}, code_version="t")
-    assert registry.current("AU-0001") == 2 and default_base_passport(reg, "AU-0001")[0]["version"] == 2
+    assert registry.current("AU-0001") == 2 and default_base_passport(reg, "AU-0001")[0].version == 2
     # a registry whose only version failed, nothing approved: that version is the current passport (one rule,
     # docs/contract.md), said with its status; it is no base (the differential method then takes the constants at T0
     # from the orientations themselves, and says why)

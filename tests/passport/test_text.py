@@ -164,7 +164,8 @@ def test_diff_prints_significant_changes_in_engineering_units():
 def test_output_unit_recorded_and_inferred_for_older_passports(calibrated_registry):
     """A volt passport says V/g and V; one written before ``output_unit`` was recorded gets the unit its gains
     say: gains of about 9.8 per g (a logger recording m/s^2) print as (m/s^2)/g, never V/g."""
-    from pipeline.passport.text import constants_lines, output_unit_of
+    from pipeline.passport.document import output_unit_of
+    from pipeline.passport.text import constants_lines
 
     doc = json.loads(open(calibrated_registry["results"][0]["passport"]).read())
     assert doc["output_unit"] == "V" and output_unit_of(doc) == "V"
