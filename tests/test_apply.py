@@ -135,7 +135,7 @@ def diagnosed():
         )
     )
     extended = diagnose_run(res.run, base).passport
-    assert {e["effect"] for e in extended["extended_model"]["effects"]} == {"thermal_hysteresis", "time_drift"}
+    assert {e["effect"] for e in extended.document["extended_model"]["effects"]} == {"thermal_hysteresis", "time_drift"}
     return base, extended, res.run, res.context
 
 
