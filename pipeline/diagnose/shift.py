@@ -276,7 +276,9 @@ def _entries(d: np.ndarray, sig: np.ndarray, lv: Level, pu: np.ndarray, pk: np.n
     return [name for _, name in sorted(out, key=lambda p: -p[0])], z
 
 
-def _drift(fr: FitResult, lv: Level, passport: dict, duration_h: float, nb: int, birge: float) -> tuple[dict, float]:
+def _drift(
+    fr: FitResult, lv: Level, passport: Passport, duration_h: float, nb: int, birge: float
+) -> tuple[dict, float]:
     """The drift within the recording: rates per hour and the values at the end of the recording (start value +
     rate x duration, their covariance included), each with its 1-sigma uncertainty, and the largest rate in
     sigmas."""
