@@ -18,6 +18,7 @@ from pipeline.diagnose.fit import Design, SelectionSettings, block_noise_factor,
 from pipeline.diagnose.shift import find_shift, level_mask, levels, passport_sigma
 from pipeline.diagnose.signal import make_blocks, segment_settings_for, static_record
 from pipeline.diagnose.unexplained import best_period_s, best_step, time_basis
+from pipeline.passport.document import SCHEMA_ID, Passport
 from pipeline.segment import segment_run
 from pipeline.simulate.chamber import SimConfig, simulate
 from pipeline.thermal import PolynomialModel
@@ -34,15 +35,27 @@ def recording():
     return rec, make_blocks(rec)
 
 
-def design_of(recording, order: int = 1) -> Design:
-    """A design on the recording's blocks with a plain reference model (its values do not matter: the data are
-    constructed on top of it) and a constant block sigma."""
-    rec, blocks = recording
-    ref = PolynomialModel(
+def reference_model(order: int = 1) -> PolynomialModel:
+    """A plain reference model (its values do not matter: the data are constructed on top of it)."""
+    return PolynomialModel(
         np.diag([-0.55, -0.56, -0.54]), np.array([1e-3, -2e-3, 3e-3]), 20.0, order, np.zeros((order, 3)),
         np.zeros((order, 3, 3)),
     )  # fmt: skip
-    return Design(rec, blocks, ref, np.full((blocks.size, 3), SIGMA_V))
+
+
+def design_of(recording, order: int = 1) -> Design:
+    """A design on the recording's blocks with the reference model and a constant block sigma."""
+    rec, blocks = recording
+    return Design(rec, blocks, reference_model(order), np.full((blocks.size, 3), SIGMA_V))
+
+
+def passport_with(uncertainty: dict) -> Passport:
+    """A passport of the reference model stating the standard uncertainties ``uncertainty``."""
+    ref = reference_model()
+    return Passport(
+        format=SCHEMA_ID, unit=None, method="tilt_six_position", version=None, normal_temp_c=ref.normal_temp_c,
+        g_local_mps2=9.80665, K=ref.K0, U0=ref.U00, thermal_model=ref, uncertainty=uncertainty,
+    )  # fmt: skip
 
 
 def per_axis_time_columns(design: Design) -> np.ndarray:
@@ -155,12 +168,12 @@ def test_levels_and_masks_of_a_constants_shift():
     assert level_mask(lv[4], 1).reshape(2, 4).tolist() == [[True] * 4, [False] * 4]
     assert level_mask(lv[7], 1).all()
     k, u = passport_sigma(
-        {"uncertainty": {"coefficients": {"K": np.full((3, 3), 2e-6).tolist(), "U0": [1e-6, None, 3e-6]}}}
+        passport_with({"coefficients": {"K": np.full((3, 3), 2e-6).tolist(), "U0": [1e-6, None, 3e-6]}})
     )
     assert np.all(k == 2e-6) and u[0] == 1e-6 and u[2] == 3e-6 and np.isfinite(u[1])  # a null keeps the default
 
 
-PASSPORT = {"uncertainty": {"coefficients": {"K": np.full((3, 3), 1e-6).tolist(), "U0": [1e-6] * 3}}}
+PASSPORT = passport_with({"coefficients": {"K": np.full((3, 3), 1e-6).tolist(), "U0": [1e-6] * 3}})
 
 
 @pytest.mark.parametrize("shift_v, named", [(4e-5, True), (0.0, False)])
