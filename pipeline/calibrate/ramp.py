@@ -45,6 +45,7 @@ from pipeline.calibrate.result import UnitFit
 from pipeline.calibrate.settings import CalibrationSettings
 from pipeline.dynamics import first_order_lag, ramp_direction, smooth_temperature
 from pipeline.errors import CalibrationError
+from pipeline.passport.document import Passport
 from pipeline.positions import AXES, gravity_vector_g, is_test_position
 from pipeline.run import NS_PER_S as _NS
 from pipeline.thermal import OFF_DIAGONAL, OFF_KEYS, PolynomialModel, RateTerms
@@ -692,7 +693,7 @@ class Ramp(Method):
         run,
         settings: CalibrationSettings = CalibrationSettings(),
         *,
-        base_passport: dict | None = None,
+        base_passport: Passport | None = None,
         segmentation=None,
         ramp: RampSettings | None = None,
         **options,
@@ -705,7 +706,7 @@ class Ramp(Method):
         observed: list[ObservedRun],
         settings: CalibrationSettings = CalibrationSettings(),
         *,
-        base_passport: dict | None = None,
+        base_passport: Passport | None = None,
         ramp: RampSettings | None = None,
         **options,
     ) -> Fitted:
