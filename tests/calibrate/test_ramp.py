@@ -290,5 +290,5 @@ def test_lag_and_hysteresis_told_apart():
     named = {f["effect"]: f for f in report["findings"]}
     assert "thermal_hysteresis" in named and "thermal_lag" not in named  # the passport's own lag is not found again
     np.testing.assert_allclose(named["thermal_hysteresis"]["parameters"]["h_v"], h, atol=3e-6)
-    effects = {e["effect"]: e["parameters"] for e in diagnosis.passport["extended_model"]["effects"]}
+    effects = {e["effect"]: e["parameters"] for e in diagnosis.passport.document["extended_model"]["effects"]}
     assert effects["thermal_lag"]["tau_s"] == doc["rate_terms"]["lag_tau_s"]  # kept in the extended model

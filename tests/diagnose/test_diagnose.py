@@ -168,7 +168,7 @@ def test_a_passports_rate_terms_are_part_of_the_model_it_is_compared_with(clean_
     passport = fit_passport(run, segment_run(run, segment_settings_for(run)))
     alpha_v = np.array([6e-6, -4e-6, 5e-6])  # V/(C/min)
     smooth_s = 301.0
-    with_rate = copy.deepcopy(passport)
+    with_rate = copy.deepcopy(passport.document)
     with_rate["rate_terms"] = RateTerms(alpha_v.reshape(1, 1, 3), np.zeros((1, 1, 3)), smooth_s).to_dict()
     t_ns = run.voltmeter["t_ns"].to_numpy()
     _, rate = Thermosensor.from_run(run, smooth_s, t_ref_ns=int(t_ns[0])).at((t_ns - t_ns[0]) / 1e9)
