@@ -96,10 +96,10 @@ def main() -> None:
     w, c, result = best(lambda: fleet_trends(root), args.repeat)
     rows.append(("trends (verified read + analyse)", w, c))
     print(f"\n{len(fleet)} units, {n} versions; best of {args.repeat}; load average {os.getloadavg()[0]:.1f}\n")
-    print("| step | wall s | CPU s | x floor (wall) |\n|---|---:|---:|---:|")
-    floor = rows[0][1]
+    print("| step | wall s | CPU s | x floor (wall) | x floor (CPU) |\n|---|---:|---:|---:|---:|")
+    floor_w, floor_c = rows[0][1], rows[0][2]
     for name, w, c in rows:
-        print(f"| {name} | {w:.2f} | {c:.2f} | {w / floor:.1f} |")
+        print(f"| {name} | {w:.2f} | {c:.2f} | {w / floor_w:.1f} | {c / floor_c:.1f} |")
     r = result.report
     print("\nfound:", {k: [(e["unit"], e["constant"]) for e in r[k]] for k in ("drifting", "unsteady", "outliers")})
 

@@ -642,7 +642,7 @@ def trends_text(report: dict) -> str:
             f"  {e['unit']} {e['constant']}: {_g(e['rate_scaled_per_year'], e['scaled_unit'])} "
             f"({_g(e['rate_per_year'], e['constant_unit'] + '/year')} +- {_g(e['sigma_per_year'])}, "
             f"{abs(e['z']):.1f} sigma) over v{', v'.join(str(v['version']) for v in e['versions'])}; "
-            f"reaches the {e['grade']} limit {e['limit_scaled']:.4g} micro-g "
+            f"reaches the {e['grade']} limit {e['limit_scaled']:.4g} {e['scaled_unit'].removesuffix('/year')} "
             + (f"on {e['due_utc'][:10]}" if e["due_utc"] else "never")
         )
     u = tests["unsteady"]
