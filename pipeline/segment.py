@@ -59,6 +59,8 @@ _MAX_START_TRIM = 0.25
 _MAX_END_TRIM = 0.05
 #: pairs of test positions with opposite gravity, by the axis that is vertical in them (+ first)
 _OPPOSITE_TP = {0: ("TP6", "TP5"), 1: ("TP4", "TP2"), 2: ("TP1", "TP3")}
+#: how the warning of a run without any temperature plateau begins (a method for ramps leaves it out)
+NO_PLATEAU_WARNING = "au_temperature: no temperature plateau found"
 
 
 @dataclass(frozen=True)
@@ -795,7 +797,7 @@ def segment_run(
     plateaus = find_plateaus(tt_ns, temp, settings)
     if not plateaus:
         warnings.append(
-            "au_temperature: no temperature plateau found (the temperature never stays within "
+            f"{NO_PLATEAU_WARNING} (the temperature never stays within "
             f"{settings.plateau_rate_c_per_min} C/min for {settings.plateau_min_s:.0f} s)"
         )
 
@@ -1053,6 +1055,7 @@ def _refine_scale(
 
 
 __all__ = [
+    "NO_PLATEAU_WARNING",
     "SegmentSettings",
     "Plateau",
     "TemperatureProgram",

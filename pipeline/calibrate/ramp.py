@@ -251,7 +251,7 @@ def observe_run(run, settings: CalibrationSettings, segmentation=None, ramp: Ram
     temperature), cut into pieces (:func:`cut_pieces`), and its smoothed thermosensor, as the run's
     :attr:`ObservedRun.data` (:class:`Pieces`; ``segmentation``: the run's, if already made with
     ``settings.segment``). CalibrationError naming the file when no test position is held anywhere."""
-    from pipeline.segment import segment_run
+    from pipeline.segment import NO_PLATEAU_WARNING, segment_run
 
     ramp = ramp or RampSettings()
     seg = segmentation if segmentation is not None else segment_run(run, settings.segment)
@@ -280,8 +280,10 @@ def observe_run(run, settings: CalibrationSettings, segmentation=None, ramp: Ram
         sensor=sensor,
     )
     pieces.direction = _mean_direction(ramp_direction(run, sensor.t_ref_ns), pieces.t0_s, pieces.t1_s)
+    # a run without a temperature plateau is what this method is for: the segmentation's warning of it is no news
+    seg_warnings = [w for w in seg.warnings if seg.plateaus or not w.startswith(NO_PLATEAU_WARNING)]
     return ObservedRun(
-        meta=run.meta, source=run.source, observations=[], warnings=list(run.warnings) + list(seg.warnings), data=pieces
+        meta=run.meta, source=run.source, observations=[], warnings=list(run.warnings) + seg_warnings, data=pieces
     )
 
 

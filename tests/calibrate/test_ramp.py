@@ -53,6 +53,7 @@ def test_auto_picks_the_ramp_method_and_says_why(fast_lag_calibrated):
     assert method == "ramp" and res.passport["method"] == "ramp"
     assert why.startswith("ramp (") and "test positions TP1, TP2, TP3, TP4, TP5, TP6 held over" in why
     assert "off the soaked plateaus" in why
+    assert not any("no temperature plateau" in w for w in res.warnings)  # no news for this method
 
 
 def test_constants_and_thermal_model_against_the_concealed_truth(fast_lag_calibrated, fast_lag):
