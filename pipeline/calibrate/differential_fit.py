@@ -57,7 +57,7 @@ from scipy.optimize import minimize_scalar
 from pipeline.dynamics import Thermosensor
 from pipeline.errors import CalibrationError
 from pipeline.model import specific_force_g, vector3
-from pipeline.passport.document import load_passport
+from pipeline.passport.document import Passport, load_passport
 from pipeline.positions import AXES
 from pipeline.run import NS_PER_S as _NS
 from pipeline.thermal import DifferentialModel, PolynomialModel, RateTerms, rate_basis
@@ -601,7 +601,7 @@ def window_std_g(data: BlockData, a_g: np.ndarray) -> np.ndarray:
     return np.array([a_g[data.window == w.index].std(axis=0) for w in data.windows])
 
 
-def compensate_run(passport: dict, run) -> tuple[np.ndarray, np.ndarray]:
+def compensate_run(passport: Passport | dict, run) -> tuple[np.ndarray, np.ndarray]:
     """Every voltmeter sample of ``run`` compensated with a passport's model, lag and rate terms: times (n,) ns and
     specific force (n, 3) g. The thermosensor is smoothed as when the passport was made. The passport's base thermal
     model must be polynomial."""
