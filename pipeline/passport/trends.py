@@ -58,9 +58,10 @@ import numpy as np
 from scipy import stats
 
 from pipeline.errors import ThermocalError
+from pipeline.passport.document import output_unit_of
 from pipeline.passport.registry import Registry
 from pipeline.passport.significance import sigma_of, value_of
-from pipeline.passport.text import output_unit_of, per
+from pipeline.passport.text import per
 from pipeline.positions import AXES
 
 #: the constants whose drift is tested, in the names of ``passport diff``
