@@ -102,17 +102,17 @@ def export(
         return
     assert fmt is not None
     exp = export_passport(doc, fmt, state=state, options=options)
+    if out is not None:  # before the warnings: a file that cannot be written is the one line on stderr
+        try:
+            out.write_text(exp.text)
+        except OSError as e:
+            raise ThermocalError(f"cannot write the export ({e.strerror})", path=str(out)) from None
     if state.warning():
         print(f"thermocal: warning: export of {state.warning()}", file=sys.stderr)
     for line in exp.warnings:
         print(f"thermocal: warning: {line}", file=sys.stderr)
     if exp.order:
         print(f"thermocal: {exp.order}", file=sys.stderr)
-    if out is not None:
-        try:
-            out.write_text(exp.text)
-        except OSError as e:
-            raise ThermocalError(f"cannot write the export ({e.strerror})", path=str(out)) from None
     if as_json:
         emit(
             {

@@ -53,6 +53,7 @@ from pipeline.passport.firmware import (
     ARDUPILOT_SCALE,
     ARDUPILOT_TEMP_RANGE_C,
     ARDUPILOT_TREF_C,
+    PX4_SLOTS,
     PX4_UPDATE_STEP_C,
     QGC_FLOAT,
     QGC_INT32,
@@ -109,6 +110,11 @@ class ExportOptions:
         for bad, text in wrong:
             if bad:
                 raise ThermocalError(text, where="--format")
+        if self.instance is not None and fmt in FIRMWARE_NAMES:
+            try:
+                px4_slot(self.instance) if fmt == "px4" else ardupilot_imu(self.instance)
+            except ThermocalError as e:
+                raise ThermocalError(e.message, where="--instance") from None
         if self.px4_device_id is not None and not 0 < self.px4_device_id < 1 << 32:
             raise ThermocalError(
                 f"a PX4 device id is a positive 32-bit number, not {self.px4_device_id}", where="--px4-device-id"
@@ -561,15 +567,33 @@ def compare_params(
     if fw == "px4":
         slot = 0 if opts.instance is None else opts.instance
         device, device_source = device_id_for(passport, opts)
+        vehicle_ids = {as_uint32(v) for k, v in params.items() if k.startswith("CAL_ACC") and k.endswith("_ID")}
+        vehicle_ids.discard(0)
         if device is not None:
             found = px4_matching_slot(params, device)
             if found is None:
                 why_not = f"no TC_A<k>_ID equals the device id {device} (from {device_source})"
             slot = slot if found is None else found
+        elif opts.instance is None:
+            # no device id given or recorded: the first slot the vehicle uses (its ID one of the vehicle's
+            # accelerometers, CAL_ACC<n>_ID, when the file has them; else the first slot with an ID)
+            used = [
+                k
+                for k in range(PX4_SLOTS)
+                if _slot_id(params, k) and (not vehicle_ids or _slot_id(params, k) in vehicle_ids)
+            ]
+            if used:
+                slot = used[0]
+                which = (
+                    "whose ID is one of the vehicle's accelerometers (CAL_ACC<n>_ID)"
+                    if vehicle_ids
+                    else "with an ID (the file holds no CAL_ACC<n>_ID)"
+                )
+                notes.append(
+                    f"TC_A{slot}_* compared: the first slot {which}; give --px4-device-id N or --instance K for another"
+                )
         names = px4_slot(slot)
         dev = as_uint32(params.get(names.id, 0))
-        vehicle_ids = {as_uint32(v) for k, v in params.items() if k.startswith("CAL_ACC") and k.endswith("_ID")}
-        vehicle_ids.discard(0)
         if int(params.get(names.enable, 0)) != 1:
             why_not = f"{names.enable} is {params.get(names.enable, 0):g} (must be 1)"
         elif why_not is None and dev == 0:
@@ -615,6 +639,11 @@ def compare_params(
         "notes": notes,
         "grid_step_c": GRID_STEP_C,
     }
+
+
+def _slot_id(params: Mapping[str, float], slot: int) -> int:
+    """PX4 slot ``slot``'s ``TC_A<k>_ID`` as the firmware compares it (0: none)."""
+    return as_uint32(params.get(px4_slot(slot).id, 0))
 
 
 def compare_text(result: dict, path: str, used: str) -> str:

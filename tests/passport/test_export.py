@@ -400,6 +400,21 @@ def test_compare_evaluates_a_vehicles_parameters_as_the_firmware_does(passports,
         r = compare_params(doc, read_params_file(tmp_path / name), options=ExportOptions(instance=2))
         assert r["firmware"] == "ardupilot" and r["applied"] and r["calibration_temp_c"] == 31.5
         assert max(r["max_diff_ug"]) < 0.01, r["max_diff_ug"]
+    # a vehicle as QGroundControl saves it, its accelerometer's slot not slot 0, no device id given: the slot whose
+    # ID is one of the vehicle's accelerometers (CAL_ACC<n>_ID) is the one PX4 uses and the one compared
+    qgc = "# Onboard parameters for Vehicle 1\n#\n# Stack: PX4 Pro\n# Vehicle-Id Component-Id Name Value Type\n"
+    qgc += f"1\t1\tCAL_ACC0_ID\t{DEVICE - 2**32}\t6\n1\t1\tCAL_ACC1_ID\t1310996\t6\n1\t100\tCAM_X\t3.5\t9\n"
+    body = export_passport(doc, "px4", options=ExportOptions(px4_device_id=DEVICE, instance=2)).text
+    (tmp_path / "vehicle.params").write_text(qgc + body)
+    vehicle = read_params_file(tmp_path / "vehicle.params")
+    r = compare_params(doc, vehicle)
+    assert r["applied"] and r["instance"] == 2 and r["device_id"] == DEVICE and max(r["max_diff_ug"]) < 0.01
+    assert any(n.startswith("TC_A2_* compared: the first slot whose ID is one of the vehicle's") for n in r["notes"])
+    # ... and a slot whose ID is none of the vehicle's accelerometers is not applied: the whole bias stays
+    other = {**vehicle, "CAL_ACC0_ID": 1310988.0}
+    r = compare_params(doc, other)
+    assert not r["applied"] and r["instance"] == 0 and "TC_A0_ID is 0" in r["why_not"]
+    assert np.allclose(r["max_diff_ug"], np.abs(bias(doc, grid, 20.0)).max(axis=0) * UG, rtol=1e-6)
     (tmp_path / "bad.parm").write_text("INS_TCAL1_ENABLE 1\nINS_TCAL1_TMIN 1 2\n")
     with pytest.raises(ThermocalError) as info:
         read_params_file(tmp_path / "bad.parm")
@@ -450,6 +465,9 @@ def test_cli_px4_device_id_instance_and_the_warning_without_id(monkeypatch, caps
         (("--format", "csv", "--instance", "1"), "--instance goes with"),
         (("--format", "px4", "--rotation", "ROTATION_SIDEWAYS"), "unknown rotation"),
         ((), "give --format"),
+        (("--format", "px4", "--instance", "4"), "--instance: PX4 has accelerometer slots 0..3"),
+        (("--format", "ardupilot", "--instance", "0"), "--instance: ArduPilot has IMUs 1..5"),
+        (("--format", "px4", "--out", str(tmp_path / "no" / "such" / "dir.params")), "cannot write the export"),
     ):
         code, stdout, err = run_main(monkeypatch, capsys, "export", "AU-0001", "--registry", reg, *bad)
         assert code == 2 and stdout == "" and len(_warnings(err)) == 1 and says in err, (bad, err)
