@@ -196,7 +196,11 @@ def test_px4_without_device_id_warns_that_nothing_is_corrected(passports):
     assert "--px4-device-id" in exp.warnings[0] and "\n" not in exp.warnings[0]
     assert exp.steps[0].startswith("set TC_A0_ID") and "# steps left to you on the vehicle:" in exp.text
     # QGroundControl refuses a file saved from another system id: the first column (1) is said
-    assert "MAV_SYS_ID" in exp.steps[1] and all(line.startswith("1\t1\t") for line in exp.text.splitlines()[-17:])
+    assert (
+        "MAV_SYS_ID" in exp.steps[1]
+        and "set TC_A_ENABLE 1, reboot and load again" in exp.steps[1]
+        and all(line.startswith("1\t1\t") for line in exp.text.splitlines()[-17:])
+    )
 
 
 def test_px4_update_step_is_in_the_stated_residual(passports):
