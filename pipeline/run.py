@@ -77,6 +77,9 @@ class RunMeta:
     g_local_mps2: float = 9.80665
     started_utc: str = ""
     nominal_gain_v_per_g: float | None = None
+    #: the unit's class (``navigation``, ``tactical``, ``industrial``, ``consumer``: :data:`pipeline.verify.GRADES`),
+    #: which sets the verification limits; None where the run names none
+    unit_grade: str | None = None
     extra: dict[str, str] = field(default_factory=dict)
 
     def to_strings(self) -> dict[str, str]:
@@ -92,6 +95,8 @@ class RunMeta:
         }
         if self.nominal_gain_v_per_g is not None:
             out["nominal_gain_v_per_g"] = _fmt_float(self.nominal_gain_v_per_g)
+        if self.unit_grade is not None:
+            out["unit_grade"] = self.unit_grade
         out.update(self.extra)
         return out
 
@@ -128,6 +133,7 @@ class RunMeta:
             "g_local_mps2",
             "started_utc",
             "nominal_gain_v_per_g",
+            "unit_grade",
         }
         if values.get(PX4_DEVICE_ID_KEY) not in (None, "") and px4_device_id(values[PX4_DEVICE_ID_KEY]) is None:
             raise RunFormatError(
@@ -145,6 +151,7 @@ class RunMeta:
             g_local_mps2=num("g_local_mps2", 9.80665),
             started_utc=str(values.get("started_utc", "")),
             nominal_gain_v_per_g=num("nominal_gain_v_per_g", None),
+            unit_grade=_grade(values.get("unit_grade"), path),
             extra={str(k): str(v) for k, v in values.items() if k not in known},
         )
 
@@ -156,6 +163,22 @@ def px4_device_id(value: Any) -> int | None:
     except ValueError:
         return None
     return n if 0 < n < 1 << 32 else None
+
+
+def _grade(value: Any, path: str | None) -> str | None:
+    """The metadata's ``unit_grade`` (None when absent or empty); RunFormatError for a name that is no grade."""
+    from pipeline.verify import GRADES
+
+    if value is None or (isinstance(value, str) and not value.strip()):
+        return None
+    grade = str(value).strip()
+    if grade not in GRADES:
+        raise RunFormatError(
+            f"metadata key 'unit_grade' is not a unit grade: {value!r} ({', '.join(GRADES)})",
+            path=path,
+            stream="metadata",
+        )
+    return grade
 
 
 def _fmt_float(x: float) -> str:

@@ -3,7 +3,7 @@ after compensation, judged against tolerances."""
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
@@ -13,15 +13,79 @@ from pipeline.model import gravity_module_error_g
 
 @dataclass(frozen=True)
 class Tolerances:
-    """|dg| limits in g (docs/physics.md, launcher grade): within ``normal_band_c`` of T0 and over the operating
-    range."""
+    """|dg| limits in g after compensation: ``normal_g`` within ``normal_band_c`` (C) of T0, ``operating_range_g``
+    over the rest of the range; ``grade`` the unit class they are the limits of (:data:`GRADES`) and ``basis`` where
+    the grade and limits came from (``--grade``, the run's ``unit_grade``, the default; a limit given on the command
+    line), for the passport and the texts that state them."""
 
     normal_g: float = 3e-4
     operating_range_g: float = 1e-3
     normal_band_c: float = 3.0
+    grade: str = "navigation"
+    basis: str = ""
 
     def limit_g(self, temp_c: float, normal_temp_c: float) -> float:
         return self.normal_g if abs(temp_c - normal_temp_c) <= self.normal_band_c else self.operating_range_g
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def text(self) -> str:
+        """One line: the grade and its limits, e.g. ``grade consumer: |dg| <= 0.01 g within 3 C of T0, 0.03 g
+        over the range (unit_grade of the run)``."""
+        basis = f" ({self.basis})" if self.basis else ""
+        return (
+            f"grade {self.grade}: |dg| <= {self.normal_g:g} g within {self.normal_band_c:g} C of T0, "
+            f"{self.operating_range_g:g} g over the range{basis}"
+        )
+
+
+#: The unit grades (docs/physics.md, "Unit grades") and their verification limits, |dg| after compensation at T0 / over
+#: the range. The one table of them: ``calibrate --grade``, the run's ``unit_grade`` and ``trends`` read it.
+GRADES: dict[str, Tolerances] = {
+    "navigation": Tolerances(3e-4, 1e-3, grade="navigation"),
+    "tactical": Tolerances(1e-3, 3e-3, grade="tactical"),
+    "industrial": Tolerances(3e-3, 1e-2, grade="industrial"),
+    "consumer": Tolerances(1e-2, 3e-2, grade="consumer"),
+}
+#: the grade of a unit whose run and command line name none (seed 000's tolerances)
+DEFAULT_GRADE = "navigation"
+
+
+def grade_tolerances(grade: str) -> Tolerances:
+    """The limits of ``grade`` (:data:`GRADES`); ValueError naming the grades for any other name."""
+    try:
+        return GRADES[grade]
+    except KeyError:
+        raise ValueError(f"unknown unit grade {grade!r} ({', '.join(GRADES)})") from None
+
+
+def resolve_tolerances(
+    grade: str | None,
+    run_grade: str | None,
+    *,
+    normal_g: float | None = None,
+    operating_range_g: float | None = None,
+) -> Tolerances:
+    """The limits a calibration verifies with: the grade named on the command line (``grade``), else the run's
+    ``unit_grade`` (``run_grade``), else :data:`DEFAULT_GRADE`; ``normal_g`` / ``operating_range_g`` given (the
+    command line's ``--tol-normal-g`` / ``--tol-range-g``) replace that grade's. ``basis`` says which."""
+    if grade is not None:
+        name, basis = grade, "--grade"
+    elif run_grade:
+        name, basis = run_grade, "unit_grade of the run"
+    else:
+        name, basis = DEFAULT_GRADE, "the default grade: neither --grade nor the run's unit_grade names one"
+    tol = grade_tolerances(name)
+    given = [f for f, v in (("--tol-normal-g", normal_g), ("--tol-range-g", operating_range_g)) if v is not None]
+    if given:
+        basis += f"; {' and '.join(given)} given"
+    return replace(
+        tol,
+        normal_g=tol.normal_g if normal_g is None else float(normal_g),
+        operating_range_g=tol.operating_range_g if operating_range_g is None else float(operating_range_g),
+        basis=basis,
+    )
 
 
 @dataclass(frozen=True)

@@ -82,6 +82,16 @@ UNIT_HELP = "the unit's serial number, e.g. AU-0001"
 
 #: ``--json``, the flag of every command that can print its result as one JSON object: ``as_json: JsonFlag = False``
 JsonFlag = Annotated[bool, typer.Option("--json", help=JSON_HELP)]
+#: ``--grade`` of calibrate, fleet and serve (physics.md "Unit grades"): ``grade: GradeOption = None``
+GradeOption = Annotated[
+    str | None,
+    typer.Option(
+        "--grade",
+        help="the unit's grade, which sets the verification limits of |dg| at T0 and over the range: navigation "
+        "| tactical | industrial | consumer (default: the run's unit_grade, else navigation; the output states "
+        "the limits)",
+    ),
+]
 
 
 def _version() -> str:
@@ -132,12 +142,19 @@ def needs_base(method: str) -> bool:
     return by_name(method).uses_base_passport
 
 
-def calibration_settings(thermal_model: str, constants_method: str, tol_normal_g: float, tol_range_g: float):
-    """The settings of calibrate, fleet and serve from their options, each checked (a one-line error naming it)."""
+def calibration_settings(
+    thermal_model: str,
+    constants_method: str,
+    tol_normal_g: float | None,
+    tol_range_g: float | None,
+    grade: str | None = None,
+):
+    """The settings of calibrate, fleet and serve from their options, each checked (a one-line error naming it).
+    ``grade`` None: the run's ``unit_grade``; ``tol_normal_g`` / ``tol_range_g`` None: the grade's limits."""
     from pipeline.calibrate.settings import CalibrationSettings
     from pipeline.constants import CONSTANTS_METHODS
     from pipeline.thermal import THERMAL_MODELS
-    from pipeline.verify import Tolerances
+    from pipeline.verify import GRADES
 
     if thermal_model not in THERMAL_MODELS:
         raise ThermocalError(
@@ -148,8 +165,15 @@ def calibration_settings(thermal_model: str, constants_method: str, tol_normal_g
             f"unknown constants method {constants_method!r} ({', '.join(CONSTANTS_METHODS)})",
             where="--constants-method",
         )
+    if grade is not None and grade not in GRADES:
+        raise ThermocalError(f"unknown unit grade {grade!r} ({', '.join(GRADES)})", where="--grade")
+    for flag, value in (("--tol-normal-g", tol_normal_g), ("--tol-range-g", tol_range_g)):
+        if value is not None and not value > 0:
+            raise ThermocalError(f"a limit must be a positive number of g, got {value:g}", where=flag)
     return CalibrationSettings(
         thermal_model=thermal_model,
         constants_method=constants_method,
-        tolerances=Tolerances(normal_g=tol_normal_g, operating_range_g=tol_range_g),
+        grade=grade,
+        tol_normal_g=tol_normal_g,
+        tol_range_g=tol_range_g,
     )

@@ -13,7 +13,16 @@ import typer
 from pipeline.calibrate.methods import names as method_names
 from pipeline.errors import ThermocalError
 
-from .app import REGISTRY_HELP, JsonFlag, app, calibration_settings, check_method, emit, needs_base
+from .app import (
+    REGISTRY_HELP,
+    GradeOption,
+    JsonFlag,
+    app,
+    calibration_settings,
+    check_method,
+    emit,
+    needs_base,
+)
 
 
 @app.command()
@@ -37,11 +46,16 @@ def calibrate(
         "(closed form from TP1..TP6) | least_squares (every "
         "position) | auto",
     ),
-    tol_normal_g: float = typer.Option(
-        3e-4, "--tol-normal-g", help="pass limit of the gravity-module error |dg| at the normal temperature, g"
+    grade: GradeOption = None,
+    tol_normal_g: float | None = typer.Option(
+        None,
+        "--tol-normal-g",
+        help="pass limit of the gravity-module error |dg| at the normal temperature, g (default: the grade's)",
     ),
-    tol_range_g: float = typer.Option(
-        1e-3, "--tol-range-g", help="pass limit of |dg| over the rest of the temperature range, g"
+    tol_range_g: float | None = typer.Option(
+        None,
+        "--tol-range-g",
+        help="pass limit of |dg| over the rest of the temperature range, g (default: the grade's)",
     ),
     method: str = typer.Option(
         "auto",
@@ -75,7 +89,7 @@ def calibrate(
     A run holding several units gives one passport per unit: {"units": [...], "failed": [...]}.
     Exit status 1 (with the result printed) when the calibration's status is fail; with several units, the worst
     of the units' (2 when a unit's input was bad)."""
-    settings = calibration_settings(thermal_model, constants_method, tol_normal_g, tol_range_g)
+    settings = calibration_settings(thermal_model, constants_method, tol_normal_g, tol_range_g, grade)
     if method != "auto":
         check_method(method)
     for r in runs:

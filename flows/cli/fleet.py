@@ -11,7 +11,7 @@ import typer
 from pipeline.calibrate.methods import names as method_names
 from pipeline.errors import ThermocalError
 
-from .app import REGISTRY_HELP, JsonFlag, app, calibration_settings, check_method, emit
+from .app import REGISTRY_HELP, GradeOption, JsonFlag, app, calibration_settings, check_method, emit
 
 
 @app.command()
@@ -32,8 +32,9 @@ def fleet(
     ),
     thermal_model: str = typer.Option("auto", "--thermal-model", help="as for calibrate"),
     constants_method: str = typer.Option("auto", "--constants-method", help="as for calibrate"),
-    tol_normal_g: float = typer.Option(3e-4, "--tol-normal-g", help="as for calibrate"),
-    tol_range_g: float = typer.Option(1e-3, "--tol-range-g", help="as for calibrate"),
+    grade: GradeOption = None,
+    tol_normal_g: float | None = typer.Option(None, "--tol-normal-g", help="as for calibrate"),
+    tol_range_g: float | None = typer.Option(None, "--tol-range-g", help="as for calibrate"),
     method: str = typer.Option(
         "auto",
         "--method",
@@ -51,7 +52,7 @@ def fleet(
     """
     from pipeline.calibrate.fleet import POOLS, discover_runs
 
-    settings = calibration_settings(thermal_model, constants_method, tol_normal_g, tol_range_g)
+    settings = calibration_settings(thermal_model, constants_method, tol_normal_g, tol_range_g, grade)
     if method != "auto":
         check_method(method)
     if pool not in POOLS:
@@ -117,8 +118,9 @@ def serve(
     workers: int | None = typer.Option(None, "--workers", help="as for fleet"),
     thermal_model: str = typer.Option("auto", "--thermal-model", help="as for calibrate"),
     constants_method: str = typer.Option("auto", "--constants-method", help="as for calibrate"),
-    tol_normal_g: float = typer.Option(3e-4, "--tol-normal-g", help="as for calibrate"),
-    tol_range_g: float = typer.Option(1e-3, "--tol-range-g", help="as for calibrate"),
+    grade: GradeOption = None,
+    tol_normal_g: float | None = typer.Option(None, "--tol-normal-g", help="as for calibrate"),
+    tol_range_g: float | None = typer.Option(None, "--tol-range-g", help="as for calibrate"),
 ):
     """Serve the fleet flow over INBOX as a Prefect deployment on a cron schedule (blocks; Ctrl-C stops it).
 
@@ -127,7 +129,7 @@ def serve(
     """
     from ..serve import serve_nightly
 
-    settings = calibration_settings(thermal_model, constants_method, tol_normal_g, tol_range_g)
+    settings = calibration_settings(thermal_model, constants_method, tol_normal_g, tol_range_g, grade)
     serve_nightly(
         str(inbox),
         str(registry),

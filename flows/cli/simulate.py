@@ -29,8 +29,8 @@ def simulate(
     unit_seed: int | None = typer.Option(
         None,
         "--unit-seed",
-        help="draw a different unit of the same type from this seed (default: the "
-        "reference unit, whose constants are the published tables)",
+        help="draw a different unit of the same type from this seed (default: the type's "
+        "reference unit; the navigation type's has the published tables' constants)",
     ),
     effect: list[str] = typer.Option(
         [],
@@ -83,7 +83,9 @@ def simulate(
         "second stage at that setpoint); repeat for several",
     ),
     rate_hz: float = typer.Option(10.0, "--rate-hz", help="voltmeter sampling rate, Hz"),
-    noise_uv: float = typer.Option(5.0, "--noise-uv", help="voltmeter noise per sample, micro-volts"),
+    noise_uv: float | None = typer.Option(
+        None, "--noise-uv", help="voltmeter noise per sample, micro-volts (default: the unit type's, 5 for navigation)"
+    ),
     case_lag_s: float | None = typer.Option(
         None,
         "--case-lag-s",
@@ -95,6 +97,15 @@ def simulate(
         help="voltmeter timestamp jitter (standard deviation), ms: a wireless logger's irregular stamps",
     ),
     no_fixture_log: bool = typer.Option(False, "--no-fixture-log", help="leave out the fixture's position log"),
+    unit_type: str = typer.Option(
+        "navigation",
+        "--unit-type",
+        help="the kind of unit: navigation (the type of the published tables) | consumer (a MEMS part: 0.3 V/g, "
+        "offsets of tens of mg, 0.5 mV of noise per sample)",
+    ),
+    grade: str | None = typer.Option(
+        None, "--grade", help="the run's unit_grade metadata (default: the unit type's; none for navigation)"
+    ),
     encoding: str = typer.Option("json", "--encoding", help="MCAP message encoding: json | protobuf"),
     truth: Path | None = typer.Option(
         None, "--truth", help="where to write the ground truth as JSON (default: beside the run, NAME.truth.json)"
@@ -108,6 +119,8 @@ def simulate(
     from pipeline.simulate.disturbances import parse_disturbance_spec
     from pipeline.simulate.large import simulate_run
     from pipeline.simulate.program import parse_drop, program_from
+    from pipeline.simulate.unit import UNIT_TYPES
+    from pipeline.verify import GRADES
 
     if soak_min is not None and not soak_min >= 0:
         raise ThermocalError(f"soak must be 0 minutes or more, got {soak_min:g}", where="--soak-min")
@@ -137,13 +150,19 @@ def simulate(
         disturbances = [parse_disturbance_spec(d) for d in disturbance]
     except ValueError as e:
         raise ThermocalError(str(e), where="--disturbance") from None
+    if unit_type not in UNIT_TYPES:
+        raise ThermocalError(f"unknown unit type {unit_type!r} ({', '.join(UNIT_TYPES)})", where="--unit-type")
+    if grade is not None and grade not in GRADES:
+        raise ThermocalError(f"unknown unit grade {grade!r} ({', '.join(GRADES)})", where="--grade")
     cfg = SimConfig(
         unit_serial=unit,
         seed=seed,
         unit_seed=unit_seed,
         program=chosen,
         rate_hz=rate_hz,
-        noise_v=noise_uv * 1e-6,
+        noise_v=UNIT_TYPES[unit_type].noise_v if noise_uv is None else noise_uv * 1e-6,
+        unit_type=unit_type,
+        unit_grade=grade,
         case_lag_s=case_lag_s,
         effects=effects,
         jitter_s=jitter_ms * 1e-3,

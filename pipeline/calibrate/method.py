@@ -128,7 +128,8 @@ class Method(ABC):
         return []
 
     def finish(self, observed: list[ObservedRun], fitted: Fitted, settings: CalibrationSettings) -> CalibrationResult:
-        """The tail of every method: verify ``fitted.fit.model`` at every VP observation, judge the constants'
+        """The tail of every method: verify ``fitted.fit.model`` at every VP observation against the unit grade's
+        limits (:meth:`CalibrationSettings.tolerances_for`), judge the constants'
         plausibility (:func:`pipeline.plausibility.assess`), and build the passport document with the method's
         fields. Warnings: the runs', the fit's notes, the implausibilities not already among the runs', then
         :meth:`verification_notes`."""
@@ -137,7 +138,8 @@ class Method(ABC):
         observations = (
             fitted.observations if fitted.observations is not None else [o for r in observed for o in r.observations]
         )
-        rows, status = verify_unit(unit_fit.model, observations, unit_fit.normal_temp_c, settings.tolerances)
+        tolerances = settings.tolerances_for(meta)  # the unit's grade: --grade, else the run's unit_grade
+        rows, status = verify_unit(unit_fit.model, observations, unit_fit.normal_temp_c, tolerances)
         run_warnings = [w for r in observed for w in r.warnings]
         status, implausible = assess(unit_fit, status, meta.nominal_gain_v_per_g, run_warnings)
         plateaus = plateau_summary(self.plateau_observations(observations))
@@ -148,6 +150,7 @@ class Method(ABC):
             g_local_mps2=meta.g_local_mps2,
             plateaus=plateaus,
             method=self.passport_method,
+            tolerances=tolerances,
             extra={**fitted.passport_fields, **({"implausible": implausible} if implausible else {})},
         )
         return CalibrationResult(

@@ -46,6 +46,8 @@ def calibration_json(result: CalibrationResult, published) -> dict:
             for r in result.rows
         ],
         "status": result.status,
+        "unit_grade": result.passport.get("unit_grade"),
+        "tolerances": result.passport.get("tolerances"),
     }
 
 

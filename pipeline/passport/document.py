@@ -68,6 +68,7 @@ def build_passport(
     g_local_mps2: float,
     plateaus: list[dict],
     method: str = "tilt_six_position",
+    tolerances=None,
     extra: dict | None = None,
 ) -> dict:
     """Passport content (without version/parent/provenance, which the registry sets).
@@ -75,7 +76,8 @@ def build_passport(
     ``method`` records the calibration method that made the passport: ``tilt_six_position`` (seed 000; the
     constants per plateau by the closed form or least squares, see ``per_plateau[].method``), ``scalar``,
     ``differential``. ``output_unit``: the unit the outputs were recorded in (:func:`pipeline.model.output_unit`),
-    K being in that unit per g and U0 in that unit.
+    K being in that unit per g and U0 in that unit. ``tolerances`` (:class:`pipeline.verify.Tolerances`): the
+    limits the verification judged with, stated as ``unit_grade`` and ``tolerances`` (physics.md "Unit grades").
     """
     model = fit.model
     doc = {
@@ -95,6 +97,7 @@ def build_passport(
         "verification": [r.to_dict() for r in verification_rows],
         "verification_summary": summary_by_temperature(verification_rows),
         "status": status,
+        **({"unit_grade": tolerances.grade, "tolerances": tolerances.to_dict()} if tolerances is not None else {}),
         "notes": list(fit.skipped),
         "valid_temp_c": list(fit.valid_temp_c) if getattr(fit, "valid_temp_c", None) else None,
         "uncertainty": uncertainty_block(fit),

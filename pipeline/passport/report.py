@@ -21,6 +21,7 @@ from pipeline.errors import ThermocalError
 from pipeline.passport.document import gains_v_per_g, output_unit_of
 from pipeline.passport.text import (
     approval_text,
+    grade_text,
     max_error_g,
     model_text,
     per,
@@ -106,6 +107,7 @@ def certificate_html(
         "<h2>Thermal model</h2>",
         _thermal_table(doc),
         "<h2>Verification</h2>",
+        f"<p>Unit {e(grade_text(doc))}.</p>",
         _verification_summary(doc),
         _verification_table(doc),
     ]
@@ -157,7 +159,12 @@ def _row(name: str, value_html: str) -> str:
 
 
 def _settings_text(settings: dict) -> str:
-    keep = {k: v for k, v in settings.items() if k in ("thermal_model", "constants_method", "tolerances", "method")}
+    keep = {
+        k: v
+        for k, v in settings.items()
+        if k in ("thermal_model", "constants_method", "grade", "tol_normal_g", "tol_range_g", "tolerances", "method")
+        and v is not None
+    }
     return ", ".join(f"{k}={v}" for k, v in sorted(keep.items()))
 
 

@@ -125,17 +125,36 @@ def _pm(value: float, sigma: float | None, gain: float, unit: str, tag: str | No
     return f"{text} +-{sigma / gain * 1e6:.2g} {unit}"
 
 
+def grade_text(doc: dict) -> str:
+    """The unit grade and the verification limits a passport (or a ``calibrate --json`` result) was judged with
+    (its ``tolerances``, :meth:`pipeline.verify.Tolerances.text`); for a passport written before grades, the limits
+    its rows carry."""
+    from pipeline.verify import Tolerances
+
+    tol = doc.get("tolerances")
+    if isinstance(tol, dict):
+        try:
+            return Tolerances(**tol).text()
+        except TypeError:
+            pass
+    limits = sorted({r["tolerance_g"] for r in doc.get("verification") or [] if "tolerance_g" in r})
+    return "grade not stated (a passport written before unit grades)" + (
+        f"; limits {', '.join(f'{x:g}' for x in limits)} g" if limits else ""
+    )
+
+
 def verification_lines(doc: dict) -> list[str]:
     """A row per visit of a verification temperature: the largest |dg| before compensation and after (methods 1 and
     2) against the limit, and the verdict; under a failing row, its failing positions."""
     rows = doc.get("verification") or []
     if not rows:
-        return ["verification: no VP data (unverified)"]
+        return ["verification: no VP data (unverified); " + grade_text(doc)]
     head = (
         f"  {'temperature':<18}{'VPs':>4}  {'max |dg| before':>16}  {'after m1':>10}  {'after m2':>10}  "
         f"{'limit':>8}  verdict"
     )
     lines = ["verification at the VP positions (|dg| = ||a| - 1|, micro-g; the verdict is on method 1)", head]
+    lines.insert(1, "  " + grade_text(doc))
     for v in verification_visits(rows):
         rs = v["rows"]
         limit = max(r["tolerance_g"] for r in rs)

@@ -38,7 +38,7 @@ from pipeline.positions import ALL_POSITIONS, POSITION_NAMES
 from pipeline.run import Run, RunMeta, make_frame
 from pipeline.simulate.disturbances import make_disturbance
 from pipeline.simulate.program import Program, Timetable, get_program
-from pipeline.simulate.unit import UnitTruth, random_unit, seed000_unit
+from pipeline.simulate.unit import UnitTruth, unit_type
 
 #: Vibration tones during moves, Hz per axis (x, y, z).
 VIBRATION_HZ = (23.1, 29.7, 37.3)
@@ -50,7 +50,11 @@ THERMAL_RATE_HZ = 1.0
 
 @dataclass
 class SimConfig:
-    """Settings of one simulated run. ``unit_seed`` None is the seed 000 unit; ``seed`` drives the noise."""
+    """Settings of one simulated run. ``unit_type``: the kind of unit (:data:`pipeline.simulate.unit.UNIT_TYPES`:
+    ``navigation``, seed 000's; ``consumer``, a MEMS part); ``unit_seed`` None is the type's reference unit (the seed
+    000 unit for the navigation type); ``seed`` drives the noise. ``nominal_gain_v_per_g`` None: the type's.
+    ``unit_grade``: the run metadata's ``unit_grade`` (None: the type's grade; the navigation type's runs name none,
+    the default grade)."""
 
     unit_serial: str = "AU-0001"
     seed: int = 0
@@ -68,12 +72,14 @@ class SimConfig:
     normal_temp_c: float = 20.0
     started_utc: str = "2026-11-01T00:00:00Z"
     station: str = "sim-ch1"
-    nominal_gain_v_per_g: float = -0.55
+    nominal_gain_v_per_g: float | None = None
     air_lag_s: float | None = None
     vibration_g: float = 3e-3
     #: timestamp jitter (s, standard deviation, clipped to 0.45 of the sample interval so the order holds): a
     #: wireless logger's stamps; the samples themselves are taken on the regular grid
     jitter_s: float = 0.0
+    unit_type: str = "navigation"
+    unit_grade: str | None = None
 
 
 @dataclass
@@ -97,10 +103,9 @@ def parse_utc_ns(text: str) -> int:
 
 
 def unit_for(config: SimConfig) -> UnitTruth:
-    """The unit of ``config``: seed 000's, or a random one from ``unit_seed``."""
-    if config.unit_seed is None:
-        return seed000_unit(config.normal_temp_c)
-    return random_unit(config.unit_seed, config.normal_temp_c)
+    """The unit of ``config``: its type's reference unit (seed 000's for the navigation type), or one drawn from
+    ``unit_seed``."""
+    return unit_type(config.unit_type).unit(config.unit_seed, config.normal_temp_c)
 
 
 def simulate(config: SimConfig) -> SimResult:
@@ -194,6 +199,11 @@ def _check(config: SimConfig) -> None:
             raise ValueError(f"{name} must not be negative, got {v}")
     if not config.unit_serial.strip():
         raise ValueError("unit_serial is empty")
+    unit_type(config.unit_type)  # ValueError naming the types
+    if config.unit_grade is not None:
+        from pipeline.verify import grade_tolerances
+
+        grade_tolerances(config.unit_grade)
 
 
 def _face_rotations_rad(effects: list[Effect]) -> np.ndarray:
@@ -269,6 +279,9 @@ def _fixture_frame(timetable: Timetable, start_ns: int):
 
 
 def _meta(config: SimConfig) -> RunMeta:
+    kind = unit_type(config.unit_type)
+    gain = kind.nominal_gain_v_per_g if config.nominal_gain_v_per_g is None else config.nominal_gain_v_per_g
+    grade = config.unit_grade or (kind.grade if kind.name != "navigation" else None)
     return RunMeta(
         unit_serial=config.unit_serial,
         run_id=f"sim-{config.unit_serial}-s{config.seed}",
@@ -277,7 +290,8 @@ def _meta(config: SimConfig) -> RunMeta:
         normal_temp_c=float(config.normal_temp_c),
         g_local_mps2=9.80665,
         started_utc=config.started_utc,
-        nominal_gain_v_per_g=float(config.nominal_gain_v_per_g),
+        nominal_gain_v_per_g=float(gain),
+        unit_grade=grade,
         extra={"simulator": "thermocal", "program": get_program(config.program).name},
     )
 

@@ -11,6 +11,7 @@ A :class:`UnitTruth` holds, for each of the 12 constants (K 3x3 in V/g, U0 in V)
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -134,6 +135,50 @@ def _signed_loguniform(rng: np.random.Generator, lo: float, hi: float, size) -> 
     return mag * rng.choice([-1.0, 1.0], size)
 
 
+@dataclass(frozen=True)
+class _Magnitudes:
+    """How a unit type's units are drawn at T0 = +20 C: gain ``gain_v_per_g`` +- ``gain_rel`` (uniform), cross-axis
+    sensitivities of random sign log-uniform in ``cas_v_per_g``, zero-g offsets of random sign log-uniform in
+    ``u0_v``; per sub-band (-40..+20, +20..+70 C) chord slopes: beta uniform in ``beta_per_c`` of random sign,
+    gamma log-uniform in ``gamma_per_c``, alpha log-uniform in ``alpha_v_per_c``, both of random sign."""
+
+    gain_v_per_g: float
+    gain_rel: float
+    cas_v_per_g: tuple[float, float]
+    u0_v: tuple[float, float]
+    beta_per_c: tuple[float, float]
+    gamma_per_c: tuple[float, float]
+    alpha_v_per_c: tuple[float, float]
+
+
+def _drawn_unit(unit_seed: int, normal_temp_c: float, m: _Magnitudes, label: str) -> UnitTruth:
+    """A unit drawn from ``unit_seed`` with the magnitudes ``m``: quadratic in T through +20, -40 and +70 C."""
+    rng = np.random.default_rng(unit_seed)
+    k0 = _signed_loguniform(rng, *m.cas_v_per_g, (3, 3))
+    k0[np.diag_indices(3)] = m.gain_v_per_g * (1.0 + rng.uniform(-m.gain_rel, m.gain_rel, 3))
+    u0 = _signed_loguniform(rng, *m.u0_v, 3)
+    diag = np.eye(3, dtype=bool)
+    temps_c = [20.0, -40.0, 70.0]
+    ks, us = [k0], [u0]
+    for t in temps_c[1:]:
+        rel = np.where(
+            diag,
+            rng.uniform(*m.beta_per_c, (3, 3)) * rng.choice([-1.0, 1.0], (3, 3)),
+            _signed_loguniform(rng, *m.gamma_per_c, (3, 3)),
+        )
+        alpha = _signed_loguniform(rng, *m.alpha_v_per_c, 3)
+        ks.append(k0 * (1.0 + rel * (t - 20.0)))
+        us.append(u0 + alpha * (t - 20.0))
+    return unit_through_tables(temps_c, ks, us, normal_temp_c=normal_temp_c, label=label)
+
+
+#: seed 000's unit type (docs/physics.md "Typical magnitudes")
+_NAVIGATION = _Magnitudes(-0.55, 0.01, (3e-4, 0.016), (1e-3, 5e-3), (1e-5, 5e-5), (1e-4, 6e-3), (1.5e-5, 1.5e-4))
+#: a consumer MEMS part behind the same voltmeter (an analogue ratiometric triad): +0.3 V/g +-5 %, zero-g offsets
+#: 10-50 mg, cross-axis 0.1-2 % of the gain, offset drift 0.1-1 mg/C, scale drift 0.01-0.05 %/C
+_CONSUMER = _Magnitudes(0.30, 0.05, (3e-4, 6e-3), (3e-3, 1.5e-2), (1e-4, 5e-4), (1e-4, 6e-3), (3e-5, 3e-4))
+
+
 def random_unit(unit_seed: int, normal_temp_c: float = 20.0) -> UnitTruth:
     """Another unit of seed 000's type, reproducible from ``unit_seed``; quadratic in T.
 
@@ -142,20 +187,42 @@ def random_unit(unit_seed: int, normal_temp_c: float = 20.0) -> UnitTruth:
     (docs/physics.md "Typical magnitudes"): alpha log-uniform 1.5e-5..1.5e-4 V/C, beta 1e-5..5e-5 /C, gamma log-uniform
     1e-4..6e-3 /C, each of random sign; the unit is the quadratic through the three temperatures.
     """
-    rng = np.random.default_rng(unit_seed)
-    k0 = _signed_loguniform(rng, 3e-4, 0.016, (3, 3))
-    k0[np.diag_indices(3)] = -0.55 * (1.0 + rng.uniform(-0.01, 0.01, 3))
-    u0 = _signed_loguniform(rng, 1e-3, 5e-3, 3)
-    diag = np.eye(3, dtype=bool)
-    temps_c = [20.0, -40.0, 70.0]
-    ks, us = [k0], [u0]
-    for t in temps_c[1:]:
-        rel = np.where(
-            diag,
-            rng.uniform(1e-5, 5e-5, (3, 3)) * rng.choice([-1.0, 1.0], (3, 3)),
-            _signed_loguniform(rng, 1e-4, 6e-3, (3, 3)),
-        )
-        alpha = _signed_loguniform(rng, 1.5e-5, 1.5e-4, 3)
-        ks.append(k0 * (1.0 + rel * (t - 20.0)))
-        us.append(u0 + alpha * (t - 20.0))
-    return unit_through_tables(temps_c, ks, us, normal_temp_c=normal_temp_c, label=f"random:{unit_seed}")
+    return _drawn_unit(unit_seed, normal_temp_c, _NAVIGATION, f"random:{unit_seed}")
+
+
+def consumer_unit(unit_seed: int, normal_temp_c: float = 20.0) -> UnitTruth:
+    """A consumer MEMS unit (:data:`_CONSUMER`), reproducible from ``unit_seed``; quadratic in T as
+    :func:`random_unit`."""
+    return _drawn_unit(unit_seed, normal_temp_c, _CONSUMER, f"consumer:{unit_seed}")
+
+
+@dataclass(frozen=True)
+class UnitType:
+    """A kind of unit the simulator makes (``simulate --unit-type``): the grade its runs say (``unit_grade``; the
+    navigation type's runs name none, the default grade), its nominal gain (V/g, signed), its typical voltmeter
+    noise per sample (V), the reference unit (``unit_seed`` None) and the units drawn from a seed."""
+
+    name: str
+    grade: str
+    nominal_gain_v_per_g: float
+    noise_v: float
+    reference: Callable[[float], UnitTruth]
+    draw: Callable[[int, float], UnitTruth]
+
+    def unit(self, unit_seed: int | None, normal_temp_c: float) -> UnitTruth:
+        return self.reference(normal_temp_c) if unit_seed is None else self.draw(unit_seed, normal_temp_c)
+
+
+#: the unit types by name: seed 000's (navigation grade) and a consumer MEMS part (its reference unit: seed 0)
+UNIT_TYPES: dict[str, UnitType] = {
+    "navigation": UnitType("navigation", "navigation", -0.55, 5e-6, seed000_unit, random_unit),
+    "consumer": UnitType("consumer", "consumer", 0.30, 5e-4, lambda t0: consumer_unit(0, t0), consumer_unit),
+}
+
+
+def unit_type(name: str) -> UnitType:
+    """The unit type called ``name`` (:data:`UNIT_TYPES`); ValueError naming them otherwise."""
+    try:
+        return UNIT_TYPES[name]
+    except KeyError:
+        raise ValueError(f"unknown unit type {name!r} ({', '.join(UNIT_TYPES)})") from None

@@ -19,7 +19,6 @@ from pipeline.errors import ThermocalError
 from pipeline.io.runs import read_run, write_run
 from pipeline.passport.registry import Registry
 from pipeline.simulate.chamber import SimConfig, simulate
-from pipeline.verify import Tolerances
 
 pytestmark = pytest.mark.slow  # Prefect flows end to end
 
@@ -63,8 +62,8 @@ def calibrated(tmp_path_factory):
     run = read_run(run_path)
     reg = d / "reg"
     results = []
-    for tol in (Tolerances(normal_g=1e-9, operating_range_g=1e-9), Tolerances()):
-        settings = tilt.CalibrationSettings(tolerances=tol)
+    for tol in ({"tol_normal_g": 1e-9, "tol_range_g": 1e-9}, {}):
+        settings = tilt.CalibrationSettings(**tol)
         cal = tilt.calibrate([run], settings)
         before = sorted(p.name for p in reg.rglob("*")) if reg.exists() else []
         dry = publish(reg, cal, input_paths=[str(run_path)], settings=settings, figure=False, dry_run=True)
