@@ -1,13 +1,15 @@
 """The calibration flow: ingest -> (choose) -> observe -> fit -> write, one Prefect task per step (per file for
-ingest and observe). Each task is a call of one library function; the method
+ingest). Each task is a call of one library function; the method
 (:class:`pipeline.calibrate.method.Method` from the registry ``pipeline.calibrate.methods``: ``tilt``, seed 000;
 ``scalar``, seed 004; ``differential``, seed 003, from a base passport or, on sweeps, from the orientations)
 supplies observe and fit:
 
 - ingest:  ``pipeline.io.runs.read_run``
-- choose:  with ``method="auto"`` (the command line's default) the first run's segmentation
-  and the method the recording supports (``pipeline.calibrate.methods.resolve_auto``, shared with the fleet);
-  observe reuses that segmentation (the run is read and segmented once)
+- join:    the files given together are one recording (``pipeline.calibrate.inputs.select_runs``: copies left
+  out; ``join_runs``: the files in time order as one run)
+- choose:  with ``method="auto"`` (the command line's default) the recording's segmentation
+  and the method it supports (``pipeline.calibrate.methods.resolve_auto``, shared with the fleet);
+  observe reuses that segmentation (the recording is read and segmented once)
 - observe: ``Method.observe`` (e.g. ``pipeline.calibrate.observations``: segmentation and per-segment averages)
 - fit:     ``Method.calibrate_observed`` (the method's fit: constants, thermal model; then the tail every method
   shares, ``Method.finish``: VP verification, plausibility, passport document)
@@ -16,7 +18,8 @@ supplies observe and fit:
 A run holding several units (log-format.md) is read once (``pipeline.io.runs.read_units``), segmented once for the
 run (``segment``: ``pipeline.segment_units.segment_units``, the still times by consensus of the units), then each
 unit goes through choose, observe, fit and write as above; a unit that fails (its input checks, or its
-calibration) is reported with its reason and the others go on (:func:`calibrate_units`).
+calibration) is reported with its reason and the others go on (:func:`calibrate_units`). A unit whose files are
+several is one recording of them (``join_runs``), segmented as such.
 """
 
 from __future__ import annotations
@@ -31,7 +34,7 @@ from prefect import flow, get_run_logger, task  # noqa: E402
 from prefect.artifacts import create_markdown_artifact  # noqa: E402
 from prefect.cache_policies import NO_CACHE  # noqa: E402  (no input hashing: a Run is large and never reused)
 
-from pipeline.calibrate.inputs import select_runs  # noqa: E402
+from pipeline.calibrate.inputs import join_runs, select_runs  # noqa: E402
 from pipeline.calibrate.methods import by_name, default_base_passport, resolve_auto  # noqa: E402
 from pipeline.calibrate.observations import ObservedRun, unit_of  # noqa: E402
 from pipeline.calibrate.publish import publish  # noqa: E402
@@ -136,7 +139,7 @@ def calibrate_flow(
 
     ``method``: ``tilt`` (seed 000, default), ``scalar`` (seed 004), ``differential`` (seed 003, starting from
     ``base_passport``'s normal-temperature constants; without one, from the unit's current passport in the
-    registry, else from the orientations alone) or ``auto`` (the method the first run supports: the result's
+    registry, else from the orientations alone) or ``auto`` (the method the recording supports: the result's
     ``method_auto`` says which and why). ``dry_run``: compute everything, write nothing to the registry."""
     step = Steps("calibrate")  # progress lines on stderr when it is a terminal
     if method != "auto":
@@ -232,22 +235,22 @@ def _calibrate_unit(
     paths = [path_of[id(r)] for r in runs]
     segmentations = [seg_of[id(r)] for r in runs]
     unit = unit_of(runs)
-    segmentation, chosen = segmentations[0], None  # the first run's, when made to choose the method
+    # the files given together are one recording (a segmentation made for one file holds for that file alone)
+    segmentation, chosen = (segmentations[0] if len(runs) == 1 else None), None
+    run = join_runs(runs)
+    del runs
     if method == "auto":
-        what = "" if segmentation is not None else f" (segment {os.path.basename(paths[0])})"
+        what = "" if segmentation is not None else f" (segment {_names(paths)})"
         step(f"choose the method for {unit}{what}")
-        method, base, segmentation, chosen = choose(runs[0], settings, base, segmentation)
-        segmentations[0] = segmentation
+        method, base, segmentation, chosen = choose(run, settings, base, segmentation)
     base_line = None  # which version the differential method starts from, and its status
     if not by_name(method).uses_base_passport:
         base = None
     elif base is None:
         base, base_line = default_base_passport(registry, unit)
-    observed = []
-    for run, p, seg in zip(runs, paths, segmentations):
-        step(f"observe ({'average' if seg else 'segment, average'}) {unit} in {os.path.basename(p)}")
-        observed.append(observe(run, method, settings, base, seg))
-    del runs  # the samples are not needed past the observations
+    step(f"observe ({'average' if segmentation else 'segment, average'}) {unit} in {_names(paths)}")
+    observed = [observe(run, method, settings, base, segmentation)]
+    del run  # the samples are not needed past the observations
     if release is not None:
         release()
     step(f"fit ({method}: constants, thermal model, VP verification)")
@@ -266,6 +269,10 @@ def _calibrate_unit(
         result["base_passport_used"] = base_line
     step(f"done: {unit} v{result['version']} {result['status']}")
     return result
+
+
+def _names(paths: list[str]) -> str:
+    return " + ".join(os.path.basename(p) for p in paths)
 
 
 def _artifact_key(unit: str) -> str:

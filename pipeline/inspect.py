@@ -80,6 +80,29 @@ def summarize_run(run: Run, seg=None) -> dict[str, Any]:
     return summary
 
 
+def summarize_runs(runs: list[Run]) -> dict[str, Any]:
+    """``inspect RUN...``: the runs given together as the one recording a calibration reads
+    (:func:`pipeline.calibrate.inputs.select_runs`: copies left out; ``join_runs``: the files in time order as one
+    run),
+    described by :func:`summarize_run`; with several files, ``files`` lists each one used (source, run_id, first
+    and last voltmeter time) and ``warnings`` also says which were left out."""
+    from pipeline.calibrate.inputs import join_runs, select_runs, time_span_ns
+
+    if len(runs) == 1:
+        return summarize_run(runs[0])
+    kept, left_out = select_runs(runs)
+    recording = join_runs(kept)
+    spans = [time_span_ns(r.voltmeter) or (None, None) for r in kept]
+    files = [
+        {"source": r.source, "run_id": r.meta.run_id, "t_start_ns": a, "t_end_ns": b} for r, (a, b) in zip(kept, spans)
+    ]
+    files.sort(key=lambda f: (f["t_start_ns"] is None, f["t_start_ns"] or 0))
+    summary = summarize_run(recording)
+    summary["files"] = files
+    summary["warnings"] = left_out + summary["warnings"]
+    return summary
+
+
 def stream_summary(name: str, t_ns: np.ndarray, non_finite: int) -> dict[str, Any]:
     """Sample count, rate (from the median interval), span, gaps (> GAP_FACTOR median intervals) of one stream.
 
@@ -202,7 +225,14 @@ def format_summary(summary: dict[str, Any]) -> str:
         f"  fixture {meta.get('fixture') or '-'}  T0 {meta.get('normal_temp_c', '?')} C"
         f"  started {meta.get('started_utc') or '-'}"
     ]
-    if summary.get("source"):
+    files = summary.get("files")
+    if files:
+        lines.append(f"  one recording of {count_words(len(files), 'file')}, in time order:")
+        lines += [
+            f"  {f['source']}  run {f['run_id']}  {utc_text(f['t_start_ns'])} .. {utc_text(f['t_end_ns'])}"
+            for f in files
+        ]
+    elif summary.get("source"):
         lines.append(f"  source: {summary['source']}")
     for name, s in summary["streams"].items():
         if s["samples"] == 0:

@@ -13,8 +13,9 @@ calibrate one unit's group while isolating a bad run.
 - :func:`calibrate_group`: the calibration of one unit from all its runs (TP runs and the VP runs that verify them)
   by any method (the registry ``pipeline.calibrate.methods``; a method that uses a base passport starts from
   the unit's passport in the registry, :func:`pipeline.calibrate.methods.base_passport_of`). A run that cannot be
-  read or observed (the method's per-run step) is dropped and reported; the others are calibrated. Never raises
-  for a bad input: failures come back as ``{"run", "reason"}`` rows with the one-line reason.
+  read is dropped and reported; the others are one recording of the unit
+  (:func:`pipeline.calibrate.inputs.join_runs`), calibrated together. Never raises for a bad input: failures come
+  back as ``{"run", "reason"}`` rows with the one-line reason.
 
 The Prefect flow (``flows/fleet.py``) runs :func:`plan_fleet` once and :func:`calibrate_group` as one task per unit.
 
@@ -32,7 +33,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from pipeline.calibrate.inputs import RunInput, folder_warning, resolve_run_ids
+from pipeline.calibrate.inputs import RunInput, folder_warning, join_runs, resolve_run_ids
 from pipeline.calibrate.methods import all_methods, base_passport_of, by_name, default_base_passport, resolve_auto
 from pipeline.calibrate.publish import publish, recorded_settings
 from pipeline.calibrate.result import base_reference
@@ -323,9 +324,10 @@ def calibrate_group(
     starting passport, :attr:`UnitGroup.base_passport`; ``within``: :attr:`UnitGroup.within`, the runs holding
     several units, of which the unit's own streams are read).
 
-    Runs that cannot be read or observed (the method's per-run step), or belong to another unit, are dropped
-    (listed in ``failed``); the rest are calibrated together. If the unit cannot be calibrated at all, every
-    remaining run is listed in ``failed`` with the reason and ``result`` is None. Bad inputs never raise.
+    Runs that cannot be read, or belong to another unit, are dropped (listed in ``failed``); the rest are one
+    recording of the unit (:func:`pipeline.calibrate.inputs.join_runs`), calibrated together. If the unit cannot be
+    calibrated at all, every remaining run is listed in ``failed`` with the reason and ``result`` is None. Bad
+    inputs never raise.
     """
     t0 = time.perf_counter()
     runs = [str(r) for r in runs]
@@ -343,23 +345,28 @@ def calibrate_group(
             failed=[{"run": p, "reason": reason_of(exc)} for p in runs],
             compute_s=time.perf_counter() - t0,
         )
+    read = []
     for path in runs:
         try:
             run = read_run(path, unit) if path in (within or {}) else read_run(path)
             if run.meta.unit_serial != unit:
                 raise CalibrationError(f"run is of unit {run.meta.unit_serial!r}, not {unit!r}", path=path)
-            seg = None
-            if chosen is None:  # --method auto: the method the unit's first readable run supports
-                method, base_passport, seg, _ = resolve_auto(run, settings, base_passport)
-                chosen = by_name(method)
-            observed.append(chosen.observe(run, settings, base_passport=base_passport, segmentation=seg))
         except Exception as exc:
             failed.append({"run": path, "reason": reason_of(exc)})
             continue
+        read.append(run)
         good.append(path)
     if good:
-        assert chosen is not None  # chosen on the first run read
         try:
+            run = join_runs(read)  # the unit's files are one recording
+            del read
+            seg = None
+            if chosen is None:  # --method auto: the method the unit's recording supports
+                method, base_passport, seg, _ = resolve_auto(run, settings, base_passport)
+                chosen = by_name(method)
+            assert chosen is not None  # named, or chosen on the recording
+            observed.append(chosen.observe(run, settings, base_passport=base_passport, segmentation=seg))
+            del run
             calibration = chosen.calibrate_observed(observed, settings, base_passport=base_passport)
             result = publish(
                 registry,

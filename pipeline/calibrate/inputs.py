@@ -8,7 +8,11 @@
   ``AU-0002`` for ``AU-0001``) other than the serial in its metadata is filed under the metadata's serial, with a
   warning naming both.
 
-Used by ``thermocal calibrate`` (the runs on the command line) and ``fleet`` (the runs under a folder).
+- :func:`join_runs`: the runs of one unit given together are one recording (log-format.md, "Other rates and gaps"):
+  one :class:`~pipeline.run.Run`, the files in time order, the time between two files a gap within it; samples two
+  files share exactly are kept once; two files with other samples over one stretch of time are refused.
+
+Used by ``thermocal calibrate`` (the runs on the command line), ``inspect`` and ``fleet`` (the runs under a folder).
 """
 
 from __future__ import annotations
@@ -18,10 +22,21 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from pipeline.errors import CalibrationError
-from pipeline.run import Run
+import numpy as np
+import polars as pl
 
-__all__ = ["RunInput", "folder_warning", "is_prefix_of", "resolve_run_ids", "select_runs"]
+from pipeline.errors import CalibrationError
+from pipeline.run import Run, RunMeta
+
+__all__ = [
+    "RunInput",
+    "folder_warning",
+    "is_prefix_of",
+    "join_runs",
+    "resolve_run_ids",
+    "select_runs",
+    "time_span_ns",
+]
 
 
 @dataclass(frozen=True)
@@ -125,3 +140,139 @@ def select_runs(runs: Sequence[Run]) -> tuple[list[Run], list[str]]:
     warnings = [d["reason"] for d in dropped]
     warnings += [w for p, r in by_path.items() if r.source and (w := folder_warning(p, r.meta.unit_serial))]
     return [by_path[i.path] for i in kept], warnings
+
+
+#: metadata that says how a recording is calibrated: the files of one recording must agree on it
+JOINED_META = ("normal_temp_c", "g_local_mps2", "nominal_gain_v_per_g", "unit_grade")
+
+
+def join_runs(runs: Sequence[Run]) -> Run:
+    """The runs of one unit (already read; :func:`select_runs` has left out copies) as one recording.
+
+    The files are put in time order (by their first voltmeter sample) and each stream concatenated: the time from
+    the end of one file to the start of the next is a gap within the recording, as a logger's dropout within one
+    file is. Where files overlap in time, the samples they share exactly (same time, same values) are kept once;
+    two files with other samples over one stretch of a stream (one unit cannot be recorded twice at once) are a
+    CalibrationError naming both and the time. The files must agree on :data:`JOINED_META` (else a
+    CalibrationError naming the key). One run comes back as it is.
+
+    The joined run's ``run_id`` is the files' run_ids in time order joined by ``+``, its ``source`` their paths
+    likewise, its ``started_utc`` the first file's; other metadata the first file's (keys only another has are
+    added); its warnings each file's, prefixed with the file when there are several.
+    """
+    runs = list(runs)
+    if not runs:
+        raise CalibrationError("no runs given")
+    if len(runs) == 1:
+        return runs[0]
+    serials = sorted({r.meta.unit_serial for r in runs})
+    if len(serials) != 1:
+        raise CalibrationError(f"runs of different units given together: {', '.join(serials)}")
+    names = [r.source or r.meta.run_id for r in runs]
+    for key in JOINED_META:
+        values = {getattr(r.meta, key) for r in runs}
+        if len(values) > 1:
+            said = ", ".join(f"{n}: {getattr(r.meta, key)}" for n, r in zip(names, runs))
+            raise CalibrationError(
+                f"the runs given together are one recording of {serials[0]}, but their metadata disagree on "
+                f"{key!r} ({said})",
+                stream="metadata",
+            )
+    order = sorted(range(len(runs)), key=lambda k: _time_order(runs[k]))
+    runs = [runs[k] for k in order]
+    names = [names[k] for k in order]
+    streams: dict[str, pl.DataFrame | None] = {}
+    for name in ("voltmeter", "au_temperature", "chamber", "fixture"):
+        frames = [getattr(r, name) for r in runs]
+        present = [(k, f) for k, f in enumerate(frames) if f is not None]
+        streams[name] = _joined_stream(name, present, names) if present else None
+    first = runs[0].meta
+    extra: dict[str, str] = {}
+    for r in reversed(runs):
+        extra.update(r.meta.extra)
+    meta = RunMeta(
+        unit_serial=first.unit_serial,
+        run_id="+".join(dict.fromkeys(r.meta.run_id for r in runs)),
+        station=first.station,
+        fixture=first.fixture,
+        normal_temp_c=first.normal_temp_c,
+        g_local_mps2=first.g_local_mps2,
+        started_utc=first.started_utc,
+        nominal_gain_v_per_g=first.nominal_gain_v_per_g,
+        unit_grade=first.unit_grade,
+        extra=extra,
+    )
+    voltmeter, au_temperature = streams["voltmeter"], streams["au_temperature"]
+    assert voltmeter is not None and au_temperature is not None  # required streams: every run has them
+    return Run(
+        meta=meta,
+        voltmeter=voltmeter,
+        au_temperature=au_temperature,
+        chamber=streams["chamber"],
+        fixture=streams["fixture"],
+        source=" + ".join(r.source for r in runs if r.source),
+        warnings=[f"{n}: {w}" for n, r in zip(names, runs) for w in r.warnings],
+    )
+
+
+def _time_order(run: Run) -> tuple:
+    """Sort key of the files of a recording, whatever order they were given in: first voltmeter time, the longer
+    file first where two start together, then run_id and path."""
+    first, last = time_span_ns(run.voltmeter) or (int(np.iinfo(np.int64).max), 0)
+    return first, -last, run.meta.run_id, run.source
+
+
+def time_span_ns(df: pl.DataFrame) -> tuple[int, int] | None:
+    """(first, last) ``t_ns`` of a stream's table; None when it has no rows."""
+    if not df.height:
+        return None
+    t = df["t_ns"].to_numpy()
+    return int(t.min()), int(t.max())
+
+
+def _joined_stream(name: str, frames: list[tuple[int, pl.DataFrame]], names: list[str]) -> pl.DataFrame:
+    """One stream of the joined recording from each file's (``(file index, table)``, in time order of the files).
+    Files that do not overlap in this stream are chained as they are (no copy of the samples: the chunks are
+    linked); overlapping ones are merged by time, samples shared exactly kept once, and must then follow each
+    other file by file (else two recordings claim one stretch of time: CalibrationError)."""
+    frames = [(k, f) for k, f in frames if f.height] or frames[:1]
+    spans = [time_span_ns(f) or (0, 0) for _, f in frames]
+    ordered = sorted(range(len(spans)), key=lambda k: spans[k])
+    disjoint = all(spans[ordered[i]][1] < spans[ordered[i + 1]][0] for i in range(len(ordered) - 1))
+    if disjoint:
+        return pl.concat([frames[k][1] for k in ordered], how="vertical", rechunk=False)
+    tagged = pl.concat(
+        [f.with_columns(pl.lit(k, dtype=pl.UInt32).alias("_file")) for k, f in frames], how="vertical"
+    ).sort(["t_ns", "_file"], maintain_order=True)
+    data = [c for c in tagged.columns if c != "_file"]
+    merged = tagged.unique(subset=data, keep="first", maintain_order=True)
+    if name != "fixture":
+        t = merged["t_ns"].to_numpy()
+        f = merged["_file"].to_numpy()
+        clash = _clash(t, f)
+        if clash is not None:
+            i, a, b = clash
+            raise CalibrationError(
+                f"{names[a]} and {names[b]} hold other samples over the same stretch of time (one unit cannot be "
+                "recorded twice at once): which is the recording is unknown, neither is used",
+                stream=name,
+                where=f"t_ns={int(t[i])}",
+            )
+    return merged.drop("_file")
+
+
+def _clash(t_ns: np.ndarray, files: np.ndarray) -> tuple[int, int, int] | None:
+    """Where the merged samples (times ``t_ns``, file of each ``files``, shared samples kept once) are not one
+    file after another: (row index, file, other file) of the first clash (two samples at one time, or a file's
+    samples among another's), else None."""
+    same = np.flatnonzero(np.diff(t_ns) == 0)
+    if same.size:
+        i = int(same[0])
+        return i + 1, int(files[i]), int(files[i + 1])
+    ids, first = np.unique(files, return_index=True)
+    last = files.size - 1 - np.unique(files[::-1], return_index=True)[1]
+    k = np.argsort(first)
+    for a, b in zip(k[:-1], k[1:]):
+        if first[b] <= last[a]:
+            return int(first[b]), int(ids[a]), int(ids[b])
+    return None

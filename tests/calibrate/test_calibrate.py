@@ -217,9 +217,13 @@ def test_vp_only_run_verifies_tp_run(tmp_path):
     assert {-10, 45} <= temps_vp
     assert out["status"] == "pass"
     passport = json.loads(Path(out["passport"]).read_text())
-    assert {p["run_id"] for p in passport["per_plateau"]} == {"tp-part-a", "tp-part-b"}
+    # the four files are one recording of the unit (issue 21), its run_id theirs in time order
+    recording = "tp-part-a+vp-only-0+vp-only-1+tp-part-b"
+    assert {p["run_id"] for p in passport["per_plateau"]} == {recording}
     vp_rows = [v for v in passport["verification"] if min(abs(v["temp_c"] + 10), abs(v["temp_c"] - 45)) < 3]
-    assert {v["run_id"] for v in vp_rows} == {"vp-only-0", "vp-only-1"} and len(vp_rows) >= 12
+    assert {v["run_id"] for v in vp_rows} == {recording} and len(vp_rows) >= 12
+    spans = [(int(r.voltmeter["t_ns"].min()), int(r.voltmeter["t_ns"].max())) for r in vp]
+    assert all(any(a <= v["t_start_ns"] < b for a, b in spans) for v in vp_rows)  # held in the VP-only files
     assert len(passport["provenance"]["inputs"]) == 4
 
 

@@ -228,9 +228,14 @@ def test_fleet_flow_nightly_cycle(fleet, tmp_path):
     assert done2["AU-0203"]["version"] == 2 and len(done2["AU-0203"]["runs"]) == 4
     assert done2["AU-0203"]["status"] == "pass"
     passport = json.loads(Path(done2["AU-0203"]["passport"]).read_text())
-    near = lambda temp: {v["run_id"] for v in passport["verification"] if abs(v["temp_c"] - temp) < 3}  # noqa: E731
-    assert near(-10.0) == {"AU-0203-vp-0"} and "AU-0203-vp-1" in near(45.0)
-    assert {p["run_id"] for p in passport["per_plateau"]} == {"AU-0203-tp-a", "AU-0203-tp-b"}
+    # the unit's four files are one recording (issue 21): the VP rows at -10 C lie in the first VP-only file
+    recording = "AU-0203-tp-a+AU-0203-vp-0+AU-0203-vp-1+AU-0203-tp-b"
+    assert (
+        {v["run_id"] for v in passport["verification"]} == {p["run_id"] for p in passport["per_plateau"]} == {recording}
+    )
+    vp0 = read_run(inbox / "ch1" / "AU-0203-vp-0").voltmeter["t_ns"]
+    cold = [v for v in passport["verification"] if abs(v["temp_c"] + 10.0) < 3]
+    assert len(cold) >= 6 and all(vp0.min() <= v["t_start_ns"] < vp0.max() for v in cold)
     assert passport["parent_sha256"] == done["AU-0203"]["passport_sha256"]
     skipped = {Path(x["run"]).name: x for x in s2["skipped"]}
     assert skipped["AU-0201.mcap"]["why"] == ALREADY_PROCESSED and skipped["AU-0201.mcap"]["version"] == 1

@@ -1,11 +1,13 @@
 """Which runs a calibration takes: same run_id never merged (truncated copy dropped, conflicting both dropped);
-a folder name naming another unit warns."""
+a folder name naming another unit warns; several files of one unit are one recording (joined in time order)."""
 
 from __future__ import annotations
 
 from dataclasses import replace
 
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from pipeline.calibrate.inputs import RunInput, folder_warning, is_prefix_of, resolve_run_ids
 from pipeline.io.runs import read_run, write_run
@@ -75,3 +77,113 @@ def test_distinct_run_ids_are_not_read():
 def test_folder_name_naming_another_unit_warns(path, serial, warns):
     got = folder_warning(path, serial, "/inbox")
     assert (got is None) if warns is None else (warns in got and got.startswith(path))
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# several files of one unit are one recording (issue 21, item 3)
+
+
+def _piece(run, t0_ns: int, t1_ns: int, run_id: str):
+    """The samples of every stream in [t0_ns, t1_ns) as a run of its own (a file of the recording)."""
+    import polars as pl
+
+    cut = lambda df: None if df is None else df.filter((pl.col("t_ns") >= t0_ns) & (pl.col("t_ns") < t1_ns))  # noqa: E731
+    return replace(
+        run,
+        meta=replace(run.meta, run_id=run_id),
+        voltmeter=cut(run.voltmeter),
+        au_temperature=cut(run.au_temperature),
+        chamber=cut(run.chamber),
+        fixture=cut(run.fixture),
+        source=f"{run_id}.mcap",
+    )
+
+
+@pytest.fixture(scope="module")
+def small_run():
+    """Ten minutes of the short program at 2 Hz: every stream, a fixture log."""
+    import polars as pl
+
+    run = simulate_run(SimConfig(program="short", rate_hz=2.0, seed=4)).run
+    t0 = int(run.voltmeter["t_ns"][0])
+    t1 = t0 + 3_600 * 10**9
+    keep = lambda df: df.filter(pl.col("t_ns") < t1)  # noqa: E731
+    return replace(
+        run,
+        voltmeter=keep(run.voltmeter),
+        au_temperature=keep(run.au_temperature),
+        chamber=keep(run.chamber),
+        fixture=keep(run.fixture),
+    )
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(
+    cuts=st.lists(st.floats(0.0, 1.0), min_size=1, max_size=4),
+    overlap_s=st.sampled_from([0.0, 0.0, 7.5, 300.0]),
+    order=st.randoms(use_true_random=False),
+)
+def test_files_of_one_recording_join_into_the_whole_run(small_run, cuts, overlap_s, order):
+    """A run cut into files at any times (a cut may fall inside a hold or a plateau), the files overlapping by a
+    stretch they share exactly or not at all, given in any order: join_runs gives back the whole run's streams,
+    every sample once, and names the files' run_ids in time order."""
+    from pipeline.calibrate.inputs import join_runs
+
+    t = small_run.voltmeter["t_ns"].to_numpy()
+    edges = sorted({int(t[0] + c * (t[-1] - t[0])) for c in cuts})
+    bounds = [int(t[0])] + edges + [int(t[-1]) + 1]
+    bounds = [b for k, b in enumerate(bounds) if k == 0 or b > bounds[k - 1]]
+    pieces = [
+        _piece(small_run, a - (int(overlap_s * 1e9) if k else 0), b, f"part-{k}")
+        for k, (a, b) in enumerate(zip(bounds[:-1], bounds[1:]))
+    ]
+    pieces = [p for p in pieces if p.voltmeter.height]
+    given_order = pieces[:]
+    order.shuffle(given_order)
+    joined = join_runs(given_order)
+    for name in ("voltmeter", "au_temperature", "chamber", "fixture"):
+        assert joined.stream(name).equals(small_run.stream(name)), name
+    by_start = sorted(pieces, key=lambda p: (int(p.voltmeter["t_ns"][0]), -int(p.voltmeter["t_ns"][-1])))
+    assert joined.meta.run_id == "+".join(p.meta.run_id for p in by_start)
+    assert joined.meta.unit_serial == small_run.meta.unit_serial
+
+
+def test_one_file_is_its_own_recording(small_run):
+    from pipeline.calibrate.inputs import join_runs
+
+    assert join_runs([small_run]) is small_run
+
+
+def test_two_files_with_other_samples_at_one_time_are_refused(small_run):
+    """Files that claim one stretch of time with other samples (not a copy of each other's part): one line naming
+    both and the time, neither used."""
+    import polars as pl
+
+    from pipeline.calibrate.inputs import join_runs
+    from pipeline.errors import CalibrationError
+
+    t = small_run.voltmeter["t_ns"].to_numpy()
+    a = _piece(small_run, int(t[0]), int(t[600]), "a")
+    b = _piece(small_run, int(t[500]), int(t[-1]) + 1, "b")
+    b = replace(b, voltmeter=b.voltmeter.with_columns(pl.col("uz") + 1e-6))
+    with pytest.raises(CalibrationError) as info:
+        join_runs([b, a])
+    line = info.value.one_line()
+    assert "a.mcap and b.mcap hold other samples" in line and f"t_ns={t[500]}" in line and "\n" not in line
+    # the same times, sampled between the other file's samples (an interleaved second recording)
+    shifted = replace(b, voltmeter=b.voltmeter.with_columns(pl.col("t_ns") + 250_000_000))
+    with pytest.raises(CalibrationError, match="hold other samples"):
+        join_runs([a, shifted])
+
+
+def test_files_of_one_recording_agree_on_how_it_is_calibrated(small_run):
+    from pipeline.calibrate.inputs import join_runs
+    from pipeline.errors import CalibrationError
+
+    t = small_run.voltmeter["t_ns"].to_numpy()
+    a = _piece(small_run, int(t[0]), int(t[600]), "a")
+    b = _piece(small_run, int(t[600]), int(t[-1]) + 1, "b")
+    with pytest.raises(CalibrationError, match="disagree on 'normal_temp_c'.*a.mcap: 20.0, b.mcap: 25.0"):
+        join_runs([a, replace(b, meta=replace(b.meta, normal_temp_c=25.0))])
+    with pytest.raises(CalibrationError, match="disagree on 'unit_grade'"):
+        join_runs([a, replace(b, meta=replace(b.meta, unit_grade="consumer"))])

@@ -1,0 +1,190 @@
+"""Several files of one unit are one recording (issue 21, item 3; contract.md "Runs with several units", log-format.md
+"Other rates and gaps"): ``inspect RUN...`` and ``--method auto`` judge them together, and the files a recording was
+split into give the passport of the whole file, in any order.
+
+- the real CATS tag recording cut into three files, one per orientation: each file alone holds one orientation (no
+  method fits it); the three together are the sweep of three orientations, calibrated by the differential method to
+  the whole file's passport;
+- a simulated short program cut at several points (in a soak, in a test position's hold, in a ramp), the files
+  given in two orders: ``calibrate`` and ``fleet`` make the whole file's passport;
+- files with other samples over one stretch of time: one line, exit 2, nothing written.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import random
+from pathlib import Path
+
+import numpy as np
+import polars as pl
+import pytest
+
+from pipeline.io.runs import read_run, write_run
+from pipeline.simulate.chamber import SimConfig, simulate
+from tests.conftest import data_path, run_main
+
+#: the CATS README's periods (UTC): one orientation each; the files are cut halfway between them
+CATS_PERIODS = [("2021-09-20T09:00", "2021-09-21T10:33"), ("2021-09-21T10:40", "2021-09-22T11:55")]
+
+
+def piece(run, t0_ns: int, t1_ns: int, run_id: str):
+    """The samples of every stream in [t0_ns, t1_ns) as a file of its own (its own run_id)."""
+    cut = lambda df: None if df is None else df.filter((pl.col("t_ns") >= t0_ns) & (pl.col("t_ns") < t1_ns))  # noqa: E731
+    return dataclasses.replace(
+        run,
+        meta=dataclasses.replace(run.meta, run_id=run_id),
+        voltmeter=cut(run.voltmeter),
+        au_temperature=cut(run.au_temperature),
+        chamber=cut(run.chamber),
+        fixture=cut(run.fixture),
+    )
+
+
+def _ns(text: str) -> int:
+    from pipeline.simulate.chamber import parse_utc_ns
+
+    return parse_utc_ns(text + "Z")
+
+
+@pytest.fixture(scope="module")
+def cats_files(tmp_path_factory):
+    whole = read_run(data_path("real", "cats_tag", "run"))
+    d = tmp_path_factory.mktemp("cats3")
+    (a0, a1), (b0, b1) = [(_ns(a), _ns(b)) for a, b in CATS_PERIODS]
+    cuts = [0, (a1 + b0) // 2, (b1 + _ns("2021-09-22T12:14")) // 2, 2**62]
+    paths = [
+        write_run(piece(whole, cuts[k], cuts[k + 1], f"cats-part-{k + 1}"), d / f"cats-{'zxy'[k]}", "parquet")
+        for k in range(3)
+    ]
+    return whole, paths
+
+
+@pytest.mark.slow
+def test_cats_in_three_files_is_judged_and_calibrated_as_the_whole(cats_files, tmp_path, monkeypatch, capsys):
+    from pipeline.calibrate import differential
+
+    whole, paths = cats_files
+    alone = []
+    for p in paths:
+        code, out, err = run_main(monkeypatch, capsys, "inspect", str(p), "--json")
+        assert code == 0, err
+        alone.append(json.loads(out)["recording"]["method_auto"])
+    assert alone == [None, None, None]  # one orientation each: no method fits a file alone
+    given = [paths[2], paths[0], paths[1]]
+    code, out, err = run_main(monkeypatch, capsys, "inspect", *map(str, given), "--json")
+    assert code == 0, err
+    summary = json.loads(out)
+    assert [f["run_id"] for f in summary["files"]] == ["cats-part-1", "cats-part-2", "cats-part-3"]
+    rec = summary["recording"]
+    assert rec["method_auto"] == "differential"
+    held = sorted(p["vertical_axis"] for p in rec["poses"] if p["longest_hold_s"] > 20 * 3600)
+    assert held == ["-x", "-y", "-z"]
+
+    code, out, err = run_main(
+        monkeypatch, capsys, "calibrate", *map(str, given), "--registry", str(tmp_path / "reg"), "--json", "--dry-run"
+    )
+    assert code == 0, err
+    res = json.loads(out)
+    doc = res["passport_content"]
+    assert res["method"] == "differential" and res["method_auto"].startswith("differential")
+    ref = differential.calibrate([whole]).passport
+    sig = doc["uncertainty"]["coefficients"]
+    K, K_ref = np.array(doc["coefficients"]["K"]), np.array(ref["coefficients"]["K"])
+    U0, U0_ref = np.array(doc["coefficients"]["U0"]), np.array(ref["coefficients"]["U0"])
+    # the same samples: the same passport (to rounding), far within its uncertainty
+    assert np.abs(U0 - U0_ref).max() < 1e-3 * np.array(sig["U0"]).min()
+    assert np.abs(K - K_ref).max() < 1e-9
+    assert _numbers(doc["thermal_model"]) == pytest.approx(_numbers(ref["thermal_model"]), rel=1e-6, abs=1e-12)
+    assert sorted(doc["undetermined"]) == sorted(ref["undetermined"])
+
+
+@pytest.fixture(scope="module")
+def split_short(tmp_path_factory):
+    """The short program at 1 Hz, whole and cut into four files: in the first soak (before its positions), in
+    the hold of a test position at -40 C, in the ramp after the VP positions at -10 C."""
+    d = tmp_path_factory.mktemp("split")
+    res = simulate(SimConfig(program="short", rate_hz=1.0, seed=12))
+    holds = res.truth["holds"]
+    tp_m40 = next(h for h in holds if h["setpoint_c"] == -40.0 and h["position"] == "TP3")
+    soak = min(h["t_start_ns"] for h in holds if h["setpoint_c"] == -40.0) - 600 * 10**9
+    ramp = max(h["t_end_ns"] for h in holds if h["setpoint_c"] == -10.0) + 600 * 10**9
+    cuts = [0, soak, (tp_m40["t_start_ns"] + tp_m40["t_end_ns"]) // 2, ramp, 2**62]
+    whole = write_run(res.run, d / "whole.mcap", "mcap")
+    files = [
+        write_run(piece(res.run, cuts[k], cuts[k + 1], f"short-part-{k}"), d / f"part-{k}.mcap", "mcap")
+        for k in range(4)
+    ]
+    return whole, files
+
+
+def _numbers(tree) -> list[float]:
+    """Every number of a JSON tree, in a fixed order (dict keys sorted)."""
+    if isinstance(tree, dict):
+        return [x for k in sorted(tree) for x in _numbers(tree[k])]
+    if isinstance(tree, list):
+        return [x for v in tree for x in _numbers(v)]
+    return [float(tree)] if isinstance(tree, (int, float)) and not isinstance(tree, bool) else []
+
+
+def _same_passport(doc: dict, ref: dict) -> None:
+    assert doc["status"] == ref["status"] and doc["method"] == ref["method"]
+    assert np.array(doc["coefficients"]["K"]) == pytest.approx(np.array(ref["coefficients"]["K"]), abs=1e-12)
+    assert np.array(doc["coefficients"]["U0"]) == pytest.approx(np.array(ref["coefficients"]["U0"]), abs=1e-12)
+    assert _numbers(doc["thermal_model"]) == pytest.approx(_numbers(ref["thermal_model"]), abs=1e-12)
+    assert [(r["position"], r["t_start_ns"]) for r in doc["verification"]] == [
+        (r["position"], r["t_start_ns"]) for r in ref["verification"]
+    ]
+    dg = lambda d: [r["dg_method1_g"] for r in d["verification"]]  # noqa: E731
+    assert dg(doc) == pytest.approx(dg(ref), abs=1e-12)
+    sig, sig_ref = doc["uncertainty"]["coefficients"], ref["uncertainty"]["coefficients"]
+    assert _numbers(sig) == pytest.approx(_numbers(sig_ref), rel=1e-6)
+
+
+def test_a_run_split_into_files_gives_the_whole_files_passport(split_short, tmp_path):
+    from flows.calibrate import run_calibrate
+    from pipeline.calibrate.settings import CalibrationSettings
+
+    whole, files = split_short
+    ref = run_calibrate([str(whole)], str(tmp_path / "ref"), CalibrationSettings(), method="auto", dry_run=True)
+    assert ref["method"] == "tilt_six_position" and ref["status"] == "pass"
+    for seed in (1, 2):
+        given = [str(f) for f in files]
+        random.Random(seed).shuffle(given)
+        out = run_calibrate(given, str(tmp_path / f"reg{seed}"), CalibrationSettings(), method="auto", dry_run=True)
+        doc = out["passport_content"]
+        _same_passport(doc, ref["passport_content"])
+        assert {r["run_id"] for r in doc["verification"]} == {"+".join(f"short-part-{k}" for k in range(4))}
+
+
+def test_the_fleet_reads_a_units_files_as_one_recording(split_short, tmp_path):
+    from pipeline.calibrate.fleet import calibrate_group
+    from pipeline.calibrate.settings import CalibrationSettings
+
+    whole, files = split_short
+    ref = calibrate_group("AU-0001", [str(whole)], tmp_path / "ref", CalibrationSettings(), figure=False, method="auto")
+    out = calibrate_group(
+        "AU-0001", [str(f) for f in files[::-1]], tmp_path / "reg", CalibrationSettings(), figure=False, method="auto"
+    )
+    assert out.failed == [] and out.result["status"] == ref.result["status"] == "pass"
+    _same_passport(
+        json.loads(Path(out.result["passport"]).read_text()), json.loads(Path(ref.result["passport"]).read_text())
+    )
+
+
+def test_files_with_other_samples_at_one_time_exit_2(split_short, tmp_path, monkeypatch, capsys):
+    whole, files = split_short
+    run = read_run(files[1])
+    t = run.voltmeter["t_ns"].to_numpy()
+    other = dataclasses.replace(
+        piece(run, int(t[100]), int(t[-1]) + 1, "another-recording"),
+        voltmeter=piece(run, int(t[100]), int(t[-1]) + 1, "x").voltmeter.with_columns(pl.col("ux") * 1.001),
+    )
+    clash = write_run(other, tmp_path / "clash.mcap", "mcap")
+    reg = tmp_path / "reg"
+    code, out, err = run_main(monkeypatch, capsys, "calibrate", str(files[1]), str(clash), "--registry", str(reg))
+    assert code == 2 and out == "" and not reg.exists()
+    [line] = err.strip().splitlines()
+    assert f"{files[1]} and {clash} hold other samples over the same stretch of time" in line
+    assert f"t_ns={t[100]}" in line
