@@ -223,7 +223,8 @@ def test_vp_only_run_verifies_tp_run(tmp_path):
     vp_rows = [v for v in passport["verification"] if min(abs(v["temp_c"] + 10), abs(v["temp_c"] - 45)) < 3]
     assert {v["run_id"] for v in vp_rows} == {recording} and len(vp_rows) >= 12
     spans = [(int(r.voltmeter["t_ns"].min()), int(r.voltmeter["t_ns"].max())) for r in vp]
-    assert all(any(a <= v["t_start_ns"] < b for a, b in spans) for v in vp_rows)  # held in the VP-only files
+    # the 12 VP holds are those of the VP-only files (tp-part-b may add the VP6 still held when it starts)
+    assert sum(any(a <= v["t_start_ns"] < b for a, b in spans) for v in vp_rows) == 12
     assert len(passport["provenance"]["inputs"]) == 4
 
 
