@@ -13,7 +13,7 @@ lag, the direction the temperature last came from, and the smoothed thermosensor
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -25,19 +25,20 @@ from pipeline.run import Run
 def first_order_lag(t_s: np.ndarray, x: np.ndarray, tau_s: float, y0: float | None = None) -> np.ndarray:
     """Response y of ``tau dy/dt = x - y`` to ``x`` sampled at ``t_s`` (s), starting from ``y0`` (default x[0]).
 
-    Exact for x linear between samples (first-order-hold discretisation, one ``lfilter`` pass). A non-uniform grid
-    is resampled to its median step and back.
+    Exact for x linear between samples (first-order-hold discretisation): one ``lfilter`` pass on a uniform grid;
+    on a non-uniform one (a logger's irregular readings) the same recursion with each step's own coefficients
+    (:func:`_lag_steps`), not a resampling (which would average neighbouring readings: a filter that removes
+    noise, which a lag fitted to the data would then take for a signal).
     """
     t = np.asarray(t_s, dtype=float)
     x = np.asarray(x, dtype=float)
-    y_start = float(x[0]) if (y0 is None and x.size) else y0
+    y_start = float(x[0]) if y0 is None and x.size else float(y0 if y0 is not None else np.nan)
     if tau_s <= 0 or x.size < 2:
         return x.copy() if tau_s <= 0 else np.full_like(x, y_start)
     dt = np.diff(t)
     h = float(np.median(dt))
     if not np.allclose(dt, h, rtol=1e-6, atol=1e-9):
-        grid = t[0] + h * np.arange(int(np.ceil((t[-1] - t[0]) / h)) + 1)
-        return np.interp(t, grid, first_order_lag(grid, np.interp(grid, t, x), tau_s, y_start))
+        return _lag_steps(t, x, tau_s, y_start)
     a = np.exp(-h / tau_s)
     c = tau_s / h * (1.0 - a)
     b = [1.0 - c, c - a]
@@ -46,6 +47,37 @@ def first_order_lag(t_s: np.ndarray, x: np.ndarray, tau_s: float, y0: float | No
 
     rest, _ = lfilter(b, den, x[1:], zi=lfiltic(b, den, [y_start], [x[0]]))
     return np.concatenate([[y_start], rest])
+
+
+#: the recursion of a non-uniform lag is summed in closed form over stretches of this many time constants
+_LAG_CHUNK_TAU = 500.0
+
+
+def _lag_steps(t: np.ndarray, x: np.ndarray, tau_s: float, y0: float) -> np.ndarray:
+    """:func:`first_order_lag` on a non-uniform grid: y_k = a_k y_(k-1) + u_k with a_k = exp(-dt_k / tau) and u_k
+    the first-order hold's input terms for the step dt_k, in closed form y_k = A_k (y_s + sum u_j / A_j) (A the
+    decay since the stretch's start s) over stretches of :data:`_LAG_CHUNK_TAU` time constants (1 / A stays below
+    e^500), each carrying its last value into the next."""
+    dt = np.diff(t)
+    a = np.exp(-dt / tau_s)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        c = np.where(dt > 0, tau_s / dt * (1.0 - a), 1.0)  # a step of 0 s: y unchanged (c = a = 1)
+    u = (1.0 - c) * x[1:] + (c - a) * x[:-1]
+    decay = (t - t[0]) / tau_s  # -log of the decay since the first sample
+    y = np.empty(x.size)
+    y[0] = y0
+    s = 0
+    while s < x.size - 1:
+        e = max(int(np.searchsorted(decay, decay[s] + _LAG_CHUNK_TAU, side="right")), s + 2)
+        e = min(e, x.size)
+        d = decay[s + 1 : e] - decay[s]
+        if d[-1] > 700.0:  # one step longer than the stretch: nothing is remembered across it
+            y[s + 1] = u[s] + (a[s] * y[s] if a[s] > 0 else 0.0)
+            s += 1
+            continue
+        y[s + 1 : e] = np.exp(-d) * (y[s] + np.cumsum(u[s : e - 1] * np.exp(d)))
+        s = e - 1
+    return y
 
 
 def ramp_sign_from_temperature(
@@ -107,40 +139,79 @@ def step_at(t_src: np.ndarray, values: np.ndarray, t_s: np.ndarray) -> np.ndarra
 def smooth_temperature(t_s: np.ndarray, temp_c: np.ndarray, window_s: float) -> tuple[np.ndarray, np.ndarray]:
     """Savitzky-Golay (quadratic) smoothing of a thermosensor series over ``window_s``: the smoothed temperature
     (C) and its rate (C/min) at ``t_s``. Non-finite samples are dropped (their outputs interpolated); the series is
-    resampled to its median step first (the filter needs a uniform grid)."""
+    resampled to its median step first (the filter needs a uniform grid). Each stretch between two gaps of the
+    thermosensor (:func:`pipeline.segment.thermosensor_gaps`) is smoothed by itself: no filter window reaches
+    across a gap."""
+    from pipeline.segment import gap_indices, slope_window_s
+
     t_s = np.asarray(t_s, dtype=float)
     temp_c = np.asarray(temp_c, dtype=float)
     ok = np.isfinite(t_s) & np.isfinite(temp_c)
     if ok.sum() < 5:
         raise CalibrationError("too few thermosensor samples to smooth", stream="au_temperature")
     ts, y0 = t_s[ok], temp_c[ok]
-    h = float(np.median(np.diff(ts)))
-    grid = ts[0] + h * np.arange(int(np.floor((ts[-1] - ts[0]) / h)) + 1)
-    y = np.interp(grid, ts, y0)
-    win = min(max(int(round(window_s / h)) | 1, 5), grid.size if grid.size % 2 else grid.size - 1)
+    t_ns = np.round((ts - ts[0]) * _NS).astype(np.int64)
+    cuts = gap_indices(t_ns, slope_window_s(t_ns) / 2) + 1
+    smooth, rate = np.empty(ts.size), np.empty(ts.size)
+    for a, b in zip(np.concatenate(([0], cuts)), np.concatenate((cuts, [ts.size]))):
+        smooth[a:b], rate[a:b] = _savgol_piece(ts[a:b], y0[a:b], window_s)
+    return np.interp(t_s, ts, smooth), np.interp(t_s, ts, rate)
+
+
+def _savgol_piece(ts: np.ndarray, y0: np.ndarray, window_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`smooth_temperature` of one gap-free stretch, at its own samples ``ts``; a stretch too short for the
+    filter (under 3 steps of its grid) is its samples as they are, with their mean slope."""
+    h = float(np.median(np.diff(ts))) if ts.size > 1 else 0.0
+    grid = ts[0] + h * np.arange(int(np.floor((ts[-1] - ts[0]) / h)) + 1) if h > 0 else ts[:1]
+    win = min(max(int(round(window_s / h)) | 1, 5), grid.size if grid.size % 2 else grid.size - 1) if h > 0 else 1
+    if win < 3:
+        slope = (y0[-1] - y0[0]) / (ts[-1] - ts[0]) * 60.0 if ts[-1] > ts[0] else 0.0
+        return y0.copy(), np.full(ts.size, slope)
     from scipy.signal import savgol_filter  # ~1 s to import: only where a thermosensor is smoothed
 
-    smooth = savgol_filter(y, win, 2, mode="interp")
-    rate = savgol_filter(y, win, 2, deriv=1, delta=h, mode="interp") * 60.0
-    return np.interp(t_s, grid, smooth), np.interp(t_s, grid, rate)
+    y = np.interp(grid, ts, y0)
+    order = min(2, win - 1)
+    smooth = savgol_filter(y, win, order, mode="interp")
+    rate = savgol_filter(y, win, order, deriv=1, delta=h, mode="interp") * 60.0
+    return np.interp(ts, grid, smooth), np.interp(ts, grid, rate)
 
 
 @dataclass
 class Thermosensor:
-    """The smoothed thermosensor of a run: times ``t_s`` (s since ``t_ref_ns``), temperature (C), rate (C/min)."""
+    """The smoothed thermosensor of a run: times ``t_s`` (s since ``t_ref_ns``), temperature (C), rate (C/min),
+    and its gaps ``gaps_s`` ((k, 2) s, :func:`pipeline.segment.thermosensor_gaps`, the voltmeter's time before and
+    after the readings included), where neither is known."""
 
     t_s: np.ndarray
     temp_c: np.ndarray
     rate_c_per_min: np.ndarray
     t_ref_ns: int = 0
+    gaps_s: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
 
     @classmethod
     def from_run(cls, run, window_s: float, t_ref_ns: int | None = None) -> Thermosensor:
+        from pipeline.segment import thermosensor_gaps
+
         tt_ns = run.au_temperature["t_ns"].to_numpy()
         t_ref = int(run.t_ns()[0]) if t_ref_ns is None else int(t_ref_ns)
         t_s = (tt_ns - t_ref) / _NS
-        temp, rate = smooth_temperature(t_s, run.au_temperature["temp_c"].to_numpy(), window_s)
-        return cls(t_s, temp, rate, t_ref)
+        temp_c = run.au_temperature["temp_c"].to_numpy()
+        temp, rate = smooth_temperature(t_s, temp_c, window_s)
+        t_v = run.voltmeter["t_ns"]
+        within = (int(t_v.min()), int(t_v.max())) if t_v.len() else None
+        gaps = (thermosensor_gaps(tt_ns[np.isfinite(temp_c)], within=within) - t_ref) / _NS
+        return cls(t_s, temp, rate, t_ref, gaps.reshape(-1, 2))
+
+    def in_gap(self, t_s: np.ndarray) -> np.ndarray:
+        """True where ``t_s`` falls inside a gap of the thermosensor (strictly between its two samples)."""
+        t_s = np.asarray(t_s, dtype=float)
+        out = np.zeros(t_s.shape, dtype=bool)
+        if not len(self.gaps_s):
+            return out
+        k = np.searchsorted(self.gaps_s[:, 0], t_s, side="right") - 1
+        ok = k >= 0
+        out[ok] = (t_s[ok] > self.gaps_s[k[ok], 0]) & (t_s[ok] < self.gaps_s[k[ok], 1])
+        return out
 
     def at(self, t_s: np.ndarray, lag_tau_s: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """Temperature (the element temperature through a first-order lag ``lag_tau_s`` if > 0) and rate at

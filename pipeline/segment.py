@@ -15,6 +15,16 @@ holds the unit in a sequence of positions. This module finds both from the recor
   trimmed of the settling after a move, averaged, and named: from the fixture log where it agrees with the direction
   of gravity seen in the signal, otherwise from that direction alone.
 
+Everything is in time, not samples, for any stream rate (the thermosensor read once a minute to ten times a
+second, the voltmeter at 0.5 Hz to kHz): the static window and the shortest segment widen to hold enough samples
+(:func:`for_rate`), the plateau slope window to keep its noise (:func:`slope_window_s`), and durations are of
+data (:func:`data_clock_s`). A gap is missing data (:func:`gap_indices`: an interval a window cannot see across):
+no static stretch or segment spans a gap of the voltmeter, none holds samples inside a gap of the thermosensor
+(their temperature is unknown), a fixture label logged before a gap names nothing after it that the signal
+contradicts, and a plateau whose soak has a gap is the data on both sides (its ``gaps`` listed, a warning saying
+which plateau lacks data when); soaks too short for the unit ever to be stable are plateaus all the same where
+the temperature slows down as an approach does (:func:`find_plateaus`).
+
 Voltage statistics use short time blocks (``static_window_s / 10``), each reduced exactly (two-pass mean and
 squared deviations, no cumulative sums that lose precision on long runs), and combined into rolling windows with
 the parallel-variance formula. All passes over the samples are vectorised and read the voltages a slab of about
@@ -90,10 +100,24 @@ class Plateau:
     temp_std_c: float
     #: start of the settling before the stable part (the unit still approaching the plateau's temperature)
     settle_start_ns: int | None = None
+    #: the thermosensor's gaps inside the plateau (:func:`gap_spans`), (last sample before, first after) in ns: a
+    #: soak whose two sides are stable at one temperature is one plateau, but nothing is known (no segment is
+    #: made) in between
+    gaps: tuple[tuple[int, int], ...] = ()
 
     @property
     def duration_s(self) -> float:
         return (self.t_end_ns - self.t_start_ns) / _NS
+
+    @property
+    def missing_s(self) -> float:
+        """Time (s) of the plateau without thermosensor data (its gaps)."""
+        return sum(b - a for a, b in self.gaps) / _NS
+
+    @property
+    def covered_s(self) -> float:
+        """Time (s) of the plateau with thermosensor data: its duration less its gaps."""
+        return self.duration_s - self.missing_s
 
 
 @dataclass(frozen=True)
@@ -146,6 +170,9 @@ class Segmentation:
     #: rate and to the length of the poses)
     static_window_s: float | None = None
     static_min_s: float | None = None
+    #: the gaps no segment spans, by stream (``voltmeter``, ``au_temperature``): (last sample before, first after)
+    #: in ns (:func:`gap_spans`: longer than half the static window, and than half the plateau slope window)
+    gaps_ns: dict[str, list[tuple[int, int]]] = field(default_factory=dict)
 
     def on_plateau(self, i: int) -> list[StaticSegment]:
         """Segments on plateau ``i``, in time order."""
@@ -167,12 +194,19 @@ class Segmentation:
 def find_plateaus(t_ns: np.ndarray, temp_c: np.ndarray, settings: SegmentSettings = SegmentSettings()) -> list[Plateau]:
     """Plateaus of the AU temperature ``temp_c`` (C) sampled at ``t_ns``; non-finite samples are ignored.
 
-    The slope is a local linear regression over ``plateau_min_s / 4`` centred on each sample; stable samples
-    (|slope| below ``plateau_rate_c_per_min``) form runs; a run lasting ``plateau_min_s`` (or the whole record) is
-    kept, restricted to the samples within ``plateau_band_c`` of its median, and split where they are not; runs
-    less than that window apart that stay within the band together are one plateau (the slope rose over the
-    threshold for a moment between them); its ends are then moved out to where the temperature leaves its value by
-    more than the sensor noise.
+    The slope is a local linear regression over :func:`slope_window_s` (``plateau_min_s / 4``, longer for a sparse
+    or noisy thermosensor) centred on each sample; stable samples (|slope| below ``plateau_rate_c_per_min``) form
+    runs; a run lasting ``plateau_min_s`` (or the whole record) is kept, restricted to the samples within
+    ``plateau_band_c`` of its median, and split where they are not; runs less than that window apart that stay
+    within the band together are one plateau (the slope rose over the threshold for a moment between them); its
+    ends are then moved out to where the temperature leaves its value by more than the sensor noise.
+
+    Durations are of data: the thermosensor's gaps (:func:`gap_spans`) do not count towards a plateau's length nor
+    towards the distance between two runs. A soak whose both sides of a gap are stable at one temperature is one
+    plateau (its ``gaps`` list the missing spans); a gap has no slope, so no stable run is made of one.
+
+    A soak too short for the unit ever to be stable (its temperature still approaching the setpoint when the
+    program moves on) is a plateau where the temperature slows down as an approach does (:func:`_approaches`).
     """
     t_ns = np.asarray(t_ns, dtype=np.int64)
     temp_c = np.asarray(temp_c, dtype=np.float64)
@@ -181,19 +215,22 @@ def find_plateaus(t_ns: np.ndarray, temp_c: np.ndarray, settings: SegmentSetting
     if t_ns.size == 0:
         return []
     t_s = (t_ns - t_ns[0]) / _NS
-    record_s = float(t_s[-1])
-    window_s = settings.plateau_min_s * _SLOPE_WINDOW_FRACTION
+    window_s = slope_window_s(t_ns, settings)
+    after = gap_indices(t_ns, window_s / 2)
+    clock_s = data_clock_s(t_ns, after)
+    record_s = float(clock_s[-1])
     rate_c_per_min = np.abs(_local_slope_c_per_s(t_s, temp_c, window_s)) * 60.0
-    stable = _bridge_flicker(rate_c_per_min, t_s, window_s, settings)
+    stable = _bridge_flicker(rate_c_per_min, clock_s, window_s, settings)
     min_s = min(settings.plateau_min_s, record_s)
     found: list[tuple[int, int]] = []
-    for i0, i1 in _runs(stable):
-        if t_s[i1 - 1] - t_s[i0] < min_s:
+    for i0, i1 in _pieces_of_soaks(split_runs(_runs(stable), after + 1), after, clock_s, temp_c, settings, window_s):
+        if clock_s[i1 - 1] - clock_s[i0] < min_s:
             continue
         seg = temp_c[i0:i1]
         in_band = np.abs(seg - np.median(seg)) <= settings.plateau_band_c
-        found += [(i0 + j0, i0 + j1) for j0, j1 in _runs(in_band) if t_s[i0 + j1 - 1] - t_s[i0 + j0] >= min_s]
-    found = _join_interrupted(found, t_s, temp_c, settings, window_s)
+        found += [(i0 + j0, i0 + j1) for j0, j1 in _runs(in_band) if clock_s[i0 + j1 - 1] - clock_s[i0 + j0] >= min_s]
+    found = _join_interrupted(found, clock_s, temp_c, settings, window_s)
+    found = sorted(found + _approaches(rate_c_per_min, clock_s, temp_c, found, settings))
     out: list[Plateau] = []
     for k, (a, b) in enumerate(found):
         lo = found[k - 1][1] if k > 0 else 0
@@ -207,6 +244,7 @@ def find_plateaus(t_ns: np.ndarray, temp_c: np.ndarray, settings: SegmentSetting
         n_settle = int(np.argmin(settling)) if not settling.all() else settling.size
         if out:  # the settling starts after the previous plateau (whose end moved out)
             n_settle = min(n_settle, max(0, a - int(np.searchsorted(t_ns, out[-1].t_end_ns, side="right"))))
+        inside = after[(after >= a) & (after < b - 1)]
         out.append(
             Plateau(
                 k,
@@ -215,9 +253,156 @@ def find_plateaus(t_ns: np.ndarray, temp_c: np.ndarray, settings: SegmentSetting
                 mean_c,
                 float(np.std(temp_c[a:b])),
                 int(t_ns[a - n_settle]) if n_settle > 0 else None,
+                tuple((int(t_ns[i]), int(t_ns[i + 1])) for i in inside),
             )
         )
     return out
+
+
+#: the plateau slope window holds at least this many thermosensor samples
+MIN_SLOPE_SAMPLES = 5
+#: the thermosensor interval (s) the default slope window was made for
+_SLOPE_REFERENCE_S = 1.0
+
+
+def slope_window_s(t_ns, settings: SegmentSettings = SegmentSettings()) -> float:
+    """The window (s) of the plateau test's local slope for a thermosensor sampled at ``t_ns`` (sorted, ns):
+    ``plateau_min_s / 4`` (75 s) for a sensor read every second or faster; a sparser one gets a window as much
+    longer as keeps the slope's noise what it is at 1 s (the slope of samples h apart over a window L has a
+    standard deviation proportional to sqrt(h / L^3): L grows as h^(1/3)), and at least
+    :data:`MIN_SLOPE_SAMPLES` samples. A sensor read every 5 s gets 128 s, every 10 s 162 s, every minute 293
+    s."""
+    base = settings.plateau_min_s * _SLOPE_WINDOW_FRACTION
+    if len(t_ns) < 3:
+        return base
+    h_s = median_interval_ns(t_ns) / _NS
+    if not h_s > 0:
+        return base
+    return float(max(base, base * (h_s / _SLOPE_REFERENCE_S) ** (1.0 / 3.0), MIN_SLOPE_SAMPLES * h_s))
+
+
+def gap_indices(t_ns, min_gap_s: float) -> np.ndarray:
+    """Indices ``i`` of the sorted times ``t_ns`` (ns) after which comes a gap the segmenter does not look across:
+    ``t_ns[i + 1] - t_ns[i]`` longer than ``min_gap_s`` and than the readers' gap (``GAP_FACTOR`` median
+    intervals, :func:`pipeline.io.checks.gap_indices`: every gap cut here is one ``inspect`` lists)."""
+    t_ns = np.asarray(t_ns, dtype=np.int64)
+    if t_ns.size < 2:
+        return np.empty(0, dtype=np.intp)
+    readers = reader_gap_indices(t_ns)
+    if not readers.size:
+        return readers
+    return readers[t_ns[readers + 1] - t_ns[readers] > np.int64(min_gap_s * _NS)]
+
+
+def thermosensor_gaps(t_ns, settings: SegmentSettings = SegmentSettings(), within=None) -> np.ndarray:
+    """The thermosensor's gaps (:func:`gap_spans`, (k, 2) ns) for the segmenter: intervals longer than half the
+    plateau test's slope window (:func:`slope_window_s`), across which neither the slope nor a sample's temperature
+    is known. ``t_ns``: the sorted times of the finite samples. ``within`` (first, last ns of another stream, e.g.
+    the voltmeter): also the spans of it before the first reading and after the last (no temperature there either:
+    the readings are interpolated, never extrapolated), as (first - 1, first reading) and (last reading, last + 1).
+    """
+    t_ns = np.asarray(t_ns, dtype=np.int64)
+    gaps = gap_spans(t_ns, slope_window_s(t_ns, settings) / 2)
+    if within is None or not t_ns.size:
+        return gaps
+    first, last = int(within[0]), int(within[1])
+    edges = []
+    if t_ns[0] > first:
+        edges.append((first - 1, int(t_ns[0])))
+    if t_ns[-1] < last:
+        edges.append((int(t_ns[-1]), last + 1))
+    if not edges:
+        return gaps
+    out = np.concatenate([gaps, np.array(edges, dtype=np.int64)])
+    return out[np.argsort(out[:, 0], kind="stable")]
+
+
+def gap_spans(t_ns, min_gap_s: float) -> np.ndarray:
+    """The gaps of :func:`gap_indices` as (k, 2) int64 ns: the last sample before and the first after each."""
+    t_ns = np.asarray(t_ns, dtype=np.int64)
+    i = gap_indices(t_ns, min_gap_s)
+    return np.column_stack((t_ns[i], t_ns[i + 1])) if i.size else np.zeros((0, 2), dtype=np.int64)
+
+
+def data_clock_s(t_ns: np.ndarray, after: np.ndarray) -> np.ndarray:
+    """Time (s) since the first sample of ``t_ns`` (sorted, ns) counted over data only: each gap after the
+    indices ``after`` counts as one median interval. Durations and distances of the segmenter are read on it."""
+    t_s = (np.asarray(t_ns, dtype=np.int64) - t_ns[0]) / _NS
+    if not after.size:
+        return t_s
+    step_s = median_interval_ns(t_ns) / _NS
+    lost = np.zeros(t_s.size)
+    lost[after + 1] = (t_s[after + 1] - t_s[after]) - step_s
+    return t_s - np.cumsum(lost)
+
+
+def _pieces_of_soaks(
+    runs: np.ndarray,
+    after: np.ndarray,
+    clock_s: np.ndarray,
+    temp_c: np.ndarray,
+    settings: SegmentSettings,
+    window_s: float,
+) -> list[tuple[int, int]]:
+    """Stable runs ([i0, i1), cut at the thermosensor's gaps, the gaps after the indices ``after``) with the runs
+    either side of a gap joined where less than a slope window of data (``window_s`` on ``clock_s``: the slope
+    beside a gap sees one side only, and flickers) separates them and the temperature on both stays within
+    ``plateau_band_c`` of their median: one soak with missing data, not two (nor a run from one soak into the next
+    soak at another temperature)."""
+    out: list[tuple[int, int]] = []
+    for a, b in runs:
+        if out:
+            a0, b0 = out[-1]
+            across = np.any((after >= b0 - 1) & (after < a))
+            if across and clock_s[a] - clock_s[b0 - 1] < window_s:
+                span = temp_c[a0:b]
+                if np.max(np.abs(span - np.median(span))) <= settings.plateau_band_c:
+                    out[-1] = (a0, int(b))
+                    continue
+        out.append((int(a), int(b)))
+    return out
+
+
+def _approaches(
+    rate_c_per_min: np.ndarray,
+    clock_s: np.ndarray,
+    temp_c: np.ndarray,
+    found: list[tuple[int, int]],
+    settings: SegmentSettings,
+) -> list[tuple[int, int]]:
+    """Soaks too short for the unit ever to be stable: [i0, i1) runs of samples settling towards one temperature
+    (|slope| below ``settle_rate_c_per_min``, within ``settle_band_c`` of where the run ends) that last
+    ``plateau_min_s`` of data, hold no stable plateau, and slow down as an approach does: the slope in their first
+    quarter is over :data:`_APPROACH_SLOWING` times the slope in their last, one sign throughout (a turn of the
+    temperature with no soak slows down less). A drift slows down
+    no such way. The positions held there are each at their own temperature (as in a plateau's settling).
+
+    With 20-min soaks and 120-s holds after 1 C/min ramps (a 10-min case lag) the unit ends its 34 minutes at a
+    setpoint still 0.4 C away and moving at 0.04 C/min, twice the plateau threshold."""
+    settling = rate_c_per_min < settings.settle_rate_c_per_min
+    out = []
+    for i0, i1 in _runs(settling):
+        if i1 - i0 < 8 or any(a < i1 and b > i0 for a, b in found):
+            continue
+        # the approach ends where the temperature moves slowest (the next ramp begins)
+        i1 = i0 + 1 + int(np.argmin(rate_c_per_min[i0:i1]))
+        near = np.abs(temp_c[i0:i1] - temp_c[i1 - 1]) < settings.settle_band_c
+        i0 += int(np.argmax(near))
+        if i1 - i0 < 8 or clock_s[i1 - 1] - clock_s[i0] < settings.plateau_min_s:
+            continue
+        q = max((i1 - i0) // 4, 2)
+        t, y = clock_s[i0:i1], temp_c[i0:i1]
+        first = np.polyfit(t[:q], y[:q], 1)[0]
+        last = np.polyfit(t[-q:], y[-q:], 1)[0]
+        if first * last > 0 and abs(first) > _APPROACH_SLOWING * abs(last):
+            out.append((i0, i1))
+    return out
+
+
+#: an approach to a soak slows down by more than this factor from its first quarter to its last. A 20-min soak
+#: after 1 C/min ramps: 4.7 to 5.4; 10-min soaks after slower ramps: 9; no soak at all (the fast program turning
+#: at +70 and -40 C, the unit 300 s behind, its temperature slowest where it turns): 3.1
+_APPROACH_SLOWING = 4.0
 
 
 #: a stable run ends a soak's approach when the slope one approach time before it was this many times the threshold
@@ -357,19 +542,26 @@ def classify_temperature(
     t_s = (t_ns - t_ns[0]) / _NS
     rate = np.abs(_local_slope_c_per_s(t_s, temp_c, _RATE_WINDOW_S)) * 3600.0 if t_s.size > 2 else np.zeros(1)
     lo, hi = float(np.min(temp_c)), float(np.max(temp_c))
+    # durations and distances over data (the thermosensor's gaps do not count: :func:`data_clock_s`)
+    clock_s = data_clock_s(t_ns, gap_indices(t_ns, slope_window_s(t_ns, settings) / 2))
+
+    def clock_at(ns: int) -> float:
+        return float(clock_s[min(int(np.searchsorted(t_ns, ns)), clock_s.size - 1)])
+
     chained = np.zeros(len(plateaus), dtype=bool)
     for k in range(1, len(plateaus)):
         a, b = plateaus[k - 1], plateaus[k]
-        if (b.t_start_ns - a.t_end_ns) < settings.plateau_min_s * _NS and abs(
-            b.temp_c - a.temp_c
-        ) < 2 * settings.plateau_band_c:
+        if (
+            clock_at(b.t_start_ns) - clock_at(a.t_end_ns) < settings.plateau_min_s
+            and abs(b.temp_c - a.temp_c) < 2 * settings.plateau_band_c
+        ):
             chained[k - 1] = chained[k] = True
-    drift_s = sum(p.duration_s for p, c in zip(plateaus, chained) if c)
+    drift_s = sum(p.covered_s for p, c in zip(plateaus, chained) if c)
     soaks = tuple(dataclasses.replace(p, index=i) for i, p in enumerate(p for p, c in zip(plateaus, chained) if not c))
-    soak_s = sum(p.duration_s for p in soaks)
+    soak_s = sum(p.covered_s for p in soaks)
     if hi - lo < _CONSTANT_RANGE_C:
         kind = "constant"
-    elif soaks and soak_s >= _SOAK_FRACTION * float(t_s[-1]):
+    elif soaks and soak_s >= _SOAK_FRACTION * float(clock_s[-1]):
         kind = "plateaus"
     else:
         kind = "sweep"
@@ -641,26 +833,6 @@ def _static_at(t_ns: np.ndarray, ch: Channels, settings: SegmentSettings) -> tup
     return [(int(a), int(b)) for a, b in runs], bad
 
 
-def gap_indices(t_ns, min_gap_s: float) -> np.ndarray:
-    """Indices ``i`` of the sorted times ``t_ns`` (ns) after which comes a gap the segmenter does not look across:
-    ``t_ns[i + 1] - t_ns[i]`` longer than ``min_gap_s`` and than the readers' gap (``GAP_FACTOR`` median
-    intervals, :func:`pipeline.io.checks.gap_indices`: every gap cut here is one ``inspect`` lists)."""
-    t_ns = np.asarray(t_ns, dtype=np.int64)
-    if t_ns.size < 2:
-        return np.empty(0, dtype=np.intp)
-    readers = reader_gap_indices(t_ns)
-    if not readers.size:
-        return readers
-    return readers[t_ns[readers + 1] - t_ns[readers] > np.int64(min_gap_s * _NS)]
-
-
-def gap_spans(t_ns, min_gap_s: float) -> np.ndarray:
-    """The gaps of :func:`gap_indices` as (k, 2) int64 ns: the last sample before and the first after each."""
-    t_ns = np.asarray(t_ns, dtype=np.int64)
-    i = gap_indices(t_ns, min_gap_s)
-    return np.column_stack((t_ns[i], t_ns[i + 1])) if i.size else np.zeros((0, 2), dtype=np.int64)
-
-
 def split_runs(runs: np.ndarray, starts: np.ndarray) -> np.ndarray:
     """Index ranges ``runs`` ((k, 2), [i0, i1)) split where a piece must begin: at each of the sorted indices
     ``starts`` strictly inside a range (the first sample after a gap)."""
@@ -677,6 +849,23 @@ def split_runs(runs: np.ndarray, starts: np.ndarray) -> np.ndarray:
         bounds = np.concatenate(([a], starts[j0:j1], [b]))
         pieces.append(np.column_stack((bounds[:-1], bounds[1:])))
     return np.concatenate(pieces)
+
+
+def remove_spans(t_ns: np.ndarray, runs, spans_ns: np.ndarray) -> list[tuple[int, int]]:
+    """Index ranges ``runs`` of the sorted times ``t_ns`` less their samples inside the open time spans
+    ``spans_ns`` ((k, 2) ns, sorted): a range across a span becomes the pieces either side of it."""
+    runs = np.asarray(runs, dtype=np.int64).reshape(-1, 2)
+    if not runs.size or not len(spans_ns):
+        return [(int(a), int(b)) for a, b in runs]
+    # samples strictly inside a span are dropped: cut at its first and after its last
+    first = np.searchsorted(t_ns, spans_ns[:, 0], side="right")
+    last = np.searchsorted(t_ns, spans_ns[:, 1], side="left")
+    pieces = split_runs(runs, np.unique(np.concatenate((first, last))))
+    inside = np.zeros(len(pieces), dtype=bool)
+    k = np.searchsorted(first, pieces[:, 0], side="right") - 1
+    ok = k >= 0
+    inside[ok] = pieces[ok, 0] < last[k[ok]]
+    return [(int(a), int(b)) for a, b in pieces[~inside] if b > a]
 
 
 def finite_rows(x: np.ndarray) -> np.ndarray:
@@ -805,15 +994,31 @@ def segment_run(
         stretches, bad_u, settings = _adaptive_static(t_ns, ch, settings)
     else:
         stretches, bad_u, settings = static.stretches, static.bad, static.settings
+    # a sample in a gap of the thermosensor, or away from its record, has no temperature: no stretch holds one
+    holes = thermosensor_gaps(tt_ns, settings)
+    unknown = thermosensor_gaps(tt_ns, settings, within=(t_ns[0], t_ns[-1])) if t_ns.size and tt_ns.size else holes
+    if len(unknown):
+        min_ns = settings.static_min_s * _NS
+        stretches = [(a, b) for a, b in remove_spans(t_ns, stretches, unknown) if t_ns[b - 1] - t_ns[a] >= min_ns]
+    outside_ns = sum(b - a for a, b in unknown) - sum(b - a for a, b in holes)
+    if tt_ns.size > 1 and outside_ns > median_interval_ns(tt_ns):  # more than a reading's worth
+        warnings.append(
+            f"voltmeter: {outside_ns / _NS:.0f} s of samples before the first or after the last AU thermosensor "
+            "reading have no temperature: not used"
+        )
     if bad_u.size:
         warnings.append(
             f"voltmeter: {bad_u.size} non-finite samples excluded (not static), first at t_ns={int(t_ns[bad_u[0]])}"
         )
+    gaps = {"voltmeter": gap_spans(t_ns, settings.static_window_s / 2), "au_temperature": holes}
+    warnings += _gaps_on_plateaus(plateaus, gaps, settings.static_min_s)
     pieces = _cut_at_plateaus(t_ns, stretches, plateaus, settings)
-    fixture = _fixture_labels(run, t_ns, pieces)
+    all_gaps = np.concatenate([gaps["voltmeter"], holes.reshape(-1, 2)])
+    all_gaps = all_gaps[np.argsort(all_gaps[:, 1], kind="stable")]
+    fixture, stale = _fixture_labels(run, t_ns, pieces, all_gaps)
 
     rows: list[dict[str, Any]] = []
-    for (i0, i1, p, settling), fix in zip(pieces, fixture):
+    for (i0, i1, p, settling), fix, old in zip(pieces, fixture, stale):
         cols, tt = ch.slab(i0, i1), t_ns[i0:i1]
         fin = finite_columns(cols)
         if not fin.all():
@@ -832,6 +1037,7 @@ def segment_run(
                 temp_c=float(tc.mean()),
                 temp_std_c=float(tc.std()),
                 settling=settling,
+                stale=old,
             )
         )
 
@@ -845,7 +1051,7 @@ def segment_run(
                 t_end_ns=r["t_end_ns"],
                 position=nm["position"],
                 label_source=nm["source"],
-                fixture_label=r["fixture_label"],
+                fixture_label=nm.get("fixture_label", r["fixture_label"]),
                 label_conflict=nm["conflict"],
                 plateau=r["plateau"],
                 mean_v=vector3(r["mean_v"]),
@@ -864,7 +1070,55 @@ def segment_run(
         stretches=stretches,
         static_window_s=settings.static_window_s,
         static_min_s=settings.static_min_s,
+        gaps_ns={k: [(int(a), int(b)) for a, b in v] for k, v in gaps.items()},
     )
+
+
+def _gaps_on_plateaus(plateaus: list[Plateau], gaps: dict[str, np.ndarray], min_off_s: float) -> list[str]:
+    """One line per plateau (its settling included) with gaps of the voltmeter or the thermosensor: what is
+    missing, where (no position is made of that time); and one line for the gaps of at least ``min_off_s`` on no
+    plateau (e.g. a soak whose every thermosensor reading is lost: no plateau is found there)."""
+    from pipeline.utc import utc_span
+
+    out = []
+    for p in plateaus:
+        lo = p.t_start_ns if p.settle_start_ns is None else p.settle_start_ns
+        streams: dict[tuple[int, int], list[str]] = {}
+        for stream, spans in gaps.items():
+            for a, b in spans:
+                if a < p.t_end_ns and b > lo:
+                    streams.setdefault((int(a), int(b)), []).append(stream)
+        said = [
+            f"no {' or '.join(names)} data {utc_span(a, b)} ({(b - a) / _NS:.0f} s)"
+            for (a, b), names in sorted(streams.items())
+        ]
+        if said:
+            out.append(
+                f"plateau {p.index} at {p.temp_c:+.1f} C: {'; '.join(said)}: nothing held then is used "
+                "(a position held only then is missing)"
+            )
+    # gaps on no plateau found (a soak whose every thermosensor reading is lost is no plateau): one line for them
+    fronts = [(p.t_start_ns if p.settle_start_ns is None else p.settle_start_ns, p.t_end_ns) for p in plateaus]
+    off: dict[tuple[int, int], list[str]] = {}
+    for stream, spans in gaps.items():
+        for a, b in spans:
+            if b - a >= min_off_s * _NS and not any(a < hi and b > lo for lo, hi in fronts):
+                off.setdefault((int(a), int(b)), []).append(stream)
+    if off:
+        said = [
+            f"no {' or '.join(names)} data {utc_span(a, b)} ({(b - a) / _NS:.0f} s)"
+            for (a, b), names in sorted(off.items())
+        ]
+        more = f"; and {len(said) - _GAPS_LISTED} more" if len(said) > _GAPS_LISTED else ""
+        out.append(
+            f"off every plateau: {'; '.join(said[:_GAPS_LISTED])}{more}: nothing held then is used "
+            "(a position held only then is missing)"
+        )
+    return out
+
+
+#: the gaps off every plateau listed by name in the warning (the rest counted)
+_GAPS_LISTED = 5
 
 
 def _cut_at_plateaus(
@@ -912,22 +1166,33 @@ def _cut_at_plateaus(
     return out
 
 
-def _fixture_labels(run: Run, t_ns: np.ndarray, pieces) -> list[str | None]:
-    """The fixture position logged for the middle of each piece (None: no log, MOVING or unknown)."""
+def _fixture_labels(run: Run, t_ns: np.ndarray, pieces, gaps_ns: np.ndarray) -> tuple[list[str | None], list[bool]]:
+    """The fixture position logged for the middle of each piece (None: no log, MOVING or unknown), and whether
+    that event was logged before a gap of the recording (``gaps_ns``, (k, 2) ns) that lies before the piece: the
+    fixture log may have lost the events of a move in the gap, so such a label is only believed where the signal
+    agrees with it."""
     fx = run.fixture
     if fx is None or fx.height == 0 or not pieces:
-        return [None] * len(pieces)
+        return [None] * len(pieces), [False] * len(pieces)
     ft = fx["t_ns"].to_numpy()
     order = np.argsort(ft, kind="stable")
     ft = ft[order]
     fp = np.asarray(fx["position"].to_list(), dtype=object)[order]
+    first = np.array([t_ns[a] for a, *_ in pieces], dtype=np.int64)
     mids = np.array([(t_ns[a] + t_ns[b - 1]) // 2 for a, b, *_ in pieces], dtype=np.int64)
     k = np.searchsorted(ft, mids, side="right") - 1
+    event = np.where(k >= 0, ft[np.maximum(k, 0)], np.iinfo(np.int64).min)
+    # a gap ending after the event and by the piece's first sample: the last gap ending by then starts after it
+    stale = np.zeros(len(pieces), dtype=bool)
+    if len(gaps_ns):
+        g = np.searchsorted(gaps_ns[:, 1], first, side="right") - 1
+        ok = g >= 0
+        stale[ok] = gaps_ns[g[ok], 0] >= event[ok]
     out = []
     for j in k:
         name = fp[j] if j >= 0 else None
         out.append(name if name in ALL_POSITIONS else None)
-    return out
+    return out, [bool(x) for x in stale]
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -968,6 +1233,17 @@ def _name_segments(run: Run, rows: list[dict], settings: SegmentSettings, warnin
         agrees = fl is not None and _angle_deg(direction, gravity_vector_g(fl)) <= settings.max_label_angle_deg
         if agrees:
             out.append(dict(position=fl, source="fixture", conflict=False, direction=direction))
+            continue
+        if fl is not None and r.get("stale"):  # logged before a gap, not what the unit did after it: no label
+            out.append(
+                dict(
+                    position=gname,
+                    source="gravity" if gname else "none",
+                    conflict=False,
+                    direction=direction,
+                    fixture_label=None,
+                )
+            )
             continue
         conflict = fl is not None
         if conflict:

@@ -204,8 +204,9 @@ class BlockData:
 def block_data(
     run, K0: np.ndarray, U0: np.ndarray, settings: DifferentialSettings = DifferentialSettings()
 ) -> BlockData:
-    """Orientation windows of ``run`` and the ``block_s`` averages of its outputs in them. Blocks with fewer than
-    80 % of their samples are dropped. Raises CalibrationError when the run has no orientation window."""
+    """Orientation windows of ``run`` and the ``block_s`` averages of its outputs in them. Samples in a gap of the
+    thermosensor are left out, and blocks with fewer than 80 % of their samples are dropped. Raises CalibrationError
+    when the run has no orientation window."""
     t_ns = run.t_ns()
     u_v = run.u_v()
     sensor = Thermosensor.from_run(run, settings.temp_smooth_s)
@@ -223,7 +224,7 @@ def block_data(
     start_s = np.array([(w.t_start_ns - sensor.t_ref_ns) / _NS for w in windows])
     block = np.floor((t_s[idx] - start_s[win]) / settings.block_s).astype(np.int64)
     key = win.astype(np.int64) * (1 << 40) + block
-    ok = np.isfinite(u_v[idx]).all(axis=1)
+    ok = np.isfinite(u_v[idx]).all(axis=1) & ~sensor.in_gap(t_s[idx])  # no temperature in a thermosensor gap
     idx, win, key = idx[ok], win[ok], key[ok]
     bounds = np.concatenate(([0], np.flatnonzero(np.diff(key)) + 1))
     counts = np.diff(np.append(bounds, key.size))

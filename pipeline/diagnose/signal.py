@@ -189,7 +189,7 @@ def static_record(
     t0_s = np.array([s.t_start_s for s in stretches]) if stretches else np.zeros(0)
     bin_s = max(micro_s, 1.0 / rate_hz)
     micro_sid, count, micro_t, micro_u, micro_temp = _micro_means(
-        run, kept_ok, t0_s, start_ns, bin_s, thermo_ns, thermo_c, slab
+        run, kept_ok, t0_s, start_ns, bin_s, thermo_ns, thermo_c, slab, 1.0 / rate_hz
     )
     sigma = sample_noise_v(run, kept_ok, slab_samples=slab)
 
@@ -275,10 +275,16 @@ def _micro_means(
     thermo_ns: np.ndarray,
     thermo_c: np.ndarray,
     slab: int,
+    step_s: float = 0.0,
 ):
     """Micro-samples of the finite voltmeter samples in the ``kept`` index ranges (stretch k starting at
     ``t0_s[k]``): bins of ``bin_s`` from the stretch start. Returns per micro-sample the stretch, sample count, mean
-    time (s since ``start_ns``), mean outputs (m, 3) V and mean interpolated thermosensor temperature (C).
+    time (s since ``start_ns``), mean outputs (m, 3) V and mean thermosensor temperature (C): each voltmeter sample
+    stands for the ``step_s`` (the voltmeter's interval) centred on it, and takes the thermosensor's mean over that
+    time (:func:`mean_over`; the interpolation at the sample for a voltmeter as fast as the thermosensor or
+    faster): a voltmeter slower than the thermosensor uses every reading once, as the block noise
+    of :func:`pipeline.diagnose.diagnosis._block_sigma` counts them, not one in two (whose noise a lag filter over
+    all of them would then take for a signal).
 
     Each slab is summed per bin (``np.add.reduceat``); a bin cut by a slab boundary is the sum of its two parts."""
     sid, bins, cnt, s_t, s_u, s_temp = [], [], [], [], [], []
@@ -291,7 +297,7 @@ def _micro_means(
             if t_ns.size == 0:
                 continue
             t_s = (t_ns - start_ns) / _NS
-            temp = np.interp(t_ns.astype(np.float64), thermo_ns, thermo_c)
+            temp = mean_over(t_ns.astype(np.float64), step_s * _NS, thermo_ns, thermo_c)
             b_idx = np.floor((t_s - t0_s[k]) / bin_s).astype(np.int64)
             st = np.flatnonzero(np.concatenate(([True], b_idx[1:] != b_idx[:-1])))
             sid.append(np.full(st.size, k, dtype=np.int64))
@@ -313,6 +319,28 @@ def _micro_means(
         np.add.reduceat(np.concatenate(s_u), first, axis=0) / count[:, None],
         np.add.reduceat(np.concatenate(s_temp), first) / count,
     )
+
+
+def mean_over(t: np.ndarray, width: float, knots_t: np.ndarray, knots_y: np.ndarray) -> np.ndarray:
+    """The mean of the piecewise-linear interpolation of (``knots_t``, ``knots_y``) over [t - width/2, t + width/2]
+    at each ``t`` (any unit of time, float); the interpolation at ``t`` itself for a width no longer than the
+    knots' median interval (a sample then stands for no more than one knot: the mean is the interpolation but for
+    the curvature between knots) or with fewer than two knots. Outside the knots the end values hold (as
+    ``np.interp``)."""
+    t = np.asarray(t, dtype=np.float64)
+    if knots_t.size < 2 or not width > float(np.median(np.diff(knots_t))):
+        return np.interp(t, knots_t, knots_y)
+    seg = np.diff(knots_t)
+    area = np.concatenate(([0.0], np.cumsum(0.5 * (knots_y[1:] + knots_y[:-1]) * seg)))
+
+    def integral(x):  # of the interpolation from knots_t[0] to x (constant beyond the ends)
+        k = np.clip(np.searchsorted(knots_t, x, side="right") - 1, 0, knots_t.size - 2)
+        d = np.clip(x, knots_t[0], knots_t[-1]) - knots_t[k]
+        slope = (knots_y[k + 1] - knots_y[k]) / seg[k]
+        inside = area[k] + knots_y[k] * d + 0.5 * slope * d * d
+        return inside + knots_y[0] * np.minimum(x - knots_t[0], 0.0) + knots_y[-1] * np.maximum(x - knots_t[-1], 0.0)
+
+    return (integral(t + width / 2) - integral(t - width / 2)) / width
 
 
 def _named_stretches(
@@ -404,17 +432,22 @@ def _arrival_from_signal(
     angle_rad: float,
     slab: int,
     done: float = 0.999,
-    edge: int = 10,
+    edge_s: float = 1.0,
 ) -> float | None:
     """When the outputs between two static stretches (index ranges) have turned through ``done`` of the angle
-    between the two positions, s since ``start_ns`` (interpolated between samples).
+    between the two positions, s since ``start_ns`` (interpolated between samples). The outputs before and after
+    are the means over the last and first ``edge_s`` of the two stretches (at least one sample each).
 
     The remaining angle is read from the distance to the final outputs: for a rotation through the total angle A,
     |U - U_new| / |U_new - U_old| = sin(r/2) / sin(A/2) with r the angle still to go. The gap is read a slab at a
     time from its end: the crossing wanted is the last one.
     """
-    u_old = np.nanmean(_rows_v(run, max(before[0], before[1] - edge), before[1]), axis=0)
-    u_new = np.nanmean(_rows_v(run, after[0], min(after[1], after[0] + edge)), axis=0)
+    t_col = run.voltmeter["t_ns"]
+    edge_ns = int(edge_s * _NS)
+    b0 = int(t_col.search_sorted(int(t_col[before[1] - 1]) - edge_ns, side="right"))
+    a1 = int(t_col.search_sorted(int(t_col[after[0]]) + edge_ns, side="left"))
+    u_old = np.nanmean(_rows_v(run, min(max(before[0], b0), before[1] - 1), before[1]), axis=0)
+    u_new = np.nanmean(_rows_v(run, after[0], max(min(after[1], a1), after[0] + 1)), axis=0)
     step = float(np.linalg.norm(u_new - u_old))
     if not np.isfinite(step) or step < 1e-3 or angle_rad <= 0:
         return None

@@ -10,6 +10,8 @@ one position left out (the runs of ``test_short_soaks_and_missing_positions``, s
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -89,15 +91,28 @@ def test_a_short_soak_with_a_missing_position_keeps_the_extreme_plateau(stage):
     check_constants(calibrate([run]))
 
 
-def test_soaks_too_short_for_any_plateau_away_from_t0_are_not_pass():
-    """10-min soaks: only the +20 C plateaus are found, the VP positions held at -10 and +45 C lie off every
-    plateau; the +20 C calibration verifies at +20 C, but the run went where it does not: not pass."""
+def test_soaks_too_short_for_a_stable_plateau_are_each_an_approach():
+    """10-min soaks: away from +20 C the unit never becomes stable (0.02 C/min) while the positions are held; each
+    approach is a plateau of its own (issue 21 item 7), its positions each at their own temperature: every TP
+    stage is fitted, its constants the unit's, and the VPs at -10 and +45 C verify the model: pass."""
     res = calibrate([_run(600.0)])
-    assert {round(f.temp_c) for f in res.fit.per_plateau} <= {18, 19, 20, 21, 22}
-    assert res.status == "unverified"
-    assert any(
-        "VP segments held between -1" in w and "lie off every temperature plateau found" in w for w in res.warnings
-    ), res.warnings
+    assert sorted(round(f.temp_c / 10) * 10 for f in res.fit.per_plateau) == [-40, 20, 20, 20, 70]
+    unit = seed000_unit()
+    for f in res.fit.per_plateau:
+        k, u0 = unit.constants_at(np.array([f.temp_c]))
+        np.testing.assert_allclose(f.K, k[0], atol=3e-6)
+        np.testing.assert_allclose(f.U0, u0[0], atol=3e-6)
+    assert {round(r.temp_c / 10) * 10 for r in res.rows} >= {-10, 40}
+    assert res.status == "pass", res.warnings
+
+
+def test_vp_held_off_every_plateau_outside_the_calibrated_range_is_not_pass():
+    """VP positions held off every plateau found, more than 5 C outside the calibrated temperatures (soaks the
+    plateau test did not find): the +20 C calibration verifies at +20 C, but the run went where it does not."""
+    obs = [_obs(0, p, 20.0, k) for k, p in enumerate(TP + VP)]
+    off = [replace(_obs(0, p, -10.0, 12 + k), plateau=None) for k, p in enumerate(VP)]
+    said = verification_gap(obs + off, 20.0)
+    assert said is not None and "6 VP segments held between -10.0 and -10.0 C lie off every" in said, said
 
 
 def test_vp_data_at_t0_only_say_so_and_keep_their_two_visits_apart():
