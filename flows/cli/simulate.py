@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import typer
@@ -122,6 +123,14 @@ def simulate(
     from pipeline.simulate.unit import UNIT_TYPES
     from pipeline.verify import GRADES
 
+    for option, value, least in (
+        ("--ramp-c-per-min", ramp_c_per_min, 0.0),
+        ("--hold-s", hold_s, 0.0),
+        ("--move-s", move_s, None),
+    ):
+        if value is not None and not (math.isfinite(value) and (value > least if least is not None else value >= 0)):
+            bound = "a finite number above 0" if least is not None else "a finite number, 0 or more"
+            raise ThermocalError(f"must be {bound}, got {value:g}", where=option)
     if soak_min is not None and not soak_min >= 0:
         raise ThermocalError(f"soak must be 0 minutes or more, got {soak_min:g}", where="--soak-min")
     for d in drop:

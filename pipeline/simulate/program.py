@@ -602,8 +602,8 @@ def program_from(
         k: v for k, v in (("rate_c_per_min", rate_c_per_min), ("hold_s", hold_s), ("move_s", move_s)) if v is not None
     }
     for k, v in timing.items():
-        if not v > 0 and not (k == "move_s" and v == 0):
-            raise ValueError(f"{k} must be positive, got {v:g}")
+        if not np.isfinite(v) or (not v > 0 and not (k == "move_s" and v == 0)):
+            raise ValueError(f"{k} must be a finite number above 0{' (or 0)' if k == 'move_s' else ''}, got {v:g}")
     if ":" in name:
         program = parse_program(name, **timing)
     elif name in TIMED:

@@ -126,8 +126,9 @@ def test_program_from_names_texts_and_timing():
         program_from("standard", hold_s=60.0)
     with pytest.raises(ValueError, match="unknown chamber program 'nope'"):
         program_from("nope")
-    with pytest.raises(ValueError, match="hold_s must be positive"):
-        program_from("fast", hold_s=0.0)
+    for kw in ({"hold_s": 0.0}, {"rate_c_per_min": float("inf")}, {"move_s": float("nan")}):
+        with pytest.raises(ValueError, match=f"{next(iter(kw))} must be a finite number above 0"):
+            program_from("fast", **kw)
 
 
 def test_cli_simulates_a_stepped_and_the_fast_program(tmp_path, monkeypatch, capsys):
@@ -161,6 +162,10 @@ def test_cli_simulates_a_stepped_and_the_fast_program(tmp_path, monkeypatch, cap
         (("--program", "20@0:TQ"), "--program: stage '20@0:TQ': unknown position 'TQ'"),
         (("--program", "short", "--hold-s", "30"), "--program: ramp rate, holds and moves can be chosen"),
         (("--program", "fast", "--drop", "TP1@20"), "--drop: program 'fast' holds no such position"),
+        (("--program", "fast", "--ramp-c-per-min", "0"), "--ramp-c-per-min: must be a finite number above 0, got 0"),
+        (("--program", "fast", "--ramp-c-per-min", "inf"), "--ramp-c-per-min: must be a finite number above 0"),
+        (("--program", "fast", "--hold-s", "-1"), "--hold-s: must be a finite number above 0, got -1"),
+        (("--program", "fast", "--move-s", "nan"), "--move-s: must be a finite number, 0 or more, got nan"),
     ]:
         code, text, err = run_main(monkeypatch, capsys, "simulate", "--out", str(tmp_path / "x.mcap"), *args)
         assert code == 2 and says in err and len(err.strip().splitlines()) == 1, err
