@@ -7,8 +7,9 @@ orientations.
 
 Split: the recording is cut into 2-hour blocks from its first sample; even blocks are the calibration data, odd
 blocks the held-out data. Every temperature of a period is seen on both sides, and nothing of a held-out block is
-fitted (thermocal's calibration run has the held-out voltmeter rows set to NaN; the peer fits only the calibration
-rows). The thermosensor stays whole: it is an input at compensation time too.
+fitted: thermocal's calibration run is the recording with the held-out blocks deleted (their voltmeter and
+thermosensor rows removed, so the run has a 2-hour gap after every block, one of them where the tag was turned);
+the peer fits only the calibration rows. The compensation is applied to the whole recording.
 
 Figure of merit: within each period and axis, the standard deviation of the 10-min means of the compensated output
 over the held-out blocks (mm/s^2); the specific force is constant within a period, so whatever varies is what the
@@ -65,16 +66,17 @@ def calibration_mask(t_ns: np.ndarray) -> np.ndarray:
 
 
 def calibration_run(run, keep: np.ndarray):
-    """The run with the voltmeter rows not in ``keep`` set to NaN (rows kept, so times stay whole)."""
+    """The run with the held-out blocks deleted: the voltmeter rows not in ``keep`` and the thermosensor rows of the
+    same 2-hour blocks removed (not set to NaN: the run has gaps where they were)."""
     from pipeline.run import Run
 
-    v = run.voltmeter.with_columns(
-        [pl.when(pl.Series(keep)).then(pl.col(c)).otherwise(float("nan")).alias(c) for c in ("ux", "uy", "uz")]
-    )
+    t0 = int(run.voltmeter["t_ns"][0])
+    temp_t = run.au_temperature["t_ns"].to_numpy()
+    temp_keep = ((temp_t - t0) // int(SPLIT_S * _NS)) % 2 == 0
     return Run(
         meta=run.meta,
-        voltmeter=v,
-        au_temperature=run.au_temperature,
+        voltmeter=run.voltmeter.filter(pl.Series(keep)),
+        au_temperature=run.au_temperature.filter(pl.Series(temp_keep)),
         chamber=run.chamber,
         fixture=run.fixture,
         source=run.source,
@@ -171,7 +173,12 @@ def compare(run_dir: str | Path = DEFAULT_RUN) -> dict:
         "peer_piecewise": ten_minute_spread(t_ns, peer_compensation(t_ns, u, temp, cal, piecewise=True), held),
         "thermocal": ten_minute_spread(t_ns, a_mps2, held),
     }
-    return {"table": {k: v * 1e3 for k, v in table.items()}, "passport": mc.passport, "calibrate_s": cal_s}
+    return {
+        "table": {k: v * 1e3 for k, v in table.items()},
+        "passport": mc.passport,
+        "warnings": list(mc.warnings),
+        "calibrate_s": cal_s,
+    }
 
 
 def format_table(result: dict) -> str:
