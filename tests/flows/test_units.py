@@ -22,6 +22,9 @@ from pipeline.simulate.chamber import SimConfig
 from pipeline.simulate.unit import UnitTruth
 from pipeline.simulate.units import simulate_units
 
+# the console script in a subprocess; calibrate and fleet start thermocal's local Prefect server
+pytestmark = pytest.mark.slow
+
 EXE = str(Path(sys.executable).parent / "thermocal")
 GOOD = ("AU-0301", "AU-0304")
 
