@@ -1,0 +1,412 @@
+"""Same data, same passport (issue 21, item 1): metamorphic, property-based tests (hypothesis).
+
+A transformation that removes nothing the calibration needs leaves the passport the same within its stated
+uncertainty (every coefficient within 4 standard uncertainties of both passports combined), with the same method and
+status, and ``diagnose`` gives the same verdict. Transformations (:mod:`tests.acceptance.same_data`): a gap of any
+length anywhere no hold is (soaks, ramps, sweeps, between poses) in all streams or in one, every stream's rate
+changed (the thermosensor read every 2 s .. 1 min or interpolated to 10 Hz, the voltmeter decimated to 0.5 Hz or
+simulated at up to 1 kHz, the chamber stream left out), all times shifted, the rows of every stream shuffled in the
+files, an exact duplicate file, the run split into several files at any points and given in any order.
+
+A gap over a hold does remove information: then no segment, plateau constant or verification row is made of the
+missing time or names a position the unit was not in (never invents one), and the result says what is missing:
+the plateau and the time without data, and the test position a plateau's constants lack.
+
+Recordings: simulated runs of every program (standard, short, sweep, handheld, differential: small ones, at low
+rates) and the real recordings of tests/data/real (imucal's hand-held poses, the CATS tag's sweep).
+Lean by default (CI): each property is searched with :data:`EXAMPLES` examples on the cheap recordings (the short
+and hand-held programs at low rates, imucal); the standard, sweep and differential programs take every
+transformation at once in one composite example each (marked slow); the CATS tag's property runs in the deep search
+only. ``THERMOCAL_HYPOTHESIS_EXAMPLES=N`` (e.g.
+20, for a local run) searches N examples per property over every recording.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from dataclasses import dataclass
+from functools import cache
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, Phase, assume, given, settings
+from hypothesis import strategies as st
+
+from pipeline.calibrate import inputs
+from pipeline.io.runs import read_run, write_run
+from pipeline.run import NS_PER_S, Run
+from pipeline.simulate.chamber import SimConfig, simulate
+from pipeline.simulate.program import get_program
+from tests.acceptance import same_data as sd
+from tests.conftest import data_path
+
+#: a deeper local search: every property over every recording, this many examples each
+DEEP = "THERMOCAL_HYPOTHESIS_EXAMPLES" in os.environ
+EXAMPLES = int(os.environ.get("THERMOCAL_HYPOTHESIS_EXAMPLES", "2"))
+#: each example calibrates and diagnoses a recording: no shrinking (a failing example is reported as found)
+PROPERTY = settings(
+    max_examples=EXAMPLES,
+    deadline=None,
+    derandomize=True,
+    database=None,
+    phases=[Phase.explicit, Phase.generate],
+    suppress_health_check=list(HealthCheck),
+)
+JOINS_FILES = hasattr(inputs, "join_runs")
+
+
+@dataclass(frozen=True)
+class Recording:
+    """A recording to transform: its run, the program it follows (None: a real one) and the slowest voltmeter
+    rate (Hz) whose samples still hold its poses (hand-turned poses of 3 s need tens of samples a second)."""
+
+    name: str
+    run: Run
+    program: str | None
+    min_voltmeter_hz: float
+
+    @property
+    def start_ns(self) -> int:
+        return sd.start_ns(self.run)
+
+    def holds_ns(self) -> list[tuple[int, int, str]]:
+        """(start, end, position) of the program's holds, in the run's time (none for a real recording)."""
+        if self.program is None:
+            return []
+        tt = get_program(self.program).timetable()
+        return [
+            (self.start_ns + int(h.t_start_s * NS_PER_S), self.start_ns + int(h.t_end_s * NS_PER_S), h.position)
+            for h in tt.holds()
+        ]
+
+    def positions_at(self, t_ns) -> np.ndarray:
+        """The program's position at ``t_ns`` (``MOVING`` during moves)."""
+        tt = get_program(self.program).timetable()
+        return tt.positions((np.asarray(t_ns, dtype=np.int64) - self.start_ns) / NS_PER_S)
+
+
+SIMULATED = {
+    # name: (SimConfig, slowest voltmeter rate that holds the program's poses)
+    "standard": (SimConfig(seed=21, rate_hz=2.0), 0.5),
+    "short": (SimConfig(seed=22, rate_hz=5.0, program="short"), 2.0),
+    "sweep": (SimConfig(seed=23, rate_hz=1.0, program="sweep"), 0.5),
+    "handheld": (SimConfig(seed=24, rate_hz=100.0, program="handheld", jitter_s=0.002), 25.0),
+    "differential": (SimConfig(seed=25, rate_hz=1.0, program="differential"), 0.5),
+}
+
+
+#: the recordings every property is searched on by default (a few seconds per example)
+CHEAP = ("short", "handheld")
+
+
+#: the recordings whose properties also run in ``make test-fast`` (about a second per example); the others' are slow
+FAST = ("handheld",)
+
+
+def lean(cases):
+    """``cases`` (names, or tuples starting with the name) as the default run takes them: the cheap recordings'
+    only, every one with :data:`DEEP`; marked slow unless on a :data:`FAST` recording."""
+    out = []
+    for c in cases:
+        name = c[0] if isinstance(c, tuple) else c
+        if DEEP or name in CHEAP:
+            values = c if isinstance(c, tuple) else (c,)
+            out.append(pytest.param(*values, marks=() if name in FAST else pytest.mark.slow))
+    return out
+
+
+@cache
+def recording(name: str) -> Recording:
+    if name in SIMULATED:
+        config, min_hz = SIMULATED[name]
+        return Recording(name, simulate(config).run, name, min_hz)
+    if name == "imucal":
+        return Recording(name, read_run(data_path("real", "imucal_ferraris", "run")), None, 20.0)
+    if name == "cats":
+        return Recording(name, read_run(data_path("real", "cats_tag", "run")), None, 0.5)
+    raise KeyError(name)
+
+
+@cache
+def reference(name: str):
+    """The passport (as calibrate computes it) and the method of the untouched recording."""
+    return sd.calibrate_runs([recording(name).run])
+
+
+@cache
+def reference_verdict(name: str) -> str:
+    """diagnose's verdict on the untouched recording."""
+    return sd.diagnose_verdict([recording(name).run])
+
+
+def check_same(name: str, runs: list[Run], what: str, *, verdict: bool = True) -> None:
+    """The passport of ``runs`` is the reference's within the stated uncertainty, same method and status; and
+    diagnose gives the same verdict (``verdict``)."""
+    ref, ref_method = reference(name)
+    result, method = sd.calibrate_runs(runs)
+    assert method == ref_method, (what, method, ref_method)
+    diffs = sd.same_passport(ref.passport, result.passport)
+    assert not diffs, (what, [str(d) for d in diffs[:6]])
+    # the positions on each plateau (a gap in a soak may take the position the unit was carried in, not its hold)
+    assert [set(p["positions"]) for p in result.plateaus] == [set(p["positions"]) for p in ref.plateaus], what
+    if verdict:
+        assert sd.diagnose_verdict(runs) == reference_verdict(name), what
+
+
+def free_spans(rec: Recording, margin_s: float) -> list[tuple[float, float]]:
+    """The spans (s from the start) that no hold of the program touches, ``margin_s`` away from every hold: soaks,
+    ramps, sweeps and the moves between poses (the whole record for a recording without holds)."""
+    end = sd.duration_s(rec.run)
+    holds = sorted(((a - rec.start_ns) / NS_PER_S, (b - rec.start_ns) / NS_PER_S) for a, b, _ in rec.holds_ns())
+    out, t = [], 0.0
+    for a, b in holds:
+        if a - margin_s > t:
+            out.append((t, a - margin_s))
+        t = max(t, b + margin_s)
+    if end > t:
+        out.append((t, end))
+    return out
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# gaps
+
+
+GAP_STREAMS = st.sampled_from([sd.STREAMS, ("voltmeter",), ("au_temperature",), ("voltmeter", "au_temperature")])
+
+
+@pytest.mark.parametrize(
+    ("name", "longest_s"),
+    lean([("standard", 7200.0), ("short", 1800.0), ("sweep", 3600.0), ("handheld", 30.0), ("differential", 3600.0)]),
+)
+@PROPERTY
+@given(where=st.floats(0.0, 1.0), length=st.floats(0.0, 1.0), pick=st.floats(0.0, 1.0), streams=GAP_STREAMS)
+def test_a_gap_where_no_pose_is_held_changes_nothing(name, longest_s, where, length, pick, streams):
+    """A gap of any length up to ``longest_s`` (a sweep's orientations last hours: a gap is at most an hour of
+    one) anywhere no pose is held: in a soak, a ramp, a sweep, between two poses."""
+    rec = recording(name)
+    spans = free_spans(rec, margin_s=15.0 if name != "handheld" else 0.5)
+    a, b = spans[min(int(pick * len(spans)), len(spans) - 1)]
+    t0 = a + where * (b - a)
+    t1 = min(b, t0 + length * longest_s)
+    assume(t1 - t0 > 0.1)
+    check_same(name, [sd.gap(rec.run, t0, t1, streams)], f"gap {t0:.0f}..{t1:.0f} s in {streams}")
+
+
+@pytest.mark.parametrize("name", lean(["short", "standard"]))
+@PROPERTY
+@given(hold=st.integers(0, 10_000), before=st.floats(0.0, 600.0), after=st.floats(0.0, 600.0), streams=GAP_STREAMS)
+def test_a_gap_over_a_hold_is_said_and_invents_nothing(name, hold, before, after, streams):
+    """A gap covering a whole hold of a chamber program removes that visit of the position: the result says on
+    which plateau data are missing and when, a test position missing from a plateau's constants is named, no
+    segment or verification row is made of the missing time, and none names a position the unit was not in."""
+    rec = recording(name)
+    holds = rec.holds_ns()
+    h0, h1, position = holds[hold % len(holds)]
+    lo, hi = h0 - int(before * NS_PER_S), h1 + int(after * NS_PER_S)
+    run = sd.gap(rec.run, (lo - rec.start_ns) / NS_PER_S, (hi - rec.start_ns) / NS_PER_S, streams)
+    from pipeline.segment import segment_run
+
+    seg = segment_run(run)
+    for s in seg.segments:
+        assert s.t_end_ns < lo or s.t_start_ns > hi, ("a segment made of the gap", s)
+        if s.position is not None:
+            held = set(rec.positions_at([s.t_start_ns, (s.t_start_ns + s.t_end_ns) // 2, s.t_end_ns]))
+            assert held == {s.position}, ("a position the unit was not in", s.position, held)
+    result, _ = sd.calibrate_runs([run])
+    said = " | ".join(result.warnings)
+    gone = [w for w in result.warnings if w.startswith(("plateau ", "off every plateau")) and " data " in w]
+    assert gone, said  # the plateau (or none), the stream(s) and the time without data
+    for r in result.rows:
+        assert r.t_end_ns < lo or r.t_start_ns > hi, ("a verification row made of the gap", r)
+        held = set(rec.positions_at([r.t_start_ns, r.t_end_ns]))
+        assert held == {r.position}, ("a verification of a position the unit was not in", r.position, held)
+    if position.startswith("TP"):
+        # a plateau fitted without the position names it missing
+        named = {p for m in re.findall(r"missing ((?:TP\d(?:, )?)+)", said) for p in m.split(", ")}
+        lacking = [f for f in result.fit.per_plateau if position not in f.positions]
+        assert position in named or not lacking, said
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# rates
+
+
+@pytest.mark.parametrize(
+    ("name", "longest_s"), lean([("standard", 60.0), ("short", 30.0), ("sweep", 60.0), ("differential", 60.0)])
+)
+@PROPERTY
+@given(fraction=st.floats(0.0, 1.0))
+def test_the_thermosensor_read_every_2_s_to_a_minute_changes_nothing(name, longest_s, fraction):
+    """Read every 2 s to a minute; the short program's unit follows the chamber with a 2-min lag after 5 C/min
+    ramps, and readings half a minute apart are as sparse as still resolve it (0.05 C off a straight line between
+    readings; a minute apart 0.18 C: calibrate gives the same passport, diagnose sees the rest as a mismatch)."""
+    rec = recording(name)
+    interval_s = 2.0 + fraction * (longest_s - 2.0)
+    check_same(name, [sd.decimate(rec.run, "au_temperature", interval_s)], f"thermosensor every {interval_s:.1f} s")
+
+
+@pytest.mark.parametrize("name", lean(["standard", "short", "handheld"]))
+def test_the_thermosensor_at_10_hz_changes_nothing(name):
+    rec = recording(name)
+    check_same(name, [sd.interpolate(rec.run, "au_temperature", 10.0)], "thermosensor at 10 Hz")
+
+
+@pytest.mark.parametrize("name", lean(["standard", "short", "sweep", "handheld", "differential"]))
+@PROPERTY
+@given(fraction=st.floats(0.0, 1.0))
+def test_the_voltmeter_read_slower_changes_nothing(name, fraction):
+    """The voltmeter decimated to any rate from the recording's own down to the slowest that holds its poses
+    (0.5 Hz for the chamber programs' 5-min holds and hour-long orientations)."""
+    rec = recording(name)
+    rate = SIMULATED[name][0].rate_hz
+    target = rec.min_voltmeter_hz + fraction * (rate - rec.min_voltmeter_hz)
+    assume(target < 0.95 * rate)
+    check_same(name, [sd.decimate(rec.run, "voltmeter", 1.0 / target)], f"voltmeter at {target:.2f} Hz")
+
+
+@pytest.mark.parametrize("name", lean(["standard", "short", "sweep", "differential"]))
+def test_without_the_chamber_stream_nothing_changes(name):
+    check_same(name, [sd.without(recording(name).run, "chamber")], "no chamber stream")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    ("name", "longest_s", "sensor_s"),
+    [("standard", 7200.0, 60.0), ("sweep", 3600.0, 60.0), ("differential", 3600.0, 60.0)],
+)
+@settings(PROPERTY, max_examples=1)
+@given(
+    pick=st.floats(0.0, 1.0),
+    where=st.floats(0.0, 1.0),
+    length=st.floats(0.0, 1.0),
+    sensor=st.floats(0.0, 1.0),
+    voltmeter=st.floats(0.0, 1.0),
+    days=st.floats(-400.0, 400.0),
+)
+def test_every_transformation_at_once(name, longest_s, sensor_s, pick, where, length, sensor, voltmeter, days):
+    """The longer programs (a calibration of tens of seconds each): a gap where no pose is held, the thermosensor
+    read every 2 s .. ``sensor_s``, the voltmeter decimated towards the slowest rate that holds the poses, no
+    chamber stream and all times shifted, in one recording (each alone is searched with ``DEEP``)."""
+    rec = recording(name)
+    spans = free_spans(rec, margin_s=15.0)
+    a, b = spans[min(int(pick * len(spans)), len(spans) - 1)]
+    t0 = a + where * (b - a)
+    t1 = min(b, t0 + max(length * longest_s, 1.0))
+    interval_s = 2.0 + sensor * (sensor_s - 2.0)
+    rate = SIMULATED[name][0].rate_hz
+    target = rec.min_voltmeter_hz + voltmeter * (rate - rec.min_voltmeter_hz)
+    run = sd.gap(rec.run, t0, t1)
+    run = sd.decimate(run, "au_temperature", interval_s)
+    if target < 0.95 * rate:
+        run = sd.decimate(run, "voltmeter", 1.0 / target)
+    run = sd.shift(sd.without(run, "chamber"), days * 86400.0)
+    what = (
+        f"gap {t0:.0f}..{t1:.0f} s, thermosensor every {interval_s:.1f} s, voltmeter at {min(target, rate):.2f} Hz, "
+        f"no chamber, shifted {days:.2f} days"
+    )
+    check_same(name, [run], what)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# time, order, files
+
+
+@pytest.mark.parametrize("name", lean(["standard", "short", "sweep", "handheld"]))
+@PROPERTY
+@given(days=st.floats(-400.0, 400.0))
+def test_shifted_times_change_nothing(name, days):
+    check_same(name, [sd.shift(recording(name).run, days * 86400.0)], f"shifted {days:.2f} days")
+
+
+@pytest.mark.parametrize("name", lean(["standard", "handheld"]))
+@PROPERTY
+@given(seed=st.integers(0, 2**32 - 1))
+def test_rows_in_any_order_in_the_files_change_nothing(name, seed, tmp_path_factory):
+    """Every stream's rows shuffled in its Parquet file: the reader puts them in time order."""
+    path = sd.write_shuffled(recording(name).run, tmp_path_factory.mktemp("shuffled") / "run", seed)
+    check_same(name, [read_run(path)], f"rows shuffled ({seed})")
+
+
+@pytest.mark.parametrize("name", lean(["standard", "handheld"]))
+def test_an_exact_duplicate_file_changes_nothing(name, tmp_path):
+    run = recording(name).run
+    a, b = tmp_path / "a.mcap", tmp_path / "copy.mcap"
+    write_run(run, a)
+    b.write_bytes(a.read_bytes())
+    check_same(name, [read_run(a), read_run(b)], "the file given twice")
+
+
+@pytest.mark.skipif(not JOINS_FILES, reason="needs the files of one recording joined (issue 21 item 3, inputs)")
+@pytest.mark.parametrize("name", lean(["standard", "short", "sweep", "handheld"]))
+@PROPERTY
+@given(cuts=st.lists(st.floats(0.01, 0.99), min_size=1, max_size=4, unique=True), order=st.randoms())
+def test_a_run_split_into_files_at_any_points_in_any_order_changes_nothing(name, cuts, order):
+    rec = recording(name)
+    d = sd.duration_s(rec.run)
+    pieces = sd.split(rec.run, [c * d for c in cuts])
+    order.shuffle(pieces)
+    check_same(name, pieces, f"split at {[round(c * d) for c in sorted(cuts)]} s")
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# the real recordings
+
+
+@PROPERTY
+@given(days=st.floats(-400.0, 400.0), seed=st.integers(0, 2**32 - 1))
+def test_imucal_shifted_and_shuffled(days, seed, tmp_path_factory):
+    rec = recording("imucal")
+    path = sd.write_shuffled(sd.shift(rec.run, days * 86400.0), tmp_path_factory.mktemp("imucal") / "run", seed)
+    check_same("imucal", [read_run(path)], f"imucal shifted {days:.1f} d, shuffled")
+
+
+@PROPERTY
+@given(rate=st.floats(20.0, 100.0))
+def test_imucal_voltmeter_read_slower(rate):
+    check_same("imucal", [sd.decimate(recording("imucal").run, "voltmeter", 1.0 / rate)], f"imucal at {rate:.0f} Hz")
+
+
+def _imucal_free(rec: Recording) -> list[tuple[float, float]]:
+    """The hand-marked turns between imucal's poses (labels.json): spans where no pose is held, s."""
+    import json
+
+    labels = json.loads(data_path("real", "imucal_ferraris", "labels.json").read_text())["labels"]
+    t = rec.run.t_ns()
+    poses = sorted((t[x["start_sample"]], t[x["end_sample"]]) for x in labels if x["position"].startswith("TP"))
+    return [
+        ((b0 - rec.start_ns) / NS_PER_S + 0.5, (a1 - rec.start_ns) / NS_PER_S - 0.5)
+        for (_, b0), (a1, _) in zip(poses, poses[1:])
+        if a1 - b0 > NS_PER_S
+    ]
+
+
+@PROPERTY
+@given(pick=st.integers(0, 100), where=st.floats(0.0, 1.0), length=st.floats(0.0, 1.0))
+def test_imucal_gap_between_poses(pick, where, length):
+    rec = recording("imucal")
+    spans = _imucal_free(rec)
+    a, b = spans[pick % len(spans)]
+    t0 = a + where * (b - a)
+    t1 = t0 + length * (b - t0)
+    assume(t1 - t0 > 0.05)
+    check_same("imucal", [sd.gap(rec.run, t0, t1)], f"imucal gap {t0:.1f}..{t1:.1f} s")
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not DEEP, reason="the CATS tag's 3-day record: with THERMOCAL_HYPOTHESIS_EXAMPLES only (CI time)")
+@settings(PROPERTY, max_examples=max(1, EXAMPLES // 2))
+@given(
+    where=st.floats(0.0, 1.0), hours=st.floats(0.1, 2.0), interval_s=st.floats(2.0, 60.0), days=st.floats(-400.0, 400.0)
+)
+def test_cats_gap_thermosensor_rate_and_shift(where, hours, interval_s, days):
+    """The CATS tag: a gap of up to 2 h anywhere (its orientations last a day), its thermosensor read every 2 s
+    to a minute, all times shifted."""
+    rec = recording("cats")
+    d = sd.duration_s(rec.run)
+    t0 = where * (d - hours * 3600.0)
+    run = sd.shift(sd.decimate(sd.gap(rec.run, t0, t0 + hours * 3600.0), "au_temperature", interval_s), days * 86400)
+    check_same(
+        "cats", [run], f"cats gap at {t0:.0f} s ({hours:.2f} h), thermosensor every {interval_s:.0f} s", verdict=False
+    )
