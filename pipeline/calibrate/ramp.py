@@ -796,7 +796,15 @@ def _lag_note(fit: RampFit, ramp: RampSettings) -> str:
     t = fit.lag_test or {}
     if fit.tau_s > 0:
         sig = f" +- {fit.tau_sigma_s:.2g}" if fit.tau_sigma_s is not None else ""
-        return f"ramp: the sensing element lags the thermosensor by {fit.tau_s:.1f}{sig} s (p = {t['p_value']:.2g})"
+        note = f"ramp: the sensing element lags the thermosensor by {fit.tau_s:.1f}{sig} s (p = {t['p_value']:.2g})"
+        if fit.tau_s >= 0.999 * ramp.lag_max_s:
+            # the search's bound: a longer lag is taken up by the constants and the hysteresis (6 C/min, 2400 s:
+            # VP errors of 2.7 mg and a hysteresis of 120 uV that is not there)
+            note += (
+                f", the longest the search tries (lag_max_s {ramp.lag_max_s:g} s): the element may lag more; "
+                "the constants and any hysteresis found are then suspect (a slower ramp or longer dwells tell)"
+            )
+        return note
     return (
         f"ramp: no element lag (the best, {t.get('tau_s', 0.0):.2g} s, is shorter than a thermosensor sample or "
         f"does not lower the residuals beyond chance, p = {t.get('p_value', 1.0):.2g})"

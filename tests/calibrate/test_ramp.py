@@ -293,3 +293,16 @@ def test_lag_and_hysteresis_told_apart():
     np.testing.assert_allclose(named["thermal_hysteresis"]["parameters"]["h_v"], h, atol=3e-6)
     effects = {e["effect"]: e["parameters"] for e in diagnosis.passport.document["extended_model"]["effects"]}
     assert effects["thermal_lag"]["tau_s"] == doc["rate_terms"]["lag_tau_s"]  # kept in the extended model
+
+
+def test_a_lag_at_the_search_limit_is_said_to_be_suspect():
+    """A lag found at lag_max_s is a bound, not a measurement (CLI: 6 C/min with a concealed 2400-s lag gave
+    '1800.0 +- 120 s', a hysteresis of 120 uV the run does not have, VP errors of 2.7 mg)."""
+    from types import SimpleNamespace
+
+    settings = ramp.RampSettings()
+    at_bound = SimpleNamespace(tau_s=settings.lag_max_s, tau_sigma_s=120.0, lag_test={"p_value": 1e-9})
+    inside = SimpleNamespace(tau_s=300.0, tau_sigma_s=0.06, lag_test={"p_value": 1e-9})
+    assert "the element may lag more" in ramp._lag_note(at_bound, settings)
+    assert "1800.0 +- 1.2e+02 s" in ramp._lag_note(at_bound, settings)
+    assert "may lag more" not in ramp._lag_note(inside, settings)
