@@ -13,9 +13,12 @@ Three steps, each linear propagation of independent errors:
    that constant's values on the plateaus only (plateaus are independent). Each plateau value is moved by its own
    standard uncertainty and the model refitted; the changes, added in quadrature, are the coefficients' standard
    uncertainties (exact for the linear coefficients, first order for the relative beta and gamma, which divide by
-   K(T0)). Where the plateau constants scatter about the model by more than their uncertainties allow (chi^2 per
-   degree of freedom above 1, pooled over the 12 constants), the uncertainties are scaled up by that ratio
-   (:func:`thermal_sigma`).
+   K(T0)). Where one constant's plateau values scatter about the model by more than their uncertainties allow, that
+   excess scatter (per constant, :func:`model_excess_scatter`) is added in quadrature to each plateau's uncertainty
+   of that constant before propagating (:func:`thermal_sigma`). Per constant and additive, not one pooled
+   chi^2-per-dof ratio multiplying all: on a noiseless run some plateau values carry uncertainties at the readings'
+   resolution (1e-16 V/g) and the model's own misfit (1e-10 V/g) divided by them made a ratio of thousands that
+   multiplied every other uncertainty (49 ppm of K for constants exact to 1e-7 V/g).
 
 A value the data cannot determine (a relative coefficient of a zero constant) is ``None``, never a made-up number.
 
@@ -128,6 +131,10 @@ def thermal_sigma(
     temps_c = np.asarray(temps_c, dtype=float)
     base = fit_model(temps_c, K, U0)
     base_vec, layout = _flatten_model(base)
+    ratio, dof = _birge(base, temps_c, K, U0, K_sigma, U0_sigma)  # reported, as measured before the excess
+    tau_K, tau_U0 = model_excess_scatter(base, temps_c, K, U0, K_sigma, U0_sigma)
+    K_sigma = np.sqrt(np.asarray(K_sigma, dtype=float) ** 2 + tau_K**2)
+    U0_sigma = np.sqrt(np.asarray(U0_sigma, dtype=float) ** 2 + tau_U0**2)
     var = np.zeros_like(base_vec)
     for p in range(len(temps_c)):
         Kp, Kmi = K.copy(), K.copy()
@@ -139,9 +146,7 @@ def thermal_sigma(
         plus, _ = _flatten_model(fit_model(temps_c, Kp, Up))
         minus, _ = _flatten_model(fit_model(temps_c, Kmi, Umi))
         var += ((plus - minus) / 2.0) ** 2
-    ratio, dof = _birge(base, temps_c, K, U0, K_sigma, U0_sigma)
-    scale = max(1.0, ratio) if np.isfinite(ratio) else 1.0
-    sig = np.sqrt(var) * scale
+    sig = np.sqrt(var)
     undetermined = ~np.isfinite(base_vec) | _undetermined_mask(base, layout)
     sig = np.where(undetermined, np.nan, sig)
     K0_sig = sig[:9].reshape(3, 3)
@@ -153,6 +158,26 @@ def thermal_sigma(
         birge_ratio=float(ratio),
         dof=int(dof),
     )
+
+
+def model_excess_scatter(
+    model, temps_c: np.ndarray, K: np.ndarray, U0: np.ndarray, K_sigma: np.ndarray, U0_sigma: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per constant, the scatter of its plateau values about the temperature model beyond their uncertainties:
+    K (3, 3) V/g and U0 (3,) V. With n plateaus and dof = n - (the model's parameters) residual degrees of freedom,
+    tau^2 = max(0, sum r^2 - (dof / n) sum sigma^2) / dof (the noise alone leaves about dof / n of each plateau's
+    variance in its residual); 0 without residual degrees of freedom."""
+    Km, U0m = model.constants_at(temps_c)
+    n = len(temps_c)
+    dof = n - _n_params(model)
+    if dof <= 0:
+        return np.zeros((3, 3)), np.zeros(3)
+    r = np.concatenate([(K - Km).reshape(n, 9), U0 - U0m], axis=1)
+    s = np.concatenate([np.asarray(K_sigma, dtype=float).reshape(n, 9), np.asarray(U0_sigma, dtype=float)], axis=1)
+    s = np.where(np.isfinite(s), s, 0.0)
+    tau2 = np.maximum(np.sum(r**2, axis=0) - dof / n * np.sum(s**2, axis=0), 0.0) / dof
+    tau = np.sqrt(np.where(np.isfinite(tau2), tau2, 0.0))
+    return tau[:9].reshape(3, 3), tau[9:]
 
 
 def _birge(model, temps_c, K, U0, K_sigma, U0_sigma) -> tuple[float, int]:

@@ -49,7 +49,7 @@ from pipeline.passport.document import Passport
 from pipeline.positions import AXES
 from pipeline.segment import segment_run
 from pipeline.thermal import PolynomialModel
-from pipeline.uncertainty import ThermalSigma
+from pipeline.uncertainty import ThermalSigma, as_json_list
 
 #: channel pairs of psi_xy, psi_xz, psi_yz
 PSI_PAIRS = ((0, 1), (0, 2), (1, 2))
@@ -104,10 +104,10 @@ class ScalarFit:
             "norm_error_rms_g": float(np.sqrt(np.mean(self.norm_error_g**2))),
             "norm_error_max_abs_g": float(np.max(np.abs(self.norm_error_g))),
             "spread": float(self.spread),
-            "std": {
-                "d0_g": self.std[0:3].tolist(),
-                "d1": self.std[3:6].tolist(),
-                "psi": dict(zip(PSI_NAMES, self.std[6:9].tolist())),
+            "std": {  # null where not fitted or without redundancy (gauge_notes names why)
+                "d0_g": as_json_list(self.std[0:3]),
+                "d1": as_json_list(self.std[3:6]),
+                "psi": dict(zip(PSI_NAMES, as_json_list(self.std[6:9]))),
             },
         }
         if self.d2 is not None:
@@ -378,7 +378,8 @@ def constants_sigma(fit: ScalarFit) -> tuple[np.ndarray, np.ndarray]:
     errors (residual-scaled, :func:`_standard_errors`): K = diag(k_p) K_n and U0 = u0_p + k_p d0, so sigma(K_ij) =
     |k_p_i| sigma(d1_i) on the diagonal and |k_p_i| sigma(psi) below it, sigma(U0_i) = |k_p_i| sigma(d0_i).
     The upper entries are 0 exactly, by the rotation gauge (:func:`gauge_notes`): sigma 0. The diagonal model has no
-    cross-axis terms at all (orthogonal axes assumed): NaN (not determined)."""
+    cross-axis terms at all (orthogonal axes assumed): NaN (not determined). Without redundancy (no more positions
+    than parameters) the fitted entries are NaN too (:func:`gauge_notes` names them)."""
     k = np.abs(np.asarray(fit.k_prelim_v_per_g, dtype=float))
     K_sig = np.full((3, 3), np.nan)
     K_sig[np.diag_indices(3)] = k * fit.std[3:6]
@@ -394,6 +395,18 @@ def gauge_notes(fit: ScalarFit) -> tuple[dict[str, str], dict[str, str]]:
     the convention fixes them); with the diagonal model the cross-axis entries are not determined (0 by the
     assumption of orthogonal axes; uncertainty null)."""
     upper = [f"K.{AXES[i]}{AXES[j]}" for i, j in zip(*np.triu_indices(3, 1))]
+    lower = [f"K.{AXES[i]}{AXES[j]}" for i, j in zip(*_LOWER)]
+    fitted = [f"U0.{a}" for a in AXES] + [f"K.{a}{a}" for a in AXES] + (lower if fit.model == "full" else [])
+    n_params = len(fitted)
+    unscaled = (
+        {}
+        if fit.n_positions > n_params
+        else {
+            n: f"{fit.n_positions} positions for the {n_params} parameters of the {fit.model} scalar model: no "
+            f"redundancy, so no scatter to measure its uncertainty by (at least {n_params + 1} positions)"
+            for n in fitted
+        }
+    )
     if fit.model == "full":
         return (
             {
@@ -401,12 +414,14 @@ def gauge_notes(fit: ScalarFit) -> tuple[dict[str, str], dict[str, str]]:
                 "x-y sensitive plane); a scalar calibration cannot see a rotation of the triad"
                 for n in upper
             },
-            {},
+            unscaled,
         )
-    lower = [f"K.{AXES[i]}{AXES[j]}" for i, j in zip(*_LOWER)]
     return {}, {
-        n: "diagonal scalar model: orthogonal axes assumed, cross-axis sensitivity not determined (0)"
-        for n in upper + lower
+        **unscaled,
+        **{
+            n: "diagonal scalar model: orthogonal axes assumed, cross-axis sensitivity not determined (0)"
+            for n in upper + lower
+        },
     }
 
 
