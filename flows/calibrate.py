@@ -124,7 +124,23 @@ def write(
     )
 
 
-@flow(name="thermocal-calibrate", log_prints=False)
+def _calibrate_run_name() -> str:
+    """The flow run's name: the unit and the run it calibrates (``calibrate-AU-0001-2026-11-01-ch2``, ``+2`` for
+    two more runs), read from the first run's metadata; the file's name when that cannot be read."""
+    from prefect.runtime import flow_run as current
+
+    paths = list((current.parameters or {}).get("paths") or [])
+    if not paths:
+        return "calibrate"
+    try:
+        meta = runio.read_run_meta(paths[0])
+        name = f"calibrate-{meta.unit_serial}-{meta.run_id}"
+    except ThermocalError:
+        name = f"calibrate-{os.path.basename(str(paths[0]))}"
+    return name + (f"+{len(paths) - 1}" if len(paths) > 1 else "")
+
+
+@flow(name="thermocal-calibrate", log_prints=False, flow_run_name=_calibrate_run_name)
 def calibrate_flow(
     paths: list[str],
     registry: str,

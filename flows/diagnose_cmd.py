@@ -1,37 +1,56 @@
 """``thermocal diagnose RUN [--passport FILE | --registry DIR] [--json]``: the command behind the CLI (no Prefect).
 
 Reads the run (and the passport when given: a file, or the unit's current passport in a registry, see
-:func:`current_passport`), runs :func:`pipeline.diagnose.diagnosis.diagnose_run`, writes the figure and the
-passport extended with the fitted effects, and returns the report (docs/contract.md's ``diagnose --json`` object plus
-``figure`` and ``extended_passport`` paths). Both files go beside the run unless paths are given:
-``<run>.diagnose.png`` and ``<run>.diagnose.passport.json``.
+Reads the run (and the passport when given: a file, or the unit's current passport in a registry, see
+:func:`current_passport`; either verified first, :mod:`pipeline.passport.verification`, or used with
+``--unverified`` and said so), runs :func:`pipeline.diagnose.diagnosis.diagnose_run`, writes the figure and the
+passport extended with the fitted effects (signed by this station, as a loose file), and returns the report
+(docs/contract.md's ``diagnose --json`` object plus ``figure`` and ``extended_passport`` paths). Both files are
+named ``<run>.diagnose.png`` and ``<run>.diagnose.passport.json`` (``<run>.<unit>.diagnose...`` for one unit of a
+run holding several) and go where ``--out`` says, else beside the registry (``REG/diagnose/UNIT/``) with
+``--registry``, else into the current folder: never into the data's folder, which may be read-only and is not ours.
 """
 
 from __future__ import annotations
 
-import json
+import math
 from pathlib import Path
 
 from pipeline.diagnose.diagnosis import diagnose_run
 from pipeline.errors import ThermocalError
-from pipeline.io.runs import read_run
+from pipeline.io.runs import read_run, read_run_meta
+from pipeline.jsonable import to_jsonable
 from pipeline.model import OUTPUT_UNITS
+from pipeline.passport.canonical import canonical_json
 from pipeline.passport.document import load_passport
-from pipeline.passport.registry import Registry
+from pipeline.passport.registry import Registry, load_passport_file
+from pipeline.passport.signing import sign_record
 
 from .runtime import Steps
 
-
-def _beside(run: Path, suffix: str) -> Path:
-    run = Path(run)
-    return run.parent / f"{run.name.removesuffix('.mcap')}{suffix}"
+#: The folder of a registry that diagnose writes into (beside ``units/``, which holds only versions).
+REGISTRY_DIAGNOSE_DIR = "diagnose"
 
 
-def current_passport(registry: Path, unit: str):
-    """The unit's current passport in ``registry`` (docs/contract.md: the newest approved version, else the newest:
-    :meth:`pipeline.passport.registry.Registry.load_state`), a description of it (version, status, approval) and
-    its :class:`pipeline.passport.registry.VersionState`."""
-    doc, st = Registry(registry).load_state(unit)
+def output_folder(out_dir: Path | None, registry: Path | None, unit: str) -> Path:
+    """Where diagnose's files go: ``out_dir``, else ``REG/diagnose/UNIT`` beside a registry's units, else the
+    current folder."""
+    if out_dir is not None:
+        return Path(out_dir)
+    if registry is not None:
+        return Path(registry) / REGISTRY_DIAGNOSE_DIR / unit
+    return Path.cwd()
+
+
+def _named(folder: Path, run: Path, suffix: str) -> Path:
+    return folder / f"{Path(run).name.removesuffix('.mcap')}{suffix}"
+
+
+def current_passport(registry: Path, unit: str, unverified: bool = False):
+    """The unit's current passport in ``registry`` (docs/contract.md: the newest approved version, else the newest that
+    did not fail: :meth:`pipeline.passport.registry.Registry.load_state`, verified), a description of it (version,
+    status, approval) and its :class:`pipeline.passport.registry.VersionState`."""
+    doc, st = Registry(registry).load_state(unit, unverified=unverified)
     return load_passport(doc), f"{registry}: {st.text()}", st
 
 
@@ -43,40 +62,46 @@ def diagnose_command(
     out_passport: Path | None = None,
     registry: Path | None = None,
     unit: str | None = None,
+    *,
+    out_dir: Path | None = None,
+    unverified: bool = False,
 ) -> dict:
-    """Diagnose ``run`` against ``passport``, or the unit's current passport in ``registry``, or one fitted from
-    the run when neither is given; write the PNG to ``out_png`` and the extended passport to ``out_passport``
-    (default: beside the run; of one unit of a run holding several, named with the unit). ``unit``: the unit of a
-    run holding several (only its streams are read). Progress on stderr when it is a terminal (``as_json`` is not
-    used). Returns the report."""
+    """Diagnose ``run`` against ``passport``, or the unit's current passport in ``registry`` (either verified,
+    or used ``unverified`` and said so), or one fitted from the run when neither is given; write the PNG to
+    ``out_png`` and the extended passport to ``out_passport`` (default: in :func:`output_folder`; of one unit of a
+    run holding several, named with the unit). ``unit``: the unit of a run holding several (only its streams are
+    read). Progress on stderr when it is a terminal (``as_json`` is not used). Returns the report."""
     run = Path(run)
     step = Steps("diagnose")
     if passport is not None and registry is not None:
         raise ThermocalError("give --passport or --registry, not both", where="diagnose")
+    given, source, state = None, None, None  # the passport first: one that does not verify ends it at once
+    if passport is not None:
+        doc, state = load_passport_file(passport, unverified=unverified)
+        given, source = load_passport(doc), str(passport) + (f" ({state.verification.label})" if state.unverified else "")
+    elif registry is not None:
+        given, source, state = current_passport(registry, unit or read_run_meta(run).unit_serial, unverified)
     step(f"ingest {run.name}")
     the_run = read_run(run, unit)
-    given, source, state = None, None, None
-    if passport is not None:
-        given, source = load_passport(passport), str(passport)
-    elif registry is not None:
-        given, source, state = current_passport(registry, the_run.meta.unit_serial)
     step("segment, fit and search the residual" if given is None else "segment and search the residual")
     result = diagnose_run(the_run, given, passport_source=source)
     step("write figure and extended passport")
+    folder = output_folder(out_dir, registry, the_run.meta.unit_serial)
     tag = f".{unit}" if unit else ""
-    png = Path(out_png) if out_png is not None else _beside(run, f"{tag}.diagnose.png")
-    ext = Path(out_passport) if out_passport is not None else _beside(run, f"{tag}.diagnose.passport.json")
+    png = Path(out_png) if out_png is not None else _named(folder, run, f"{tag}.diagnose.png")
+    ext = Path(out_passport) if out_passport is not None else _named(folder, run, f"{tag}.diagnose.passport.json")
     try:
         from pipeline.diagnose.plot import plot_diagnosis
 
         title = f"{the_run.meta.unit_serial} {the_run.meta.run_id}: residual of 30 s blocks, {result.report['verdict']}"
+        png.parent.mkdir(parents=True, exist_ok=True)
         plot_diagnosis(png, result, the_run, title=title, output_unit=result.passport.output_unit)
         ext.parent.mkdir(parents=True, exist_ok=True)
-        ext.write_text(json.dumps(result.passport.document, indent=1, sort_keys=True) + "\n")
+        ext.write_bytes(canonical_json(_sealed(result.passport.document, state)))
     except OSError as e:
         raise ThermocalError(f"cannot write: {e.strerror or e}", path=str(e.filename or png)) from None
     report = dict(result.report)
-    if state is not None:  # which version of the registry, its status and approval
+    if state is not None:  # which version of the registry, its status and approval, how it was verified
         report["passport_used"] = state.as_dict()
         if state.warning():
             report["notes"] = [*report.get("notes", []), state.warning()]
@@ -84,6 +109,27 @@ def diagnose_command(
     report["figure"] = str(png)
     report["extended_passport"] = str(ext)
     return report
+
+
+def _sealed(extended: dict, state) -> dict:
+    """The extended passport as written: signed by this station when its base verified (or was fitted here), so
+    that apply can verify it as a loose file; a base used ``--unverified`` leaves it unsigned (apply then needs
+    ``--unverified`` too), with the label recorded."""
+    body = _finite({k: v for k, v in to_jsonable(extended).items() if k not in ("content_sha256", "signature")})
+    if state is not None and state.unverified:
+        return {**body, "derived_from_unverified": state.verification.label}
+    return sign_record(body)
+
+
+def _finite(value):
+    """``value`` with every non-finite number made null (canonical JSON has no NaN)."""
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_finite(v) for v in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
 
 
 def diagnose_text(report: dict) -> str:

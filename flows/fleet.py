@@ -1,9 +1,16 @@
 """The fleet flow: calibrate every run under a folder, one passport per unit, past bad runs.
 
 One flow run per fleet job, one task per unit (``calibrate-unit``, a call of
-:func:`pipeline.calibrate.fleet.calibrate_group`): a unit's runs, TP runs and the VP runs that verify them, are
+:func:`pipeline.calibrate.fleet.compute_group`): a unit's runs, TP runs and the VP runs that verify them, are
 calibrated together. Planning (discovery, metadata, content hashes, the registry's identity check) is
 :func:`pipeline.calibrate.fleet.plan_fleet`, run once in the flow.
+
+The tasks only compute; publishing happens in one place, the flow itself, as each unit's result comes back
+(:func:`pipeline.calibrate.fleet.publish_group`: signed with this station's key, appended to the registry the user
+named, its path made absolute here before anything runs). So a worker on another machine, with another working
+folder or another key, neither writes a passport where the user did not ask nor signs one this station would not
+trust; and a worker killed mid-unit loses nothing: dask runs that unit's task again elsewhere, and nothing of it was
+written before its result reached the flow.
 
 Where the unit tasks run is a flow parameter, so that a deployment can choose it too:
 
@@ -63,19 +70,16 @@ ARTIFACT_KEY = "thermocal-fleet"
 def calibrate_unit(
     unit: str,
     runs: list[str],
-    registry: str,
     settings: CalibrationSettings,
-    figure: bool = True,
-    digests: dict | None = None,
     method: str = "tilt",
     base_passport: Passport | None = None,
     within: dict | None = None,
     pool: Executor | None = None,
-) -> fleet_plan.UnitOutcome:
-    """:func:`pipeline.calibrate.fleet.calibrate_group`, in the process ``pool`` when given (the flow's), else
-    here."""
-    args = (unit, runs, registry, settings, figure, digests, method, base_passport, within)
-    return pool.submit(fleet_plan.calibrate_group, *args).result() if pool else fleet_plan.calibrate_group(*args)
+) -> fleet_plan.ComputedUnit:
+    """:func:`pipeline.calibrate.fleet.compute_group` (no registry, no key: the flow publishes), in the process
+    ``pool`` when given (the flow's), else here."""
+    args = (unit, runs, settings, method, base_passport, within)
+    return pool.submit(fleet_plan.compute_group, *args).result() if pool else fleet_plan.compute_group(*args)
 
 
 def default_workers() -> int:
@@ -172,7 +176,15 @@ class _Progress:
             self.bar.advance(self.task)
 
 
-@flow(name="thermocal-fleet", log_prints=False)
+def _fleet_run_name() -> str:
+    """The flow run's name: the folder it calibrates (``fleet-inbox``), not a random pair of words."""
+    from prefect.runtime import flow_run as current
+
+    root = str((current.parameters or {}).get("root") or "")
+    return f"fleet-{os.path.basename(os.path.normpath(root)) or 'runs'}"
+
+
+@flow(name="thermocal-fleet", log_prints=False, flow_run_name=_fleet_run_name)
 def fleet_flow(
     root: str,
     registry: str,
@@ -192,6 +204,7 @@ def fleet_flow(
     with its own table artifact); the summary gets ``trends``, the number of findings of each kind."""
     logger = get_run_logger()
     t0 = time.perf_counter()
+    registry = os.path.abspath(registry)  # the registry the user named, whatever the workers' working folders
     step = Steps("fleet")  # progress only when asked and stderr is a terminal
     step.on = step.on and progress
     step(f"plan: find, read and hash the runs under {root}")
@@ -220,10 +233,7 @@ def fleet_flow(
                     {
                         "unit": g.unit,
                         "runs": list(g.runs),
-                        "registry": str(registry),
                         "settings": settings,
-                        "figure": figures,
-                        "digests": g.digests,
                         "method": method,
                         "base_passport": g.base_passport,
                         "within": g.within,
@@ -235,11 +245,15 @@ def fleet_flow(
             for fut in as_completed(list(futures)):
                 group = futures[fut]
                 try:
-                    outcome = fut.result()
+                    computed = fut.result()
                 except Exception as exc:
                     reason = fleet_plan.reason_of(exc)
                     outcome = fleet_plan.UnitOutcome(
                         group.unit, list(group.runs), None, [{"run": r, "reason": reason} for r in group.runs], 0.0
+                    )
+                else:  # the one place the fleet signs and writes: here, on the station
+                    outcome = fleet_plan.publish_group(
+                        registry, computed, settings, figures, group.digests, group.within
                     )
                 outcomes.append(outcome)
                 bar.unit_done(_unit_line(outcome, len(outcomes), len(plan.groups)), outcome.failed)

@@ -141,6 +141,7 @@ def ensure_server(home: Path | None = None, timeout_s: float = START_TIMEOUT_S) 
     if st:  # another installation's or older code: replace it
         stop_server(home)
     home.mkdir(parents=True, exist_ok=True)
+    say_starting(home, first=not (home / "prefect.db").exists())
     env = {**os.environ, **_QUIET, "PREFECT_HOME": str(home)}
     env.pop("PREFECT_API_URL", None)
     with open(home / LOG, "ab") as log:
@@ -164,6 +165,17 @@ def ensure_server(home: Path | None = None, timeout_s: float = START_TIMEOUT_S) 
     raise ThermocalError(
         f"the local Prefect server did not start (its log: {home / LOG}); set PREFECT_API_URL to a running server"
     )
+
+
+def say_starting(home: Path, *, first: bool, stream=None) -> bool:
+    """One progress line on ``stream`` (default stderr) saying that the local server is starting and where, only
+    when it is a terminal (a script's stderr stays empty: the one-line rule is for errors); True if printed."""
+    stream = stream or sys.stderr
+    if not _isatty(stream):
+        return False
+    wait = "its database is created first: 10-30 s" if first else "a few seconds"
+    print(f"thermocal: starting the local Prefect server in {home} ({wait}) ...", file=stream, flush=True)
+    return True
 
 
 def stop_server(home: Path | None = None, timeout_s: float = 30.0) -> bool:

@@ -133,7 +133,8 @@ class ClosedPipeQuiet:
     """``sys.stdout`` while a command runs: when the reader of a pipe goes away (``thermocal ... | head -3``), the
     rest of the output is dropped without a word and the command carries on to its end (registry writes included,
     exit status unchanged); the file descriptor is pointed at the null device so that the interpreter's last flush
-    finds nothing to complain about."""
+    finds nothing to complain about. Control characters written are escaped (:func:`pipeline.words.printable`):
+    what a command prints is text, never terminal commands."""
 
     def __init__(self, stream):
         self._stream = stream
@@ -142,7 +143,9 @@ class ClosedPipeQuiet:
     def write(self, s: str) -> int:
         if not self.reader_gone:
             try:
-                return self._stream.write(s)
+                from pipeline.words import printable
+
+                return self._stream.write(printable(s))
             except BrokenPipeError:
                 self._drop()
         return len(s)
@@ -175,15 +178,25 @@ def exit_guarded(body) -> None:
     ``sys.stdout`` is :class:`ClosedPipeQuiet` meanwhile; a :class:`pipeline.errors.ThermocalError` is one line on
     stderr and exit 2, Ctrl-C ``thermocal: aborted`` and 130, any other exception one line (``internal error``,
     the traceback with THERMOCAL_DEBUG=1) and 3. The one guard of :func:`flows.cli.main` and
-    :func:`flows.console.main`."""
+    :func:`flows.console.main`. Control characters in what is printed are escaped (:func:`pipeline.words.printable`:
+    a serial or a name holding ANSI escapes is shown, not obeyed); Python's warnings (numpy's floating-point
+    RuntimeWarnings, libraries' deprecations) are not printed (with THERMOCAL_DEBUG=1 they are): a command says what
+    matters in its own lines."""
+    import warnings
+
     from pipeline.errors import ThermocalError
+    from pipeline.words import printable
 
     stdout = sys.stdout
     sys.stdout = ClosedPipeQuiet(stdout)
+    quiet = warnings.catch_warnings()
+    quiet.__enter__()
+    if not os.environ.get("THERMOCAL_DEBUG"):
+        warnings.simplefilter("ignore")
     try:
         code = body()
     except ThermocalError as e:
-        print(f"thermocal: error: {e.one_line()}", file=sys.stderr)
+        print(f"thermocal: error: {printable(e.one_line(), lines=False)}", file=sys.stderr)
         code = 2
     except KeyboardInterrupt:
         print("thermocal: aborted", file=sys.stderr)
@@ -193,8 +206,10 @@ def exit_guarded(body) -> None:
     except Exception as e:
         if os.environ.get("THERMOCAL_DEBUG"):
             raise
-        print(f"thermocal: internal error: {type(e).__name__}: {' '.join(str(e).split())}", file=sys.stderr)
+        text = printable(" ".join(str(e).split()), lines=False)
+        print(f"thermocal: internal error: {type(e).__name__}: {text}", file=sys.stderr)
         code = 3
     finally:
         sys.stdout = stdout
+        quiet.__exit__(None, None, None)
     sys.exit(code)

@@ -206,10 +206,18 @@ def apply_passport(passport: Passport | dict, run: Run) -> Applied:
 
 
 def write_applied(
-    applied: Applied, path: str | Path, *, passport: Passport | dict | None = None, run: Run | None = None
+    applied: Applied,
+    path: str | Path,
+    *,
+    passport: Passport | dict | None = None,
+    run: Run | None = None,
+    verification=None,
 ) -> Path:
     """Write the compensated recording: Parquet (any name), or MCAP with ``.mcap`` (one JSON channel ``apply`` of
-    row blocks). The file is written beside and renamed into place, so a failure leaves no partial file."""
+    row blocks), with the passport used and how it was verified (``verification``:
+    :class:`pipeline.passport.verification.Verification`) in the file's metadata (Parquet key-value metadata, the
+    MCAP ``thermocal.apply`` record). The file is written beside and renamed into place, so a failure leaves no
+    partial file."""
     path = Path(path)
     tmp = path.with_name(f".{path.name}.partial")
     passport = load_passport(passport) if passport is not None else None
@@ -222,12 +230,13 @@ def write_applied(
         "valid_temp_c": ""
         if applied.valid_temp_c is None
         else f"{applied.valid_temp_c[0]:g},{applied.valid_temp_c[1]:g}",
+        "passport_verification": verification.label if verification is not None else "not checked",
     }
     try:
         if path.suffix == ".mcap":
             _write_mcap(applied.table, tmp, meta)
         else:
-            applied.table.write_parquet(tmp)
+            applied.table.write_parquet(tmp, metadata={f"thermocal.{k}": v for k, v in meta.items()})
         tmp.replace(path)
     except OSError as e:
         tmp.unlink(missing_ok=True)

@@ -1,4 +1,5 @@
-"""Plausibility of fitted constants: are they what a unit of this type can have, or a units or sign mistake?
+"""Plausibility of a run's metadata and of fitted constants: are they what a chamber run and a unit of this type
+can have, or a units or sign mistake?
 
 A calibration fits whatever the numbers say: voltages logged in mV give gains of about -550 V/g, temperatures logged
 in kelvin give plateaus at 233..343 "C", a reversed axis gives a gain of the wrong sign, and the VP verification
@@ -6,6 +7,15 @@ in kelvin give plateaus at 233..343 "C", a reversed axis gives a gain of the wro
 ``nominal_gain_v_per_g`` (docs/log-format.md; signed) and with the unit type's ranges (:class:`UnitTypeRanges`), and say
 what looks wrong, one line per finding. A calibration with any finding has status ``fail``
 (:func:`judged_status`), never ``pass``.
+
+The run's metadata numbers are checked as the run is read (:func:`check_run_metadata`, called by
+:func:`pipeline.io.checks.assemble_run`, so every reader, inspect and every method see the same findings in the run's
+warnings): local gravity within :data:`G_LOCAL_MPS2` (9.7..9.9 m/s^2: a stand on Earth) unless the run says why in
+``g_local_reason``; T0 within a chamber's reach (:data:`CHAMBER_RANGE_C`); the streams' sample rates
+within :data:`RATES_HZ`; a nonzero nominal gain. A finding starts with :data:`IMPLAUSIBLE` and makes a calibration of
+the run ``fail`` (:func:`assess`), never ``pass``: a gravity of 980.665 (cm/s^2) or -9.8 would scale or flip every
+export. T0 against the temperatures the calibration observed (all its runs: :data:`T0_MARGIN_C`) is judged with the
+constants (:func:`assess`).
 
 Units: K in V/g, U0 in V, temperatures in C; cross-axis as the ratio |K_ij| / |K_ii| (1), offsets as |U0_i| / |K_ii|
 (g).
@@ -18,12 +28,34 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["IMPLAUSIBLE", "UnitTypeRanges", "assess", "check_constants", "check_fit", "judged_status", "mirrored_axis"]
+__all__ = [
+    "IMPLAUSIBLE",
+    "UnitTypeRanges",
+    "assess",
+    "check_constants",
+    "check_fit",
+    "check_run_metadata",
+    "check_t0_span",
+    "judged_status",
+    "mirrored_axis",
+]
 
 AXES = "xyz"
 #: The prefix of a finding in a calibration's warnings (a warning that makes the status ``fail``).
 IMPLAUSIBLE = "implausible: "
 KELVIN_OFFSET_C = 273.15
+#: Local gravity of a stand on Earth, m/s^2 (9.78 at the equator .. 9.83 at the poles, less on mountains).
+G_LOCAL_MPS2 = (9.7, 9.9)
+#: The metadata key a run uses to say why its ``g_local_mps2`` lies outside :data:`G_LOCAL_MPS2` (a centrifuge, ...).
+G_LOCAL_REASON_KEY = "g_local_reason"
+#: T0 may lie this far outside the AU temperatures a calibration's runs hold (C): beyond, the constants at T0 are
+#: extrapolated (a units mistake, K or F, or a typo).
+T0_MARGIN_C = 10.0
+#: The temperatures a thermal chamber reaches (C): a run's T0 outside is a units mistake whatever the run holds (one
+#: run of a calibration may hold only part of the range: T0 against the temperatures is judged over all of them).
+CHAMBER_RANGE_C = (-80.0, 200.0)
+#: Sample rates a chamber logger can have, Hz, by stream (a median interval outside: timestamps in other units).
+RATES_HZ = {"voltmeter": (1e-3, 1e6), "au_temperature": (1e-4, 1e5), "chamber": (1e-4, 1e5)}
 
 
 @dataclass(frozen=True)
@@ -117,6 +149,54 @@ def check_constants(
     return out
 
 
+def check_run_metadata(meta, frames: dict) -> list[str]:
+    """Findings (``implausible: ...`` lines, empty: plausible) about every number of a run's metadata ``meta``
+    (:class:`pipeline.run.RunMeta`) given its stream tables ``frames`` (name -> polars table, as read): gravity,
+    T0 against the AU temperatures recorded, the streams' sample rates, the nominal gain."""
+    out: list[str] = []
+    g = float(meta.g_local_mps2)
+    lo, hi = G_LOCAL_MPS2
+    if not lo <= g <= hi and not str(meta.extra.get(G_LOCAL_REASON_KEY, "")).strip():
+        hint = ""
+        if g < 0:
+            hint = ": negative (a sign mistake would flip every exported offset)"
+        elif lo <= g / 100 <= hi:
+            hint = ": in cm/s^2 (Gal)?"
+        elif abs(g - 1.0) < 0.05:
+            hint = ": in g rather than m/s^2?"
+        elif g == 0:
+            hint = ": zero"
+        out.append(
+            f"g_local_mps2 = {g:g} m/s^2 is not a local gravity on Earth ({lo:g}..{hi:g} m/s^2){hint}; set "
+            f"metadata '{G_LOCAL_REASON_KEY}' to say why if it is right"
+        )
+    t0 = float(meta.normal_temp_c)
+    if not CHAMBER_RANGE_C[0] <= t0 <= CHAMBER_RANGE_C[1]:
+        out.append(
+            f"normal_temp_c (T0) = {t0:g} C lies outside the temperatures a chamber reaches "
+            f"({CHAMBER_RANGE_C[0]:g}..{CHAMBER_RANGE_C[1]:g} C): T0 in kelvin?"
+        )
+    for stream, (rlo, rhi) in RATES_HZ.items():
+        df = frames.get(stream)
+        if df is None or df.height < 2:
+            continue
+        tn = df["t_ns"].to_numpy()
+        k = np.arange(0, tn.size - 1, max(1, (tn.size - 1) // 100_000))
+        med = float(np.median(tn[k + 1] - tn[k]))  # from at most ~100 000 intervals
+        if med <= 0:
+            continue
+        rate = 1e9 / med
+        if not rlo <= rate <= rhi:
+            out.append(
+                f"{stream} is sampled at {rate:.3g} Hz (median interval {med / 1e9:.3g} s), outside the "
+                f"{rlo:g}..{rhi:g} Hz a chamber logger records: t_ns not in nanoseconds?"
+            )
+    gain = meta.nominal_gain_v_per_g
+    if gain is not None and not 1e-4 <= abs(float(gain)) <= 1e4:
+        out.append(f"nominal_gain_v_per_g = {float(gain):g} V/g is no accelerometer's gain (1e-4..1e4 V/g in size)")
+    return [f"{IMPLAUSIBLE}{line}" for line in out]
+
+
 def _times(r: float) -> str:
     return f"{r:.3g}x" if r >= 1 else f"1/{1 / r:.3g}x"
 
@@ -178,18 +258,39 @@ def mirrored_axis(labelled: list[tuple[str, str]]) -> str | None:
     )
 
 
+def check_t0_span(normal_temp_c: float, temps_c: Sequence[float]) -> list[str]:
+    """A finding when T0 lies more than :data:`T0_MARGIN_C` outside the AU temperatures ``temps_c`` (C) the
+    calibration observed (all its runs together): its constants at T0 would be extrapolated."""
+    t = np.asarray(temps_c, dtype=float)
+    t = t[np.isfinite(t)]
+    if not t.size:
+        return []
+    tmin, tmax, t0 = float(t.min()), float(t.max()), float(normal_temp_c)
+    if tmin - T0_MARGIN_C <= t0 <= tmax + T0_MARGIN_C:
+        return []
+    return [
+        f"normal_temp_c (T0) = {t0:g} C lies outside the AU temperatures the runs hold ({tmin:.1f}..{tmax:.1f} C, "
+        f"with {T0_MARGIN_C:g} C to spare): the constants at T0 would be extrapolated (T0 in Fahrenheit, a typo?)"
+    ]
+
+
 def assess(
     fit,
     status: str,
     nominal_gain_v_per_g: float | None = None,
     run_warnings: Sequence[str] = (),
     ranges: UnitTypeRanges = UnitTypeRanges(),
+    temps_c: Sequence[float] = (),
 ) -> tuple[str, list[str]]:
     """The calibration's status after the plausibility checks, and every finding (``implausible: ...`` lines: the
-    fit's, and those already among ``run_warnings`` from observing the runs): called by every recipe right after
-    the VP verification."""
+    fit's, those already among ``run_warnings`` from observing the runs, and T0 against ``temps_c``, the AU
+    temperatures (C) of every observation: :func:`check_t0_span`): called by every recipe right after the VP
+    verification."""
     problems = [w for w in run_warnings if w.startswith(IMPLAUSIBLE)]
     problems += [f"{IMPLAUSIBLE}{p}" for p in check_fit(fit, nominal_gain_v_per_g, ranges)]
+    normal_temp_c = getattr(fit, "normal_temp_c", None)
+    if normal_temp_c is not None:
+        problems += [f"{IMPLAUSIBLE}{p}" for p in check_t0_span(normal_temp_c, temps_c)]
     return judged_status(status, problems), problems
 
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import sys
+from pathlib import Path
 from typing import Annotated
 
 import typer
@@ -92,6 +93,17 @@ GradeOption = Annotated[
         "the limits)",
     ),
 ]
+UNVERIFIED_HELP = (
+    "use a passport that does not verify (altered, unsigned, signed by a key this station does not trust, not "
+    "canonical) or a loose file's; every output says UNVERIFIED"
+)
+#: ``--unverified`` of every command that uses a passport (apply, export, report, diagnose)
+UnverifiedFlag = Annotated[bool, typer.Option("--unverified", help=UNVERIFIED_HELP)]
+#: the help of the UNIT argument of a command that also takes a passport file instead (export, report)
+UNIT_OR_FILE_HELP = (
+    "the unit's serial number (with --registry), or a passport file (a version file of a registry is checked "
+    "against its registry)"
+)
 
 
 def _version() -> str:
@@ -119,13 +131,44 @@ def _main_options(
 
 
 def emit(obj, as_json: bool, text: str | None = None) -> None:
-    """A command's result on stdout: ``obj`` as one JSON object with ``as_json``, else ``text`` (``obj`` as JSON
+    """A command's result on stdout: ``obj`` as one JSON object with ``as_json`` (control characters escaped by
+    JSON), else ``text`` with its control characters escaped (:func:`pipeline.words.printable`; ``obj`` as JSON
     when there is no text)."""
+    from pipeline.words import printable
+
     if as_json:
         sys.stdout.write(json.dumps(obj, indent=2, default=json_default) + "\n")
     else:
-        sys.stdout.write((text if text is not None else json.dumps(obj, indent=2, default=json_default)) + "\n")
+        sys.stdout.write(
+            printable(text if text is not None else json.dumps(obj, indent=2, default=json_default)) + "\n"
+        )
     sys.stdout.flush()
+
+
+def warn(text: str) -> None:
+    """One warning line on stderr (``thermocal: warning: ...``), control characters escaped."""
+    from pipeline.words import printable
+
+    print(f"thermocal: warning: {printable(text, lines=False)}", file=sys.stderr)
+
+
+def passport_in_use(unit_or_file: str, version: int | None, registry: Path | None, unverified: bool):
+    """The passport a command uses and its :class:`pipeline.passport.registry.VersionState`, verified (the one path:
+    :meth:`pipeline.passport.registry.Registry.load_state`, or
+    :func:`pipeline.passport.registry.load_passport_file` for a passport file when no ``--registry`` is given).
+    Refused in one line when it does not verify, unless ``unverified``."""
+    from pipeline.passport.registry import Registry, load_passport_file
+
+    if registry is not None:
+        return Registry(registry).load_state(unit_or_file, version, unverified=unverified)
+    path = Path(unit_or_file)
+    if not path.is_file():
+        raise ThermocalError(
+            "no such passport file (give a unit's serial with --registry DIR, or a passport file)", path=str(path)
+        )
+    if version is not None:
+        raise ThermocalError("a version number goes with a unit and --registry, not with a passport file", where="V")
+    return load_passport_file(path, unverified=unverified)
 
 
 def check_method(method: str) -> None:

@@ -2,19 +2,23 @@
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import typer
 
-from .app import JsonFlag, app, emit
+from .app import JsonFlag, UnverifiedFlag, app, emit, warn
 
 
 @app.command()
 def apply(
-    passport: Path = typer.Argument(..., metavar="PASSPORT", help="passport JSON file"),
+    passport: Path = typer.Argument(
+        ...,
+        metavar="PASSPORT",
+        help="passport JSON file (verified first)",
+    ),
     run: Path = typer.Argument(..., metavar="RUN", help="an .mcap file or a Parquet run directory"),
     out: Path = typer.Option(..., "--out", help="output: a Parquet file, or MCAP when the name ends .mcap"),
+    unverified: UnverifiedFlag = False,
     as_json: JsonFlag = False,
 ):
     """The passport's model (thermal model included) applied to every voltmeter sample: specific force in g, one
@@ -22,13 +26,17 @@ def apply(
     from pipeline.apply import apply_passport, write_applied
     from pipeline.io.runs import read_run, read_units_meta
     from pipeline.passport.document import load_passport
+    from pipeline.passport.registry import load_passport_file
 
-    p = load_passport(passport)
+    doc, state = load_passport_file(passport, unverified=unverified)  # verified, or refused in one line
+    p = load_passport(doc)
     r = read_run(run, str(p.unit) if read_units_meta(run)[1] else None)  # several units: the passport's
     applied = apply_passport(p, r)
-    path = write_applied(applied, out, passport=p, run=r)
+    path = write_applied(applied, out, passport=p, run=r, verification=state.verification)
+    if state.warning():
+        warn(f"apply of {state.warning()}")
     for w in applied.warnings:
-        print(f"thermocal: warning: {w}", file=sys.stderr)
+        warn(w)
     t = applied.table
     inr = int(t["in_range"].sum())
     obj = {
@@ -37,7 +45,14 @@ def apply(
         "in_range": inr,
         "out_of_range": t.height - inr,
         "valid_temp_c": list(applied.valid_temp_c) if applied.valid_temp_c else None,
-        "passport": {"unit": p.unit, "version": p.version, "method": p.method, "status": p.status},
+        "passport": {
+            "unit": p.unit,
+            "version": p.version,
+            "method": p.method,
+            "status": p.status,
+            "verification": state.verification.as_dict(),
+        },
         "warnings": applied.warnings,
     }
-    emit(obj, as_json, f"wrote {path}: {t.height} rows, {t.height - inr} outside the valid temperature range")
+    label = f" (passport {state.verification.label})" if state.unverified else ""
+    emit(obj, as_json, f"wrote {path}: {t.height} rows, {t.height - inr} outside the valid temperature range{label}")

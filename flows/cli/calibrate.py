@@ -69,7 +69,7 @@ def calibrate(
         "--base-passport",
         help="differential: normal-temperature passport to start from "
         "(default: the unit's current passport in the registry: its "
-        "newest approved version, else its newest, not made by the "
+        "newest approved version, else its newest that did not fail, not made by the "
         "differential method and not failed; without one, the constants "
         "the orientations determine by themselves)",
     ),
@@ -97,9 +97,9 @@ def calibrate(
             raise ThermocalError("no such file or directory", path=str(r))
     base = None  # the flow looks up the unit's current passport when the method needs one and none is named
     if base_passport is not None and (method == "auto" or needs_base(method)):
-        from pipeline.passport.document import read_passport
+        from pipeline.passport.registry import load_passport_file
 
-        base = read_passport(base_passport)
+        base, _ = load_passport_file(base_passport)  # verified, or refused in one line
     from ..calibrate import run_calibrate
 
     result = run_calibrate([str(r) for r in runs], str(registry), settings, method, base, dry_run, unit or None)

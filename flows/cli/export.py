@@ -10,7 +10,7 @@ import typer
 
 from pipeline.errors import ThermocalError
 
-from .app import REGISTRY_HELP, UNIT_HELP, JsonFlag, app, emit
+from .app import REGISTRY_HELP, UNIT_OR_FILE_HELP, JsonFlag, UnverifiedFlag, app, emit, passport_in_use, warn
 
 
 def _device_id(text: str | None) -> int | None:
@@ -27,13 +27,14 @@ def _device_id(text: str | None) -> int | None:
 
 @app.command()
 def export(
-    unit: str = typer.Argument(..., metavar="UNIT", help=UNIT_HELP),
+    unit: str = typer.Argument(..., metavar="UNIT|FILE", help=UNIT_OR_FILE_HELP),
     version: int | None = typer.Argument(
         None,
         metavar="V",
-        help="version number (default: the unit's current passport: its newest approved version, else its newest)",
+        help="version number (default: the unit's current passport: its newest approved version, else its newest "
+        "that did not fail)",
     ),
-    registry: Path = typer.Option(..., "--registry", help=REGISTRY_HELP),
+    registry: Path | None = typer.Option(None, "--registry", help=REGISTRY_HELP),
     fmt: str | None = typer.Option(
         None,
         "--format",
@@ -79,25 +80,25 @@ def export(
         "QGroundControl or MAVProxy saves it) against the passport over its valid range: the largest difference "
         "per axis, micro-g; writes nothing",
     ),
+    unverified: UnverifiedFlag = False,
     as_json: JsonFlag = False,
 ):
     """The passport in a format flight software or a spreadsheet loads, with the steps left to you on the vehicle,
     what the format cannot hold and the error that leaves over the passport's valid temperature range."""
     from pipeline.passport.export import ExportOptions, compare_params, compare_text, export_passport
     from pipeline.passport.firmware import read_params_file
-    from pipeline.passport.registry import Registry
 
     if compare is None and fmt is None:
         raise ThermocalError("give --format px4|ardupilot|csv (or --compare PARAMS_FILE)", where="--format")
     if compare is not None and out is not None:
         raise ThermocalError("--compare writes nothing: leave out --out", where="--compare")
     options = ExportOptions(_device_id(px4_device_id), instance, set_caltemp, rotation)
-    doc, state = Registry(registry).load_state(unit, version)
+    doc, state = passport_in_use(unit, version, registry, unverified)  # verified, or refused in one line
     if compare is not None:
         params = read_params_file(compare)
         result = compare_params(doc, params, fmt=fmt, options=options, path=str(compare))
         if state.warning():
-            print(f"thermocal: warning: comparison with {state.warning()}", file=sys.stderr)
+            warn(f"comparison with {state.warning()}")
         emit({**result, "passport_used": state.as_dict()}, as_json, compare_text(result, str(compare), state.text()))
         return
     assert fmt is not None
@@ -108,9 +109,9 @@ def export(
         except OSError as e:
             raise ThermocalError(f"cannot write the export ({e.strerror})", path=str(out)) from None
     if state.warning():
-        print(f"thermocal: warning: export of {state.warning()}", file=sys.stderr)
+        warn(f"export of {state.warning()}")
     for line in exp.warnings:
-        print(f"thermocal: warning: {line}", file=sys.stderr)
+        warn(line)
     if exp.order:
         print(f"thermocal: {exp.order}", file=sys.stderr)
     if as_json:

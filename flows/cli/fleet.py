@@ -63,8 +63,8 @@ def fleet(
     from ..fleet import run_fleet
 
     summary = run_fleet(
-        str(folder),
-        str(registry),
+        str(folder.resolve()),
+        str(registry.resolve()),
         settings,
         dask_address=dask_address,
         workers=workers,
@@ -131,8 +131,8 @@ def serve(
 
     settings = calibration_settings(thermal_model, constants_method, tol_normal_g, tol_range_g, grade)
     serve_nightly(
-        str(inbox),
-        str(registry),
+        str(inbox.resolve()),
+        str(registry.resolve()),
         cron=cron,
         timezone=timezone,
         name=name,

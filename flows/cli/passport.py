@@ -29,12 +29,16 @@ def passport_log(
     if as_json:
         emit({"unit": unit, "versions": rows}, True)
         return
+    from pipeline.passport.verification import check_content
+
     docs = {}
     for r in rows:
         try:
-            docs[r["version"]] = reg.load(unit, r["version"])
+            doc = reg.load(unit, r["version"])
+            check_content(doc)
+            docs[r["version"]] = doc
         except ThermocalError:
-            pass  # an unreadable version is listed with what the log knows
+            pass  # an unreadable or malformed version is listed with what the log knows
     emit(None, False, "\n".join(log_lines(rows, docs)) if rows else f"{unit}: no versions")
 
 
@@ -45,16 +49,17 @@ def passport_show(
     registry: Path = typer.Option(..., "--registry", help=REGISTRY_HELP),
     as_json: bool = typer.Option(False, "--json", help="print the passport document itself (JSON)"),
 ):
-    """One version of a unit's passport (the newest when no version is given): a readable summary, or with --json
-    the document itself."""
+    """One version of a unit's passport (the newest when no version is given): a readable summary with how it
+    verifies, or with --json the document itself."""
     from pipeline.passport.registry import Registry
     from pipeline.passport.text import passport_summary
 
     reg = Registry(registry)
-    doc = reg.load(unit, version)
     if as_json:
-        emit(doc, True)
+        emit(reg.load(unit, version), True)
         return
+    newest = version if version is not None else max((i.version for i in reg.versions(unit)), default=None)
+    doc, state = reg.load_state(unit, newest, unverified=True)  # shown either way, with what its checks found
     approved = approval(reg, unit, doc)
     vdir = reg.unit_dir(unit)
     figures = [
@@ -62,7 +67,9 @@ def passport_show(
         for suffix in (".png", ".constants.png")
         if (f := vdir / f"v{int(doc.get('version') or 0):04d}{suffix}").exists()
     ]
-    emit(None, False, passport_summary(doc, approved=approved, figures=figures))
+    check = state.verification
+    said = "not checked" if check is None else check.label if check.verified else f"DOES NOT VERIFY: {check.problem}"
+    emit(None, False, passport_summary(doc, approved=approved, figures=figures) + f"\nverification: {said}")
 
 
 def approval(reg, unit: str, doc: dict):

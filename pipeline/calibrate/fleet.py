@@ -36,9 +36,10 @@ from pathlib import Path
 from pipeline.calibrate.inputs import RunInput, folder_warning, join_runs, resolve_run_ids
 from pipeline.calibrate.methods import all_methods, base_passport_of, by_name, default_base_passport, resolve_auto
 from pipeline.calibrate.publish import publish, recorded_settings
-from pipeline.calibrate.result import base_reference
+from pipeline.calibrate.result import CalibrationResult, base_reference
 from pipeline.calibrate.settings import CalibrationSettings
 from pipeline.errors import CalibrationError, ThermocalError
+from pipeline.io.files import NOT_REGULAR, special_kind
 from pipeline.io.parquet import META_FILE as PARQUET_META_FILE
 from pipeline.io.runs import (  # noqa: F401  (read_run_meta: part of this API)
     read_run,
@@ -179,7 +180,13 @@ def plan_fleet(
     reg = registry if isinstance(registry, Registry) else Registry(registry)
     plan = FleetPlan(root=str(root))
     by_unit: dict[str, list[dict]] = {}
-    paths = [p.resolve() for p in discover_runs(root)]
+    paths = []
+    for p in discover_runs(root):
+        kind = special_kind(p)
+        if kind is not None:  # a FIFO or a device named like a run: never opened (it would hang the fleet)
+            plan.skipped.append({"run": str(p.resolve()), "why": f"{kind}, {NOT_REGULAR}"})
+        else:
+            paths.append(p.resolve())
     with ThreadPoolExecutor(max_workers=PLAN_THREADS) as pool:
         inspected = list(pool.map(_inspect_run, paths))
     for path, (found, digest) in zip(paths, inspected):
@@ -306,27 +313,38 @@ def prepare_worker() -> None:
     FigureCanvasAgg(fig).print_png(io.BytesIO())
 
 
-def calibrate_group(
+@dataclass
+class ComputedUnit:
+    """What :func:`compute_group` computed for one unit, for :func:`publish_group` to publish: the calibration (None
+    when the unit could not be calibrated), the runs it used (``good``) and those dropped or failed (``failed``,
+    one-line reasons), and the seconds it took. Nothing in it was signed or written: a worker computes, the station
+    publishes."""
+
+    unit: str
+    runs: list[str]
+    calibration: CalibrationResult | None
+    good: list[str]
+    failed: list[dict]
+    compute_s: float
+
+
+def compute_group(
     unit: str,
     runs: list[str] | tuple[str, ...],
-    registry: str | os.PathLike,
     settings: CalibrationSettings = CalibrationSettings(),
-    figure: bool = True,
-    digests: Mapping[str, RunDigest] | None = None,
     method: str = "tilt",
     base_passport: Passport | None = None,
     within: Mapping[str, dict] | None = None,
-) -> UnitOutcome:
-    """Calibrate ``unit`` from ``runs`` by ``method`` and publish the passport into ``registry`` (as ``thermocal
-    calibrate``; ``figure``: the PNG of the VP errors beside a new passport, ~0.1 s of CPU of a standard 10 Hz
-    unit's ~0.9 s (JSON blocks; ~0.55 s protobuf); ``digests``: the runs' hashes from the planning,
-    :attr:`UnitGroup.digests`, reused for the runs unchanged since; ``base_passport``: the differential method's
-    starting passport, :attr:`UnitGroup.base_passport`; ``within``: :attr:`UnitGroup.within`, the runs holding
-    several units, of which the unit's own streams are read).
+) -> ComputedUnit:
+    """Calibrate ``unit`` from ``runs`` by ``method`` (``base_passport``: the differential method's starting
+    passport, :attr:`UnitGroup.base_passport`; ``within``: :attr:`UnitGroup.within`, the runs holding several
+    units, of which the unit's own streams are read), writing nothing: the part of a fleet that runs on its workers
+    (a local process pool or dask workers, which may sit on other machines with other keys and other working
+    folders: they never sign or write a passport, :func:`publish_group` does, on the station).
 
     Runs that cannot be read, or belong to another unit, are dropped (listed in ``failed``); the rest are one
     recording of the unit (:func:`pipeline.calibrate.inputs.join_runs`), calibrated together. If the unit cannot be
-    calibrated at all, every remaining run is listed in ``failed`` with the reason and ``result`` is None. Bad
+    calibrated at all, every remaining run is listed in ``failed`` with the reason and ``calibration`` is None. Bad
     inputs never raise.
     """
     t0 = time.perf_counter()
@@ -334,17 +352,12 @@ def calibrate_group(
     failed: list[dict] = []
     good: list[str] = []
     observed: list = []
-    result = None
+    calibration = None
     try:
         chosen = by_name(method) if method != "auto" else None
     except CalibrationError as exc:
-        return UnitOutcome(
-            unit=unit,
-            runs=runs,
-            result=None,
-            failed=[{"run": p, "reason": reason_of(exc)} for p in runs],
-            compute_s=time.perf_counter() - t0,
-        )
+        failed = [{"run": p, "reason": reason_of(exc)} for p in runs]
+        return ComputedUnit(unit, runs, None, [], failed, time.perf_counter() - t0)
     read = []
     for path in runs:
         try:
@@ -368,10 +381,35 @@ def calibrate_group(
             observed.append(chosen.observe(run, settings, base_passport=base_passport, segmentation=seg))
             del run
             calibration = chosen.calibrate_observed(observed, settings, base_passport=base_passport)
+        except Exception as exc:
+            reason = reason_of(exc)
+            failed += [{"run": p, "reason": reason} for p in good]
+            good = []
+    return ComputedUnit(unit, runs, calibration, good, failed, time.perf_counter() - t0)
+
+
+def publish_group(
+    registry: str | os.PathLike,
+    computed: ComputedUnit,
+    settings: CalibrationSettings = CalibrationSettings(),
+    figure: bool = True,
+    digests: Mapping[str, RunDigest] | None = None,
+    within: Mapping[str, dict] | None = None,
+) -> UnitOutcome:
+    """Publish what :func:`compute_group` computed into ``registry``, signed with this station's key (the one place
+    a fleet signs and appends: :func:`pipeline.calibrate.publish.publish`, as ``thermocal calibrate``). ``figure``:
+    the PNG of the VP errors beside a new passport (~0.1 s of CPU); ``digests``: the runs' hashes from the
+    planning, :attr:`UnitGroup.digests`, reused for the runs unchanged since; ``within``: :attr:`UnitGroup.within`
+    (the provenance names the unit within a run of several). A registry that refuses (a chain that does not verify,
+    a full disk) fails the unit's runs with its one-line reason; never raises for that."""
+    failed = list(computed.failed)
+    result = None
+    if computed.calibration is not None:
+        try:
             result = publish(
                 registry,
-                calibration,
-                input_paths=good,
+                computed.calibration,
+                input_paths=computed.good,
                 settings=settings,
                 figure=figure,
                 input_digests=digests,
@@ -379,5 +417,22 @@ def calibrate_group(
             )
         except Exception as exc:
             reason = reason_of(exc)
-            failed += [{"run": p, "reason": reason} for p in good]
-    return UnitOutcome(unit=unit, runs=runs, result=result, failed=failed, compute_s=time.perf_counter() - t0)
+            failed += [{"run": p, "reason": reason} for p in computed.good]
+    return UnitOutcome(computed.unit, computed.runs, result, failed, computed.compute_s)
+
+
+def calibrate_group(
+    unit: str,
+    runs: list[str] | tuple[str, ...],
+    registry: str | os.PathLike,
+    settings: CalibrationSettings = CalibrationSettings(),
+    figure: bool = True,
+    digests: Mapping[str, RunDigest] | None = None,
+    method: str = "tilt",
+    base_passport: dict | None = None,
+    within: Mapping[str, dict] | None = None,
+) -> UnitOutcome:
+    """Calibrate ``unit`` from ``runs`` by ``method`` and publish the passport into ``registry``, in this process:
+    :func:`compute_group` then :func:`publish_group` (as ``thermocal calibrate``). Bad inputs never raise."""
+    computed = compute_group(unit, runs, settings, method, base_passport, within)
+    return publish_group(registry, computed, settings, figure, digests, within)

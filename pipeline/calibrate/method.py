@@ -141,7 +141,8 @@ class Method(ABC):
         tolerances = settings.tolerances_for(meta)  # the unit's grade: --grade, else the run's unit_grade
         rows, status = verify_unit(unit_fit.model, observations, unit_fit.normal_temp_c, tolerances)
         run_warnings = [w for r in observed for w in r.warnings]
-        status, implausible = assess(unit_fit, status, meta.nominal_gain_v_per_g, run_warnings)
+        temps_c = [o.temp_c for o in observations]
+        status, implausible = assess(unit_fit, status, meta.nominal_gain_v_per_g, run_warnings, temps_c=temps_c)
         plateaus = plateau_summary(self.plateau_observations(observations))
         doc = build_passport(
             unit_fit,

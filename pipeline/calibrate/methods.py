@@ -124,8 +124,12 @@ def default_base_passport(registry, unit: str) -> tuple[Passport | None, str]:
     """(:func:`base_passport_of`, a line saying which version and its status), or (None, a line saying why none)
     when the unit has no passport to start from: the differential method then takes the constants at T0 from the
     orientations themselves."""
+    from pipeline.passport.verification import MalformedPassport, UntrustedPassport
+
     try:
         doc, st = base_passport_of(registry, unit)
+    except (UntrustedPassport, MalformedPassport):
+        raise  # a base that does not verify is refused, not silently replaced by none
     except ThermocalError as e:
         return None, (
             f"differential base: none ({e.message}); the constants at T0 are taken from the orientations themselves"
@@ -138,28 +142,27 @@ def base_passport_of(registry, unit: str):
     :class:`pipeline.passport.registry.VersionState`: the unit's current passport in ``registry`` (a folder or a
     :class:`pipeline.passport.registry.Registry`; the one rule, :meth:`~pipeline.passport.registry.Registry.current`)
     among the versions not made by the differential method itself (a differential passport's constants at T0 are
-    its base's, so starting from it changes nothing but the identity). CalibrationError when the unit has none, or
-    when that version failed its verification (approve a passing version or name one with --base-passport)."""
+    its base's, so starting from it changes nothing but the identity), verified
+    (:meth:`~pipeline.passport.registry.Registry.load_state`: one that does not verify is refused, UntrustedPassport).
+    CalibrationError when the unit has none, or when that version failed its verification (approve a passing
+    version or name one with --base-passport)."""
     from pipeline.passport.document import load_passport
     from pipeline.passport.registry import Registry
+    from pipeline.passport.verification import MalformedPassport, UntrustedPassport
 
     reg = registry if isinstance(registry, Registry) else Registry(registry)
     try:
-        st = reg.state(unit, exclude_methods=passport_methods_with_base())
-    except CalibrationError:
+        doc, st = reg.load_state(unit, exclude_methods=passport_methods_with_base())
+    except (CalibrationError, UntrustedPassport, MalformedPassport):
         raise
     except Exception as e:
         raise CalibrationError(
             f"no normal-temperature passport of {unit} to start from ({getattr(e, 'message', e)})"
         ) from None
-    if st is None:
-        raise CalibrationError(
-            f"no normal-temperature passport of {unit} to start from (no version, or only differential ones)"
-        )
     if st.status == "fail":
         raise CalibrationError(
             f"{st.text()} failed its verification: not a base for the "
             "differential method (approve a passing version, 'thermocal passport approve', or "
             "name one with --base-passport)"
         )
-    return load_passport(reg.load(unit, st.version)), st
+    return load_passport(doc), st

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.diagnose.fit import Design, Selection, SelectionSettings
-from pipeline.diagnose.shift import ShiftResult
+from pipeline.diagnose.shift import SIGNIFICANT_SIGMA, VISIBLE_FRACTION, ShiftResult
 from pipeline.diagnose.shift import explain as explain_shift
 from pipeline.diagnose.signal import Blocks, StaticRecord, temperature_noise_c
 from pipeline.diagnose.unexplained import describe as describe_unexplained
@@ -124,10 +124,18 @@ def report(out: Outcome, settings: DiagnoseSettings) -> Diagnosis:
             )
         findings.insert(0, _shift_finding(design, shift, predicted, before, after, seg, settings, unit))
     elif shift is not None and shift.level is not None:
-        notes.append(
-            f"the constants agree with the passport within its uncertainty (largest change "
-            f"{shift.largest_z:.1f} sigma); {shift.level.name} refit to this run without a finding"
-        )
+        if shift.largest_z >= SIGNIFICANT_SIGMA:  # many sigmas by the fit, but too small for the recording to show
+            change, noise = shift.parameters.get("departure_rms_v", 0.0), shift.parameters.get("noise_rms_v", 0.0)
+            notes.append(
+                f"the constants' change from the passport ({shift.largest_z:.1f} sigma by the fit) moves the "
+                f"prediction by {small(change, unit=unit)} RMS, less than {VISIBLE_FRACTION:g} of the block noise "
+                f"({small(noise, unit=unit)}): not named; {shift.level.name} refit to this run"
+            )
+        else:
+            notes.append(
+                f"the constants agree with the passport within its uncertainty (largest change "
+                f"{shift.largest_z:.1f} sigma); {shift.level.name} refit to this run without a finding"
+            )
     if unexplained is not None:
         findings.append(_unexplained_finding(design, sel, unexplained, after, seg, settings, unit))
     located = _where(design, np.abs(before) > settings.locate_sigma * design.sigma, seg, settings)

@@ -25,6 +25,7 @@ from pipeline.run import (
     RunMeta,
     UnitRuns,
     listed_units,
+    slab_of,
     unit_meta_values,
 )
 
@@ -36,6 +37,21 @@ GAP_FACTOR = 5.0
 #: A sampled stream whose time jumps forward by more than this is refused: a clock error, or two recordings in one
 #: file (the segmenter works on the whole time span, so one sample stamped 1970 must not stretch it to decades).
 MAX_JUMP_S = 86_400.0
+#: The times a sample may carry, ns since the Unix epoch: 1970-01-01 .. 2116-02-20 (2**62 ns). Outside, a time is
+#: not a recording's (a -2**63 placeholder, a clock never set); and differences of two such times stay far from
+#: int64 overflow.
+T_NS_RANGE = (0, 2**62)
+#: What a sample of each value column can physically be; a value outside (e.g. 1e308 C) is treated as missing
+#: (NaN, as a non-finite sample is) with a warning naming the first such sample. Temperatures in C (absolute zero ..
+#: 1000 C), outputs in V or m/s^2.
+PHYSICAL_RANGE: dict[str, tuple[float, float]] = {
+    "temp_c": (-273.15, 1000.0),
+    "setpoint_c": (-273.15, 1000.0),
+    "air_c": (-273.15, 1000.0),
+    "ux": (-1e6, 1e6),
+    "uy": (-1e6, 1e6),
+    "uz": (-1e6, 1e6),
+}
 
 
 def check_stream(
@@ -55,6 +71,18 @@ def check_stream(
     if t.null_count():
         row = t.is_null().arg_max() or 0  # None only for an empty column
         raise RunFormatError("t_ns is missing (null)", path=path, stream=label, where=f"row {row}")
+    if df.height:
+        outside = (t < T_NS_RANGE[0]) | (t >= T_NS_RANGE[1])
+        if outside.any():
+            row = int(outside.arg_max() or 0)
+            raise RunFormatError(
+                f"t_ns={t[row]} is not a time of a recording (nanoseconds since 1970-01-01, before 2116): a "
+                "placeholder or a clock never set",
+                path=path,
+                stream=label,
+                where=f"row {row}",
+            )
+    df = _impossible_values_missing(label, df, warnings)
     if not t.is_sorted():
         t_ns = t.to_numpy()
         back = t_ns[1:] < t_ns[:-1]
@@ -76,6 +104,26 @@ def check_stream(
                 stream=stream,
                 where=f"t_ns={df['t_ns'][row]}",
             )
+    return df
+
+
+def _impossible_values_missing(stream: str, df: pl.DataFrame, warnings: list[str]) -> pl.DataFrame:
+    """Values outside :data:`PHYSICAL_RANGE` set to NaN (missing), with one warning per column naming how many and
+    the first (row, t_ns, value)."""
+    for col, (lo, hi) in PHYSICAL_RANGE.items():
+        if col not in df.columns:
+            continue
+        v = df[col]
+        bad = v.is_finite() & ((v < lo) | (v > hi))  # (polars orders NaN above every number)
+        n = int(bad.sum())
+        if not n:
+            continue
+        row = int(bad.arg_max() or 0)
+        warnings.append(
+            f"{stream}: {n} sample(s) of {col} outside what it can be ({lo:g}..{hi:g}) treated as missing; the "
+            f"first at t_ns={df['t_ns'][row]} (row {row}): {v[row]!r}"
+        )
+        df = df.with_columns(pl.when(pl.Series(bad)).then(float("nan")).otherwise(pl.col(col)).alias(col))
     return df
 
 
@@ -101,10 +149,14 @@ def gap_indices(t_ns: np.ndarray) -> np.ndarray:
 
 
 def _check_time_base(stream: str, df: pl.DataFrame, *, path: str, warnings: list[str]) -> pl.DataFrame:
-    """Jumps (error), repeated samples (dropped) and gaps (warned) of a sampled stream sorted by time."""
+    """Jumps (error), repeated samples (dropped) and gaps (warned) of a sampled stream sorted by time. Slab by slab
+    (:data:`SLAB_SAMPLES`): the only arrays the length of the stream are the times and, when samples repeat, one
+    byte a row to drop them (104 M identical rows once made four more copies of the table)."""
     t_ns = df["t_ns"].to_numpy()
     jump_ns = np.int64(MAX_JUMP_S * 1e9)
-    same_parts = []
+    values = [df[c] for c in df.columns if c != "t_ns"]
+    keep: np.ndarray | None = None
+    n_same, first_same = 0, -1
     for a, dt in _intervals(t_ns):
         jump = np.flatnonzero(dt > jump_ns)
         if jump.size:
@@ -117,27 +169,29 @@ def _check_time_base(stream: str, df: pl.DataFrame, *, path: str, warnings: list
                 stream=stream,
                 where=f"t_ns={t_ns[i + 1]}",
             )
-        same_parts.append(a + np.flatnonzero(dt == 0) + 1)  # rows with the time of the row before
-    same = np.concatenate(same_parts)
-    if same.size:
-        values = [c for c in df.columns if c != "t_ns"]
-        a = df.select(values)[same - 1]
-        b = df.select(values)[same]
+        same = np.flatnonzero(dt == 0)  # rows a + same + 1 have the time of the row before
+        if not same.size:
+            continue
         equal = np.ones(same.size, dtype=bool)
-        for c in values:
-            x, y = a[c].to_numpy(), b[c].to_numpy()
-            equal &= (x == y) | (np.isnan(x) & np.isnan(y))
+        for col in values:
+            x = slab_of(col, a, a + dt.size + 1)
+            u, v = x[same], x[same + 1]
+            equal &= (u == v) | (np.isnan(u) & np.isnan(v))
         if not equal.all():
-            k = int(same[~equal][0])
+            k = a + int(same[~equal][0]) + 1
             raise RunFormatError(
                 "two different samples at the same time", path=path, stream=stream, where=f"t_ns={t_ns[k]}"
             )
+        if keep is None:
+            keep = np.ones(t_ns.size, dtype=bool)
+            first_same = a + int(same[0]) + 1
+        keep[a + same + 1] = False
+        n_same += same.size
+    if keep is not None:
         warnings.append(
-            f"{stream}: dropped {same.size} repeated samples (same t_ns and values as the one before), "
-            f"first at t_ns={t_ns[same[0]]}"
+            f"{stream}: dropped {n_same} repeated samples (same t_ns and values as the one before), "
+            f"first at t_ns={t_ns[first_same]}"
         )
-        keep = np.ones(t_ns.size, dtype=bool)
-        keep[same] = False
         df = df.filter(pl.Series(keep))
         t_ns = t_ns[keep]
     gaps = gap_indices(t_ns)
@@ -170,6 +224,7 @@ def assemble_run(
             raise RunFormatError("required stream has no samples", path=path, stream=stream)
     checked = {name: check_stream(name, df, path=path, warnings=warnings) for name, df in frames.items()}
     meta = RunMeta.from_strings(meta_values, path=path)
+    warnings.extend(_plausible(meta, checked, path, "au_temperature"))
     return Run(
         meta=meta,
         voltmeter=checked["voltmeter"],
@@ -179,6 +234,21 @@ def assemble_run(
         source=path,
         warnings=warnings,
     )
+
+
+def _plausible(meta: RunMeta, checked: dict[str, pl.DataFrame], path: str, temperature_label: str) -> list[str]:
+    """The metadata's plausibility findings (:func:`pipeline.plausibility.check_run_metadata`: ``implausible: ...``
+    warnings); RunFormatError when the thermosensor has no finite sample (nothing a run is for can be done)."""
+    from pipeline.plausibility import check_run_metadata
+
+    temp = checked["au_temperature"]["temp_c"]
+    if not temp.is_finite().any():
+        raise RunFormatError(
+            f"no finite temperature: all {temp.len()} samples are missing (NaN, or beyond what a temperature can be)",
+            path=path,
+            stream=temperature_label,
+        )
+    return check_run_metadata(meta, checked)
 
 
 def assemble_units(
@@ -274,6 +344,7 @@ def _unit_run(meta_values, serial, serials, frames, shared, path, warnings, stre
             f"unit {serial} has a dead channel: {dead[0]}", path=path, stream=stream_label(serial, "voltmeter")
         )
     meta = RunMeta.from_strings(unit_meta_values(meta_values, serial, serials), path=path)
+    own += [f"{w} (unit {serial})" for w in _plausible(meta, checked, path, stream_label(serial, "au_temperature"))]
     warnings.extend(own)
     return Run(
         meta=meta,

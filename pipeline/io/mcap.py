@@ -24,7 +24,14 @@ corrupt, and read what is complete:
   million samples which become the chunks of the polars columns: no per-sample objects, no copy of the whole
   table; chunk data is read (pread) and decompressed into a few reused buffers, not through the memory map, so
   neither the file's pages nor per-chunk allocations add to the process's memory;
-- a truncated file keeps its complete chunks, with a warning in ``Run.warnings`` saying what was dropped.
+- a truncated file keeps its complete chunks, with a warning in ``Run.warnings`` saying what was dropped; so does a
+  file that turns into zeros (a logger's preallocated file, never written to the end: an opcode 0 record, which MCAP
+  does not have, ends the walk at once instead of stepping through gigabytes of zeros);
+- memory is bounded (:mod:`pipeline.io.limits`): a chunk may declare no more uncompressed bytes than its codec can
+  expand its data to and at most ``MAX_CHUNK_BYTES``, a message at most ``MAX_MESSAGE_BYTES``, and the decoded
+  samples at most :func:`pipeline.io.limits.decoded_cap`; lz4 and zstd chunks are decompressed into buffers of
+  that bounded size, never of a size the file alone declares;
+- only a regular file is read (:func:`pipeline.io.files.open_regular`: a FIFO or a device is one line, never a hang).
 
 Every problem raises :class:`pipeline.errors.RunFormatError` naming the file, the topic and the byte or ``t_ns``.
 """
@@ -53,6 +60,15 @@ from pipeline.errors import RunFormatError
 from pipeline.io.checks import assemble_run, assemble_units, writable_streams, writable_units
 from pipeline.io.codec_protobuf import PROTOBUF_CODEC
 from pipeline.io.codecs import JSON_CODEC, SCHEMA_NAMES, BlockCodec, BlockMismatch
+from pipeline.io.files import open_regular
+from pipeline.io.limits import (
+    MAX_CHUNK_BYTES,
+    MAX_MESSAGE_BYTES,
+    decoded_cap,
+    human_bytes,
+    memory_budget,
+    ratio_limit,
+)
 from pipeline.run import PER_UNIT_STREAMS, REQUIRED_STREAMS, SLAB_SAMPLES, STREAM_COLUMNS, UNITS_KEY, Run, UnitRuns
 
 MAGIC = b"\x89MCAP0\r\n"
@@ -256,14 +272,20 @@ def read_mcap_units(path: str | Path, only: set[str] | None = None) -> UnitRuns:
     name = str(p)
     if p.is_dir():
         raise RunFormatError("is a directory, not an MCAP file", path=name)
-    try:
-        f = open(p, "rb")
-    except OSError as exc:
-        raise RunFormatError(f"cannot open the file ({exc.strerror})", path=name) from None
-    with f:
-        if os.fstat(f.fileno()).st_size == 0:
+    with open_regular(p) as f:
+        size = os.fstat(f.fileno()).st_size
+        if size == 0:
             raise RunFormatError("empty file (0 bytes), not an MCAP run", path=name)
-        with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as buf:
+        try:
+            buf = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+        except (OSError, ValueError, MemoryError) as exc:
+            why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc) or type(exc).__name__
+            raise RunFormatError(
+                f"cannot map the file ({human_bytes(size)}) for reading ({why}): more than the address space this "
+                f"process may use ({human_bytes(memory_budget())})",
+                path=name,
+            ) from None
+        with buf:
             return _McapRunReader(name, buf, f.fileno(), only).read()
 
 
@@ -299,6 +321,8 @@ class _McapRunReader:
         self.undefined_channel_messages = 0
         self.truncation = ""
         self.warnings: list[str] = []
+        self.decoded_bytes = 0  # of samples decoded so far, against the cap
+        self.decoded_cap = decoded_cap()
 
     def fail(self, message: str, *, stream: str | None = None, where: str | None = None) -> RunFormatError:
         return RunFormatError(message, path=self.path, stream=stream, where=where)
@@ -347,6 +371,9 @@ class _McapRunReader:
                 return
             op, length = _RECORD_HEAD.unpack_from(buf, pos)
             start, end = pos + 9, pos + 9 + length
+            if op == 0:  # not an MCAP record: zeros (a preallocated file never written to the end) or garbage
+                self._zeros(pos, in_summary)
+                return
             if end > size:
                 self._truncated(pos, op, length, in_summary)
                 return
@@ -379,6 +406,24 @@ class _McapRunReader:
                     f"malformed {_RECORD_NAMES.get(op, f'opcode {op:#x}')} record{detail}", where=f"byte {pos}"
                 ) from None
             pos = end
+
+    def _zeros(self, pos: int, in_summary: bool) -> None:
+        """The walk met a record of opcode 0 at ``pos``: say how far the zeros go (up to 1 MiB is looked at) and end
+        the file there, as a truncation."""
+        probe = bytes(self.buf[pos : min(self.size, pos + (1 << 20))])
+        nonzero = len(probe) - len(probe.lstrip(b"\0"))
+        if nonzero == len(probe):
+            extent = "zeros to its end" if pos + len(probe) == self.size else "zeros for at least 1 MiB"
+        else:
+            extent = f"{nonzero} zero bytes, then other bytes"
+        what = (
+            f"an opcode 0 record at byte {pos}, which MCAP does not have: the file holds {extent} "
+            f"({human_bytes(self.size - pos)} from there; preallocated and never written, or overwritten)"
+        )
+        if in_summary:
+            self.warnings.append(f"the summary section ends in {what}; all data was read")
+        else:
+            self.truncation = f"file is unreadable from byte {pos}: {what}"
 
     def _truncated(self, pos: int, op: int | None, length: int, in_summary: bool) -> None:
         if op is None:
@@ -503,6 +548,7 @@ class _McapRunReader:
             raise self.fail("malformed chunk record", where=f"byte {pos}") from None
         where = f"chunk at byte {pos} (t_ns {t_start}..{t_end})"
         topics = self._chunk_topics(pos)
+        self._check_chunk_size(compression, raw_size, data_length, where, topics)
         data = buffers.sized("data", data_length)
         if _read_at(self.fd, data, p) != data_length:
             raise self.fail("the file changed while it was read", where=where)
@@ -514,6 +560,25 @@ class _McapRunReader:
                 where=where,
             )
         return raw, where, buffers
+
+    def _check_chunk_size(self, compression: str, raw_size: int, data_length: int, where: str, topics) -> None:
+        """A chunk's declared uncompressed size within what its compressed bytes can hold and the chunk limit
+        (:mod:`pipeline.io.limits`): nothing is allocated from a size the file alone declares."""
+        most = ratio_limit(compression or "none", data_length)
+        if most is not None and raw_size > most:
+            raise self.fail(
+                f"corrupt chunk: it declares {human_bytes(raw_size)} uncompressed from {human_bytes(data_length)} of "
+                f"{compression or 'uncompressed'} data, more than that format can expand to ({human_bytes(most)})",
+                stream=topics,
+                where=where,
+            )
+        if max(raw_size, data_length) > MAX_CHUNK_BYTES:
+            raise self.fail(
+                f"chunk of {human_bytes(max(raw_size, data_length))}: larger than this reader takes in one chunk "
+                f"({human_bytes(MAX_CHUNK_BYTES)}; writers use 1-64 MB), not read",
+                stream=topics,
+                where=where,
+            )
 
     def _chunk_topics(self, pos: int) -> str | None:
         """The topics the indexes list for the chunk at ``pos`` (None for a file without indexes)."""
@@ -566,7 +631,14 @@ class _McapRunReader:
                     raise self.fail(
                         "chunk is lz4-compressed and the lz4 package is not installed", where=where
                     ) from None
-                raw = memoryview(lz4.frame.decompress(data))
+                decompressor = lz4.frame.LZ4FrameDecompressor()
+                raw = memoryview(decompressor.decompress(bytes(data), max_length=raw_size))  # never more
+                if not decompressor.eof and len(raw) == raw_size:
+                    raise self.fail(
+                        f"corrupt chunk: more than the {raw_size} bytes the header says after decompression",
+                        stream=topics,
+                        where=where,
+                    )
             elif compression == "":
                 raw = data
             else:
@@ -589,6 +661,12 @@ class _McapRunReader:
         if end - start < _MESSAGE_HEAD.size:
             raise _Malformed("message record shorter than its header")
         channel_id, _, log_time, _ = _MESSAGE_HEAD.unpack_from(buf, start)
+        if end - start > MAX_MESSAGE_BYTES:
+            raise self.fail(
+                f"message of {human_bytes(end - start)}: larger than this reader takes "
+                f"({human_bytes(MAX_MESSAGE_BYTES)}; a block of samples is tens of kB), not read",
+                where=f"t_ns={log_time} ({where})",
+            )
         channel = self.channels.get(channel_id)
         if channel is None:
             self.undefined_channel_messages += 1
@@ -606,6 +684,15 @@ class _McapRunReader:
                 stream=channel.topic,
                 where=f"t_ns={log_time} (message {columns.messages} of the topic, {where})",
             ) from None
+        self.decoded_bytes += sum(a.nbytes if a.dtype != object else 64 * a.size for a in decoded.values())
+        if self.decoded_bytes > self.decoded_cap:
+            raise self.fail(
+                f"the decoded samples pass {human_bytes(self.decoded_cap)}, a quarter of the memory this process may "
+                "use: the run is too large for this machine (split it into several files, or read it on a larger "
+                "one)",
+                stream=channel.topic,
+                where=f"t_ns={log_time} ({where})",
+            )
         columns.add(decoded)
 
     # -- result ----------------------------------------------------------------------------------------------------

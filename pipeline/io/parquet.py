@@ -16,6 +16,11 @@ A run with several units (log-format.md) has a string column ``unit`` in ``voltm
 ``au_temperature.parquet`` (written unit after unit, each unit's rows in row groups of their own) and ``units`` in
 ``run.json``; ``chamber.parquet`` and ``fixture.parquet`` are shared. Reading splits those tables by unit: a unit's rows
 in one contiguous stretch (as written here) are a slice of the table, not a copy.
+
+Memory is bounded before anything is decoded (:mod:`pipeline.io.limits`): the rows the footers declare, times the
+columns' widths, must fit :func:`pipeline.io.limits.decoded_cap` (104 M constant rows compress to 2 MB, and decode to
+3.3 GB); every page may declare no more uncompressed bytes than its codec can expand its stored bytes to, and at most
+``MAX_CHUNK_BYTES``. Only regular files are read (a FIFO named ``voltmeter.parquet`` is one line, never a hang).
 """
 
 from __future__ import annotations
@@ -32,6 +37,8 @@ import pyarrow.parquet as pq
 
 from pipeline.errors import RunFormatError
 from pipeline.io.checks import assemble_run, assemble_units, writable_streams, writable_units
+from pipeline.io.files import read_regular_bytes, require_regular
+from pipeline.io.limits import MAX_CHUNK_BYTES, decoded_cap, human_bytes, ratio_limit
 from pipeline.run import PER_UNIT_STREAMS, REQUIRED_STREAMS, STREAM_COLUMNS, UNITS_KEY, Run, UnitRuns
 
 META_FILE = "run.json"
@@ -124,18 +131,23 @@ def read_parquet_units(directory: str | Path, only: set[str] | None = None) -> U
         raise RunFormatError(f"not a Parquet run directory: {META_FILE} is missing", path=str(d))
     meta = _read_meta(meta_path)
     several = UNITS_KEY in meta
-    frames: dict[str, pl.DataFrame] = {}
-    per_unit: dict[str, dict[str, pl.DataFrame]] = {}
+    files: dict[str, Path] = {}
     for stream in STREAM_COLUMNS:
         f = d / f"{stream}.parquet"
         if f.exists():
-            if several and stream in PER_UNIT_STREAMS:
-                for serial, df in _read_unit_stream(f, stream, only).items():
-                    per_unit.setdefault(serial, {})[stream] = df
-            else:
-                frames[stream] = _read_stream(f, stream)
+            require_regular(f)
+            files[stream] = f
         elif stream in REQUIRED_STREAMS:
             raise RunFormatError(f"required stream file {f.name} is missing", path=str(d), stream=stream)
+    _check_decoded_size(d, files)
+    frames: dict[str, pl.DataFrame] = {}
+    per_unit: dict[str, dict[str, pl.DataFrame]] = {}
+    for stream, f in files.items():
+        if several and stream in PER_UNIT_STREAMS:
+            for serial, df in _read_unit_stream(f, stream, only).items():
+                per_unit.setdefault(serial, {})[stream] = df
+        else:
+            frames[stream] = _read_stream(f, stream)
     if several:
         return assemble_units(
             meta,
@@ -156,10 +168,36 @@ def read_parquet_units(directory: str | Path, only: set[str] | None = None) -> U
     return UnitRuns({run.meta.unit_serial: run}, source=str(d), warnings=run.warnings)
 
 
+def _check_decoded_size(d: Path, files: dict[str, Path]) -> None:
+    """The rows the files' footers declare, decoded, within :func:`pipeline.io.limits.decoded_cap` (checked before
+    anything is decoded)."""
+    total, biggest = 0, ("", 0)
+    for stream, f in files.items():
+        try:
+            rows = pq.ParquetFile(f).metadata.num_rows
+        except Exception as exc:
+            raise RunFormatError(
+                f"not a readable Parquet file ({_one_line(exc)})", path=str(f), stream=stream
+            ) from None
+        width = sum(8 if dtype != pl.String else 64 for dtype in STREAM_COLUMNS[stream].values())
+        total += rows * width
+        biggest = max(biggest, (stream, rows * width), key=lambda x: x[1])
+    cap = decoded_cap()
+    if total > cap:
+        stream, size = biggest
+        raise RunFormatError(
+            f"the files declare {human_bytes(total)} of samples once decoded ({stream}: {human_bytes(size)}), more "
+            f"than {human_bytes(cap)}, a quarter of the memory this process may use: the run is too large for this "
+            "machine (split it, or read it on a larger one); nothing was decoded",
+            path=str(d),
+            stream=stream,
+        )
+
+
 def _read_meta(path: Path) -> dict[str, str]:
     try:
-        values = orjson.loads(path.read_bytes())
-    except (OSError, orjson.JSONDecodeError) as exc:
+        values = orjson.loads(read_regular_bytes(path, what="run metadata", limit=16 << 20, error=RunFormatError))
+    except orjson.JSONDecodeError as exc:
         raise RunFormatError(f"cannot read the run metadata ({exc})", path=str(path), stream="metadata") from None
     if not isinstance(values, dict):
         raise RunFormatError("run metadata is not a JSON object", path=str(path), stream="metadata")
@@ -331,10 +369,11 @@ def _skip(buf, i: int, ftype: int, depth: int = 0) -> int:
     raise _Corrupt(f"unknown field type {ftype}")
 
 
-def _page_header(buf, i: int) -> tuple[int, int | None, int]:
-    """(compressed page size, crc or None, offset of the page's data) of the PageHeader at ``i``."""
+def _page_header(buf, i: int) -> tuple[int, int | None, int, int]:
+    """(compressed page size, crc or None, offset of the page's data, uncompressed page size) of the PageHeader at
+    ``i``."""
     fid = 0
-    size = crc = None
+    size = crc = raw = None
     while True:
         head = buf[i]
         i += 1
@@ -346,9 +385,11 @@ def _page_header(buf, i: int) -> tuple[int, int | None, int]:
         else:
             fid, i = _varint(buf, i)
             fid = _zigzag(fid)
-        if ftype == _T_I32 and fid in (3, 4):
+        if ftype == _T_I32 and fid in (2, 3, 4):
             value, i = _varint(buf, i)
-            if fid == 3:
+            if fid == 2:
+                raw = _zigzag(value)
+            elif fid == 3:
                 size = _zigzag(value)
             else:
                 crc = _zigzag(value) & 0xFFFFFFFF
@@ -356,7 +397,9 @@ def _page_header(buf, i: int) -> tuple[int, int | None, int]:
             i = _skip(buf, i, ftype)
     if size is None or size < 0:
         raise _Corrupt("page header without a valid compressed size")
-    return size, crc, i
+    if raw is None or raw < 0:
+        raise _Corrupt("page header without a valid uncompressed size")
+    return size, crc, i, raw
 
 
 def verify_page_checksums(path: str | Path, stream: str | None = None) -> int:
@@ -364,8 +407,9 @@ def verify_page_checksums(path: str | Path, stream: str | None = None) -> int:
 
     The column chunks' offsets come from the file's footer (pyarrow); each page header is read, and ``zlib.crc32``
     of the page's bytes (as stored, compressed) compared with the header's ``crc``. Pages without a ``crc`` are
-    skipped. A mismatch, or a page header that cannot be read, is a one-line RunFormatError naming the file, the
-    column and the rows of its row group.
+    skipped. A mismatch, a page header that cannot be read, or a page declaring more uncompressed bytes than its
+    codec can expand its stored bytes to (:mod:`pipeline.io.limits`), is a one-line RunFormatError naming the file,
+    the column and the rows of its row group.
     """
     path = Path(path)
     try:
@@ -384,12 +428,13 @@ def verify_page_checksums(path: str | Path, stream: str | None = None) -> int:
                 for c in range(rg.num_columns):
                     col = rg.column(c)
                     name = col.path_in_schema
+                    codec = str(col.compression)
                     start = col.dictionary_page_offset or col.data_page_offset
                     end = start + col.total_compressed_size
                     i = start
                     while i < end:
                         try:
-                            size, crc, data = _page_header(view, i)
+                            size, crc, data, raw = _page_header(view, i)
                         except (_Corrupt, IndexError) as exc:
                             raise RunFormatError(
                                 f"column {name!r}: unreadable page header at byte {i} ({exc}): the file is corrupted",
@@ -400,6 +445,16 @@ def verify_page_checksums(path: str | Path, stream: str | None = None) -> int:
                         if data + size > end:
                             raise RunFormatError(
                                 f"column {name!r}: page at byte {i} runs past its column chunk: the file is corrupted",
+                                path=str(path),
+                                stream=stream,
+                                where=rows,
+                            )
+                        most = ratio_limit(codec, size)
+                        if raw > MAX_CHUNK_BYTES or (most is not None and raw > most):
+                            raise RunFormatError(
+                                f"column {name!r}: page at byte {i} declares {human_bytes(raw)} uncompressed from "
+                                f"{human_bytes(size)} of {codec} data: beyond what that format expands to or the "
+                                f"{human_bytes(MAX_CHUNK_BYTES)} a page may take; not decoded",
                                 path=str(path),
                                 stream=stream,
                                 where=rows,

@@ -18,6 +18,7 @@ import orjson
 from mcap.reader import make_reader
 
 from pipeline.errors import RunFormatError, ThermocalError
+from pipeline.io.files import open_regular, read_regular_bytes
 from pipeline.io.mcap import MAGIC, read_mcap_units, write_mcap
 from pipeline.io.parquet import META_FILE, read_parquet_units, write_parquet_run
 from pipeline.run import Run, RunMeta, UnitRuns, listed_units, unit_meta_values
@@ -109,9 +110,11 @@ def read_units_meta(path: str | os.PathLike) -> tuple[list[RunMeta], bool]:
     p = Path(path)
     try:
         if run_format(p) == "parquet":
-            values = orjson.loads((p / META_FILE).read_bytes())
+            values = orjson.loads(
+                read_regular_bytes(p / META_FILE, what="run metadata", limit=16 << 20, error=RunFormatError)
+            )
         else:
-            with open(p, "rb") as f:
+            with open_regular(p) as f:
                 if f.read(len(MAGIC)) != MAGIC:
                     raise RunFormatError("not an MCAP file (it does not start with the MCAP magic bytes)", path=str(p))
                 f.seek(0)

@@ -3,6 +3,10 @@
 One encoding for everything that is hashed or signed: keys sorted, 2-space indent, ASCII, a final newline, no NaN or
 infinity (docs/contract.md). A record's ``content_sha256`` and its ``signature`` cover the same bytes: the canonical
 JSON of the record without those two fields (:func:`signed_body`).
+
+Reading a record back (:func:`read_sealed`) is the inverse, and strict: the bytes must parse as one JSON object
+without duplicate keys or non-finite numbers, and must BE its canonical encoding (a file that says the same in other
+bytes, e.g. a duplicate ``"status"`` that one parser reads first and another last, is refused).
 """
 
 from __future__ import annotations
@@ -10,6 +14,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+from dataclasses import dataclass
 from typing import Any
 
 from pipeline.jsonable import json_default
@@ -34,8 +39,10 @@ def sha256_bytes(data: bytes) -> str:
 
 def sha256_file(path: str | os.PathLike) -> str:
     """Hex sha256 of a file's bytes, read in 1 MiB chunks."""
+    from pipeline.io.files import open_regular
+
     h = hashlib.sha256()
-    with open(path, "rb") as f:
+    with open_regular(path) as f:
         while chunk := f.read(1 << 20):
             h.update(chunk)
     return h.hexdigest()
@@ -50,3 +57,86 @@ def signed_body(record: dict) -> bytes:
 def content_sha256(record: dict) -> str:
     """The self-hash stored in a record: sha256 of :func:`signed_body`."""
     return sha256_bytes(signed_body(record))
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# reading a record back
+
+
+class NotCanonical(ValueError):
+    """Bytes that are not one canonical JSON record; the message is a phrase (``duplicate key "status" ...``)."""
+
+
+@dataclass(frozen=True)
+class Sealed:
+    """A record read back by :func:`read_sealed`: the object, and the bytes its seal covers (:func:`signed_body`)."""
+
+    record: dict
+    body: bytes
+
+    @property
+    def body_sha256(self) -> str:
+        return sha256_bytes(self.body)
+
+
+def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict:
+    out = dict(pairs)
+    if len(out) != len(pairs):
+        seen: set[str] = set()
+        dup = next(k for k, _ in pairs if k in seen or seen.add(k))  # type: ignore[func-returns-value]
+        raise NotCanonical(f"duplicate key {json.dumps(dup)} (parsers disagree on which value counts)")
+    return out
+
+
+def _no_constant(name: str) -> float:
+    raise NotCanonical(f"non-finite number {name} (JSON has none)")
+
+
+def parse_record(data: bytes) -> dict:
+    """The JSON object in ``data``, refusing what would let two readers see different records: duplicate keys,
+    NaN/Infinity, text that is not UTF-8, a document that is not an object, nesting too deep to read. NotCanonical
+    (a phrase) otherwise."""
+    try:
+        doc = json.loads(data, object_pairs_hook=_no_duplicates, parse_constant=_no_constant)
+    except NotCanonical:
+        raise
+    except RecursionError:
+        raise NotCanonical("nested too deeply to read") from None
+    except UnicodeDecodeError:
+        raise NotCanonical("not UTF-8 text") from None
+    except ValueError as exc:
+        raise NotCanonical(f"unparsable JSON ({exc})") from None
+    if not isinstance(doc, dict):
+        raise NotCanonical(f"not a JSON object (a {type(doc).__name__})")
+    return doc
+
+
+def _member(key: str, value: Any) -> str:
+    """One member of a top-level object as :func:`canonical_json` writes it (its nested lines indented once)."""
+    text = json.dumps(value, sort_keys=True, indent=2, ensure_ascii=True, allow_nan=False, default=json_default)
+    return f"  {json.dumps(key)}: " + text.replace("\n", "\n  ")  # no JSON string holds a raw newline
+
+
+def _object(members: list[str]) -> bytes:
+    return (("{\n" + ",\n".join(members) + "\n}") if members else "{}").encode("ascii") + b"\n"
+
+
+def read_sealed(data: bytes) -> Sealed:
+    """A record read back from its canonical bytes, with the body its seal covers, in one encoding pass (each
+    top-level member is encoded once and used for both the whole record and the body). NotCanonical: the bytes are
+    not a record (:func:`parse_record`) or not its canonical encoding (keys sorted, 2-space indent, ASCII, shortest
+    float repr, one final newline)."""
+    doc = parse_record(data)
+    try:
+        members = {k: _member(k, doc[k]) for k in sorted(doc)}
+    except RecursionError:
+        raise NotCanonical("nested too deeply to encode") from None
+    except (TypeError, ValueError) as exc:
+        raise NotCanonical(f"cannot be encoded canonically ({exc})") from None
+    if _object(list(members.values())) != data:
+        raise NotCanonical(
+            "not in canonical form (keys sorted, 2-space indent, ASCII, shortest numbers, one final newline): "
+            "the bytes were written by something else than the registry"
+        )
+    body = _object([m for k, m in members.items() if k not in SEAL_FIELDS])
+    return Sealed(doc, body)

@@ -48,19 +48,37 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from pipeline.errors import RegistryError
-from pipeline.passport.canonical import canonical_json, content_sha256, sha256_bytes, sha256_file
+from pipeline.errors import RegistryError, ThermocalError
+from pipeline.passport.canonical import (
+    canonical_json,
+    content_sha256,
+    parse_record,
+    sha256_bytes,
+    sha256_file,
+)
 from pipeline.passport.diff import diff_passports
 from pipeline.passport.document import failed_verification
 from pipeline.passport.signing import TrustStore, sign_record, station_key, trusted_keys, verify_record
+from pipeline.passport.verification import (
+    MAX_PASSPORT_BYTES,
+    UNVERIFIED_HINT,
+    MalformedPassport,
+    UntrustedPassport,
+    Verification,
+    check_content,
+    check_schema,
+    check_sealed,
+)
 
 __all__ = [
+    "Problem",
     "PublishResult",
     "Registry",
     "VersionInfo",
     "VerifyReport",
     "canonical_json",
     "identity_key",
+    "load_passport_file",
     "safe_unit_name",
     "sha256_bytes",
     "sha256_file",
@@ -127,6 +145,53 @@ def _version_name(version: int) -> str:
     return f"v{int(version):04d}.json"
 
 
+def version_of_name(name: str) -> int | None:
+    """The version a file name is the one name of (``v0003.json`` -> 3), else None."""
+    m = _VERSION_FILE.match(name)
+    return int(m.group(1)) if m and name == _version_name(int(m.group(1))) else None
+
+
+class Problem(str):
+    """A problem :meth:`Registry.verify` names (its text), with the version it concerns (None: the unit as a whole:
+    a stray file, a damaged log), so that a command using version v is refused only for what concerns v or its
+    ancestors."""
+
+    version: int | None
+
+    def __new__(cls, text: str, version: int | None = None) -> Problem:
+        self = super().__new__(cls, text)
+        self.version = version
+        return self
+
+
+def _problem_version(problem: str) -> int | None:
+    """The version a problem line concerns (:class:`Problem`), None for the unit as a whole."""
+    return problem.version if isinstance(problem, Problem) else None
+
+
+def _version_info(v: int, path: Path, data: bytes, doc: dict | None) -> VersionInfo:
+    """What a listing shows of a version: ``status`` "unreadable" when its bytes are not a record; fields of
+    the wrong type are shown as missing."""
+    if doc is None:
+        return VersionInfo(v, path, sha256_bytes(data), None, "unreadable", [])
+
+    def field_text(key: str) -> str | None:
+        value = doc.get(key)
+        return value if isinstance(value, str) else None
+
+    provenance = doc.get("provenance")
+    inputs = provenance.get("inputs") if isinstance(provenance, dict) else None
+    return VersionInfo(
+        v,
+        path,
+        sha256_bytes(data),
+        field_text("created_utc"),
+        field_text("status"),
+        [i for i in inputs if isinstance(i, dict)] if isinstance(inputs, list) else [],
+        field_text("method"),
+    )
+
+
 def _utc_now() -> str:
     return datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%S.%fZ")
 
@@ -175,6 +240,22 @@ def _flock(path: Path, exclusive: bool) -> Iterator[None]:
         os.close(fd)  # closing releases the lock
 
 
+#: The largest log or approvals file read (a row is ~200 bytes: a million versions).
+_MAX_LOG_BYTES = 256 << 20
+
+
+def _read_small(path: Path, doing: str, limit: int = MAX_PASSPORT_BYTES) -> bytes | None:
+    """The bytes of a registry file, or None when it is larger than ``limit``; only a regular file is opened (a
+    FIFO planted in a unit folder must not hang verify). RegistryError (one line) when it cannot be read."""
+    from pipeline.io.files import open_regular
+
+    with _os_errors(path, doing):
+        with open_regular(path, RegistryError) as f:
+            if os.fstat(f.fileno()).st_size > limit:
+                return None
+            return f.read()
+
+
 def _write_all(fd: int, data: bytes) -> None:
     view = memoryview(data)
     while view:
@@ -214,37 +295,71 @@ class VersionInfo:
 @dataclass(frozen=True)
 class VersionState:
     """What a person must know of the version a command uses: its status, who approved it, and whether it is the
-    unit's current passport (docs/contract.md: the newest approved version, else the newest; :meth:`Registry.state`)."""
+    unit's current passport (docs/contract.md: the newest approved version, else the newest that did not fail;
+    :meth:`Registry.state`)."""
 
     unit: str
     version: int
     status: str | None
     approved_by: tuple[str, ...]
     current: bool
+    verification: Verification | None = None
+
+    @classmethod
+    def of_file(cls, doc: dict, verification: Verification) -> VersionState:
+        """The state of a passport read from a file outside a registry (approval unknown, never current)."""
+        version = doc.get("version")
+        status = doc.get("status")
+        return cls(
+            str(doc.get("unit")),
+            version if isinstance(version, int) else 0,
+            status if isinstance(status, str) else None,
+            (),
+            False,
+            verification,
+        )
 
     @property
     def approved(self) -> bool:
         return bool(self.approved_by)
 
+    @property
+    def unverified(self) -> bool:
+        """Used although it does not verify (``--unverified``)."""
+        return self.verification is not None and not self.verification.verified
+
     def approval_text(self) -> str:
         """``approved by A. Metrologist`` or ``not approved`` (with, for the current passport, why it is current)."""
-        if self.approved_by:
-            return f"approved by {', '.join(self.approved_by)}"
-        return "not approved" + ("; the current passport: the newest version, none is approved" if self.current else "")
+        if self.verification is not None and self.verification.loose:
+            text = "approval unknown (a passport file, not read from a registry)"
+        elif self.approved_by:
+            text = f"approved by {', '.join(self.approved_by)}"
+        else:
+            text = "not approved" + (
+                "; the current passport: the newest version that did not fail, none is approved" if self.current else ""
+            )
+        check = self.verification
+        return text + (f"; {check.label}" if check is not None and not check.verified else "")
 
     def text(self) -> str:
-        """``AU-0001 v2 (status pass, approved by A. Metrologist)``, ``AU-0001 v3 (status fail, not approved; the
-        current passport: the newest version, none is approved)``."""
+        """``AU-0001 v2 (status pass, approved by A. Metrologist)``, ``AU-0001 v3 (status pass, not approved; the
+        current passport: the newest version that did not fail, none is approved)``; ``UNVERIFIED (--unverified):
+        <why>`` added for a version used without its verification."""
         return f"{self.unit} v{self.version} (status {self.status}, {self.approval_text()})"
 
     def warning(self) -> str | None:
-        """One line for stderr when the version failed its verification (a failed version is never approved)."""
-        if self.status != "fail":
-            return None
-        return failed_verification(f"{self.unit} v{self.version}") + "; it is not approved"
+        """One line for stderr when the version failed its verification (a failed version is never approved) or
+        is used although it does not verify (``--unverified``)."""
+        parts = []
+        if self.status == "fail":
+            parts.append(failed_verification(f"{self.unit} v{self.version}") + "; it is not approved")
+        check = self.verification
+        if check is not None and not check.verified:
+            parts.append(f"{check.subject} is used {check.label}")
+        return "; ".join(parts) or None
 
     def as_dict(self) -> dict:
-        return {
+        out = {
             "unit": self.unit,
             "version": self.version,
             "status": self.status,
@@ -252,6 +367,9 @@ class VersionState:
             "approved_by": list(self.approved_by),
             "current": self.current,
         }
+        if self.verification is not None:
+            out["verification"] = self.verification.as_dict()
+        return out
 
 
 @dataclass
@@ -338,10 +456,11 @@ class Registry:
         """Rows by version; issues found (text, is_problem); whether the last line is an unterminated fragment."""
         rows: dict[int, dict] = {}
         issues: list[tuple[str, bool]] = []
-        try:
-            data = path.read_bytes()
-        except FileNotFoundError:
+        if not path.exists():
             return rows, issues, False
+        data = _read_small(path, "read the log", limit=_MAX_LOG_BYTES)
+        if data is None:
+            return rows, [(f"{_LOG_NAME} is larger than any registry's log: not read", True)], False
         partial = bool(data) and not data.endswith(b"\n")
         lines = data.split(b"\n")[:-1]  # without the text after the last newline ("" or a fragment)
         if partial:
@@ -353,9 +472,10 @@ class Registry:
             )
         for k, line in enumerate(lines, start=1):
             try:
-                row = json.loads(line)
-                v = int(row["version"])
-                str(row["sha256"])
+                row = parse_record(line)
+                v = row["version"]
+                if not isinstance(v, int) or not isinstance(row["sha256"], str):
+                    raise TypeError
             except (ValueError, KeyError, TypeError):
                 issues.append((f"log.jsonl line {k} is not a valid log row", True))
                 continue
@@ -377,27 +497,13 @@ class Registry:
         self._require_unit(unit)
         out = []
         for v, path in sorted(self._scan(unit).files.items()):
-            with _os_errors(path, "read passport"):
-                data = path.read_bytes()
+            data = _read_small(path, "read passport")
             try:
-                doc = json.loads(data)
-                if not isinstance(doc, dict):
-                    raise ValueError("not an object")
+                doc = parse_record(data) if data is not None else None
             except ValueError:
-                out.append(VersionInfo(v, path, sha256_bytes(data), None, "unreadable", []))
-                continue
-            inputs = (doc.get("provenance") or {}).get("inputs") or []
-            out.append(
-                VersionInfo(
-                    v,
-                    path,
-                    sha256_bytes(data),
-                    doc.get("created_utc"),
-                    doc.get("status"),
-                    list(inputs),
-                    doc.get("method"),
-                )
-            )
+                doc = None
+            data = data if data is not None else b""
+            out.append(_version_info(v, path, data, doc))
         return out
 
     def load(self, unit: str, version: int | None = None) -> dict:
@@ -409,11 +515,12 @@ class Registry:
         v = max(files) if version is None else int(version)
         if v not in files:
             raise RegistryError(f"unit {unit!r} has no version {v} (versions 1..{max(files)})", path=str(udir))
-        with _os_errors(files[v], "read passport"):
-            data = files[v].read_bytes()
+        data = _read_small(files[v], "read passport")
+        if data is None:
+            raise RegistryError("larger than any passport: not read", path=str(files[v]))
         try:
             doc = json.loads(data)
-        except ValueError as exc:
+        except (ValueError, RecursionError) as exc:
             raise RegistryError(f"passport is not valid JSON ({exc})", path=str(files[v])) from exc
         if not isinstance(doc, dict):
             raise RegistryError("passport is not a JSON object", path=str(files[v]))
@@ -454,6 +561,8 @@ class Registry:
         if not by:
             raise RegistryError("approve needs the approver's name (--by NAME)")
         udir = self._require_unit(unit)
+        if int(version) in self._scan(unit).files:
+            self.load_state(unit, int(version))  # only a version that verifies is approved (else one line)
         key = station_key()
         with _os_errors(udir / _LOCK_NAME, "lock the unit"), _flock(udir / _LOCK_NAME, exclusive=True):
             state = self._scan(unit)
@@ -500,20 +609,21 @@ class Registry:
         is_problem): a line that is not a record is a problem, an unterminated last line (a killed writer) a
         note."""
         path = udir / _APPROVALS_NAME
-        try:
-            data = path.read_bytes()
-        except FileNotFoundError:
+        if not path.exists():
             return [], []
+        data = _read_small(path, f"read {_APPROVALS_NAME}", limit=_MAX_LOG_BYTES)
+        if data is None:
+            return [], [(f"{_APPROVALS_NAME} is larger than any registry's approvals: not read", True)]
         issues: list[tuple[str, bool]] = []
         if data and not data.endswith(b"\n"):
             issues.append((f"{_APPROVALS_NAME} ends with an unterminated line (writer interrupted); ignored", False))
         records = []
         for k, line in enumerate(data.split(b"\n")[:-1], start=1):
             try:
-                rec = json.loads(line)
-                if not isinstance(rec, dict) or rec.get("schema") != APPROVAL_SCHEMA:
+                rec = parse_record(line)  # no duplicate keys: one reading of who approved what
+                if rec.get("schema") != APPROVAL_SCHEMA or not isinstance(rec.get("version"), int):
                     raise ValueError
-                int(rec["version"]), str(rec["sha256"]), str(rec["by"])
+                str(rec["sha256"]), str(rec["by"])
             except (ValueError, KeyError, TypeError):
                 issues.append((f"{_APPROVALS_NAME} line {k} is not an approval record", True))
                 continue
@@ -531,20 +641,24 @@ class Registry:
 
     def current(self, unit: str, *, exclude_methods: tuple[str, ...] = ()) -> int | None:
         """The unit's current passport version, the one rule every command uses (docs/contract.md): the newest approved
-        version (a valid approval record whose sha256 is the version file's), else the newest version, whatever
-        its status (say it: :meth:`state`); None for a unit without versions. ``exclude_methods``: leave out the
-        versions made by these methods (the differential method's base is never a differential passport)."""
+        version (a valid approval record whose sha256 is the version file's), else the newest version that did not
+        fail its verification (a failed calibration is never the current passport); None for a unit without such a
+        version. ``exclude_methods``: leave out the versions made by these methods (the differential method's base
+        is never a differential passport)."""
         return self._current(unit, self.versions(unit), self.approvals(unit), exclude_methods)
 
     @staticmethod
     def _current(
         unit: str, infos: list[VersionInfo], approvals: list[dict], exclude_methods: tuple[str, ...]
     ) -> int | None:
-        versions = {i.version: i.sha256 for i in infos if i.method not in exclude_methods}
-        if not versions:
-            return None
-        approved = [a["version"] for a in approvals if versions.get(a["version"]) == a["sha256"]]
-        return max(approved) if approved else max(versions)
+        versions = {i.version: i for i in infos if i.method not in exclude_methods}
+        approved = [
+            a["version"] for a in approvals if a["version"] in versions and versions[a["version"]].sha256 == a["sha256"]
+        ]
+        if approved:
+            return max(approved)
+        usable = [v for v, i in versions.items() if i.status != "fail"]
+        return max(usable) if usable else None
 
     def state(
         self, unit: str, version: int | None = None, *, exclude_methods: tuple[str, ...] = ()
@@ -561,18 +675,96 @@ class Registry:
         return VersionState(unit, info.version, info.status, by, v == self._current(unit, infos, approvals, ()))
 
     def load_state(
-        self, unit: str, version: int | None = None, *, exclude_methods: tuple[str, ...] = ()
+        self,
+        unit: str,
+        version: int | None = None,
+        *,
+        exclude_methods: tuple[str, ...] = (),
+        unverified: bool = False,
+        expect_bytes: bytes | None = None,
     ) -> tuple[dict, VersionState]:
-        """The passport at ``version`` (default: the unit's current passport, :meth:`current`) and its
-        :class:`VersionState`. RegistryError when there is no such version."""
-        st = self.state(unit, version, exclude_methods=exclude_methods)
-        if st is None:
-            self.load(unit, version)  # no version at all, or not that one: its own error
-            raise RegistryError(
-                f"unit {unit!r} has no version other than by the {', '.join(exclude_methods)} method",
-                path=str(self.unit_dir(unit)),
+        """The passport at ``version`` (default: the unit's current passport, :meth:`current`), verified, and its
+        :class:`VersionState` (with its :class:`~pipeline.passport.verification.Verification`): the one path by
+        which a command uses a registry's passport.
+
+        The unit's chain is checked as :meth:`verify` does (canonical bytes, hashes, signatures, parent links, log,
+        approvals) from the bytes that are returned. A problem with the version used, an older one, or the unit as
+        a whole (and, for the current passport, which depends on every version, any problem) refuses it in one
+        line (:class:`~pipeline.passport.verification.UntrustedPassport`) unless ``unverified``; then it is used
+        and its state says so. Its content is checked either way
+        (:func:`~pipeline.passport.verification.check_content`). ``expect_bytes``: the version's bytes as a caller
+        read them (a file named by path): anything else is a problem. RegistryError: no such unit or version."""
+        udir = self._require_unit(unit)
+        trust = trusted_keys()
+        problems: list[str] = []
+        with _os_errors(udir / _LOCK_NAME, "lock the unit"), _flock(udir / _LOCK_NAME, exclusive=False):
+            scan = self._scan(unit)
+            docs = self._check_unit(unit, scan, trust, problems, [])
+        if not scan.files:
+            raise RegistryError(f"unit {unit!r} has no version", path=str(udir))
+        infos = [_version_info(v, scan.files[v], data, doc) for v, (doc, data) in sorted(docs.items())]
+        approvals = self.approvals(unit, trust)
+        if version is None:
+            v = self._current(unit, infos, approvals, exclude_methods)
+            if v is None:
+                only = f" other than by the {', '.join(exclude_methods)} method" if exclude_methods else ""
+                raise RegistryError(
+                    f"unit {unit!r} has no current passport: no version{only} is approved and every one failed its "
+                    "verification (status fail); name a version to use one",
+                    path=str(udir),
+                )
+        else:
+            v = int(version)
+            if v not in scan.files:
+                raise RegistryError(f"unit {unit!r} has no version {v} (versions 1..{max(scan.files)})", path=str(udir))
+        blocking = [p for p in problems if version is None or (pv := _problem_version(p)) is None or pv <= v]
+        doc, data = docs[v]
+        if expect_bytes is not None and expect_bytes != data:
+            blocking.insert(0, Problem(f"{unit} v{v}: the file changed while it was read", v))
+        if blocking and not unverified:
+            more = f" (and {len(blocking) - 1} more)" if len(blocking) > 1 else ""
+            raise UntrustedPassport(
+                f"{unit} v{v} is not used: the registry does not verify: {blocking[0]}{more}; run 'thermocal "
+                f"passport verify --registry {self.root}' ({UNVERIFIED_HINT})",
+                path=str(scan.files[v]),
             )
-        return self.load(unit, st.version), st
+        subject = f"{unit} v{v}"
+        if doc is None:
+            raise UntrustedPassport(f"{subject} is not a passport record: {blocking[0]}", path=str(scan.files[v]))
+        check_content(doc, f"{scan.files[v]}")
+        sig = doc.get("signature")
+        key_id = sig.get("key_id") if isinstance(sig, dict) and isinstance(sig.get("key_id"), str) else None
+        verification = Verification(subject, not blocking, str(blocking[0]) if blocking else None, key_id)
+        info = next(i for i in infos if i.version == v)
+        by = tuple(a["by"] for a in approvals if a["version"] == v and a["sha256"] == info.sha256)
+        current = v == self._current(unit, infos, approvals, ())
+        return doc, VersionState(unit, v, info.status, by, current, verification)
+
+    def verified_versions(self, unit: str) -> tuple[dict[int, dict], list[str]]:
+        """Every version of ``unit`` that verifies together with all its ancestors (oldest first: the history a
+        command such as ``trends`` may read), and the problems found (empty: the whole chain verifies). A version
+        whose content is malformed is left out with its reason. RegistryError: no such unit."""
+        udir = self._require_unit(unit)
+        trust = trusted_keys()
+        problems: list[str] = []
+        with _os_errors(udir / _LOCK_NAME, "lock the unit"), _flock(udir / _LOCK_NAME, exclusive=False):
+            scan = self._scan(unit)
+            docs = self._check_unit(unit, scan, trust, problems, [])
+        whole_unit = [p for p in problems if _problem_version(p) is None]
+        first_bad = min((pv for p in problems if (pv := _problem_version(p)) is not None), default=None)
+        out: dict[int, dict] = {}
+        if whole_unit:
+            return out, problems
+        for v, (doc, _) in sorted(docs.items()):
+            if (first_bad is not None and v >= first_bad) or doc is None:
+                break
+            try:
+                check_content(doc, f"{unit} v{v}")
+            except ThermocalError as exc:
+                problems.append(Problem(exc.one_line(), v))
+                break
+            out[v] = doc
+        return out, problems
 
     def planned(self, passport: dict, *, inputs: list[dict], settings: dict) -> tuple[int, bool]:
         """What :meth:`publish` would do, writing nothing (``calibrate --dry-run``): (the version it would
@@ -831,8 +1023,14 @@ class Registry:
 
     def _check_unit(
         self, unit: str, state: _UnitState, trust: TrustStore, problems: list[str], notes: list[str]
-    ) -> None:
-        """Append the unit's problems and notes (the checks of :meth:`verify`)."""
+    ) -> dict[int, tuple[dict | None, bytes]]:
+        """Append the unit's problems (each a :class:`Problem` naming its version) and notes (the checks of
+        :meth:`verify`); return the versions read: {version: (record or None when the bytes are not one, the file's
+        bytes)}. The bytes checked are the bytes returned (a version is read once)."""
+
+        def problem(text: str, version: int | None = None) -> None:
+            problems.append(Problem(text, version))
+
         for tmp in state.temps:
             notes.append(
                 f"{unit}: leftover temp file {tmp.name} from an interrupted writer "
@@ -841,51 +1039,59 @@ class Registry:
         for stray in state.strays:
             m = _VERSION_FILE.match(stray.name)
             hint = f" (misnamed: version {int(m.group(1))} would be {_version_name(int(m.group(1)))})" if m else ""
-            problems.append(f"{unit}: stray file {stray.name!r} in the unit folder, not written by thermocal{hint}")
+            problem(f"{unit}: stray file {stray.name!r} in the unit folder, not written by thermocal{hint}")
         for text, is_problem in state.log_issues:
-            (problems if is_problem else notes).append(f"{unit}: {text}")
+            if is_problem:
+                problem(f"{unit}: {text}")
+            else:
+                notes.append(f"{unit}: {text}")
         self._check_approvals(unit, state, trust, problems, notes)
         sha: dict[int, str] = {}
-        docs: dict[int, dict] = {}
+        docs: dict[int, tuple[dict | None, bytes]] = {}
         altered: set[int] = set()
         unsigned: set[int] = set()
         for v, path in sorted(state.files.items()):
-            with _os_errors(path, "read passport"):
-                data = path.read_bytes()
+            data = _read_small(path, "read passport")
+            if data is None:
+                problem(f"{unit} v{v}: larger than any passport ({MAX_PASSPORT_BYTES} bytes at most): altered", v)
+                altered.add(v)
+                docs[v] = (None, b"")
+                continue
             sha[v] = sha256_bytes(data)
             row = state.log_rows.get(v)
             if row is not None and row["sha256"] != sha[v]:
-                problems.append(f"{unit} v{v}: file was altered after writing (sha256 differs from log.jsonl)")
+                problem(f"{unit} v{v}: file was altered after writing (sha256 differs from log.jsonl)", v)
                 altered.add(v)
-            try:
-                doc = json.loads(data)
-                if not isinstance(doc, dict):
-                    raise ValueError("not a JSON object")
-            except ValueError as exc:
-                problems.append(f"{unit} v{v}: unparsable JSON ({exc})")
+            seal = check_sealed(data, trust)
+            if seal.record is None:
+                problem(f"{unit} v{v}: altered: {seal.problems[0]}", v)
                 altered.add(v)
+                docs[v] = (None, data)
                 continue
-            docs[v] = doc
-            self_hash_ok = doc.get("content_sha256") == content_sha256(doc)
-            if not self_hash_ok:
-                problems.append(f"{unit} v{v}: stored content_sha256 does not match the content (altered)")
+            doc = seal.record
+            docs[v] = (doc, data)
+            if not seal.canonical:
+                problem(f"{unit} v{v}: altered: {seal.problems[0]}", v)
+                altered.add(v)
+            elif not seal.self_hash_ok:
+                problem(f"{unit} v{v}: {seal.problems[0]}", v)
                 altered.add(v)
             if doc.get("version") != v or doc.get("unit") != unit:
-                problems.append(f"{unit} v{v}: file says unit {doc.get('unit')!r} version {doc.get('version')!r}")
-            if self_hash_ok:  # (a self-hash that fails already names the version)
-                check = verify_record(doc, trust)
-                if not check.ok:
-                    problems.append(
-                        f"{unit} v{v}: hashes are consistent but it is {check.problem}"
-                        if (check.problem or "").startswith(("not signed", "signed by"))
-                        else f"{unit} v{v}: {check.problem}"
-                    )
-                    unsigned.add(v)
+                problem(f"{unit} v{v}: file says unit {doc.get('unit')!r} version {doc.get('version')!r}", v)
+            if seal.canonical and seal.self_hash_ok and not seal.ok:  # (a bad self-hash already names it)
+                sig_problem = seal.problems[0]
+                problem(
+                    f"{unit} v{v}: hashes are consistent but it is {sig_problem}"
+                    if sig_problem.startswith(("not signed", "signed by"))
+                    else f"{unit} v{v}: {sig_problem}",
+                    v,
+                )
+                unsigned.add(v)
         last_logged = max(state.log_rows, default=0)
         for v in range(1, state.latest + 1):
             if v not in state.files:
                 what = "deleted (listed in log.jsonl)" if v in state.log_rows else "version gap"
-                problems.append(f"{unit} v{v}: version file missing, {what}")
+                problem(f"{unit} v{v}: version file missing, {what}", v)
             elif v not in state.log_rows:
                 if v == state.latest and v == last_logged + 1 and v not in altered | unsigned:
                     notes.append(
@@ -893,19 +1099,22 @@ class Registry:
                         "recorded at the next publish"
                     )
                 else:
-                    problems.append(f"{unit} v{v}: not recorded in log.jsonl")
-        for v, doc in sorted(docs.items()):
-            parent = doc.get("parent_sha256")
+                    problem(f"{unit} v{v}: not recorded in log.jsonl", v)
+        for v, (record, _) in sorted(docs.items()):
+            if record is None:
+                continue
+            parent = record.get("parent_sha256")
             if v == 1:
                 if parent is not None:
-                    problems.append(f"{unit} v1: parent_sha256 should be null")
+                    problem(f"{unit} v1: parent_sha256 should be null", v)
             elif v - 1 in sha and parent != sha[v - 1]:
                 if v - 1 in altered:
-                    problems.append(
-                        f"{unit} v{v - 1}: file sha256 does not match v{v}'s parent_sha256 (v{v - 1} altered)"
+                    problem(
+                        f"{unit} v{v - 1}: file sha256 does not match v{v}'s parent_sha256 (v{v - 1} altered)", v - 1
                     )
                 else:
-                    problems.append(f"{unit} v{v}: broken parent link (parent_sha256 does not match v{v - 1}'s file)")
+                    problem(f"{unit} v{v}: broken parent link (parent_sha256 does not match v{v - 1}'s file)", v)
+        return docs
 
     def _check_approvals(
         self, unit: str, state: _UnitState, trust: TrustStore, problems: list[str], notes: list[str]
@@ -913,20 +1122,21 @@ class Registry:
         """Every approval record: its own hash, a trusted signature, and a version that holds the approved bytes."""
         records, issues = self._approval_records(self.unit_dir(unit))
         for text, is_problem in issues:
-            (problems if is_problem else notes).append(f"{unit}: {text}")
+            (problems if is_problem else notes).append(Problem(f"{unit}: {text}") if is_problem else f"{unit}: {text}")
         for rec in records:
-            what = f"{unit} approval of v{rec['version']} by {rec['by']!r}"
+            v = int(rec["version"])
+            what = f"{unit} approval of v{v} by {rec['by']!r}"
             if rec.get("content_sha256") != content_sha256(rec) or rec.get("unit") != unit:
-                problems.append(f"{what}: altered (content_sha256 does not match)")
+                problems.append(Problem(f"{what}: altered (content_sha256 does not match)", v))
                 continue
             check = verify_record(rec, trust)
             if not check.ok:
-                problems.append(f"{what}: {check.problem}")
-            path = state.files.get(int(rec["version"]))
+                problems.append(Problem(f"{what}: {check.problem}", v))
+            path = state.files.get(v)
             if path is None:
-                problems.append(f"{what}: the approved version is missing")
+                problems.append(Problem(f"{what}: the approved version is missing", v))
             elif sha256_file(path) != rec["sha256"]:
-                problems.append(f"{what}: the version file is not the one approved (sha256 differs)")
+                problems.append(Problem(f"{what}: the version file is not the one approved (sha256 differs)", v))
 
     # -- head statements -----------------------------------------------------------------------------------------
 
@@ -996,4 +1206,59 @@ class Registry:
     def diff(self, unit: str, v1: int, v2: int) -> dict:
         """What changed from version ``v1`` to ``v2`` of ``unit``, in the units of docs/physics.md
         (:func:`pipeline.passport.diff.diff_passports`)."""
-        return diff_passports(self.load(unit, v1), self.load(unit, v2), unit=unit, v1=v1, v2=v2)
+        docs = [self.load(unit, v) for v in (v1, v2)]
+        for v, doc in zip((v1, v2), docs):
+            check_content(doc, f"{unit} v{v}")
+        return diff_passports(*docs, unit=unit, v1=v1, v2=v2)
+
+
+def load_passport_file(path: str | os.PathLike, *, unverified: bool = False, trust: TrustStore | None = None):
+    """A passport file and its :class:`pipeline.passport.registry.VersionState` (with its :class:`Verification`),
+    for a command given a file (``apply``, ``diagnose --passport``, ``calibrate --base-passport``, export and
+    report given a file). A version file inside a registry (``REG/units/UNIT/vNNNN.json``) is verified as that
+    registry's version (parent link, log, approvals); any other file by its own seal. Refused in one line
+    (:class:`UntrustedPassport`) unless ``unverified``; always checked for well-formedness
+    (:func:`check_content`)."""
+    p = Path(path)
+    data = _read_file(p)
+    in_registry = _registry_version(p)
+    if in_registry is not None:
+        root, unit, version = in_registry
+        return Registry(root).load_state(unit, version, unverified=unverified, expect_bytes=data)
+    trust = trust or trusted_keys()
+    check = check_sealed(data, trust)
+    subject = str(p)
+    if check.record is None:
+        reason = check.problems[0].removeprefix("not a record: ")
+        if reason.startswith(("unparsable JSON", "not UTF-8")):
+            reason = f"the file is not JSON ({reason})"
+        raise MalformedPassport(f"not a passport: {reason}", path=subject)
+    check_schema(check.record, subject)
+    if check.ok:
+        verification = Verification(subject, True, key_id=check.key_id, loose=True)
+    elif unverified:
+        verification = Verification(subject, False, check.problems[0], check.key_id, loose=True)
+    else:
+        raise UntrustedPassport(
+            f"passport does not verify: {check.problems[0]}; not used ({UNVERIFIED_HINT})", path=subject
+        )
+    check_content(check.record, subject)
+    return check.record, VersionState.of_file(check.record, verification)
+
+
+def _read_file(p: Path) -> bytes:
+    from pipeline.io.files import read_regular_bytes
+
+    return read_regular_bytes(p, what="passport", limit=MAX_PASSPORT_BYTES)
+
+
+def _registry_version(p: Path) -> tuple[Path, str, int] | None:
+    """(registry root, unit, version) when ``p`` is a version file in a registry's unit folder."""
+    v = version_of_name(p.name)
+    if v is None:
+        return None
+    udir = p.resolve().parent
+    root = udir.parent.parent
+    if udir.parent.name != "units" or not (udir / "log.jsonl").exists():
+        return None
+    return root, udir.name, v

@@ -54,10 +54,13 @@ def certificate_html(
     approved: list[dict] | None = None,
     registry: str | None = None,
     figures: dict[str, bytes] | None = None,
+    verification=None,
 ) -> str:
     """The certificate of passport ``doc`` as one HTML page. ``approved``: the version's valid approval records
     (``by``, ``approved_utc``); ``figures``: PNG bytes by caption (default: drawn from the passport by
-    :func:`passport_figures`)."""
+    :func:`passport_figures`); ``verification``: how the passport was verified
+    (:class:`pipeline.passport.verification.Verification`): stated beside the signing key, and a banner when it was
+    used without verifying (``--unverified``)."""
     figures = passport_figures(doc) if figures is None else figures
     e = html.escape
     unit, version = str(doc.get("unit")), doc.get("version")
@@ -71,6 +74,11 @@ def certificate_html(
         f"<h1>Calibration certificate</h1><p>Accelerometer unit <b>{e(unit)}</b>, passport version "
         f"<b>{e(str(version))}</b>, created {e(str(doc.get('created_utc') or '-'))} (UTC)</p>",
         f"<p><span class='status {e(status)}'>status: {e(status.upper())}</span></p>",
+        *(
+            [f"<p class='unverified'>{e(verification.label)}: this certificate does not vouch for the passport</p>"]
+            if verification is not None and not verification.verified
+            else []
+        ),
         "<h2>Identification</h2><table>",
         _row("unit serial number", e(unit)),
         _row("passport version", e(str(version))),
@@ -79,6 +87,7 @@ def certificate_html(
             "signed by station key",
             f"<span class='mono'>{e(str(sig.get('key_id') or 'unsigned'))}</span> ({e(str(sig.get('alg') or '-'))})",
         ),
+        *([_row("verification", e(verification.label))] if verification is not None else []),
         _row("parent version sha256", f"<span class='mono'>{e(str(doc.get('parent_sha256') or 'none'))}</span>"),
         _row("registry", e(registry or "-")),
         _row("code", e(str(prov.get("code_version") or "-"))),

@@ -229,7 +229,7 @@ def log_lines(rows: list[dict], docs: dict[int, dict]) -> list[str]:
             + f"  {appr}"
         )
     if any(r.get("current") for r in rows):
-        out.append("   (* the current passport: the newest approved version, else the newest)")
+        out.append("   (* the current passport: the newest approved version, else the newest that did not fail)")
     return out
 
 

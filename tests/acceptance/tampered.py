@@ -161,6 +161,15 @@ def altered_older(root: Path) -> None:
     _write(p, p.read_bytes().replace(b"-0.5506", b"-0.5507", 1))
 
 
+def thermal_x10_stale_hashes(root: Path) -> None:
+    """Issue 26: the newest version's thermal coefficient alpha_x times 10 in place, hashes left stale (the
+    consumers used it: export, report's clean certificate, apply, diagnose)."""
+    p = _vpath(root, UNITS[0], VERSIONS)
+    doc = json.loads(p.read_bytes())
+    doc["thermal_model"]["alpha"]["x"] = [10 * a for a in doc["thermal_model"]["alpha"]["x"]]
+    _write(p, canonical_json(doc))
+
+
 def altered_older_rehashed(root: Path) -> None:
     """v2's K changed, content_sha256 recomputed, signature kept."""
     p = _vpath(root, UNITS[0], 2)
@@ -189,6 +198,32 @@ def signature_stripped(root: Path) -> None:
     doc = json.loads(p.read_bytes())
     doc.pop("signature")
     _write(p, canonical_json(doc))
+
+
+def duplicate_keys_prepended(root: Path) -> None:
+    """Issue 26: the newest version with duplicate keys prepended (``"status": "pass"`` and an identity K) and its
+    log row updated: Python's json reads the last value of a key (the signed one), a first-key parser the forged
+    one, so the hash and signature check out for one reader and the other uses the forgery."""
+    unit, p = UNITS[0], _vpath(root, UNITS[0], VERSIONS)
+    identity = {"K": [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], "U0": [0.0, 0.0, 0.0]}
+    head = b'{\n  "coefficients": ' + json.dumps(identity).encode() + b',\n  "status": "pass",\n'
+    _write(p, head + p.read_bytes()[2:])
+    log = root / "units" / unit / "log.jsonl"
+    rows = [json.loads(x) for x in log.read_text().splitlines()]
+    rows[-1]["sha256"] = sha256_file(p)
+    log.write_text("".join(json.dumps(r, sort_keys=True, separators=(",", ":")) + "\n" for r in rows))
+
+
+def reformatted(root: Path) -> None:
+    """The newest version's same content in other bytes (compact JSON, keys unsorted), its log row updated: the
+    content hash and signature still match the content, but the file is not the record's canonical bytes."""
+    unit, p = UNITS[0], _vpath(root, UNITS[0], VERSIONS)
+    doc = json.loads(p.read_bytes())
+    _write(p, json.dumps(dict(reversed(list(doc.items())))).encode())
+    log = root / "units" / unit / "log.jsonl"
+    rows = [json.loads(x) for x in log.read_text().splitlines()]
+    rows[-1]["sha256"] = sha256_file(p)
+    log.write_text("".join(json.dumps(r, sort_keys=True, separators=(",", ":")) + "\n" for r in rows))
 
 
 def stray_files(root: Path) -> None:
@@ -234,9 +269,12 @@ ATTACKS: tuple[Attack, ...] = (
         refuses=None,
     ),
     Attack("altered-older-version", altered_older, ((U0, 2, "altered"),)),
+    Attack("thermal-x10-newest-stale-hashes", thermal_x10_stale_hashes, ((U0, 3, "altered"),)),
     Attack("altered-older-version-rehashed", altered_older_rehashed, ((U0, 2, "does not match the content"),)),
     Attack("altered-newest-rehashed-and-logged", altered_newest_rehashed, ((U0, 3, "does not match the content"),)),
     Attack("signature-stripped", signature_stripped, ((U1, 1, "altered"),), refuses=U1),
+    Attack("duplicate-keys-prepended", duplicate_keys_prepended, ((U0, 3, 'duplicate key "coefficients"'),)),
+    Attack("reformatted-newest", reformatted, ((U0, 3, "not in canonical form"),)),
     Attack(
         "stray-and-misnamed-files",
         stray_files,

@@ -74,7 +74,7 @@ def _diagnosed(name: str, folder: Path) -> dict:
     _TRUTH[name] = res.truth
     stem = name.replace(":", "_").replace("+", "_")
     path = write_run(res.run, folder / (f"{stem}.mcap" if fmt == "mcap" else stem), fmt)
-    return diagnose_command(path, None, True, folder / f"{stem}.png")
+    return diagnose_command(path, None, True, folder / f"{stem}.png", out_dir=folder)
 
 
 def _named(report: dict) -> list[set[str]]:

@@ -10,12 +10,13 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.errors import RegistryError
+from pipeline.errors import RegistryError, ThermocalError
 from pipeline.passport.canonical import content_sha256
 from pipeline.passport.registry import Registry
 from pipeline.passport.signing import sign_record, station_key
+from pipeline.passport.verification import UntrustedPassport
 from tests.acceptance import tampered
-from tests.acceptance.tampered import ATTACKS, UNITS, Attack, build_base, snapshot
+from tests.acceptance.tampered import ATTACKS, UNITS, VERSIONS, Attack, build_base, snapshot
 from tests.conftest import run_main
 
 pytestmark = pytest.mark.slow  # an end-to-end proof on long or many recordings
@@ -68,6 +69,74 @@ def test_attack_is_named_and_refused_without_loss(base, tmp_path, attack):
     assert "\n" not in line and "refusing to append" in line or "is not this station's own signed version" in line
     assert attack.refuses in line
     assert snapshot(root) == before  # nothing lost, nothing altered, nothing adopted
+
+
+@pytest.mark.parametrize("attack", [a for a in ATTACKS if a.refuses], ids=lambda a: a.name)
+def test_attacked_unit_is_not_used_by_any_consumer(base, tmp_path, attack):
+    """Issue 26: the one path every consumer reads a registry's passport by (Registry.load_state: export, report,
+    diagnose --registry, the differential base) refuses the attacked unit's current passport in one line; with
+    ``unverified`` it is used and its state says so; the other unit is untouched and verified."""
+    root = attacked(base, tmp_path, attack)
+    reg = Registry(root)
+    with pytest.raises(UntrustedPassport) as info:
+        reg.load_state(attack.refuses)
+    line = info.value.one_line()
+    assert "\n" not in line and "is not used" in line and "--unverified" in line, line
+    try:
+        doc, st = reg.load_state(attack.refuses, unverified=True)
+    except ThermocalError as exc:  # the forged bytes are not a record at all: never used
+        assert "not a passport record" in exc.one_line()
+    else:
+        assert not st.verification.verified and "UNVERIFIED" in st.text() and st.as_dict()["verification"]["problem"]
+    other = next(u for u in UNITS if u != attack.refuses)
+    doc, st = reg.load_state(other)
+    assert st.verification.verified and doc["unit"] == other
+    histories, problems = reg.verified_versions(attack.refuses)
+    assert problems and len(histories) < VERSIONS + 1
+
+
+CONSUMED = ("thermal-x10-newest-stale-hashes", "forged-version-unsigned", "duplicate-keys-prepended")
+
+
+@pytest.mark.parametrize("name", CONSUMED)
+def test_commands_refuse_an_altered_passport_in_one_line(base, tmp_path, monkeypatch, capsys, name):
+    """Issue 26 item 1, end to end: export, report, apply and diagnose refuse the attacked unit's passport (exit 2,
+    one line, nothing written); with --unverified the readable ones are used and every output says UNVERIFIED."""
+    root = attacked(base, tmp_path, ATTACK_BY_NAME[name])
+    unit = UNITS[0]
+    newest = max((root / "units" / unit).glob("v[0-9]*.json"))
+    run = Path(__file__).resolve().parents[2] / "sample_data" / "standard_short.mcap"
+    monkeypatch.chdir(tmp_path)
+    commands = {
+        "export": ("export", unit, "--registry", str(root), "--format", "px4", "--out", "x.params"),
+        "report": ("report", unit, "--registry", str(root), "--out", "x.html"),
+        "apply": ("apply", str(newest), str(run), "--out", "x.parquet"),
+        "diagnose": ("diagnose", str(run), "--passport", str(newest), "--json"),
+    }
+    before = snapshot(root)
+    for what, args in commands.items():
+        code, out, err = run_main(monkeypatch, capsys, *args)
+        assert (code, out) == (2, ""), (what, code, err)
+        [line] = err.splitlines()
+        assert line.startswith("thermocal: error: ") and unit in line and "--unverified" in line, (what, line)
+    assert not any(Path(f).exists() for f in ("x.params", "x.html", "x.parquet")) and snapshot(root) == before
+    if name == "duplicate-keys-prepended":  # which of the two readings? none: not used even --unverified
+        code, out, err = run_main(monkeypatch, capsys, *commands["export"], "--unverified")
+        assert code == 2 and "not a passport record" in err and not Path("x.params").exists()
+        return
+    code, out, err = run_main(monkeypatch, capsys, *commands["export"], "--unverified", "--json")
+    assert code == 0, err
+    summary = json.loads(out)
+    assert summary["passport_used"]["verification"]["verified"] is False
+    assert "UNVERIFIED" in Path("x.params").read_text() and "UNVERIFIED" in err
+    code, out, err = run_main(monkeypatch, capsys, *commands["report"], "--unverified")
+    assert code == 0 and "UNVERIFIED" in out and "UNVERIFIED" in Path("x.html").read_text(), err
+    code, out, err = run_main(monkeypatch, capsys, *commands["apply"], "--unverified", "--json")
+    assert code == 0 and json.loads(out)["passport"]["verification"]["verified"] is False, err
+    import polars as pl
+
+    assert "UNVERIFIED" in pl.read_parquet_metadata("x.parquet")["thermocal.passport_verification"]
+    assert snapshot(root) == before
 
 
 def test_figures_attacks_tried_and_named(base, tmp_path_factory, capsys):

@@ -386,3 +386,100 @@ def test_cli_fleet_json_and_exit_status(fleet, tmp_path):
     )
     assert missing.returncode == 2 and len(missing.stderr.strip().splitlines()) == 1
     assert "nowhere" in missing.stderr
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.slow
+def test_fleet_on_dask_workers_elsewhere_with_a_worker_killed(fleet, tmp_path):
+    """Issue 26 item 2: a real dask scheduler and two workers started as their own processes in other folders,
+    with another key folder; the fleet given a RELATIVE registry from its own folder; one worker killed (SIGKILL)
+    once the first passport is published. Every unit ends in the registry the user named (none under the workers'
+    or the scheduler's folders), exactly once (v1 each, nothing duplicated), signed with the station's key (the
+    workers' key folder stays empty: they never sign), and the registry verifies."""
+    import signal
+    import time
+
+    pytest.importorskip("distributed")
+    from pipeline.passport.registry import Registry
+    from pipeline.passport.signing import station_key
+
+    inbox = tmp_path / "inbox"
+    inbox.mkdir()
+    for name in ("ch1/AU-0201.mcap", "ch1/AU-0203-tp-a.mcap", "ch1/AU-0203-tp-b.mcap", "ch2/AU-0204.mcap"):
+        shutil.copy(fleet["inbox"] / name, inbox / Path(name).name)
+    shutil.copytree(fleet["inbox"] / "ch2" / "AU-0202_run", inbox / "AU-0202_run")
+    for k in range(4):  # more units than workers, so that units are in flight when one worker dies
+        write_run(_sim(f"AU-021{k}", 210 + k).run, inbox / f"AU-021{k}.mcap", "mcap")
+    units = ["AU-0201", "AU-0202", "AU-0203", "AU-0204"] + [f"AU-021{k}" for k in range(4)]
+    folders = {n: tmp_path / n for n in ("station", "scheduler", "worker-a", "worker-b", "worker-keys")}
+    for f in folders.values():
+        f.mkdir()
+    dask = str(Path(sys.executable).parent / "dask")
+    api = _local_api_url()
+    env = {**os.environ, "PREFECT_API_URL": api}
+    worker_env = {**env, "THERMOCAL_KEY_DIR": str(folders["worker-keys"])}
+    port = _free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    procs = [
+        subprocess.Popen(
+            [dask, "scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"],
+            cwd=folders["scheduler"],
+            env=env,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+    ]
+    try:
+        for name in ("worker-a", "worker-b"):
+            procs.append(
+                subprocess.Popen(
+                    [dask, "worker", address, "--nthreads", "1", "--no-nanny", "--no-dashboard", "--name", name],
+                    cwd=folders[name],
+                    env=worker_env,
+                    stdout=subprocess.DEVNULL,
+                    stderr=subprocess.DEVNULL,
+                )
+            )
+        import distributed
+
+        with distributed.Client(address, timeout=120) as client:
+            client.wait_for_workers(2, timeout=180)
+        exe = str(Path(sys.executable).parent / "thermocal")
+        cmd = [exe, "fleet", str(inbox), "--registry", "reg", "--dask-address", address, "--json", "--no-figures"]
+        run = subprocess.Popen(
+            cmd, cwd=folders["station"], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+        )
+        deadline = time.monotonic() + 600
+        while not list((folders["station"] / "reg").rglob("v0001.json")) and run.poll() is None:
+            assert time.monotonic() < deadline, "no passport published"
+            time.sleep(0.2)
+        published_before_kill = len(list((folders["station"] / "reg").rglob("v0001.json")))
+        procs[1].send_signal(signal.SIGKILL)  # worker-a, mid-run
+        out, err = run.communicate(timeout=900)
+    finally:
+        for p in procs:
+            p.kill()
+            p.wait(timeout=60)
+    assert run.returncode == 0, err
+    summary = json.loads(out)
+    assert published_before_kill < len(units)  # the kill came while units were still being calibrated
+    assert sorted(d["unit"] for d in summary["done"]) == sorted(units) and summary["failed"] == []
+    assert all(d["version"] == 1 and d["created"] for d in summary["done"])
+    reg = Registry(folders["station"] / "reg")
+    assert reg.units() == sorted(units)
+    for unit in units:
+        assert [p.name for p in sorted(reg.unit_dir(unit).glob("v*.json"))] == ["v0001.json"]
+        doc, state = reg.load_state(unit)
+        assert state.verification.verified and state.verification.key_id == station_key().key_id
+        assert Path(summary["done"][0]["passport"]).is_absolute()
+    assert reg.verify().ok
+    for name in ("scheduler", "worker-a", "worker-b"):
+        assert not list(folders[name].rglob("*.json")), name  # nothing written where the workers run
+    assert not any(folders["worker-keys"].iterdir())  # the workers never made or used a key

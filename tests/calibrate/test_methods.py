@@ -72,7 +72,7 @@ def test_methods_share_one_interface():
 def test_fleet_runs_every_method(inboxes, tmp_path):
     """tilt, scalar, then differential over the same registry: each a new version with its method, the scalar and
     tilt passports equal to their recipes' (same constants), a second plan skips what is done; the differential
-    group starts from the current passport (the approved tilt version), also on the next night."""
+    group starts from the current passport (the tilt version: the scalar one failed), also on the next night."""
     short, diff = inboxes
     reg = tmp_path / "reg"
     plan, _ = _fleet(short.parent, reg, "differential")  # nothing to start from yet
@@ -91,15 +91,14 @@ def test_fleet_runs_every_method(inboxes, tmp_path):
         assert not outcomes and [s["why"] for s in plan.skipped] == [ALREADY_PROCESSED]
 
     # the base is the unit's current passport among the non-differential versions: while nothing is approved the
-    # newest, v2 (scalar), which failed its verification: refused, saying so; v1 (tilt) once approved
-    with pytest.raises(
-        CalibrationError,
-        match=r"AU-0001 v2 \(status fail, not approved; the current passport: the "
-        r"newest version, none is approved\) failed its verification",
-    ):
-        base_passport_of(reg, "AU-0001")
-    plan, outcomes = _fleet(diff.parent, reg, "differential")
-    assert not outcomes and "failed its verification: not a base" in plan.failed[0]["reason"]
+    # newest that did not fail, v1 (tilt): v2 (scalar) failed its verification and is never the current passport
+    assert [v.status for v in Registry(reg).versions("AU-0001")] == ["pass", "fail"]
+    base, state = base_passport_of(reg, "AU-0001")
+    assert base["version"] == 1 and not state.approved
+    assert state.text() == (
+        "AU-0001 v1 (status pass, not approved; the current passport: the newest version that did not fail, "
+        "none is approved)"
+    )
     Registry(reg).approve("AU-0001", 1, "A. Metrologist")
     plan, (outcome,) = _fleet(diff.parent, reg, "differential")
     assert plan.groups[0].base_passport.version == 1 and not outcome.failed

@@ -23,8 +23,12 @@ from pipeline.effects.catalogue import make_effect
 from pipeline.effects.model import ExtendedModel
 from pipeline.errors import ThermocalError
 from pipeline.io.runs import write_run
+from pipeline.jsonable import to_jsonable
 from pipeline.model import gravity_module_error_g
+from pipeline.passport.canonical import canonical_json
 from pipeline.passport.document import compensate_extended, load_extended
+from pipeline.passport.registry import load_passport_file
+from pipeline.passport.signing import sign_record
 from pipeline.segment import segment_run
 from pipeline.simulate.chamber import SimConfig, simulate
 from pipeline.thermal import PolynomialModel, RateTerms
@@ -255,16 +259,17 @@ def test_command_writes_figure_and_extended_passport(tmp_path: Path):
     calib = short(seed=5)  # a clean calibration run of the same unit
     passport = fit_passport(calib.run, segment_run(calib.run, segment_settings_for(calib.run))).document
     pp = tmp_path / "passport.json"
-    pp.write_text(json.dumps(passport))
+    pp.write_bytes(canonical_json(sign_record(to_jsonable(passport))))  # a loose file this station signed
     res = short([("scale_nonlinearity", {"k2_v_per_g2": [20e-6, -15e-6, 10e-6]})], seed=6)
     run_path = write_run(res.run, tmp_path / "run.parquet-dir", "parquet")
-    rep = diagnose_command(run_path, pp, True, tmp_path / "fig" / "residual.png")
+    rep = diagnose_command(run_path, pp, True, tmp_path / "fig" / "residual.png", out_dir=tmp_path / "out")
     assert rep["verdict"] == "mismatch" and rep["findings"][0]["effect"] == "scale_nonlinearity"
-    assert rep["passport_source"] == str(pp)
+    assert rep["passport_source"] == str(pp) and rep["passport_used"]["verification"]["verified"]
     png = Path(rep["figure"])
     assert png == tmp_path / "fig" / "residual.png" and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     ext_doc = json.loads(Path(rep["extended_passport"]).read_text())
-    assert Path(rep["extended_passport"]).parent == tmp_path  # beside the run by default
+    assert Path(rep["extended_passport"]) == tmp_path / "out" / "run.parquet-dir.diagnose.passport.json"
+    assert load_passport_file(rep["extended_passport"])[1].verification.verified  # signed: apply takes it
     assert ext_doc["unit"] == passport["unit"] and ext_doc["coefficients"] == passport["coefficients"]
     ext = load_extended(ext_doc)
     assert [e.id for e in ext.effects] == ["scale_nonlinearity"]
@@ -276,7 +281,7 @@ def test_command_writes_figure_and_extended_passport(tmp_path: Path):
     assert f"before {rep['rms_before_v'] * 1e3:.2f} mm/s^2" in in_mps2 and " uV" not in in_mps2.split("\n")[1]
 
 
-def test_command_refuses_bad_inputs_in_one_line(tmp_path: Path):
+def test_command_refuses_bad_inputs_in_one_line(tmp_path: Path, monkeypatch):
     with pytest.raises(ThermocalError):
         diagnose_command(tmp_path / "missing.mcap", None, True, None)
     run_path = write_run(short(seed=7).run, tmp_path / "r.mcap", "mcap")
@@ -284,6 +289,18 @@ def test_command_refuses_bad_inputs_in_one_line(tmp_path: Path):
     bad.write_text('{"schema": "something else"}')
     with pytest.raises(ThermocalError, match="not a thermocal.passport"):
         diagnose_command(run_path, bad, True, None)
+    unsigned = tmp_path / "unsigned.json"
+    passport = fit_passport(short(seed=5).run, segment_run(short(seed=5).run, segment_settings_for(short(seed=5).run)))
+    unsigned.write_text(json.dumps(to_jsonable(passport)))
+    with pytest.raises(ThermocalError, match="does not verify: not its canonical bytes") as info:
+        diagnose_command(run_path, unsigned, True, None)
+    assert "--unverified" in info.value.one_line()
+    monkeypatch.chdir(tmp_path)  # nothing written where the data is: into the current folder by default
+    rep = diagnose_command(run_path, unsigned, True, None, unverified=True)
+    assert "UNVERIFIED" in rep["passport_source"] and not rep["passport_used"]["verification"]["verified"]
+    assert Path(rep["figure"]).parent == tmp_path and "derived_from_unverified" in json.loads(
+        Path(rep["extended_passport"]).read_text()
+    )
 
 
 def test_a_piecewise_passport_is_refined_not_blamed_on_the_catalogue(clean_short):

@@ -76,7 +76,7 @@ def test_every_option_and_argument_has_plain_help(monkeypatch, capsys):
         usage = next(ln for ln in out.splitlines() if "Usage:" in ln)
         assert "{" not in usage, usage  # RUN, not {RUN} (a set of choices to a reader)
     code, out, _ = run_main(monkeypatch, capsys, "export", "--help")
-    assert code == 0 and "Usage: thermocal export [OPTIONS] UNIT [V]" in out
+    assert code == 0 and "Usage: thermocal export [OPTIONS] UNIT|FILE [V]" in out
 
 
 def test_inspect_prints_times_in_utc(tmp_path):

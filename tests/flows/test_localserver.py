@@ -283,11 +283,17 @@ def test_commands_back_to_back_and_at_once_each_get_a_job_process(short_run, tmp
 def test_server_exits_when_idle_and_its_processes_when_it_is_killed(tmp_path):
     """The server killed (-9): its warm forkserver follows within seconds. Started again with a 2 s idle timeout
     (in a Prefect home too long for a Unix socket's path: the socket goes to a private temporary folder), it exits
-    by itself, with everything it started, and removes its state file, socket and that folder."""
+    by itself, with everything it started, and removes its state file, socket and that folder. Starting on a fresh
+    home with stderr on a terminal says so in one line there (stdout: the URL alone); not on a terminal, nothing on
+    stderr."""
     home = tmp_path / "home"
     env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}
     env["PREFECT_HOME"] = str(home)
-    subprocess.run([THERMOCAL, "server", "start"], env=env, check=True, capture_output=True, timeout=240)
+    code, out, lines = _terminal_stderr([THERMOCAL, "server", "start"], env)
+    assert code == 0 and out.startswith("http://127.0.0.1:") and len(out.splitlines()) == 1
+    assert lines == [
+        f"thermocal: starting the local Prefect server in {home} (its database is created first: 10-30 s) ..."
+    ]
     st = read_state(home)
     warm = _wait("the warm forkserver", lambda: _workers(st["pid"]), 60)
     family = _descendants(st["pid"])
@@ -297,7 +303,8 @@ def test_server_exits_when_idle_and_its_processes_when_it_is_killed(tmp_path):
 
     home = tmp_path / ("long-" * 20)
     env.update(THERMOCAL_SERVER_IDLE_S="2", PREFECT_HOME=str(home))
-    subprocess.run([THERMOCAL, "server", "start"], env=env, check=True, capture_output=True, timeout=240)
+    again = subprocess.run([THERMOCAL, "server", "start"], env=env, check=True, capture_output=True, timeout=240)
+    assert again.stderr == b""
     st = read_state(home)
     assert home not in Path(st["socket"]).parents and Path(st["socket"]).exists()
     family = _descendants(st["pid"]) | {st["pid"]}
@@ -307,8 +314,8 @@ def test_server_exits_when_idle_and_its_processes_when_it_is_killed(tmp_path):
     assert stop_server(home) is False
 
 
-def _with_terminal_stderr(cmd: list[str], env: dict) -> tuple[int, str, list[str]]:
-    """Run ``cmd`` with stderr on a pseudo-terminal, stdout on a pipe: exit status, stdout, the progress steps."""
+def _terminal_stderr(cmd: list[str], env: dict) -> tuple[int, str, list[str]]:
+    """Run ``cmd`` with stderr on a pseudo-terminal, stdout on a pipe: exit status, stdout, the stderr lines."""
     master, slave = pty.openpty()
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=slave)
     os.close(slave)
@@ -323,9 +330,17 @@ def _with_terminal_stderr(cmd: list[str], env: dict) -> tuple[int, str, list[str
         chunks.append(data)
     out = proc.communicate(timeout=300)[0]
     os.close(master)
-    lines = [ln for ln in b"".join(chunks).decode().splitlines() if ln.strip()]
+    return proc.returncode, out.decode(), [ln for ln in b"".join(chunks).decode().splitlines() if ln.strip()]
+
+
+def _with_terminal_stderr(cmd: list[str], env: dict) -> tuple[int, str, list[str]]:
+    """Run ``cmd`` with stderr on a pseudo-terminal, stdout on a pipe: exit status, stdout, the progress steps
+    (the lines of the session's first command aside: the local server starting, the station's key created)."""
+    code, out, lines = _terminal_stderr(cmd, env)
+    first = ("thermocal: starting the local Prefect server", "thermocal: created this station's signing key")
+    lines = [ln for ln in lines if not ln.startswith(first)]
     assert all(ln.startswith(f"thermocal: {cmd[1]}: ") for ln in lines), lines
-    return proc.returncode, out.decode(), [ln.split(": ")[2].split()[0] for ln in lines]
+    return code, out, [ln.split(": ")[2].split()[0] for ln in lines]
 
 
 def test_progress_on_a_terminal_json_alone_on_stdout(short_run, tmp_path):

@@ -96,7 +96,7 @@ def test_cli_approve_and_differential_base_is_the_current_passport(calibrated, t
     assert base.version == 2
     assert line == (
         "differential base: AU-0001 v2 (status pass, not approved; the current passport: the newest "
-        "version, none is approved)"
+        "version that did not fail, none is approved)"
     )
     p = subprocess.run(
         [EXE, "passport", "approve", "AU-0001", "1", "--by", "A. Metrologist", "--registry", str(reg)],
@@ -122,21 +122,18 @@ def test_cli_approve_and_differential_base_is_the_current_passport(calibrated, t
     failing = {k: v for k, v in failing.items() if k not in ("signature", "content_sha256")}
     registry.publish(failing, inputs=[{"path": "other", "sha256": "e" * 64}], settings={}, code_version="t")
     assert registry.current("AU-0001") == 2 and default_base_passport(reg, "AU-0001")[0].version == 2
-    # a registry whose only version failed, nothing approved: that version is the current passport (one rule,
-    # docs/contract.md), said with its status; it is no base (the differential method then takes the constants at T0
-    # from the orientations themselves, and says why)
+    # a registry whose only version failed, nothing approved: a failed calibration is never the current passport
+    # (issue 26): there is none, and no base (the differential method then takes the constants at T0 from the
+    # orientations themselves, and says why)
     reg2 = Registry(tmp_path / "reg2")
     reg2.publish(failing, inputs=[{"path": "other", "sha256": "e" * 64}], settings={}, code_version="t")
-    state = reg2.state("AU-0001")
-    assert (
-        state.text()
-        == ("AU-0001 v1 (status fail, not approved; the current passport: the newest version, none is approved)")
-        and "failed its verification" in state.warning()
-    )
+    assert reg2.state("AU-0001") is None and reg2.current("AU-0001") is None
+    state = reg2.state("AU-0001", 1)
+    assert state.text() == "AU-0001 v1 (status fail, not approved)" and "failed its verification" in state.warning()
     with pytest.raises(ThermocalError, match="failed its verification"):
         base_passport_of(reg2, "AU-0001")
     base, line = default_base_passport(tmp_path / "reg2", "AU-0001")
-    assert base is None and state.text() in line and "from the orientations themselves" in line
+    assert base is None and "no current passport" in line and "from the orientations themselves" in line
 
 
 def test_diagnose_registry_compares_with_the_current_passport(calibrated, tmp_path):
@@ -147,7 +144,9 @@ def test_diagnose_registry_compares_with_the_current_passport(calibrated, tmp_pa
     assert Registry(reg).current("AU-0001") == 2 and len(Registry(reg).versions("AU-0001")) == 3
     rep = diagnose_command(run_path, None, True, tmp_path / "d.png", tmp_path / "d.json", registry=reg)
     assert "AU-0001 v2 (status pass, approved by A. Metrologist)" in rep["passport_source"]
-    assert rep["passport_used"] == {
+    used = dict(rep["passport_used"])
+    assert used.pop("verification")["verified"] is True
+    assert used == {
         "unit": "AU-0001",
         "version": 2,
         "status": "pass",
@@ -156,7 +155,8 @@ def test_diagnose_registry_compares_with_the_current_passport(calibrated, tmp_pa
         "current": True,
     }
     assert rep["verdict"] == "consistent" and rep["findings"] == []
-    # nothing approved and the newest version failed: that one is the current passport, and the report says so
+    # nothing approved and the newest version failed: a failed calibration is never the current passport (issue
+    # 26): the newest that did not fail is
     reg3 = Registry(tmp_path / "reg3")
     for v in (2, 1):
         doc = Registry(reg).load("AU-0001", v)
@@ -167,6 +167,6 @@ def test_diagnose_registry_compares_with_the_current_passport(calibrated, tmp_pa
             code_version="t",
         )
     rep = diagnose_command(run_path, None, True, tmp_path / "d3.png", tmp_path / "d3.json", registry=reg3.root)
-    assert rep["passport_used"]["version"] == 2 and rep["passport_used"]["status"] == "fail"
-    assert "AU-0001 v2 (status fail, not approved; the current passport" in rep["passport_source"]
-    assert any("failed its verification" in n for n in rep["notes"])
+    assert rep["passport_used"]["version"] == 1 and rep["passport_used"]["status"] == "pass"
+    assert "AU-0001 v1 (status pass, not approved; the current passport" in rep["passport_source"]
+    assert not any("failed its verification" in n for n in rep.get("notes", []))

@@ -40,12 +40,13 @@ META = RunMeta(
 
 
 def make_run(n: int = 5000, seed: int = 0, optional: bool = True) -> Run:
-    """A run of random values: 10 Hz voltmeter with awkward floats (NaN, -0.0, subnormal, huge), 1 Hz streams."""
+    """A run of random values: 10 Hz voltmeter with awkward floats (NaN, -0.0, subnormal, the largest a sample
+    may be: beyond it a value is treated as missing, pipeline.io.checks.PHYSICAL_RANGE), 1 Hz streams."""
     rng = np.random.default_rng(seed)
     t_v = T0_NS + np.arange(n, dtype=np.int64) * 100_000_000 + rng.integers(0, 1000, n)
     u = rng.normal(0.0, 0.6, (n, 3)) * 10.0 ** rng.uniform(-8, 2, (n, 3))
     u[[3, 50, 51], 0] = np.nan
-    u[7] = (-0.0, 5e-324, 1.7976931348623157e308)
+    u[7] = (-0.0, 5e-324, np.nextafter(1e6, 0.0))
     m = n // 10
     t_1 = T0_NS + np.arange(m, dtype=np.int64) * 1_000_000_000
     temp = 20.0 + rng.normal(0.0, 30.0, m)

@@ -1,6 +1,7 @@
 """Approval records and the current passport (pipeline/passport/registry.py): an approval is a signed record of its
-own (the version is not changed); the newest approved version is the unit's current passport, else the newest;
-verify checks approvals; a failed calibration cannot be approved; a dry run's plan writes nothing."""
+own (the version is not changed); the newest approved version is the unit's current passport, else the newest that
+did not fail (a failed calibration is never current); verify checks approvals; a failed calibration cannot be
+approved; a dry run's plan writes nothing."""
 
 from __future__ import annotations
 
@@ -30,8 +31,10 @@ def reg(tmp_path):
     return r
 
 
-def test_current_is_newest_approved_else_newest(reg):
-    assert reg.current(UNIT) == 3  # nothing approved: the newest
+def test_current_is_newest_approved_else_newest_not_failed(reg):
+    assert reg.current(UNIT) == 2  # nothing approved: the newest that did not fail (v3 failed)
+    doc, st = reg.load_state(UNIT)
+    assert doc["version"] == 2 and st.current and st.verification.verified
     before = reg.version_path(UNIT, 1).read_bytes()
     rec = reg.approve(UNIT, 1, "A. Metrologist")
     assert reg.version_path(UNIT, 1).read_bytes() == before  # approval does not change the version
@@ -47,6 +50,17 @@ def test_current_is_newest_approved_else_newest(reg):
     assert [a["by"] for a in log[2]["approved"]] == ["B. Checker"] and log[2]["current"]
     assert log[3]["approved"] == [] and not log[3]["current"]
     assert reg.verify().ok
+
+
+def test_a_unit_whose_every_version_failed_has_no_current_passport(tmp_path):
+    r = Registry(tmp_path / "reg")
+    _publish(r, 1, "fail")
+    assert r.current(UNIT) is None and r.state(UNIT) is None
+    with pytest.raises(RegistryError, match="no current passport") as info:
+        r.load_state(UNIT)
+    assert "\n" not in str(info.value)
+    doc, st = r.load_state(UNIT, 1)  # named: it is used (and says it failed)
+    assert doc["status"] == "fail" and not st.current and "failed its verification" in st.warning()
 
 
 def test_failed_or_unknown_version_cannot_be_approved(reg):

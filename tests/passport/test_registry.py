@@ -441,7 +441,11 @@ def test_diff_of_piecewise_models_and_of_a_model_change(tmp_path):
     reg = Registry(tmp_path)
 
     def seg(a, b):
-        return {"alpha": {"x": a, "y": 0.0, "z": 0.0}, "beta": {"xx": b, "yy": 0.0, "zz": 0.0}, "gamma": {}}
+        return {
+            "alpha": {"x": a, "y": 0.0, "z": 0.0},
+            "beta": {"xx": b, "yy": 0.0, "zz": 0.0},
+            "gamma": dict.fromkeys(("xy", "xz", "yx", "yz", "zx", "zy"), 0.0),
+        }
 
     def pw(a2):
         return {

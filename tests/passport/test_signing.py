@@ -71,7 +71,7 @@ def test_another_stations_key_is_named_until_trusted(tmp_path):
     assert not check.ok and check.key_id == key_b.key_id
     assert f"signed by key {key_b.key_id}, which this station does not trust" in check.problem
     # the operator copies b's public key into a's trusted folder: accepted, and not a's own
-    (a / "trusted").mkdir()
+    (a / "trusted").mkdir(parents=True)
     shutil.copy(b / PUBLIC_NAME, a / "trusted" / "station-b.pub")
     check = verify_record(signed_by_b, trusted_keys(a))
     assert check.ok and not check.own
