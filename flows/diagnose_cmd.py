@@ -78,7 +78,10 @@ def diagnose_command(
     given, source, state = None, None, None  # the passport first: one that does not verify ends it at once
     if passport is not None:
         doc, state = load_passport_file(passport, unverified=unverified)
-        given, source = load_passport(doc), str(passport) + (f" ({state.verification.label})" if state.unverified else "")
+        given, source = (
+            load_passport(doc),
+            str(passport) + (f" ({state.verification.label})" if state.unverified else ""),
+        )
     elif registry is not None:
         given, source, state = current_passport(registry, unit or read_run_meta(run).unit_serial, unverified)
     step(f"ingest {run.name}")

@@ -171,7 +171,10 @@ def say_starting(home: Path, *, first: bool, stream=None) -> bool:
     """One progress line on ``stream`` (default stderr) saying that the local server is starting and where, only
     when it is a terminal (a script's stderr stays empty: the one-line rule is for errors); True if printed."""
     stream = stream or sys.stderr
-    if not _isatty(stream):
+    try:
+        if not stream.isatty():
+            return False
+    except (AttributeError, ValueError, OSError):  # no terminal behind it, or closed
         return False
     wait = "its database is created first: 10-30 s" if first else "a few seconds"
     print(f"thermocal: starting the local Prefect server in {home} ({wait}) ...", file=stream, flush=True)

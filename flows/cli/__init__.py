@@ -17,7 +17,7 @@ from __future__ import annotations
 
 # isort: off
 # importing a command module registers its commands; this order is the order of `thermocal --help`
-from . import inspect, simulate, calibrate, export, apply, diagnose, fleet, server, report, passport, trends, key  # noqa: F401,E501
+from . import inspect, simulate, calibrate, export, apply, diagnose, fleet, server, report, passport, trends, key  # noqa: F401
 
 # isort: on
 from .app import app

@@ -429,7 +429,7 @@ def calibrate_group(
     figure: bool = True,
     digests: Mapping[str, RunDigest] | None = None,
     method: str = "tilt",
-    base_passport: dict | None = None,
+    base_passport: Passport | None = None,
     within: Mapping[str, dict] | None = None,
 ) -> UnitOutcome:
     """Calibrate ``unit`` from ``runs`` by ``method`` and publish the passport into ``registry``, in this process:
