@@ -7,9 +7,9 @@ from pathlib import Path
 
 import typer
 
-from .app import JsonFlag, app, emit
+from .app import JsonFlag, PlainTyper, app, emit
 
-key_app = typer.Typer(
+key_app = PlainTyper(
     no_args_is_help=True,
     help="This station's signing key: create, show, trust another station's key, rotate. Kept outside the registry "
     "($THERMOCAL_KEY_DIR, else ~/.config/thermocal/keys).",

@@ -94,7 +94,7 @@ def test_fleet_runs_every_method(inboxes, tmp_path):
     # newest that did not fail, v1 (tilt): v2 (scalar) failed its verification and is never the current passport
     assert [v.status for v in Registry(reg).versions("AU-0001")] == ["pass", "fail"]
     base, state = base_passport_of(reg, "AU-0001")
-    assert base["version"] == 1 and not state.approved
+    assert base.version == 1 and not state.approved
     assert state.text() == (
         "AU-0001 v1 (status pass, not approved; the current passport: the newest version that did not fail, "
         "none is approved)"
