@@ -254,6 +254,8 @@ def max_change(values: np.ndarray, temps_c: np.ndarray, span_c: float = PX4_UPDA
     temperatures at most ``span_c`` apart (3,)."""
     out = np.zeros(values.shape[1])
     step = float(np.min(np.diff(temps_c))) if len(temps_c) > 1 else span_c
+    if step <= 0:  # a valid range of one temperature (lo == hi): nothing changes over it
+        return out
     for s in range(1, min(int(span_c / step + 1e-9), len(temps_c) - 1) + 1):
         out = np.maximum(out, np.abs(values[s:] - values[:-s]).max(axis=0))
     return out

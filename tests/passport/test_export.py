@@ -33,7 +33,7 @@ from pipeline.calibrate.publish import publish
 from pipeline.errors import RunFormatError, ThermocalError
 from pipeline.io.runs import read_run, write_run
 from pipeline.passport.document import build_passport, load_model
-from pipeline.passport.export import ExportOptions, compare_params, export_passport
+from pipeline.passport.export import ExportOptions, compare_params, export_passport, max_change
 from pipeline.passport.firmware import read_params_file
 from pipeline.passport.registry import Registry
 from pipeline.positions import TEST_POSITIONS, VERIFICATION_POSITIONS, gravity_vector_g
@@ -540,3 +540,12 @@ def test_csv_holds_every_number_with_its_uncertainty(passports):
     assert len([r for r in pw if r["quantity"] == "alpha"]) == 6 and all(
         r["t_lo_c"] for r in pw if r["quantity"] == "beta"
     )
+
+
+def test_max_change_over_a_valid_range_of_one_temperature():
+    """A passport valid at one temperature only (lo == hi: a grid of two equal points) changes by nothing over it
+    (was a ZeroDivisionError, exit 3); on a 0.5 C grid the largest change within 1 C is two steps'."""
+    assert max_change(np.ones((2, 3)), np.array([20.0, 20.0])).tolist() == [0.0, 0.0, 0.0]
+    temps = np.arange(0.0, 3.01, 0.5)
+    values = np.stack([temps, 2 * temps, temps**2], axis=1)
+    np.testing.assert_allclose(max_change(values, temps, span_c=1.0), [1.0, 2.0, 9.0 - 4.0], rtol=0, atol=1e-12)
