@@ -291,7 +291,7 @@ def test_command_refuses_bad_inputs_in_one_line(tmp_path: Path, monkeypatch):
         diagnose_command(run_path, bad, True, None)
     unsigned = tmp_path / "unsigned.json"
     passport = fit_passport(short(seed=5).run, segment_run(short(seed=5).run, segment_settings_for(short(seed=5).run)))
-    unsigned.write_text(json.dumps(to_jsonable(passport)))
+    unsigned.write_text(json.dumps(to_jsonable(passport.document)))
     with pytest.raises(ThermocalError, match="does not verify: not its canonical bytes") as info:
         diagnose_command(run_path, unsigned, True, None)
     assert "--unverified" in info.value.one_line()
