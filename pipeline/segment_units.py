@@ -32,6 +32,8 @@ THREADS = min(2, os.cpu_count() or 1)
 #: a unit is "not still" in a hold of the others when it is not still for longer than this many times the shortest
 #: static stretch inside it (a window or so at the edges of a hold differs from unit to unit)
 _NOT_STILL_MIN = 3.0
+#: ... and its voltages move there: the median |step| between samples above this many times the record's own
+_MOVING_STEP = 3.0
 
 
 def segment_units(
@@ -136,11 +138,32 @@ def _intersect(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.array(out, dtype=np.int64).reshape(-1, 2)
 
 
-def _longest_uncovered_ns(spans: np.ndarray, a: int, b: int) -> int:
-    """The longest part of [a, b] that the sorted disjoint ``spans`` leave uncovered (ns)."""
+def _uncovered_ns(spans: np.ndarray, a: int, b: int) -> np.ndarray:
+    """The parts (k, 2) of [a, b] that the sorted disjoint ``spans`` leave uncovered (ns; empty parts included)."""
     inside = spans[(spans[:, 1] >= a) & (spans[:, 0] <= b)]
     edges = np.concatenate(([a], np.clip(inside, a, b).ravel(), [b]))
-    return int(np.max(edges[1::2] - edges[0::2]))
+    return np.column_stack((edges[0::2], edges[1::2]))
+
+
+def _median_step_v(run: Run, t_ns: np.ndarray, a: int, b: int) -> np.ndarray | None:
+    """Per channel, the median |step| between the unit's successive samples in [a, b] (V); None with < 3 there."""
+    i0, i1 = int(np.searchsorted(t_ns, a, side="left")), int(np.searchsorted(t_ns, b, side="right"))
+    if i1 - i0 < 3:
+        return None
+    return np.array([np.median(np.abs(np.diff(c))) for c in run.voltmeter_slab(i0, i1)])
+
+
+def _moving(run: Run, t_ns: np.ndarray, parts: np.ndarray, still: np.ndarray) -> bool:
+    """Whether the unit's voltages move in one of the ``parts`` (k, 2) of a hold: the median |step| between its
+    samples there exceeds :data:`_MOVING_STEP` x that in its own ``still`` spans of the hold, on some channel (no
+    still span in the hold: moving). A still unit's drift with its temperature through a ramp, or a gap without
+    samples, is not motion."""
+    noise = [m for m in (_median_step_v(run, t_ns, int(x), int(y)) for x, y in still) if m is not None]
+    if not noise:
+        return True
+    floor = _MOVING_STEP * np.median(np.array(noise), axis=0)
+    steps = (_median_step_v(run, t_ns, int(x), int(y)) for x, y in parts)
+    return any(m is not None and bool(np.any(m > floor)) for m in steps)
 
 
 def _fixture_label_at(run: Run, t_ns: int) -> str | None:
@@ -154,8 +177,17 @@ def _fixture_label_at(run: Run, t_ns: int) -> str | None:
 
 def _not_still(serial: str, mine: np.ndarray, consensus: np.ndarray, run: Run, limit_ns: float) -> str | None:
     """A line naming ``serial`` when it is not still for longer than ``limit_ns`` within one of the run's still
-    times (the others are)."""
-    missed = [(int(a), int(b)) for a, b in consensus if _longest_uncovered_ns(mine, int(a), int(b)) > limit_ns]
+    times (the others are) and its voltages move there (:func:`_moving`): a still unit's own static stretches may
+    end early in a hold through a ramp (its voltages drift with its temperature, a unit with larger thermal
+    coefficients sooner than the others), and a gap has no samples."""
+    t = run.t_ns()
+
+    def missed_in(a: int, b: int) -> bool:
+        parts = _uncovered_ns(mine, a, b)
+        parts = parts[parts[:, 1] - parts[:, 0] > limit_ns]
+        return bool(parts.size) and _moving(run, t, parts, _intersect(mine, np.array([[a, b]], dtype=np.int64)))
+
+    missed = [(int(a), int(b)) for a, b in consensus if missed_in(int(a), int(b))]
     if not missed:
         return None
     a, b = missed[0]
@@ -168,8 +200,8 @@ def _not_still(serial: str, mine: np.ndarray, consensus: np.ndarray, run: Run, l
 
 
 def _name_disagreements(segs: dict[str, Segmentation]) -> dict[str, str]:
-    """A line per unit that names a position otherwise than the majority of the units holding one at the same
-    time (the middle of its segment), with its first such position and time."""
+    """A line per unit that names a position otherwise than a majority of the units holding one at the same time
+    (the middle of its segment; the unit itself counted among them), with its first such position and time."""
     mids = {
         s: np.array([(g.t_start_ns + g.t_end_ns) // 2 for g in seg.segments], dtype=np.int64) for s, seg in segs.items()
     }
@@ -194,7 +226,9 @@ def _name_disagreements(segs: dict[str, Segmentation]) -> dict[str, str]:
                 continue
             values, counts = np.unique(np.array(names, dtype=object), return_counts=True)
             top = values[np.argmax(counts)]
-            if counts.max() * 2 > len(names) and top != g.position:
+            # a majority of all the units holding a position then, this one included (one other unit, turned or
+            # in a gap of the rest, is no majority)
+            if counts.max() * 2 > len(names) + 1 and top != g.position:
                 count += 1
                 if first is None:
                     first = (g.position, top, g.t_start_ns, g.t_end_ns)
