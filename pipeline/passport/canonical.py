@@ -14,7 +14,9 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 from dataclasses import dataclass
+from json.encoder import encode_basestring_ascii as _ascii
 from typing import Any
 
 from pipeline.jsonable import json_default
@@ -29,8 +31,68 @@ def canonical_json(obj: Any) -> bytes:
     Floats are written with Python's shortest round-trip repr, so load -> canonical_json gives the same bytes.
     Raises ValueError (non-finite number) or TypeError (not JSON-able).
     """
-    text = json.dumps(obj, sort_keys=True, indent=2, ensure_ascii=True, allow_nan=False, default=json_default)
-    return (text + "\n").encode("ascii")
+    return (_encode(obj, "\n") + "\n").encode("ascii")
+
+
+def _dumps(obj: Any) -> str:
+    """The canonical text by :func:`json.dumps` (the definition; CPython encodes ``indent`` in pure Python)."""
+    return json.dumps(obj, sort_keys=True, indent=2, ensure_ascii=True, allow_nan=False, default=json_default)
+
+
+class _Other(Exception):
+    """A value :func:`_fast` does not write itself (anything but JSON's own types)."""
+
+
+#: JSON's scalars as json.dumps writes them (floats here even when not finite: :data:`_NON_FINITE` finds those)
+_SCALARS: dict[type, Any] = {
+    str: _ascii,
+    float: float.__repr__,
+    int: int.__repr__,
+    bool: {True: "true", False: "false"}.__getitem__,
+    type(None): lambda _: "null",
+}
+#: a bare inf/nan where a value starts (a string's text is quoted): the repr of a non-finite float in _fast's text
+#: (always after a space: indentation or ": ")
+_NON_FINITE = re.compile(r"(?:^ *|: )-?(?:inf|nan)(?:,|$)", re.MULTILINE)
+
+
+def _fast(value: Any, indent: str) -> str:
+    """``json.dumps(value, sort_keys=True, indent=2, ensure_ascii=True)`` for exactly JSON's types (dict with str
+    keys, list, str, int, float, bool, None), its nested lines starting with ``indent`` (a newline and spaces): the
+    same text, built by joins instead of the pure-Python encoder's generator chain. Non-finite floats come out as
+    ``inf``/``nan`` (:func:`_encode` looks for them). :class:`_Other` for any other type (a subclass, a tuple)."""
+    scalar = _SCALARS.get(type(value))
+    if scalar is not None:
+        return scalar(value)
+    inner = indent + "  "
+    get = _SCALARS.get
+    if type(value) is dict:
+        if not value:
+            return "{}"
+        items = [  # sorted(): TypeError for keys of mixed types, _ascii(): TypeError for a non-str key
+            _ascii(k) + ": " + (f(v) if (f := get(type(v := value[k]))) is not None else _fast(v, inner))
+            for k in sorted(value)
+        ]
+        return "{" + inner + ("," + inner).join(items) + indent + "}"
+    if type(value) is list:
+        if not value:
+            return "[]"
+        items = [f(v) if (f := get(type(v))) is not None else _fast(v, inner) for v in value]
+        return "[" + inner + ("," + inner).join(items) + indent + "]"
+    raise _Other
+
+
+def _encode(value: Any, indent: str) -> str:
+    """:func:`_fast`, else (another type, a non-finite float, keys that do not sort) :func:`json.dumps` itself, so
+    every value gets json.dumps' text and every error json.dumps' error."""
+    try:
+        text = _fast(value, indent)
+        if not ((" inf" in text or " -inf" in text or " nan" in text) and _NON_FINITE.search(text)):
+            return text
+    except (_Other, TypeError, RecursionError):  # (a circular or very deep value: json.dumps says which)
+        pass
+    text = _dumps(value)
+    return text if indent == "\n" else text.replace("\n", indent)  # no JSON string holds a raw newline
 
 
 def sha256_bytes(data: bytes) -> str:
@@ -113,8 +175,7 @@ def parse_record(data: bytes) -> dict:
 
 def _member(key: str, value: Any) -> str:
     """One member of a top-level object as :func:`canonical_json` writes it (its nested lines indented once)."""
-    text = json.dumps(value, sort_keys=True, indent=2, ensure_ascii=True, allow_nan=False, default=json_default)
-    return f"  {json.dumps(key)}: " + text.replace("\n", "\n  ")  # no JSON string holds a raw newline
+    return f"  {json.dumps(key)}: " + _encode(value, "\n  ")
 
 
 def _object(members: list[str]) -> bytes:

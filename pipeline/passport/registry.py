@@ -744,17 +744,25 @@ class Registry:
         """Every version of ``unit`` that verifies together with all its ancestors (oldest first: the history a
         command such as ``trends`` may read), and the problems found (empty: the whole chain verifies). A version
         whose content is malformed is left out with its reason. RegistryError: no such unit."""
+        docs, problems, _ = self.verified_history(unit)
+        return docs, problems
+
+    def verified_history(self, unit: str) -> tuple[dict[int, dict], list[str], int | None]:
+        """:meth:`verified_versions` and the unit's :meth:`current` version, from the one reading of its files
+        (``trends``: each version read, parsed and encoded once)."""
         udir = self._require_unit(unit)
         trust = trusted_keys()
         problems: list[str] = []
         with _os_errors(udir / _LOCK_NAME, "lock the unit"), _flock(udir / _LOCK_NAME, exclusive=False):
             scan = self._scan(unit)
             docs = self._check_unit(unit, scan, trust, problems, [])
+        infos = [_version_info(v, scan.files[v], data, doc) for v, (doc, data) in sorted(docs.items())]
+        current = self._current(unit, infos, self.approvals(unit, trust), ())
         whole_unit = [p for p in problems if _problem_version(p) is None]
         first_bad = min((pv for p in problems if (pv := _problem_version(p)) is not None), default=None)
         out: dict[int, dict] = {}
         if whole_unit:
-            return out, problems
+            return out, problems, current
         for v, (doc, _) in sorted(docs.items()):
             if (first_bad is not None and v >= first_bad) or doc is None:
                 break
@@ -764,7 +772,7 @@ class Registry:
                 problems.append(Problem(exc.one_line(), v))
                 break
             out[v] = doc
-        return out, problems
+        return out, problems, current
 
     def planned(self, passport: dict, *, inputs: list[dict], settings: dict) -> tuple[int, bool]:
         """What :meth:`publish` would do, writing nothing (``calibrate --dry-run``): (the version it would

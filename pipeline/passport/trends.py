@@ -1,8 +1,9 @@
 """The fleet over time (``thermocal trends``, docs/contract.md "trends"): which constants drift across a unit's
 passports and when they reach the unit grade's limit, which units stand out from the fleet of their type.
 
-Every passport is read after the registry's verification (:meth:`Registry.verify`: hashes, signature, parent
-link, log); a unit whose chain has a problem is listed in ``not_verified`` and its versions are not used.
+Every passport is read through the registry's verification (:meth:`Registry.verified_history`: canonical bytes,
+hashes, signature, parent link, log); a unit whose chain has a problem is listed in ``not_verified`` and only its
+versions that verify with all their ancestors are used.
 
 **Time.** A version's time is when the recording it was fitted from was made: the start of its first verification
 segment (``verification[].t_start_ns``, the recording's own clock), else, for a passport without verification rows
@@ -25,8 +26,9 @@ the ``m'`` such series): the constant moved beyond its uncertainties, but not at
 step). Reported with its most recent rate (the last two versions) and when that rate would reach the limit.
 
 **The limit** a drift is dated against: the unit grade's |dg| limit at T0 (``tolerances.normal_g`` of the current
-passport; for a passport written before grades, the smallest limit of its verification rows; else the navigation
-grade's 3e-4 g, docs/physics.md "Unit grades"). A constant's change, alone, makes ``|dg|`` in the worst
+passport; for a passport written before grades, the smallest limit of its verification rows; else the default
+grade's, :data:`pipeline.verify.GRADES` [:data:`~pipeline.verify.DEFAULT_GRADE`]: navigation, 3e-4 g, docs/physics.md
+"Unit grades"). A constant's change, alone, makes ``|dg|`` in the worst
 orientation (to first order in the change, ``dg = a . da`` with ``da = -K^-1 (dK a + dU0)``): ``|dU0_i| / |K_ii|``
 for an offset, ``|dK_ii| / |K_ii|`` (times 1 g) for a gain, ``|dK_ij| / (2 |K_ii|)`` for a cross-axis sensitivity
 (at 45 degrees between axes i and j). The limit of a constant is the change that makes the grade's |dg| alone;
@@ -63,6 +65,7 @@ from pipeline.passport.registry import Registry
 from pipeline.passport.significance import sigma_of, value_of
 from pipeline.passport.text import per
 from pipeline.positions import AXES
+from pipeline.verify import DEFAULT_GRADE, GRADES
 
 #: the constants whose drift is tested, in the names of ``passport diff``
 DRIFT_CONSTANTS: tuple[str, ...] = tuple(f"K.{a}{b}" for a in AXES for b in AXES) + tuple(f"U0.{a}" for a in AXES)
@@ -71,9 +74,6 @@ OUTLIER_CONSTANTS: tuple[str, ...] = tuple(f"U0.{a}" for a in AXES) + tuple(f"K.
 SECONDS_PER_YEAR = 365.25 * 86400.0
 #: robust sigma of a normal sample from its median absolute deviation
 MAD_TO_SIGMA = 1.4826
-#: the |dg| limit at T0 of a passport that states none: the navigation grade's (docs/physics.md "Unit grades")
-DEFAULT_NORMAL_G = 3e-4
-DEFAULT_GRADE = "navigation"
 
 
 @dataclass(frozen=True)
@@ -249,7 +249,7 @@ def grade_limit(doc: dict) -> tuple[str, float, str]:
     limits = [float(x) for x in stated if isinstance(x, (int, float)) and x > 0]
     if limits:
         return DEFAULT_GRADE, min(limits), "the passport's verification rows (written before grades)"
-    return DEFAULT_GRADE, DEFAULT_NORMAL_G, "no limit stated: the navigation grade's"
+    return DEFAULT_GRADE, GRADES[DEFAULT_GRADE].normal_g, f"no limit stated: the {DEFAULT_GRADE} grade's"
 
 
 def worst_dg_factor(constant: str) -> float:
@@ -260,44 +260,20 @@ def worst_dg_factor(constant: str) -> float:
     return 1.0
 
 
-def _verified_versions(registry: Registry, unit: str, problems: list[str]) -> dict[int, dict]:
-    """The unit's versions when the registry's verification found no problem in its chain (``problems``: the
-    problem lines of :meth:`Registry.verify` naming the unit), else none. Until the trust helper's
-    ``Registry.verified_versions`` lands (it keeps the versions that verify with all their ancestors)."""
-    if problems:
-        return {}
-    return {info.version: registry.load(unit, info.version) for info in registry.versions(unit)}
-
-
-def read_history(registry: Registry, unit: str, problems: list[str] | None = None) -> UnitHistory:
-    """The unit's verified versions as :class:`Point` and its current version (docs/contract.md: the newest
-    approved, else the newest that did not fail; None when that version is not among the verified ones).
-    ``problems``: what the registry's verification said of the unit (None: verify it here)."""
-    if problems is None:
-        problems = _unit_problems(registry.verify().problems, [unit])[unit]
-    docs = _verified_versions(registry, unit, problems)
+def read_history(registry: Registry, unit: str) -> UnitHistory:
+    """The unit's verified versions as :class:`Point` (:meth:`Registry.verified_history`: the versions that verify
+    with all their ancestors) and its current version (docs/contract.md: the newest approved, else the newest that
+    did not fail; None when that version is not among the verified ones)."""
+    docs, problems, current = registry.verified_history(unit)
     points = [Point.of(v, doc) for v, doc in sorted(docs.items())]
-    current = registry.current(unit) if points else None
     if current not in docs or docs[current].get("status") == "fail":
         current = None
     return UnitHistory(unit, points, current, [str(p) for p in problems])
 
 
-def _unit_problems(problems: Iterable[str], units: Iterable[str]) -> dict[str, list[str]]:
-    """The registry's problem lines by the unit they start with."""
-    out: dict[str, list[str]] = {u: [] for u in units}
-    for line in problems:
-        unit = str(line).split(" ", 1)[0].split(":", 1)[0]
-        if unit in out:
-            out[unit].append(str(line))
-    return out
-
-
 def read_fleet(registry: Registry, units: Iterable[str] | None = None) -> list[UnitHistory]:
-    """:func:`read_history` of every unit of the registry (or of ``units``), verified once."""
-    names = registry.units() if units is None else list(units)
-    problems = _unit_problems(registry.verify().problems, names)
-    return [read_history(registry, u, problems[u]) for u in names]
+    """:func:`read_history` of every unit of the registry (or of ``units``)."""
+    return [read_history(registry, u) for u in (registry.units() if units is None else units)]
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -29,6 +29,38 @@ def test_read_sealed_is_the_inverse_of_the_encoder(record):
     assert sealed.body == signed_body(record)
 
 
+any_floats = st.floats() | st.sampled_from([float("inf"), -float("inf"), float("nan"), -0.0, 1e16, 1e-5])
+odd_texts = st.sampled_from(["inf", " inf", ": -inf,", " nan", "nan,", "\x7f", '\u00e9\n"\\', "a: inf"])
+any_values = st.recursive(
+    st.none() | st.booleans() | st.integers(-(2**70), 2**70) | any_floats | texts | odd_texts,
+    lambda inner: (
+        st.lists(inner, max_size=4)
+        | st.tuples(inner)
+        | st.dictionaries(texts | odd_texts, inner, max_size=4)
+        | st.dictionaries(st.integers(-3, 3), inner, max_size=2)
+    ),
+)
+
+
+def _dumps_or_error(value):
+    try:
+        return json.dumps(value, sort_keys=True, indent=2, ensure_ascii=True, allow_nan=False) + "\n"
+    except (TypeError, ValueError) as exc:
+        return type(exc), str(exc)
+
+
+@settings(max_examples=300, deadline=None)
+@given(any_values)
+def test_canonical_json_is_json_dumps_byte_for_byte(value):
+    """The encoder (joins, not json's pure-Python indent encoder) writes exactly json.dumps' text, and raises its
+    error otherwise: non-finite floats anywhere, strings that look like them, tuples, int keys, every escape."""
+    try:
+        ours = canonical_json(value).decode("ascii")
+    except (TypeError, ValueError) as exc:
+        ours = type(exc), str(exc)
+    assert ours == _dumps_or_error(value)
+
+
 @pytest.mark.parametrize(
     ("data", "fragment"),
     [
