@@ -10,7 +10,7 @@ import typer
 
 from pipeline.errors import ThermocalError
 
-from .app import REGISTRY_HELP, UNIT_HELP, JsonFlag, emit, passport_app
+from .app import REGISTRY_HELP, UNIT_HELP, JsonFlag, emit, passport_app, warn
 
 
 @passport_app.command("log")
@@ -55,11 +55,14 @@ def passport_show(
     from pipeline.passport.text import passport_summary
 
     reg = Registry(registry)
+    newest = version if version is not None else max((i.version for i in reg.versions(unit)), default=None)
+    doc, state = reg.load_state(unit, newest, unverified=True)  # shown either way, with what its checks found
+    check = state.verification
+    if check is not None and not check.verified:  # said on stderr too: the document itself (--json) cannot say it
+        warn(f"{unit} v{newest} DOES NOT VERIFY: {check.problem}")
     if as_json:
         emit(reg.load(unit, version), True)
         return
-    newest = version if version is not None else max((i.version for i in reg.versions(unit)), default=None)
-    doc, state = reg.load_state(unit, newest, unverified=True)  # shown either way, with what its checks found
     approved = approval(reg, unit, doc)
     vdir = reg.unit_dir(unit)
     figures = [
@@ -67,7 +70,6 @@ def passport_show(
         for suffix in (".png", ".constants.png")
         if (f := vdir / f"v{int(doc.get('version') or 0):04d}{suffix}").exists()
     ]
-    check = state.verification
     said = "not checked" if check is None else check.label if check.verified else f"DOES NOT VERIFY: {check.problem}"
     emit(None, False, passport_summary(doc, approved=approved, figures=figures) + f"\nverification: {said}")
 

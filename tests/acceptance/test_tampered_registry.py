@@ -124,6 +124,10 @@ def test_commands_refuse_an_altered_passport_in_one_line(base, tmp_path, monkeyp
         code, out, err = run_main(monkeypatch, capsys, *commands["export"], "--unverified")
         assert code == 2 and "not a passport record" in err and not Path("x.params").exists()
         return
+    for extra in ((), ("--json",)):  # the audit view shows it, and says on stderr that it does not verify
+        code, out, err = run_main(monkeypatch, capsys, "passport", "show", unit, "--registry", str(root), *extra)
+        [line] = err.splitlines()
+        assert code == 0 and line.startswith(f"thermocal: warning: {unit} v") and "DOES NOT VERIFY" in line, err
     code, out, err = run_main(monkeypatch, capsys, *commands["export"], "--unverified", "--json")
     assert code == 0, err
     summary = json.loads(out)
