@@ -135,7 +135,9 @@ def test_inspect_lists_each_unit_and_diagnose_one(chamber):
         assert len(u["plateaus"]) >= 3 and len(u["static_positions"]) > 20
     text = _cli("inspect", str(mcap)).stdout
     assert "unit AU-0301:" in text and "unit AU-0302: not usable" in text
-    p = _cli("diagnose", str(mcap), "--unit", "AU-0304", "--json")
+    out = d / "diagnosed"
+    p = _cli("diagnose", str(mcap), "--unit", "AU-0304", "--json", "--out", str(out))
     assert p.returncode == 0, p.stderr
-    assert json.loads(p.stdout)["verdict"] == "consistent"
-    assert (d / "fleet" / "chamber4.AU-0304.diagnose.png").exists()
+    r = json.loads(p.stdout)
+    assert r["verdict"] == "consistent"
+    assert (out / "chamber4.AU-0304.diagnose.png").exists()
