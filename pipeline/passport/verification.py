@@ -297,7 +297,7 @@ def thermal_model(value: Any, where: str) -> None:
 
 def _rate_terms(value: Any, where: str) -> None:
     obj(
-        {"order": integer(1, MAX_ORDER), "dt_order": integer(0, MAX_ORDER), "temp_smooth_s": num},
+        {"order": integer(0, MAX_ORDER), "dt_order": integer(0, MAX_ORDER), "temp_smooth_s": num},
         {"lag_tau_s": num},
     )(value, where)
     n = value["order"] * (value["dt_order"] + 1)

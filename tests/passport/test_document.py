@@ -94,3 +94,22 @@ def test_not_a_passport_is_one_line_naming_the_file(tmp_path, published):
             load_passport(path)
         line = err.value.one_line()
         assert str(path) in line and "\n" not in line, line
+
+
+def test_a_differential_passport_without_rate_terms_passes_the_content_check(published):
+    """The differential method's validation may choose no rate terms (order 0, as for the CATS tag's sweep with its
+    held-out blocks deleted): the passport calibrate writes passes the check every reader applies (was: apply,
+    export and diagnose --registry refused it, 'rate_terms.order: 0 is outside 1..8'); 9 is still refused."""
+    from pipeline.passport.verification import MAX_ORDER, check_content
+
+    out, _ = published
+    doc = json.loads(open(out["tilt_six_position"]["passport"]).read())
+    none = RateTerms(alpha_rate=np.zeros((0, 1, 3)), beta_rate=np.zeros((0, 1, 3)), temp_smooth_s=301.0, lag_tau_s=0.0)
+    diff_doc = json.loads(json.dumps({**doc, "method": "differential", "rate_terms": none.to_dict()}))
+    assert diff_doc["rate_terms"]["order"] == 0
+    check_content(diff_doc, "p.json")
+    model = load_passport(diff_doc).compensation_model()
+    assert isinstance(model, DifferentialModel)
+    too_high = {**diff_doc, "rate_terms": {**diff_doc["rate_terms"], "order": MAX_ORDER + 1}}
+    with pytest.raises(ThermocalError, match="rate_terms.order"):
+        check_content(too_high, "p.json")
