@@ -28,7 +28,7 @@ from pipeline.calibrate.differential_fit import (
     with_constants,
 )
 from pipeline.calibrate.method import Fitted, Method, Support
-from pipeline.calibrate.observations import ObservedRun, observe_run, unit_of
+from pipeline.calibrate.observations import Observation, ObservedRun, observe_run, unit_of
 from pipeline.calibrate.orientation_base import (
     FOLD_S,
     SCORE_MEAN_S,
@@ -140,6 +140,15 @@ class Differential(Method):
         return ObservedRun(
             meta=run.meta, source=run.source, observations=observations, warnings=list(run.warnings), data=data
         )
+
+    def recorded_temps_c(self, observed: list[ObservedRun], observations: list[Observation]) -> list[float]:
+        """The temperature range (C) the orientation windows cover, with the observations' temperatures: a sweep
+        holds its orientations through the cycle, so its few static observations do not say what it spans."""
+        temps = [o.temp_c for o in observations]
+        for r in observed:
+            for w in r.data.windows if r.data is not None else []:
+                temps += [w.temp_min_c, w.temp_max_c]
+        return temps
 
     def fit(
         self,

@@ -121,6 +121,11 @@ class Method(ABC):
         """The observations whose plateaus the passport's ``plateaus`` summary lists (default: all)."""
         return observations
 
+    def recorded_temps_c(self, observed: list[ObservedRun], observations: list[Observation]) -> list[float]:
+        """The AU temperatures (C) the recording held, for the plausibility check of T0 (default: the
+        observations' temperatures)."""
+        return [o.temp_c for o in observations]
+
     def verification_notes(
         self, observations: list[Observation], rows: list[VerificationRow], normal_temp_c: float
     ) -> list[str]:
@@ -141,7 +146,7 @@ class Method(ABC):
         tolerances = settings.tolerances_for(meta)  # the unit's grade: --grade, else the run's unit_grade
         rows, status = verify_unit(unit_fit.model, observations, unit_fit.normal_temp_c, tolerances)
         run_warnings = [w for r in observed for w in r.warnings]
-        temps_c = [o.temp_c for o in observations]
+        temps_c = self.recorded_temps_c(observed, observations)
         status, implausible = assess(unit_fit, status, meta.nominal_gain_v_per_g, run_warnings, temps_c=temps_c)
         plateaus = plateau_summary(self.plateau_observations(observations))
         doc = build_passport(
