@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import typer
 
-from pipeline.errors import ThermocalError
+from pipeline.io.files import write_text_whole
 
 from .app import REGISTRY_HELP, UNIT_OR_FILE_HELP, JsonFlag, UnverifiedFlag, app, emit, passport_in_use, warn
 from .passport import approval
@@ -40,13 +39,7 @@ def report(
     page = certificate_html(
         doc, approved=approved, registry=str(registry) if registry else None, verification=state.verification
     )
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = out.with_name(f".{out.name}.tmp")
-        tmp.write_text(page, encoding="utf-8")
-        os.replace(tmp, out)
-    except OSError as e:
-        raise ThermocalError(f"cannot write the certificate ({e.strerror or e})", path=str(out)) from None
+    write_text_whole(out, page, "certificate")
     pdf_path = str(print_pdf(out, pdf)) if pdf is not None else None
     p = load_passport(doc)
     obj = {

@@ -16,7 +16,7 @@ from typing import BinaryIO
 
 from pipeline.errors import RunFormatError, ThermocalError
 
-__all__ = ["NOT_REGULAR", "open_regular", "read_regular_bytes", "require_regular", "special_kind"]
+__all__ = ["NOT_REGULAR", "open_regular", "read_regular_bytes", "require_regular", "special_kind", "write_text_whole"]
 
 _KINDS = (
     (stat.S_ISFIFO, "a FIFO (named pipe)"),
@@ -88,3 +88,17 @@ def read_regular_bytes(
             return f.read(limit + 1)[:limit]
         except OSError as exc:
             raise error(f"cannot read the {what} ({exc.strerror})", path=str(p)) from None
+
+
+def write_text_whole(path: str | os.PathLike, text: str, what: str) -> Path:
+    """Write ``text`` (UTF-8) to ``path`` whole or not at all: under a temporary name beside it, then renamed (its
+    folder created). ThermocalError "cannot write the ``what`` (reason)" naming the file when it cannot be written."""
+    out = Path(path)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = out.with_name(f".{out.name}.tmp")
+        tmp.write_text(text, encoding="utf-8")
+        os.replace(tmp, out)
+    except OSError as e:
+        raise ThermocalError(f"cannot write the {what} ({e.strerror or e})", path=str(out)) from None
+    return out

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.errors import ThermocalError
+from pipeline.io.files import write_text_whole
 from pipeline.passport.trends import FleetValues, Series, TrendsResult, utc_of
 
 _CSS = """
@@ -216,13 +216,4 @@ def trends_html(result: TrendsResult, *, registry: str | None = None) -> str:
 def write_trends_page(result: TrendsResult, path: str | os.PathLike, *, registry: str | None = None) -> Path:
     """Write :func:`trends_html` to ``path`` (whole or not at all: a temporary file renamed); ThermocalError (one
     line naming the file) when it cannot be written."""
-    out = Path(path)
-    page = trends_html(result, registry=registry)
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = out.with_name(f".{out.name}.tmp")
-        tmp.write_text(page, encoding="utf-8")
-        os.replace(tmp, out)
-    except OSError as e:
-        raise ThermocalError(f"cannot write the page ({e.strerror or e})", path=str(out)) from None
-    return out
+    return write_text_whole(path, trends_html(result, registry=registry), "page")
