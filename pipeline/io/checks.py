@@ -54,8 +54,58 @@ PHYSICAL_RANGE: dict[str, tuple[float, float]] = {
 }
 
 
+def check_streams(
+    frames: dict[str, pl.DataFrame], *, path: str, warnings: list[str], label=None
+) -> dict[str, pl.DataFrame]:
+    """Each stream of ``frames`` (name -> table) checked by :func:`check_stream`; returns them in time order.
+
+    Gaps are warned about once for all the streams: one line per set of streams whose gaps coincide (a logger that
+    stopped: ``voltmeter, au_temperature, chamber: 1 gap(s) ...``), so a stream is named in one gap line at most.
+    ``label(stream)`` names a stream (default: its name; one unit's streams of a run with several units carry the
+    unit)."""
+    spans: dict[str, np.ndarray] = {}
+    checked = {
+        name: check_stream(name, df, path=path, warnings=warnings, label=label(name) if label else None, gaps=spans)
+        for name, df in frames.items()
+    }
+    warnings.extend(gap_lines(spans))
+    return checked
+
+
+def gap_lines(spans: dict[str, np.ndarray]) -> list[str]:
+    """The readers' gap warnings: ``spans`` maps a stream's label to its gaps ((k, 2) int64 ns: the last sample
+    before, the first after). Streams whose gaps coincide (as many, each overlapping) share one line. A gap is
+    missing data: nothing is made across it (segmentation says which plateau or position it took)."""
+    groups: list[list[str]] = []
+    for name, g in spans.items():
+        for group in groups:
+            h = spans[group[0]]
+            if len(h) == len(g) and bool(np.all((g[:, 0] < h[:, 1]) & (h[:, 0] < g[:, 1]))):
+                group.append(name)
+                break
+        else:
+            groups.append([name])
+    from pipeline.utc import utc_span
+
+    out = []
+    for group in groups:
+        g = spans[group[0]]
+        a, b = (int(x) for x in g[int(np.argmax(g[:, 1] - g[:, 0]))])
+        out.append(
+            f"{', '.join(group)}: {len(g)} gap(s) without samples, the longest {(b - a) / 1e9:.1f} s after "
+            f"t_ns={a} ({utc_span(a, b)}): missing data, nothing is made across a gap"
+        )
+    return out
+
+
 def check_stream(
-    stream: str, df: pl.DataFrame, *, path: str, warnings: list[str], label: str | None = None
+    stream: str,
+    df: pl.DataFrame,
+    *,
+    path: str,
+    warnings: list[str],
+    label: str | None = None,
+    gaps: dict[str, np.ndarray] | None = None,
 ) -> pl.DataFrame:
     """Check a stream table read from a file; return it in time order.
 
@@ -64,7 +114,8 @@ def check_stream(
     repeated samples (same ``t_ns``, same values) are dropped with a warning, while two different samples at one
     ``t_ns`` or a jump forward by more than :data:`MAX_JUMP_S` are errors; gaps are warned about. Non-finite values
     are kept. ``label`` names the stream in errors and warnings (default: ``stream``; one unit's stream of a run with
-    several units is named with its unit).
+    several units is named with its unit). ``gaps``: where to put the stream's gaps (``gaps[label]``, see
+    :func:`gap_lines`) when it has any; without it they are warned about here.
     """
     label = label or stream
     t = df["t_ns"]
@@ -93,7 +144,12 @@ def check_stream(
             f"t_ns={t_ns[row]} after t_ns={t_ns[row - 1]}); sorted by t_ns"
         )
     if stream != "fixture" and df.height > 1:
-        df = _check_time_base(label, df, path=path, warnings=warnings)
+        df, spans = _check_time_base(label, df, path=path, warnings=warnings)
+        if spans.size:
+            if gaps is None:
+                warnings.extend(gap_lines({label: spans}))
+            else:
+                gaps[label] = spans
     if stream == "fixture" and df.height:
         bad = ~df["position"].is_in(FIXTURE_LABELS) | df["position"].is_null()
         if bad.any():
@@ -148,8 +204,11 @@ def gap_indices(t_ns: np.ndarray) -> np.ndarray:
     return np.concatenate([a + np.flatnonzero(dt > limit) for a, dt in _intervals(t_ns)])
 
 
-def _check_time_base(stream: str, df: pl.DataFrame, *, path: str, warnings: list[str]) -> pl.DataFrame:
-    """Jumps (error), repeated samples (dropped) and gaps (warned) of a sampled stream sorted by time. Slab by slab
+def _check_time_base(
+    stream: str, df: pl.DataFrame, *, path: str, warnings: list[str]
+) -> tuple[pl.DataFrame, np.ndarray]:
+    """Jumps (error), repeated samples (dropped) and gaps (returned: (k, 2) int64 ns, the last sample before each and
+    the first after) of a sampled stream sorted by time. Slab by slab
     (:data:`SLAB_SAMPLES`): the only arrays the length of the stream are the times and, when samples repeat, one
     byte a row to drop them (104 M identical rows once made four more copies of the table)."""
     t_ns = df["t_ns"].to_numpy()
@@ -195,14 +254,7 @@ def _check_time_base(stream: str, df: pl.DataFrame, *, path: str, warnings: list
         df = df.filter(pl.Series(keep))
         t_ns = t_ns[keep]
     gaps = gap_indices(t_ns)
-    if gaps.size:
-        dt = t_ns[gaps + 1] - t_ns[gaps]
-        i = int(gaps[np.argmax(dt)])
-        warnings.append(
-            f"{stream}: {gaps.size} gap(s) without samples, the longest {dt.max() / 1e9:.1f} s after "
-            f"t_ns={t_ns[i]}; the samples either side are used"
-        )
-    return df
+    return df, np.stack([t_ns[gaps], t_ns[gaps + 1]], axis=1)
 
 
 def assemble_run(
@@ -222,7 +274,7 @@ def assemble_run(
             raise RunFormatError("required stream is missing", path=path, stream=stream)
         if df.height == 0:
             raise RunFormatError("required stream has no samples", path=path, stream=stream)
-    checked = {name: check_stream(name, df, path=path, warnings=warnings) for name, df in frames.items()}
+    checked = check_streams(frames, path=path, warnings=warnings)
     meta = RunMeta.from_strings(meta_values, path=path)
     warnings.extend(_plausible(meta, checked, path, "au_temperature"))
     return Run(
@@ -292,7 +344,7 @@ def assemble_units(
             path=path,
             stream="metadata",
         )
-    checked = {name: check_stream(name, df, path=path, warnings=warnings) for name, df in shared.items()}
+    checked = check_streams(shared, path=path, warnings=warnings)
     units: dict[str, Run] = {}
     failed: dict[str, str] = {}
     for serial in serials:
@@ -335,9 +387,7 @@ def _unit_run(meta_values, serial, serials, frames, shared, path, warnings, stre
                 stream=stream_label(serial, stream),
             )
     own: list[str] = []
-    checked = {
-        s: check_stream(s, df, path=path, warnings=own, label=stream_label(serial, s)) for s, df in frames.items()
-    }
+    checked = check_streams(frames, path=path, warnings=own, label=lambda s: stream_label(serial, s))
     dead = dead_channels(checked["voltmeter"])
     if dead:
         raise RunFormatError(
