@@ -23,7 +23,7 @@ The steps, for one unit:
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, ClassVar
 
 from pipeline.calibrate.observations import Observation, ObservedRun, plateau_summary, unit_of, verify_unit
@@ -64,12 +64,16 @@ class Fitted:
     ``rate_terms``...); ``settings_extra``: what the passport's identity depends on besides the settings and the
     method (:attr:`pipeline.calibrate.result.CalibrationResult.settings_extra`); ``observations``: the observations
     the tail verifies and summarises when the fit made its own (the ramp method's holds at the element temperature
-    it fitted), None: the runs'."""
+    it fitted), None: the runs'. ``exact``: the static holds (run_id, t_start_ns) the fit reproduces by construction
+    (as many equations as parameters: no redundancy), ``exact_why`` why: a VP row on one of them verifies nothing
+    (its |dg| is 0 whatever the constants), so it does not count towards ``pass``."""
 
     fit: UnitFit
     passport_fields: dict[str, Any] = field(default_factory=dict)
     settings_extra: dict[str, Any] = field(default_factory=dict)
     observations: list[Observation] | None = None
+    exact: frozenset[tuple[str, int]] = frozenset()
+    exact_why: str = ""
 
 
 class Method(ABC):
@@ -145,6 +149,9 @@ class Method(ABC):
         )
         tolerances = settings.tolerances_for(meta)  # the unit's grade: --grade, else the run's unit_grade
         rows, status = verify_unit(unit_fit.model, observations, unit_fit.normal_temp_c, tolerances)
+        status, void = _without_exact_rows(rows, status, fitted)
+        if void:
+            unit_fit = replace(unit_fit, skipped=[*unit_fit.skipped, void])
         run_warnings = [w for r in observed for w in r.warnings]
         temps_c = self.recorded_temps_c(observed, observations)
         status, implausible = assess(unit_fit, status, meta.nominal_gain_v_per_g, run_warnings, temps_c=temps_c)
@@ -205,3 +212,21 @@ class Method(ABC):
         base = None if base_passport is None else load_passport(base_passport)
         observed = [self.observe(r, settings, base_passport=base, **options) for r in runs]
         return self.calibrate_observed(observed, settings, base_passport=base, **options)
+
+
+def _without_exact_rows(rows: list[VerificationRow], status: str, fitted: Fitted) -> tuple[str, str | None]:
+    """The status once the VP rows on holds the fit reproduces by construction (``fitted.exact``) no longer count,
+    and the note saying so (None when there are none): a ``pass`` that rests on those rows alone is ``unverified``
+    (a row elsewhere, e.g. at another temperature, still verifies; a ``fail`` stays one)."""
+    exact = [r for r in rows if (r.run_id, r.t_start_ns) in fitted.exact]
+    if not exact:
+        return status, None
+    rest = len(rows) - len(exact)
+    if status == "pass" and not rest:
+        status = "unverified"
+    names = ", ".join(dict.fromkeys(r.position for r in exact))
+    return status, (
+        f"verification: the {len(exact)} VP row(s) at {names} are holds the fit reproduces exactly "
+        f"({fitted.exact_why}): their |dg| is 0 by construction and verifies nothing; "
+        + (f"the status rests on the other {rest} row(s)" if rest else "nothing is verified")
+    )

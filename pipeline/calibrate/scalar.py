@@ -84,6 +84,8 @@ class ScalarFit:
     model: str  # "full" | "diagonal"
     n_positions: int
     spread: float
+    #: distinct positions among the ``n_positions`` (repeats of one orientation count once)
+    n_distinct: int = 0
     std: np.ndarray = field(default_factory=lambda: np.full(9, np.nan))
     d2: np.ndarray | None = None
     k_prelim_v_per_g: np.ndarray = field(default_factory=lambda: np.ones(3))
@@ -144,9 +146,15 @@ def _design(B: np.ndarray, model: str, quadratic: bool) -> np.ndarray:
     return np.concatenate(cols, axis=1)
 
 
-def _check_positions(B: np.ndarray, w: np.ndarray, model: str, quadratic: bool) -> float:
-    """Smallest singular value of the weighted first-order design per sqrt(sum w); CalibrationError when the
-    positions cannot determine the model."""
+def n_parameters(model: str, quadratic: bool = False) -> int:
+    """The parameters the scalar ``model`` fits: 3 offsets, 3 gains, the 3 misalignment combinations (``full``),
+    3 quadratic terms (``quadratic``)."""
+    return 6 + 3 * (model == "full") + 3 * quadratic
+
+
+def _check_positions(B: np.ndarray, w: np.ndarray, model: str, quadratic: bool) -> tuple[float, int]:
+    """Smallest singular value of the weighted first-order design per sqrt(sum w), and the number of distinct
+    positions; CalibrationError when the positions cannot determine the model."""
     A = _design(B, model, quadratic)
     p = A.shape[1]
     distinct = len(np.unique(np.round(B, 2), axis=0))
@@ -174,7 +182,7 @@ def _check_positions(B: np.ndarray, w: np.ndarray, model: str, quadratic: bool) 
             f"static positions are not spread enough for the scalar {model} model "
             f"(smallest singular value {spread:.2g} < {MIN_SPREAD}): {hint}"
         )
-    return spread
+    return spread, distinct
 
 
 def _weights(m: int, weights) -> np.ndarray:
@@ -239,7 +247,7 @@ def scalar_first_order(
     """
     u, k_p, u0_p, w = _inputs(u_v, k_prelim_v_per_g, u0_prelim_v, weights, model)
     B = normalise(u, k_p, u0_p)
-    spread = _check_positions(B, w, model, quadratic)
+    spread, distinct = _check_positions(B, w, model, quadratic)
     A = _design(B, model, quadratic)
     y = (np.sum(B**2, axis=1) - 1.0) / 2.0
     sw = np.sqrt(w)
@@ -263,6 +271,7 @@ def scalar_first_order(
         model=model,
         n_positions=len(u),
         spread=spread,
+        n_distinct=distinct,
         std=std,
         d2=d2,
         k_prelim_v_per_g=k_p,
@@ -333,7 +342,7 @@ def scalar_nonlinear(
     """
     u, k_p, u0_p, w = _inputs(u_v, k_prelim_v_per_g, u0_prelim_v, weights, model)
     B = normalise(u, k_p, u0_p)
-    spread = _check_positions(B, w, model, False)
+    spread, distinct = _check_positions(B, w, model, False)
     if start is not None:
         kn0 = np.asarray(start.K, float) / k_p[:, None]
         d_init = (np.asarray(start.U0, float) - u0_p) / k_p
@@ -367,6 +376,7 @@ def scalar_nonlinear(
         model=model,
         n_positions=len(u),
         spread=spread,
+        n_distinct=distinct,
         std=std,
         k_prelim_v_per_g=k_p,
         u0_prelim_v=u0_p,
@@ -397,7 +407,7 @@ def gauge_notes(fit: ScalarFit) -> tuple[dict[str, str], dict[str, str]]:
     upper = [f"K.{AXES[i]}{AXES[j]}" for i, j in zip(*np.triu_indices(3, 1))]
     lower = [f"K.{AXES[i]}{AXES[j]}" for i, j in zip(*_LOWER)]
     fitted = [f"U0.{a}" for a in AXES] + [f"K.{a}{a}" for a in AXES] + (lower if fit.model == "full" else [])
-    n_params = len(fitted)
+    n_params = n_parameters(fit.model)
     unscaled = (
         {}
         if fit.n_positions > n_params
@@ -605,7 +615,16 @@ class Scalar(Method):
             valid_temp_c=(round(min(seg_temps), 1), round(max(seg_temps), 1)),
             uncertainty=sigma,
         )
-        return Fitted(unit_fit, passport_fields={"scalar": fit_s.summary()})
+        # as many distinct positions as parameters: |a| = 1 holds at every one of them by construction
+        n_params = n_parameters(fit_s.model)
+        exact = fit_s.n_distinct <= n_params
+        return Fitted(
+            unit_fit,
+            passport_fields={"scalar": fit_s.summary()},
+            exact=frozenset((run_id, int(s.t_start_ns)) for run_id, s in static) if exact else frozenset(),
+            exact_why=f"{fit_s.n_distinct} distinct positions for the {n_params} parameters of the "
+            f"{fit_s.model} scalar model",
+        )
 
 
 #: the scalar method, for the registry (:mod:`pipeline.calibrate.methods`)

@@ -99,10 +99,18 @@ def test_scalar_on_as_many_poses_as_parameters_names_its_uncertainties_undetermi
     assert sorted(undetermined) == sorted(fitted)
     assert all("9 positions for the 9 parameters" in undetermined[n] for n in fitted)
     assert doc["scalar"]["std"]["d1"] == [None, None, None]
+    # the VP holds are among the 9 fitted: |dg| = 0 there by construction, so nothing is verified (was: pass)
+    assert doc["status"] == "unverified"
+    assert [r["position"] for r in doc["verification"]] == ["VP1", "VP2", "VP3"]
+    assert max(abs(r["dg_method1_g"]) for r in doc["verification"]) < 1e-9
+    (note,) = [n for n in doc["notes"] if n.startswith("verification:")]
+    assert "VP1, VP2, VP3" in note and "9 distinct positions for the 9 parameters" in note
+    assert "nothing is verified" in note
     # more poses than parameters (the last hold of a recording ends it and is not kept): numbers again
     doc, _ = calibrate(["TP1", "TP2", "TP3", "TP4", "TP5", "TP6", "VP1", "VP2", "VP3", "VP4", "VP5"], "scalar", 5e-6)
     assert doc["scalar"]["n_positions"] >= 10 and not doc["uncertainty"].get("undetermined")
     assert all(s is not None and s > 0 for s in doc["uncertainty"]["coefficients"]["U0"])
+    assert doc["status"] == "pass" and not any(n.startswith("verification:") for n in doc["notes"])
 
 
 def test_a_noiseless_standard_run_has_uncertainties_the_size_of_its_errors():
