@@ -34,6 +34,7 @@ over 10 C or more, preferred by ``--method auto`` where most were held off the s
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -653,6 +654,20 @@ PREFERENCE = 5.0
 MIN_SPAN_C = 10.0
 
 
+def visits(segments) -> list:
+    """One segment per hold of ``segments`` (the first of each): consecutive static segments of one position, on
+    one plateau (or off every one) and alike settling or not, are one hold, however many pieces the static test
+    cut it into (the voltages drifting with temperature through a ramp sit near its threshold: at a lower or uneven
+    voltmeter rate a stay in one position comes in ten pieces instead of two). Counted in holds, not pieces, ``auto``
+    judges a recording alike at any rate."""
+
+    def hold(s):
+        return s.position, s.plateau, s.settling is None
+
+    named = sorted((s for s in segments if s.position and s.count > 0), key=lambda s: s.t_start_ns)
+    return [next(group) for _, group in itertools.groupby(named, key=hold)]
+
+
 class Ramp(Method):
     """Positions held on temperature ramps (fast programs): see the module doc. Options: ``ramp``
     (:class:`RampSettings`)."""
@@ -669,12 +684,13 @@ class Ramp(Method):
         temps = [s.temp_c for s in tp if np.isfinite(s.temp_c)]
         lo, hi = (min(temps), max(temps)) if temps else (float("nan"), float("nan"))
         ok = bool(tp) and determines_constants(names) and hi - lo >= MIN_SPAN_C
-        off = sum(1 for s in tp if s.plateau not in recording.soaks and s.settling is None)
+        holds = [h for h in visits(recording.segmentation.segments) if is_test_position(h.position)]
+        off = sum(1 for h in holds if h.plateau not in recording.soaks and h.settling is None)
         return Support(
             supported=ok,
             why=(
                 f"test positions {', '.join(names)} held over {lo:+.1f} .. {hi:+.1f} C; {off} of "
-                f"{count_words(len(tp), 'test-position hold')} off the soaked plateaus"
+                f"{count_words(len(holds), 'test-position hold')} off the soaked plateaus"
                 if ok
                 else f"needs test positions that determine the 12 constants held over {MIN_SPAN_C:.0f} C or more; "
                 + (f"found {', '.join(names)} over {lo:+.1f} .. {hi:+.1f} C" if tp else "found none")
@@ -687,7 +703,7 @@ class Ramp(Method):
                 if ok
                 else ()
             ),
-            preference=PREFERENCE_RAMPS if ok and 2 * off > len(tp) else PREFERENCE,
+            preference=PREFERENCE_RAMPS if ok and 2 * off > len(holds) else PREFERENCE,
         )
 
     def observe(

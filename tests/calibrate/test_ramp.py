@@ -17,6 +17,7 @@ import pytest
 from pipeline.apply import apply_passport
 from pipeline.calibrate import ramp
 from pipeline.calibrate.methods import by_name, resolve_auto
+from pipeline.calibrate.recording import Recording
 from pipeline.calibrate.settings import CalibrationSettings
 from pipeline.errors import CalibrationError
 from pipeline.passport.document import load_passport
@@ -306,3 +307,20 @@ def test_a_lag_at_the_search_limit_is_said_to_be_suspect():
     assert "the element may lag more" in ramp._lag_note(at_bound, settings)
     assert "1800.0 +- 1.2e+02 s" in ramp._lag_note(at_bound, settings)
     assert "may lag more" not in ramp._lag_note(inside, settings)
+
+
+def test_auto_counts_holds_not_the_pieces_of_a_hold_at_any_voltmeter_rate():
+    """The short program's voltmeter read at 3.5 Hz (its 5-Hz samples kept unevenly, 0.2 and 0.4 s apart): the
+    static test flickers through the ramps, where the unit sits in TP6 as the voltages drift with temperature, and
+    cut those stays into 10-20 pieces; counted as holds, 33 of 66 lay off the soaked plateaus and auto took the ramp
+    method instead of tilt. A stay in one position on one plateau (or off every one) is one hold at any rate."""
+    from tests.acceptance import same_data as sd
+
+    run = simulate(SimConfig(seed=22, rate_hz=5.0, program="short")).run
+    settings = CalibrationSettings()
+    said = []
+    for r in (run, sd.decimate(run, "voltmeter", 1 / 3.5)):
+        method, _, seg, why = resolve_auto(r, settings)
+        assert method == "tilt", why
+        said.append(re.search(r"(\d+) of (\w+) test-position holds", ramp.Ramp().supports(Recording.of(r, seg)).why))
+    assert said[0].groups() == said[1].groups()
