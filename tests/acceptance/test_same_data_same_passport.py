@@ -39,7 +39,6 @@ from pipeline.run import NS_PER_S, Run
 from pipeline.simulate.chamber import SimConfig, simulate
 from pipeline.simulate.program import get_program
 from tests.acceptance import same_data as sd
-from tests.conftest import data_path
 
 #: a deeper local search: every property over every recording, this many examples each
 DEEP = "THERMOCAL_HYPOTHESIS_EXAMPLES" in os.environ
@@ -121,10 +120,6 @@ def recording(name: str) -> Recording:
     if name in SIMULATED:
         config, min_hz = SIMULATED[name]
         return Recording(name, simulate(config).run, name, min_hz)
-    if name == "imucal":
-        return Recording(name, read_run(data_path("real", "imucal_ferraris", "run")), None, 20.0)
-    if name == "cats":
-        return Recording(name, read_run(data_path("real", "cats_tag", "run")), None, 0.5)
     raise KeyError(name)
 
 
@@ -351,65 +346,3 @@ def test_a_run_split_into_files_at_any_points_in_any_order_changes_nothing(name,
     pieces = sd.split(rec.run, [c * d for c in cuts])
     order.shuffle(pieces)
     check_same(name, pieces, f"split at {[round(c * d) for c in sorted(cuts)]} s")
-
-
-# ---------------------------------------------------------------------------------------------------------------
-# the real recordings
-
-
-@PROPERTY
-@given(days=st.floats(-400.0, 400.0), seed=st.integers(0, 2**32 - 1))
-def test_imucal_shifted_and_shuffled(days, seed, tmp_path_factory):
-    rec = recording("imucal")
-    path = sd.write_shuffled(sd.shift(rec.run, days * 86400.0), tmp_path_factory.mktemp("imucal") / "run", seed)
-    check_same("imucal", [read_run(path)], f"imucal shifted {days:.1f} d, shuffled")
-
-
-@PROPERTY
-@given(rate=st.floats(20.0, 100.0))
-def test_imucal_voltmeter_read_slower(rate):
-    check_same("imucal", [sd.decimate(recording("imucal").run, "voltmeter", 1.0 / rate)], f"imucal at {rate:.0f} Hz")
-
-
-def _imucal_free(rec: Recording) -> list[tuple[float, float]]:
-    """The hand-marked turns between imucal's poses (labels.json): spans where no pose is held, s."""
-    import json
-
-    labels = json.loads(data_path("real", "imucal_ferraris", "labels.json").read_text())["labels"]
-    t = rec.run.t_ns()
-    poses = sorted((t[x["start_sample"]], t[x["end_sample"]]) for x in labels if x["position"].startswith("TP"))
-    return [
-        ((b0 - rec.start_ns) / NS_PER_S + 0.5, (a1 - rec.start_ns) / NS_PER_S - 0.5)
-        for (_, b0), (a1, _) in zip(poses, poses[1:])
-        if a1 - b0 > NS_PER_S
-    ]
-
-
-@PROPERTY
-@given(pick=st.integers(0, 100), where=st.floats(0.0, 1.0), length=st.floats(0.0, 1.0))
-def test_imucal_gap_between_poses(pick, where, length):
-    rec = recording("imucal")
-    spans = _imucal_free(rec)
-    a, b = spans[pick % len(spans)]
-    t0 = a + where * (b - a)
-    t1 = t0 + length * (b - t0)
-    assume(t1 - t0 > 0.05)
-    check_same("imucal", [sd.gap(rec.run, t0, t1)], f"imucal gap {t0:.1f}..{t1:.1f} s")
-
-
-@pytest.mark.slow
-@pytest.mark.skipif(not DEEP, reason="the CATS tag's 3-day record: with THERMOCAL_HYPOTHESIS_EXAMPLES only (CI time)")
-@settings(PROPERTY, max_examples=max(1, EXAMPLES // 2))
-@given(
-    where=st.floats(0.0, 1.0), hours=st.floats(0.1, 2.0), interval_s=st.floats(2.0, 60.0), days=st.floats(-400.0, 400.0)
-)
-def test_cats_gap_thermosensor_rate_and_shift(where, hours, interval_s, days):
-    """The CATS tag: a gap of up to 2 h anywhere (its orientations last a day), its thermosensor read every 2 s
-    to a minute, all times shifted."""
-    rec = recording("cats")
-    d = sd.duration_s(rec.run)
-    t0 = where * (d - hours * 3600.0)
-    run = sd.shift(sd.decimate(sd.gap(rec.run, t0, t0 + hours * 3600.0), "au_temperature", interval_s), days * 86400)
-    check_same(
-        "cats", [run], f"cats gap at {t0:.0f} s ({hours:.2f} h), thermosensor every {interval_s:.0f} s", verdict=False
-    )
