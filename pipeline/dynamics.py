@@ -142,20 +142,64 @@ def smooth_temperature(t_s: np.ndarray, temp_c: np.ndarray, window_s: float) -> 
     resampled to its median step first (the filter needs a uniform grid). Each stretch between two gaps of the
     thermosensor (:func:`pipeline.segment.thermosensor_gaps`) is smoothed by itself: no filter window reaches
     across a gap."""
-    from pipeline.segment import gap_indices, slope_window_s
-
     t_s = np.asarray(t_s, dtype=float)
     temp_c = np.asarray(temp_c, dtype=float)
     ok = np.isfinite(t_s) & np.isfinite(temp_c)
     if ok.sum() < 5:
         raise CalibrationError("too few thermosensor samples to smooth", stream="au_temperature")
     ts, y0 = t_s[ok], temp_c[ok]
-    t_ns = np.round((ts - ts[0]) * _NS).astype(np.int64)
-    cuts = gap_indices(t_ns, slope_window_s(t_ns) / 2) + 1
+    cuts = stretch_cuts(ts)
     smooth, rate = np.empty(ts.size), np.empty(ts.size)
-    for a, b in zip(np.concatenate(([0], cuts)), np.concatenate((cuts, [ts.size]))):
+    for a, b in zip(np.concatenate(([0], cuts + 1)), np.concatenate((cuts + 1, [ts.size]))):
         smooth[a:b], rate[a:b] = _savgol_piece(ts[a:b], y0[a:b], window_s)
-    return np.interp(t_s, ts, smooth), np.interp(t_s, ts, rate)
+    return hermite(t_s, ts, smooth, rate / 60.0, cuts), np.interp(t_s, ts, rate)
+
+
+def stretch_cuts(t_s: np.ndarray) -> np.ndarray:
+    """Indices ``i`` of a thermosensor's sorted reading times ``t_s`` (s) after which comes one of its gaps
+    (:func:`pipeline.segment.thermosensor_gaps`' rule): :func:`smooth_temperature` smooths each stretch between two
+    by itself, and :func:`hermite` interpolates across them linearly."""
+    from pipeline.segment import gap_indices, slope_window_s
+
+    t_s = np.asarray(t_s, dtype=float)
+    if t_s.size < 2:
+        return np.empty(0, dtype=np.intp)
+    t_ns = np.round((t_s - t_s[0]) * _NS).astype(np.int64)
+    return gap_indices(t_ns, slope_window_s(t_ns) / 2)
+
+
+def hermite(
+    t_s: np.ndarray, knots_s: np.ndarray, y: np.ndarray, dy_per_s: np.ndarray, cuts: np.ndarray | None = None
+) -> np.ndarray:
+    """``y`` (given at the sorted ``knots_s``, s, with its derivative ``dy_per_s``) at ``t_s``: a cubic Hermite
+    between neighbouring knots, so a curved temperature read once a minute is not cut into straight chords (at the
+    end of a 1 C/min ramp a chord between readings a minute apart is off by up to 0.04 C; the cubic by
+    thousandths); linear across the intervals after ``cuts`` (the sensor's gaps, where no slope is known: a cubic
+    over an hour's gap would swing by tens of C) and held at the ends outside the knots, as ``np.interp``."""
+    t = np.asarray(t_s, dtype=float)
+    x = np.asarray(knots_s, dtype=float)
+    y = np.asarray(y, dtype=float)
+    out = np.interp(t, x, y)
+    if x.size < 2:
+        return out
+    i = np.clip(np.searchsorted(x, t, side="right") - 1, 0, x.size - 2)
+    h = x[i + 1] - x[i]
+    inside = (t > x[0]) & (t < x[-1]) & (h > 0)
+    if cuts is not None and len(cuts):
+        gap = np.zeros(x.size - 1, dtype=bool)
+        gap[np.asarray(cuts, dtype=np.intp)] = True
+        inside &= ~gap[i]
+    i, h, tt = i[inside], h[inside], t[inside]
+    s = (tt - x[i]) / h
+    s2, s3 = s * s, s * s * s
+    dy = np.asarray(dy_per_s, dtype=float)
+    out[inside] = (
+        (2 * s3 - 3 * s2 + 1) * y[i]
+        + (s3 - 2 * s2 + s) * h * dy[i]
+        + (3 * s2 - 2 * s3) * y[i + 1]
+        + (s3 - s2) * h * dy[i + 1]
+    )
+    return out
 
 
 def _savgol_piece(ts: np.ndarray, y0: np.ndarray, window_s: float) -> tuple[np.ndarray, np.ndarray]:
@@ -172,8 +216,8 @@ def _savgol_piece(ts: np.ndarray, y0: np.ndarray, window_s: float) -> tuple[np.n
     y = np.interp(grid, ts, y0)
     order = min(2, win - 1)
     smooth = savgol_filter(y, win, order, mode="interp")
-    rate = savgol_filter(y, win, order, deriv=1, delta=h, mode="interp") * 60.0
-    return np.interp(ts, grid, smooth), np.interp(ts, grid, rate)
+    slope = savgol_filter(y, win, order, deriv=1, delta=h, mode="interp")
+    return hermite(ts, grid, smooth, slope), np.interp(ts, grid, slope) * 60.0
 
 
 @dataclass
@@ -215,9 +259,17 @@ class Thermosensor:
 
     def at(self, t_s: np.ndarray, lag_tau_s: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """Temperature (the element temperature through a first-order lag ``lag_tau_s`` if > 0) and rate at
-        ``t_s``, interpolated."""
-        temp = first_order_lag(self.t_s, self.temp_c, lag_tau_s) if lag_tau_s > 0 else self.temp_c
-        return np.interp(t_s, self.t_s, temp), np.interp(t_s, self.t_s, self.rate_c_per_min)
+        ``t_s``: the temperature interpolated with its slope between readings (:func:`hermite`; the element's
+        slope is (T - T_e) / tau), the rate linearly."""
+        if lag_tau_s > 0:
+            temp = first_order_lag(self.t_s, self.temp_c, lag_tau_s)
+            slope = (self.temp_c - temp) / lag_tau_s
+        else:
+            temp, slope = self.temp_c, self.rate_c_per_min / 60.0
+        return (
+            hermite(t_s, self.t_s, temp, slope, stretch_cuts(self.t_s)),
+            np.interp(t_s, self.t_s, self.rate_c_per_min),
+        )
 
 
 __all__ = [
@@ -228,5 +280,7 @@ __all__ = [
     "ramp_direction",
     "step_at",
     "smooth_temperature",
+    "stretch_cuts",
+    "hermite",
     "Thermosensor",
 ]
