@@ -747,11 +747,14 @@ class Registry:
         docs, problems, _ = self.verified_history(unit)
         return docs, problems
 
-    def verified_history(self, unit: str) -> tuple[dict[int, dict], list[str], int | None]:
+    def verified_history(
+        self, unit: str, trust: TrustStore | None = None
+    ) -> tuple[dict[int, dict], list[str], int | None]:
         """:meth:`verified_versions` and the unit's :meth:`current` version, from the one reading of its files
-        (``trends``: each version read, parsed and encoded once)."""
+        (``trends``: each version read, parsed and encoded once). ``trust``: the trusted keys
+        (:func:`~pipeline.passport.signing.trusted_keys` unless given: a caller reading many units reads them once)."""
         udir = self._require_unit(unit)
-        trust = trusted_keys()
+        trust = trust or trusted_keys()
         problems: list[str] = []
         with _os_errors(udir / _LOCK_NAME, "lock the unit"), _flock(udir / _LOCK_NAME, exclusive=False):
             scan = self._scan(unit)

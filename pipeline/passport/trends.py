@@ -50,19 +50,21 @@ and MAD do not describe (in simulated fleets of 20 units of that type, 8 % would
 from __future__ import annotations
 
 import math
+import multiprocessing
 import os
 from collections.abc import Iterable
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from datetime import UTC, datetime, timedelta
 from typing import Any
 
 import numpy as np
-from scipy import stats
 
 from pipeline.errors import ThermocalError
 from pipeline.passport.document import output_unit_of
 from pipeline.passport.registry import Registry
 from pipeline.passport.significance import sigma_of, value_of
+from pipeline.passport.signing import TrustStore, trusted_keys
 from pipeline.passport.text import per
 from pipeline.positions import AXES
 from pipeline.verify import DEFAULT_GRADE, GRADES
@@ -260,20 +262,51 @@ def worst_dg_factor(constant: str) -> float:
     return 1.0
 
 
-def read_history(registry: Registry, unit: str) -> UnitHistory:
+def read_history(registry: Registry, unit: str, trust: TrustStore | None = None) -> UnitHistory:
     """The unit's verified versions as :class:`Point` (:meth:`Registry.verified_history`: the versions that verify
     with all their ancestors) and its current version (docs/contract.md: the newest approved, else the newest that
     did not fail; None when that version is not among the verified ones)."""
-    docs, problems, current = registry.verified_history(unit)
+    docs, problems, current = registry.verified_history(unit, trust)
     points = [Point.of(v, doc) for v, doc in sorted(docs.items())]
     if current not in docs or docs[current].get("status") == "fail":
         current = None
     return UnitHistory(unit, points, current, [str(p) for p in problems])
 
 
-def read_fleet(registry: Registry, units: Iterable[str] | None = None) -> list[UnitHistory]:
-    """:func:`read_history` of every unit of the registry (or of ``units``)."""
-    return [read_history(registry, u) for u in (registry.units() if units is None else units)]
+#: The fewest units read by more than one process (below, starting the processes costs more than it saves).
+PARALLEL_MIN_UNITS = 200
+
+
+def _read_units(root: str, units: list[str]) -> list[UnitHistory]:
+    """:func:`read_history` of ``units`` (a worker process's share of :func:`read_fleet`)."""
+    registry, trust = Registry(root), trusted_keys()
+    return [read_history(registry, u, trust) for u in units]
+
+
+def read_fleet(registry: Registry, units: Iterable[str] | None = None, workers: int | None = None) -> list[UnitHistory]:
+    """:func:`read_history` of every unit of the registry (or of ``units``), in the registry's order. ``workers``
+    processes read a share of the units each (default: one per CPU for :data:`PARALLEL_MIN_UNITS` units or more,
+    else 1: this process); each verifies what it reads, exactly as one process would. A share whose process fails
+    is read again here, so an error is this process's own (the same one line)."""
+    names = registry.units() if units is None else list(units)
+    if workers is None:
+        workers = (os.cpu_count() or 1) if len(names) >= PARALLEL_MIN_UNITS else 1
+    trust = trusted_keys()
+    if workers <= 1 or len(names) < 2:
+        return [read_history(registry, u, trust) for u in names]
+    shares = [names[k::workers] for k in range(workers)]
+    root = str(registry.root.resolve())
+    # spawn: a fresh interpreter, never a fork of a process that runs threads (the Prefect flow's)
+    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+        futures = [pool.submit(_read_units, root, share) for share in shares]
+        read: dict[str, UnitHistory] = {}
+        for share, future in zip(shares, futures):
+            try:
+                histories = future.result()
+            except Exception:  # (the same error again, raised here: its one line, its type)
+                histories = [read_history(registry, u, trust) for u in share]
+            read.update((h.unit, h) for h in histories)
+    return [read[u] for u in names]
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -290,30 +323,25 @@ def _constant_points(h: UnitHistory) -> list[Point]:
     return [by_time[t] for t in sorted(by_time)]
 
 
-@dataclass
-class _Fits:
-    """Weighted line fits of many series at once: one row per (unit, constant)."""
-
-    unit: list[str]
-    constant: list[str]
-    points: list[list[Point]]
-    t: list[np.ndarray]
-    y: list[np.ndarray]
-    s: list[np.ndarray]
-
-
-def _fit(t_s: np.ndarray, y: np.ndarray, s: np.ndarray) -> tuple[float, float, float, float, int, float]:
-    """Weighted least-squares line through (t_s, y) with standard uncertainties s: rate b (per s), its sigma from
-    the weights, value at the weighted mean time, that time, the degrees of freedom and chi2."""
-    w = 1.0 / s**2
-    sw = w.sum()
-    tm = float((w * t_s).sum() / sw)
-    ym = float((w * y).sum() / sw)
-    dt = t_s - tm
-    stt = float((w * dt * dt).sum())
-    b = float((w * dt * (y - ym)).sum() / stt)
-    chi2 = float((w * (y - ym - b * dt) ** 2).sum())
-    return b, 1.0 / math.sqrt(stt), ym, tm, int(t_s.size - 2), chi2
+def _fits(rows: list[tuple]) -> dict[str, np.ndarray]:
+    """Weighted least-squares lines through many series at once (one row of ``rows`` each: its times t_s, values y
+    and standard uncertainties s, padded into one array with weight 0): per series the rate b (per s), its sigma
+    from the weights, the value at the weighted mean time, that time, the degrees of freedom (n - 2) and chi2."""
+    n = np.array([len(r[3]) for r in rows], dtype=int)
+    width = int(n.max()) if n.size else 0
+    used = np.arange(width)[None, :] < n[:, None]
+    t, y, w = (np.zeros((len(rows), width)) for _ in range(3))
+    t[used] = np.concatenate([r[3] for r in rows]) if rows else []
+    y[used] = np.concatenate([r[4] for r in rows]) if rows else []
+    w[used] = 1.0 / np.concatenate([r[5] for r in rows]) ** 2 if rows else []
+    sw = w.sum(axis=1)
+    tm = (w * t).sum(axis=1) / sw
+    ym = (w * y).sum(axis=1) / sw
+    dt = np.where(used, t - tm[:, None], 0.0)
+    stt = (w * dt * dt).sum(axis=1)
+    b = (w * dt * (y - ym[:, None])).sum(axis=1) / stt
+    chi2 = (w * (y - ym[:, None] - b[:, None] * dt) ** 2).sum(axis=1)
+    return {"b": b, "sigma_b": 1.0 / np.sqrt(stt), "ym": ym, "tm": tm, "dof": n - 2, "chi2": chi2}
 
 
 def _drift(
@@ -328,27 +356,45 @@ def _drift(
         vals = np.array([[p.value(c) for c in DRIFT_CONSTANTS] for p in pts], dtype=float)
         sigs = np.array([[p.sigma(c) for c in DRIFT_CONSTANTS] for p in pts], dtype=float)
         ok = np.isfinite(vals) & np.isfinite(sigs) & (sigs > 0)
+        if ok.all() and t[-1] > t[0]:  # (the usual case: every constant of every version, times increasing)
+            rows.extend((h, c, pts, t, vals[:, j], sigs[:, j]) for j, c in enumerate(DRIFT_CONSTANTS))
+            continue
         for j, c in enumerate(DRIFT_CONSTANTS):
             sel = ok[:, j]
             if sel.sum() >= 2 and np.ptp(t[sel]) > 0:
                 keep = [p for p, k in zip(pts, sel) if k]
                 rows.append((h, c, keep, t[sel], vals[sel, j], sigs[sel, j]))
+    from scipy import stats  # (here: a process that only reads, read_fleet's, does not load scipy)
+
     m = len(rows)
-    fits = [_fit(r[3], r[4], r[5]) for r in rows]
-    m_chi = sum(1 for f in fits if f[4] >= 1)
+    fit = _fits(rows)
+    dof_v, chi2_v = fit["dof"], fit["chi2"]
+    m_chi = int((dof_v >= 1).sum())
     alpha = settings.false_alarm
     z_crit = float(stats.norm.isf(alpha / (2 * m))) if m else None
     p_crit = alpha / m_chi if m_chi else None
+    with np.errstate(divide="ignore", invalid="ignore"):
+        birge_v = np.where(dof_v >= 1, np.sqrt(chi2_v / np.maximum(dof_v, 1)), np.nan)
+        sigma_v = fit["sigma_b"] * np.maximum(1.0, np.nan_to_num(birge_v, nan=1.0))
+        z_v = fit["b"] / sigma_v
+        p_v = np.where(dof_v >= 1, stats.chi2.sf(chi2_v, np.maximum(dof_v, 1)), np.nan)
+    drift_v = np.abs(z_v) > z_crit if z_crit is not None else np.zeros(m, dtype=bool)
+    unsteady_v = p_v < p_crit if p_crit is not None else np.zeros(m, dtype=bool)
     drifting, unsteady = [], []
-    for (h, c, pts, t, y, s), (b, sb, ym, tm, dof, chi2) in zip(rows, fits):
-        birge = math.sqrt(chi2 / dof) if dof >= 1 else None
-        sb_eff = sb * max(1.0, birge or 1.0)
-        z = b / sb_eff
-        p_value = float(stats.chi2.sf(chi2, dof)) if dof >= 1 else None
-        is_drift = z_crit is not None and abs(z) > z_crit
-        is_unsteady = p_value is not None and p_crit is not None and p_value < p_crit
-        if not (is_drift or is_unsteady):
-            continue
+    for k in np.flatnonzero(drift_v | unsteady_v):  # (only the series with a finding: the rest is in the arrays)
+        h, c, pts, t, y, s = rows[k]
+        b, ym, tm, chi2, sb_eff, z = (
+            float(fit["b"][k]),
+            float(fit["ym"][k]),
+            float(fit["tm"][k]),
+            float(chi2_v[k]),
+            float(sigma_v[k]),
+            float(z_v[k]),
+        )
+        dof = int(dof_v[k])
+        birge = float(birge_v[k]) if dof >= 1 else None
+        p_value = float(p_v[k]) if dof >= 1 else None
+        is_drift, is_unsteady = bool(drift_v[k]), bool(unsteady_v[k])
         cur = h.point(h.current) or pts[-1]
         grade, normal_g, grade_basis = cur.grade
         u = cur.output_unit
@@ -500,6 +546,8 @@ def _unit_types(current: list[tuple[str, Point]], ratio: float) -> dict[str, str
 
 
 def _outliers(fleet: list[UnitHistory], settings: TrendSettings, result: TrendsResult) -> tuple[list[dict], dict]:
+    from scipy import stats
+
     current = [(h.unit, p) for h in fleet if (p := h.point(h.current)) is not None]
     types = _unit_types(current, settings.gain_ratio)
     groups: dict[tuple[str, str], list[tuple[str, Point, float, float]]] = {}
@@ -590,14 +638,16 @@ def analyse(fleet: list[UnitHistory], settings: TrendSettings = TrendSettings())
     return result
 
 
-def fleet_trends(registry: Registry | str | os.PathLike, settings: TrendSettings = TrendSettings()) -> TrendsResult:
-    """Read every unit of the registry (verified) and :func:`analyse` them."""
+def fleet_trends(
+    registry: Registry | str | os.PathLike, settings: TrendSettings = TrendSettings(), workers: int | None = None
+) -> TrendsResult:
+    """Read every unit of the registry (verified; ``workers`` as :func:`read_fleet`) and :func:`analyse` them."""
     reg = registry if isinstance(registry, Registry) else Registry(registry)
     if not reg.root.is_dir():
         from pipeline.errors import RegistryError
 
         raise RegistryError("no registry here (not a directory)", path=str(reg.root))
-    return analyse(read_fleet(reg), settings)
+    return analyse(read_fleet(reg, workers=workers), settings)
 
 
 def _g(x: float | None, unit: str = "") -> str:

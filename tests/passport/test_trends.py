@@ -161,6 +161,7 @@ def test_an_altered_version_is_not_used(planted, tmp_path, monkeypatch, capsys):
     bad = [e for e in r["not_verified"] if e["unit"] == "AU-0003"]
     assert len(bad) == 1 and 3 not in bad[0]["versions_used"] and bad[0]["problems"]
     assert r["versions"] < 80
+    assert fleet_trends(root, workers=2).report == r  # two processes reading a share each: the same, to the bit
     from tests.conftest import run_main
 
     code, out, _ = run_main(monkeypatch, capsys, "trends", "--registry", str(root))
