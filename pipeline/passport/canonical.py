@@ -182,11 +182,31 @@ def _object(members: list[str]) -> bytes:
     return (("{\n" + ",\n".join(members) + "\n}") if members else "{}").encode("ascii") + b"\n"
 
 
+def _read_canonical(data: bytes) -> Sealed | None:
+    """:func:`read_sealed`'s answer for canonical bytes, parsed by the plain (C) parser, else None. Canonical bytes
+    have no duplicate key, no NaN and are an object, so the strict parse would give this record: the bytes are
+    compared with the record's encoding either way."""
+    try:
+        doc = json.loads(data)
+        if type(doc) is not dict:
+            return None
+        members = {k: _member(k, doc[k]) for k in sorted(doc)}
+    except (TypeError, ValueError, RecursionError):
+        return None
+    if _object(list(members.values())) != data:
+        return None
+    return Sealed(doc, _object([m for k, m in members.items() if k not in SEAL_FIELDS]))
+
+
 def read_sealed(data: bytes) -> Sealed:
     """A record read back from its canonical bytes, with the body its seal covers, in one encoding pass (each
     top-level member is encoded once and used for both the whole record and the body). NotCanonical: the bytes are
     not a record (:func:`parse_record`) or not its canonical encoding (keys sorted, 2-space indent, ASCII, shortest
-    float repr, one final newline)."""
+    float repr, one final newline). Canonical bytes are parsed by the plain parser (:func:`_read_canonical`);
+    anything else is parsed again strictly here, so that what is wrong is named."""
+    fast = _read_canonical(data)
+    if fast is not None:
+        return fast
     doc = parse_record(data)
     try:
         members = {k: _member(k, doc[k]) for k in sorted(doc)}

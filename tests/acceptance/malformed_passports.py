@@ -51,6 +51,7 @@ CORPUS: tuple[Malformed, ...] = (
     Malformed("K-strings", _set("coefficients.K", "abc")),
     Malformed("K-huge", _set("coefficients.K", [[1e308, 0.0, 0.0], [0.0, 1e308, 0.0], [0.0, 0.0, 1e308]])),
     Malformed("U0-object", _set("coefficients.U0", {"x": 1})),
+    Malformed("U0-integer-beyond-float", _set("coefficients.U0", [10**400, 0, 0])),  # (was OverflowError: exit 3)
     Malformed("coefficients-null", _set("coefficients", None)),
     Malformed("order-1e6", _set("thermal_model.order", 10**6)),
     Malformed(  # (a file only: 21 MB of coefficients is more than any registry writer would publish quickly)

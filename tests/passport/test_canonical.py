@@ -10,7 +10,15 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.passport.canonical import NotCanonical, canonical_json, parse_record, read_sealed, signed_body
+from pipeline.passport.canonical import (
+    NotCanonical,
+    Sealed,
+    _read_canonical,
+    canonical_json,
+    parse_record,
+    read_sealed,
+    signed_body,
+)
 
 scalars = st.none() | st.booleans() | st.integers(-(2**70), 2**70) | st.floats(allow_nan=False, allow_infinity=False)
 texts = st.text(st.characters(codec="utf-8"), max_size=8)
@@ -87,3 +95,75 @@ def test_what_is_not_a_canonical_record_is_a_phrase(data, fragment):
 def test_duplicates_are_found_at_any_depth():
     with pytest.raises(NotCanonical, match='duplicate key "K"'):
         parse_record(b'{"c": {"K": 1, "K": 2}}')
+
+
+def _reference(data: bytes):
+    """read_sealed's definition: the strict parse, the bytes must be the record's canonical_json, the body its
+    signed_body (all by the encoder, none of the shortcut's steps)."""
+    doc = parse_record(data)
+    if canonical_json(doc) != data:
+        raise NotCanonical("not in canonical form")
+    return doc, signed_body(doc)
+
+
+EDITS = [b" ", b"\n", b"\n  ", b",", b"\t", b"}", b"]", b'"', b"\\", b":", b"0", b"\r"]
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.dictionaries(
+        texts | st.sampled_from(["content_sha256", "signature", "a,\n", '{"[', "x"]), values, min_size=1, max_size=6
+    ),
+    st.lists(
+        st.tuples(
+            st.sampled_from(["insert", "delete", "replace", "swap", "indent", "shift"]),
+            st.integers(0, 10**6),
+            st.sampled_from(EDITS),
+        ),
+        max_size=3,
+    ),
+)
+def test_the_shortcut_for_canonical_bytes_decides_as_the_encoder(record, edits):
+    """read_sealed parses canonical bytes with the plain parser (no duplicate-key hook; the bytes compared with the
+    record's encoding): on canonical bytes and on the same bytes edited (a space, newline, indent, comma, bracket,
+    quote inserted, deleted or replaced anywhere; lines swapped; one line indented differently; a line break moved)
+    it accepts exactly what the definition (strict parse, canonical_json, signed_body) accepts, with the same record
+    (key order too) and body, and refuses the rest."""
+    data = canonical_json(record)
+    assert _read_canonical(data) == read_sealed(data) == Sealed(record, signed_body(record))  # the shortcut answers
+    for kind, where, text in edits:
+        k = where % (len(data) + 1)
+        if kind == "insert":
+            data = data[:k] + text + data[k:]
+        elif kind == "delete":
+            data = data[:k] + data[k + 1 :]
+        elif kind == "replace":
+            data = data[:k] + text + data[k + 1 :]
+        elif kind == "swap" and data.count(b"\n") > 2:
+            lines = data.split(b"\n")
+            j = k % (len(lines) - 2)
+            lines[j], lines[j + 1] = lines[j + 1], lines[j]
+            data = b"\n".join(lines)
+        elif kind == "indent" and b"\n  " in data:
+            at = data.find(b"\n  ", k % len(data))
+            at = at if at >= 0 else data.find(b"\n  ")
+            data = data[:at] + b"\n" + text.strip(b"\n") + data[at + 1 :]
+        elif kind == "shift" and b"\n" in data[:-1]:  # a line break moved by a character or two, indent kept
+            at = data.rfind(b"\n", 0, max(k, 1))
+            at = at if at >= 0 else data.find(b"\n")
+            end = at + 1 + len(data[at + 1 :]) - len(data[at + 1 :].lstrip(b" "))
+            rest = data[:at] + data[end:]
+            to = min(max(at + (1 if k % 2 else -1) * (1 + k % 3 // 2), 0), len(rest))
+            data = rest[:to] + data[at:end] + rest[to:]
+    try:
+        expected = _reference(data)
+    except NotCanonical:
+        expected = None
+    try:
+        sealed = read_sealed(data)
+        got = (sealed.record, sealed.body)
+    except NotCanonical:
+        got = None
+    assert got == expected
+    if got is not None:
+        assert list(got[0]) == list(expected[0])  # the same key order as the strict parse
