@@ -23,70 +23,81 @@ ARTIFACT_KEY = "thermocal-trends"
 KINDS = ("drifting", "unsteady", "outliers", "not_verified")
 
 
+def _row(
+    kind: str,
+    unit: str = "",
+    constant: str = "",
+    figure: str = "",
+    test: str = "",
+    due_utc: str = "",
+    versions: str = "",
+) -> dict:
+    """One row of the table artifact (the same columns for every kind)."""
+    return {
+        "kind": kind,
+        "unit": unit,
+        "constant": constant,
+        "figure": figure,
+        "test": test,
+        "due_utc": due_utc,
+        "versions": versions,
+    }
+
+
+def _versions(entry: dict) -> str:
+    return " ".join(f"v{v['version']}" for v in entry["versions"])
+
+
 def trends_table(report: dict) -> list[dict]:
     """Rows of the table artifact: one per finding, the same columns for every kind."""
-    rows = []
-    for e in report["drifting"]:
-        rows.append(
-            {
-                "kind": "drifting",
-                "unit": e["unit"],
-                "constant": e["constant"],
-                "figure": f"{e['rate_per_year']:.4g} +- {e['sigma_per_year']:.2g} {e['constant_unit']}/year",
-                "test": f"|z| {abs(e['z']):.1f} > {e['z_threshold']:.3g}",
-                "due_utc": e["due_utc"] or "never",
-                "versions": " ".join(f"v{v['version']}" for v in e["versions"]),
-            }
+    rows = [
+        _row(
+            "drifting",
+            e["unit"],
+            e["constant"],
+            f"{e['rate_per_year']:.4g} +- {e['sigma_per_year']:.2g} {e['constant_unit']}/year",
+            f"|z| {abs(e['z']):.1f} > {e['z_threshold']:.3g}",
+            e["due_utc"] or "never",
+            _versions(e),
         )
-    for e in report["unsteady"]:
-        rows.append(
-            {
-                "kind": "unsteady",
-                "unit": e["unit"],
-                "constant": e["constant"],
-                "figure": f"recent {e['recent_rate_per_year']:.4g} {e['constant_unit']}/year",
-                "test": f"chi2 {e['chi2']:.1f} on {e['dof']} dof, p {e['p_value']:.2g} < {e['p_threshold']:.2g}",
-                "due_utc": e["due_utc"] or "never",
-                "versions": " ".join(f"v{v['version']}" for v in e["versions"]),
-            }
+        for e in report["drifting"]
+    ]
+    rows += [
+        _row(
+            "unsteady",
+            e["unit"],
+            e["constant"],
+            f"recent {e['recent_rate_per_year']:.4g} {e['constant_unit']}/year",
+            f"chi2 {e['chi2']:.1f} on {e['dof']} dof, p {e['p_value']:.2g} < {e['p_threshold']:.2g}",
+            e["due_utc"] or "never",
+            _versions(e),
         )
-    for e in report["outliers"]:
-        rows.append(
-            {
-                "kind": "outlier",
-                "unit": e["unit"],
-                "constant": e["constant"],
-                "figure": f"{e['value']:.4g} against median {e['fleet_median']:.4g} ({e['fleet_units']} units)",
-                "test": f"|robust z| {abs(e['robust_z']):.1f} > {e['z_threshold']:.3g}",
-                "due_utc": "",
-                "versions": f"v{e['version']}",
-            }
+        for e in report["unsteady"]
+    ]
+    rows += [
+        _row(
+            "outlier",
+            e["unit"],
+            e["constant"],
+            f"{e['value']:.4g} against median {e['fleet_median']:.4g} ({e['fleet_units']} units)",
+            f"|robust z| {abs(e['robust_z']):.1f} > {e['z_threshold']:.3g}",
+            versions=f"v{e['version']}",
         )
-    for e in report["not_verified"]:
-        rows.append(
-            {
-                "kind": "not verified",
-                "unit": e["unit"],
-                "constant": "",
-                "figure": e["problems"][0],
-                "test": "registry verification",
-                "due_utc": "",
-                "versions": " ".join(f"v{v}" for v in e["versions_used"]) or "none used",
-            }
+        for e in report["outliers"]
+    ]
+    rows += [
+        _row(
+            "not verified",
+            e["unit"],
+            figure=e["problems"][0],
+            test="registry verification",
+            versions=" ".join(f"v{v}" for v in e["versions_used"]) or "none used",
         )
-    if not rows:
-        rows.append(
-            {
-                "kind": "none",
-                "unit": "",
-                "constant": "",
-                "figure": f"{report['units']} units, {report['versions']} versions: no drift, no outlier",
-                "test": "",
-                "due_utc": "",
-                "versions": "",
-            }
-        )
-    return rows
+        for e in report["not_verified"]
+    ]
+    return rows or [
+        _row("none", figure=f"{report['units']} units, {report['versions']} versions: no drift, no outlier")
+    ]
 
 
 @flow(name="thermocal-trends", log_prints=False)
