@@ -52,7 +52,7 @@ _SCALARS: dict[type, Any] = {
     type(None): lambda _: "null",
 }
 #: a bare inf/nan where a value starts (a string's text is quoted): the repr of a non-finite float in _fast's text
-#: (always after a space: indentation or ": ")
+#: (after indentation or ": ", or the whole text)
 _NON_FINITE = re.compile(r"(?:^ *|: )-?(?:inf|nan)(?:,|$)", re.MULTILINE)
 
 
@@ -87,7 +87,7 @@ def _encode(value: Any, indent: str) -> str:
     every value gets json.dumps' text and every error json.dumps' error."""
     try:
         text = _fast(value, indent)
-        if not ((" inf" in text or " -inf" in text or " nan" in text) and _NON_FINITE.search(text)):
+        if not (("inf" in text or "nan" in text) and _NON_FINITE.search(text)):  # (a bare inf too: no space)
             return text
     except (_Other, TypeError, RecursionError):  # (a circular or very deep value: json.dumps says which)
         pass
