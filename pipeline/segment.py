@@ -173,6 +173,9 @@ class Segmentation:
     #: the gaps no segment spans, by stream (``voltmeter``, ``au_temperature``): (last sample before, first after)
     #: in ns (:func:`gap_spans`: longer than half the static window, and than half the plateau slope window)
     gaps_ns: dict[str, list[tuple[int, int]]] = field(default_factory=dict)
+    #: the readings' resolution per channel (V, :func:`reading_resolution`): the step below which a recorded value
+    #: says nothing, and so a floor of every mean's uncertainty
+    resolution_v: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def on_plateau(self, i: int) -> list[StaticSegment]:
         """Segments on plateau ``i``, in time order."""
@@ -1071,7 +1074,25 @@ def segment_run(
         static_window_s=settings.static_window_s,
         static_min_s=settings.static_min_s,
         gaps_ns={k: [(int(a), int(b)) for a, b in v] for k, v in gaps.items()},
+        resolution_v=vector3([reading_resolution(c) for c in ch.slab(0, min(ch.n, _SLAB_SAMPLES))]),
     )
+
+
+def reading_resolution(x: np.ndarray) -> float:
+    """The resolution of recorded values ``x`` (a channel's readings, V): a logger's quantisation step where the
+    distinct finite values lie on one (every step between them a whole number of the smallest, within 1 %), else
+    the float64 spacing of the largest value (a value stored as float64 says nothing finer). 0 without a finite
+    value. The format declares no quantisation step (docs/log-format.md), so the values' own is the one there is."""
+    v = np.unique(x[np.isfinite(x)])
+    if not v.size:
+        return 0.0
+    floor = float(np.spacing(np.max(np.abs(v))))
+    steps = np.diff(v)
+    if steps.size < 2:
+        return floor
+    q = float(steps.min())
+    n = steps / q
+    return q if q > floor and bool(np.all(np.abs(n - np.round(n)) < 0.01)) else floor
 
 
 def _gaps_on_plateaus(plateaus: list[Plateau], gaps: dict[str, np.ndarray], min_off_s: float) -> list[str]:

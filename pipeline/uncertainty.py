@@ -52,11 +52,15 @@ def estimator_matrix(positions: list[str], method: str) -> np.ndarray:
     return np.linalg.pinv(design_matrix(positions))
 
 
-def segment_noise_var_v2(std_v: np.ndarray, count: np.ndarray) -> np.ndarray:
-    """Variance (V^2) of each segment mean from the noise measured in it: std^2 / n, shape (m, 3)."""
+def segment_noise_var_v2(std_v: np.ndarray, count: np.ndarray, resolution_v: np.ndarray | None = None) -> np.ndarray:
+    """Variance (V^2) of each segment mean from the noise measured in it, std^2 / n, plus the readings' resolution
+    q (``resolution_v``, (m, 3) or (3,) V) as q^2 / 12 (a uniform error within one step, which averaging does not
+    remove where the noise is below a step): shape (m, 3). The floor keeps a noiseless recording's uncertainties
+    at its data's resolution, never 0."""
     std_v = np.asarray(std_v, dtype=float)
     n = np.maximum(np.asarray(count, dtype=float), 1.0)
-    return std_v**2 / n[:, None]
+    q2 = 0.0 if resolution_v is None else np.asarray(resolution_v, dtype=float) ** 2 / 12.0
+    return std_v**2 / n[:, None] + q2
 
 
 def design_matrix(positions: list[str]) -> np.ndarray:
@@ -137,15 +141,16 @@ def thermal_sigma(
     U0_sigma = np.sqrt(np.asarray(U0_sigma, dtype=float) ** 2 + tau_U0**2)
     var = np.zeros_like(base_vec)
     for p in range(len(temps_c)):
+        f = _step_factor(K[p], U0[p], K_sigma[p], U0_sigma[p])
         Kp, Kmi = K.copy(), K.copy()
         Up, Umi = U0.copy(), U0.copy()
-        Kp[p] += K_sigma[p]
-        Kmi[p] -= K_sigma[p]
-        Up[p] += U0_sigma[p]
-        Umi[p] -= U0_sigma[p]
+        Kp[p] += f * K_sigma[p]
+        Kmi[p] -= f * K_sigma[p]
+        Up[p] += f * U0_sigma[p]
+        Umi[p] -= f * U0_sigma[p]
         plus, _ = _flatten_model(fit_model(temps_c, Kp, Up))
         minus, _ = _flatten_model(fit_model(temps_c, Kmi, Umi))
-        var += ((plus - minus) / 2.0) ** 2
+        var += ((plus - minus) / (2.0 * f)) ** 2
     sig = np.sqrt(var)
     undetermined = ~np.isfinite(base_vec) | _undetermined_mask(base, layout)
     sig = np.where(undetermined, np.nan, sig)
@@ -158,6 +163,24 @@ def thermal_sigma(
         birge_ratio=float(ratio),
         dof=int(dof),
     )
+
+
+def _step_factor(K: np.ndarray, U0: np.ndarray, K_sigma: np.ndarray, U0_sigma: np.ndarray) -> float:
+    """How many times its uncertainties a plateau's constants are moved to propagate them (:func:`thermal_sigma`):
+    1, unless the smallest non-zero uncertainty is within 1024 float64 spacings of the constants (a noiseless
+    recording: uncertainties at the readings' resolution, which a move of one sigma loses to rounding, giving 0);
+    then a power of two that lifts it there, at most to a move of 1e-6 of the largest constant (the relative
+    coefficients stay linear to first order)."""
+    s = np.concatenate([np.ravel(K_sigma), np.ravel(U0_sigma)])
+    s = s[np.isfinite(s) & (s > 0)]
+    if not s.size:
+        return 1.0
+    big = float(max(np.max(np.abs(K)), np.max(np.abs(U0))))
+    lift = 1024.0 * float(np.spacing(big)) / float(s.min())
+    if lift <= 1.0:
+        return 1.0
+    cap = max(1.0, 1e-6 * big / float(s.max()))
+    return float(min(2.0 ** np.ceil(np.log2(lift)), 2.0 ** np.floor(np.log2(cap))))
 
 
 def model_excess_scatter(

@@ -261,7 +261,8 @@ def fit_uncertainty(
     of the fields they qualify):
 
     - ``coefficients`` (K, U0 at T0): the base passport's own uncertainties (the method takes its constants), or,
-      without a base, the spread of the constants between the orientations that give them (std / sqrt(n));
+      without a base, the spread of the constants between the orientations that give them (std / sqrt(n); an
+      offset given by four or more windows scatters about the part their cross-axis sensitivities explain);
     - ``thermal_model`` and ``rate_terms``: every fitted coefficient's standard uncertainty
       (:func:`pipeline.uncertainty.regression_cov`) over the differenced pairs (residuals clustered in :data:`CLUSTER_S`
       stretches, or the block noise measured in the data, whichever is larger), conditional on the lag when the lag was
@@ -293,7 +294,8 @@ def fit_uncertainty(
                         "its error is not covered by the noise and the model's uncertainty alone"
                     )
         source = (
-            "no base passport: the spread between the orientations that give each constant (std / sqrt(n)), "
+            "no base passport: the spread between the orientations that give each constant (std / sqrt(n); an "
+            "offset from four or more windows: about the part the cross-axis sensitivities explain), "
             "the thermal model's error in bringing each window to T0 and the noise of the window means, "
             "in quadrature"
         )

@@ -45,6 +45,9 @@ class Observation:
     t_end_ns: int
     source: str = ""  # the file or directory the run was read from ("" for a run made in memory)
     settling: bool = False  # held while the unit still settled towards the plateau (before its stable part)
+    #: the readings' resolution per channel (V, :attr:`pipeline.segment.Segmentation.resolution_v`): a floor of the
+    #: mean's uncertainty (:func:`pipeline.uncertainty.segment_noise_var_v2`)
+    resolution_v: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
 @dataclass
@@ -65,6 +68,7 @@ def observations_from_segmentation(run_id: str, segmentation, source: str = "") 
     """Named static segments on plateaus, in the settling before a plateau (as that plateau's, ``settling``), and VP
     segments anywhere, as observations (``source``: the run's file)."""
     out = []
+    resolution_v = tuple(getattr(segmentation, "resolution_v", (0.0, 0.0, 0.0)))
     for s in segmentation.segments:
         if s.position is None or s.count == 0:
             continue
@@ -84,6 +88,7 @@ def observations_from_segmentation(run_id: str, segmentation, source: str = "") 
                 t_end_ns=int(s.t_end_ns),
                 source=source,
                 settling=settling,
+                resolution_v=resolution_v,
             )
         )
     return out

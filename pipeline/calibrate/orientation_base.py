@@ -211,7 +211,7 @@ def constants_from_orientations(
         if h.size:
             u0_weights[c, h] = 1.0 / h.size
             U0[c] = m[h, c].mean()
-            spread = m[h, c].var(ddof=1) / h.size if h.size > 1 else 0.0
+            spread = _horizontal_spread(m[h, c], dirs[h], c)
             known_u0[c] = True
         elif up.size and down.size:
             u0_weights[c, up] = 0.5 / up.size
@@ -252,6 +252,24 @@ def constants_from_orientations(
         for c in range(3)
     }
     return OrientationBase(K, U0, std_K, std_U0, undetermined, roles, np.asarray(gain_v_per_g, dtype=float))
+
+
+def _horizontal_spread(m_v: np.ndarray, dirs: np.ndarray, c: int) -> float:
+    """The variance (V^2) of the mean of channel ``c``'s outputs ``m_v`` over the windows where it is horizontal
+    (``dirs`` their unit gravity directions), from their scatter: about the part linear in the other two
+    components of gravity where the windows leave a degree of freedom beyond it (4 or more windows: the
+    cross-axis sensitivities make opposite windows differ by 2 K_cj, a difference their mean cancels and no
+    scatter of it), else about their mean (var / n, as with 2 or 3 windows, where the two cannot be told apart)."""
+    n = m_v.size
+    if n < 2:
+        return 0.0
+    others = [j for j in range(3) if j != c]
+    X = np.column_stack([np.ones(n), np.round(dirs[:, others])])
+    if n > X.shape[1] and np.linalg.matrix_rank(X) == X.shape[1]:
+        coef, *_ = np.linalg.lstsq(X, m_v, rcond=None)
+        r = m_v - X @ coef
+        return float(r @ r) / (n - X.shape[1]) / n
+    return float(m_v.var(ddof=1)) / n
 
 
 def sweep_base(

@@ -353,7 +353,11 @@ def _with_uncertainty(
                 estimator_matrix(names, f.method),
                 A,
                 resid,
-                segment_noise_var_v2(np.array([o.std_v for o in rows]), np.array([o.count for o in rows])),
+                segment_noise_var_v2(
+                    np.array([o.std_v for o in rows]),
+                    np.array([o.count for o in rows]),
+                    np.array([o.resolution_v for o in rows]),
+                ),
             )
         )
     tau_v = excess_scatter_v([p[2] for p in parts], [p[3] for p in parts], [p[0] for p in parts], [p[1] for p in parts])

@@ -123,7 +123,8 @@ def uncertainty_block(fit) -> dict | None:
         if sigma.basis is not None
         else {
             "level": "standard uncertainty (1 sigma)",
-            "segment_noise": "voltmeter noise measured in each static segment (std / sqrt(n))",
+            "segment_noise": "voltmeter noise measured in each static segment (std / sqrt(n)) and the readings' "
+            "resolution q (q^2 / 12)",
             "excess_scatter_v": as_json_list(tau) if tau is not None else None,
             "thermal_fit_birge_ratio": sigma.birge_ratio if sigma.dof else None,
             "thermal_fit_dof": sigma.dof,

@@ -128,3 +128,41 @@ def test_a_noiseless_standard_run_has_uncertainties_the_size_of_its_errors():
     gain = np.abs(np.diag(K))
     assert np.all(sK > 0) and np.all(sU > 0)
     assert np.max(sK / gain[:, None]) < 0.2e-6 and np.max(sU / gain) < 0.2e-6
+
+
+def test_degenerate_recordings_say_what_they_lack_in_numbers():
+    """One pose, two orientations, a noiseless hand-turned recording, the scalar method on 9 and 10 poses: a
+    passport (and its certificate) with every uncertainty a number at least the readings' resolution or null and
+    named, never NaN nor 0; or one line naming what is missing."""
+    import re
+
+    from pipeline.passport.report import certificate_html
+
+    nan = re.compile(r"\bnan\b", re.IGNORECASE)
+    # one pose, two orientations: one line each, saying what is missing
+    _, err = calibrate(["TP1"], "scalar", 0.0)
+    assert err.endswith("needs at least 6 distinct static positions, got 1: use 6 positions (each axis up and down)")
+    _, err = calibrate(["TP1", "TP3", "TP1", "TP3"], "scalar", 0.0)
+    assert "\n" not in err and "needs at least 6 distinct static positions, got 2" in err
+    _, err = calibrate(["TP1", "TP3", "TP1", "TP3"], "auto", 5e-6)
+    assert "\n" not in err and "no temperature plateau" in err
+    # noiseless, one plateau, tilt: the uncertainties at the readings' float64 resolution (a step of ~1e-16 V at
+    # 0.55 V), none 0 (was: K_xx +-0 ppm), and the constants within a few such steps of the truth
+    doc, err = calibrate(["TP1", "TP2", "TP3", "TP4", "TP5", "TP6", "VP1", "VP2", "TP1"], "auto", 0.0)
+    assert err is None and doc["method"] == "tilt_six_position" and doc["status"] == "pass"
+    assert_every_uncertainty_a_number_or_named(doc)
+    sK = np.asarray(doc["uncertainty"]["coefficients"]["K"], dtype=float)
+    sU = np.asarray(doc["uncertainty"]["coefficients"]["U0"], dtype=float)
+    assert np.all(sK >= 1e-17) and np.all(sK < 1e-14) and np.all(sU >= 1e-17) and np.all(sU < 1e-14)
+    assert not nan.search(certificate_html(doc, figures={}))
+    # the scalar method on 9 poses: null and named, stated so on the certificate, nothing verified
+    doc, _ = calibrate(["TP1", "TP2", "TP3", "TP4", "TP5", "TP6", "VP1", "VP2", "VP3"], "scalar", 0.0)
+    assert doc["status"] == "unverified" and len(doc["uncertainty"]["undetermined"]) == 9
+    page = certificate_html(doc, figures={})
+    assert not nan.search(page) and page.count("(undetermined)") == 9 and "verifies nothing" in page
+    # ... on 10 poses: numbers (redundancy), pass
+    doc, _ = calibrate(["TP1", "TP2", "TP3", "TP4", "TP5", "TP6", "VP1", "VP2", "VP3", "VP4"], "scalar", 0.0)
+    assert doc["status"] == "pass" and not doc["uncertainty"].get("undetermined")
+    assert_every_uncertainty_a_number_or_named(doc)
+    assert all(0 < s < 1e-14 for s in doc["uncertainty"]["coefficients"]["U0"])
+    assert not nan.search(certificate_html(doc, figures={}))
