@@ -192,12 +192,15 @@ def _weights(m: int, weights) -> np.ndarray:
     return w
 
 
-def _standard_errors(jac: np.ndarray, resid: np.ndarray, transform: np.ndarray | None = None) -> np.ndarray:
-    """sqrt(diag(G cov G^T)) with cov = s^2 (J^T J)^-1, s^2 = |r|^2 / (m - p); NaN without redundancy."""
+def _standard_errors(
+    jac: np.ndarray, resid: np.ndarray, transform: np.ndarray | None = None, floor_g: float = 0.0
+) -> np.ndarray:
+    """sqrt(diag(G cov G^T)) with cov = s^2 (J^T J)^-1, s^2 = |r|^2 / (m - p), at least ``floor_g``^2 (the norm
+    error the readings' resolution alone leaves in one position, g); NaN without redundancy."""
     m, p = jac.shape
     if m <= p:
         return np.full(p if transform is None else transform.shape[0], np.nan)
-    cov = np.linalg.pinv(jac.T @ jac) * float(resid @ resid) / (m - p)
+    cov = np.linalg.pinv(jac.T @ jac) * max(float(resid @ resid) / (m - p), floor_g**2)
     if transform is not None:
         cov = transform @ cov @ transform.T
     return np.sqrt(np.clip(np.diag(cov), 0.0, None))
@@ -330,6 +333,7 @@ def scalar_nonlinear(
     model: str = "full",
     weights: np.ndarray | None = None,
     start: ScalarFit | None = None,
+    resolution_v=None,
 ) -> ScalarFit:
     """The constants up to a rotation by nonlinear least squares of |K^-1 (U - U0)| - 1 over the positions.
 
@@ -338,7 +342,8 @@ def scalar_nonlinear(
     (the preliminary constants) or from ``start``. Valid for errors of any size the preliminary constants leave
     (low-grade sensors, offsets of several per cent, cross-axis terms of 0.03), where the first-order solution is
     not. Raises CalibrationError when the positions are too few or not spread enough (at least 9 well-spread
-    positions for the full model).
+    positions for the full model). ``resolution_v`` (3,) V: the readings' resolution, a floor of the residual
+    scatter the uncertainties are scaled by (a noiseless recording's are then its data's resolution, never 0).
     """
     u, k_p, u0_p, w = _inputs(u_v, k_prelim_v_per_g, u0_prelim_v, weights, model)
     B = normalise(u, k_p, u0_p)
@@ -364,7 +369,11 @@ def scalar_nonlinear(
     kn = np.linalg.inv(T)
     K, U0 = _to_constants(k_p, u0_p, d, kn)
     dg = gravity_module_error_g(specific_force_g(K, U0, u))
-    std = _pad9(model, _standard_errors(jacobian(sol.x), sol.fun, _output_transform(kn, model)))
+    # one position's norm error from the readings' resolution q alone: q / k per channel, uniform within a step,
+    # along a direction averaging a_c^2 = 1/3
+    q_g = np.zeros(3) if resolution_v is None else np.asarray(resolution_v, dtype=float) / np.abs(k_p)
+    floor_g = float(np.sqrt(np.mean(q_g**2) / 12.0))
+    std = _pad9(model, _standard_errors(jacobian(sol.x), sol.fun, _output_transform(kn, model), floor_g))
     return ScalarFit(
         K=K,
         U0=U0,
@@ -560,17 +569,19 @@ class Scalar(Method):
         elif u0_prelim_v is None:
             u0_prelim_v = np.zeros(3)
         notes: list[str] = []
+        q = [o.resolution_v for r in observed for o in r.observations]
+        res = {"resolution_v": np.max(np.array(q), axis=0) if q else None}
         if model == "auto":
             try:
-                fit_s = scalar_nonlinear(u, k_prelim_v_per_g, u0_prelim_v, model="full", weights=w)
+                fit_s = scalar_nonlinear(u, k_prelim_v_per_g, u0_prelim_v, model="full", weights=w, **res)
             except CalibrationError as e:
-                fit_s = scalar_nonlinear(u, k_prelim_v_per_g, u0_prelim_v, model="diagonal", weights=w)
+                fit_s = scalar_nonlinear(u, k_prelim_v_per_g, u0_prelim_v, model="diagonal", weights=w, **res)
                 notes.append(
                     f"scalar: the full model is not determined ({e.message}); fitted the diagonal model "
                     "(orthogonal axes: three gains and three offsets, no cross-axis terms)"
                 )
         else:
-            fit_s = scalar_nonlinear(u, k_prelim_v_per_g, u0_prelim_v, model=model, weights=w)
+            fit_s = scalar_nonlinear(u, k_prelim_v_per_g, u0_prelim_v, model=model, weights=w, **res)
         temp = float(np.average([s.temp_c for _, s in static], weights=w))
         names = [s.position or "unnamed" for _, s in static]
         # output residual: the norm error seen through the gains, dg |K_ii| (V)
