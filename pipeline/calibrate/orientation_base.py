@@ -48,8 +48,9 @@ def _fold(data: BlockData, keep: np.ndarray) -> BlockData:
     )
 
 
-def _spread_g(model: DifferentialModel, data: BlockData) -> float:
-    """Mean over windows and axes of the std of the compensated specific force's SCORE_MEAN_S means (g)."""
+def _spreads_g(model: DifferentialModel, data: BlockData) -> np.ndarray:
+    """Per window (with three or more) and axis, the std of the compensated specific force's SCORE_MEAN_S means
+    (g), flattened; which windows count depends on the data alone, so every model's spreads of one fold pair up."""
     a = compensate_blocks(model, data)
     out = []
     for w in data.windows:
@@ -61,7 +62,13 @@ def _spread_g(model: DifferentialModel, data: BlockData) -> float:
         means = np.add.reduceat(a[sel], start, axis=0) / counts[:, None]
         if len(means) > 2:
             out.append(means.std(axis=0, ddof=1))
-    return float(np.mean(out)) if out else float("inf")
+    return np.concatenate(out) if out else np.zeros(0)
+
+
+def _complexity(order: int, rate: int, cross: bool) -> tuple[int, int, int]:
+    """How many coefficients a candidate fits per channel (bias and scale polynomials, two cross-axis ones, bias
+    and scale rate terms), then its polynomial and rate orders: the simpler first."""
+    return (order * (2 + 2 * int(cross)) + 2 * rate, order, rate)
 
 
 def select_model(
@@ -70,13 +77,18 @@ def select_model(
     """The polynomial order (1..``settings.poly_order``), the rate order (0..``settings.rate_order``) and whether to
     fit cross-axis terms, chosen where the data supports them: each candidate is fitted on alternate
     :data:`FOLD_S` chunks of the windows and scored on the others (the spread of the compensated
-    :data:`SCORE_MEAN_S` means, both ways round); the lowest score wins.
-    Returns the chosen settings (``select_model`` off) and every candidate's score (g)."""
+    :data:`SCORE_MEAN_S` means, both ways round: the mean over the folds of each window's and axis's spread).
+    The simplest candidate (:func:`_complexity`) whose score is within one standard error of the lowest wins (the
+    standard error of the mean of their paired per-window, per-axis differences): a term that lowers the score by
+    less than the score's own noise is not fitted (on a simulated cycle the rate term changed the score by 0.3 %
+    either way, so the chosen model, and the constants with it, flipped with the noise and the thermosensor's
+    rate). Returns the chosen settings (``select_model`` off) and every candidate's score and standard error (g)."""
     folds = []
     for d in data:
         odd = (np.floor(d.t_s / FOLD_S).astype(np.int64) % 2).astype(bool)
         folds.append((_fold(d, ~odd), _fold(d, odd)))
     scores: list[dict[str, Any]] = []
+    spreads: list[np.ndarray] = []  # per candidate: every fold's, window's and axis's spread, weighted as in its score
     grid = [
         (o, r, c)
         for r in range(settings.rate_order + 1)
@@ -86,16 +98,29 @@ def select_model(
     for order, rate, cross in grid:
         cand = dataclasses.replace(settings, poly_order=order, rate_order=rate, cross_axis=cross, select_model=False)
         try:
-            total = 0.0
+            parts = []
             for k in (0, 1):
                 fit = fit_differential([f[k] for f in folds], K0, U0, normal_temp_c, cand)
-                total += float(np.mean([_spread_g(fit.model, f[1 - k]) for f in folds]))
+                for f in folds:
+                    s = _spreads_g(fit.model, f[1 - k])
+                    # the score: the mean over the two folds of the mean over the runs of each run's mean spread
+                    parts.append(s / (2 * len(folds) * s.size) if s.size else np.array([np.inf]))
         except CalibrationError:
             continue
-        scores.append({"poly_order": order, "rate_order": rate, "cross_axis": cross, "score_g": float(total / 2)})
+        spreads.append(np.concatenate(parts))
+        scores.append(
+            {"poly_order": order, "rate_order": rate, "cross_axis": cross, "score_g": float(spreads[-1].sum())}
+        )
     if not scores:
         return dataclasses.replace(settings, select_model=False), []
-    best = min(scores, key=lambda x: x["score_g"])
+    lowest = int(np.argmin([x["score_g"] for x in scores]))
+    for x, s in zip(scores, spreads):
+        d = (s - spreads[lowest]) * s.size  # the paired differences, each on the score's scale
+        x["score_se_g"] = float(d.std(ddof=1) / np.sqrt(d.size)) if d.size > 1 and np.all(np.isfinite(d)) else 0.0
+    best = min(
+        (x for x in scores if x["score_g"] <= scores[lowest]["score_g"] + x["score_se_g"]),
+        key=lambda x: _complexity(x["poly_order"], x["rate_order"], x["cross_axis"]),
+    )
     return (
         dataclasses.replace(
             settings,
