@@ -362,3 +362,36 @@ def test_sweep_program_is_a_sweep():
     long = [p for p in rec["poses"] if p["longest_hold_s"] > 5 * 3600]
     assert [p["vertical_axis"] for p in long] == ["-z", "-x", "-y"]
     assert rec["method_auto"] == "differential"
+
+
+def _case_after_a_step(rate_c_per_min: float, to_go_c: float, tau_s: float = 600.0, seed: int = 0):
+    """1-Hz AU temperature (t_ns, C) of a case with a first-order lag ``tau_s`` behind the air: +20 C soaked, a ramp
+    to +45 C at ``rate_c_per_min``, held until the case is ``to_go_c`` short of it (rate x tau x exp(-hold/tau)),
+    then a ramp back down at the same rate; 0.01 C of sensor noise."""
+    from scipy.signal import lfilter
+
+    ramp_s = 25.0 / rate_c_per_min * 60.0
+    hold_s = tau_s * np.log(rate_c_per_min / 60.0 * tau_s / to_go_c)
+    t = np.arange(0.0, 3600.0 + ramp_s + hold_s + 1800.0, 1.0)
+    air = np.interp(
+        t,
+        [0.0, 3600.0, 3600.0 + ramp_s, 3600.0 + ramp_s + hold_s, t[-1]],
+        [20.0, 20.0, 45.0, 45.0, 45.0 - rate_c_per_min * 30.0],
+    )
+    a = np.exp(-1.0 / tau_s)
+    case = lfilter([1.0 - a], [1.0, -a], air - 20.0) + 20.0
+    case += np.random.default_rng(seed).normal(0.0, 0.01, t.size)
+    return 1_793_491_200 * 10**9 + (t * 1e9).astype(np.int64), case
+
+
+@pytest.mark.parametrize("rate_c_per_min", [0.5, 1.0, 1.5])
+def test_a_soak_too_short_to_be_stable_is_a_plateau_where_the_unit_got_close(rate_c_per_min):
+    """The approach test (segment._approaches, issue 21 items 7 and 2) on both sides, at several ramp rates: a soak
+    that leaves the case 0.45 C short of the air is a plateau of its own (the 20-min soaks with 120-s holds leave
+    0.42-0.50 C); one that leaves it 0.75 C short is none (the fast program's 30-min dwells after 1.5 C/min ramps
+    leave 0.78 C: its holds stay on the ramps). Measured boundary of the slowing ratio cut (4): between 0.45 and
+    0.55 C at 0.5 C/min, 0.55-0.6 at 1 C/min, 0.6-0.65 at 1.5 C/min (and above 0.75 C at 3 C/min)."""
+    near = find_plateaus(*_case_after_a_step(rate_c_per_min, 0.45))
+    far = find_plateaus(*_case_after_a_step(rate_c_per_min, 0.75))
+    assert [round(p.temp_c) for p in near] == [20, 44]
+    assert [round(p.temp_c) for p in far] == [20]
