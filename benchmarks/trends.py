@@ -1,6 +1,7 @@
 """``thermocal trends`` on a large registry, side by side with just listing and reading it.
 
     .venv/bin/python benchmarks/trends.py [--units 1000] [--versions 5] [--registry DIR] [--workers 2]
+                                         [--read-workers N]
 
 Writes (unless ``--registry`` names one already written by this script) a registry of ``--units`` simulated units
 of seed 000's type with ``--versions`` passports each, 120 days apart, through the registry's one writing path
@@ -9,11 +10,13 @@ them), with two units drifting and one outlier planted. Then times (wall and CPU
 
 - ``list+read``: the floor: list the units, read every version file's bytes and parse its JSON;
 - ``verified read``: every unit's versions after the registry's verification (the verification trends
-  relies on: hashes, signature, parent link), as :func:`pipeline.passport.trends.read_fleet`;
+  relies on: hashes, signature, parent link), as :func:`pipeline.passport.trends.read_fleet` (``--read-workers``
+  processes; default its own choice: one per CPU from 200 units);
 - ``analyse``: drift, unsteady and outlier tests on what was read (:func:`pipeline.passport.trends.analyse`);
 - ``trends``: the whole of :func:`pipeline.passport.trends.fleet_trends` (what the command runs).
 
-Prints a markdown table, what was found and the machine's load average (the machine may be shared).
+CPU seconds include the worker processes' (their start too). Prints a markdown table, what was found and the
+machine's load average (the machine may be shared).
 """
 
 from __future__ import annotations
