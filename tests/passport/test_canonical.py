@@ -112,7 +112,7 @@ def _reference(data: bytes):
 EDITS = [b" ", b"\n", b"\n  ", b",", b"\t", b"}", b"]", b'"', b"\\", b":", b"0", b"\r"]
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=100, deadline=None)
 @given(
     st.dictionaries(
         texts | st.sampled_from(["content_sha256", "signature", "a,\n", '{"[', "x"]), values, min_size=1, max_size=6
