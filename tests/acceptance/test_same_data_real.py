@@ -316,3 +316,87 @@ def test_cats_held_out_deleted_with_every_transformation_at_once(
     result = check_same("cats", runs, what, verdict=False)
     figure = held_out_figure(result.passport)
     assert abs(figure - HELD_OUT_MM) < 0.1 * HELD_OUT_MM, (what, figure)
+
+
+#: the periods of benchmarks/cats_tag.py: the axis along gravity in each (the tag's orientation for a day)
+CATS_VERTICAL = ("z", "x", "y")
+
+
+@pytest.mark.slow
+@CATS_PROPERTY
+@given(period=st.integers(0, 2), margin=FRACTION)
+@example(period=2, margin=0.5)  # the -y day: y is along gravity in no other
+def test_cats_a_whole_orientation_deleted_is_named_and_none_invented(period, margin):
+    """A gap over a whole day (one orientation, 0-30 min beyond its ends) removes the only orientation with gravity
+    along one axis: the result names that channel and its scale factor undetermined, and no orientation is
+    credited with gravity along it (none invented)."""
+    bench = cats_bench()
+    run = recording("cats")
+    a, b = ((x - sd.start_ns(run)) / NS_PER_S for x in bench.period_bounds_ns()[period])
+    run = sd.gap(run, a - 1800.0 * margin, b + 1800.0 * margin)
+    result, method = sd.calibrate_runs([run])
+    said = " | ".join(result.warnings)
+    axis = CATS_VERTICAL[period]
+    assert method == reference("cats")[1], said
+    assert f"channel {axis}: no orientation had gravity along it" in said, said
+    doc = result.passport
+    assert f"K.{axis}{axis}" in doc["uncertainty"]["undetermined"], said
+    roles = doc["orientation_base"]["roles"]
+    assert not roles[axis]["vertical"], roles
+    assert all(len(roles[c]["vertical"]) == 1 for c in CATS_VERTICAL if c != axis), roles
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# the deep search (THERMOCAL_HYPOTHESIS_EXAMPLES): CATS one transformation at a time, and diagnose on it
+
+
+def _cats_transformed(kind: str, f: float, seed: int, tmp_path) -> list[Run]:
+    """The whole CATS record transformed one way; ``f`` in [0, 1] sets how far (0: the farthest)."""
+    run = recording("cats")
+    d = sd.duration_s(run)
+    if kind == "shift":
+        return [sd.shift(run, days_of(f, seed % 2 == 0) * 86400.0)]
+    if kind == "rows shuffled":
+        return [read_run(sd.write_shuffled(run, tmp_path / "run", seed))]
+    if kind == "duplicate":
+        return as_files([run], tmp_path, seed=seed, order=random.Random(seed), duplicate=0)
+    if kind == "split":
+        rng = random.Random(seed)
+        cuts = sorted(rng.uniform(0.01, 0.99) * d for _ in range(1 + seed % 4))
+        return as_files(sd.split(run, cuts), tmp_path, seed=seed, order=rng, duplicate=None)
+    if kind == "gap":
+        t0 = f * (d - 7200.0)
+        return [sd.gap(run, t0, t0 + 7200.0 * (0.05 + 0.95 * random.Random(seed).random()))]
+    if kind == "thermosensor":
+        return [sd.decimate(run, "au_temperature", 60.0 - 59.0 * f)]
+    if kind == "accelerometer":
+        return [sd.decimate(run, "voltmeter", 1.0 / (0.5 + 0.45 * f))]
+    raise KeyError(kind)
+
+
+CATS_KINDS = ("shift", "rows shuffled", "duplicate", "split", "gap", "thermosensor", "accelerometer")
+
+
+@deep_only
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", CATS_KINDS)
+@PROPERTY
+@given(f=FRACTION, seed=st.integers(0, 2**16))
+def test_cats_one_transformation_at_a_time(kind, f, seed, tmp_path_factory):
+    runs = _cats_transformed(kind, f, seed, tmp_path_factory.mktemp("cats"))
+    check_same("cats", runs, f"cats {kind} ({f:.3f}, {seed})", verdict=False)
+
+
+@deep_only
+@pytest.mark.slow
+@settings(PROPERTY, max_examples=1)
+@given(f=FRACTION, seed=st.integers(0, 2**16))
+def test_cats_diagnose_verdict_unchanged(f, seed, tmp_path_factory):
+    """diagnose on the CATS record (about 9 min on an idle core) in 2-5 files in any order, shifted, the
+    thermosensor once a minute: the same verdict as on the recording as recorded."""
+    run = sd.decimate(sd.shift(recording("cats"), days_of(f, True) * 86400.0), "au_temperature", 60.0 - 59.0 * f)
+    rng = random.Random(seed)
+    d = sd.duration_s(run)
+    pieces = sd.split(run, sorted(rng.uniform(0.01, 0.99) * d for _ in range(1 + seed % 4)))
+    runs = as_files(pieces, tmp_path_factory.mktemp("cats"), seed=seed, order=rng, duplicate=None)
+    assert sd.diagnose_verdict(runs) == reference_verdict("cats")
