@@ -9,11 +9,13 @@ of seed 000's type with ``--versions`` passports each, 120 days apart, through t
 them), with two units drifting and one outlier planted. Then times (wall and CPU seconds, best of ``--repeat``):
 
 - ``list+read``: the floor: list the units, read every version file's bytes and parse its JSON;
-- ``verified read``: every unit's versions after the registry's verification (the verification trends
-  relies on: hashes, signature, parent link), as :func:`pipeline.passport.trends.read_fleet` (``--read-workers``
-  processes; default its own choice: one per CPU from 200 units);
+- ``verified read, cold cache``: every unit's versions after the registry's verification (the verification trends
+  relies on: hashes, signature, parent link, content), as :func:`pipeline.passport.trends.read_fleet`
+  (``--read-workers`` processes; default its own choice: one per CPU from 200 units), with an empty cache of
+  verified files (:mod:`pipeline.passport.verified_cache`, a new temporary folder each time);
+- ``verified read, warm cache``: the same again with the cache the cold read filled (what a second run reads);
 - ``analyse``: drift, unsteady and outlier tests on what was read (:func:`pipeline.passport.trends.analyse`);
-- ``trends``: the whole of :func:`pipeline.passport.trends.fleet_trends` (what the command runs).
+- ``trends``: the whole of :func:`pipeline.passport.trends.fleet_trends` (what the command runs), warm cache.
 
 CPU seconds include the worker processes' (their start too). Prints a markdown table, what was found and the
 machine's load average (the machine may be shared).
@@ -33,6 +35,7 @@ from pathlib import Path
 
 from pipeline.passport.registry import Registry
 from pipeline.passport.trends import analyse, fleet_trends, read_fleet
+from pipeline.passport.verified_cache import CACHE_ENV
 from pipeline.simulate.history import FleetSpec, Plant, write_fleet
 
 PLANTS = {
@@ -104,12 +107,20 @@ def main() -> None:
     rows = []
     w, c, n = best(lambda: list_and_read(root), args.repeat)
     rows.append(("list+read (floor)", w, c))
-    w, c, fleet = best(lambda: read_fleet(Registry(root), workers=args.read_workers), args.repeat)
-    rows.append(("verified read", w, c))
+
+    def cold():
+        os.environ[CACHE_ENV] = tempfile.mkdtemp(prefix="trends-bench-cache-")
+        return read_fleet(Registry(root), workers=args.read_workers)
+
+    w, c, fleet = best(cold, args.repeat)
+    rows.append(("verified read, cold cache", w, c))
+    w, c, warm = best(lambda: read_fleet(Registry(root), workers=args.read_workers), args.repeat)
+    assert warm == fleet, "a warm read must give the cold read's histories"
+    rows.append(("verified read, warm cache", w, c))
     w, c, _ = best(lambda: analyse(fleet), args.repeat)
     rows.append(("analyse", w, c))
     w, c, result = best(lambda: fleet_trends(root, workers=args.read_workers), args.repeat)
-    rows.append(("trends (verified read + analyse)", w, c))
+    rows.append(("trends (warm verified read + analyse)", w, c))
     print(f"\n{len(fleet)} units, {n} versions; best of {args.repeat}; load average {os.getloadavg()[0]:.1f}\n")
     print("| step | wall s | CPU s | x floor (wall) | x floor (CPU) |\n|---|---:|---:|---:|---:|")
     floor_w, floor_c = rows[0][1], rows[0][2]

@@ -23,6 +23,9 @@ os.environ["DO_NOT_TRACK"] = "1"
 # Signing keys: never the user's key folder; one station key for the session, created on first use.
 os.environ["THERMOCAL_KEY_DIR"] = tempfile.mkdtemp(prefix="thermocal-test-keys-")
 atexit.register(shutil.rmtree, os.environ["THERMOCAL_KEY_DIR"], True)
+# Verified-file cache (thermocal trends): never the user's, one for the session.
+os.environ["THERMOCAL_CACHE_DIR"] = tempfile.mkdtemp(prefix="thermocal-test-cache-")
+atexit.register(shutil.rmtree, os.environ["THERMOCAL_CACHE_DIR"], True)
 
 
 @pytest.fixture(scope="session", autouse=True)

@@ -63,12 +63,14 @@ from pipeline.passport.verification import (
     MAX_PASSPORT_BYTES,
     UNVERIFIED_HINT,
     MalformedPassport,
+    SealCheck,
     UntrustedPassport,
     Verification,
     check_content,
     check_schema,
     check_sealed,
 )
+from pipeline.passport.verified_cache import VerifiedCache
 
 __all__ = [
     "Problem",
@@ -748,17 +750,22 @@ class Registry:
         return docs, problems
 
     def verified_history(
-        self, unit: str, trust: TrustStore | None = None
+        self, unit: str, trust: TrustStore | None = None, cache: VerifiedCache | None = None
     ) -> tuple[dict[int, dict], list[str], int | None]:
         """:meth:`verified_versions` and the unit's :meth:`current` version, from the one reading of its files
         (``trends``: each version read, parsed and encoded once). ``trust``: the trusted keys
-        (:func:`~pipeline.passport.signing.trusted_keys` unless given: a caller reading many units reads them once)."""
+        (:func:`~pipeline.passport.signing.trusted_keys` unless given: a caller reading many units reads them once).
+        ``cache``: files verified in full before (:mod:`~pipeline.passport.verified_cache`) skip the checks of their
+        bytes alone (canonical form, self-hash, signature, content), never those of their place in the chain; the
+        versions verified in full here are added to it."""
         udir = self._require_unit(unit)
         trust = trust or trusted_keys()
         problems: list[str] = []
+        shas: dict[int, str] = {}
+        cached: set[int] = set()
         with _os_errors(udir / _LOCK_NAME, "lock the unit"), _flock(udir / _LOCK_NAME, exclusive=False):
             scan = self._scan(unit)
-            docs = self._check_unit(unit, scan, trust, problems, [])
+            docs = self._check_unit(unit, scan, trust, problems, [], cache, shas, cached)
         infos = [_version_info(v, scan.files[v], data, doc) for v, (doc, data) in sorted(docs.items())]
         current = self._current(unit, infos, self.approvals(unit, trust), ())
         whole_unit = [p for p in problems if _problem_version(p) is None]
@@ -769,12 +776,15 @@ class Registry:
         for v, (doc, _) in sorted(docs.items()):
             if (first_bad is not None and v >= first_bad) or doc is None:
                 break
-            try:
-                check_content(doc, f"{unit} v{v}")
-            except ThermocalError as exc:
-                problems.append(Problem(exc.one_line(), v))
-                break
+            if v not in cached:
+                try:
+                    check_content(doc, f"{unit} v{v}")
+                except ThermocalError as exc:
+                    problems.append(Problem(exc.one_line(), v))
+                    break
             out[v] = doc
+        if cache is not None:
+            cache.add([shas[v] for v in out if v not in cached])
         return out, problems, current
 
     def planned(self, passport: dict, *, inputs: list[dict], settings: dict) -> tuple[int, bool]:
@@ -1033,11 +1043,21 @@ class Registry:
             report.versions_checked += len(state.files)
 
     def _check_unit(
-        self, unit: str, state: _UnitState, trust: TrustStore, problems: list[str], notes: list[str]
+        self,
+        unit: str,
+        state: _UnitState,
+        trust: TrustStore,
+        problems: list[str],
+        notes: list[str],
+        cache: VerifiedCache | None = None,
+        shas: dict[int, str] | None = None,
+        cached: set[int] | None = None,
     ) -> dict[int, tuple[dict | None, bytes]]:
         """Append the unit's problems (each a :class:`Problem` naming its version) and notes (the checks of
         :meth:`verify`); return the versions read: {version: (record or None when the bytes are not one, the file's
-        bytes)}. The bytes checked are the bytes returned (a version is read once)."""
+        bytes)}. The bytes checked are the bytes returned (a version is read once). ``cache``: a file whose bytes it
+        knows as verified in full is parsed without the checks of its bytes alone (their versions go into
+        ``cached``); ``shas`` receives each file's sha256."""
 
         def problem(text: str, version: int | None = None) -> None:
             problems.append(Problem(text, version))
@@ -1073,7 +1093,13 @@ class Registry:
             if row is not None and row["sha256"] != sha[v]:
                 problem(f"{unit} v{v}: file was altered after writing (sha256 differs from log.jsonl)", v)
                 altered.add(v)
-            seal = check_sealed(data, trust)
+            if cache is not None and cache.known(sha[v]):
+                # the same bytes passed every check of bytes alone before (canonical: the plain parser reads them)
+                seal = SealCheck(json.loads(data), (), canonical=True, self_hash_ok=True)
+                if cached is not None:
+                    cached.add(v)
+            else:
+                seal = check_sealed(data, trust)
             if seal.record is None:
                 problem(f"{unit} v{v}: altered: {seal.problems[0]}", v)
                 altered.add(v)
@@ -1098,6 +1124,8 @@ class Registry:
                     v,
                 )
                 unsigned.add(v)
+        if shas is not None:
+            shas.update(sha)
         last_logged = max(state.log_rows, default=0)
         for v in range(1, state.latest + 1):
             if v not in state.files:

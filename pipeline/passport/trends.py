@@ -3,7 +3,8 @@ passports and when they reach the unit grade's limit, which units stand out from
 
 Every passport is read through the registry's verification (:meth:`Registry.verified_history`: canonical bytes,
 hashes, signature, parent link, log); a unit whose chain has a problem is listed in ``not_verified`` and only its
-versions that verify with all their ancestors are used.
+versions that verify with all their ancestors are used. Files this user verified in full before
+(:mod:`pipeline.passport.verified_cache`, keyed by their exact bytes) skip the checks of their bytes alone.
 
 **Time.** A version's time is when the recording it was fitted from was made: the start of its first verification
 segment (``verification[].t_start_ns``, the recording's own clock), else, for a passport without verification rows
@@ -66,6 +67,7 @@ from pipeline.passport.registry import Registry
 from pipeline.passport.significance import sigma_of, value_of
 from pipeline.passport.signing import TrustStore, trusted_keys
 from pipeline.passport.text import per
+from pipeline.passport.verified_cache import VerifiedCache
 from pipeline.positions import AXES
 from pipeline.verify import DEFAULT_GRADE, GRADES
 
@@ -262,11 +264,14 @@ def worst_dg_factor(constant: str) -> float:
     return 1.0
 
 
-def read_history(registry: Registry, unit: str, trust: TrustStore | None = None) -> UnitHistory:
+def read_history(
+    registry: Registry, unit: str, trust: TrustStore | None = None, cache: VerifiedCache | None = None
+) -> UnitHistory:
     """The unit's verified versions as :class:`Point` (:meth:`Registry.verified_history`: the versions that verify
-    with all their ancestors) and its current version (docs/contract.md: the newest approved, else the newest that
-    did not fail; None when that version is not among the verified ones)."""
-    docs, problems, current = registry.verified_history(unit, trust)
+    with all their ancestors; ``cache``: files this user verified in full before) and its current version
+    (docs/contract.md: the newest approved, else the newest that did not fail; None when that version is not among
+    the verified ones)."""
+    docs, problems, current = registry.verified_history(unit, trust, cache)
     points = [Point.of(v, doc) for v, doc in sorted(docs.items())]
     if current not in docs or docs[current].get("status") == "fail":
         current = None
@@ -280,7 +285,8 @@ PARALLEL_MIN_UNITS = 200
 def _read_units(root: str, units: list[str]) -> list[UnitHistory]:
     """:func:`read_history` of ``units`` (a worker process's share of :func:`read_fleet`)."""
     registry, trust = Registry(root), trusted_keys()
-    return [read_history(registry, u, trust) for u in units]
+    cache = VerifiedCache.open(trust)
+    return [read_history(registry, u, trust, cache) for u in units]
 
 
 def read_fleet(registry: Registry, units: Iterable[str] | None = None, workers: int | None = None) -> list[UnitHistory]:
@@ -293,7 +299,8 @@ def read_fleet(registry: Registry, units: Iterable[str] | None = None, workers: 
         workers = (os.cpu_count() or 1) if len(names) >= PARALLEL_MIN_UNITS else 1
     trust = trusted_keys()
     if workers <= 1 or len(names) < 2:
-        return [read_history(registry, u, trust) for u in names]
+        cache = VerifiedCache.open(trust)
+        return [read_history(registry, u, trust, cache) for u in names]
     shares = [names[k::workers] for k in range(workers)]
     root = str(registry.root.resolve())
     # spawn: a fresh interpreter, never a fork of a process that runs threads (the Prefect flow's)
@@ -304,7 +311,7 @@ def read_fleet(registry: Registry, units: Iterable[str] | None = None, workers: 
             try:
                 histories = future.result()
             except Exception:  # (the same error again, raised here: its one line, its type)
-                histories = [read_history(registry, u, trust) for u in share]
+                histories = [read_history(registry, u, trust, VerifiedCache.open(trust)) for u in share]
             read.update((h.unit, h) for h in histories)
     return [read[u] for u in names]
 

@@ -1,0 +1,126 @@
+"""Which passport files this user has already verified in full (``thermocal trends``: a large registry read again).
+
+An entry says: the file whose exact bytes have this sha256 is canonical, its stored ``content_sha256`` is its
+content's, a key of this trusted key set signed it, and its content passed :func:`check_content`, all by this
+version of the checks. Each is a property of the bytes, the key set and the checker alone, so a file whose bytes
+hash to an entry may skip those checks; everything that depends on where the file lies (its unit and version
+number, the log's sha256, the parent link to the version before, the chain order) is still checked every time.
+
+An entry is ``HMAC-SHA256(secret, check version | project version | key-set fingerprint | file sha256)`` in hex,
+one a line, in ``verified`` under :func:`cache_dir`; the secret (32 random bytes, created 0600 by its owner beside
+the cache) makes an entry impossible to plant without it. Different bytes, another key set or another checker never
+meet an entry. A missing, unreadable, corrupt or unwritable cache means: verify in full (never an error). The
+registry folder is never written.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import os
+import secrets
+import stat
+from pathlib import Path
+
+from pipeline import __version__
+from pipeline.passport.signing import TrustStore, _raw_public
+from pipeline.passport.verification import CHECK_VERSION
+
+#: Override of the cache folder (an empty value: no cache, every file verified in full).
+CACHE_ENV = "THERMOCAL_CACHE_DIR"
+_ENTRIES_NAME = "verified"
+_SECRET_NAME = "secret"
+#: A cache file larger than this is dropped and started again (about 120,000 entries).
+MAX_CACHE_BYTES = 8 << 20
+
+
+def cache_dir() -> Path | None:
+    """``$THERMOCAL_CACHE_DIR``, else ``$XDG_CACHE_HOME/thermocal``, else ``~/.cache/thermocal``; None when
+    ``THERMOCAL_CACHE_DIR`` is set empty (no cache)."""
+    if CACHE_ENV in os.environ:
+        return Path(os.environ[CACHE_ENV]) if os.environ[CACHE_ENV] else None
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "thermocal"
+
+
+def key_set_fingerprint(trust: TrustStore) -> str:
+    """sha256 of the trusted public keys' raw bytes, sorted: the same for the same key set, whatever the files."""
+    return hashlib.sha256(b"".join(sorted(_raw_public(k) for k in trust.keys.values()))).hexdigest()
+
+
+def _secret(folder: Path) -> bytes | None:
+    """The folder's secret, created (0600, 32 random bytes) when missing; None when it cannot be had or is not this
+    user's alone."""
+    path = folder / _SECRET_NAME
+    try:
+        folder.mkdir(mode=0o700, parents=True, exist_ok=True)
+        try:
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        except FileExistsError:
+            pass
+        else:
+            try:
+                os.write(fd, secrets.token_bytes(32))
+            finally:
+                os.close(fd)
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW)
+        try:
+            st = os.fstat(fd)
+            if not stat.S_ISREG(st.st_mode) or st.st_uid != os.getuid() or st.st_mode & 0o077:
+                return None
+            value = os.read(fd, 64)
+        finally:
+            os.close(fd)
+    except OSError:
+        return None
+    return value if len(value) == 32 else None
+
+
+class VerifiedCache:
+    """The entries of :func:`cache_dir` for one trusted key set (:meth:`open`); ``hits``: the sha256s found."""
+
+    def __init__(self, folder: Path | None, secret: bytes | None, trust: TrustStore, entries: set[str]):
+        self.folder, self._secret, self._entries = folder, secret, entries
+        self._prefix = f"{CHECK_VERSION}|{__version__}|{key_set_fingerprint(trust)}|".encode("ascii")
+
+    @classmethod
+    def open(cls, trust: TrustStore) -> VerifiedCache:
+        """The cache for ``trust`` (an empty one that keeps nothing when there is no usable cache)."""
+        folder = cache_dir()
+        secret = _secret(folder) if folder is not None else None
+        entries: set[str] = set()
+        if folder is not None and secret is not None:
+            path = folder / _ENTRIES_NAME
+            try:
+                if path.stat().st_size > MAX_CACHE_BYTES:
+                    path.unlink()
+                else:
+                    entries = set(path.read_bytes().decode("ascii", "replace").split())
+            except OSError:
+                pass
+        return cls(folder, secret, trust, entries)
+
+    def _tag(self, file_sha256: str) -> str:
+        assert self._secret is not None
+        return hmac.new(self._secret, self._prefix + file_sha256.encode("ascii"), hashlib.sha256).hexdigest()
+
+    def known(self, file_sha256: str) -> bool:
+        """True when the file with these bytes was verified in full under this key set and checker."""
+        return self._secret is not None and bool(self._entries) and self._tag(file_sha256) in self._entries
+
+    def add(self, file_sha256s: list[str]) -> None:
+        """Record files verified in full (appended in one write; nothing when the cache cannot be written)."""
+        if self._secret is None or self.folder is None:
+            return
+        tags = [t for t in (self._tag(s) for s in file_sha256s) if t not in self._entries]
+        if not tags:
+            return
+        try:
+            fd = os.open(self.folder / _ENTRIES_NAME, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_NOFOLLOW, 0o600)
+            try:
+                os.write(fd, "".join(t + "\n" for t in tags).encode("ascii"))
+            finally:
+                os.close(fd)
+        except OSError:
+            return
+        self._entries.update(tags)
