@@ -22,8 +22,9 @@ other terms would gladly absorb). Terms whose fitted contributions are nearly
 collinear with the accepted one's (cosine above ``confound_cos``) and whose score is within the confounding
 margin of it are confounded under the run's program: reported with it, not accepted separately.
 
-Matrix products go through ``numpy.einsum`` (no threaded BLAS): these matrices are small, and a threaded BLAS on a
-busy machine is slower than one core.
+Sums over the blocks are matrix products (:func:`_gram`, :func:`_per_channel_gram`: BLAS; a recording of days has
+tens of thousands of blocks, where ``numpy.einsum``'s own loops took 80 % of diagnose's time); ``diagnose_run``
+holds BLAS to one thread (a threaded BLAS on a busy machine is slower than one core).
 """
 
 from __future__ import annotations
@@ -36,6 +37,22 @@ from scipy.optimize import minimize_scalar
 
 from pipeline.diagnose.signal import Blocks, StaticRecord
 from pipeline.effects.catalogue import effect_class
+
+
+def _flat(a: np.ndarray) -> np.ndarray:
+    """(B, 3, p) or (B, 3) as (3 B, p) or (3 B, 1) (p may be 0)."""
+    return a.reshape(a.shape[0] * a.shape[1], a.shape[2] if a.ndim == 3 else 1)
+
+
+def _gram(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """sum over blocks and channels of a[b, i, p] b[b, i, q] -> (p, q) (``a``, ``b``: (B, 3, .) or (B, 3))."""
+    return _flat(a).T @ _flat(b)
+
+
+def _per_channel_gram(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """sum over blocks of a[b, i, k] b[b, i, c] -> (3, k, c), channel by channel."""
+    return np.matmul(a.transpose(1, 2, 0), b.transpose(1, 0, 2))
+
 
 #: eigenvalues of a (unit-column) normal matrix below this are combinations the data cannot tell apart
 _RANK_TOL = 1e-10
@@ -103,13 +120,10 @@ class FitResult:
     def project(self, cw: np.ndarray) -> np.ndarray:
         """The projection (B, 3, c) of weighted columns ``cw`` (B, 3, c) on the span of this fit's columns."""
         nb = self.fw.shape[2]
-        xt = np.concatenate(
-            [np.einsum("bik,bic->ikc", self.fw, cw).reshape(3 * nb, -1), np.einsum("bip,bic->pc", self.tw, cw)]
-        )
+        xt = np.concatenate([_per_channel_gram(self.fw, cw).reshape(3 * nb, -1), _gram(self.tw, cw)])
         m = self.evecs @ ((self.evecs.T @ xt) / self.evals[:, None])
-        return np.einsum("bik,ikc->bic", self.fw, m[: 3 * nb].reshape(3, nb, -1)) + np.einsum(
-            "bip,pc->bic", self.tw, m[3 * nb :]
-        )
+        on_base = np.matmul(self.fw.transpose(1, 0, 2), m[: 3 * nb].reshape(3, nb, -1)).transpose(1, 0, 2)
+        return on_base + (_flat(self.tw) @ m[3 * nb :]).reshape(cw.shape)
 
 
 @dataclass
@@ -261,19 +275,20 @@ class Design:
         tw = tw / nt
         p = tw.shape[2]
         g = np.zeros((3 * nb + p, 3 * nb + p))
-        gff = np.einsum("bik,bil->ikl", fw, fw)
-        gft = np.einsum("bik,bip->ikp", fw, tw).reshape(3 * nb, p)
+        gff = _per_channel_gram(fw, fw)
+        gft = _per_channel_gram(fw, tw).reshape(3 * nb, p)
         for i in range(3):
             g[i * nb : (i + 1) * nb, i * nb : (i + 1) * nb] = gff[i]
         g[: 3 * nb, 3 * nb :] = gft
         g[3 * nb :, : 3 * nb] = gft.T
-        g[3 * nb :, 3 * nb :] = np.einsum("bip,biq->pq", tw, tw)
-        rhs = np.concatenate([np.einsum("bik,bi->ik", fw, yw).reshape(-1), np.einsum("bip,bi->p", tw, yw)])
+        g[3 * nb :, 3 * nb :] = _gram(tw, tw)
+        rhs = np.concatenate([_per_channel_gram(fw, yw[:, :, None]).reshape(-1), _gram(tw, yw)[:, 0]])
         evals, evecs = np.linalg.eigh(g)
         keep = evals > _RANK_TOL * max(evals[-1], 1e-300)
         v, lam = evecs[:, keep], evals[keep]
         cn = v @ ((v.T @ rhs) / lam)
-        pred = np.einsum("bik,ik->bi", fw, cn[: 3 * nb].reshape(3, nb)) + np.einsum("bip,p->bi", tw, cn[3 * nb :])
+        pred = np.matmul(fw.transpose(1, 0, 2), cn[: 3 * nb].reshape(3, nb, 1))[:, :, 0].T
+        pred = pred + (_flat(tw) @ cn[3 * nb :]).reshape(yw.shape)
         rw = yw - pred
         c = cn / np.concatenate([nf.reshape(-1), nt])
         return FitResult(
@@ -307,13 +322,13 @@ class Design:
         norms[norms == 0] = 1.0
         cw = cw / norms
         perp = cw - current.project(cw)
-        evals, evecs = np.linalg.eigh(np.einsum("bic,bid->cd", perp, perp))
+        evals, evecs = np.linalg.eigh(_gram(perp, perp))
         keep = evals > _RANK_TOL * max(evals[-1], 1.0) if evals.size else np.zeros(0, bool)
         if not keep.any():
             return current.chi2, 0, np.zeros(cols.shape[2]), labels, np.zeros_like(current.rw)
         v = evecs[:, keep]
-        coef = v @ ((v.T @ np.einsum("bic,bi->c", perp, current.rw)) / evals[keep])
-        change = np.einsum("bic,c->bi", perp, coef)
+        coef = v @ ((v.T @ _gram(perp, current.rw)[:, 0]) / evals[keep])
+        change = (_flat(perp) @ coef).reshape(current.rw.shape)
         r = current.rw - change
         return float(np.sum(r * r)), int(keep.sum()), coef / norms, labels, change
 
