@@ -147,8 +147,22 @@ def check_schema(doc: dict, subject: str) -> None:
 
 
 class _Bad(Exception):
+    """A malformed field: ``where`` its path, ``what`` is wrong with it. A container calls each of its fields with an
+    empty path and puts the field's own path in front only when one fails (:meth:`under`): a well-formed passport
+    builds no path string."""
+
     def __init__(self, where: str, what: str):
-        super().__init__(f"{where}: {what}")
+        super().__init__(where, what)
+        self.where, self.what = where, what
+
+    def __str__(self) -> str:
+        return f"{self.where}: {self.what}"
+
+    def under(self, path: str) -> _Bad:
+        """This error, its path now below ``path`` (the failing field's path in its container)."""
+        w = self.where
+        self.where = path if not w else path + w if w[0] in ".[" else f"{path}.{w}"
+        return self
 
 
 Check = Callable[[Any, str], None]
@@ -218,7 +232,10 @@ def list_of(item: Check, min_len: int = 0, max_len: int = MAX_ITEMS) -> Check:
             what = f"exactly {min_len}" if min_len == max_len else f"{min_len}..{max_len}"
             raise _Bad(where, f"{len(value)} entries, expected {what}")
         for k, v in enumerate(value):
-            item(v, f"{where}[{k}]")
+            try:
+                item(v, "")
+            except _Bad as exc:
+                raise exc.under(f"{where}[{k}]") from None
 
     return check
 
@@ -234,7 +251,10 @@ def dict_of(item: Check, keys: tuple[str, ...] | None = None, max_len: int = 100
         if len(value) > max_len:
             raise _Bad(where, f"{len(value)} keys")
         for k, v in value.items():
-            item(v, f"{where}.{k}")
+            try:
+                item(v, "")
+            except _Bad as exc:
+                raise exc.under(f"{where}.{k}") from None
 
     return check
 
@@ -248,10 +268,16 @@ def obj(required: dict[str, Check] | None = None, optional: dict[str, Check] | N
         for key, c in (required or {}).items():
             if key not in value:
                 raise _Bad(where, f"field {key!r} is missing")
-            c(value[key], f"{where}.{key}" if where else key)
+            try:
+                c(value[key], "")
+            except _Bad as exc:
+                raise exc.under(f"{where}.{key}" if where else key) from None
         for key, c in (optional or {}).items():
             if key in value:
-                c(value[key], f"{where}.{key}" if where else key)
+                try:
+                    c(value[key], "")
+                except _Bad as exc:
+                    raise exc.under(f"{where}.{key}" if where else key) from None
 
     return check
 
