@@ -308,7 +308,9 @@ def regression_cov(X: np.ndarray, resid: np.ndarray, noise_var: np.ndarray, clus
     - from the residuals ``resid`` (n,): the sandwich ``(X'X)^-1 (sum_g s_g s_g') (X'X)^-1`` with ``s_g`` the sum
       of ``x_k r_k`` over the equations of cluster g (``clusters`` (n,), e.g. stretches of time), times
       ``G/(G-1) (n-1)/(n-p)``: residuals that are correlated within a cluster (a misfit that drifts with the
-      temperature) count as correlated, not as independent noise;
+      temperature) count as correlated, not as independent noise. ``clusters`` (k, n): k ways of clustering (long
+      stretches for a slow misfit, short ones for a short-range correlation that few long clusters estimate too
+      noisily), the largest sandwich variance kept per coefficient;
     - from the noise measured in the data: ``(X'X)^-1 X' diag(noise_var) X (X'X)^-1`` with ``noise_var`` (n,) the
       variance of each equation's left side from the voltmeter noise alone.
     """
@@ -319,15 +321,20 @@ def regression_cov(X: np.ndarray, resid: np.ndarray, noise_var: np.ndarray, clus
     scale[empty] = 1.0
     Xs = X / scale
     bread = np.linalg.pinv(Xs.T @ Xs)
-    _, inv = np.unique(np.asarray(clusters), return_inverse=True)
-    G = int(inv.max()) + 1 if inv.size else 0
-    S = np.zeros((G, p))
-    np.add.at(S, inv, Xs * np.asarray(resid, dtype=float)[:, None])
-    factor = G / (G - 1) * (n - 1) / (n - p) if G > 1 and n > p else 1.0
-    cov_r = bread @ (S.T @ S) @ bread * factor
+    var_r = []
+    for k, ids in enumerate(np.atleast_2d(np.asarray(clusters))):
+        _, inv = np.unique(ids, return_inverse=True)
+        G = int(inv.max()) + 1 if inv.size else 0
+        S = np.zeros((G, p))
+        np.add.at(S, inv, Xs * np.asarray(resid, dtype=float)[:, None])
+        factor = G / (G - 1) * (n - 1) / (n - p) if G > 1 and n > p else 1.0
+        cov_k = bread @ (S.T @ S) @ bread * factor
+        if k == 0:
+            cov_r = cov_k
+        var_r.append(np.diag(cov_k))
     var_n = np.diag(bread @ ((Xs.T * np.asarray(noise_var, dtype=float)) @ Xs) @ bread)
     sd_r = np.sqrt(np.maximum(np.diag(cov_r), 0.0))
-    sd = np.sqrt(np.maximum(sd_r**2, np.maximum(var_n, 0.0)))
+    sd = np.sqrt(np.maximum(np.max(var_r, axis=0), np.maximum(var_n, 0.0)))
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = np.where(np.outer(sd_r, sd_r) > 0, cov_r / np.outer(sd_r, sd_r), np.eye(p))
     cov = corr * np.outer(sd, sd) / np.outer(scale, scale)

@@ -11,7 +11,7 @@ from pipeline.calibrate import tilt
 from pipeline.passport.document import build_passport
 from pipeline.simulate.chamber import SimConfig, simulate
 from pipeline.simulate.unit import random_unit, seed000_unit
-from pipeline.uncertainty import estimator_matrix, plateau_sigma
+from pipeline.uncertainty import estimator_matrix, plateau_sigma, regression_cov
 
 N_SEEDS = 48
 
@@ -113,3 +113,26 @@ def test_piecewise_model_uncertainty_mirrors_segments():
             true_alpha = (U0_nodes[s + 1, i] - U0_nodes[s, i]) / span  # the chord of the true curve
             assert 0 < ss["alpha"][ax] < 1e-7
             assert abs(seg["alpha"][ax] - true_alpha) < 5 * ss["alpha"][ax]
+
+
+def test_regression_cov_keeps_the_largest_of_several_clusterings():
+    """Residuals correlated over 40 equations (a slowly read thermosensor's smoothed noise in 10-s blocks),
+    clustered two ways (36 long stretches, 150 short ones): every coefficient's standard uncertainty is the largest
+    of the two sandwiches and the noise floor, its correlations those of the first clustering; one clustering
+    alone gives its own."""
+    rng = np.random.default_rng(3)
+    n = 6000
+    t = np.arange(n)
+    temp = 55.0 * np.sin(2 * np.pi * t / 1000.0)
+    X = np.column_stack([temp, temp**2])
+    resid = rng.normal(0.0, 1.0, n) + np.convolve(rng.normal(0.0, 1.0, n + 39), np.ones(40) / 6.0, "valid")
+    floor = np.full(n, 0.5)
+    long_, short = t // 170, t // 40
+    each = [np.sqrt(np.diag(regression_cov(X, resid, floor, c))) for c in (long_, short)]
+    both = regression_cov(X, resid, floor, np.vstack([long_, short]))
+    alone = regression_cov(X, resid, floor, long_)
+    noise = np.sqrt(np.diag(np.linalg.pinv(X.T @ X) @ (X.T * floor) @ X @ np.linalg.pinv(X.T @ X)))
+    assert np.allclose(np.sqrt(np.diag(both)), np.maximum.reduce([each[0], each[1], noise]), rtol=1e-9)
+    corr = both / np.outer(np.sqrt(np.diag(both)), np.sqrt(np.diag(both)))
+    assert np.allclose(corr, alone / np.outer(each[0], each[0]), rtol=1e-9)
+    assert not np.allclose(each[0], each[1], rtol=0.05)  # the two clusterings differ: the test tells them apart

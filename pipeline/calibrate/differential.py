@@ -369,7 +369,8 @@ def fit_uncertainty(
         "coefficients": source,
         "thermal_model": "least squares over the differenced block means: the larger of the sandwich "
         "estimate from the residuals (clustered in stretches of cluster_s of each "
-        "orientation window) and the voltmeter noise measured in the blocks",
+        "orientation window, and in stretches of twice the thermosensor's smoothing span, over which its noise "
+        "is correlated) and the voltmeter noise measured in the blocks",
         "cluster_s": CLUSTER_S,
         "block_s": fit.settings.block_s,
         "residual_rms_g": fit.residual_rms_g.tolist(),

@@ -378,7 +378,8 @@ class _Equations:
     a0: np.ndarray  # (p, 3)
     du: np.ndarray  # (p, 3)
     var: np.ndarray  # (p, 3) V^2: variance of du from the noise measured in the two blocks
-    cluster: np.ndarray  # (p,) int: the stretch of time (run, window, CLUSTER_S) the pair's first block is in
+    cluster: np.ndarray  # (2, p) int: the stretch of time (run, window, CLUSTER_S; and the thermosensor's span,
+    # :func:`sensor_span_s`) the pair's first block is in
 
 
 def term_bases(
@@ -403,10 +404,26 @@ def _equations(
         f, g = term_bases(temp - normal_temp_c, rate, P, R, Kx)
         var = d.u_var_v2[i] + d.u_var_v2[j] if d.u_var_v2 is not None else np.zeros((len(i), 3))
         start = np.array([(w.t_start_ns - d.sensor.t_ref_ns) / _NS for w in d.windows])
-        chunk = np.floor((d.t_s[i] - start[d.window[i]]) / CLUSTER_S).astype(np.int64)
-        cluster = len(parts) * 1_000_000 + d.window[i].astype(np.int64) * 10_000 + chunk
-        parts.append((f[j] - f[i], g[j] - g[i], a[d.window[i]], d.u_v[j] - d.u_v[i], var, cluster))
-    return _Equations(*(np.concatenate([p[k] for p in parts]) for k in range(6)))
+        since = d.t_s[i] - start[d.window[i]]
+        cluster = [
+            len(parts) * 1_000_000_000
+            + d.window[i].astype(np.int64) * 10_000_000
+            + np.floor(since / span).astype(np.int64)
+            for span in (CLUSTER_S, sensor_span_s(d.sensor, settings.temp_smooth_s))
+        ]
+        parts.append((f[j] - f[i], g[j] - g[i], a[d.window[i]], d.u_v[j] - d.u_v[i], var, np.array(cluster)))
+    df, dg, a0, du, var = (np.concatenate([p[k] for p in parts]) for k in range(5))
+    return _Equations(df, dg, a0, du, var, np.concatenate([p[5] for p in parts], axis=1))
+
+
+def sensor_span_s(sensor: Thermosensor, smooth_s: float) -> float:
+    """How far (s) the smoothed thermosensor's noise stays correlated: twice its smoothing window, which spans at
+    least five readings (:func:`pipeline.dynamics.smooth_temperature`). Residuals clustered in stretches this long
+    carry that noise into the coefficients' uncertainty: read once a minute, its 7 mC (1 mC every second) times
+    the output's change with temperature is in every block for minutes, which the few :data:`CLUSTER_S` clusters
+    estimate too noisily and the voltmeter's noise does not hold."""
+    step_s = float(np.median(np.diff(sensor.t_s))) if sensor.t_s.size > 1 else 0.0
+    return 2.0 * max(float(smooth_s), 5.0 * step_s)
 
 
 def _cross_factor(K0: np.ndarray, c: int, j: int) -> float:
