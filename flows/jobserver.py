@@ -160,11 +160,16 @@ def serve(home: Path) -> int:
         "code": code_fingerprint(),
     }
     jobs: list = []
-    dispatcher = threading.Thread(target=_dispatch, args=(listener, state, jobs), daemon=True, name="thermocal-jobs")
+    seen = {"api_s": time.monotonic()}
+    dispatcher = threading.Thread(
+        target=_dispatch, args=(listener, state, jobs, seen), daemon=True, name="thermocal-jobs"
+    )
     import uvicorn
     from prefect.server.api.server import create_app
 
-    api = uvicorn.Server(uvicorn.Config(create_app(final=True), host="127.0.0.1", port=port, log_level="warning"))
+    api = uvicorn.Server(
+        uvicorn.Config(_ApiActivity(create_app(final=True), seen), host="127.0.0.1", port=port, log_level="warning")
+    )
     for sig in (signal.SIGTERM, signal.SIGINT):  # uvicorn stops on them, then raises them again: ignored then
         signal.signal(sig, lambda *_: None)
     try:
@@ -185,10 +190,32 @@ def serve(home: Path) -> int:
     return 0
 
 
-def _dispatch(listener: socket.socket, state: dict, jobs: list) -> None:
+class _ApiActivity:
+    """Prefect's ASGI app, noting in ``seen["api_s"]`` (time.monotonic, seconds) when a request or a message on an
+    open connection last reached it: a flow run in another process (the Python API, a notebook) uses the server
+    without a ``thermocal`` command, and the server must not count that time as idle."""
+
+    def __init__(self, app, seen: dict) -> None:
+        self.app, self.seen = app, seen
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] not in ("http", "websocket"):
+            return await self.app(scope, receive, send)
+        self.seen["api_s"] = time.monotonic()
+
+        async def noted():
+            message = await receive()
+            self.seen["api_s"] = time.monotonic()
+            return message
+
+        return await self.app(scope, noted, send)
+
+
+def _dispatch(listener: socket.socket, state: dict, jobs: list, seen: dict) -> None:
     """Warm the forkserver up, publish the state file once the API answers, then start a job process per
     command; stop the server (SIGTERM to this process, as ``thermocal server stop``) after ``idle_s`` without a
-    command, or when a job cannot be started (its reason in the log)."""
+    command and without a request to the API (``seen``, noted by :class:`_ApiActivity`), or when a job cannot be
+    started (its reason in the log)."""
     import multiprocessing
     import traceback
 
@@ -207,7 +234,7 @@ def _dispatch(listener: socket.socket, state: dict, jobs: list) -> None:
         tmp.replace(home / STATE)
         listener.settimeout(0.25)
         last = time.monotonic()
-        while jobs or time.monotonic() - last < state["idle_s"]:
+        while jobs or time.monotonic() - max(last, seen["api_s"]) < state["idle_s"]:
             try:
                 conn, _ = listener.accept()
             except TimeoutError:

@@ -18,8 +18,9 @@ sockets, Prefect's server app run by uvicorn as ``prefect server start`` runs it
   then sends back the exit status;
 - lifecycle: when the command is killed (``kill -9``) its job process interrupts the flow and exits within
   seconds, its own processes (the fleet's pool) with it; Ctrl-C is passed on as an interrupt. The server (and with
-  it the forkserver and any job process) exits when no command has run for ``THERMOCAL_SERVER_IDLE_S`` seconds
-  (default 600), on ``thermocal server stop``, or when it is killed.
+  it the forkserver and any job process) exits when no command has run and nothing has used its API (a flow run by
+  the Python API in another process) for ``THERMOCAL_SERVER_IDLE_S`` seconds (default 600), on ``thermocal server
+  stop``, or when it is killed.
 
 The state file ``thermocal-server.json`` in the Prefect home (mode 0600) names the server's pid, the API URL and
 the socket. ``thermocal server url`` prints the API URL for Prefect's own CLI and UI. Where the home is:
@@ -44,7 +45,7 @@ STATE = "thermocal-server.json"
 LOCK = "thermocal-server.lock"
 LOG = "thermocal-server.log"
 SOCKET = "thermocal-server.sock"
-#: seconds without a command after which the server exits (``THERMOCAL_SERVER_IDLE_S``)
+#: seconds without a command or an API request after which the server exits (``THERMOCAL_SERVER_IDLE_S``)
 DEFAULT_IDLE_S = 600.0
 START_TIMEOUT_S = 180.0
 _QUIET = {"PREFECT_SERVER_ANALYTICS_ENABLED": "false", "DO_NOT_TRACK": "1"}

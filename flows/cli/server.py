@@ -29,7 +29,7 @@ def server_status(as_json: JsonFlag = False):
         f"PREFECT_HOME {home}\n"
         + (
             f"server running (pid {st['pid']}): API {st['api_url']}, UI {st['ui_url']}, "
-            f"exits after {st['idle_s']:.0f} s without a command"
+            f"exits after {st['idle_s']:.0f} s without a command or an API request"
             if st
             else "server not running (starts with the next calibrate or fleet)"
         )

@@ -281,11 +281,11 @@ def test_commands_back_to_back_and_at_once_each_get_a_job_process(short_run, tmp
 
 
 def test_server_exits_when_idle_and_its_processes_when_it_is_killed(tmp_path):
-    """The server killed (-9): its warm forkserver follows within seconds. Started again with a 2 s idle timeout
-    (in a Prefect home too long for a Unix socket's path: the socket goes to a private temporary folder), it exits
-    by itself, with everything it started, and removes its state file, socket and that folder. Starting on a fresh
-    home with stderr on a terminal says so in one line there (stdout: the URL alone); not on a terminal, nothing on
-    stderr."""
+    """The server killed (-9): its warm forkserver follows within seconds. Started again with a 2 s idle timeout (in a
+    Prefect home too long for a Unix socket's path: the socket goes to a private temporary folder), it stays up
+    while its API is used without a command (a flow run by the Python API), then exits by itself, with everything it
+    started, and removes its state file, socket and that folder. Starting on a fresh home with stderr on a terminal
+    says so in one line there (stdout: the URL alone); not on a terminal, nothing on stderr."""
     home = tmp_path / "home"
     env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}
     env["PREFECT_HOME"] = str(home)
@@ -308,6 +308,12 @@ def test_server_exits_when_idle_and_its_processes_when_it_is_killed(tmp_path):
     st = read_state(home)
     assert home not in Path(st["socket"]).parents and Path(st["socket"]).exists()
     family = _descendants(st["pid"]) | {st["pid"]}
+    # a flow run by the Python API in another process uses the API without a command: not idle meanwhile
+    busy_until = time.monotonic() + 6.0
+    while time.monotonic() < busy_until:
+        assert httpx.get(st["api_url"] + "/health", timeout=30).status_code == 200
+        time.sleep(0.5)
+    assert _alive({st["pid"]}), "the server exited while its API was in use"
     _wait("an idle server gone by itself", lambda: not _alive(family), 60)
     assert not (home / "thermocal-server.json").exists() and read_state(home) is None
     assert not Path(st["socket"]).parent.exists()
