@@ -325,15 +325,16 @@ CATS_VERTICAL = ("z", "x", "y")
 @pytest.mark.slow
 @CATS_PROPERTY
 @given(period=st.integers(0, 2), margin=FRACTION)
-@example(period=2, margin=0.5)  # the -y day: y is along gravity in no other
+@example(period=2, margin=0.0)  # the -y day: y is along gravity in no other
 def test_cats_a_whole_orientation_deleted_is_named_and_none_invented(period, margin):
-    """A gap over a whole day (one orientation, 0-30 min beyond its ends) removes the only orientation with gravity
-    along one axis: the result names that channel and its scale factor undetermined, and no orientation is
-    credited with gravity along it (none invented)."""
+    """A gap over a whole day (one orientation, 20-50 min beyond the package's period bounds: the tag already or
+    still lay that way up to 16 min outside them, and those minutes are that orientation, held) removes the only
+    orientation with gravity along one axis: the result names that channel and its scale factor undetermined, and
+    no orientation is credited with gravity along it (none invented)."""
     bench = cats_bench()
     run = recording("cats")
     a, b = ((x - sd.start_ns(run)) / NS_PER_S for x in bench.period_bounds_ns()[period])
-    run = sd.gap(run, a - 1800.0 * margin, b + 1800.0 * margin)
+    run = sd.gap(run, a - 1200.0 - 1800.0 * margin, b + 1200.0 + 1800.0 * margin)
     result, method = sd.calibrate_runs([run])
     said = " | ".join(result.warnings)
     axis = CATS_VERTICAL[period]
