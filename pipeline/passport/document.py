@@ -124,7 +124,7 @@ def uncertainty_block(fit) -> dict | None:
         else {
             "level": "standard uncertainty (1 sigma)",
             "segment_noise": "voltmeter noise measured in each static segment (std / sqrt(n)) and the readings' "
-            "resolution q (q^2 / 12)",
+            "resolution q (q^2 / 12 where the noise does not dither it away)",
             "excess_scatter_v": as_json_list(tau) if tau is not None else None,
             "thermal_fit_birge_ratio": sigma.birge_ratio if sigma.dof else None,
             "thermal_fit_dof": sigma.dof,
