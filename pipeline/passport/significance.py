@@ -10,6 +10,7 @@ ppm/C^n, micro-g/C^n).
 
 from __future__ import annotations
 
+import functools
 import math
 import re
 from typing import Any
@@ -36,26 +37,43 @@ def value_of(passport: dict, name: str) -> float | None:
     return _number_at(passport, name)
 
 
+@functools.lru_cache(maxsize=4096)
+def _path_of(name: str) -> tuple[str | int, ...] | None:
+    """The keys and indices leading to the number named ``name`` (the names of :func:`sigma_of`) from the passport
+    or its ``uncertainty`` block; None for another name. Each name is parsed once."""
+    ax = "xyz"
+    if m := _CONST.match(name):
+        return (
+            ("coefficients", "K", ax.index(m.group(2)), ax.index(m.group(3)))
+            if m.group(1)
+            else (
+                "coefficients",
+                "U0",
+                ax.index(m.group(5)),
+            )
+        )
+    if m := _POLY.match(name):
+        return ("thermal_model", m.group(1), m.group(2), int(m.group(3)) - 1)
+    if m := _PIECE.match(name):
+        return ("thermal_model", "segments", int(m.group(1)), m.group(2), m.group(3))
+    if m := _RATE.match(name):
+        return ("rate_terms", m.group(1), m.group(2), int(m.group(3)) - 1, int(m.group(4)))
+    if m := _CROSS_ABS.match(name):
+        return ("rate_terms", "cross_axis_abs", m.group(1), int(m.group(2)) - 1)
+    return None
+
+
 def _number_at(block: dict, name: str) -> float | None:
     """The number named ``name`` in a passport (``block`` the passport) or its ``uncertainty`` block, which mirrors
     the passport's ``coefficients``, ``thermal_model`` and ``rate_terms``."""
-    ax = "xyz"
+    path = _path_of(name)
+    if path is None:
+        return None
+    value: Any = block
     try:
-        m = _CONST.match(name)
-        if m:
-            c = block["coefficients"]
-            value = c["K"][ax.index(m.group(2))][ax.index(m.group(3))] if m.group(1) else c["U0"][ax.index(m.group(5))]
-        elif m := _POLY.match(name):
-            value = block["thermal_model"][m.group(1)][m.group(2)][int(m.group(3)) - 1]
-        elif m := _PIECE.match(name):
-            value = block["thermal_model"]["segments"][int(m.group(1))][m.group(2)][m.group(3)]
-        elif m := _RATE.match(name):
-            value = block["rate_terms"][m.group(1)][m.group(2)][int(m.group(3)) - 1][int(m.group(4))]
-        elif m := _CROSS_ABS.match(name):
-            value = block["rate_terms"]["cross_axis_abs"][m.group(1)][int(m.group(2)) - 1]
-        else:
-            return None
-    except (KeyError, IndexError, TypeError, ValueError):
+        for key in path:
+            value = value[key]
+    except (KeyError, IndexError, TypeError):
         return None
     return float(value) if isinstance(value, (int, float)) and math.isfinite(value) else None
 
