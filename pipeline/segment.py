@@ -1014,7 +1014,7 @@ def segment_run(
             f"voltmeter: {bad_u.size} non-finite samples excluded (not static), first at t_ns={int(t_ns[bad_u[0]])}"
         )
     gaps = {"voltmeter": gap_spans(t_ns, settings.static_window_s / 2), "au_temperature": holes}
-    warnings += _gaps_on_plateaus(plateaus, gaps, settings.static_min_s)
+    warnings += _gaps_on_plateaus(plateaus, gaps, settings.static_min_s, run.fixture)
     pieces = _cut_at_plateaus(t_ns, stretches, plateaus, settings)
     all_gaps = np.concatenate([gaps["voltmeter"], holes.reshape(-1, 2)])
     all_gaps = all_gaps[np.argsort(all_gaps[:, 1], kind="stable")]
@@ -1095,12 +1095,17 @@ def reading_resolution(x: np.ndarray) -> float:
     return q if q > floor and bool(np.all(np.abs(n - np.round(n)) < 0.01)) else floor
 
 
-def _gaps_on_plateaus(plateaus: list[Plateau], gaps: dict[str, np.ndarray], min_off_s: float) -> list[str]:
+def _gaps_on_plateaus(
+    plateaus: list[Plateau], gaps: dict[str, np.ndarray], min_off_s: float, fixture: pl.DataFrame | None = None
+) -> list[str]:
     """One line per plateau (its settling included) with gaps of the voltmeter or the thermosensor: what is
-    missing, where (no position is made of that time); and one line for the gaps of at least ``min_off_s`` on no
-    plateau (e.g. a soak whose every thermosensor reading is lost: no plateau is found there)."""
+    missing, where (no position is made of that time), by name where the ``fixture`` log held a position on the
+    plateau for less than ``min_off_s`` outside the gaps; and one line for the gaps of at least ``min_off_s`` on
+    no plateau (e.g. a soak whose every thermosensor reading is lost: no plateau is found there)."""
     from pipeline.utc import utc_span
 
+    spans_ns = [np.asarray(v, dtype=np.int64).reshape(-1, 2) for v in gaps.values()]
+    every_gap = np.concatenate(spans_ns) if spans_ns else np.zeros((0, 2), dtype=np.int64)
     out = []
     for p in plateaus:
         lo = p.t_start_ns if p.settle_start_ns is None else p.settle_start_ns
@@ -1114,10 +1119,13 @@ def _gaps_on_plateaus(plateaus: list[Plateau], gaps: dict[str, np.ndarray], min_
             for (a, b), names in sorted(streams.items())
         ]
         if said:
-            out.append(
-                f"plateau {p.index} at {p.temp_c:+.1f} C: {'; '.join(said)}: nothing held then is used "
-                "(a position held only then is missing)"
+            lost = _held_only_in_gaps(fixture, lo, p.t_end_ns, every_gap, min_off_s)
+            what = (
+                f"{', '.join(lost)}, held only then (fixture log), {'is' if len(lost) == 1 else 'are'} missing"
+                if lost
+                else "a position held only then is missing"
             )
+            out.append(f"plateau {p.index} at {p.temp_c:+.1f} C: {'; '.join(said)}: nothing held then is used ({what})")
     # gaps on no plateau found (a soak whose every thermosensor reading is lost is no plateau): one line for them
     fronts = [(p.t_start_ns if p.settle_start_ns is None else p.settle_start_ns, p.t_end_ns) for p in plateaus]
     off: dict[tuple[int, int], list[str]] = {}
@@ -1185,6 +1193,38 @@ def _cut_at_plateaus(
                 stable = k is not None and first >= starts[k]
                 out.append((a2, b2, k if stable else None, None if stable else k))
     return out
+
+
+def _held_only_in_gaps(
+    fixture: pl.DataFrame | None, lo_ns: int, hi_ns: int, gaps_ns: np.ndarray, min_s: float
+) -> list[str]:
+    """The positions the ``fixture`` log holds within [lo_ns, hi_ns) that lie in ``gaps_ns`` ((k, 2) ns, may
+    overlap) and are held there for less than ``min_s`` outside them: data of them is missing, none can be made.
+    [] without a log."""
+    if fixture is None or fixture.height == 0 or not len(gaps_ns):
+        return []
+    ft = fixture["t_ns"].to_numpy()
+    order = np.argsort(ft, kind="stable")
+    ft, fp = ft[order], np.asarray(fixture["position"].to_list(), dtype=object)[order]
+    a = np.clip(ft, lo_ns, hi_ns)
+    b = np.clip(np.append(ft[1:], np.iinfo(np.int64).max), lo_ns, hi_ns)  # each event holds until the next
+    g = gaps_ns[np.argsort(gaps_ns[:, 0], kind="stable")]
+    merged: list[list[int]] = []
+    for x, y in g:  # the union of the gaps (a few spans)
+        if merged and x <= merged[-1][1]:
+            merged[-1][1] = max(merged[-1][1], int(y))
+        else:
+            merged.append([int(x), int(y)])
+    m = np.array(merged, dtype=np.int64)
+    # time of each event's hold inside the gaps: (events, gaps) overlaps summed
+    inside = np.clip(np.minimum(b[:, None], m[None, :, 1]) - np.maximum(a[:, None], m[None, :, 0]), 0, None).sum(axis=1)
+    held = b - a
+    lost = []
+    for name in dict.fromkeys(x for x in fp if x in ALL_POSITIONS):
+        mine = fp == name
+        if inside[mine].sum() > 0 and (held[mine] - inside[mine]).sum() < min_s * _NS:
+            lost.append(str(name))
+    return lost
 
 
 def _fixture_labels(run: Run, t_ns: np.ndarray, pieces, gaps_ns: np.ndarray) -> tuple[list[str | None], list[bool]]:

@@ -211,3 +211,29 @@ def test_standard_program_has_its_seven_plateaus_and_no_gap():
     assert seg.gaps_ns == {"voltmeter": [], "au_temperature": []}
     assert all(not p.gaps for p in seg.plateaus)
     assert standard_program().timetable().duration_s == pytest.approx(59260.0)
+
+
+def test_a_gap_over_a_whole_hold_names_the_position_it_took():
+    """A voltmeter gap over the whole VP5 hold at -10 C (short program, 1 Hz): the plateau's line names VP5 from the
+    fixture log; a gap inside the VP3 hold (the rest of it still held) and the same gap without a fixture log name
+    no position. Before: 'a position held only then is missing' in every case, VP5 nowhere in the result."""
+    import dataclasses
+
+    import polars as pl
+
+    run = simulate(SimConfig(seed=5, rate_hz=1.0, program="short")).run
+    t0 = int(run.voltmeter["t_ns"].min())
+
+    def without(r, a_s: float, b_s: float):
+        lo, hi = t0 + int(a_s * NS_PER_S), t0 + int(b_s * NS_PER_S)
+        return dataclasses.replace(r, voltmeter=r.voltmeter.filter((pl.col("t_ns") < lo) | (pl.col("t_ns") > hi)))
+
+    def line(r):
+        (w,) = [w for w in segment_run(r).warnings if w.startswith("plateau 2 at -10")]
+        return w
+
+    # the fixture log: VP5 from 4900 s, moving at 4960 s; VP3 4760..4820 s
+    assert line(without(run, 4895.0, 4965.0)).endswith("(VP5, held only then (fixture log), is missing)")
+    assert line(without(run, 4770.0, 4790.0)).endswith("(a position held only then is missing)")
+    no_log = dataclasses.replace(run, fixture=None)
+    assert line(without(no_log, 4895.0, 4965.0)).endswith("(a position held only then is missing)")
