@@ -1139,10 +1139,11 @@ def _gaps_on_plateaus(
             for (a, b), names in sorted(off.items())
         ]
         more = f"; and {len(said) - _GAPS_LISTED} more" if len(said) > _GAPS_LISTED else ""
-        out.append(
-            f"off every plateau: {'; '.join(said[:_GAPS_LISTED])}{more}: nothing held then is used "
-            "(a position held only then is missing)"
-        )
+        spans = np.array(list(off), dtype=np.int64)
+        times = _fixture_time_in_gaps(fixture, int(spans[:, 0].min()), int(spans[:, 1].max()), spans)
+        logged = [k for k, (_, inside) in times.items() if inside >= min_off_s * _NS]
+        what = f"the fixture log held {', '.join(logged)} then" if logged else "a position held only then is missing"
+        out.append(f"off every plateau: {'; '.join(said[:_GAPS_LISTED])}{more}: nothing held then is used ({what})")
     return out
 
 
@@ -1195,14 +1196,13 @@ def _cut_at_plateaus(
     return out
 
 
-def _held_only_in_gaps(
-    fixture: pl.DataFrame | None, lo_ns: int, hi_ns: int, gaps_ns: np.ndarray, min_s: float
-) -> list[str]:
-    """The positions the ``fixture`` log holds within [lo_ns, hi_ns) that lie in ``gaps_ns`` ((k, 2) ns, may
-    overlap) and are held there for less than ``min_s`` outside them: data of them is missing, none can be made.
-    [] without a log."""
+def _fixture_time_in_gaps(
+    fixture: pl.DataFrame | None, lo_ns: int, hi_ns: int, gaps_ns: np.ndarray
+) -> dict[str, tuple[int, int]]:
+    """Per position the ``fixture`` log holds within [lo_ns, hi_ns): (ns held there, ns of it inside ``gaps_ns``
+    ((k, 2) ns, may overlap)), in the log's order. {} without a log or a gap."""
     if fixture is None or fixture.height == 0 or not len(gaps_ns):
-        return []
+        return {}
     ft = fixture["t_ns"].to_numpy()
     order = np.argsort(ft, kind="stable")
     ft, fp = ft[order], np.asarray(fixture["position"].to_list(), dtype=object)[order]
@@ -1216,15 +1216,23 @@ def _held_only_in_gaps(
         else:
             merged.append([int(x), int(y)])
     m = np.array(merged, dtype=np.int64)
-    # time of each event's hold inside the gaps: (events, gaps) overlaps summed
     inside = np.clip(np.minimum(b[:, None], m[None, :, 1]) - np.maximum(a[:, None], m[None, :, 0]), 0, None).sum(axis=1)
     held = b - a
-    lost = []
+    out = {}
     for name in dict.fromkeys(x for x in fp if x in ALL_POSITIONS):
         mine = fp == name
-        if inside[mine].sum() > 0 and (held[mine] - inside[mine]).sum() < min_s * _NS:
-            lost.append(str(name))
-    return lost
+        if held[mine].sum() > 0:
+            out[str(name)] = (int(held[mine].sum()), int(inside[mine].sum()))
+    return out
+
+
+def _held_only_in_gaps(
+    fixture: pl.DataFrame | None, lo_ns: int, hi_ns: int, gaps_ns: np.ndarray, min_s: float
+) -> list[str]:
+    """The positions the ``fixture`` log holds within [lo_ns, hi_ns) that lie in ``gaps_ns`` and are held there for
+    less than ``min_s`` outside them: data of them is missing, none can be made. [] without a log."""
+    times = _fixture_time_in_gaps(fixture, lo_ns, hi_ns, gaps_ns)
+    return [k for k, (held, inside) in times.items() if inside > 0 and held - inside < min_s * _NS]
 
 
 def _fixture_labels(run: Run, t_ns: np.ndarray, pieces, gaps_ns: np.ndarray) -> tuple[list[str | None], list[bool]]:

@@ -216,7 +216,8 @@ def test_standard_program_has_its_seven_plateaus_and_no_gap():
 def test_a_gap_over_a_whole_hold_names_the_position_it_took():
     """A voltmeter gap over the whole VP5 hold at -10 C (short program, 1 Hz): the plateau's line names VP5 from the
     fixture log; a gap inside the VP3 hold (the rest of it still held) and the same gap without a fixture log name
-    no position. Before: 'a position held only then is missing' in every case, VP5 nowhere in the result."""
+    no position; the thermosensor lost over the whole soak (no plateau found) names what the log held then.
+    Before: 'a position held only then is missing' in every case, VP5 nowhere in the result."""
     import dataclasses
 
     import polars as pl
@@ -237,3 +238,12 @@ def test_a_gap_over_a_whole_hold_names_the_position_it_took():
     assert line(without(run, 4770.0, 4790.0)).endswith("(a position held only then is missing)")
     no_log = dataclasses.replace(run, fixture=None)
     assert line(without(no_log, 4895.0, 4965.0)).endswith("(a position held only then is missing)")
+    # the thermosensor lost over the whole -10 C soak: no plateau there; the line says what the log held then
+    lo, hi = t0 + 4000 * NS_PER_S, t0 + 5600 * NS_PER_S
+    no_soak = dataclasses.replace(
+        run, au_temperature=run.au_temperature.filter((pl.col("t_ns") < lo) | (pl.col("t_ns") > hi))
+    )
+    seg = segment_run(no_soak)
+    assert [round(p.temp_c) for p in seg.plateaus] == [20, -40, 20, 45, 70, 20]
+    (off,) = [w for w in seg.warnings if w.startswith("off every plateau")]
+    assert off.endswith("(the fixture log held TP6, VP1, VP2, VP3, VP4, VP5, VP6 then)")
