@@ -16,11 +16,13 @@ differ beyond their stated uncertainty.
 from __future__ import annotations
 
 import dataclasses
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import polars as pl
+from hypothesis import HealthCheck, Phase, settings
 
 from pipeline.run import NS_PER_S, Run
 
@@ -29,6 +31,24 @@ STREAMS = ("voltmeter", "au_temperature", "chamber", "fixture")
 SAMPLED = ("voltmeter", "au_temperature", "chamber")
 #: coefficients may differ by this many standard uncertainties (both passports' combined) before they differ
 K_SIGMA = 4.0
+
+
+#: a deeper local search (THERMOCAL_HYPOTHESIS_EXAMPLES=N): every property over every recording, N examples each
+DEEP = "THERMOCAL_HYPOTHESIS_EXAMPLES" in os.environ
+
+
+def property_settings(default_examples: int) -> settings:
+    """The properties' hypothesis settings: ``THERMOCAL_HYPOTHESIS_EXAMPLES`` examples (else ``default_examples``),
+    derandomized (CI sees the same examples every run), no example database, no shrinking (each example calibrates
+    and diagnoses a recording: a failing one is reported as found), no deadline."""
+    return settings(
+        max_examples=int(os.environ.get("THERMOCAL_HYPOTHESIS_EXAMPLES", str(default_examples))),
+        deadline=None,
+        derandomize=True,
+        database=None,
+        phases=[Phase.explicit, Phase.generate],
+        suppress_health_check=list(HealthCheck),
+    )
 
 
 def start_ns(run: Run) -> int:

@@ -27,13 +27,12 @@ from __future__ import annotations
 
 import importlib.util
 import json
-import os
 import random
 import re
 from functools import cache
 
 import pytest
-from hypothesis import HealthCheck, Phase, assume, example, given, settings
+from hypothesis import Phase, assume, example, given, settings
 from hypothesis import strategies as st
 
 from pipeline.io.runs import read_run
@@ -41,17 +40,9 @@ from pipeline.run import NS_PER_S, Run
 from tests.acceptance import same_data as sd
 from tests.conftest import REPO, data_path
 
-DEEP = "THERMOCAL_HYPOTHESIS_EXAMPLES" in os.environ
-EXAMPLES = int(os.environ.get("THERMOCAL_HYPOTHESIS_EXAMPLES", "1"))
-#: each example calibrates (and diagnoses) a real recording: no shrinking, a failing example is reported as found
-PROPERTY = settings(
-    max_examples=EXAMPLES,
-    deadline=None,
-    derandomize=True,
-    database=None,
-    phases=[Phase.explicit, Phase.generate],
-    suppress_health_check=list(HealthCheck),
-)
+DEEP = sd.DEEP
+PROPERTY = sd.property_settings(1)
+EXAMPLES = PROPERTY.max_examples
 deep_only = pytest.mark.skipif(not DEEP, reason="with THERMOCAL_HYPOTHESIS_EXAMPLES only (a CATS example is minutes)")
 
 #: the CATS figure of item 6 (mm/s^2): the held-out blocks' 10-min means after apply, with the blocks deleted

@@ -27,7 +27,6 @@ corner on every one (N=5: about 40 min at load 13).
 from __future__ import annotations
 
 import dataclasses
-import os
 import random
 import re
 from dataclasses import dataclass
@@ -36,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, Phase, assume, example, given, settings
+from hypothesis import assume, example, given, settings
 from hypothesis import strategies as st
 
 from pipeline.calibrate import inputs
@@ -47,18 +46,9 @@ from pipeline.simulate.chamber import SimConfig, simulate
 from pipeline.simulate.program import get_program
 from tests.acceptance import same_data as sd
 
-#: a deeper local search: every property over every recording, this many examples each
-DEEP = "THERMOCAL_HYPOTHESIS_EXAMPLES" in os.environ
-EXAMPLES = int(os.environ.get("THERMOCAL_HYPOTHESIS_EXAMPLES", "2"))
-#: each example calibrates and diagnoses a recording: no shrinking (a failing example is reported as found)
-PROPERTY = settings(
-    max_examples=EXAMPLES,
-    deadline=None,
-    derandomize=True,
-    database=None,
-    phases=[Phase.explicit, Phase.generate],
-    suppress_health_check=list(HealthCheck),
-)
+DEEP = sd.DEEP
+PROPERTY = sd.property_settings(2)
+EXAMPLES = PROPERTY.max_examples
 JOINS_FILES = hasattr(inputs, "join_runs")
 
 
