@@ -127,10 +127,6 @@ def check_sealed(data: bytes, trust: TrustStore) -> SealCheck:
     return SealCheck(record, problems, sig.key_id, sig.own, canonical=True, self_hash_ok=True)
 
 
-#: The version of the checks a file passes (:func:`check_sealed`, :func:`check_content`): bump it whenever they
-#: change, so that no file verified by older checks skips the new ones (:mod:`pipeline.passport.verified_cache`).
-CHECK_VERSION = 1
-
 #: A passport file larger than this is not read (a calibration's is tens of kB; an extended one a few hundred).
 MAX_PASSPORT_BYTES = 8 << 20
 

@@ -6,25 +6,29 @@ version of the checks. Each is a property of the bytes, the key set and the chec
 hash to an entry may skip those checks; everything that depends on where the file lies (its unit and version
 number, the log's sha256, the parent link to the version before, the chain order) is still checked every time.
 
-An entry is ``HMAC-SHA256(secret, check version | project version | key-set fingerprint | file sha256)`` in hex,
-one a line, in ``verified`` under :func:`cache_dir`; the secret (32 random bytes, created 0600 by its owner beside
-the cache) makes an entry impossible to plant without it. Different bytes, another key set or another checker never
-meet an entry. A missing, unreadable, corrupt or unwritable cache means: verify in full (never an error). The
-registry folder is never written.
+An entry is ``HMAC-SHA256(secret, checks' fingerprint | key-set fingerprint | file sha256)`` in hex, one a line,
+in ``verified`` under :func:`cache_dir`; the secret (32 random bytes, created 0600 by its owner beside the cache)
+makes an entry impossible to plant without it. Different bytes, another key set or other checks never meet an
+entry: the checks' fingerprint (:func:`checks_fingerprint`) hashes the source of every module that decides what
+passes, so any edit of the checks invalidates every entry, with nothing to remember. A missing, unreadable, corrupt
+or unwritable cache means: verify in full (never an error). The registry folder is never written.
 """
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import hmac
 import os
 import secrets
 import stat
+import sys
 from pathlib import Path
+from types import ModuleType
 
 from pipeline import __version__
+from pipeline.passport import verification
 from pipeline.passport.signing import TrustStore, _raw_public
-from pipeline.passport.verification import CHECK_VERSION
 
 #: Override of the cache folder (an empty value: no cache, every file verified in full).
 CACHE_ENV = "THERMOCAL_CACHE_DIR"
@@ -41,6 +45,47 @@ def cache_dir() -> Path | None:
         return Path(os.environ[CACHE_ENV]) if os.environ[CACHE_ENV] else None
     base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
     return Path(base) / "thermocal"
+
+
+def acceptance_files() -> list[Path]:
+    """The source files of :mod:`pipeline.passport.verification` (check_sealed, check_content), this module and every
+    ``pipeline`` module they use at module level, transitively (canonical form, hashing, signatures, JSON
+    conversion, ...), sorted: what decides whether a file's bytes pass."""
+    seen: dict[str, ModuleType] = {}
+    todo: list[ModuleType] = [verification, sys.modules[__name__]]
+    while todo:
+        mod = todo.pop()
+        if mod.__name__ in seen:
+            continue
+        seen[mod.__name__] = mod
+        for value in vars(mod).values():
+            name = value.__name__ if isinstance(value, ModuleType) else getattr(value, "__module__", None)
+            if isinstance(name, str) and name.split(".")[0] == "pipeline" and name in sys.modules:
+                todo.append(sys.modules[name])
+    return sorted(Path(f) for m in seen.values() if (f := m.__file__))
+
+
+def fingerprint_of(files: list[Path]) -> str:
+    """sha256 over the files' bytes (each with its length: no two sets of contents give one stream), the Python,
+    cryptography and numpy versions (parsing, float text, signatures, K's condition number) and the project's."""
+    import cryptography
+    import numpy
+
+    h = hashlib.sha256(f"{sys.version}|{cryptography.__version__}|{numpy.__version__}|{__version__}|".encode())
+    for f in files:
+        data = f.read_bytes()
+        h.update(b"%d|" % len(data) + data)
+    return h.hexdigest()
+
+
+@functools.cache
+def checks_fingerprint() -> str:
+    """:func:`fingerprint_of` the :func:`acceptance_files`, computed once per process (about 1 ms); "" when a file
+    cannot be read (then no cache: :meth:`VerifiedCache.open`)."""
+    try:
+        return fingerprint_of(acceptance_files())
+    except OSError:
+        return ""
 
 
 def key_set_fingerprint(trust: TrustStore) -> str:
@@ -81,12 +126,12 @@ class VerifiedCache:
 
     def __init__(self, folder: Path | None, secret: bytes | None, trust: TrustStore, entries: set[str]):
         self.folder, self._secret, self._entries = folder, secret, entries
-        self._prefix = f"{CHECK_VERSION}|{__version__}|{key_set_fingerprint(trust)}|".encode("ascii")
+        self._prefix = f"{checks_fingerprint()}|{key_set_fingerprint(trust)}|".encode("ascii")
 
     @classmethod
     def open(cls, trust: TrustStore) -> VerifiedCache:
         """The cache for ``trust`` (an empty one that keeps nothing when there is no usable cache)."""
-        folder = cache_dir()
+        folder = cache_dir() if checks_fingerprint() else None
         secret = _secret(folder) if folder is not None else None
         entries: set[str] = set()
         if folder is not None and secret is not None:

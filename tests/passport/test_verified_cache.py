@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 
 import pipeline.passport.registry as registry_module
+from pipeline.passport import verified_cache
 from pipeline.passport.registry import Registry
 from pipeline.passport.signing import create_key
 from pipeline.passport.trends import fleet_trends
@@ -144,3 +145,79 @@ def test_an_unusable_cache_verifies_in_full_without_an_error(fleet, counted, tmp
     assert r["not_verified"] == [] and counted == {"sealed": VERSIONS, "content": VERSIONS}
     if spoil == "shared secret":
         assert not VerifiedCache.open(registry_module.trusted_keys()).known("0" * 64)
+
+
+def _move_bytes(root: Path, how: str) -> str:
+    """Put cached bytes where they do not belong; returns the unit that must be refused."""
+    reg = Registry(root)
+    if how == "an older version's bytes":
+        reg.version_path("AU-0001", 3).write_bytes(reg.version_path("AU-0001", 2).read_bytes())
+        return "AU-0001"
+    if how == "another unit's version":
+        reg.version_path("AU-0003", 2).write_bytes(reg.version_path("AU-0004", 2).read_bytes())
+        return "AU-0003"
+    a, b = reg.version_path("AU-0002", 2), reg.version_path("AU-0002", 3)
+    data_a, data_b = a.read_bytes(), b.read_bytes()
+    a.write_bytes(data_b)
+    b.write_bytes(data_a)
+    return "AU-0002"
+
+
+@pytest.mark.parametrize("how", ["an older version's bytes", "another unit's version", "two versions swapped"])
+def test_cached_bytes_in_another_place_are_refused_as_without_the_cache(fleet, counted, tmp_path, monkeypatch, how):
+    root = _copy(fleet, tmp_path)
+    fleet_trends(root)  # every file cached
+    unit = _move_bytes(root, how)
+    _reset(counted)
+    warm = fleet_trends(root).report
+    assert counted["sealed"] == 0  # every file's bytes are cached: only their place refuses them
+    (bad,) = warm["not_verified"]
+    assert bad["unit"] == unit and bad["versions_used"] == ([1, 2] if how == "an older version's bytes" else [1])
+    monkeypatch.setenv(CACHE_ENV, "")
+    assert fleet_trends(root).report == warm
+
+
+def test_a_key_removed_refuses_what_it_signed_though_cached(fleet, counted, tmp_path, monkeypatch):
+    """The fleet's signer trusted as another station, the cache filled, then its key file removed from trusted/."""
+    signer = Path(os.environ["THERMOCAL_KEY_DIR"])
+    keys = tmp_path / "keys"
+    create_key(keys)
+    (keys / "trusted").mkdir(mode=0o700, exist_ok=True)
+    shutil.copy(next(signer.glob("*.pub")), keys / "trusted" / "signer.pub")
+    monkeypatch.setenv("THERMOCAL_KEY_DIR", str(keys))
+    assert fleet_trends(fleet).report["not_verified"] == []
+    (keys / "trusted" / "signer.pub").unlink()
+    _reset(counted)
+    r = fleet_trends(fleet).report
+    assert counted["sealed"] == VERSIONS and r["versions"] == 0
+    assert len(r["not_verified"]) == SPEC.units and all(
+        "does not trust" in " ".join(b["problems"]) for b in r["not_verified"]
+    )
+
+
+def test_any_edit_of_the_checks_verifies_in_full(fleet, counted, tmp_path, monkeypatch):
+    files = verified_cache.acceptance_files()
+    names = {f"{f.parent.name}/{f.name}" for f in files}
+    assert {"passport/verification.py", "passport/canonical.py", "passport/signing.py", "pipeline/jsonable.py"} <= names
+    assert "passport/verified_cache.py" in names
+    copies = []
+    for f in files:
+        copies.append(tmp_path / "src" / f.parent.name / f.name)
+        copies[-1].parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(f, copies[-1])
+    fleet_trends(fleet)
+
+    def rerun(sources: list[Path]) -> dict:
+        monkeypatch.setattr(verified_cache, "acceptance_files", lambda: sources)
+        verified_cache.checks_fingerprint.cache_clear()
+        _reset(counted)
+        return fleet_trends(fleet).report
+
+    try:
+        assert rerun(copies)["not_verified"] == [] and counted["sealed"] == 0  # the same bytes elsewhere: same checks
+        edited = next(c for c in copies if c.name == "verification.py")
+        edited.write_bytes(edited.read_bytes() + b"\n# a changed check\n")
+        assert rerun(copies)["not_verified"] == [] and counted == {"sealed": VERSIONS, "content": VERSIONS}
+        assert rerun(copies) is not None and counted["sealed"] == 0  # (the new checks' entries are used)
+    finally:
+        verified_cache.checks_fingerprint.cache_clear()
