@@ -150,6 +150,9 @@ class StaticSegment:
     temp_std_c: float
     direction_g: tuple[float, float, float]
     settling: int | None = None
+    #: the index of the segment this one continues across a gap (:func:`_continued_holds`: the same hold in two
+    #: pieces separated only by missing data; one observation is made of both), None otherwise
+    continues: int | None = None
 
     @property
     def duration_s(self) -> float:
@@ -1045,6 +1048,7 @@ def segment_run(
         )
 
     names = _name_segments(run, rows, settings, warnings)
+    continues = _continued_holds(rows, [nm["position"] for nm in names], all_gaps, run.fixture, settings)
     segments = []
     for k, (r, nm) in enumerate(zip(rows, names)):
         segments.append(
@@ -1064,6 +1068,7 @@ def segment_run(
                 temp_std_c=r["temp_std_c"],
                 direction_g=vector3(nm["direction"]),
                 settling=r["settling"],
+                continues=continues[k],
             )
         )
     return Segmentation(
@@ -1076,6 +1081,46 @@ def segment_run(
         gaps_ns={k: [(int(a), int(b)) for a, b in v] for k, v in gaps.items()},
         resolution_v=vector3([reading_resolution(c) for c in ch.slab(0, min(ch.n, _SLAB_SAMPLES))]),
     )
+
+
+def _continued_holds(
+    rows: list[dict[str, Any]],
+    positions: list[str | None],
+    gaps_ns: np.ndarray,
+    fixture: pl.DataFrame | None,
+    settings: SegmentSettings,
+) -> list[int | None]:
+    """Per segment (``rows`` in time order, named ``positions``), the index of the segment it continues across a
+    gap, or None. Two neighbouring segments are pieces of one hold where they have the same position, plateau and
+    settling, a gap (``gaps_ns``, (k, 2) ns) lies between them and, gaps aside, no more time separates them than the
+    trimming and the static windows either side of a gap take (``settle_trim_s`` and two ``static_window_s`` on
+    each side): nothing but missing data. Where a ``fixture`` log is given, it must hold that position from the
+    end of the first piece to the start of the second (a logged move in the gap makes two holds); without one, the
+    signal's position on both sides is all there is (a move and return inside the gap cannot be seen)."""
+    out: list[int | None] = [None] * len(rows)
+    if len(rows) < 2 or not len(gaps_ns):
+        return out
+    slack_ns = 2 * (settings.settle_trim_s + 2 * settings.static_window_s) * _NS
+    if fixture is not None and fixture.height:
+        fx = fixture.sort("t_ns")
+        ft, fp = fx["t_ns"].to_numpy(), fx["position"].to_list()
+    else:
+        ft, fp = None, []
+    for k in range(1, len(rows)):
+        a, b, pos = rows[k - 1], rows[k], positions[k]
+        if pos is None or positions[k - 1] != pos or a["plateau"] != b["plateau"] or a["settling"] != b["settling"]:
+            continue
+        lo, hi = a["t_end_ns"], b["t_start_ns"]
+        inside = gaps_ns[(gaps_ns[:, 0] >= lo) & (gaps_ns[:, 1] <= hi)]
+        if not len(inside) or (hi - lo) - int((inside[:, 1] - inside[:, 0]).sum()) > slack_ns:
+            continue
+        if ft is not None:
+            i0 = int(np.searchsorted(ft, lo, side="right")) - 1
+            i1 = int(np.searchsorted(ft, hi, side="right"))
+            if any(p != pos for p in fp[max(i0, 0) : i1]) or i0 < 0:
+                continue
+        out[k] = k - 1
+    return out
 
 
 def reading_resolution(x: np.ndarray) -> float:

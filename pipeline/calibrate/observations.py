@@ -17,7 +17,7 @@ warnings, and the VP verification of a fitted model on them.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -66,11 +66,19 @@ class ObservedRun:
 
 def observations_from_segmentation(run_id: str, segmentation, source: str = "") -> list[Observation]:
     """Named static segments on plateaus, in the settling before a plateau (as that plateau's, ``settling``), and VP
-    segments anywhere, as observations (``source``: the run's file)."""
-    out = []
+    segments anywhere, as observations (``source``: the run's file). The pieces of one hold split by a gap
+    (:attr:`pipeline.segment.StaticSegment.continues`) are one observation: their samples pooled (means weighted by
+    their counts, the spread about the pooled mean), spanning the first piece's start to the last one's end."""
+    out: list[Observation] = []
     resolution_v = tuple(getattr(segmentation, "resolution_v", (0.0, 0.0, 0.0)))
+    made: dict[int, int] = {}  # segment index -> index in ``out`` of its observation
     for s in segmentation.segments:
         if s.position is None or s.count == 0:
+            continue
+        joined = made.get(s.continues) if getattr(s, "continues", None) is not None else None
+        if joined is not None:
+            out[joined] = _pooled(out[joined], s)
+            made[s.index] = joined
             continue
         settling = s.plateau is None and getattr(s, "settling", None) is not None
         if s.plateau is None and not settling and not is_verification_position(s.position):
@@ -91,7 +99,27 @@ def observations_from_segmentation(run_id: str, segmentation, source: str = "") 
                 resolution_v=resolution_v,
             )
         )
+        made[s.index] = len(out) - 1
     return out
+
+
+def _pooled(o: Observation, s) -> Observation:
+    """Observation ``o`` with the samples of segment ``s`` (a later piece of the same hold) pooled into it."""
+    n1, n2 = o.count, int(s.count)
+    m1, m2 = np.asarray(o.u_v), np.asarray(s.mean_v)
+    mean = (n1 * m1 + n2 * m2) / (n1 + n2)
+    # sum of squares about the pooled mean (ddof 1 per piece as the segments' std, ddof 1 overall)
+    ss = (n1 - 1) * np.asarray(o.std_v) ** 2 + (n2 - 1) * np.asarray(s.std_v) ** 2
+    ss = ss + n1 * (m1 - mean) ** 2 + n2 * (m2 - mean) ** 2
+    std = np.sqrt(ss / max(n1 + n2 - 1, 1))
+    return replace(
+        o,
+        u_v=tuple(float(x) for x in mean),
+        std_v=tuple(float(x) for x in std),
+        count=n1 + n2,
+        temp_c=(n1 * o.temp_c + n2 * float(s.temp_c)) / (n1 + n2),
+        t_end_ns=int(s.t_end_ns),
+    )
 
 
 def unit_of(runs) -> str:
