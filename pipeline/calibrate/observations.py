@@ -114,8 +114,8 @@ def _pooled(o: Observation, s) -> Observation:
     std = np.sqrt(ss / max(n1 + n2 - 1, 1))
     return replace(
         o,
-        u_v=tuple(float(x) for x in mean),
-        std_v=tuple(float(x) for x in std),
+        u_v=(float(mean[0]), float(mean[1]), float(mean[2])),
+        std_v=(float(std[0]), float(std[1]), float(std[2])),
         count=n1 + n2,
         temp_c=(n1 * o.temp_c + n2 * float(s.temp_c)) / (n1 + n2),
         t_end_ns=int(s.t_end_ns),
