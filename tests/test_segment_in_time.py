@@ -247,3 +247,46 @@ def test_a_gap_over_a_whole_hold_names_the_position_it_took():
     assert [round(p.temp_c) for p in seg.plateaus] == [20, -40, 20, 45, 70, 20]
     (off,) = [w for w in seg.warnings if w.startswith("off every plateau")]
     assert off.endswith("(the fixture log held TP6, VP1, VP2, VP3, VP4, VP5, VP6 then)")
+
+
+def test_a_gap_inside_a_hold_leaves_one_hold_unless_the_fixture_log_shows_a_move():
+    """A 61-s gap of every stream inside the VP3 hold at -10 C and inside the TP3 hold at -40 C (standard program,
+    1 Hz): one VP row and one TP3 observation per hold (the two pieces pooled), the same VP rows as the clean run
+    and the same passport within its stated uncertainty. Before: VP3 at -10 C twice (25 rows), TP3 at -40 C twice.
+    A move logged in the gap (MOVING, then VP3 again) makes two holds."""
+    import dataclasses
+
+    import polars as pl
+
+    from pipeline.calibrate.observations import observe_run
+
+    run = _standard(1.0)
+    t0 = sd.start_ns(run)
+    clean, _ = sd.calibrate_runs([run])
+    # fixture log: TP3 at -40 C 15160..15460 s, VP3 at -10 C 22480..22780 s
+    gapped = sd.gap(sd.gap(run, 22600.0, 22661.0), 15300.0, 15361.0)
+    result, _ = sd.calibrate_runs([gapped])
+
+    def rows(r):
+        return [(x.position, x.plateau, round(x.temp_c)) for x in r.rows]
+
+    assert len(rows(clean)) == 24 and rows(result) == rows(clean)
+    assert not sd.same_passport(clean.passport, result.passport)
+    obs, _ = observe_run(gapped)
+    tp3 = [o for o in obs if o.position == "TP3" and o.plateau == 1]
+    assert len(tp3) == 1 and tp3[0].t_start_ns < t0 + 15300 * NS_PER_S < t0 + 15361 * NS_PER_S < tp3[0].t_end_ns
+    (vp3,) = [r for r in result.rows if r.position == "VP3" and round(r.temp_c) == -10]
+    (vp3_clean,) = [r for r in clean.rows if r.position == "VP3" and round(r.temp_c) == -10]
+    assert abs(vp3.dg_method1_g - vp3_clean.dg_method1_g) < 5e-6  # the hold's own noise (a few micro-g)
+    # the segments themselves still stop at the gap
+    seg = segment_run(gapped)
+    lo, hi = t0 + 22600 * NS_PER_S, t0 + 22661 * NS_PER_S
+    assert not [s for s in seg.segments if s.t_start_ns < hi and s.t_end_ns > lo]
+    # a move logged in the gap: two holds, two rows
+    moved = pl.DataFrame(
+        {"t_ns": [t0 + 22620 * NS_PER_S, t0 + 22640 * NS_PER_S], "position": ["MOVING", "VP3"]},
+        schema={"t_ns": pl.Int64, "position": pl.String},
+    )
+    fixture = pl.concat([gapped.fixture, moved]).sort("t_ns")
+    two, _ = sd.calibrate_runs([dataclasses.replace(gapped, fixture=fixture)])
+    assert [r[0] for r in rows(two) if r[2] == -10].count("VP3") == 2
