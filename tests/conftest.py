@@ -68,6 +68,28 @@ def data_path(*parts: str) -> Path:
     return p
 
 
+def run_piece(run, t0_ns: int, t1_ns: int, run_id: str, *, closed: str = "left", **changes):
+    """The samples of every stream of ``run`` between ``t0_ns`` and ``t1_ns`` (ns since the epoch; ``closed`` as
+    polars' ``is_between``: ``"left"`` keeps [t0, t1), ``"both"`` [t0, t1]) as a run of its own named ``run_id``, as
+    a lab records part of a program in a separate file; ``changes`` replace further fields (``fixture=None``,
+    ``source=...``)."""
+    import dataclasses
+
+    import polars as pl
+
+    def cut(df):
+        return None if df is None else df.filter(pl.col("t_ns").is_between(t0_ns, t1_ns, closed=closed))
+
+    fields = {
+        "meta": dataclasses.replace(run.meta, run_id=run_id),
+        "voltmeter": cut(run.voltmeter),
+        "au_temperature": cut(run.au_temperature),
+        "chamber": cut(run.chamber),
+        "fixture": cut(run.fixture),
+    }
+    return dataclasses.replace(run, **{**fields, **changes})
+
+
 def run_in_child(fn, prepare, what: str) -> None:
     """Run ``fn`` in a forked child after ``prepare()`` (e.g. drop privileges, limit file sizes); the child reports
     through its exit code, so a failed assertion in it fails the test (its traceback is printed)."""

@@ -23,23 +23,10 @@ import pytest
 
 from pipeline.io.runs import read_run, write_run
 from pipeline.simulate.chamber import SimConfig, simulate
-from tests.conftest import data_path, run_main
+from tests.conftest import data_path, run_main, run_piece
 
 #: the CATS README's periods (UTC): one orientation each; the files are cut halfway between them
 CATS_PERIODS = [("2021-09-20T09:00", "2021-09-21T10:33"), ("2021-09-21T10:40", "2021-09-22T11:55")]
-
-
-def piece(run, t0_ns: int, t1_ns: int, run_id: str):
-    """The samples of every stream in [t0_ns, t1_ns) as a file of its own (its own run_id)."""
-    cut = lambda df: None if df is None else df.filter((pl.col("t_ns") >= t0_ns) & (pl.col("t_ns") < t1_ns))  # noqa: E731
-    return dataclasses.replace(
-        run,
-        meta=dataclasses.replace(run.meta, run_id=run_id),
-        voltmeter=cut(run.voltmeter),
-        au_temperature=cut(run.au_temperature),
-        chamber=cut(run.chamber),
-        fixture=cut(run.fixture),
-    )
 
 
 def _ns(text: str) -> int:
@@ -55,7 +42,7 @@ def cats_files(tmp_path_factory):
     (a0, a1), (b0, b1) = [(_ns(a), _ns(b)) for a, b in CATS_PERIODS]
     cuts = [0, (a1 + b0) // 2, (b1 + _ns("2021-09-22T12:14")) // 2, 2**62]
     paths = [
-        write_run(piece(whole, cuts[k], cuts[k + 1], f"cats-part-{k + 1}"), d / f"cats-{'zxy'[k]}", "parquet")
+        write_run(run_piece(whole, cuts[k], cuts[k + 1], f"cats-part-{k + 1}"), d / f"cats-{'zxy'[k]}", "parquet")
         for k in range(3)
     ]
     return whole, paths
@@ -113,7 +100,7 @@ def split_short(tmp_path_factory):
     cuts = [0, soak, (tp_m40["t_start_ns"] + tp_m40["t_end_ns"]) // 2, ramp, 2**62]
     whole = write_run(res.run, d / "whole.mcap", "mcap")
     files = [
-        write_run(piece(res.run, cuts[k], cuts[k + 1], f"short-part-{k}"), d / f"part-{k}.mcap", "mcap")
+        write_run(run_piece(res.run, cuts[k], cuts[k + 1], f"short-part-{k}"), d / f"part-{k}.mcap", "mcap")
         for k in range(4)
     ]
     return whole, files
@@ -178,8 +165,8 @@ def test_files_with_other_samples_at_one_time_exit_2(split_short, tmp_path, monk
     run = read_run(files[1])
     t = run.voltmeter["t_ns"].to_numpy()
     other = dataclasses.replace(
-        piece(run, int(t[100]), int(t[-1]) + 1, "another-recording"),
-        voltmeter=piece(run, int(t[100]), int(t[-1]) + 1, "x").voltmeter.with_columns(pl.col("ux") * 1.001),
+        run_piece(run, int(t[100]), int(t[-1]) + 1, "another-recording"),
+        voltmeter=run_piece(run, int(t[100]), int(t[-1]) + 1, "x").voltmeter.with_columns(pl.col("ux") * 1.001),
     )
     clash = write_run(other, tmp_path / "clash.mcap", "mcap")
     reg = tmp_path / "reg"

@@ -5,10 +5,7 @@ the noise allows."""
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
-import polars as pl
 import pytest
 
 from pipeline.apply import apply_passport
@@ -16,24 +13,13 @@ from pipeline.calibrate import scalar
 from pipeline.inspect import describe_recording
 from pipeline.segment import segment_run
 from pipeline.simulate.chamber import SimConfig, simulate
+from tests.conftest import run_piece
 
 pytestmark = pytest.mark.slow  # an end-to-end proof on long or many recordings
 
 RATE_HZ = 100.0
 NOISE_V = 5e-6
 GAIN_V_PER_G = 0.55
-
-
-def _part(run, t0_ns: int, t1_ns: int, run_id: str):
-    cut = lambda df: None if df is None else df.filter(pl.col("t_ns").is_between(t0_ns, t1_ns))  # noqa: E731
-    return dataclasses.replace(
-        run,
-        meta=dataclasses.replace(run.meta, run_id=run_id),
-        voltmeter=cut(run.voltmeter),
-        au_temperature=cut(run.au_temperature),
-        chamber=cut(run.chamber),
-        fixture=None,
-    )
 
 
 @pytest.fixture(scope="module")
@@ -44,7 +30,8 @@ def recording():
     run = res.run
     t = run.t_ns()
     mid = int(t[0] + (t[-1] - t[0]) // 2)
-    return res, _part(run, int(t[0]), mid, "first-half"), _part(run, mid + 1, int(t[-1]), "second-half")
+    first = run_piece(run, int(t[0]), mid, "first-half", closed="both", fixture=None)
+    return res, first, run_piece(run, mid + 1, int(t[-1]), "second-half", closed="both", fixture=None)
 
 
 def test_poses_found_and_scalar_supported(recording):

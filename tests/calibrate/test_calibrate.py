@@ -18,7 +18,7 @@ from pipeline.calibrate.tilt import CalibrationSettings, fit_unit, observe_run, 
 from pipeline.io.runs import read_run, write_run
 from pipeline.simulate.chamber import SimConfig, simulate
 from pipeline.simulate.unit import UnitTruth
-from tests.conftest import REPO, data_path
+from tests.conftest import REPO, data_path, run_piece
 
 T0 = 20.0
 
@@ -169,23 +169,6 @@ def test_cli_calibrate_json_and_idempotence(tmp_path):
     assert bad.returncode != 0 and len(bad.stderr.strip().splitlines()) == 1 and "nope.mcap" in bad.stderr
 
 
-def _slice_run(run, t0_ns: int, t1_ns: int, run_id: str):
-    """A recording of part of the program (as a lab makes a separate VP-only run)."""
-    import dataclasses
-
-    import polars as pl
-
-    cut = lambda df: None if df is None else df.filter(pl.col("t_ns").is_between(t0_ns, t1_ns))  # noqa: E731
-    return dataclasses.replace(
-        run,
-        meta=dataclasses.replace(run.meta, run_id=run_id),
-        voltmeter=cut(run.voltmeter),
-        au_temperature=cut(run.au_temperature),
-        chamber=cut(run.chamber),
-        fixture=cut(run.fixture),
-    )
-
-
 @pytest.mark.slow  # the Prefect flow
 def test_vp_only_run_verifies_tp_run(tmp_path):
     """Separate recordings of one unit: TP plateaus (+20, -40 C; +70, +20 C) in two, VP plateaus (-10 C; +45 C)
@@ -200,14 +183,16 @@ def test_vp_only_run_verifies_tp_run(tmp_path):
     tp_m40_end = max(h["t_end_ns"] for h in holds if h["setpoint_c"] == -40.0)
     tp_70 = [h for h in holds if h["setpoint_c"] == 70.0 and h["position"].startswith("TP")]
     # TP run: +20 and -40 C; then the +70 C plateau through the end (+20 C again); VP run: -10 C ... +45 C
-    tp_a = _slice_run(res.run, t_start, tp_m40_end, "tp-part-a")
-    tp_b = _slice_run(res.run, min(h["t_start_ns"] for h in tp_70) - 1_200_000_000_000, 2**62, "tp-part-b")
+    tp_a = run_piece(res.run, t_start, tp_m40_end, "tp-part-a", closed="both")
+    tp_70_from_ns = min(h["t_start_ns"] for h in tp_70) - 1_200_000_000_000
+    tp_b = run_piece(res.run, tp_70_from_ns, 2**62, "tp-part-b", closed="both")
     vp = [
-        _slice_run(
+        run_piece(
             res.run,
             min(h["t_start_ns"] for h in hs) - 1_200_000_000_000,
             max(h["t_end_ns"] for h in hs),
             f"vp-only-{k}",
+            closed="both",
         )
         for k, hs in enumerate((vp_m10, vp_45))
     ]

@@ -13,6 +13,7 @@ from pipeline.calibrate.inputs import RunInput, folder_warning, is_prefix_of, re
 from pipeline.io.runs import read_run, write_run
 from pipeline.simulate.chamber import SimConfig
 from pipeline.simulate.large import simulate_run
+from tests.conftest import run_piece
 
 
 @pytest.fixture(scope="module")
@@ -83,22 +84,6 @@ def test_folder_name_naming_another_unit_warns(path, serial, warns):
 # several files of one unit are one recording (issue 21, item 3)
 
 
-def _piece(run, t0_ns: int, t1_ns: int, run_id: str):
-    """The samples of every stream in [t0_ns, t1_ns) as a run of its own (a file of the recording)."""
-    import polars as pl
-
-    cut = lambda df: None if df is None else df.filter((pl.col("t_ns") >= t0_ns) & (pl.col("t_ns") < t1_ns))  # noqa: E731
-    return replace(
-        run,
-        meta=replace(run.meta, run_id=run_id),
-        voltmeter=cut(run.voltmeter),
-        au_temperature=cut(run.au_temperature),
-        chamber=cut(run.chamber),
-        fixture=cut(run.fixture),
-        source=f"{run_id}.mcap",
-    )
-
-
 @pytest.fixture(scope="module")
 def small_run():
     """Ten minutes of the short program at 2 Hz: every stream, a fixture log."""
@@ -134,7 +119,7 @@ def test_files_of_one_recording_join_into_the_whole_run(small_run, cuts, overlap
     bounds = [int(t[0])] + edges + [int(t[-1]) + 1]
     bounds = [b for k, b in enumerate(bounds) if k == 0 or b > bounds[k - 1]]
     pieces = [
-        _piece(small_run, a - (int(overlap_s * 1e9) if k else 0), b, f"part-{k}")
+        run_piece(small_run, a - (int(overlap_s * 1e9) if k else 0), b, f"part-{k}", source=f"part-{k}.mcap")
         for k, (a, b) in enumerate(zip(bounds[:-1], bounds[1:]))
     ]
     pieces = [p for p in pieces if p.voltmeter.height]
@@ -163,8 +148,8 @@ def test_two_files_with_other_samples_at_one_time_are_refused(small_run):
     from pipeline.errors import CalibrationError
 
     t = small_run.voltmeter["t_ns"].to_numpy()
-    a = _piece(small_run, int(t[0]), int(t[600]), "a")
-    b = _piece(small_run, int(t[500]), int(t[-1]) + 1, "b")
+    a = run_piece(small_run, int(t[0]), int(t[600]), "a", source="a.mcap")
+    b = run_piece(small_run, int(t[500]), int(t[-1]) + 1, "b", source="b.mcap")
     b = replace(b, voltmeter=b.voltmeter.with_columns(pl.col("uz") + 1e-6))
     with pytest.raises(CalibrationError) as info:
         join_runs([b, a])
@@ -181,8 +166,8 @@ def test_files_of_one_recording_agree_on_how_it_is_calibrated(small_run):
     from pipeline.errors import CalibrationError
 
     t = small_run.voltmeter["t_ns"].to_numpy()
-    a = _piece(small_run, int(t[0]), int(t[600]), "a")
-    b = _piece(small_run, int(t[600]), int(t[-1]) + 1, "b")
+    a = run_piece(small_run, int(t[0]), int(t[600]), "a", source="a.mcap")
+    b = run_piece(small_run, int(t[600]), int(t[-1]) + 1, "b", source="b.mcap")
     with pytest.raises(CalibrationError, match="disagree on 'normal_temp_c'.*a.mcap: 20.0, b.mcap: 25.0"):
         join_runs([a, replace(b, meta=replace(b.meta, normal_temp_c=25.0))])
     with pytest.raises(CalibrationError, match="disagree on 'unit_grade'"):
