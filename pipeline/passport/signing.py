@@ -115,45 +115,43 @@ def check_key_folder(folder: str | os.PathLike | None = None) -> None:
     file in it can be written by another user, is owned by another user, or the private key can be read by
     others. A folder that does not exist yet passes (it is created private)."""
     d = _folder(folder)
-    uid = os.geteuid() if hasattr(os, "geteuid") else None
-    for path, is_dir in ((d, True), (d / TRUSTED_DIR, True), (d / RETIRED_DIR, True)):
-        try:
-            st = path.stat()
-        except (FileNotFoundError, NotADirectoryError):
-            continue
-        except OSError as exc:
-            raise RegistryError(f"cannot read the key folder ({exc.strerror})", path=str(path)) from None
-        if is_dir and not stat.S_ISDIR(st.st_mode):
-            raise RegistryError("the key folder is not a directory", path=str(path))
-        mode = stat.S_IMODE(st.st_mode)
-        if uid is not None and st.st_uid != uid:
-            raise _refuse(
-                path, f"the key folder is owned by user id {st.st_uid}, not by you", "use a folder of your own"
-            )
-        if mode & 0o022:
-            raise _refuse(path, f"the key folder is writable by others (mode {mode:04o})", f"run chmod 700 '{path}'")
+    for path in (d, d / TRUSTED_DIR, d / RETIRED_DIR):
+        _own_mode(path, "folder")
     files = [d / PRIVATE_NAME, d / PUBLIC_NAME]
     with contextlib.suppress(OSError):
         files += sorted((d / TRUSTED_DIR).glob("*.pub"))
     for f in files:
-        try:
-            st = f.stat()
-        except (FileNotFoundError, NotADirectoryError):
-            continue
-        except OSError as exc:
-            raise RegistryError(f"cannot read the key file ({exc.strerror})", path=str(f)) from None
-        mode = stat.S_IMODE(st.st_mode)
-        if uid is not None and st.st_uid != uid:
-            raise _refuse(f, f"the key file is owned by user id {st.st_uid}, not by you", "use a key of your own")
-        if mode & 0o022:
-            raise _refuse(f, f"the key file is writable by others (mode {mode:04o})", f"run chmod 600 '{f}'")
-        if f.name == PRIVATE_NAME and mode & 0o077:
+        mode = _own_mode(f, "file")
+        if mode is not None and f.name == PRIVATE_NAME and mode & 0o077:
             raise RegistryError(
                 f"this station's private key is readable by others (mode {mode:04o}): anyone who reads it can sign "
                 f"as this station; run chmod 600 '{f}' (and rotate the key if others may have read it: "
                 "'thermocal key rotate')",
                 path=str(f),
             )
+
+
+def _own_mode(path: Path, kind: str) -> int | None:
+    """The permission bits of the key ``kind`` (``folder`` or ``file``) at ``path``, None if it does not exist;
+    RegistryError when it cannot be read, a folder is not a directory, or it is owned by another user or writable
+    by others."""
+    try:
+        st = path.stat()
+    except (FileNotFoundError, NotADirectoryError):
+        return None
+    except OSError as exc:
+        raise RegistryError(f"cannot read the key {kind} ({exc.strerror})", path=str(path)) from None
+    if kind == "folder" and not stat.S_ISDIR(st.st_mode):
+        raise RegistryError("the key folder is not a directory", path=str(path))
+    mode = stat.S_IMODE(st.st_mode)
+    uid = os.geteuid() if hasattr(os, "geteuid") else None
+    if uid is not None and st.st_uid != uid:
+        fix = "use a folder of your own" if kind == "folder" else "use a key of your own"
+        raise _refuse(path, f"the key {kind} is owned by user id {st.st_uid}, not by you", fix)
+    if mode & 0o022:
+        chmod = "700" if kind == "folder" else "600"
+        raise _refuse(path, f"the key {kind} is writable by others (mode {mode:04o})", f"run chmod {chmod} '{path}'")
+    return mode
 
 
 # ---------------------------------------------------------------------------------------------------------------
