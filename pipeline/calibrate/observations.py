@@ -26,7 +26,7 @@ from pipeline.errors import CalibrationError
 from pipeline.plausibility import IMPLAUSIBLE, mirrored_axis
 from pipeline.positions import gravity_vector_g, is_test_position, is_verification_position
 from pipeline.run import RunMeta
-from pipeline.segment import SegmentSettings, segment_run
+from pipeline.segment import SegmentSettings, StaticSegment, segment_run
 from pipeline.verify import Tolerances, VerificationRow, overall_status, verify_positions
 
 
@@ -70,17 +70,17 @@ def observations_from_segmentation(run_id: str, segmentation, source: str = "") 
     (:attr:`pipeline.segment.StaticSegment.continues`) are one observation: their samples pooled (means weighted by
     their counts, the spread about the pooled mean), spanning the first piece's start to the last one's end."""
     out: list[Observation] = []
-    resolution_v = tuple(getattr(segmentation, "resolution_v", (0.0, 0.0, 0.0)))
+    resolution_v = tuple(segmentation.resolution_v)
     made: dict[int, int] = {}  # segment index -> index in ``out`` of its observation
     for s in segmentation.segments:
         if s.position is None or s.count == 0:
             continue
-        joined = made.get(s.continues) if getattr(s, "continues", None) is not None else None
+        joined = made.get(s.continues) if s.continues is not None else None
         if joined is not None:
             out[joined] = _pooled(out[joined], s)
             made[s.index] = joined
             continue
-        settling = s.plateau is None and getattr(s, "settling", None) is not None
+        settling = s.plateau is None and s.settling is not None
         if s.plateau is None and not settling and not is_verification_position(s.position):
             continue
         out.append(
@@ -103,7 +103,7 @@ def observations_from_segmentation(run_id: str, segmentation, source: str = "") 
     return out
 
 
-def _pooled(o: Observation, s) -> Observation:
+def _pooled(o: Observation, s: StaticSegment) -> Observation:
     """Observation ``o`` with the samples of segment ``s`` (a later piece of the same hold) pooled into it."""
     n1, n2 = o.count, int(s.count)
     m1, m2 = np.asarray(o.u_v), np.asarray(s.mean_v)
