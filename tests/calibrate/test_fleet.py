@@ -20,7 +20,7 @@ from pipeline.errors import RunFormatError, ThermocalError
 from pipeline.io.runs import read_run, write_run
 from pipeline.simulate.chamber import SimConfig, simulate
 from pipeline.simulate.unit import UnitTruth
-from tests.calibrate.test_calibrate import _slice_run
+from tests.conftest import run_piece
 
 pytestmark = pytest.mark.slow  # fleet flows on Prefect and a dask cluster
 
@@ -65,19 +65,21 @@ def fleet(tmp_path_factory):
     t_start = c.run.voltmeter["t_ns"][0]
     tp_m40_end = max(h["t_end_ns"] for h in holds if h["setpoint_c"] == -40.0)
     tp_70_start = min(h["t_start_ns"] for h in holds if h["setpoint_c"] == 70.0 and h["position"].startswith("TP"))
-    write_run(_slice_run(c.run, t_start, tp_m40_end, "AU-0203-tp-a"), inbox / "ch1" / "AU-0203-tp-a.mcap", "mcap")
+    tp_a = run_piece(c.run, t_start, tp_m40_end, "AU-0203-tp-a", closed="both")
+    write_run(tp_a, inbox / "ch1" / "AU-0203-tp-a.mcap", "mcap")
     write_run(
-        _slice_run(c.run, tp_70_start - 1_200_000_000_000, 2**62, "AU-0203-tp-b"),
+        run_piece(c.run, tp_70_start - 1_200_000_000_000, 2**62, "AU-0203-tp-b", closed="both"),
         inbox / "ch1" / "AU-0203-tp-b.mcap",
         "mcap",
     )
     for k, sp in enumerate((-10.0, 45.0)):
         hs = [h for h in holds if h["position"].startswith("VP") and h["setpoint_c"] == sp]
-        vp = _slice_run(
+        vp = run_piece(
             c.run,
             min(h["t_start_ns"] for h in hs) - 1_200_000_000_000,
             max(h["t_end_ns"] for h in hs),
             f"AU-0203-vp-{k}",
+            closed="both",
         )
         write_run(vp, later / f"AU-0203-vp-{k}", "parquet")
     # AU-0204: a good run and a second run whose data is corrupt (its metadata is fine: it is grouped with AU-0204)
