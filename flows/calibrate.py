@@ -24,7 +24,9 @@ several is one recording of them (``join_runs``), segmented as such.
 
 from __future__ import annotations
 
+import contextlib
 import os
+from concurrent.futures import ThreadPoolExecutor
 from typing import TypeVar, cast
 
 from .runtime import Steps, prefect_defaults
@@ -36,6 +38,7 @@ from prefect.artifacts import create_markdown_artifact  # noqa: E402
 from prefect.cache_policies import NO_CACHE  # noqa: E402  (no input hashing: a Run is large and never reused)
 from prefect.utilities.annotations import opaque  # noqa: E402
 
+from pipeline.calibrate.figure_worker import FigureWorker  # noqa: E402
 from pipeline.calibrate.inputs import join_runs, select_runs  # noqa: E402
 from pipeline.calibrate.methods import by_name, default_base_passport, resolve_auto  # noqa: E402
 from pipeline.calibrate.observations import ObservedRun, unit_of  # noqa: E402
@@ -46,6 +49,7 @@ from pipeline.errors import ThermocalError  # noqa: E402
 from pipeline.io import runs as runio  # noqa: E402
 from pipeline.passport.canonical import canonical_json  # noqa: E402
 from pipeline.passport.document import Passport, load_passport  # noqa: E402
+from pipeline.passport.provenance import hash_run  # noqa: E402
 from pipeline.passport.registry import Registry  # noqa: E402
 from pipeline.run import Run, UnitRuns  # noqa: E402
 from pipeline.segment import Segmentation  # noqa: E402
@@ -122,6 +126,7 @@ def write(
     dry_run: bool = False,
     digests: dict | None = None,
     within: dict | None = None,
+    draw=None,
 ) -> dict:
     return publish(
         registry,
@@ -132,6 +137,7 @@ def write(
         input_digests=digests,
         input_units=within,
         dry_run=dry_run,
+        draw=draw,
     )
 
 
@@ -173,34 +179,54 @@ def calibrate_flow(
         by_name(method)  # an unknown method fails before any run is read
     base = None if base_passport is None else load_passport(base_passport)  # the document a parameter, typed once
     read = []
-    for p in paths:
-        step(f"ingest {os.path.basename(p)}")
-        read.append(ingest(p, units))
+    hashing = ThreadPoolExecutor(1)  # the files hashed while they are read (hashlib lets go of the GIL)
+    try:
+        hashed = {p: hashing.submit(hash_run, p) for p in paths}
+        for p in paths:
+            step(f"ingest {os.path.basename(p)}")
+            read.append(ingest(p, units))
+        digests = {p: f.result() for p, f in hashed.items()}
+    finally:
+        hashing.shutdown(wait=False, cancel_futures=True)
     if any(r.several for r in read):
-        return calibrate_units(paths, read, registry, settings, method, base, dry_run, step)
-    result = _calibrate_unit([r.one() for r in read], list(paths), registry, settings, method, base, dry_run, step)
+        return calibrate_units(paths, read, registry, settings, method, base, dry_run, step, digests)
+    result = _calibrate_unit(
+        [r.one() for r in read], list(paths), registry, settings, method, base, dry_run, step, digests=digests
+    )
     if not dry_run:
         record_head(registry)
     return result
 
 
-def calibrate_units(paths, read, registry, settings, method, base, dry_run, step) -> dict:
+def calibrate_units(paths, read, registry, settings, method, base, dry_run, step, digests) -> dict:
     """The runs ``read`` (:class:`pipeline.run.UnitRuns`, one per path) of which some hold several units: each
     unit calibrated from its runs (segmented once per run with several units), one after the other, the samples of
     a unit let go once it is observed. Returns ``{"units": [the calibrate object of each unit], "failed": [{"unit",
     "run", "reason"}]}`` (contract.md): a unit that failed its input checks or its calibration is listed with its
-    one-line reason and the others go on."""
-    from pipeline.passport.provenance import hash_run
-
-    logger = get_run_logger()
+    one-line reason and the others go on. ``digests``: each path's :func:`pipeline.passport.provenance.hash_run`
+    (a file hashed once, not once per unit). With two units or more to write, their figures are drawn in a second
+    process while the next unit is calibrated (:class:`pipeline.calibrate.figure_worker.FigureWorker`)."""
     failed: list[dict] = []
+    several = len({serial for got in read for serial in got.units}) > 1 and not dry_run
+    figures = FigureWorker() if several else None
+    with figures or contextlib.nullcontext():  # started first: its imports while the run is segmented
+        results = _each_unit(paths, read, registry, settings, method, base, dry_run, step, digests, failed, figures)
+    if figures is not None:
+        results = figures.results(results)
+    if not dry_run:
+        record_head(registry)
+    return {"units": results, "failed": failed}
+
+
+def _each_unit(paths, read, registry, settings, method, base, dry_run, step, digests, failed, draw) -> list[dict]:
+    """:func:`calibrate_units`' work: the runs segmented, then each unit calibrated (``failed`` takes the units that
+    failed); ``draw``: publish's (the figures drawn elsewhere), or None."""
+    logger = get_run_logger()
     by_unit: dict[str, list] = {}  # serial -> [(path, UnitRuns, segmentation or None)]
-    digests = {}
     for p, got in zip(paths, read):
         failed += [{"unit": u, "run": p, "reason": why} for u, why in got.failed.items()]
         segs: dict = {}
         if got.several:
-            digests[p] = hash_run(p)  # once for the file, not once per unit
             if len(got.units) > 1:
                 step(f"segment {len(got.units)} units of {os.path.basename(p)} (still times once for the run)")
                 segs, run_warnings = segment(_whole(got.units), settings)
@@ -227,15 +253,14 @@ def calibrate_units(paths, read, registry, settings, method, base, dry_run, step
                     digests=digests,
                     within=within,
                     release=lambda serial=serial, items=items: [got.units.pop(serial, None) for _, got, _ in items],
+                    draw=draw,
                 )
             )
         except ThermocalError as e:
             failed.append({"unit": serial, "reason": e.one_line()})
             logger.warning(e.one_line())
         del runs
-    if not dry_run:
-        record_head(registry)
-    return {"units": results, "failed": failed}
+    return results
 
 
 def _calibrate_unit(
@@ -251,9 +276,11 @@ def _calibrate_unit(
     digests=None,
     within: dict | None = None,
     release=None,
+    draw=None,
 ) -> dict:
     """One unit from its runs (one per path; ``segmentations``: each run's, where already made): select, choose,
-    observe, fit, write; ``release()`` is called once the samples are no longer needed."""
+    observe, fit, write; ``release()`` is called once the samples are no longer needed; ``draw``: publish's, for
+    figures drawn elsewhere."""
     logger = get_run_logger()
     segmentations = segmentations or [None] * len(runs)
     seg_of = {id(r): seg for r, seg in zip(runs, segmentations)}
@@ -286,7 +313,7 @@ def _calibrate_unit(
     for w in calibration.warnings:
         logger.warning(w)
     step("write" if not dry_run else "dry run (nothing written)")
-    result = write(registry, _whole(calibration), list(paths), settings, dry_run, digests, within)
+    result = write(registry, _whole(calibration), list(paths), settings, dry_run, digests, within, draw)
     create_markdown_artifact(
         key=_artifact_key(unit), markdown=result_markdown(result), description=f"thermocal calibration of {unit}"
     )

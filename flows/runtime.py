@@ -193,8 +193,12 @@ def exit_guarded(body) -> None:
     quiet.__enter__()
     if not os.environ.get("THERMOCAL_DEBUG"):
         warnings.simplefilter("ignore")
+    lost = _LostInterrupts(sys.unraisablehook)
+    sys.unraisablehook = lost
     try:
         code = body()
+        if lost.count:  # the interrupt was swallowed and its repeat came too late: still the user's Ctrl-C
+            raise KeyboardInterrupt
     except ThermocalError as e:
         print(f"thermocal: error: {printable(e.one_line(), lines=False)}", file=sys.stderr)
         code = 2
@@ -210,6 +214,39 @@ def exit_guarded(body) -> None:
         print(f"thermocal: internal error: {type(e).__name__}: {text}", file=sys.stderr)
         code = 3
     finally:
+        sys.unraisablehook = lost.hook
         sys.stdout = stdout
         quiet.__exit__(None, None, None)
     sys.exit(code)
+
+
+#: seconds after a Ctrl-C swallowed by a finaliser that it is raised again (:class:`_LostInterrupts`)
+_INTERRUPT_AGAIN_S = 0.05
+
+
+class _LostInterrupts:
+    """``sys.unraisablehook`` while a command runs: Ctrl-C (``KeyboardInterrupt``) that lands while Python runs a
+    finaliser (a ``__del__``, a weakref callback, a generator closed by the garbage collector) cannot propagate,
+    and Python would print "Exception ignored in ..." and go on as if nothing happened: the command would end 0
+    with a traceback on stderr. Here it is counted and the signal raised again, so the interrupt reaches the
+    command's own code (:func:`exit_guarded`: ``thermocal: aborted``, 130). Any other unraisable exception goes to
+    the previous hook (``hook``) as before."""
+
+    def __init__(self, hook) -> None:
+        self.hook = hook
+        self.count = 0
+
+    def __call__(self, unraisable) -> None:
+        import _thread
+        import threading
+
+        if not isinstance(unraisable.exc_value, KeyboardInterrupt):
+            self.hook(unraisable)
+            return
+        self.count += 1
+        # raised again a moment later from another thread, once this finaliser is over (raised from here, its
+        # handler would run at once, inside the finaliser again); lost again, it comes back again
+        again = threading.Timer(_INTERRUPT_AGAIN_S, _thread.interrupt_main)
+        again.daemon = True
+        with contextlib.suppress(RuntimeError):  # no new thread while the interpreter shuts down
+            again.start()

@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import contextlib
 import os
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 
 from pipeline.calibrate.result import CalibrationResult
@@ -62,6 +63,7 @@ def publish(
     input_digests: Mapping[str, RunDigest] | None = None,
     input_units: Mapping[str, dict] | None = None,
     dry_run: bool = False,
+    draw: Callable[[FigureJob], object] | None = None,
 ) -> dict:
     """Publish a calibration of any method as a new version (or find the identical existing one: same input hashes,
     same settings, same method) and, for a new version, write ``<passport>.png`` with the VP errors before and after
@@ -77,7 +79,12 @@ def publish(
 
     ``dry_run`` (``calibrate --dry-run``): nothing is written (no version, no figure); the result says which
     version would be written (``version``) or which existing one has the same inputs and settings
-    (``existing``: true), with ``dry_run``: true and the passport's content (``passport_content``)."""
+    (``existing``: true), with ``dry_run``: true and the passport's content (``passport_content``).
+
+    ``draw``: given, each figure to draw is handed to it as a :class:`FigureJob` (for :func:`draw_figure` elsewhere,
+    e.g. :class:`pipeline.calibrate.figure_worker.FigureWorker`'s second process while the next unit is calibrated)
+    and the result names the figure's path; the caller drops a path whose figure was not made
+    (:func:`drop_missing_figures`). The passport is the same either way."""
     known, within = input_digests or {}, input_units or {}
     notes = {str(Path(src).resolve()): v for src, v in result.input_notes.items()}
     inputs = [
@@ -108,32 +115,61 @@ def publish(
     )
     out = calibration_json(result, published)
     out["method"] = result.method
-    from pipeline.plots import plot_constants, plot_verification
-
     passport_path = Path(published.path)
-    fig = _figure(
-        passport_path.with_suffix(".png"),
-        figure,
-        published.created,
-        lambda tmp: plot_verification(
-            result.rows, tmp, title=f"{result.unit} v{published.version}: VP gravity-module error"
-        ),
-    )
-    out["figure"] = fig
+    whole = passport_path.absolute()  # a job may be drawn by a process in another folder
+    title = f"{result.unit} v{published.version}"
+    jobs = {"figure": FigureJob(str(whole.with_suffix(".png")), "verification", title, rows=tuple(result.rows))}
     if constants_figure:
-        out["constants_figure"] = _figure(
-            passport_path.with_suffix(".constants.png"),
-            True,
-            published.created,
-            lambda tmp: plot_constants(
-                load_passport(passport_path),
-                tmp,
-                title=f"{result.unit} v{published.version}: constants per plateau against "
-                "temperature, thermal model and residuals",
-            ),
+        jobs["constants_figure"] = FigureJob(
+            str(whole.with_suffix(".constants.png")), "constants", title, passport=str(whole)
         )
+    for (key, job), suffix in zip(jobs.items(), (".png", ".constants.png")):
+        path, wanted = passport_path.with_suffix(suffix), figure or key == "constants_figure"
+        if draw is not None and wanted and (published.created or not path.exists()):
+            draw(job)
+            out[key] = str(path)
+        else:
+            out[key] = _figure(path, wanted, published.created, job.draw)
     out["warnings"] = list(result.warnings)
     return out
+
+
+@dataclass(frozen=True)
+class FigureJob:
+    """A figure beside a published passport: ``path`` (``<passport>.png``, the VP errors of ``rows``; or
+    ``<passport>.constants.png``, the constants of the ``passport`` at that path) and the start of its title (unit
+    and version). Picklable, for :func:`draw_figure` in another process."""
+
+    path: str
+    kind: str  # "verification" | "constants"
+    title: str
+    rows: tuple = ()
+    passport: str = ""
+
+    def draw(self, tmp: Path) -> None:
+        from pipeline.plots import plot_constants, plot_verification
+
+        if self.kind == "verification":
+            plot_verification(list(self.rows), tmp, title=f"{self.title}: VP gravity-module error")
+        else:
+            plot_constants(
+                load_passport(Path(self.passport)),
+                tmp,
+                title=f"{self.title}: constants per plateau against temperature, thermal model and residuals",
+            )
+
+
+def draw_figure(job: FigureJob) -> str | None:
+    """Draw ``job``'s figure (as :func:`publish` does for a new version); its path, or None when it was not made."""
+    return _figure(Path(job.path), True, True, job.draw)
+
+
+def drop_missing_figures(result: dict) -> dict:
+    """``result`` (:func:`publish`'s, with ``draw``) without the figure paths whose figures were not made."""
+    for key in ("figure", "constants_figure"):
+        if result.get(key) and not Path(result[key]).exists():
+            result[key] = None
+    return result
 
 
 def _figure(path: Path, wanted: bool, redraw: bool, draw) -> str | None:

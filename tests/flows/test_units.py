@@ -79,6 +79,9 @@ def test_calibrate_gives_one_passport_per_unit_and_bad_units_fail_alone(chamber)
     assert len(ours) == 2 and all("\n" not in x for x in ours)
     for u in r["units"]:
         _check_constants(u, truths)
+        for key, suffix in (("figure", ".png"), ("constants_figure", ".constants.png")):  # drawn in a second process
+            assert u[key] == str(Path(u["passport"]).with_suffix(suffix))
+            assert Path(u[key]).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
         inputs = json.loads(Path(u["passport"]).read_text())["provenance"]["inputs"]
         assert inputs == [
             {
@@ -141,3 +144,60 @@ def test_inspect_lists_each_unit_and_diagnose_one(chamber):
     r = json.loads(p.stdout)
     assert r["verdict"] == "consistent"
     assert (out / "chamber4.AU-0304.diagnose.png").exists()
+
+
+def _state(pid: int | str) -> tuple[str, bytes, bytes] | None:
+    """A process's state letter, command line and environment; None when it is gone."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+        return state, Path(f"/proc/{pid}/cmdline").read_bytes(), Path(f"/proc/{pid}/environ").read_bytes()
+    except (OSError, IndexError):
+        return None
+
+
+def _alive(pid: int) -> bool:
+    return (s := _state(pid)) is not None and s[0] != "Z"
+
+
+def _figure_workers(mark: str) -> list[int]:
+    """The live figure worker processes (pipeline.calibrate.figure_worker) whose environment holds ``mark``."""
+    found = []
+    for proc in Path("/proc").glob("[0-9]*"):
+        s = _state(proc.name)
+        if s and s[0] != "Z" and b"pipeline.calibrate.figure_worker" in s[1] and mark.encode() in s[2].split(b"\0"):
+            found.append(int(proc.name))
+    return found
+
+
+def test_ctrl_c_leaves_no_figure_worker(chamber):
+    """calibrate of a run with several units draws its figures in a second process (started by the command's job
+    process, flows.jobserver); Ctrl-C while it lives ends it with the command."""
+    import signal
+    import time
+    import uuid
+
+    d, mcap, _, _ = chamber
+    mark = f"THERMOCAL_TEST_MARK={uuid.uuid4()}"  # passed on to the job process and the worker it starts
+    cli = subprocess.Popen(
+        [EXE, "calibrate", str(mcap), "--registry", str(d / "reg-int"), "--json"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        env={**os.environ, mark.split("=")[0]: mark.split("=")[1]},
+    )
+    try:
+        workers: list[int] = []
+        while not workers and cli.poll() is None:
+            workers = _figure_workers(mark)
+            time.sleep(0.01)
+        assert workers, "no figure worker seen while calibrate ran"
+        cli.send_signal(signal.SIGINT)
+        _, err = cli.communicate(timeout=120)
+        assert cli.returncode == 130 and "thermocal: aborted" in err.decode()
+        deadline = time.monotonic() + 10  # an orphan would live on: give it the time to show
+        while any(_alive(w) for w in workers) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not [w for w in workers if _alive(w)]
+    finally:
+        if cli.poll() is None:
+            cli.kill()
+            cli.wait()

@@ -1,0 +1,104 @@
+"""The figures of a run with several units drawn in a second process (pipeline.calibrate.figure_worker): the same
+PNG bytes as drawn inline, drawn inline when the worker cannot start, and no worker left alive after the caller ends,
+fails or is interrupted."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.calibrate.figure_worker import FigureWorker
+from pipeline.calibrate.publish import FigureJob, draw_figure
+from pipeline.passport.document import SCHEMA_ID
+from pipeline.thermal import fit_thermal_model
+from pipeline.verify import VerificationRow
+
+
+def alive(pid: int) -> bool:
+    """The process ``pid`` exists and is not a zombie."""
+    stat = Path(f"/proc/{pid}/stat")
+    try:
+        return stat.read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def _jobs(folder: Path) -> list[FigureJob]:
+    """A verification figure and a constants figure (a passport of five plateaus on a quadratic model)."""
+    temps = np.array([-40.0, -10.0, 20.0, 45.0, 70.0])
+    K0 = np.diag([0.55, 0.548, 0.548])
+    K = np.array([K0 * (1 + 1e-5 * (t - 20) + 3e-8 * (t - 20) ** 2) for t in temps])
+    U0 = np.array([[1e-3 + 2e-5 * (t - 20), 5e-4, 4e-4] for t in temps])
+    model = fit_thermal_model(temps, K, U0, "poly2", 20.0, 3.0)
+    passport = folder / "v0001.json"
+    passport.write_text(
+        json.dumps(
+            {
+                "schema": SCHEMA_ID,
+                "coefficients": {"K": np.asarray(model.K0).tolist(), "U0": np.asarray(model.U00).tolist()},
+                "normal_temp_c": 20.0,
+                "thermal_model": model.to_dict(),
+                "per_plateau": [{"temp_c": t, "K": k.tolist(), "U0": u.tolist()} for t, k, u in zip(temps, K, U0)],
+            }
+        )
+    )
+    rows = tuple(
+        VerificationRow(
+            temp_c=t,
+            position=pos,
+            run_id="r",
+            t_start_ns=k,
+            t_end_ns=k + 1,
+            dg_uncompensated_g=(k + 1) * 1e-4,
+            dg_method1_g=(k + 1) * 1e-6,
+            dg_method2_g=(k + 2) * 1e-6,
+            dg_method2_simplified_g=0.0,
+            tolerance_g=1e-4,
+            passed=True,
+        )
+        for k, (t, pos) in enumerate([(-10.0, "VP1"), (-10.0, "VP2"), (45.0, "VP1"), (45.0, "VP2")])
+    )
+    return [
+        FigureJob(str(folder / "v0001.png"), "verification", "AU-0001 v1", rows=rows),
+        FigureJob(str(folder / "v0001.constants.png"), "constants", "AU-0001 v1", passport=str(passport)),
+    ]
+
+
+def test_worker_draws_the_inline_figures_and_ends(tmp_path):
+    (tmp_path / "worker").mkdir()
+    (tmp_path / "inline").mkdir()
+    inline = _jobs(tmp_path / "inline")
+    for job in inline:
+        draw_figure(job)
+    with FigureWorker() as draw:
+        assert len(draw.pids) == 2 and all(alive(pid) for pid in draw.pids)
+        for job in _jobs(tmp_path / "worker"):
+            draw(job)
+    assert not any(alive(pid) for pid in draw.pids)
+    for job, ref in zip(draw.jobs, inline):
+        assert Path(job.path).read_bytes() == Path(ref.path).read_bytes()
+    assert sorted(p.name for p in (tmp_path / "worker").iterdir()) == ["v0001.constants.png", "v0001.json", "v0001.png"]
+    result = {"figure": draw.jobs[0].path, "constants_figure": str(tmp_path / "gone.png")}
+    assert draw.results([result]) == [{"figure": draw.jobs[0].path, "constants_figure": None}]
+
+
+def test_figures_drawn_here_when_the_worker_cannot_start(tmp_path, monkeypatch):
+    monkeypatch.setattr(sys, "executable", str(tmp_path / "no-python"))
+    with FigureWorker() as draw:
+        assert draw.pids == []
+        for job in _jobs(tmp_path):
+            draw(job)
+    assert all(Path(job.path).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for job in draw.jobs)
+
+
+@pytest.mark.parametrize("error", [RuntimeError, KeyboardInterrupt])
+def test_no_worker_left_when_the_caller_fails_or_is_interrupted(tmp_path, error):
+    with pytest.raises(error), FigureWorker() as draw:
+        for job in _jobs(tmp_path):
+            draw(job)
+        raise error("stopped")
+    assert len(draw.pids) == 2 and not any(alive(pid) for pid in draw.pids)
