@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -190,36 +191,33 @@ def constant_changes(K: np.ndarray, U0: np.ndarray, K0: np.ndarray, U00: np.ndar
 
 
 def plot_constants(passport: Passport | dict, path: str | Path, *, title: str = "") -> Path:
-    """:func:`constants_figure` written to ``path`` (PNG)."""
+    """:func:`constants_figure` written to ``path`` (PNG), drawn in this thread's figure (:class:`_ConstantsFrame`,
+    made once per thread and filled again for each passport)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
 
-    fig = constants_figure(passport, title=title)
+    frame = getattr(_FRAMES, "constants", None)
+    if frame is None:
+        frame = _FRAMES.constants = _ConstantsFrame()
+    fig = constants_figure(passport, title=title, frame=frame)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     FigureCanvasAgg(fig).print_png(path, pil_kwargs={"compress_level": 1})
     return path
 
 
-def constants_figure(passport: Passport | dict, *, title: str = ""):
+def constants_figure(passport: Passport | dict, *, title: str = "", frame: _ConstantsFrame | None = None):
     """The core figure of a thermal calibration: the constants found on each plateau against temperature (points,
     with their standard uncertainty as error bars where the passport has it), the fitted thermal model (line) and
     its residuals (plateau minus model, the row under each), per axis (columns x, y, z): gain K_ii in ppm,
     cross-axis K_ij in ppm of the gain, offset U0_i in micro-g, all as changes from the normal-temperature
     constants. ``passport``: a :class:`pipeline.passport.document.Passport` (a document is loaded once here); the
-    per-plateau constants are read from its document as stored (``per_plateau``)."""
-    from matplotlib.figure import Figure
-    from matplotlib.ticker import MaxNLocator, NullLocator
-
+    per-plateau constants are read from its document as stored (``per_plateau``). ``frame``: the figure to fill
+    (its previous values replaced), else a new one."""
     from pipeline.passport.document import load_passport
 
     passport = load_passport(passport)
     pp = passport.document.get("per_plateau") or []
     K0, U00 = passport.K, passport.U0
-    fig = Figure(figsize=(12, 10.5), dpi=90)
-    # not sharex: a shared x axis shares its tick locator, and every axes would make the bottom row's tick
-    # objects (18 axes' ticks were most of the drawing time); the rows above take the bottom row's limits instead
-    axes = fig.subplots(6, 3, gridspec_kw={"height_ratios": [3, 1.3] * 3})
-    fig.subplots_adjust(left=0.09, right=0.99, bottom=0.05, top=0.92, hspace=0.12, wspace=0.22)
     T0 = passport.normal_temp_c
     span = passport.valid_temp_c or (T0, T0)
     if pp or span[1] > span[0]:
@@ -237,23 +235,68 @@ def constants_figure(passport: Passport | dict, *, title: str = ""):
         model = passport.thermal_model
         at_grid = constant_changes(*model.constants_at(grid), K0, U00)
         at_T = constant_changes(*model.constants_at(T), K0, U00)
+        frame = frame or _ConstantsFrame()
+        frame.fill(T, points, sig, grid, at_grid, at_T, (lo, hi))
+        fig = frame.fig
+    else:
+        fig, axes = _constants_axes()
+        axes[0, 0].text(
+            0.5, 0.5, "no plateau constants and no temperature range", ha="center", transform=axes[0, 0].transAxes
+        )
+    described = passport.thermal_model.to_dict()
+    kind, order = described.get("kind", ""), described.get("order")
+    model_name = f"polynomial of order {order}" if kind == "polynomial" else kind.replace("_", " ")
+    title = title or f"Constants per plateau against temperature, thermal model: {model_name}"
+    fig.suptitle(title + ("" if pp else " (no per-plateau constants: the model alone)"), fontsize=11)
+    return fig
+
+
+#: Each thread's :class:`_ConstantsFrame` (:func:`plot_constants`): a figure object is drawn by one thread at a time.
+_FRAMES = threading.local()
+
+
+def _constants_axes():
+    """The constants figure and its 6 x 3 axes (values and residuals per row of :data:`_CONSTANT_ROWS`, per axis).
+    Not sharex: a shared x axis shares its tick locator, and every axes would make the bottom row's tick objects
+    (18 axes' ticks were most of the drawing time); the rows above take the bottom row's limits instead."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(12, 10.5), dpi=90)
+    axes = fig.subplots(6, 3, gridspec_kw={"height_ratios": [3, 1.3] * 3})
+    fig.subplots_adjust(left=0.09, right=0.99, bottom=0.05, top=0.92, hspace=0.12, wspace=0.22)
+    return fig, axes
+
+
+class _ConstantsFrame:
+    """The constants figure with its axes, lines, legends, labels and locators made once (making the 18 axes and
+    their tick objects was ~2/3 of the figure's time); :meth:`fill` puts a passport's values in the lines and sets
+    the limits, so each figure drawn is the one made afresh for those values."""
+
+    def __init__(self) -> None:
+        from matplotlib.ticker import MaxNLocator, NullLocator
+
+        self.fig, self.axes = _constants_axes()
+        self.series: dict[tuple[int, int], list] = {}  # (row, axis) -> per series: points, bars, model, residuals
+        self.zeros = []  # the zero line of each residual axes
         axis = "xyz"
-        pad = 0.04 * (hi - lo) if hi > lo else 1.0
         for r, (key, label, unit) in enumerate(_CONSTANT_ROWS):
             for i in range(3):
-                ax, res = axes[2 * r, i], axes[2 * r + 1, i]
+                ax, res = self.axes[2 * r, i], self.axes[2 * r + 1, i]
                 others = [j for j in range(3) if j != i]
-                for k in range(points[key].shape[-1] if key == "cross" else 1):
-                    y = points[key][:, i, k] if key == "cross" else points[key][:, i]
-                    fit = at_grid[key][:, i, k] if key == "cross" else at_grid[key][:, i]
-                    yT = at_T[key][:, i, k] if key == "cross" else at_T[key][:, i]
-                    e = None if sig is None else (sig[key][:, i, k] if key == "cross" else sig[key][:, i])
+                lines = []
+                for k in range(2 if key == "cross" else 1):
                     colour = f"C{k}" if key == "cross" else "C0"
                     name = f"K{axis[i]}{axis[others[k]]}" if key == "cross" else None
-                    _points(ax, T, y, e, colour, 4, f"{name} per plateau" if name else "per plateau")
-                    ax.plot(grid, fit, "-", color=colour, lw=1, label=f"{name} model" if name else "thermal model")
-                    _points(res, T, y - yT, e, colour, 3, None)
-                res.axhline(0, color="k", lw=0.5)
+                    pts = ax.plot(
+                        [], [], "o", ms=4, color=colour, label=f"{name} per plateau" if name else "per plateau"
+                    )
+                    bars = ax.plot([], [], "-", color=colour, lw=1)
+                    fit = ax.plot([], [], "-", color=colour, lw=1, label=f"{name} model" if name else "thermal model")
+                    rpts = res.plot([], [], "o", ms=3, color=colour)
+                    rbars = res.plot([], [], "-", color=colour, lw=1)
+                    lines.append([*pts, *bars, *fit, *rpts, *rbars])
+                self.series[r, i] = lines
+                self.zeros.append(res.axhline(0, color="k", lw=0.5))
                 ax.grid(axis="y", alpha=0.3)
                 res.grid(axis="y", alpha=0.3)
                 if i == 0:
@@ -267,32 +310,47 @@ def constants_figure(passport: Passport | dict, *, title: str = ""):
                 res.tick_params(labelsize=7)
                 ax.yaxis.set_major_locator(MaxNLocator(5))
                 res.yaxis.set_major_locator(MaxNLocator(3))
-        for ax in axes.flat:
-            ax.set_xlim(lo - pad, hi + pad)
-        for ax in axes[:-1].flat:  # temperature ticks and labels on the bottom row only
+        for ax in self.axes[:-1].flat:  # temperature ticks and labels on the bottom row only
             ax.xaxis.set_major_locator(NullLocator())
-        for ax in axes[-1]:
+        for ax in self.axes[-1]:
             ax.xaxis.set_major_locator(MaxNLocator(6))
             ax.set_xlabel("temperature [C]", fontsize=8)
-    else:
-        axes[0, 0].text(
-            0.5, 0.5, "no plateau constants and no temperature range", ha="center", transform=axes[0, 0].transAxes
-        )
-    described = passport.thermal_model.to_dict()
-    kind, order = described.get("kind", ""), described.get("order")
-    model_name = f"polynomial of order {order}" if kind == "polynomial" else kind.replace("_", " ")
-    title = title or f"Constants per plateau against temperature, thermal model: {model_name}"
-    fig.suptitle(title + ("" if pp else " (no per-plateau constants: the model alone)"), fontsize=11)
-    return fig
+
+    def fill(self, T, points, sig, grid, at_grid, at_T, span: tuple[float, float]) -> None:
+        """The plateau temperatures ``T`` and changes ``points`` (:func:`constant_changes`), their ``sig`` (or None),
+        the model at ``grid`` and at ``T``, the temperature ``span`` (lo, hi) shown with a 4 % margin."""
+        for (r, i), lines in self.series.items():
+            key = _CONSTANT_ROWS[r][0]
+            for k, (pts, bars, fit, rpts, rbars) in enumerate(lines):
+                y = points[key][:, i, k] if key == "cross" else points[key][:, i]
+                yT = at_T[key][:, i, k] if key == "cross" else at_T[key][:, i]
+                e = None if sig is None else (sig[key][:, i, k] if key == "cross" else sig[key][:, i])
+                pts.set_data(T, y)
+                bars.set_data(*_bars(T, y, e))
+                fit.set_data(grid, at_grid[key][:, i, k] if key == "cross" else at_grid[key][:, i])
+                rpts.set_data(T, y - yT)
+                rbars.set_data(*_bars(T, y - yT, e))
+        lo, hi = span
+        pad = 0.04 * (hi - lo) if hi > lo else 1.0
+        for zero in self.zeros:  # measured again from the previous limits, y = 0 would come back as ~1e-16
+            zero.set_visible(False)
+        for ax in self.axes.flat:
+            ax.relim(visible_only=True)
+        for zero in self.zeros:
+            zero.set_visible(True)
+            zero.axes.update_datalim([(0.0, 0.0)], updatex=False)
+        for ax in self.axes.flat:
+            ax.set_xlim(lo - pad, hi + pad)
+            ax.autoscale_view(scalex=False)
 
 
-def _points(ax, x: np.ndarray, y: np.ndarray, e: np.ndarray | None, colour: str, ms: float, label: str | None) -> None:
-    """Points ``y`` at ``x`` with error bars ``+-e`` (where finite) as one line of vertical strokes: two artists
-    where ``errorbar`` makes a line collection and caps per series (a figure of 18 axes draws ~50 series)."""
-    ax.plot(x, y, "o", ms=ms, color=colour, label=label)
-    if e is not None and np.isfinite(e).any():
-        bars = np.stack([y - e, y + e, np.full_like(y, np.nan)], axis=1).ravel()
-        ax.plot(np.repeat(x, 3), bars, "-", color=colour, lw=1)
+def _bars(x: np.ndarray, y: np.ndarray, e: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Error bars ``y +- e`` at ``x`` (where finite) as one line of vertical strokes (NaN between them): one
+    artist where ``errorbar`` makes a line collection and caps per series (a figure of 18 axes draws ~50 series);
+    no points without ``e``."""
+    if e is None or not np.isfinite(e).any():
+        return np.empty(0), np.empty(0)
+    return np.repeat(x, 3), np.stack([y - e, y + e, np.full_like(y, np.nan)], axis=1).ravel()
 
 
 def _plateau_sigmas(uncertainty: dict | None, n: int, K0: np.ndarray) -> dict[str, np.ndarray] | None:

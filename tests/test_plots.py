@@ -118,25 +118,31 @@ def test_constant_changes_in_engineering_units():
     np.testing.assert_allclose(ch["offset"][0], [30.0, 0.0, 0.0], atol=1e-9)
 
 
-def test_constants_figure_points_model_and_residuals(tmp_path):
-    """A passport's per-plateau constants, its model and uncertainties drawn: 18 axes (gain, cross-axis, offset and
-    their residuals, per axis); a plateau that departs from the model shows in its residual panel."""
+def _constants_passport(slope: float = 1e-5, off_v: float = 5e-6, temps=(-40.0, -10.0, 20.0, 45.0, 70.0)) -> dict:
+    """A passport document with per-plateau constants on a quadratic (gain ``slope`` per C), their uncertainties and
+    model; the fourth plateau's x offset ``off_v`` off the model (5e-6 V: ~9 micro-g)."""
     from pipeline.thermal import fit_thermal_model
 
-    temps = np.array([-40.0, -10.0, 20.0, 45.0, 70.0])
+    temps = np.asarray(temps)
     K0 = np.diag([0.55, 0.548, 0.548])
-    K = np.array([K0 * (1 + 1e-5 * (t - 20) + 3e-8 * (t - 20) ** 2) for t in temps])
+    K = np.array([K0 * (1 + slope * (t - 20) + 3e-8 * (t - 20) ** 2) for t in temps])
     U0 = np.array([[1e-3 + 2e-5 * (t - 20), 5e-4, 4e-4] for t in temps])
-    U0[3, 0] += 5e-6  # a plateau off the model (~9 micro-g)
+    U0[3, 0] += off_v
     model = fit_thermal_model(temps, K, U0, "poly2", 20.0, 3.0)
     sigma_K, sigma_U0 = np.full((3, 3), 2e-7), np.full(3, 1e-7)
-    passport = {
+    return {
         "coefficients": {"K": np.asarray(model.K0).tolist(), "U0": np.asarray(model.U00).tolist()},
         "normal_temp_c": 20.0,
         "thermal_model": model.to_dict(),
         "per_plateau": [{"temp_c": t, "K": k.tolist(), "U0": u.tolist()} for t, k, u in zip(temps, K, U0)],
         "uncertainty": {"per_plateau": [{"K": sigma_K.tolist(), "U0": sigma_U0.tolist()} for _ in temps]},
     }
+
+
+def test_constants_figure_points_model_and_residuals(tmp_path):
+    """A passport's per-plateau constants, its model and uncertainties drawn: 18 axes (gain, cross-axis, offset and
+    their residuals, per axis); a plateau that departs from the model shows in its residual panel."""
+    passport = _constants_passport()
     path = plots.plot_constants(passport, tmp_path / "c.png", title="AU-0001 v1")
     img = np.asarray(Image.open(path).convert("RGB"))
     assert img.shape[0] > 800 and img.shape[1] > 1000
@@ -157,3 +163,25 @@ def test_constants_figure_points_model_and_residuals(tmp_path):
         "offset U0_i\nchange [micro-g]",
         "residual\n[micro-g]",
     ]
+
+
+def test_constants_figure_drawn_again_is_the_figure_made_afresh(tmp_path):
+    """plot_constants fills one figure per thread again for each passport: each PNG is byte for byte the one of a
+    figure made afresh for that passport alone, whatever was drawn before (other values and plateaus, no
+    uncertainties, the model alone)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    base = _constants_passport()
+    others = [
+        _constants_passport(slope=-3e-5, off_v=-2e-5, temps=(-30.0, 0.0, 25.0, 45.0, 60.0, 85.0)),
+        {**base, "uncertainty": None},
+        {**base, "per_plateau": [], "valid_temp_c": [-40.0, 70.0]},
+        base,
+    ]
+    for k, passport in enumerate(others):
+        again = plots.plot_constants(passport, tmp_path / f"again{k}.png", title=f"t{k}")
+        fresh = tmp_path / f"fresh{k}.png"
+        FigureCanvasAgg(plots.constants_figure(passport, title=f"t{k}")).print_png(
+            fresh, pil_kwargs={"compress_level": 1}
+        )
+        assert again.read_bytes() == fresh.read_bytes(), k
