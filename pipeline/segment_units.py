@@ -18,6 +18,7 @@ position and the time.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from concurrent.futures import ThreadPoolExecutor
 
@@ -25,7 +26,7 @@ import numpy as np
 
 from pipeline.positions import MOVING
 from pipeline.run import NS_PER_S, Run
-from pipeline.segment import Segmentation, SegmentSettings, StaticStretches, segment_run, static_stretches
+from pipeline.segment import Segmentation, SegmentSettings, segment_run, static_stretches
 
 #: threads segmenting units side by side (numpy's passes over the slabs release the GIL)
 THREADS = min(2, os.cpu_count() or 1)
@@ -50,7 +51,7 @@ def segment_units(
 
 def _segment_units(units: dict[str, Run], settings: SegmentSettings, pool) -> tuple[dict, list[str]]:
     own = dict(zip(units, pool.map(lambda r: static_stretches(r, settings), units.values())))
-    times = {s: r.t_ns() for s, r in units.items()}
+    times = {s: st.t_ns for s, st in own.items()}  # (each a copy of the run's table column: made once)
     spans = {s: _spans_ns(times[s], st.stretches) for s, st in own.items()}
     min_ns = int(max(st.settings.static_min_s for st in own.values()) * NS_PER_S)
     consensus = _cut_at_moves(_majority(list(spans.values()), len(units)), _fixture_moves_ns(units))
@@ -64,11 +65,11 @@ def _segment_units(units: dict[str, Run], settings: SegmentSettings, pool) -> tu
         i1 = np.searchsorted(t, mine[:, 1], side="right")
         keep = (i1 > i0) & (mine[:, 1] - mine[:, 0] >= int(own[serial].settings.static_min_s * NS_PER_S))
         stretches = [(int(a), int(b)) for a, b in zip(i0[keep], i1[keep])]
-        return segment_run(units[serial], settings, StaticStretches(stretches, own[serial].bad, own[serial].settings))
+        return segment_run(units[serial], settings, dataclasses.replace(own[serial], stretches=stretches))
 
     segs: dict[str, Segmentation] = dict(zip(units, pool.map(unit_segmentation, units)))
     for serial in units:
-        line = _not_still(serial, spans[serial], consensus, units[serial], _NOT_STILL_MIN * min_ns)
+        line = _not_still(serial, spans[serial], consensus, units[serial], times[serial], _NOT_STILL_MIN * min_ns)
         if line:
             warnings.append(line)
             segs[serial].warnings.append(line)
@@ -175,12 +176,13 @@ def _fixture_label_at(run: Run, t_ns: int) -> str | None:
     return str(fx["position"][k]) if k >= 0 else None
 
 
-def _not_still(serial: str, mine: np.ndarray, consensus: np.ndarray, run: Run, limit_ns: float) -> str | None:
+def _not_still(
+    serial: str, mine: np.ndarray, consensus: np.ndarray, run: Run, t: np.ndarray, limit_ns: float
+) -> str | None:
     """A line naming ``serial`` when it is not still for longer than ``limit_ns`` within one of the run's still
     times (the others are) and its voltages move there (:func:`_moving`): a still unit's own static stretches may
     end early in a hold through a ramp (its voltages drift with its temperature, a unit with larger thermal
-    coefficients sooner than the others), and a gap has no samples."""
-    t = run.t_ns()
+    coefficients sooner than the others), and a gap has no samples. ``t``: the unit's voltmeter times (ns)."""
 
     def missed_in(a: int, b: int) -> bool:
         parts = _uncovered_ns(mine, a, b)

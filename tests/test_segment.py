@@ -395,3 +395,50 @@ def test_a_soak_too_short_to_be_stable_is_a_plateau_where_the_unit_got_close(rat
     far = find_plateaus(*_case_after_a_step(rate_c_per_min, 0.75))
     assert [round(p.temp_c) for p in near] == [20, 44]
     assert [round(p.temp_c) for p in far] == [20]
+
+
+def test_the_block_statistics_shortcuts_give_what_the_plain_definitions_give():
+    """The segmenter's passes over every sample take shortcuts that must not change a bit: block starts found by
+    guessing from the rate (checked, searched where wrong), the static runs made of block runs less the non-finite
+    samples, finiteness read from the block sums, a segment's mean and std with one sum fewer, the resolution from
+    the values sorted in place. Each against its plain definition, on steady, jittered, paused and NaN-holed
+    records, cut into chunks as the readers build them."""
+    from pipeline import segment as sg
+
+    rng = np.random.default_rng(7)
+    for case in range(6):
+        n = int(rng.integers(200, 3000))
+        step = int(rng.choice([10_000_000, 37_000_000, 500_000_000]))
+        t = np.arange(n, dtype=np.int64) * step
+        if case % 2:  # jitter, repeated times and a pause
+            t = np.sort(t + rng.integers(-step // 2, step // 2, n))
+            t[n // 3 : n // 3 + 5] = t[n // 3]
+            t[n // 2 :] += 40 * step
+        block = int(rng.choice([step // 3 + 1, 2 * step, 7 * step]))
+        keys = t[0] + np.arange((t[-1] - t[0]) // block + 1) * block
+        assert np.array_equal(sg._first_at_or_after(t, keys), np.searchsorted(t, keys, side="left"))
+        starts, numbers = sg._block_starts(t, block)
+        b = (t - t[0]) // block
+        assert np.array_equal(starts, np.flatnonzero(np.diff(b, prepend=-1))) and np.array_equal(numbers, b[starts])
+
+        u = 2.5 + rng.normal(size=(n, 3)) * 1e-4
+        u[rng.random(n) < 0.3 * (case > 2), rng.integers(0, 3)] = np.nan
+        cuts = np.sort(rng.choice(np.arange(1, n), 4, replace=False))
+        cols = [pl.concat([pl.Series(c[a:z]) for a, z in zip([0, *cuts], [*cuts, n])], rechunk=False) for c in u.T]
+        stats = sg.rolling_std_v(t, sg.Channels(cols), 3 * block * 10 / 1e9)
+        finite = np.isfinite(u).all(axis=1)
+        assert np.array_equal(stats.bad, np.flatnonzero(~finite))
+        quiet = rng.random(stats.std.shape[0]) < 0.7
+        lengths = np.diff(np.append(stats.starts, n))
+        per_sample = np.repeat(quiet[stats.ids], lengths) & finite
+        assert np.array_equal(stats.runs(quiet), sg._runs(per_sample))
+        x = u[finite, 0]
+        for ddof in (0, 1):
+            mean, std = sg._mean_std(x, ddof)
+            assert mean == x.mean() and std == x.std(ddof=ddof)
+        for values in (u[:, 1], np.round(u[:, 1] * 4096) / 4096):  # floats, and readings on a grid
+            v = np.unique(values[np.isfinite(values)])
+            floor, steps = float(np.spacing(np.max(np.abs(v)))), np.diff(v)
+            q = steps.min()
+            grid = q > floor and np.all(np.abs(steps / q - np.round(steps / q)) < 0.01)
+            assert sg.reading_resolution(values) == (q if grid else floor)
