@@ -204,33 +204,42 @@ def _not_still(
 def _name_disagreements(segs: dict[str, Segmentation]) -> dict[str, str]:
     """A line per unit that names a position otherwise than a majority of the units holding one at the same time
     (the middle of its segment; the unit itself counted among them), with its first such position and time."""
-    mids = {
-        s: np.array([(g.t_start_ns + g.t_end_ns) // 2 for g in seg.segments], dtype=np.int64) for s, seg in segs.items()
+    spans = {
+        s: np.array([(g.t_start_ns, g.t_end_ns) for g in seg.segments], dtype=np.int64).reshape(-1, 2)
+        for s, seg in segs.items()
     }
+    named = {s: np.array([g.position for g in seg.segments], dtype=object) for s, seg in segs.items()}
+    mids = {s: (v[:, 0] + v[:, 1]) // 2 for s, v in spans.items()}
+    has_name = {s: np.array([x is not None for x in v], dtype=bool) for s, v in named.items()}
     out: dict[str, str] = {}
     for serial, seg in segs.items():
+        # the positions the other units hold at each segment's middle: (segment, name) pairs, all units at once
+        mine, theirs_at = mids[serial], []
+        for other in segs:
+            if other == serial or not len(mids[other]):
+                continue
+            k = np.searchsorted(mids[other], mine)
+            for j in (k - 1, k):
+                ok = (j >= 0) & (j < len(mids[other]))
+                jj = np.where(ok, j, 0)
+                h = spans[other][jj]
+                ok &= (h[:, 0] <= mine) & (mine <= h[:, 1])
+                ok &= has_name[other][jj]
+                theirs_at.append((np.flatnonzero(ok), named[other][jj[ok]]))
+        at = np.concatenate([i for i, _ in theirs_at]) if theirs_at else np.zeros(0, dtype=np.intp)
+        held = np.concatenate([n for _, n in theirs_at]) if theirs_at else np.zeros(0, dtype=object)
         first, count = None, 0
-        for g in seg.segments:
+        for i, g in enumerate(seg.segments):
             if g.position is None:
                 continue
-            mid = (g.t_start_ns + g.t_end_ns) // 2
-            names = []
-            for other, oseg in segs.items():
-                if other == serial:
-                    continue
-                k = int(np.searchsorted(mids[other], mid))
-                for j in (k - 1, k):
-                    if 0 <= j < len(oseg.segments):
-                        h = oseg.segments[j]
-                        if h.t_start_ns <= mid <= h.t_end_ns and h.position is not None:
-                            names.append(h.position)
-            if not names:
+            names = held[at == i]
+            if not names.size:
                 continue
-            values, counts = np.unique(np.array(names, dtype=object), return_counts=True)
+            values, counts = np.unique(names, return_counts=True)
             top = values[np.argmax(counts)]
             # a majority of all the units holding a position then, this one included (one other unit, turned or
             # in a gap of the rest, is no majority)
-            if counts.max() * 2 > len(names) + 1 and top != g.position:
+            if counts.max() * 2 > names.size + 1 and top != g.position:
                 count += 1
                 if first is None:
                     first = (g.position, top, g.t_start_ns, g.t_end_ns)
