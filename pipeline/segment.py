@@ -710,7 +710,7 @@ def _first_at_or_after(t_ns: np.ndarray, keys_ns: np.ndarray) -> np.ndarray:
     guessed from the median interval and kept where the samples either side confirm it (a steady rate: all of
     them), searched for where they do not."""
     n = t_ns.size
-    step = int(median_interval_ns(t_ns)) if n > 1 else 0
+    step = int(median_interval_ns(t_ns, pairs=1000)) if n > 1 else 0  # (a guess: 1000 intervals are enough)
     if step <= 0:
         return np.searchsorted(t_ns, keys_ns, side="left")
     guess = np.clip((keys_ns - t_ns[0]) // step, 0, n)
@@ -1040,15 +1040,24 @@ class StaticStretches:
     gaps_after: np.ndarray | None = None
 
 
-def static_stretches(run: Run, settings: SegmentSettings = SegmentSettings()) -> StaticStretches:
+def static_stretches(
+    run: Run, settings: SegmentSettings = SegmentSettings(), clock: tuple[np.ndarray, np.ndarray] | None = None
+) -> StaticStretches:
     """The static stretches of ``run``'s voltages (the step of :func:`segment_run` that reads every sample), for a
     caller that decides them across several units (:mod:`pipeline.segment_units`) and hands them back to
     :func:`segment_run` (with the times and gaps they were found on). The run's voltmeter must be in time order
-    (the readers sort it)."""
-    t_ns = run.t_ns()
+    (the readers sort it). ``clock``: its times (ns) and the readers' gaps in them (:func:`unit_clock`) when the
+    caller has them (units read by one logger share them)."""
+    t_ns, readers = unit_clock(run) if clock is None else clock
     ch = Channels([run.voltmeter[c] for c in ("ux", "uy", "uz")])
-    readers = reader_gap_indices(t_ns)
     return StaticStretches(*_adaptive_static(t_ns, ch, for_rate(settings, t_ns), readers), t_ns, readers)
+
+
+def unit_clock(run: Run) -> tuple[np.ndarray, np.ndarray]:
+    """``run``'s voltmeter times (ns, a numpy copy of the table's column) and the indices after which its gaps
+    come (:func:`pipeline.io.checks.gap_indices`)."""
+    t_ns = run.t_ns()
+    return t_ns, reader_gap_indices(t_ns)
 
 
 def segment_run(

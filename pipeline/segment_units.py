@@ -23,10 +23,11 @@ import os
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
+import polars as pl
 
 from pipeline.positions import MOVING
 from pipeline.run import NS_PER_S, Run
-from pipeline.segment import Segmentation, SegmentSettings, segment_run, static_stretches
+from pipeline.segment import Segmentation, SegmentSettings, segment_run, static_stretches, unit_clock
 
 #: threads segmenting units side by side (numpy's passes over the slabs release the GIL)
 THREADS = min(2, os.cpu_count() or 1)
@@ -50,8 +51,9 @@ def segment_units(
 
 
 def _segment_units(units: dict[str, Run], settings: SegmentSettings, pool) -> tuple[dict, list[str]]:
-    own = dict(zip(units, pool.map(lambda r: static_stretches(r, settings), units.values())))
-    times = {s: st.t_ns for s, st in own.items()}  # (each a copy of the run's table column: made once)
+    clocks = _clocks(units)
+    own = dict(zip(units, pool.map(lambda s: static_stretches(units[s], settings, clocks[s]), units)))
+    times = {s: clock[0] for s, clock in clocks.items()}
     spans = {s: _spans_ns(times[s], st.stretches) for s, st in own.items()}
     min_ns = int(max(st.settings.static_min_s for st in own.values()) * NS_PER_S)
     consensus = _cut_at_moves(_majority(list(spans.values()), len(units)), _fixture_moves_ns(units))
@@ -77,6 +79,28 @@ def _segment_units(units: dict[str, Run], settings: SegmentSettings, pool) -> tu
         warnings.append(line)
         segs[serial].warnings.append(line)
     return segs, warnings
+
+
+def _clocks(units: dict[str, Run]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Each unit's voltmeter times and gaps (:func:`pipeline.segment.unit_clock`): one copy for the units whose
+    times are the first unit's (one logger sampling them all together: 47 MB a unit at 100 Hz over the standard
+    program, copied and searched for gaps once), a copy of its own for a unit with other times."""
+    out: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    first: pl.Series | None = None
+    for serial, run in units.items():
+        col = run.voltmeter["t_ns"]
+        if first is not None and _same_times(col, first):
+            out[serial] = out[next(iter(out))]
+        else:
+            out[serial] = unit_clock(run)
+            first = col if first is None else first
+    return out
+
+
+def _same_times(a: pl.Series, b: pl.Series) -> bool:
+    if len(a) != len(b):
+        return False
+    return not len(a) or (a[0] == b[0] and a[-1] == b[-1] and a.equals(b))
 
 
 def _spans_ns(t_ns: np.ndarray, stretches: list[tuple[int, int]]) -> np.ndarray:
