@@ -18,7 +18,11 @@ process, so that its peak RSS (``ru_maxrss``) is its own:
   calibrate RUN``: read once, hashed once, segmented once, 16 passports into a fresh registry), after a warm-up
   flow has started Prefect;
 - fleet: the fleet flow over the folder of 16 single-unit runs (``flows.fleet.run_fleet``, as ``thermocal fleet``,
-  2 worker processes), after the same warm-up; peak RSS: the flow process and the largest worker.
+  2 worker processes), after the same warm-up.
+
+CPU seconds are the step process's and its children's (``RUSAGE_CHILDREN``: the calibrate's figure workers, the
+fleet's workers); peak RSS is the step process's plus the sum of its children's own peaks (``VmHWM``, sampled every
+second: an upper bound of what they held at once).
 
 Prints the load average, and a markdown table: wall and CPU seconds, peak RSS against the decoded samples
 (t_ns + 3 voltages, 8 bytes each, of every unit), the wall and CPU ratios to the decode floor (on a shared machine
@@ -135,17 +139,46 @@ STEPS = {"decode": step_decode, "floor-mcap": step_floor_mcap, "calibrate": step
 _CLOCK: dict = {}
 
 
+def _children_peaks(peaks: dict[int, int], stop) -> None:
+    """Until ``stop`` is set: every second, the peak RSS (``VmHWM``, kB) of each live child process of this one (the
+    calibrate's figure workers, the fleet's worker processes), into ``peaks`` by pid. ``RUSAGE_CHILDREN``'s
+    ``ru_maxrss`` cannot tell it: a child started by fork or vfork then exec counts the parent's pages at its exec."""
+    me = os.getpid()
+    while not stop.wait(1.0):
+        for proc in Path("/proc").glob("[0-9]*"):
+            try:
+                if int((proc / "stat").read_text().rsplit(")", 1)[1].split()[1]) != me:
+                    continue
+                status = (proc / "status").read_text()
+            except OSError:
+                continue
+            hwm = [line.split()[1] for line in status.splitlines() if line.startswith("VmHWM:")]
+            if hwm:
+                peaks[int(proc.name)] = max(peaks.get(int(proc.name), 0), int(hwm[0]))
+
+
 def child(step: str, path: Path) -> None:
+    import threading
+
+    peaks: dict[int, int] = {}
+    stop = threading.Event()
+    watch = threading.Thread(target=_children_peaks, args=(peaks, stop), daemon=True)
+    watch.start()
     _CLOCK.update(wall=time.perf_counter(), usage=resource.getrusage(resource.RUSAGE_SELF))
     out = STEPS[step](path)
+    stop.set()
+    watch.join()
     wall = time.perf_counter() - _CLOCK["wall"]
     r0, r1 = _CLOCK["usage"], resource.getrusage(resource.RUSAGE_SELF)
     kids = resource.getrusage(resource.RUSAGE_CHILDREN)
     out.update(
         wall_s=round(wall, 2),
         cpu_s=round(r1.ru_utime + r1.ru_stime - r0.ru_utime - r0.ru_stime + kids.ru_utime + kids.ru_stime, 1),
+        children_cpu_s=round(kids.ru_utime + kids.ru_stime, 1),
         peak_rss_gb=round(r1.ru_maxrss / 2**20, 2),
         peak_child_rss_gb=round(kids.ru_maxrss / 2**20, 2),
+        children=len(peaks),
+        children_peak_sum_gb=round(sum(peaks.values()) / 2**20, 2),
     )
     print(json.dumps(out))
 
@@ -207,7 +240,7 @@ def main() -> None:
         "fleet": f"fleet of {n_units} single-unit runs (flow, 2 workers)",
     }
     for step, r in results.items():
-        peak = max(r["peak_rss_gb"], r.get("peak_child_rss_gb", 0.0))
+        peak = r["peak_rss_gb"] + r.get("children_peak_sum_gb", 0.0)
         n = r.get("units", args.units)
         per_unit = hours / args.units if step != "fleet" else hours
         print(

@@ -178,50 +178,52 @@ def calibrate_flow(
     if method != "auto":
         by_name(method)  # an unknown method fails before any run is read
     base = None if base_passport is None else load_passport(base_passport)  # the document a parameter, typed once
-    read = []
-    hashing = ThreadPoolExecutor(1)  # the files hashed while they are read (hashlib lets go of the GIL)
-    try:
-        hashed = {p: hashing.submit(hash_run, p) for p in paths}
-        for p in paths:
-            step(f"ingest {os.path.basename(p)}")
-            read.append(ingest(p, units))
-        digests = {p: f.result() for p, f in hashed.items()}
-    finally:
-        hashing.shutdown(wait=False, cancel_futures=True)
-    if any(r.several for r in read):
-        return calibrate_units(paths, read, registry, settings, method, base, dry_run, step, digests)
-    result = _calibrate_unit(
-        [r.one() for r in read], list(paths), registry, settings, method, base, dry_run, step, digests=digests
-    )
+    figures = None if dry_run or _serials(paths, units) < 2 else FigureWorker()
+    with figures or contextlib.nullcontext():  # the figure workers start (their imports) while the files are read
+        read = []
+        hashing = ThreadPoolExecutor(1)  # the files hashed while they are read (hashlib lets go of the GIL)
+        try:
+            hashed = {p: hashing.submit(hash_run, p) for p in paths}
+            for p in paths:
+                step(f"ingest {os.path.basename(p)}")
+                read.append(ingest(p, units))
+            digests = {p: f.result() for p, f in hashed.items()}
+        finally:
+            hashing.shutdown(wait=False, cancel_futures=True)
+        if any(r.several for r in read):
+            result = calibrate_units(paths, read, registry, settings, method, base, dry_run, step, digests, figures)
+        else:
+            result = _calibrate_unit(
+                [r.one() for r in read], list(paths), registry, settings, method, base, dry_run, step, digests=digests
+            )
+    if figures is not None and "units" in result:
+        result["units"] = figures.results(result["units"])
     if not dry_run:
         record_head(registry)
     return result
 
 
-def calibrate_units(paths, read, registry, settings, method, base, dry_run, step, digests) -> dict:
+def _serials(paths: list[str], units: list[str] | None) -> int:
+    """How many units the files hold (of ``units``, when given), from their metadata (~1 ms a file); 0 when a file's
+    cannot be read (the reading says why)."""
+    try:
+        found = {m.unit_serial for p in paths for m in runio.read_units_meta(p)[0]}
+    except ThermocalError:
+        return 0
+    return len(found & set(units) if units else found)
+
+
+def calibrate_units(paths, read, registry, settings, method, base, dry_run, step, digests, draw=None) -> dict:
     """The runs ``read`` (:class:`pipeline.run.UnitRuns`, one per path) of which some hold several units: each
     unit calibrated from its runs (segmented once per run with several units), one after the other, the samples of
     a unit let go once it is observed. Returns ``{"units": [the calibrate object of each unit], "failed": [{"unit",
     "run", "reason"}]}`` (contract.md): a unit that failed its input checks or its calibration is listed with its
     one-line reason and the others go on. ``digests``: each path's :func:`pipeline.passport.provenance.hash_run`
-    (a file hashed once, not once per unit). With two units or more to write, their figures are drawn in a second
-    process while the next unit is calibrated (:class:`pipeline.calibrate.figure_worker.FigureWorker`)."""
-    failed: list[dict] = []
-    several = len({serial for got in read for serial in got.units}) > 1 and not dry_run
-    figures = FigureWorker() if several else None
-    with figures or contextlib.nullcontext():  # started first: its imports while the run is segmented
-        results = _each_unit(paths, read, registry, settings, method, base, dry_run, step, digests, failed, figures)
-    if figures is not None:
-        results = figures.results(results)
-    if not dry_run:
-        record_head(registry)
-    return {"units": results, "failed": failed}
-
-
-def _each_unit(paths, read, registry, settings, method, base, dry_run, step, digests, failed, draw) -> list[dict]:
-    """:func:`calibrate_units`' work: the runs segmented, then each unit calibrated (``failed`` takes the units that
-    failed); ``draw``: publish's (the figures drawn elsewhere), or None."""
+    (a file hashed once, not once per unit). ``draw``: publish's, for the figures drawn in other processes while the
+    next unit is calibrated (:class:`pipeline.calibrate.figure_worker.FigureWorker`, which :func:`calibrate_flow`
+    starts for two units or more)."""
     logger = get_run_logger()
+    failed: list[dict] = []
     by_unit: dict[str, list] = {}  # serial -> [(path, UnitRuns, segmentation or None)]
     for p, got in zip(paths, read):
         failed += [{"unit": u, "run": p, "reason": why} for u, why in got.failed.items()]
@@ -260,7 +262,7 @@ def _each_unit(paths, read, registry, settings, method, base, dry_run, step, dig
             failed.append({"unit": serial, "reason": e.one_line()})
             logger.warning(e.one_line())
         del runs
-    return results
+    return {"units": results, "failed": failed}
 
 
 def _calibrate_unit(
