@@ -34,6 +34,7 @@ times (8 bytes per sample) and a few masks (1 byte per sample), not a copy of th
 
 from __future__ import annotations
 
+import bisect
 import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
@@ -580,6 +581,34 @@ def classify_temperature(
 # static stretches
 
 
+def _chunk_views(column) -> tuple[list[int], list[np.ndarray]] | None:
+    """(first sample, numpy view) of each non-empty chunk of a Float64 polars column without nulls (numpy's view of
+    the table's memory, no copy: polars' documented zero-copy case), for slabs without a polars call each; None for
+    any other column (read with :func:`pipeline.run.slab_of`)."""
+    if not isinstance(column, pl.Series) or column.dtype != pl.Float64 or column.null_count():
+        return None
+    starts, views, at = [], [], 0
+    for length in column.chunk_lengths():
+        if length:
+            starts.append(at)
+            views.append(column.slice(at, length).to_numpy())
+        at += length
+    return starts, views
+
+
+def _slab_of_views(starts: list[int], views: list[np.ndarray], s0: int, s1: int) -> np.ndarray:
+    """Samples ``s0 .. s1 - 1`` of a column held as chunk views (:func:`_chunk_views`): a view inside one chunk, a
+    copy of the slab across chunks."""
+    k = max(bisect.bisect_right(starts, s0) - 1, 0)
+    if k < len(views) and s1 - starts[k] <= len(views[k]):
+        return views[k][s0 - starts[k] : s1 - starts[k]]
+    pieces = []
+    while k < len(views) and starts[k] < s1:
+        pieces.append(views[k][max(s0 - starts[k], 0) : s1 - starts[k]])
+        k += 1
+    return np.concatenate(pieces) if pieces else np.zeros(0)
+
+
 class Channels:
     """The three voltmeter channels (V) of a record, read a slab of samples at a time.
 
@@ -599,6 +628,7 @@ class Channels:
                 raise ValueError(f"expected 3 voltage channels, got {len(cols)}")
         self._cols = [c if isinstance(c, pl.Series) else np.asarray(c, dtype=np.float64) for c in cols]
         self.n = len(self._cols[0])
+        self._views = [_chunk_views(c) for c in self._cols]
 
     @classmethod
     def of_run(cls, run: Run) -> Channels:
@@ -606,7 +636,10 @@ class Channels:
 
     def slab(self, s0: int, s1: int) -> list[np.ndarray]:
         """Samples ``s0 .. s1 - 1`` of each channel, as three float64 arrays."""
-        return [slab_of(c, s0, s1) for c in self._cols]
+        return [
+            slab_of(c, s0, s1) if v is None else _slab_of_views(v[0], v[1], s0, s1)
+            for c, v in zip(self._cols, self._views)
+        ]
 
     def copies(self, s0: int, s1: int) -> list[np.ndarray]:
         """Samples ``s0 .. s1 - 1`` of each channel as three float64 arrays of the caller's own (it may change them)."""
