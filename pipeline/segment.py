@@ -899,15 +899,20 @@ POSE_WINDOWS = 3.0
 
 
 def _adaptive_static(
-    t_ns: np.ndarray, ch: Channels, settings: SegmentSettings, readers: np.ndarray | None = None
+    t_ns: np.ndarray,
+    ch: Channels,
+    settings: SegmentSettings,
+    readers: np.ndarray | None = None,
+    interval_ns: float | None = None,
 ) -> tuple[list[tuple[int, int]], np.ndarray, SegmentSettings]:
     """(stretches, non-finite sample indices, the settings whose window found them): see :func:`_static_and_bad`.
-    ``readers``: the readers' gaps of ``t_ns`` (:func:`gap_indices`) when already found."""
+    ``readers``: the readers' gaps of ``t_ns`` (:func:`gap_indices`), ``interval_ns`` its
+    :func:`median_interval_ns`, when already found."""
     if t_ns.size < 2:
         return [], np.flatnonzero(~ch.finite()), settings
     readers = reader_gap_indices(t_ns) if readers is None else readers
     span_ns = float(t_ns[-1] - t_ns[0])
-    dt_s = median_interval_ns(t_ns) / _NS
+    dt_s = (median_interval_ns(t_ns) if interval_ns is None else interval_ns) / _NS
 
     def cover(runs):
         return sum(float(t_ns[b - 1] - t_ns[a]) for a, b in runs) / span_ns if span_ns > 0 else 1.0
@@ -1026,14 +1031,15 @@ MIN_WINDOW_SAMPLES = 12
 MIN_SEGMENT_SAMPLES = 24
 
 
-def for_rate(settings: SegmentSettings, t_ns) -> SegmentSettings:
+def for_rate(settings: SegmentSettings, t_ns, interval_ns: float | None = None) -> SegmentSettings:
     """``settings`` with the static window and minimum segment length widened to at least
     :data:`MIN_WINDOW_SAMPLES` and :data:`MIN_SEGMENT_SAMPLES` voltmeter samples: the defaults suit 10 Hz and
     faster; at 1-2 Hz a 2 s window holds too few samples and a run falls apart into thousands of pieces.
-    ``t_ns``: the sorted voltmeter times (ns), a numpy array or a polars Series (a run's column, not copied)."""
+    ``t_ns``: the sorted voltmeter times (ns), a numpy array or a polars Series (a run's column, not copied);
+    ``interval_ns``: their :func:`median_interval_ns` when already found."""
     if len(t_ns) < 3:
         return settings
-    dt_s = median_interval_ns(t_ns) / _NS
+    dt_s = (median_interval_ns(t_ns) if interval_ns is None else interval_ns) / _NS
     if not dt_s > 0:
         return settings
     return dataclasses.replace(
@@ -1071,26 +1077,40 @@ class StaticStretches:
     #: (:func:`pipeline.io.checks.gap_indices`), when handed over (each is a pass over the run's samples)
     t_ns: np.ndarray | None = None
     gaps_after: np.ndarray | None = None
+    #: ... and the median interval (ns) between them (:func:`median_interval_ns`)
+    interval_ns: float | None = None
 
 
 def static_stretches(
-    run: Run, settings: SegmentSettings = SegmentSettings(), clock: tuple[np.ndarray, np.ndarray] | None = None
+    run: Run,
+    settings: SegmentSettings = SegmentSettings(),
+    clock: tuple[np.ndarray, np.ndarray, float] | None = None,
 ) -> StaticStretches:
     """The static stretches of ``run``'s voltages (the step of :func:`segment_run` that reads every sample), for a
     caller that decides them across several units (:mod:`pipeline.segment_units`) and hands them back to
     :func:`segment_run` (with the times and gaps they were found on). The run's voltmeter must be in time order
-    (the readers sort it). ``clock``: its times (ns) and the readers' gaps in them (:func:`unit_clock`) when the
-    caller has them (units read by one logger share them)."""
-    t_ns, readers = unit_clock(run) if clock is None else clock
+    (the readers sort it). ``clock``: its times (ns), the readers' gaps in them and their median interval
+    (:func:`unit_clock`) when the caller has them (units read by one logger share them)."""
+    t_ns, readers, interval_ns = unit_clock(run) if clock is None else clock
     ch = Channels([run.voltmeter[c] for c in ("ux", "uy", "uz")])
-    return StaticStretches(*_adaptive_static(t_ns, ch, for_rate(settings, t_ns), readers), t_ns, readers)
+    found = _adaptive_static(t_ns, ch, for_rate(settings, t_ns, interval_ns), readers, interval_ns)
+    return StaticStretches(*found, t_ns, readers, interval_ns)
 
 
-def unit_clock(run: Run) -> tuple[np.ndarray, np.ndarray]:
-    """``run``'s voltmeter times (ns, a numpy copy of the table's column) and the indices after which its gaps
-    come (:func:`pipeline.io.checks.gap_indices`)."""
+def _goes_back(t_ns: np.ndarray) -> bool:
+    """Whether the times ``t_ns`` ever decrease, a slab at a time (no mask the length of the record)."""
+    n = t_ns.size - 1  # intervals
+    return any(
+        bool(np.any(t_ns[s0 + 1 : min(s0 + _SLAB_SAMPLES, n) + 1] < t_ns[s0 : min(s0 + _SLAB_SAMPLES, n)]))
+        for s0 in range(0, max(n, 0), _SLAB_SAMPLES)
+    )
+
+
+def unit_clock(run: Run) -> tuple[np.ndarray, np.ndarray, float]:
+    """``run``'s voltmeter times (ns, a numpy copy of the table's column), the indices after which its gaps come
+    (:func:`pipeline.io.checks.gap_indices`) and its :func:`median_interval_ns`."""
     t_ns = run.t_ns()
-    return t_ns, reader_gap_indices(t_ns)
+    return t_ns, reader_gap_indices(t_ns), median_interval_ns(t_ns)
 
 
 def segment_run(
@@ -1106,7 +1126,7 @@ def segment_run(
     warnings: list[str] = []
     t_ns = run.t_ns() if static is None or static.t_ns is None else static.t_ns
     volts = run.voltmeter
-    if np.any(t_ns[1:] < t_ns[:-1]):
+    if _goes_back(t_ns):
         volts = volts.sort("t_ns", maintain_order=True)
         t_ns = volts["t_ns"].to_numpy()
         warnings.append("voltmeter: samples not in time order; sorted")
@@ -1124,7 +1144,9 @@ def segment_run(
         )
         tt_ns, temp = tt_ns[~bad_t], temp[~bad_t]
 
-    settings = for_rate(settings, t_ns)
+    known = static is not None and static.t_ns is t_ns and static.interval_ns is not None  # (not after sorting)
+    interval_ns = static.interval_ns if known and static is not None else median_interval_ns(t_ns)
+    settings = for_rate(settings, t_ns, interval_ns)
     plateaus = find_plateaus(tt_ns, temp, settings)
     if not plateaus:
         warnings.append(
@@ -1135,7 +1157,7 @@ def segment_run(
     readers = None if static is None else static.gaps_after
     readers = reader_gap_indices(t_ns) if readers is None else readers
     if static is None:
-        stretches, bad_u, settings = _adaptive_static(t_ns, ch, settings, readers)
+        stretches, bad_u, settings = _adaptive_static(t_ns, ch, settings, readers, interval_ns)
     else:
         stretches, bad_u, settings = static.stretches, static.bad, static.settings
     # a sample in a gap of the thermosensor, or away from its record, has no temperature: no stretch holds one

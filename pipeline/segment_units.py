@@ -81,11 +81,11 @@ def _segment_units(units: dict[str, Run], settings: SegmentSettings, pool) -> tu
     return segs, warnings
 
 
-def _clocks(units: dict[str, Run]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+def _clocks(units: dict[str, Run]) -> dict[str, tuple[np.ndarray, np.ndarray, float]]:
     """Each unit's voltmeter times and gaps (:func:`pipeline.segment.unit_clock`): one copy for the units whose
     times are the first unit's (one logger sampling them all together: 47 MB a unit at 100 Hz over the standard
     program, copied and searched for gaps once), a copy of its own for a unit with other times."""
-    out: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    out: dict[str, tuple[np.ndarray, np.ndarray, float]] = {}
     first: pl.Series | None = None
     for serial, run in units.items():
         col = run.voltmeter["t_ns"]
