@@ -67,11 +67,14 @@ def acceptance_files() -> list[Path]:
 
 def fingerprint_of(files: list[Path]) -> str:
     """sha256 over the files' bytes (each with its length: no two sets of contents give one stream), the Python,
-    cryptography and numpy versions (parsing, float text, signatures, K's condition number) and the project's."""
+    cryptography, numpy and orjson versions (parsing, float text, signatures, K's condition number) and the
+    project's."""
     import cryptography
     import numpy
+    import orjson
 
-    h = hashlib.sha256(f"{sys.version}|{cryptography.__version__}|{numpy.__version__}|{__version__}|".encode())
+    versions = f"{sys.version}|{cryptography.__version__}|{numpy.__version__}|{orjson.__version__}|{__version__}|"
+    h = hashlib.sha256(versions.encode())
     for f in files:
         data = f.read_bytes()
         h.update(b"%d|" % len(data) + data)

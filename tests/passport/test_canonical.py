@@ -5,7 +5,9 @@ the encoder."""
 from __future__ import annotations
 
 import json
+import re
 
+import orjson
 import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
@@ -13,6 +15,8 @@ from hypothesis import strategies as st
 from pipeline.passport.canonical import (
     NotCanonical,
     Sealed,
+    _orjson_floats_are_python,
+    _read_by_orjson,
     _read_canonical,
     canonical_json,
     parse_record,
@@ -170,3 +174,118 @@ def test_the_shortcut_for_canonical_bytes_decides_as_the_encoder(record, edits):
     assert got == expected
     if got is not None:
         assert list(got[0]) == list(expected[0])  # the same key order as the strict parse
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# the orjson path (_read_by_orjson): the same answer as the definition on every byte string
+
+json_floats = st.floats(allow_nan=False, allow_infinity=False) | st.sampled_from(
+    [-0.0, 1e-5, 1.5e-5, 9.999999999999999e-05, 1e-4, 1e-7, 2.5e-06, 1e-10, 1e15, 1e16, 5e-324, 1.7976931348623157e308]
+)
+odd_chars = st.text(st.characters(), max_size=6) | st.sampled_from(
+    ["\x7f", "\x1f", "\x00", "\u00e9", "\ud800", "\U0001f600", "e-7", "0.00001", "a,\n", " 1e-7,\n", "\u2028"]
+)
+wide_ints = st.integers(-(2**70), 2**70) | st.sampled_from([2**63, 2**64 - 1, 2**64, -(2**63), -(2**63) - 1])
+odd_values = st.recursive(
+    st.none() | st.booleans() | wide_ints | json_floats | odd_chars,
+    lambda inner: st.lists(inner, max_size=4) | st.dictionaries(odd_chars, inner, max_size=4),
+    max_leaves=12,
+)
+_NUMBER = re.compile(rb"(?<=[ \n])-?[0-9][-+.0-9eE]*(?=,?\n)")
+_ESCAPE = re.compile(rb"\\u[0-9a-f]{4}|\\[nrtbf\"\\]")
+
+
+def _respell_number(token: bytes, how: int) -> bytes:
+    """Another text of (about) the same number: orjson's, upper case, a trailing zero, a plus sign, %e, -0, ..."""
+    x = float(token)
+    return [
+        orjson.dumps(x),
+        token.upper(),
+        token + b"0" if b"." in token else token + b".0",
+        token.replace(b"e-", b"e-0"),
+        token.replace(b"e-0", b"e-"),
+        token.replace(b"e+", b"e"),
+        f"{x:.17g}".encode(),
+        f"{x:e}".encode(),
+        b"-" + token if not token.startswith(b"-") else token[1:],
+        b"-0" if token in (b"0", b"0.0") else b"0" + token.lstrip(b"-"),
+    ][how % 10]
+
+
+def _respell_escape(escape: bytes, how: int) -> bytes:
+    """Another text of (about) the same character: upper-case hex, the raw character, a \\u form of a short escape."""
+    char = json.loads(b'"' + escape + b'"')
+    raw = char.encode("utf-8", "surrogatepass")
+    return [escape.upper().replace(b"\\U", b"\\u"), raw, b"\\u%04x" % ord(char) if len(char) == 1 else raw][how % 3]
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    st.dictionaries(odd_chars | st.sampled_from(["content_sha256", "signature"]), odd_values, min_size=1, max_size=5),
+    st.lists(
+        st.tuples(st.sampled_from(["number", "escape", "orjson", "byte"]), st.integers(0, 10**6), st.integers(0, 9)),
+        max_size=3,
+    ),
+)
+@example({"a": 1e-7, "b": [1.5e-5, -0.0], "c": 1e16}, [("orjson", 0, 0)])
+@example({"a": 1e-7}, [("number", 0, 0)])
+@example({"a": 1.5e-5}, [("number", 0, 0)])
+@example({"a": "\x7f"}, [("byte", 0, 0)])
+@example({"a": "x\x7f"}, [("escape", 0, 1)])  # (a raw DEL inside a string: orjson reads and writes it raw)
+@example({"a": [10.00001, -10.000015, 100.00001]}, [])  # (0.0000 inside a number of another decade)
+@example({"a": "\u00e9", "\u00e9": 1}, [("orjson", 0, 0)])
+@example({"a": 2**64}, [])
+@example({"a": "\ud800"}, [])
+def test_the_orjson_path_decides_as_the_encoder(record, edits):
+    """read_sealed's first path (orjson reads and writes the bytes; floats compared in Python's repr; non-ASCII and
+    DEL refused) accepts exactly what the definition (strict parse, canonical_json, signed_body) accepts, with the
+    same record (key order too) and body: on canonical bytes of records with any float (-0.0, 1e-05 vs orjson's
+    0.00001, 1e-07 vs 1e-7, subnormals, 1e16), any character (controls, DEL, non-ASCII keys, lone surrogates),
+    integers beyond 64 bits; and on the same bytes with a number spelled otherwise (orjson's text, upper case, a
+    trailing zero, a padded or unpadded exponent, -0), an escape spelled otherwise (upper-case hex, the raw character,
+    \\u for \\n), orjson's own text of the whole record, or a raw DEL/non-ASCII byte inserted."""
+    data = canonical_json(record)
+    for kind, where, how in edits:
+        if kind == "number" and (tokens := list(_NUMBER.finditer(data))):
+            m = tokens[where % len(tokens)]
+            data = data[: m.start()] + _respell_number(m[0], how) + data[m.end() :]
+        elif kind == "escape" and (escapes := list(_ESCAPE.finditer(data))):
+            m = escapes[where % len(escapes)]
+            data = data[: m.start()] + _respell_escape(m[0], how) + data[m.end() :]
+        elif kind == "orjson":
+            try:
+                data = orjson.dumps(json.loads(data), option=orjson.OPT_INDENT_2 | orjson.OPT_SORT_KEYS) + b"\n"
+            except (TypeError, ValueError):
+                pass
+        elif kind == "byte":
+            k = where % (len(data) + 1)
+            data = data[:k] + [b"\x7f", "\u00e9".encode(), b"\t", b"\x1f"][how % 4] + data[k:]
+    try:
+        expected = _reference(data)
+    except NotCanonical:
+        expected = None
+    try:
+        sealed = read_sealed(data)
+        got = (sealed.record, sealed.body)
+    except NotCanonical:
+        got = None
+    assert got == expected
+    fast = _read_by_orjson(data)
+    assert fast is None or (expected is not None and fast == expected[0] and list(fast) == list(expected[0]))
+    if got is not None:
+        assert list(got[0]) == list(expected[0])
+
+
+@settings(max_examples=300, deadline=None)
+@given(json_floats, wide_ints.filter(lambda n: -(2**63) <= n < 2**64))
+@example(1.5e-5, 0)
+@example(-9.999999999999999e-05, 0)
+def test_the_orjson_path_reads_every_float_and_64_bit_integer(x, n):
+    """Canonical bytes of any float (in the decade orjson writes out, with a one-digit exponent, -0.0, subnormal, the
+    largest) and any 64-bit integer go by the orjson path, not only by the fallback: it is the path the registry's
+    files take."""
+    record = {"a": x, "b": [x, -x, n], "c": {"d": [[x]], "e": n}, "signature": {"v": x}}
+    data = canonical_json(record)
+    assert _orjson_floats_are_python()
+    assert _read_by_orjson(data) == record
+    assert read_sealed(data) == Sealed(record, signed_body(record))
