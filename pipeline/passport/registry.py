@@ -883,6 +883,7 @@ class Registry:
                     final.unlink()
                     _fsync_dir(udir)
                 raise
+        _remember_verified(data, digest, trust)
         return PublishResult(unit, doc["version"], final, digest, True, doc)
 
     def _prepare_locked(self, unit: str, udir: Path, trust: TrustStore) -> _UnitState:
@@ -1249,6 +1250,21 @@ class Registry:
         for v, doc in zip((v1, v2), docs):
             check_content(doc, f"{unit} v{v}")
         return diff_passports(*docs, unit=unit, v1=v1, v2=v2)
+
+
+def _remember_verified(data: bytes, sha256: str, trust: TrustStore) -> None:
+    """Put the bytes this station has just published into its cache of verified files
+    (:mod:`~pipeline.passport.verified_cache`) when they pass the checks of bytes alone that a reader makes
+    (:func:`~pipeline.passport.verification.check_sealed` under ``trust``, :func:`check_content`): the lab's own
+    registry is then read warm from its first ``trends``. Never an error (the version is published already)."""
+    seal = check_sealed(data, trust)
+    if not seal.ok or seal.record is None:
+        return
+    try:
+        check_content(seal.record)
+    except ThermocalError:
+        return
+    VerifiedCache.open(trust, read_entries=False).add([sha256])
 
 
 def load_passport_file(path: str | os.PathLike, *, unverified: bool = False, trust: TrustStore | None = None):

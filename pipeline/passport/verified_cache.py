@@ -47,10 +47,17 @@ def cache_dir() -> Path | None:
     return Path(base) / "thermocal"
 
 
+#: The module that uses the cache: what a hit skips is decided there (Registry._check_unit, verified_history). Its
+#: own source counts, not the modules it imports (the whole calibration pipeline: any edit there would empty every
+#: cache).
+_USER = "registry.py"
+
+
 def acceptance_files() -> list[Path]:
     """The source files of :mod:`pipeline.passport.verification` (check_sealed, check_content), this module and every
     ``pipeline`` module they use at module level, transitively (canonical form, hashing, signatures, JSON
-    conversion, ...), sorted: what decides whether a file's bytes pass."""
+    conversion, ...), and of the registry module that skips checks on a hit (:data:`_USER`), sorted: what decides
+    whether a file's bytes pass."""
     seen: dict[str, ModuleType] = {}
     todo: list[ModuleType] = [verification, sys.modules[__name__]]
     while todo:
@@ -62,7 +69,7 @@ def acceptance_files() -> list[Path]:
             name = value.__name__ if isinstance(value, ModuleType) else getattr(value, "__module__", None)
             if isinstance(name, str) and name.split(".")[0] == "pipeline" and name in sys.modules:
                 todo.append(sys.modules[name])
-    return sorted(Path(f) for m in seen.values() if (f := m.__file__))
+    return sorted({Path(f) for m in seen.values() if (f := m.__file__)} | {Path(__file__).with_name(_USER)})
 
 
 def fingerprint_of(files: list[Path]) -> str:
@@ -132,12 +139,13 @@ class VerifiedCache:
         self._prefix = f"{checks_fingerprint()}|{key_set_fingerprint(trust)}|".encode("ascii")
 
     @classmethod
-    def open(cls, trust: TrustStore) -> VerifiedCache:
-        """The cache for ``trust`` (an empty one that keeps nothing when there is no usable cache)."""
+    def open(cls, trust: TrustStore, read_entries: bool = True) -> VerifiedCache:
+        """The cache for ``trust`` (an empty one that keeps nothing when there is no usable cache). ``read_entries``
+        False: only to :meth:`add` (a publish: its new file is in no entry yet; the entries file is not read)."""
         folder = cache_dir() if checks_fingerprint() else None
         secret = _secret(folder) if folder is not None else None
         entries: set[str] = set()
-        if folder is not None and secret is not None:
+        if folder is not None and secret is not None and read_entries:
             path = folder / _ENTRIES_NAME
             try:
                 if path.stat().st_size > MAX_CACHE_BYTES:

@@ -199,7 +199,7 @@ def test_any_edit_of_the_checks_verifies_in_full(fleet, counted, tmp_path, monke
     files = verified_cache.acceptance_files()
     names = {f"{f.parent.name}/{f.name}" for f in files}
     assert {"passport/verification.py", "passport/canonical.py", "passport/signing.py", "pipeline/jsonable.py"} <= names
-    assert "passport/verified_cache.py" in names
+    assert {"passport/verified_cache.py", "passport/registry.py"} <= names  # (registry.py: what a hit skips)
     copies = []
     for f in files:
         copies.append(tmp_path / "src" / f.parent.name / f.name)
@@ -221,3 +221,25 @@ def test_any_edit_of_the_checks_verifies_in_full(fleet, counted, tmp_path, monke
         assert rerun(copies) is not None and counted["sealed"] == 0  # (the new checks' entries are used)
     finally:
         verified_cache.checks_fingerprint.cache_clear()
+
+
+def test_a_station_s_own_publish_fills_the_cache(counted, tmp_path, monkeypatch):
+    """What this station publishes (signed by it, checked as a reader checks) is cached as it is written: the first
+    read of its own registry checks no file's bytes and reports what a read without the cache reports; a
+    registry copied from elsewhere (another user's cache) is read in full once; what is not a passport is not
+    cached."""
+    root = tmp_path / "own"
+    write_fleet(root, FleetSpec(units=2, versions=2, seed=11))
+    entries = (tmp_path / "cache" / "verified").read_text().split()
+    assert len(entries) == 4
+    Registry(root).publish({"unit": "AU-0099"}, inputs=[], settings={}, code_version="test")  # no coefficients
+    assert len((tmp_path / "cache" / "verified").read_text().split()) == 4
+    _reset(counted)
+    warm = fleet_trends(root).report
+    assert counted["sealed"] == 1 and warm["versions"] == 4  # AU-0099's file alone: checked, and malformed
+    assert [b["unit"] for b in warm["not_verified"]] == ["AU-0099"]
+    monkeypatch.setenv(CACHE_ENV, "")
+    assert fleet_trends(root).report == warm
+    monkeypatch.setenv(CACHE_ENV, str(tmp_path / "another user's cache"))
+    _reset(counted)
+    assert fleet_trends(root).report == warm and counted["sealed"] == 5
