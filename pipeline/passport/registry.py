@@ -52,6 +52,7 @@ from pipeline.errors import RegistryError, ThermocalError
 from pipeline.passport.canonical import (
     canonical_json,
     content_sha256,
+    parse_canonical,
     parse_record,
     sha256_bytes,
     sha256_file,
@@ -1096,7 +1097,7 @@ class Registry:
                 altered.add(v)
             if cache is not None and cache.known(sha[v]):
                 # the same bytes passed every check of bytes alone before (canonical: the plain parser reads them)
-                seal = SealCheck(json.loads(data), (), canonical=True, self_hash_ok=True)
+                seal = SealCheck(parse_canonical(data), (), canonical=True, self_hash_ok=True)
                 if cached is not None:
                     cached.add(v)
             else:

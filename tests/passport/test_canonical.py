@@ -19,6 +19,7 @@ from pipeline.passport.canonical import (
     _read_by_orjson,
     _read_canonical,
     canonical_json,
+    parse_canonical,
     parse_record,
     read_sealed,
     signed_body,
@@ -196,8 +197,12 @@ _ESCAPE = re.compile(rb"\\u[0-9a-f]{4}|\\[nrtbf\"\\]")
 
 
 def _respell_number(token: bytes, how: int) -> bytes:
-    """Another text of (about) the same number: orjson's, upper case, a trailing zero, a plus sign, %e, -0, ..."""
-    x = float(token)
+    """Another text of (about) the same number: orjson's, upper case, a trailing zero, a plus sign, %e, -0, ...
+    (a token no longer a number after an earlier edit: as it is)"""
+    try:
+        x = float(token)
+    except ValueError:
+        return token
     return [
         orjson.dumps(x),
         token.upper(),
@@ -235,6 +240,8 @@ def _respell_escape(escape: bytes, how: int) -> bytes:
 @example({"a": [10.00001, -10.000015, 100.00001]}, [])  # (0.0000 inside a number of another decade)
 @example({"a": "\u00e9", "\u00e9": 1}, [("orjson", 0, 0)])
 @example({"a": 2**64}, [])
+@example({"a": [1.0000000000000001e31]}, [("number", 0, 2)])  # (1e+310: inf, not encodable)
+@example({"a": [1e-05]}, [("number", 0, 2), ("number", 0, 0)])  # (1e-05.0: no number)
 @example({"a": "\ud800"}, [])
 def test_the_orjson_path_decides_as_the_encoder(record, edits):
     """read_sealed's first path (orjson reads and writes the bytes; floats compared in Python's repr; non-ASCII and
@@ -262,18 +269,18 @@ def test_the_orjson_path_decides_as_the_encoder(record, edits):
             data = data[:k] + [b"\x7f", "\u00e9".encode(), b"\t", b"\x1f"][how % 4] + data[k:]
     try:
         expected = _reference(data)
-    except NotCanonical:
+    except (NotCanonical, ValueError):  # (ValueError: a number beyond a float's range, read as inf, cannot be encoded)
         expected = None
     try:
         sealed = read_sealed(data)
         got = (sealed.record, sealed.body)
     except NotCanonical:
         got = None
-    assert got == expected
+    assert repr(got) == repr(expected)  # (repr: 1 and 1.0, 0.0 and -0.0 are ==; the key order counts too)
     fast = _read_by_orjson(data)
-    assert fast is None or (expected is not None and fast == expected[0] and list(fast) == list(expected[0]))
-    if got is not None:
-        assert list(got[0]) == list(expected[0])
+    assert fast is None or (expected is not None and repr(fast) == repr(expected[0]))
+    if expected is not None:  # bytes that passed, read again from the cache: as json.loads reads them
+        assert repr(parse_canonical(data)) == repr(json.loads(data))
 
 
 @settings(max_examples=300, deadline=None)
@@ -287,5 +294,6 @@ def test_the_orjson_path_reads_every_float_and_64_bit_integer(x, n):
     record = {"a": x, "b": [x, -x, n], "c": {"d": [[x]], "e": n}, "signature": {"v": x}}
     data = canonical_json(record)
     assert _orjson_floats_are_python()
-    assert _read_by_orjson(data) == record
-    assert read_sealed(data) == Sealed(record, signed_body(record))
+    assert repr(_read_by_orjson(data)) == repr(record)
+    assert repr(read_sealed(data)) == repr(Sealed(record, signed_body(record)))
+    assert repr(parse_canonical(data)) == repr(record)
