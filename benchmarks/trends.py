@@ -15,10 +15,13 @@ them), with two units drifting and one outlier planted. Then times (wall and CPU
   verified files (:mod:`pipeline.passport.verified_cache`, a new temporary folder each time);
 - ``verified read, warm cache``: the same again with the cache the cold read filled (what a second run reads);
 - ``analyse``: drift, unsteady and outlier tests on what was read (:func:`pipeline.passport.trends.analyse`);
-- ``trends``: the whole of :func:`pipeline.passport.trends.fleet_trends` (what the command runs), warm cache.
+- ``trends``: the whole of :func:`pipeline.passport.trends.fleet_trends` (what the command runs), warm cache;
+- ``thermocal trends --json``, the command itself (a new process: start, imports, read, analysis, output), first
+  with an empty cache (a registry read for the first time, or after a trusted key or the checks changed), then again
+  with the cache that run filled (every later run).
 
-CPU seconds include the worker processes' (their start too). Prints a markdown table, what was found and the
-machine's load average (the machine may be shared).
+CPU seconds include the worker processes' (their start too) and the command's. Prints a markdown table, what was
+found, and the machine's load average before and after (the machine may be shared).
 """
 
 from __future__ import annotations
@@ -28,6 +31,8 @@ import json
 import multiprocessing
 import os
 import resource
+import subprocess
+import sys
 import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -77,6 +82,12 @@ def _cpu_s() -> float:
     return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
 
 
+def command(root: Path, cache: str) -> bytes:
+    """``thermocal trends --registry root --json`` in a new process with the cache folder ``cache``; its output."""
+    run = [sys.executable, "-c", "from flows.console import main; main()", "trends", "--registry", str(root), "--json"]
+    return subprocess.run(run, env={**os.environ, CACHE_ENV: cache}, capture_output=True, check=True).stdout
+
+
 def best(fn, repeat: int):
     walls, cpus, out = [], [], None
     for _ in range(repeat):
@@ -104,6 +115,7 @@ def main() -> None:
         print(f"wrote {args.units} units x {args.versions} versions in {wrote:.0f} s ({root})", flush=True)
     from scipy import stats  # noqa: F401  (loaded before timing: the command loads it when it analyses)
 
+    load_before = os.getloadavg()[0]
     rows = []
     w, c, n = best(lambda: list_and_read(root), args.repeat)
     rows.append(("list+read (floor)", w, c))
@@ -121,7 +133,19 @@ def main() -> None:
     rows.append(("analyse", w, c))
     w, c, result = best(lambda: fleet_trends(root, workers=args.read_workers), args.repeat)
     rows.append(("trends (warm verified read + analyse)", w, c))
-    print(f"\n{len(fleet)} units, {n} versions; best of {args.repeat}; load average {os.getloadavg()[0]:.1f}\n")
+    caches: list[str] = []
+
+    def first_run() -> bytes:
+        caches.append(tempfile.mkdtemp(prefix="trends-bench-cache-"))
+        return command(root, caches[-1])
+
+    w, c, out = best(first_run, args.repeat)
+    rows.append(("`thermocal trends --json`, empty cache", w, c))
+    w, c, again = best(lambda: command(root, caches[-1]), args.repeat)
+    assert again == out, "the command's output must not depend on the cache"
+    rows.append(("`thermocal trends --json`, filled cache", w, c))
+    load = f"load average {load_before:.1f} before, {os.getloadavg()[0]:.1f} after"
+    print(f"\n{len(fleet)} units, {n} versions; best of {args.repeat}; {load}\n")
     print("| step | wall s | CPU s | x floor (wall) | x floor (CPU) |\n|---|---:|---:|---:|---:|")
     floor_w, floor_c = rows[0][1], rows[0][2]
     for name, w, c in rows:
