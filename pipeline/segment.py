@@ -641,12 +641,21 @@ class Channels:
             for c, v in zip(self._cols, self._views)
         ]
 
-    def copies(self, s0: int, s1: int) -> list[np.ndarray]:
-        """Samples ``s0 .. s1 - 1`` of each channel as three float64 arrays of the caller's own (it may change them)."""
-        return [
-            c.slice(s0, s1 - s0).to_numpy(writable=True) if isinstance(c, pl.Series) else c[s0:s1].copy()
-            for c in self._cols
-        ]
+    def copy_into(self, channel: int, s0: int, s1: int, out: np.ndarray) -> np.ndarray:
+        """Samples ``s0 .. s1 - 1`` of one channel copied into ``out`` (the caller's, reused: no fresh pages)."""
+        views = self._views[channel]
+        if views is None:
+            out[: s1 - s0] = slab_of(self._cols[channel], s0, s1)
+            return out[: s1 - s0]
+        starts, arrays = views
+        k = max(bisect.bisect_right(starts, s0) - 1, 0)
+        at = s0
+        while at < s1 and k < len(arrays):
+            piece = arrays[k][at - starts[k] : s1 - starts[k]]
+            out[at - s0 : at - s0 + piece.size] = piece
+            at += piece.size
+            k += 1
+        return out[: s1 - s0]
 
     def chunk_starts(self) -> np.ndarray:
         """The sorted sample indices (> 0) where a column's next chunk begins: a slab across one is a copy."""
@@ -817,23 +826,28 @@ def rolling_std_v(t_ns: np.ndarray, u_v, window_s: float) -> BlockStats:
                 np.multiply(dev, dev, out=dev)
                 mean_b[bid, c] = mean
                 m2_b[bid, c] = np.add.reduceat(dev, st)
-    # rolling sums over K blocks centred on each block (zero-padded at the ends); short sums, no cancellation
+    # rolling sums over K blocks centred on each block (zero-padded at the ends); short sums, no cancellation. The
+    # count, the sums and the sums of squares side by side in one (m, 7) array: one pass of K shifted slices
     k = _BLOCKS_PER_WINDOW
-    pad = ((k // 2, k - 1 - k // 2),)
-
-    def roll(v):
-        p = np.pad(v, pad + ((0, 0),) * (v.ndim - 1))
-        out = p[:m].copy()
-        for j in range(1, k):  # k shifted slices: the same short sums, 6x faster than a window view's sum
-            out += p[j : j + m]
-        return out
-
-    n_w = roll(n_b)
-    s1 = roll(n_b[:, None] * mean_b)
-    s2 = roll(m2_b + n_b[:, None] * mean_b**2)
+    moments = np.empty((m, 7))
+    moments[:, 0] = n_b
+    np.multiply(n_b[:, None], mean_b, out=moments[:, 1:4])
+    squares = mean_b**2
+    np.multiply(n_b[:, None], squares, out=squares)
+    np.add(m2_b, squares, out=moments[:, 4:7])
+    del squares
+    p = np.pad(moments, ((k // 2, k - 1 - k // 2), (0, 0)))
+    rolled = p[:m].copy()
+    for j in range(1, k):  # k shifted slices: the same short sums, 6x faster than a window view's sum
+        rolled += p[j : j + m]
+    del p
+    n_w, s1, s2 = rolled[:, 0], rolled[:, 1:4], rolled[:, 4:7]
     with np.errstate(invalid="ignore", divide="ignore"):
-        var = (s2 - s1 * s1 / n_w[:, None]) / (n_w[:, None] - 1)
-    std = np.sqrt(np.clip(var, 0.0, None))
+        var = s1 * s1  # (s2 - s1 s1 / n) / (n - 1), in place
+        var /= n_w[:, None]
+        np.subtract(s2, var, out=var)
+        var /= n_w[:, None] - 1
+    std = np.sqrt(np.clip(var, 0.0, None, out=var), out=var)
     std[n_w < 2] = np.nan
     bad_i = np.concatenate(bad) if bad else np.zeros(0, dtype=np.intp)
     return BlockStats(starts=starts, ids=ids, std=std, count=n_w, n=int(t_ns.size), bad=bad_i)
@@ -1235,6 +1249,7 @@ def segment_run(
                 continues=continues[k],
             )
         )
+    first = np.empty(min(ch.n, _SLAB_SAMPLES))  # (one buffer for the three channels' resolutions)
     return Segmentation(
         plateaus=plateaus,
         segments=segments,
@@ -1243,7 +1258,9 @@ def segment_run(
         static_window_s=settings.static_window_s,
         static_min_s=settings.static_min_s,
         gaps_ns={k: [(int(a), int(b)) for a, b in v] for k, v in gaps.items()},
-        resolution_v=vector3([reading_resolution(c, scratch=True) for c in ch.copies(0, min(ch.n, _SLAB_SAMPLES))]),
+        resolution_v=vector3(
+            [reading_resolution(ch.copy_into(c, 0, first.size, first), scratch=True) for c in range(3)]
+        ),
     )
 
 
@@ -1311,13 +1328,20 @@ def reading_resolution(x: np.ndarray, scratch: bool = False) -> float:
         return 0.0
     v.sort()
     floor = float(np.spacing(max(abs(v[0]), abs(v[-1]))))
-    steps = np.diff(v)
-    steps = steps[steps > 0]
-    if steps.size < 2:
+
+    def steps():  # the steps > 0 between the sorted values, a slab at a time (temporaries in the cache)
+        for a in range(0, v.size - 1, _BLOCK_SLAB):
+            d = np.diff(v[a : a + _BLOCK_SLAB + 1])
+            yield d[d > 0]
+
+    q, count = np.inf, 0
+    for d in steps():
+        count += d.size
+        q = min(q, float(d.min())) if d.size else q
+    if count < 2 or not q > floor:
         return floor
-    q = float(steps.min())
-    n = steps / q
-    return q if q > floor and bool(np.all(np.abs(n - np.round(n)) < 0.01)) else floor
+    on_grid = all(bool(np.all(np.abs(d / q - np.round(d / q)) < 0.01)) for d in steps())
+    return q if on_grid else floor
 
 
 def _gaps_on_plateaus(
