@@ -102,7 +102,11 @@ def _stop(procs: list[subprocess.Popen], wait_s: float) -> None:
 
 def main() -> None:
     """The worker: draws the jobs read on standard input until it ends."""
-    import pipeline.plots  # noqa: F401  (imported while the caller still calibrates)
+    # imported while the caller still reads its files, not at the first figure (pipeline.plots imports lazily)
+    from matplotlib import figure, ticker  # noqa: F401
+    from matplotlib.backends import backend_agg  # noqa: F401
+
+    import pipeline.plots  # noqa: F401
 
     source = sys.stdin.buffer
     while True:
