@@ -88,3 +88,23 @@ def test_no_unit_named_for_drift_in_a_ramp_a_gap_or_a_turned_neighbour():
     ]
     _, warnings = segment_units(UnitRuns.of_units(three).units)
     assert len(warnings) == 1 and warnings[0].startswith("unit AU-0703: its signal names"), warnings
+
+
+def test_units_on_one_clock_share_its_times_and_segment_as_on_their_own(four, monkeypatch):
+    """The units whose voltmeter times are the first unit's share one copy of them (and of their gaps and median
+    interval); a unit with other times has its own. Sharing changes no segment: the same segmentations, field by
+    field, as with a copy of the times per unit."""
+    from pipeline import segment_units as su
+    from pipeline.segment import unit_clock
+
+    units = dict(four.units)
+    last = list(units)[-1]
+    v = units[last].voltmeter
+    units[last] = dataclasses.replace(units[last], voltmeter=v.with_columns(pl.col("t_ns") + 1_000_000))
+    clocks = su._clocks(units)
+    first = clocks[next(iter(units))][0]
+    assert all(clocks[s][0] is first for s in list(units)[1:-1]) and clocks[last][0] is not first
+    assert np.array_equal(clocks[last][0], units[last].t_ns())
+    shared = segment_units(units)
+    monkeypatch.setattr(su, "_clocks", lambda us: {s: unit_clock(r) for s, r in us.items()})
+    assert segment_units(units) == shared
