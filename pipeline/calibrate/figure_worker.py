@@ -13,6 +13,7 @@ import os
 import pickle
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -45,7 +46,7 @@ class FigureWorker:
             with contextlib.suppress(OSError):
                 self._procs.append(
                     subprocess.Popen(
-                        [sys.executable, "-m", __name__],
+                        [sys.executable, "-m", __name__, str(os.getpid())],  # its caller, to leave with
                         stdin=subprocess.PIPE,
                         stdout=subprocess.DEVNULL,
                         stderr=subprocess.DEVNULL,  # a figure is a convenience: one not drawn is drawn here after
@@ -87,21 +88,38 @@ class FigureWorker:
 
 def _stop(procs: list[subprocess.Popen], wait_s: float) -> None:
     """Close the workers' input and wait up to ``wait_s`` for them to draw what they were given and end; then stop
-    them (a figure being drawn is left under its temporary name, which the registry removes later)."""
+    them (a figure being drawn is left under its temporary name, which the registry removes later); stopped at once
+    when the wait is interrupted."""
     for proc in procs:
         with contextlib.suppress(OSError, ValueError):
             proc.stdin.close()  # type: ignore[union-attr]
     deadline = time.monotonic() + wait_s
-    for proc in procs:
-        try:
-            proc.wait(max(0.0, deadline - time.monotonic()))
-        except subprocess.TimeoutExpired:
-            proc.kill()
+    try:
+        for proc in procs:
+            try:
+                proc.wait(max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+    except BaseException:  # Ctrl-C while waiting for the figures: the workers stopped too, not left drawing
+        for proc in procs:
+            with contextlib.suppress(OSError):
+                proc.kill()
             proc.wait()
+        raise
 
 
 def main() -> None:
-    """The worker: draws the jobs read on standard input until it ends."""
+    """The worker: draws the jobs read on standard input until it ends, or until its caller is gone (killed: the
+    jobs still in the pipe are not drawn after it)."""
+    caller = int(sys.argv[1]) if len(sys.argv) > 1 else os.getppid()  # gone already: leaves at once
+
+    def leave_with_caller() -> None:
+        while os.getppid() == caller:
+            time.sleep(0.2)
+        os._exit(1)
+
+    threading.Thread(target=leave_with_caller, daemon=True, name="thermocal-caller-watch").start()
     # imported while the caller still reads its files, not at the first figure (pipeline.plots imports lazily)
     from matplotlib import figure, ticker  # noqa: F401
     from matplotlib.backends import backend_agg  # noqa: F401

@@ -5,7 +5,11 @@ fails or is interrupted."""
 from __future__ import annotations
 
 import json
+import signal
+import subprocess
 import sys
+import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -102,3 +106,48 @@ def test_no_worker_left_when_the_caller_fails_or_is_interrupted(tmp_path, error)
             draw(job)
         raise error("stopped")
     assert len(draw.pids) == 2 and not any(alive(pid) for pid in draw.pids)
+
+
+def test_no_worker_left_when_interrupted_while_the_caller_waits_for_the_figures(tmp_path):
+    """Ctrl-C once every unit is calibrated, while the caller waits for the workers to draw what they were given:
+    the workers are stopped with the caller, not left drawing (and writing figures) after the command ended."""
+    main = threading.main_thread().ident
+    assert main is not None
+    folders = [tmp_path / str(k) for k in range(3)]
+    with pytest.raises(KeyboardInterrupt), FigureWorker() as draw:
+        for folder in folders:
+            folder.mkdir()
+            for job in _jobs(folder):
+                draw(job)
+        # the workers are still importing matplotlib: the interrupt lands in the wait at the block's end
+        threading.Timer(0.3, signal.pthread_kill, (main, signal.SIGINT)).start()
+    assert len(draw.pids) == 2 and not any(alive(pid) for pid in draw.pids)
+    time.sleep(0.5)
+    assert not [p for folder in folders for p in folder.glob("*.png")]
+
+
+def test_no_worker_left_drawing_when_the_caller_is_killed(tmp_path):
+    """A caller killed (no __exit__) with figures still in the workers' pipes: the workers leave with it."""
+    caller = (
+        "import os, sys\n"
+        "from pathlib import Path\n"
+        "from pipeline.calibrate.figure_worker import FigureWorker\n"
+        "from tests.calibrate.test_figure_worker import _jobs\n"
+        "draw = FigureWorker().__enter__()\n"
+        "for k in range(3):\n"
+        "    folder = Path(sys.argv[1]) / str(k)\n"
+        "    folder.mkdir()\n"
+        "    for job in _jobs(folder):\n"
+        "        draw(job)\n"
+        "print(*draw.pids, flush=True)\n"
+        "os._exit(9)\n"
+    )
+    root = Path(__file__).resolve().parents[2]
+    done = subprocess.run([sys.executable, "-c", caller, str(tmp_path)], capture_output=True, text=True, cwd=root)
+    assert done.returncode == 9, done.stderr
+    pids = [int(p) for p in done.stdout.split()]
+    deadline = time.monotonic() + 30.0
+    while any(alive(pid) for pid in pids) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert len(pids) == 2 and not any(alive(pid) for pid in pids)
+    assert not list(tmp_path.glob("*/*.png"))  # the 6 figures given were not drawn after the caller was gone
