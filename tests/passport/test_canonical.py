@@ -114,6 +114,21 @@ def _reference(data: bytes):
     return doc, signed_body(doc)
 
 
+def _decided(data: bytes, refused) -> tuple:
+    """(the definition's (record, body) or None when it raises one of ``refused``, read_sealed's or None when it
+    raises NotCanonical)."""
+    try:
+        expected = _reference(data)
+    except refused:
+        expected = None
+    try:
+        sealed = read_sealed(data)
+        got = (sealed.record, sealed.body)
+    except NotCanonical:
+        got = None
+    return expected, got
+
+
 EDITS = [b" ", b"\n", b"\n  ", b",", b"\t", b"}", b"]", b'"', b"\\", b":", b"0", b"\r"]
 
 
@@ -163,15 +178,7 @@ def test_the_shortcut_for_canonical_bytes_decides_as_the_encoder(record, edits):
             rest = data[:at] + data[end:]
             to = min(max(at + (1 if k % 2 else -1) * (1 + k % 3 // 2), 0), len(rest))
             data = rest[:to] + data[at:end] + rest[to:]
-    try:
-        expected = _reference(data)
-    except NotCanonical:
-        expected = None
-    try:
-        sealed = read_sealed(data)
-        got = (sealed.record, sealed.body)
-    except NotCanonical:
-        got = None
+    expected, got = _decided(data, NotCanonical)
     assert got == expected
     if got is not None:
         assert list(got[0]) == list(expected[0])  # the same key order as the strict parse
@@ -267,15 +274,8 @@ def test_the_orjson_path_decides_as_the_encoder(record, edits):
         elif kind == "byte":
             k = where % (len(data) + 1)
             data = data[:k] + [b"\x7f", "\u00e9".encode(), b"\t", b"\x1f"][how % 4] + data[k:]
-    try:
-        expected = _reference(data)
-    except (NotCanonical, ValueError):  # (ValueError: a number beyond a float's range, read as inf, cannot be encoded)
-        expected = None
-    try:
-        sealed = read_sealed(data)
-        got = (sealed.record, sealed.body)
-    except NotCanonical:
-        got = None
+    # (ValueError: a number beyond a float's range, read as inf, cannot be encoded)
+    expected, got = _decided(data, (NotCanonical, ValueError))
     assert repr(got) == repr(expected)  # (repr: 1 and 1.0, 0.0 and -0.0 are ==; the key order counts too)
     fast = _read_by_orjson(data)
     assert fast is None or (expected is not None and repr(fast) == repr(expected[0]))
