@@ -237,16 +237,17 @@ class _LostInterrupts:
         self.count = 0
 
     def __call__(self, unraisable) -> None:
-        import _thread
+        import signal
         import threading
 
         if not isinstance(unraisable.exc_value, KeyboardInterrupt):
             self.hook(unraisable)
             return
         self.count += 1
-        # raised again a moment later from another thread, once this finaliser is over (raised from here, its
+        # sent again a moment later from another thread, once this finaliser is over (raised from here, its
         # handler would run at once, inside the finaliser again); lost again, it comes back again
-        again = threading.Timer(_INTERRUPT_AGAIN_S, _thread.interrupt_main)
+        main = threading.main_thread().ident
+        again = threading.Timer(_INTERRUPT_AGAIN_S, signal.pthread_kill, (main, signal.SIGINT))
         again.daemon = True
         with contextlib.suppress(RuntimeError):  # no new thread while the interpreter shuts down
             again.start()
