@@ -42,6 +42,10 @@ def run_job(conn: socket.socket) -> None:
     from flows.cli.entry import run
     from flows.runtime import exit_guarded
 
+    # Ctrl-C reaches the command only as the client forwards it (_watch_client): whatever SIGINT disposition the
+    # server inherited from the command that started it (ignored, when that one ran in a background shell), the job
+    # takes it as Python does at a terminal
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     _, fds, _, _ = socket.recv_fds(conn, 1, 2)
     for fd, target in zip(fds, (1, 2)):  # the command's own stdout and stderr
         os.dup2(fd, target)

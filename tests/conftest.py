@@ -6,6 +6,7 @@ import atexit
 import json
 import os
 import shutil
+import signal
 import tempfile
 from pathlib import Path
 
@@ -15,6 +16,12 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 #: reference recordings made by others, each with its licence (tests/data/README.md)
 DATA = REPO / "tests" / "data"
+
+# Ctrl-C as at a terminal: a session started from a background shell inherits SIGINT ignored (then Python installs
+# no KeyboardInterrupt handler, and every process the tests start ignores it too), which the tests that press Ctrl-C
+# on a command, or on a worker's caller, cannot run under.
+if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 # Prefect: never the user's home, no telemetry (no network here); set before any test imports prefect.
 os.environ.setdefault("PREFECT_HOME", str(Path(os.environ.get("TMPDIR", "/tmp")) / f"thermocal-prefect-{os.getpid()}"))
