@@ -71,10 +71,16 @@ def make(directory: Path, units: int, rate_hz: float, encoding: str) -> tuple[Pa
 
 
 def _warm_prefect() -> float:
+    """A first flow recorded where the measured flow will be (``flow_settings``: thermocal's local server, started
+    here as the first thermocal command on a machine starts it), so that the step measures the command, not the
+    server's start (~10-12 s here, once per machine; the server stays up for the next command)."""
     from prefect import flow as prefect_flow
 
+    from flows.runtime import flow_settings
+
     t = time.perf_counter()
-    prefect_flow(name="warm-up")(lambda: None)()
+    with flow_settings(True):
+        prefect_flow(name="warm-up")(lambda: None)()
     return time.perf_counter() - t
 
 
@@ -180,6 +186,10 @@ def child(step: str, path: Path) -> None:
         children=len(peaks),
         children_peak_sum_gb=round(sum(peaks.values()) / 2**20, 2),
     )
+    if step in ("calibrate", "fleet"):
+        from flows.localserver import stop_server
+
+        stop_server()  # the step's own local server (its Prefect home is removed after the run)
     print(json.dumps(out))
 
 

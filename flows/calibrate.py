@@ -178,24 +178,36 @@ def calibrate_flow(
     if method != "auto":
         by_name(method)  # an unknown method fails before any run is read
     base = None if base_passport is None else load_passport(base_passport)  # the document a parameter, typed once
-    figures = None if dry_run or _serials(paths, units) < 2 else FigureWorker()
-    with figures or contextlib.nullcontext():  # the figure workers start (their imports) while the files are read
+    several = _serials(paths, units) >= 2
+    figures = None if dry_run or not several else FigureWorker()
+    hashing = ThreadPoolExecutor(1)  # the files hashed in a thread (hashlib lets go of the GIL)
+    try:
+        # one unit: hashed while the files are read; several: while the run is segmented (one core), not beside the
+        # reader's decompression threads, and the figure workers start (their imports) then too
+        hashed = {} if several else {p: hashing.submit(hash_run, p) for p in paths}
         read = []
-        hashing = ThreadPoolExecutor(1)  # the files hashed while they are read (hashlib lets go of the GIL)
-        try:
-            hashed = {p: hashing.submit(hash_run, p) for p in paths}
-            for p in paths:
-                step(f"ingest {os.path.basename(p)}")
-                read.append(ingest(p, units))
-            digests = {p: f.result() for p, f in hashed.items()}
-        finally:
-            hashing.shutdown(wait=False, cancel_futures=True)
-        if any(r.several for r in read):
-            result = calibrate_units(paths, read, registry, settings, method, base, dry_run, step, digests, figures)
-        else:
-            result = _calibrate_unit(
-                [r.one() for r in read], list(paths), registry, settings, method, base, dry_run, step, digests=digests
-            )
+        for p in paths:
+            step(f"ingest {os.path.basename(p)}")
+            read.append(ingest(p, units))
+        hashed = hashed or {p: hashing.submit(hash_run, p) for p in paths}
+        with figures or contextlib.nullcontext():
+            if any(r.several for r in read):
+                result = calibrate_units(paths, read, registry, settings, method, base, dry_run, step, hashed, figures)
+            else:
+                digests = {p: f.result() for p, f in hashed.items()}
+                result = _calibrate_unit(
+                    [r.one() for r in read],
+                    list(paths),
+                    registry,
+                    settings,
+                    method,
+                    base,
+                    dry_run,
+                    step,
+                    digests=digests,
+                )
+    finally:
+        hashing.shutdown(wait=False, cancel_futures=True)
     if figures is not None and "units" in result:
         result["units"] = figures.results(result["units"])
     if not dry_run:
@@ -213,15 +225,16 @@ def _serials(paths: list[str], units: list[str] | None) -> int:
     return len(found & set(units) if units else found)
 
 
-def calibrate_units(paths, read, registry, settings, method, base, dry_run, step, digests, draw=None) -> dict:
+def calibrate_units(paths, read, registry, settings, method, base, dry_run, step, hashed, draw=None) -> dict:
     """The runs ``read`` (:class:`pipeline.run.UnitRuns`, one per path) of which some hold several units: each
     unit calibrated from its runs (segmented once per run with several units), one after the other, the samples of
     a unit let go once it is observed. Returns ``{"units": [the calibrate object of each unit], "failed": [{"unit",
     "run", "reason"}]}`` (contract.md): a unit that failed its input checks or its calibration is listed with its
-    one-line reason and the others go on. ``digests``: each path's :func:`pipeline.passport.provenance.hash_run`
-    (a file hashed once, not once per unit). ``draw``: publish's, for the figures drawn in other processes while the
-    next unit is calibrated (:class:`pipeline.calibrate.figure_worker.FigureWorker`, which :func:`calibrate_flow`
-    starts for two units or more)."""
+    one-line reason and the others go on. ``hashed``: each path's :func:`pipeline.passport.provenance.hash_run` as
+    a future, waited for once the runs are segmented (a file hashed once, not once per unit). ``draw``: publish's,
+    for the figures drawn in other processes while the next unit is calibrated
+    (:class:`pipeline.calibrate.figure_worker.FigureWorker`, which :func:`calibrate_flow` starts for two units or
+    more)."""
     logger = get_run_logger()
     failed: list[dict] = []
     by_unit: dict[str, list] = {}  # serial -> [(path, UnitRuns, segmentation or None)]
@@ -236,6 +249,7 @@ def calibrate_units(paths, read, registry, settings, method, base, dry_run, step
                     logger.warning(w)
         for serial in got.units:
             by_unit.setdefault(serial, []).append((p, got, segs.get(serial)))
+    digests = {p: f.result() for p, f in hashed.items()}
     results = []
     for serial, items in by_unit.items():
         runs = [got.units[serial] for _, got, _ in items]
