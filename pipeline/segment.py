@@ -786,9 +786,16 @@ def rolling_std_v(t_ns: np.ndarray, u_v, window_s: float) -> BlockStats:
     ids = np.concatenate(([0], np.cumsum(step)))
     m = int(ids[-1]) + 1
     lengths = np.diff(np.append(starts, t_ns.size))
-    n_b = np.zeros(m)
-    mean_b = np.zeros((m, 3))
-    m2_b = np.zeros((m, 3))
+    # per block, side by side: the finite samples n, the sums n * mean and the sums of squares m2 + n * mean^2 of the
+    # three channels: rows (7,) of the moments P, zero-padded by half a window before the first block and after the
+    # last (P[i + K // 2] is block i's); each window's sums P[i] + .. + P[i + K - 1] are taken as soon as a slab has
+    # made its last row, so only the rows of the current slab (and the K - 1 before it) are held (one reused buffer)
+    k = _BLOCKS_PER_WINDOW
+    std = np.empty((m, 3))
+    count = np.empty(m)
+    rows_p = np.zeros((_BLOCK_SLAB // 4, 7))  # P's rows from ``done`` on, the first ``have`` of them made so far
+    acc = np.empty_like(rows_p)
+    done = have = 0  # the windows summed so far
     bad = []
     # whole blocks of about _BLOCK_SLAB samples at a time: the per-sample temporaries stay small; a block across
     # two chunks of the table is a slab of its own (the others are views of the table, not copies)
@@ -798,6 +805,8 @@ def rolling_std_v(t_ns: np.ndarray, u_v, window_s: float) -> BlockStats:
             (np.searchsorted(starts, np.arange(0, t_ns.size, _BLOCK_SLAB)), chunked, chunked + 1, [starts.size])
         )
     )
+    bounds = np.append(starts, t_ns.size)[edges]
+    scratch = np.empty(int(np.max(np.diff(bounds), initial=0)))  # the squared deviations, one buffer for all slabs
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
         for ka, kb in zip(edges[:-1], edges[1:]):
             s0, s1 = starts[ka], (starts[kb] if kb < starts.size else t_ns.size)
@@ -810,8 +819,17 @@ def rolling_std_v(t_ns: np.ndarray, u_v, window_s: float) -> BlockStats:
                 fin = finite_columns(cols)
                 bad.append(s0 + np.flatnonzero(~fin))
             nb = ln.astype(np.float64) if all_finite else np.add.reduceat(fin, st).astype(np.float64)
-            n_b[bid] = nb
+            # P's rows up to this slab's last block (the empty blocks before its first: zeros)
+            top = int(bid[-1]) + k // 2 + 1
+            if top - done > len(rows_p):
+                rows_p = np.concatenate((rows_p[:have], np.empty((2 * (top - done) - have, 7))))
+                acc = np.empty_like(rows_p)
+            rows_p[have : top - done] = 0.0
+            view = bid[-1] - bid[0] == kb - ka - 1  # its blocks consecutive (no pause inside it)
+            row = rows_p[bid[0] + k // 2 - done : top - done] if view else np.empty((kb - ka, 7))
+            row[:, 0] = nb
             rows = int(ln[0]) if bool(np.all(ln == ln[0])) else 0  # blocks of one length (a steady rate)
+            dev = scratch[: s1 - s0]
             for c, x in enumerate(cols):
                 if not all_finite:
                     x = np.where(fin, x, 0.0)
@@ -819,38 +837,55 @@ def rolling_std_v(t_ns: np.ndarray, u_v, window_s: float) -> BlockStats:
                 mean = sums[c] / nb
                 if not all_finite:  # (every block has samples: an empty one only lacks finite ones)
                     mean = np.where(nb > 0, mean, 0.0)
-                dev = np.repeat(mean, rows or ln)  # the squared deviations, in place in one temporary
-                np.subtract(x, dev, out=dev)
+                if rows:  # the squared deviations, in place in the scratch buffer
+                    np.subtract(x.reshape(-1, rows), mean[:, None], out=dev.reshape(-1, rows))
+                else:
+                    np.subtract(x, np.repeat(mean, ln), out=dev)
                 if not all_finite:
                     dev[~fin] = 0.0
                 np.multiply(dev, dev, out=dev)
-                mean_b[bid, c] = mean
-                m2_b[bid, c] = np.add.reduceat(dev, st)
-    # rolling sums over K blocks centred on each block (zero-padded at the ends); short sums, no cancellation. The
-    # count, the sums and the sums of squares side by side in one (m, 7) array: one pass of K shifted slices
-    k = _BLOCKS_PER_WINDOW
-    moments = np.empty((m, 7))
-    moments[:, 0] = n_b
-    np.multiply(n_b[:, None], mean_b, out=moments[:, 1:4])
-    squares = mean_b**2
-    np.multiply(n_b[:, None], squares, out=squares)
-    np.add(m2_b, squares, out=moments[:, 4:7])
-    del squares
-    p = np.pad(moments, ((k // 2, k - 1 - k // 2), (0, 0)))
-    rolled = p[:m].copy()
-    for j in range(1, k):  # k shifted slices: the same short sums, 6x faster than a window view's sum
-        rolled += p[j : j + m]
-    del p
-    n_w, s1, s2 = rolled[:, 0], rolled[:, 1:4], rolled[:, 4:7]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        var = s1 * s1  # (s2 - s1 s1 / n) / (n - 1), in place
-        var /= n_w[:, None]
-        np.subtract(s2, var, out=var)
-        var /= n_w[:, None] - 1
-    std = np.sqrt(np.clip(var, 0.0, None, out=var), out=var)
-    std[n_w < 2] = np.nan
+                np.multiply(nb, mean, out=row[:, 1 + c])
+                np.multiply(mean, mean, out=mean)
+                mean *= nb
+                np.add(np.add.reduceat(dev, st), mean, out=row[:, 4 + c])
+            if not view:
+                rows_p[bid + k // 2 - done] = row
+            ready = max(top - k + 1 - done, 0)  # the windows whose last row is made
+            _window_std(rows_p, ready, k, std[done : done + ready], count[done : done + ready], acc)
+            have = top - done - ready
+            rows_p[:have] = rows_p[ready : ready + have].copy()
+            done += ready
+        # the last windows, over the zero padding after the last block
+        if m + k - 1 - done > len(rows_p):
+            rows_p = np.concatenate((rows_p[:have], np.empty((m + k - 1 - done - have, 7))))
+            acc = np.empty_like(rows_p)
+        rows_p[have : m + k - 1 - done] = 0.0
+        _window_std(rows_p, m - done, k, std[done:], count[done:], acc)
     bad_i = np.concatenate(bad) if bad else np.zeros(0, dtype=np.intp)
-    return BlockStats(starts=starts, ids=ids, std=std, count=n_w, n=int(t_ns.size), bad=bad_i)
+    return BlockStats(starts=starts, ids=ids, std=std, count=count, n=int(t_ns.size), bad=bad_i)
+
+
+def _window_std(rows: np.ndarray, n_out: int, k: int, std: np.ndarray, count: np.ndarray, acc: np.ndarray) -> None:
+    """Into ``std`` (n_out, 3) and ``count`` (n_out,): the standard deviations (V) and finite samples of the windows
+    of ``k`` rows of block moments starting at each of the first ``n_out`` rows of ``rows`` (see
+    :func:`rolling_std_v`): the sums row by row in order (short sums, no cancellation), then
+    (s2 - s1 s1 / n) / (n - 1). NaN with fewer than 2 samples. ``acc``: a scratch buffer of at least n_out rows."""
+    if n_out <= 0:
+        return
+    acc = acc[:n_out]
+    np.copyto(acc, rows[:n_out])
+    for j in range(1, k):  # k shifted slices: the same short sums, 6x faster than a window view's sum
+        acc += rows[j : j + n_out]
+    n_w, s1, s2 = acc[:, 0:1], acc[:, 1:4], acc[:, 4:7]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        np.multiply(s1, s1, out=std)
+        std /= n_w
+        np.subtract(s2, std, out=std)
+        std /= n_w - 1
+    np.clip(std, 0.0, None, out=std)
+    np.sqrt(std, out=std)
+    std[n_w[:, 0] < 2] = np.nan
+    count[:] = n_w[:, 0]
 
 
 def static_threshold_v(std_v: np.ndarray, u_v=None) -> np.ndarray:
