@@ -287,18 +287,35 @@ def fit_unit(
 def _referral_shifts(local: ThermalModel, groups, fits: list[PlateauConstants]) -> dict[int, np.ndarray]:
     """Per observation (by id), the change (3,) V of its mean output from its own temperature to its plateau's
     mean temperature, by the ``local`` model: [K(T_seg) - K(T_plateau)] a + U0(T_seg) - U0(T_plateau)."""
-    shift = {}
+    return {i: d[k] for ids, d in _group_shifts(local, _referral_layout(groups, fits)) for k, i in enumerate(ids)}
+
+
+def _referral_layout(
+    groups, fits: list[PlateauConstants]
+) -> list[tuple[list[int], np.ndarray, np.ndarray, np.ndarray]]:
+    """What :func:`_referral_shifts` needs of each plateau group, whatever the model: the observations' ids, their
+    temperatures (C), gravity vectors (g) and their plateau's mean temperature (C) once per observation."""
     plateau_temp = {(f.run_id, f.plateau): f.temp_c for f in fits}
-    for key, rows in groups.items():
-        if key not in plateau_temp:
-            continue
-        t_seg = np.array([o.temp_c for o in rows])
-        a = np.array([gravity_vector_g(o.position) for o in rows])
+    return [
+        (
+            [id(o) for o in rows],
+            np.array([o.temp_c for o in rows]),
+            np.array([gravity_vector_g(o.position) for o in rows]),
+            np.full(len(rows), plateau_temp[key]),
+        )
+        for key, rows in groups.items()
+        if key in plateau_temp
+    ]
+
+
+def _group_shifts(local: ThermalModel, layout) -> list[tuple[list[int], np.ndarray]]:
+    """Per group of :func:`_referral_layout`, the ids and the referral shifts (n, 3) V by the ``local`` model."""
+    out = []
+    for ids, t_seg, a, t_plateau in layout:
         Ks, U0s = local.constants_at(t_seg)
-        Kp, U0p = local.constants_at(np.full(len(rows), plateau_temp[key]))
-        d = np.einsum("nij,nj->ni", Ks - Kp, a) + (U0s - U0p)
-        shift.update({id(o): d[k] for k, o in enumerate(rows)})
-    return shift
+        Kp, U0p = local.constants_at(t_plateau)
+        out.append((ids, np.einsum("nij,nj->ni", Ks - Kp, a) + (U0s - U0p)))
+    return out
 
 
 def _referral_errors(thermal, groups, fits: list[PlateauConstants]) -> dict[int, np.ndarray]:
@@ -314,7 +331,9 @@ def _referral_errors(thermal, groups, fits: list[PlateauConstants]) -> dict[int,
     the same, so a program with longer excursions is covered too."""
     temps = np.array([f.temp_c for f in fits])
     K, U0 = np.array([f.K for f in fits]), np.array([f.U0 for f in fits])
-    changes: dict[int, list[np.ndarray]] = {}
+    layout = _referral_layout(groups, fits)  # the same for every move: only the model changes
+    kind = f"poly{thermal('auto', temps, K, U0).order}"  # "auto"'s order, which depends on the temperatures alone
+    changes: list[list[np.ndarray]] = [[] for _ in layout]  # per group, per move: (n, 3)
     for p, f in enumerate(fits):
         assert f.K_sigma is not None and f.U0_sigma is not None  # set by _with_uncertainty before this is called
         for col in range(4):
@@ -325,10 +344,10 @@ def _referral_errors(thermal, groups, fits: list[PlateauConstants]) -> dict[int,
                     Kp[p, :, col] += sign * f.K_sigma[:, col]
                 else:
                     Up[p] += sign * f.U0_sigma
-                moved.append(_referral_shifts(thermal("auto", temps, Kp, Up), groups, fits))
-            for k, plus in moved[0].items():
-                changes.setdefault(k, []).append((plus - moved[1][k]) / 2.0)
-    return {k: np.array(v) for k, v in changes.items()}
+                moved.append(_group_shifts(thermal(kind, temps, Kp, Up), layout))
+            for g, ((_, plus), (_, minus)) in enumerate(zip(*moved)):
+                changes[g].append((plus - minus) / 2.0)
+    return {i: per_id for (ids, *_), c in zip(layout, changes) for i, per_id in zip(ids, np.stack(c, axis=1))}
 
 
 def _with_uncertainty(
