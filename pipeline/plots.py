@@ -52,95 +52,142 @@ def plot_verification(rows, path: str | Path, *, title: str = "") -> Path:
     the calibration).
 
     Drawn for throughput (a fleet draws one per unit): fixed margins (no layout pass), the position names as plain
-    texts (no tick objects), one Agg draw straight to the PNG (fast zlib level), legends at fixed places.
+    texts (no tick objects), legends at fixed places, and the figure of the previous call of this thread filled
+    again when its panels are the same (:class:`_VerificationFrame`: the units of one run), its fixed artists kept
+    as pixels (:class:`_Layers`).
     """
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-    from matplotlib.patches import Rectangle
-
-    path = Path(path)
     panels = _panels([_row_dict(r) for r in rows])
-    slots = sum(p["width"] for p in panels) + max(len(panels) - 1, 0)
-    width_in = _MARGINS_IN["left"] + _MARGINS_IN["right"] + _SLOT_IN * max(slots, _MIN_SLOTS)
-    fig = Figure(figsize=(width_in, _HEIGHT_IN), dpi=_VERIFICATION_DPI)
-    fig.subplots_adjust(
-        left=_MARGINS_IN["left"] / width_in,
-        right=1 - _MARGINS_IN["right"] / width_in,
-        bottom=_MARGINS_IN["bottom"] / _HEIGHT_IN,
-        top=1 - _MARGINS_IN["top"] / _HEIGHT_IN,
-        hspace=_GAP_IN / _PANEL_IN,
-    )
-    before, after = fig.subplots(2, 1)
-    for ax in (before, after):
-        ax.set_xticks([])
-    if not panels:
-        before.text(0.5, 0.5, "no VP data", ha="center", transform=before.transAxes)
-    else:
-        x = np.concatenate([np.append(p["x"], np.nan) for p in panels])[:-1]
-        lim_ug = np.concatenate([np.append([r["tolerance_g"] for r in p["rows"]], np.nan) for p in panels])[:-1] * 1e6
-        for ax, series in ((before, _DG_SERIES[:1]), (after, _DG_SERIES[1:])):
-            peak, ringed = 0.0, False
-            for field, label, fmt, colour in series:
-                dg_ug = np.concatenate([np.append([r[field] for r in p["rows"]], np.nan) for p in panels])[:-1] * 1e6
-                ax.plot(x, dg_ug, fmt, color=colour, label=label, ms=4)
-                bad = np.abs(dg_ug) > lim_ug
-                if bad.any():
-                    ax.plot(
-                        x[bad],
-                        dg_ug[bad],
-                        "o",
-                        ms=11,
-                        mfc="none",
-                        mec="red",
-                        mew=1.5,
-                        label=None if ringed else "beyond the limit",
-                    )
-                    ringed = True
-                peak = max(peak, float(np.nanmax(np.abs(dg_ug))))
-            _panel_decor(ax, panels, peak, Rectangle, titles=ax is before, names=ax is after)
-        before.legend(loc="upper left", bbox_to_anchor=(0, 1.2), ncols=4, fontsize=7, frameon=False, borderaxespad=0)
-        after.legend(loc="upper right", bbox_to_anchor=(1, 1.14), ncols=4, fontsize=7, frameon=False, borderaxespad=0)
-    before.set_ylabel("before: dg  [micro-g]", fontsize=9)
-    after.set_ylabel("after: dg  [micro-g]", fontsize=9)
-    fig.suptitle(
-        title or "Gravity-module error dg = |a| - 1 at the verification positions",
-        x=_MARGINS_IN["left"] / width_in,
-        y=1 - 0.08 / _HEIGHT_IN,
-        ha="left",
-        va="top",
-    )
+    key = _VerificationFrame.key(panels)
+    frame = getattr(_FRAMES, "verification", None)
+    if frame is None or frame.layout != key:
+        frame = _FRAMES.verification = _VerificationFrame(panels)
+    frame.fill(panels, title or "Gravity-module error dg = |a| - 1 at the verification positions")
+    path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    FigureCanvasAgg(fig).print_png(path, pil_kwargs={"compress_level": 1})
+    frame.layers.save(path)
     return path
 
 
-def _panel_decor(ax, panels: list[dict], peak_ug: float, Rectangle, *, titles: bool, names: bool) -> None:
-    """Limit bands (where they fit the axes' scale), separators, and the panel titles (temperature, visit, limit)
-    or the position names (the two axes share their x: titles above the upper, names under the lower)."""
-    span = max(peak_ug, 1.0) * 1.15
-    ax.set_ylim(-span, span)
-    below = ax.get_xaxis_transform()  # x in data, y in axes fraction
-    for k, p in enumerate(panels):
-        lim_ug = p["rows"][0]["tolerance_g"] * 1e6
-        if lim_ug < span:
-            ax.add_patch(Rectangle((p["x0"], -lim_ug), p["width"], 2 * lim_ug, color="0.9", zorder=0))
-        visit = f", visit {p['visit']}" if p["visits"] > 1 else ""
-        if titles:
-            ax.text(
-                p["x0"] + p["width"] / 2,
-                1.01,
-                f"{p['temp_c']:+.1f} C{visit} (limit {lim_ug:.0f})",
-                ha="center",
-                va="bottom",
+class _VerificationFrame:
+    """The verification figure of one layout of panels (:meth:`key`: their places, titles and position names),
+    with its axes, texts, separators, limit bands and lines made once; :meth:`fill` puts a unit's errors in the
+    lines, sets the scales and legends and shows the bands that fit."""
+
+    def __init__(self, panels: list[dict]) -> None:
+        from matplotlib.figure import Figure
+
+        self.layout = self.key(panels)
+        slots = sum(p["width"] for p in panels) + max(len(panels) - 1, 0)
+        width_in = _MARGINS_IN["left"] + _MARGINS_IN["right"] + _SLOT_IN * max(slots, _MIN_SLOTS)
+        self.fig = fig = Figure(figsize=(width_in, _HEIGHT_IN), dpi=_VERIFICATION_DPI)
+        fig.subplots_adjust(
+            left=_MARGINS_IN["left"] / width_in,
+            right=1 - _MARGINS_IN["right"] / width_in,
+            bottom=_MARGINS_IN["bottom"] / _HEIGHT_IN,
+            top=1 - _MARGINS_IN["top"] / _HEIGHT_IN,
+            hspace=_GAP_IN / _PANEL_IN,
+        )
+        self.before, self.after = fig.subplots(2, 1)
+        fixed = []
+        for ax in (self.before, self.after):
+            ax.set_xticks([])
+        self.before.set_ylabel("before: dg  [micro-g]", fontsize=9)
+        self.after.set_ylabel("after: dg  [micro-g]", fontsize=9)
+        self.series: list[tuple] = []  # (axes, row field, line, ring line), in drawing order
+        self.bands: list[tuple] = []  # (band, limit in micro-g)
+        if not panels:
+            fixed.append(self.before.text(0.5, 0.5, "no VP data", ha="center", transform=self.before.transAxes))
+        else:
+            self.x = np.concatenate([np.append(p["x"], np.nan) for p in panels])[:-1]
+            lim_ug = [np.append([r["tolerance_g"] for r in p["rows"]], np.nan) for p in panels]
+            self.lim_ug = np.concatenate(lim_ug)[:-1] * 1e6
+            for ax, series in ((self.before, _DG_SERIES[:1]), (self.after, _DG_SERIES[1:])):
+                for field, label, fmt, colour in series:
+                    (line,) = ax.plot([], [], fmt, color=colour, label=label, ms=4)
+                    (ring,) = ax.plot([], [], "o", ms=11, mfc="none", mec="red", mew=1.5, label="beyond the limit")
+                    self.series.append((ax, field, line, ring))
+                fixed += self._decor(ax, panels, titles=ax is self.before, names=ax is self.after)
+        self.title = fig.suptitle("", x=_MARGINS_IN["left"] / width_in, y=1 - 0.08 / _HEIGHT_IN, ha="left", va="top")
+        self.layers = _Layers(fig, fixed)
+
+    @staticmethod
+    def key(panels: list[dict]) -> tuple:
+        """What the fixed artists are made of: per panel its place, title (temperature, visit, limit), position
+        names and their places."""
+        return tuple(
+            (p["x0"], p["width"], _panel_title(p), tuple(r["position"] for r in p["rows"]), tuple(p["x"]))
+            for p in panels
+        )
+
+    def _decor(self, ax, panels: list[dict], *, titles: bool, names: bool) -> list:
+        """The limit bands (shown by :meth:`fill` where they fit the scale), separators, zero line, and the panel
+        titles or the position names (the two axes share their x: titles above the upper, names under the lower);
+        returns the texts, the fixed artists among them."""
+        from matplotlib.patches import Rectangle
+
+        below = ax.get_xaxis_transform()  # x in data, y in axes fraction
+        fixed = []
+        for k, p in enumerate(panels):
+            lim_ug = p["rows"][0]["tolerance_g"] * 1e6
+            band = ax.add_patch(Rectangle((p["x0"], -lim_ug), p["width"], 2 * lim_ug, color="0.9", zorder=0))
+            self.bands.append((band, lim_ug))
+            if titles:
+                fixed.append(
+                    ax.text(
+                        p["x0"] + p["width"] / 2,
+                        1.01,
+                        _panel_title(p),
+                        ha="center",
+                        va="bottom",
+                        fontsize=7,
+                        transform=below,
+                    )
+                )
+            for xi, r in zip(p["x"], p["rows"]) if names else ():
+                fixed.append(ax.text(xi, -0.02, r["position"], ha="center", va="top", fontsize=7, transform=below))
+            if k:
+                ax.axvline(p["x0"] - 0.5, color="0.6", lw=0.8)
+        ax.axhline(0, color="k", lw=0.5)  # over the bands, which change: drawn each time as they are
+        ax.set_xlim(panels[0]["x0"], panels[-1]["x0"] + panels[-1]["width"])
+        return fixed
+
+    def fill(self, panels: list[dict], title: str) -> None:
+        """A unit's errors (its ``panels``, of this frame's :meth:`key`) in the lines, each axes scaled to its
+        largest error, the bands that fit shown, the legends of what is drawn, and the ``title``."""
+        self.title.set_text(title)
+        if not panels:
+            return
+        for ax in (self.before, self.after):
+            peak, handles, ringed = 0.0, [], False  # the legend: each series, and the first ring drawn
+            for _, field, line, ring in (s for s in self.series if s[0] is ax):
+                dg_ug = np.concatenate([np.append([r[field] for r in p["rows"]], np.nan) for p in panels])[:-1] * 1e6
+                line.set_data(self.x, dg_ug)
+                bad = np.abs(dg_ug) > self.lim_ug
+                ring.set_data(self.x[bad], dg_ug[bad])
+                handles += [line, ring] if bad.any() and not ringed else [line]
+                ringed = ringed or bool(bad.any())
+                peak = max(peak, float(np.nanmax(np.abs(dg_ug))))
+            span = max(peak, 1.0) * 1.15
+            ax.set_ylim(-span, span)
+            for band, lim_ug in self.bands:
+                if band.axes is ax:
+                    band.set_visible(lim_ug < span)
+            where = ((0, 1.2), "upper left") if ax is self.before else ((1, 1.14), "upper right")
+            ax.legend(
+                handles=handles,
+                loc=where[1],
+                bbox_to_anchor=where[0],
+                ncols=4,
                 fontsize=7,
-                transform=below,
+                frameon=False,
+                borderaxespad=0,
             )
-        for xi, r in zip(p["x"], p["rows"]) if names else ():
-            ax.text(xi, -0.02, r["position"], ha="center", va="top", fontsize=7, transform=below)
-        if k:
-            ax.axvline(p["x0"] - 0.5, color="0.6", lw=0.8)
-    ax.axhline(0, color="k", lw=0.5)
-    ax.set_xlim(panels[0]["x0"], panels[-1]["x0"] + panels[-1]["width"])
+
+
+def _panel_title(p: dict) -> str:
+    """A panel's title: its temperature, its visit when the temperature has several, and its limit (micro-g)."""
+    visit = f", visit {p['visit']}" if p["visits"] > 1 else ""
+    return f"{p['temp_c']:+.1f} C{visit} (limit {p['rows'][0]['tolerance_g'] * 1e6:.0f})"
 
 
 def _row_dict(r) -> dict:
@@ -201,8 +248,56 @@ def plot_constants(passport: Passport | dict, path: str | Path, *, title: str = 
     fig = constants_figure(passport, title=title, frame=frame)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    FigureCanvasAgg(fig).print_png(path, pil_kwargs={"compress_level": 1})
+    if fig is frame.fig:
+        frame.layers.save(path)
+    else:  # no values to put in the frame: a figure of its own
+        FigureCanvasAgg(fig).print_png(path, pil_kwargs={"compress_level": 1})
     return path
+
+
+class _Layers:
+    """A figure drawn as its fixed artists, kept as pixels after its first drawing, and the others drawn over them
+    each time (matplotlib's blitting: those are "animated", left out of the canvas's drawing): a figure filled
+    again for each unit draws only what a unit changes. Fixed: the axes' backgrounds and titles and the artists
+    ``fixed``; the others (frames, ticks, labels, lines, legends, the figure's title) are drawn in the order the
+    figure's own drawing has (axes in turn, each one's artists by zorder, then the figure's), so the PNG is the one
+    ``print_png`` writes of the whole figure when no fixed artist covers a changing one."""
+
+    def __init__(self, fig, fixed: list) -> None:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+        self.fig, self.canvas = fig, FigureCanvasAgg(fig)
+        self._fixed_ids = {id(a) for a in fixed} | {id(fig.patch)}
+        for ax in fig.axes:
+            self._fixed_ids |= {id(ax.patch), id(ax.title), id(ax)}
+        self._pixels = None  # the fixed artists drawn, after the first figure
+
+    def _changing(self) -> list:
+        changing = []
+        for ax in self.fig.axes:
+            mine = (a for a in ax.get_children() if id(a) not in self._fixed_ids)
+            changing += sorted(mine, key=lambda a: a.get_zorder())
+        changing += [a for a in self.fig.get_children() if id(a) not in self._fixed_ids]
+        for artist in changing:
+            artist.set_animated(True)
+        return changing
+
+    def save(self, path: Path) -> None:
+        """Draw the figure as it is now and write it to ``path`` (PNG, fast zlib level)."""
+        from matplotlib.image import imsave
+
+        changing = self._changing()
+        for ax in self.fig.axes:
+            ax.viewLim  # noqa: B018 -- applies a pending autoscale (done by the axes' own drawing otherwise)
+        if self._pixels is None:
+            self.canvas.draw()
+            self._pixels = self.canvas.copy_from_bbox(self.fig.bbox)
+        else:
+            self.canvas.restore_region(self._pixels)
+        renderer = self.canvas.get_renderer()
+        for artist in changing:
+            artist.draw(renderer)
+        imsave(path, self.canvas.buffer_rgba(), format="png", dpi=self.fig.dpi, pil_kwargs={"compress_level": 1})
 
 
 def constants_figure(passport: Passport | dict, *, title: str = "", frame: _ConstantsFrame | None = None):
@@ -251,7 +346,8 @@ def constants_figure(passport: Passport | dict, *, title: str = "", frame: _Cons
     return fig
 
 
-#: Each thread's :class:`_ConstantsFrame` (:func:`plot_constants`): a figure object is drawn by one thread at a time.
+#: Each thread's figures to fill again (:func:`plot_constants`, :func:`plot_verification`): a figure object is drawn
+#: by one thread at a time.
 _FRAMES = threading.local()
 
 
@@ -265,6 +361,12 @@ def _constants_axes():
     axes = fig.subplots(6, 3, gridspec_kw={"height_ratios": [3, 1.3] * 3})
     fig.subplots_adjust(left=0.09, right=0.99, bottom=0.05, top=0.92, hspace=0.12, wspace=0.22)
     return fig, axes
+
+
+#: Where the constants figure's axis labels are (axes fraction): left of tick labels of up to 7 characters (the
+#: formatter's longest before it writes an offset or a power of ten), under the temperature tick labels.
+_YLABEL_AT = (-0.21, 0.5)
+_XLABEL_AT = (0.5, -0.3)
 
 
 class _ConstantsFrame:
@@ -302,6 +404,8 @@ class _ConstantsFrame:
                 if i == 0:
                     ax.set_ylabel(label, fontsize=8)
                     res.set_ylabel(f"residual\n[{unit}]", fontsize=8)
+                for a in (ax, res):  # at fixed places: placing them measured every tick label once more
+                    a.yaxis.set_label_coords(*_YLABEL_AT)
                 if r == 0:
                     ax.set_title(f"axis {axis[i]}", fontsize=10)
                 if key == "cross" or (r == 0 and i == 0):
@@ -315,6 +419,17 @@ class _ConstantsFrame:
         for ax in self.axes[-1]:
             ax.xaxis.set_major_locator(MaxNLocator(6))
             ax.set_xlabel("temperature [C]", fontsize=8)
+            ax.xaxis.set_label_coords(*_XLABEL_AT)
+        self.title = self.fig.suptitle("", fontsize=11)
+        self._layers: _Layers | None = None
+
+    @property
+    def layers(self) -> _Layers:
+        """The figure as :class:`_Layers` (made at the first use: a figure whose artists are animated draws only
+        its fixed ones in a plain ``print_png``)."""
+        if self._layers is None:
+            self._layers = _Layers(self.fig, [])
+        return self._layers
 
     def fill(self, T, points, sig, grid, at_grid, at_T, span: tuple[float, float]) -> None:
         """The plateau temperatures ``T`` and changes ``points`` (:func:`constant_changes`), their ``sig`` (or None),

@@ -104,6 +104,30 @@ def test_before_and_after_on_their_own_scales_fails_circled(tmp_path):
     )
 
 
+def test_verification_figure_drawn_again_is_the_figure_made_afresh(tmp_path):
+    """plot_verification fills the figure of its previous call again when the panels are the same (its fixed
+    artists kept as pixels): each PNG is byte for byte the one of a figure made afresh for those rows alone, whatever
+    was drawn before (other errors and scales, rings above or below or none, another layout, no rows)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    layout = [(t, tol) for t, tol in ((-10.0, 1000.0), (20.0, 300.0), (45.0, 1000.0))]
+    first = _timed([_row(t, f"VP{k}", 500.0 * (k - 3), tol) for t, tol in layout for k in range(1, 7)])
+    calm = _timed([_row(t, f"VP{k}", 20.0 * k, tol, after_ug=-0.5 * k) for t, tol in layout for k in range(1, 7)])
+    failed = [
+        VerificationRow(**{**r.to_dict(), "dg_method2_g": 2e-3 if k == 4 else r.dg_method2_g})
+        for k, r in enumerate(calm)
+    ]
+    other = first[:7]
+    for k, rows in enumerate([first, calm, failed, other, [], first, failed]):
+        again = plots.plot_verification(rows, tmp_path / f"again{k}.png", title=f"t{k}")
+        panels = plots._panels([r.to_dict() for r in rows])
+        fresh = plots._VerificationFrame(panels)
+        fresh.fill(panels, f"t{k}")
+        FigureCanvasAgg(fresh.fig).print_png(tmp_path / f"fresh{k}.png", pil_kwargs={"compress_level": 1})
+        assert again.read_bytes() == (tmp_path / f"fresh{k}.png").read_bytes(), k
+    assert _red_rings(np.asarray(Image.open(tmp_path / "again2.png").convert("RGB"))[280:]).sum() > 50
+
+
 def test_constant_changes_in_engineering_units():
     K0 = np.diag([0.5, -0.55, 0.6])
     K0[0, 1] = 1e-3
