@@ -37,7 +37,7 @@ from __future__ import annotations
 import bisect
 import dataclasses
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import polars as pl
@@ -721,6 +721,27 @@ class BlockStats:
         return np.column_stack((a, b))[b > a]
 
 
+def _blocks(t_ns: np.ndarray, block_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The blocks of :class:`BlockStats` on the sorted times ``t_ns``: each non-empty block's first sample, its index
+    among the blocks (a pause of more than a window's empty blocks shortened to one block more than a window), and
+    its number of samples."""
+    starts, numbers = _block_starts(t_ns, block_ns)
+    step = np.diff(numbers)
+    np.minimum(step, _BLOCKS_PER_WINDOW + 1, out=step)
+    ids = np.concatenate(([0], np.cumsum(step)))
+    return starts, ids, np.diff(np.append(starts, t_ns.size))
+
+
+def _once(found: dict | None, key, make):
+    """``make()``, or what it gave before for ``key`` in ``found`` (the memo of times several units share:
+    :class:`UnitClock`); ``make()`` each time without one."""
+    if found is None:
+        return make()
+    if key not in found:
+        found[key] = make()  # (two threads may both make it: the same value)
+    return found[key]
+
+
 def _block_starts(t_ns: np.ndarray, block_ns: int) -> tuple[np.ndarray, np.ndarray]:
     """First sample of each non-empty block of ``block_ns`` (from the first sample) and its block number. ``t_ns``
     is sorted. Where the record has at least as many samples as blocks, each block's first sample is found by
@@ -770,22 +791,19 @@ def _first_at_or_after(t_ns: np.ndarray, keys_ns: np.ndarray) -> np.ndarray:
 _BLOCK_SLAB = 1 << 16
 
 
-def rolling_std_v(t_ns: np.ndarray, u_v, window_s: float) -> BlockStats:
+def rolling_std_v(t_ns: np.ndarray, u_v, window_s: float, found: dict | None = None) -> BlockStats:
     """Standard deviation of each channel of ``u_v`` (an (n, 3) array or :class:`Channels`, V) over windows of
     ``window_s``, at the resolution of window_s / 10 (see :class:`BlockStats`). Non-finite samples are left out.
 
     Each block is reduced exactly (two-pass mean and squared deviations), a slab of whole blocks at a time, and the
-    blocks are combined into windows with the parallel-variance formula.
+    blocks are combined into windows with the parallel-variance formula. ``found``: what was found from these
+    times for another unit on them (:class:`UnitClock`), reused (the blocks).
     """
     t_ns = np.asarray(t_ns, dtype=np.int64)
     ch = u_v if isinstance(u_v, Channels) else Channels(u_v)
     block_ns = max(int(window_s * _NS / _BLOCKS_PER_WINDOW), 1)
-    starts, numbers = _block_starts(t_ns, block_ns)
-    step = np.diff(numbers)
-    np.minimum(step, _BLOCKS_PER_WINDOW + 1, out=step)
-    ids = np.concatenate(([0], np.cumsum(step)))
+    starts, ids, lengths = _once(found, ("blocks", block_ns), lambda: _blocks(t_ns, block_ns))
     m = int(ids[-1]) + 1
-    lengths = np.diff(np.append(starts, t_ns.size))
     # per block, side by side: the finite samples n, the sums n * mean and the sums of squares m2 + n * mean^2 of the
     # three channels: rows (7,) of the moments P, zero-padded by half a window before the first block and after the
     # last (P[i + K // 2] is block i's); each window's sums P[i] + .. + P[i + K - 1] are taken as soon as a slab has
@@ -793,7 +811,7 @@ def rolling_std_v(t_ns: np.ndarray, u_v, window_s: float) -> BlockStats:
     k = _BLOCKS_PER_WINDOW
     std = np.empty((m, 3))
     count = np.empty(m)
-    rows_p = np.zeros((_BLOCK_SLAB // 4, 7))  # P's rows from ``done`` on, the first ``have`` of them made so far
+    rows_p = np.zeros((7, _BLOCK_SLAB // 4))  # P's rows from ``done`` on (as columns), the first ``have`` made
     acc = np.empty_like(rows_p)
     done = have = 0  # the windows summed so far
     bad = []
@@ -821,13 +839,13 @@ def rolling_std_v(t_ns: np.ndarray, u_v, window_s: float) -> BlockStats:
             nb = ln.astype(np.float64) if all_finite else np.add.reduceat(fin, st).astype(np.float64)
             # P's rows up to this slab's last block (the empty blocks before its first: zeros)
             top = int(bid[-1]) + k // 2 + 1
-            if top - done > len(rows_p):
-                rows_p = np.concatenate((rows_p[:have], np.empty((2 * (top - done) - have, 7))))
+            if top - done > rows_p.shape[1]:
+                rows_p = np.concatenate((rows_p[:, :have], np.empty((7, 2 * (top - done) - have))), axis=1)
                 acc = np.empty_like(rows_p)
-            rows_p[have : top - done] = 0.0
+            rows_p[:, have : top - done] = 0.0
             view = bid[-1] - bid[0] == kb - ka - 1  # its blocks consecutive (no pause inside it)
-            row = rows_p[bid[0] + k // 2 - done : top - done] if view else np.empty((kb - ka, 7))
-            row[:, 0] = nb
+            row = rows_p[:, bid[0] + k // 2 - done : top - done] if view else np.empty((7, kb - ka))
+            row[0] = nb
             rows = int(ln[0]) if bool(np.all(ln == ln[0])) else 0  # blocks of one length (a steady rate)
             dev = scratch[: s1 - s0]
             for c, x in enumerate(cols):
@@ -844,22 +862,22 @@ def rolling_std_v(t_ns: np.ndarray, u_v, window_s: float) -> BlockStats:
                 if not all_finite:
                     dev[~fin] = 0.0
                 np.multiply(dev, dev, out=dev)
-                np.multiply(nb, mean, out=row[:, 1 + c])
+                np.multiply(nb, mean, out=row[1 + c])
                 np.multiply(mean, mean, out=mean)
                 mean *= nb
-                np.add(np.add.reduceat(dev, st), mean, out=row[:, 4 + c])
+                np.add(np.add.reduceat(dev, st), mean, out=row[4 + c])
             if not view:
-                rows_p[bid + k // 2 - done] = row
+                rows_p[:, bid + k // 2 - done] = row
             ready = max(top - k + 1 - done, 0)  # the windows whose last row is made
             _window_std(rows_p, ready, k, std[done : done + ready], count[done : done + ready], acc)
             have = top - done - ready
-            rows_p[:have] = rows_p[ready : ready + have].copy()
+            rows_p[:, :have] = rows_p[:, ready : ready + have].copy()
             done += ready
         # the last windows, over the zero padding after the last block
-        if m + k - 1 - done > len(rows_p):
-            rows_p = np.concatenate((rows_p[:have], np.empty((m + k - 1 - done - have, 7))))
+        if m + k - 1 - done > rows_p.shape[1]:
+            rows_p = np.concatenate((rows_p[:, :have], np.empty((7, m + k - 1 - done - have))), axis=1)
             acc = np.empty_like(rows_p)
-        rows_p[have : m + k - 1 - done] = 0.0
+        rows_p[:, have : m + k - 1 - done] = 0.0
         _window_std(rows_p, m - done, k, std[done:], count[done:], acc)
     bad_i = np.concatenate(bad) if bad else np.zeros(0, dtype=np.intp)
     return BlockStats(starts=starts, ids=ids, std=std, count=count, n=int(t_ns.size), bad=bad_i)
@@ -867,25 +885,25 @@ def rolling_std_v(t_ns: np.ndarray, u_v, window_s: float) -> BlockStats:
 
 def _window_std(rows: np.ndarray, n_out: int, k: int, std: np.ndarray, count: np.ndarray, acc: np.ndarray) -> None:
     """Into ``std`` (n_out, 3) and ``count`` (n_out,): the standard deviations (V) and finite samples of the windows
-    of ``k`` rows of block moments starting at each of the first ``n_out`` rows of ``rows`` (see
-    :func:`rolling_std_v`): the sums row by row in order (short sums, no cancellation), then
-    (s2 - s1 s1 / n) / (n - 1). NaN with fewer than 2 samples. ``acc``: a scratch buffer of at least n_out rows."""
+    of ``k`` rows of block moments (``rows``: (7, r), a row a column) starting at each of the first ``n_out`` rows
+    (see :func:`rolling_std_v`): the sums row by row in order (short sums, no cancellation), then
+    (s2 - s1 s1 / n) / (n - 1). NaN with fewer than 2 samples. ``acc``: a scratch buffer like ``rows``."""
     if n_out <= 0:
         return
-    acc = acc[:n_out]
-    np.copyto(acc, rows[:n_out])
+    acc = acc[:, :n_out]
+    np.copyto(acc, rows[:, :n_out])
     for j in range(1, k):  # k shifted slices: the same short sums, 6x faster than a window view's sum
-        acc += rows[j : j + n_out]
-    n_w, s1, s2 = acc[:, 0:1], acc[:, 1:4], acc[:, 4:7]
+        acc += rows[:, j : j + n_out]
+    n_w, s1, s2, var = acc[0], acc[1:4], acc[4:7], std.T
     with np.errstate(invalid="ignore", divide="ignore"):
-        np.multiply(s1, s1, out=std)
-        std /= n_w
-        np.subtract(s2, std, out=std)
-        std /= n_w - 1
-    np.clip(std, 0.0, None, out=std)
-    np.sqrt(std, out=std)
-    std[n_w[:, 0] < 2] = np.nan
-    count[:] = n_w[:, 0]
+        np.multiply(s1, s1, out=var)
+        var /= n_w
+        np.subtract(s2, var, out=var)
+        var /= n_w - 1
+    np.clip(var, 0.0, None, out=var)
+    np.sqrt(var, out=var)
+    std[n_w < 2] = np.nan
+    count[:] = n_w
 
 
 def static_threshold_v(std_v: np.ndarray, u_v=None) -> np.ndarray:
@@ -895,7 +913,7 @@ def static_threshold_v(std_v: np.ndarray, u_v=None) -> np.ndarray:
     valid = finite_rows(std_v)
     if not valid.any():
         return np.full(3, np.inf)
-    floor_q = _column_quantiles(std_v[valid], _NOISE_QUANTILE)
+    floor_q = _column_quantiles(std_v, _NOISE_QUANTILE, valid)
     scale = 1.0
     if u_v is not None:
         ch = u_v if isinstance(u_v, Channels) else Channels(u_v)
@@ -907,10 +925,12 @@ def static_threshold_v(std_v: np.ndarray, u_v=None) -> np.ndarray:
     return np.maximum(_NOISE_MULTIPLE * floor_q, _NOISE_FLOOR_REL * scale)
 
 
-def _column_quantiles(x: np.ndarray, q) -> np.ndarray:
-    """``np.quantile(x, q, axis=0)`` of an (n, 3) array, a contiguous column at a time (the same order statistics,
-    a third of the time of numpy's own pass along the rows)."""
-    return np.stack([np.quantile(np.ascontiguousarray(x[:, j]), q) for j in range(x.shape[1])], axis=-1)
+def _column_quantiles(x: np.ndarray, q, rows: np.ndarray | None = None) -> np.ndarray:
+    """``np.quantile(x[rows], q, axis=0)`` of an (n, 3) array (``rows``: a boolean mask, default all), a contiguous
+    copy of a column at a time, partitioned in place (the same order statistics, a third of the time of numpy's
+    own pass along the rows, and one copy of a column instead of three)."""
+    cols = (x[:, j].copy() if rows is None else x[:, j][rows] for j in range(x.shape[1]))
+    return np.stack([np.quantile(c, q, overwrite_input=True) for c in cols], axis=-1)
 
 
 def find_static(t_ns: np.ndarray, u_v, settings: SegmentSettings = SegmentSettings()) -> list[tuple[int, int]]:
@@ -953,10 +973,11 @@ def _adaptive_static(
     settings: SegmentSettings,
     readers: np.ndarray | None = None,
     interval_ns: float | None = None,
+    found: dict | None = None,
 ) -> tuple[list[tuple[int, int]], np.ndarray, SegmentSettings]:
     """(stretches, non-finite sample indices, the settings whose window found them): see :func:`_static_and_bad`.
     ``readers``: the readers' gaps of ``t_ns`` (:func:`gap_indices`), ``interval_ns`` its
-    :func:`median_interval_ns`, when already found."""
+    :func:`median_interval_ns`, when already found; ``found``: the memo of :class:`UnitClock`."""
     if t_ns.size < 2:
         return [], np.flatnonzero(~ch.finite()), settings
     readers = reader_gap_indices(t_ns) if readers is None else readers
@@ -966,7 +987,7 @@ def _adaptive_static(
     def cover(runs):
         return sum(float(t_ns[b - 1] - t_ns[a]) for a, b in runs) / span_ns if span_ns > 0 else 1.0
 
-    runs, bad = _static_at(t_ns, ch, settings, readers)
+    runs, bad = _static_at(t_ns, ch, settings, readers, found)
     best = (cover(runs), runs, settings)
     window = settings.static_window_s
     for _ in range(3):
@@ -980,7 +1001,7 @@ def _adaptive_static(
             static_window_s=window,
             static_min_s=max(MIN_SEGMENT_SAMPLES * dt_s, min(settings.static_min_s, POSE_WINDOWS * window)),
         )
-        r, _ = _static_at(t_ns, ch, trial, readers)
+        r, _ = _static_at(t_ns, ch, trial, readers, found)
         c = cover(r)
         if c > best[0] * 1.1:
             best = (c, r, trial)
@@ -988,11 +1009,15 @@ def _adaptive_static(
 
 
 def _static_at(
-    t_ns: np.ndarray, ch: Channels, settings: SegmentSettings, readers: np.ndarray | None = None
+    t_ns: np.ndarray,
+    ch: Channels,
+    settings: SegmentSettings,
+    readers: np.ndarray | None = None,
+    found: dict | None = None,
 ) -> tuple[list[tuple[int, int]], np.ndarray]:
     """Static stretches with the window of ``settings`` (no adaptation), and the non-finite sample indices
-    (``readers``: as :func:`gap_indices`)."""
-    stats = rolling_std_v(t_ns, ch, settings.static_window_s)
+    (``readers``: as :func:`gap_indices`; ``found``: as :func:`rolling_std_v`)."""
+    stats = rolling_std_v(t_ns, ch, settings.static_window_s, found)
     thr = static_threshold_v(stats.std, ch)
     quiet_block = np.all(stats.std < thr, axis=1)  # NaN compares False
     runs = stats.runs(quiet_block)
@@ -1128,22 +1153,26 @@ class StaticStretches:
     gaps_after: np.ndarray | None = None
     #: ... and the median interval (ns) between them (:func:`median_interval_ns`)
     interval_ns: float | None = None
+    #: ... and what was found from them for every unit on them (:attr:`UnitClock.found`)
+    found: dict | None = None
 
 
 def static_stretches(
     run: Run,
     settings: SegmentSettings = SegmentSettings(),
-    clock: tuple[np.ndarray, np.ndarray, float] | None = None,
+    clock: tuple | None = None,
 ) -> StaticStretches:
     """The static stretches of ``run``'s voltages (the step of :func:`segment_run` that reads every sample), for a
     caller that decides them across several units (:mod:`pipeline.segment_units`) and hands them back to
     :func:`segment_run` (with the times and gaps they were found on). The run's voltmeter must be in time order
-    (the readers sort it). ``clock``: its times (ns), the readers' gaps in them and their median interval
-    (:func:`unit_clock`) when the caller has them (units read by one logger share them)."""
-    t_ns, readers, interval_ns = unit_clock(run) if clock is None else clock
+    (the readers sort it). ``clock``: its :class:`UnitClock` (or the times (ns), the readers' gaps in them and their
+    median interval) when the caller has it (units read by one logger share it)."""
+    clock = unit_clock(run) if clock is None else clock
+    t_ns, readers, interval_ns = clock[:3]
+    memo = clock[3] if len(clock) > 3 else None
     ch = Channels([run.voltmeter[c] for c in ("ux", "uy", "uz")])
-    found = _adaptive_static(t_ns, ch, for_rate(settings, t_ns, interval_ns), readers, interval_ns)
-    return StaticStretches(*found, t_ns, readers, interval_ns)
+    found = _adaptive_static(t_ns, ch, for_rate(settings, t_ns, interval_ns), readers, interval_ns, memo)
+    return StaticStretches(*found, t_ns, readers, interval_ns, memo)
 
 
 def _goes_back(t_ns: np.ndarray) -> bool:
@@ -1155,11 +1184,24 @@ def _goes_back(t_ns: np.ndarray) -> bool:
     )
 
 
-def unit_clock(run: Run) -> tuple[np.ndarray, np.ndarray, float]:
-    """``run``'s voltmeter times (ns, a numpy copy of the table's column), the indices after which its gaps come
-    (:func:`pipeline.io.checks.gap_indices`) and its :func:`median_interval_ns`."""
+class UnitClock(NamedTuple):
+    """A voltmeter's times and what is found from them alone, once for every unit sampled on them."""
+
+    #: the times (ns, a numpy copy of the table's column)
+    t_ns: np.ndarray
+    #: the indices after which its gaps come (:func:`pipeline.io.checks.gap_indices`)
+    gaps_after: np.ndarray
+    #: the :func:`median_interval_ns`
+    interval_ns: float
+    #: a memo of what the segmenter finds from the times alone (the blocks of :func:`rolling_std_v` by block
+    #: length, whether they go back, as float64), made by the first unit that needs it
+    found: dict
+
+
+def unit_clock(run: Run) -> UnitClock:
+    """``run``'s voltmeter :class:`UnitClock`."""
     t_ns = run.t_ns()
-    return t_ns, reader_gap_indices(t_ns), median_interval_ns(t_ns)
+    return UnitClock(t_ns, reader_gap_indices(t_ns), median_interval_ns(t_ns), {})
 
 
 def segment_run(
@@ -1174,8 +1216,10 @@ def segment_run(
     """
     warnings: list[str] = []
     t_ns = run.t_ns() if static is None or static.t_ns is None else static.t_ns
+    memo = static.found if static is not None and static.t_ns is t_ns else None
     volts = run.voltmeter
-    if _goes_back(t_ns):
+    if _once(memo, "goes back", lambda: _goes_back(t_ns)):
+        memo = None
         volts = volts.sort("t_ns", maintain_order=True)
         t_ns = volts["t_ns"].to_numpy()
         warnings.append("voltmeter: samples not in time order; sorted")
@@ -1234,13 +1278,15 @@ def segment_run(
 
     rows: list[dict[str, Any]] = []
     tt_s = tt_ns.astype(np.float64)
+    # the voltmeter's times as float64 (for the interpolation of the temperature), once for the units on them
+    t_float = None if memo is None else _once(memo, "float64", lambda: t_ns.astype(np.float64))
     n_bad = np.searchsorted(bad_u, [a for a, *_ in pieces]), np.searchsorted(bad_u, [b for _, b, *_ in pieces])
     for (i0, i1, p, settling), fix, old, some_bad in zip(pieces, fixture, stale, n_bad[1] > n_bad[0]):
-        cols, tt = ch.slab(i0, i1), t_ns[i0:i1]
+        cols, tt = ch.slab(i0, i1), (t_ns if t_float is None else t_float)[i0:i1]
         if some_bad:  # (non-finite samples are found once: :attr:`StaticStretches.bad`)
             fin = finite_columns(cols)
             cols, tt = [c[fin] for c in cols], tt[fin]
-        tc = np.interp(tt.astype(np.float64), tt_s, temp) if temp.size else np.full(tt.size, np.nan)
+        tc = np.interp(tt.astype(np.float64, copy=False), tt_s, temp) if temp.size else np.full(tt.size, np.nan)
         ddof = 1 if tt.size > 1 else 0
         stats = [_mean_std(c, ddof) for c in cols]
         temp_c = _mean_std(tc, 0)

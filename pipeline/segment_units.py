@@ -27,7 +27,7 @@ import polars as pl
 
 from pipeline.positions import MOVING
 from pipeline.run import NS_PER_S, Run
-from pipeline.segment import Segmentation, SegmentSettings, segment_run, static_stretches, unit_clock
+from pipeline.segment import Segmentation, SegmentSettings, UnitClock, segment_run, static_stretches, unit_clock
 
 #: threads segmenting units side by side (numpy's passes over the slabs release the GIL)
 THREADS = min(2, os.cpu_count() or 1)
@@ -81,11 +81,12 @@ def _segment_units(units: dict[str, Run], settings: SegmentSettings, pool) -> tu
     return segs, warnings
 
 
-def _clocks(units: dict[str, Run]) -> dict[str, tuple[np.ndarray, np.ndarray, float]]:
+def _clocks(units: dict[str, Run]) -> dict[str, UnitClock]:
     """Each unit's voltmeter times and gaps (:func:`pipeline.segment.unit_clock`): one copy for the units whose
     times are the first unit's (one logger sampling them all together: 47 MB a unit at 100 Hz over the standard
-    program, copied and searched for gaps once), a copy of its own for a unit with other times."""
-    out: dict[str, tuple[np.ndarray, np.ndarray, float]] = {}
+    program, copied and searched for gaps once, and what the segmenter finds from them alone found once), a copy
+    of its own for a unit with other times."""
+    out: dict[str, UnitClock] = {}
     first: pl.Series | None = None
     for serial, run in units.items():
         col = run.voltmeter["t_ns"]

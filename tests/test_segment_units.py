@@ -106,5 +106,8 @@ def test_units_on_one_clock_share_its_times_and_segment_as_on_their_own(four, mo
     assert all(clocks[s][0] is first for s in list(units)[1:-1]) and clocks[last][0] is not first
     assert np.array_equal(clocks[last][0], units[last].t_ns())
     shared = segment_units(units)
+    # what the segmenter found from the shared times (the blocks of the static test) is in the clock, once
+    found = clocks[next(iter(units))].found
+    assert all(clocks[s].found is found for s in list(units)[1:-1]) and clocks[last].found is not found
     monkeypatch.setattr(su, "_clocks", lambda us: {s: unit_clock(r) for s, r in us.items()})
     assert segment_units(units) == shared
