@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import threading
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
@@ -263,7 +263,7 @@ class _Layers:
     figure's own drawing has (axes in turn, each one's artists by zorder, then the figure's), so the PNG is the one
     ``print_png`` writes of the whole figure when no fixed artist covers a changing one."""
 
-    def __init__(self, fig, fixed: list) -> None:
+    def __init__(self, fig, fixed: list, best_legends: tuple = ()) -> None:
         from matplotlib.backends.backend_agg import FigureCanvasAgg
 
         self.fig, self.canvas = fig, FigureCanvasAgg(fig)
@@ -271,6 +271,10 @@ class _Layers:
         for ax in fig.axes:
             self._fixed_ids |= {id(ax.patch), id(ax.title), id(ax)}
         self._pixels = None  # the fixed artists drawn, after the first figure
+        self.best_legends = best_legends
+        self._legend_pixels: dict = {}  # (legend, place) -> its pixels there
+        for legend in best_legends:
+            legend.set_visible(False)  # drawn by _paste_legends
 
     def _changing(self) -> list:
         changing = []
@@ -295,9 +299,59 @@ class _Layers:
         else:
             self.canvas.restore_region(self._pixels)
         renderer = self.canvas.get_renderer()
+        self._paste_legends(renderer)
         for artist in changing:
             artist.draw(renderer)
         imsave(path, self.canvas.buffer_rgba(), format="png", dpi=self.fig.dpi, pil_kwargs={"compress_level": 1})
+
+    def _paste_legends(self, renderer) -> None:
+        """Each of ``best_legends`` (placed "best": their contents fixed, their places not) where matplotlib would
+        place it for the lines of its axes now (:data:`_LEGEND_PLACES` in turn: the first of those covering fewest
+        of the lines' points and crossing fewest of them), as its pixels drawn once for each place (the legends'
+        texts were a fifth of the constants figure's drawing). Under the changing artists: a line through a legend
+        is drawn over it."""
+        from matplotlib.transforms import Bbox
+
+        for k, legend in enumerate(self.best_legends):
+            ax, size = legend.axes, legend.get_window_extent(renderer)
+            pad = legend.borderaxespad * renderer.points_to_pixels(legend.prop.get_size_in_points())
+            inside = ax.bbox.padded(-pad)
+            paths = [line.get_transform().transform_path(line.get_path()) for line in ax.get_lines()]
+            least = None
+            for place, anchor in _LEGEND_PLACES:
+                box = Bbox.from_bounds(0, 0, size.width, size.height).anchored(anchor, container=inside)
+                covered = sum(box.count_contains(p.vertices) + p.intersects_bbox(box, filled=False) for p in paths)
+                if least is None or covered < least[0]:
+                    least = (covered, place)
+                if covered == 0:
+                    break
+            assert least is not None
+            pixels = self._legend_pixels.get((k, least[1]))
+            if pixels is None:
+                legend.set_loc(least[1])
+                legend.set_visible(True)
+                legend.draw(renderer)
+                legend.set_visible(False)
+                where = legend.get_window_extent(renderer).padded(2)
+                self._legend_pixels[k, least[1]] = self.canvas.copy_from_bbox(where)
+            else:
+                self.canvas.restore_region(pixels)
+
+
+#: matplotlib's places of a legend (its location codes 1-10: the order in which "best" tries them) and where each is
+#: anchored in its axes.
+_LEGEND_PLACES: tuple[tuple[str, Literal["NE", "NW", "SW", "SE", "E", "W", "S", "N", "C"]], ...] = (
+    ("upper right", "NE"),
+    ("upper left", "NW"),
+    ("lower left", "SW"),
+    ("lower right", "SE"),
+    ("right", "E"),
+    ("center left", "W"),
+    ("center right", "E"),
+    ("lower center", "S"),
+    ("upper center", "N"),
+    ("center", "C"),
+)
 
 
 def constants_figure(passport: Passport | dict, *, title: str = "", frame: _ConstantsFrame | None = None):
@@ -428,7 +482,8 @@ class _ConstantsFrame:
         """The figure as :class:`_Layers` (made at the first use: a figure whose artists are animated draws only
         its fixed ones in a plain ``print_png``)."""
         if self._layers is None:
-            self._layers = _Layers(self.fig, [])
+            legends = tuple(ax.get_legend() for ax in self.axes.flat if ax.get_legend() is not None)
+            self._layers = _Layers(self.fig, [], best_legends=legends)
         return self._layers
 
     def fill(self, T, points, sig, grid, at_grid, at_T, span: tuple[float, float]) -> None:
