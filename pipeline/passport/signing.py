@@ -49,7 +49,7 @@ from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
 from pipeline.errors import RegistryError
-from pipeline.passport.canonical import content_sha256, signed_body
+from pipeline.passport.canonical import sha256_bytes, signed_body
 
 __all__ = [
     "KEY_DIR_ENV",
@@ -471,10 +471,11 @@ def sign_record(record: dict, key: StationKey | None = None) -> dict:
     The record must be JSON-able (canonical_json's rules: no NaN, ...)."""
     key = key or station_key()
     body = {k: v for k, v in record.items() if k not in ("content_sha256", "signature")}
-    value = key.private.sign(signed_body(body))
+    signed = signed_body(body)  # what the signature signs and content_sha256 hashes: encoded once
+    value = key.private.sign(signed)
     return {
         **body,
-        "content_sha256": content_sha256(body),
+        "content_sha256": sha256_bytes(signed),
         "signature": {
             "alg": ALG,
             "key_id": key.key_id,
