@@ -3,9 +3,10 @@
 
 from __future__ import annotations
 
+import io
 import threading
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, BinaryIO, Literal
 
 import numpy as np
 
@@ -242,9 +243,7 @@ def plot_constants(passport: Passport | dict, path: str | Path, *, title: str = 
     made once per thread and filled again for each passport)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
 
-    frame = getattr(_FRAMES, "constants", None)
-    if frame is None:
-        frame = _FRAMES.constants = _ConstantsFrame()
+    frame = _constants_frame()
     fig = constants_figure(passport, title=title, frame=frame)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -253,6 +252,21 @@ def plot_constants(passport: Passport | dict, path: str | Path, *, title: str = 
     else:  # no values to put in the frame: a figure of its own
         FigureCanvasAgg(fig).print_png(path, pil_kwargs={"compress_level": 1})
     return path
+
+
+def warm_up() -> None:
+    """Draw this thread's constants figure once, empty (its fixed artists and its legends kept as pixels, the fonts
+    loaded), so that its first figure costs what the others do: a figure worker does it at its start, beside its
+    caller's segmentation."""
+    _constants_frame().layers.save(io.BytesIO())
+
+
+def _constants_frame() -> _ConstantsFrame:
+    """This thread's :class:`_ConstantsFrame` (made at the first call)."""
+    frame = getattr(_FRAMES, "constants", None)
+    if frame is None:
+        frame = _FRAMES.constants = _ConstantsFrame()
+    return frame
 
 
 class _Layers:
@@ -286,7 +300,7 @@ class _Layers:
             artist.set_animated(True)
         return changing
 
-    def save(self, path: Path) -> None:
+    def save(self, path: Path | BinaryIO) -> None:
         """Draw the figure as it is now and write it to ``path`` (PNG, fast zlib level)."""
         from matplotlib.image import imsave
 

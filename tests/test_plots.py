@@ -192,11 +192,13 @@ def test_constants_figure_points_model_and_residuals(tmp_path):
 def test_constants_figure_drawn_again_is_the_figure_made_afresh(tmp_path):
     """plot_constants fills one figure per thread again for each passport, its fixed artists kept as pixels and its
     legends pasted where matplotlib's "best" puts them: each PNG is the one of a figure made afresh for that passport
-    alone and drawn whole, whatever was drawn before (other values and plateaus, no uncertainties, the model alone),
+    alone and drawn whole, whatever was drawn before (nothing: the warm-up; other values and plateaus, no
+    uncertainties, the model alone),
     except under the legends (a grid line or a curve through a legend is drawn over it, not under): no pixel differs
     outside the fresh figure's legends, few inside."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
 
+    plots.warm_up()  # as a figure worker starts: the frame drawn once empty
     base = _constants_passport()
     others = [
         _constants_passport(slope=-3e-5, off_v=-2e-5, temps=(-30.0, 0.0, 25.0, 45.0, 70.0, 85.0)),

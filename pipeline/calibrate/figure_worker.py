@@ -1,6 +1,7 @@
-"""The figures of a run with several units drawn in other processes while the next unit is calibrated
-(:class:`FigureWorker`): the two figures are ~1.5 CPU s per unit, several times the unit's choose, observe, fit and
-write once the run is segmented, so on two cores they are drawn beside the calibration. A worker is ``python -m
+"""The figures of a run with several units drawn in another process while the next unit is calibrated
+(:class:`FigureWorker`): the two figures were ~1.5 CPU s per unit, several times the unit's choose, observe, fit and
+write once the run is segmented (~0.3 CPU s since they are drawn in layers, :class:`pipeline.plots._Layers`), so on
+two cores they are drawn beside the calibration. A worker is ``python -m
 pipeline.calibrate.figure_worker``: it imports the plotting code only (no Prefect, no caller's main module), reads
 :class:`pipeline.calibrate.publish.FigureJob` pickles on its standard input and draws each
 (:func:`pipeline.calibrate.publish.draw_figure`) until the input ends, so it ends with its caller (a caller
@@ -27,13 +28,14 @@ _COST = {"verification": 1, "constants": 3}
 
 class FigureWorker:
     """publish's ``draw`` (:func:`pipeline.calibrate.publish.publish`): each :class:`FigureJob` sent to one of
-    ``processes`` worker processes (the least loaded by :data:`_COST`: two, so that once the caller has calibrated
-    its last unit both cores draw what is left). Used as a context manager: on a normal exit, waits for the workers,
-    then draws here any figure they did not make (none could start, or one failed), so the figures are those
-    :func:`publish` draws inline; on an exception (Ctrl-C too), stops them at once (a figure not drawn is drawn at
-    the unit's next publish). ``pids``: the workers' (empty when none could start)."""
+    ``processes`` worker processes (the least loaded by :data:`_COST`). One by default: a unit's two figures
+    (~0.3 CPU s) take less than its calibration in the caller, so one worker keeps up, and a second cost ~3 CPU s
+    more on 16 units (its start and first figures) for no shorter run. Used as a context manager: on a normal exit,
+    waits for the workers, then draws here any figure they did not make (none could start, or one failed), so the
+    figures are those :func:`publish` draws inline; on an exception (Ctrl-C too), stops them at once (a figure not
+    drawn is drawn at the unit's next publish). ``pids``: the workers' (empty when none could start)."""
 
-    def __init__(self, processes: int = 2) -> None:
+    def __init__(self, processes: int = 1) -> None:
         self.processes = processes
         self.jobs: list[FigureJob] = []
         self.pids: list[int] = []
@@ -120,11 +122,14 @@ def main() -> None:
         os._exit(1)
 
     threading.Thread(target=leave_with_caller, daemon=True, name="thermocal-caller-watch").start()
-    # imported while the caller still reads its files, not at the first figure (pipeline.plots imports lazily)
+    # imported and warmed up while the caller segments its runs, not at the first figure (pipeline.plots imports
+    # lazily)
     from matplotlib import figure, ticker  # noqa: F401
     from matplotlib.backends import backend_agg  # noqa: F401
 
-    import pipeline.plots  # noqa: F401
+    import pipeline.plots
+
+    pipeline.plots.warm_up()
 
     source = sys.stdin.buffer
     while True:

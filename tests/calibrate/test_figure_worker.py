@@ -78,7 +78,7 @@ def test_worker_draws_the_inline_figures_and_ends(tmp_path):
     inline = _jobs(tmp_path / "inline")
     for job in inline:
         draw_figure(job)
-    with FigureWorker() as draw:
+    with FigureWorker(processes=2) as draw:  # two: the jobs shared between them
         assert len(draw.pids) == 2 and all(alive(pid) for pid in draw.pids)
         for job in _jobs(tmp_path / "worker"):
             draw(job)
@@ -105,7 +105,7 @@ def test_no_worker_left_when_the_caller_fails_or_is_interrupted(tmp_path, error)
         for job in _jobs(tmp_path):
             draw(job)
         raise error("stopped")
-    assert len(draw.pids) == 2 and not any(alive(pid) for pid in draw.pids)
+    assert len(draw.pids) == 1 and not any(alive(pid) for pid in draw.pids)
 
 
 def test_no_worker_left_when_interrupted_while_the_caller_waits_for_the_figures(tmp_path):
@@ -127,7 +127,7 @@ def test_no_worker_left_when_interrupted_while_the_caller_waits_for_the_figures(
             threading.Timer(0.3, signal.pthread_kill, (main, signal.SIGINT)).start()
     finally:
         signal.signal(signal.SIGINT, before)
-    assert len(draw.pids) == 2 and not any(alive(pid) for pid in draw.pids)
+    assert len(draw.pids) == 1 and not any(alive(pid) for pid in draw.pids)
     time.sleep(0.5)
     assert not [p for folder in folders for p in folder.glob("*.png")]
 
@@ -155,5 +155,5 @@ def test_no_worker_left_drawing_when_the_caller_is_killed(tmp_path):
     deadline = time.monotonic() + 30.0
     while any(alive(pid) for pid in pids) and time.monotonic() < deadline:
         time.sleep(0.1)
-    assert len(pids) == 2 and not any(alive(pid) for pid in pids)
+    assert len(pids) == 1 and not any(alive(pid) for pid in pids)
     assert not list(tmp_path.glob("*/*.png"))  # the 6 figures given were not drawn after the caller was gone
