@@ -287,6 +287,7 @@ class _Layers:
         self._pixels = None  # the fixed artists drawn, after the first figure
         self.best_legends = best_legends
         self._legend_pixels: dict = {}  # (legend, place) -> its pixels there
+        self._legend_sizes: dict = {}  # legend -> its extent (its size)
         for legend in best_legends:
             legend.set_visible(False)  # drawn by _paste_legends
 
@@ -327,7 +328,10 @@ class _Layers:
         from matplotlib.transforms import Bbox
 
         for k, legend in enumerate(self.best_legends):
-            ax, size = legend.axes, legend.get_window_extent(renderer)
+            ax = legend.axes
+            if k not in self._legend_sizes:  # its contents fixed: measured once
+                self._legend_sizes[k] = legend.get_window_extent(renderer)
+            size = self._legend_sizes[k]
             pad = legend.borderaxespad * renderer.points_to_pixels(legend.prop.get_size_in_points())
             inside = ax.bbox.padded(-pad)
             paths = [line.get_transform().transform_path(line.get_path()) for line in ax.get_lines()]
