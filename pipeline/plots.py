@@ -65,7 +65,7 @@ def plot_verification(rows, path: str | Path, *, title: str = "") -> Path:
     frame.fill(panels, title or "Gravity-module error dg = |a| - 1 at the verification positions")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    frame.layers.save(path)
+    frame.layers.save(path, pasted=tuple(frame.shown))
     return path
 
 
@@ -95,6 +95,8 @@ class _VerificationFrame:
         self.before.set_ylabel("before: dg  [micro-g]", fontsize=9)
         self.after.set_ylabel("after: dg  [micro-g]", fontsize=9)
         self.series: list[tuple] = []  # (axes, row field, line, ring line), in drawing order
+        self.legends: dict[tuple, object] = {}  # (axes, labels) -> its legend, made once
+        self.shown: list[tuple] = []
         self.bands: list[tuple] = []  # (band, limit in micro-g)
         if not panels:
             fixed.append(self.before.text(0.5, 0.5, "no VP data", ha="center", transform=self.before.transAxes))
@@ -155,7 +157,10 @@ class _VerificationFrame:
     def fill(self, panels: list[dict], title: str) -> None:
         """A unit's errors (its ``panels``, of this frame's :meth:`key`) in the lines, each axes scaled to its
         largest error, the bands that fit shown, the legends of what is drawn, and the ``title``."""
+        from matplotlib.legend import Legend
+
         self.title.set_text(title)
+        self.shown = []  # the legends to paste: ((after?, labels), legend)
         if not panels:
             return
         for ax in (self.before, self.after):
@@ -173,16 +178,21 @@ class _VerificationFrame:
             for band, lim_ug in self.bands:
                 if band.axes is ax:
                     band.set_visible(lim_ug < span)
-            where = ((0, 1.2), "upper left") if ax is self.before else ((1, 1.14), "upper right")
-            ax.legend(
-                handles=handles,
-                loc=where[1],
-                bbox_to_anchor=where[0],
-                ncols=4,
-                fontsize=7,
-                frameon=False,
-                borderaxespad=0,
-            )
+            labels = tuple(h.get_label() for h in handles)
+            if (ax, labels) not in self.legends:  # outside the axes, at a fixed place: pasted as pixels
+                up, at = ("upper left", (0.0, 1.2)) if ax is self.before else ("upper right", (1.0, 1.14))
+                self.legends[ax, labels] = Legend(
+                    ax,
+                    handles,
+                    labels,
+                    loc=up,  # type: ignore[arg-type]  # one of the two literals above
+                    bbox_to_anchor=at,
+                    ncols=4,
+                    fontsize=7,
+                    frameon=False,
+                    borderaxespad=0,
+                )
+            self.shown.append(((ax is self.after, labels), self.legends[ax, labels]))
 
 
 def _panel_title(p: dict) -> str:
@@ -286,7 +296,7 @@ class _Layers:
             self._fixed_ids |= {id(ax.patch), id(ax.title), id(ax)}
         self._pixels = None  # the fixed artists drawn, after the first figure
         self.best_legends = best_legends
-        self._legend_pixels: dict = {}  # (legend, place) -> its pixels there
+        self._pasted: dict = {}  # key -> the pixels of an artist drawn as :meth:`_paste`
         self._legend_sizes: dict = {}  # legend -> its extent (its size)
         for legend in best_legends:
             legend.set_visible(False)  # drawn by _paste_legends
@@ -301,8 +311,10 @@ class _Layers:
             artist.set_animated(True)
         return changing
 
-    def save(self, path: Path | BinaryIO) -> None:
-        """Draw the figure as it is now and write it to ``path`` (PNG, fast zlib level)."""
+    def save(self, path: Path | BinaryIO, pasted: tuple = ()) -> None:
+        """Draw the figure as it is now and write it to ``path`` (PNG, fast zlib level). ``pasted``: ``(key,
+        artist)`` pairs of artists outside the figure's children whose look ``key`` fixes (legends of one content at
+        one place), drawn as their pixels under the changing artists (the pixels of the first drawing of each key)."""
         from matplotlib.image import imsave
 
         changing = self._changing()
@@ -315,6 +327,8 @@ class _Layers:
             self.canvas.restore_region(self._pixels)
         renderer = self.canvas.get_renderer()
         self._paste_legends(renderer)
+        for key, artist in pasted:
+            self._paste(key, artist, renderer)
         for artist in changing:
             artist.draw(renderer)
         imsave(path, self.canvas.buffer_rgba(), format="png", dpi=self.fig.dpi, pil_kwargs={"compress_level": 1})
@@ -344,16 +358,21 @@ class _Layers:
                 if covered == 0:
                     break
             assert least is not None
-            pixels = self._legend_pixels.get((k, least[1]))
-            if pixels is None:
+            if (k, least[1]) not in self._pasted:
                 legend.set_loc(least[1])
-                legend.set_visible(True)
-                legend.draw(renderer)
-                legend.set_visible(False)
-                where = legend.get_window_extent(renderer).padded(2)
-                self._legend_pixels[k, least[1]] = self.canvas.copy_from_bbox(where)
-            else:
-                self.canvas.restore_region(pixels)
+            legend.set_visible(True)
+            self._paste((k, least[1]), legend, renderer)
+            legend.set_visible(False)
+
+    def _paste(self, key, artist, renderer) -> None:
+        """``artist`` as the pixels of its first drawing under ``key`` (drawn now when there are none)."""
+        pixels = self._pasted.get(key)
+        if pixels is None:
+            artist.draw(renderer)
+            where = artist.get_window_extent(renderer).padded(2)
+            self._pasted[key] = self.canvas.copy_from_bbox(where)
+        else:
+            self.canvas.restore_region(pixels)
 
 
 #: matplotlib's places of a legend (its location codes 1-10: the order in which "best" tries them) and where each is
