@@ -51,8 +51,6 @@ import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.linalg import lstsq as scipy_lstsq
-from scipy.optimize import minimize_scalar
 
 from pipeline.dynamics import Thermosensor
 from pipeline.errors import CalibrationError
@@ -453,6 +451,8 @@ def _solve(eq: _Equations, c: int, names: list[str], K0: np.ndarray) -> tuple[np
     y = eq.du[:, c] / K0[c, c]
     scale = np.linalg.norm(X, axis=0)
     scale[scale == 0] = 1.0
+    from scipy.linalg import lstsq as scipy_lstsq  # (scipy: only where a differential fit runs, not to judge a run)
+
     coef = scipy_lstsq(X / scale, y, lapack_driver="gelsy", check_finite=False)[0] / scale
     return coef, y - X @ coef, X
 
@@ -469,6 +469,8 @@ def _best_lag(data, a_g, K0, normal_temp_c, settings, names) -> float:
     costs = [cost(t) for t in grid]
     k = int(np.argmin(costs))
     lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
+    from scipy.optimize import minimize_scalar  # ~0.3 s to import: only where a lag is searched
+
     res = minimize_scalar(cost, bounds=(lo, hi), method="bounded", options={"xatol": 0.5})
     return float(res.x) if res.fun <= costs[k] else float(grid[k])
 

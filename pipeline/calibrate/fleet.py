@@ -298,6 +298,9 @@ def prepare_worker() -> None:
     fleet's process pool, the local server's warm worker) pays for it before its first unit, not in it."""
     import io
 
+    # the scalar and differential fits import these where they run (judging a recording needs neither)
+    import scipy.linalg
+    import scipy.optimize  # noqa: F401
     from matplotlib import patches  # noqa: F401
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure

@@ -36,7 +36,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import least_squares as _scipy_least_squares
 
 from pipeline.calibrate.method import Fitted, Method, Support
 from pipeline.calibrate.observations import ObservedRun, observations_from_segmentation, unit_of
@@ -356,7 +355,9 @@ def scalar_nonlinear(
         d_init, t_init = np.zeros(3), np.eye(3)
     p0 = np.concatenate([d_init, t_init[_TRIL] if model == "full" else np.diag(t_init)])
     residual, jacobian = _residual_and_jacobian(B, np.sqrt(w / w.mean()), model)
-    sol = _scipy_least_squares(
+    from scipy.optimize import least_squares  # ~0.3 s to import: only where a scalar fit runs, not to judge a run
+
+    sol = least_squares(
         residual, p0, jac=jacobian, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=200 * len(p0)
     )
     if not np.all(np.isfinite(sol.x)):
