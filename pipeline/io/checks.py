@@ -322,7 +322,9 @@ def assemble_units(
     a RunFormatError; a unit's own problem fails that unit alone, with a one-line reason naming the file, the stream
     and the time: listed in ``units`` without samples, a required stream of its own missing or empty, a stream
     refused by :func:`check_stream`, a dead channel (:func:`dead_channels`), a bad metadata override; samples of a
-    unit ``units`` does not list. Warnings of a unit's streams name the unit.
+    unit ``units`` does not list. Warnings of a unit's streams name the unit. ``warnings`` (the reader's: a truncated
+    file, ignored topics) and those of the shared streams are the run's and each unit's: a unit's passport says what
+    a single-unit run's would.
     """
     if meta_values is None:
         raise RunFormatError(
@@ -345,6 +347,7 @@ def assemble_units(
             stream="metadata",
         )
     checked = check_streams(shared, path=path, warnings=warnings)
+    whole_run = list(warnings)  # what holds for every unit, before the units' own are added
     units: dict[str, Run] = {}
     failed: dict[str, str] = {}
     for serial in serials:
@@ -359,7 +362,9 @@ def assemble_units(
             ).one_line()
             continue
         try:
-            units[serial] = _unit_run(meta_values, serial, serials, frames, checked, path, warnings, stream_label)
+            units[serial] = _unit_run(
+                meta_values, serial, serials, frames, checked, path, warnings, stream_label, whole_run
+            )
         except RunFormatError as e:
             failed[serial] = e.one_line()
     for serial in sorted(per_unit.keys() - set(serials)):
@@ -375,8 +380,8 @@ def assemble_units(
     return UnitRuns(units, failed, several=True, meta_values=dict(meta_values), source=path, warnings=warnings)
 
 
-def _unit_run(meta_values, serial, serials, frames, shared, path, warnings, stream_label) -> Run:
-    """One unit's checked :class:`Run` (see :func:`assemble_units`)."""
+def _unit_run(meta_values, serial, serials, frames, shared, path, warnings, stream_label, whole_run) -> Run:
+    """One unit's checked :class:`Run` (see :func:`assemble_units`); its warnings: ``whole_run``'s, then its own."""
     for stream in PER_UNIT_STREAMS:
         df = frames.get(stream)
         what = "thermosensor" if stream == "au_temperature" else "voltmeter"
@@ -403,7 +408,7 @@ def _unit_run(meta_values, serial, serials, frames, shared, path, warnings, stre
         chamber=shared.get("chamber"),
         fixture=shared.get("fixture"),
         source=path,
-        warnings=list(own),
+        warnings=whole_run + own,
     )
 
 

@@ -164,6 +164,23 @@ def test_unit_checks_fail_alone(three, tmp_path, fmt):
                                          or "no samples of it" in got2.failed["AU-0103"])  # fmt: skip
 
 
+def test_truncated_file_warns_every_unit(three, tmp_path):
+    """A truncated file with several units keeps its complete chunks, and each unit's run says so (its passport's
+    warnings come from its run's, as a single-unit run's do): a calibrate of such a file once said nothing."""
+    runs, _ = three
+    path = write_run(runs, tmp_path / "t.mcap", "mcap")
+    whole = read_units(path)
+    data = path.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) * 3 // 5])
+    got = read_units(cut)
+    (line,) = [w for w in got.warnings if "truncated" in w]
+    assert list(got.units) == list(whole.units) and not got.failed
+    for serial, run in got.units.items():
+        assert 0 < run.voltmeter.height < whole.units[serial].voltmeter.height
+        assert run.warnings == [line]
+
+
 def test_single_unit_run_keeps_its_layout(tmp_path):
     runs, _ = simulate_units(SimConfig(program="short", rate_hz=2.0), 1)
     run = runs.units["AU-0001"]
