@@ -21,7 +21,9 @@ process, so that its peak RSS (``ru_maxrss``) is its own:
   2 worker processes), after the same warm-up.
 
 CPU seconds are the step process's and its children's (``RUSAGE_CHILDREN``: the calibrate's figure workers, the
-fleet's workers); peak RSS is the step process's plus the sum of its children's own peaks (``VmHWM``, sampled every
+fleet's workers), from the end of the step's imports (a command's job process has them done; the decode floor's too);
+thermocal's local server (Prefect's API, on the same cores: the flow's task runs, logs and artifacts) in a column of
+its own; peak RSS is the step process's plus the sum of its children's own peaks (``VmHWM``, sampled every
 second: an upper bound of what they held at once).
 
 Prints the load average, and a markdown table: wall and CPU seconds, peak RSS against the decoded samples
@@ -87,6 +89,7 @@ def _warm_prefect() -> float:
 def step_decode(path: Path) -> dict:
     from pipeline.io.runs import read_units
 
+    _start_clock()  # the imports outside the clock, as the calibrate's and the fleet's (~0.5 CPU s)
     got = read_units(path)
     return {"units": len(got.units), "samples": sum(r.voltmeter.height for r in got.units.values())}
 
@@ -96,7 +99,7 @@ def step_calibrate(path: Path) -> dict:
     from pipeline.calibrate.settings import CalibrationSettings
 
     warm = _warm_prefect()
-    _CLOCK.update(wall=time.perf_counter(), usage=resource.getrusage(resource.RUSAGE_SELF))
+    _start_clock()
     with tempfile.TemporaryDirectory() as registry:
         r = run_calibrate([str(path)], registry, CalibrationSettings(), method="auto")
     return {
@@ -112,7 +115,7 @@ def step_fleet(folder: Path) -> dict:
     from pipeline.calibrate.settings import CalibrationSettings
 
     warm = _warm_prefect()
-    _CLOCK.update(wall=time.perf_counter(), usage=resource.getrusage(resource.RUSAGE_SELF))
+    _start_clock()
     with tempfile.TemporaryDirectory() as registry:
         r = run_fleet(str(folder), registry, CalibrationSettings(), workers=2, pool="process", method="auto")
     return {
@@ -139,6 +142,24 @@ def step_floor_mcap(path: Path) -> dict:
     out = {topic: {k: np.concatenate(v) for k, v in cols.items()} for topic, cols in parts.items()}
     volts = [cols for topic, cols in out.items() if topic.endswith("/voltmeter")]
     return {"units": len(volts), "samples": sum(len(c[1]) for c in volts)}
+
+
+def _server_cpu_s() -> float | None:
+    """CPU seconds so far of thermocal's local server (the Prefect API the flow records its runs on: another
+    process on the same cores, not a child), or None when none is running."""
+    from flows.localserver import read_state
+
+    state = read_state()
+    try:
+        fields = Path(f"/proc/{state['pid']}/stat").read_text().rsplit(")", 1)[1].split()  # type: ignore[index]
+    except (OSError, TypeError, KeyError):
+        return None
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _start_clock() -> None:
+    server = _server_cpu_s()
+    _CLOCK.update(wall=time.perf_counter(), usage=resource.getrusage(resource.RUSAGE_SELF), server=server)
 
 
 STEPS = {"decode": step_decode, "floor-mcap": step_floor_mcap, "calibrate": step_calibrate, "fleet": step_fleet}
@@ -170,8 +191,9 @@ def child(step: str, path: Path) -> None:
     stop = threading.Event()
     watch = threading.Thread(target=_children_peaks, args=(peaks, stop), daemon=True)
     watch.start()
-    _CLOCK.update(wall=time.perf_counter(), usage=resource.getrusage(resource.RUSAGE_SELF))
+    _CLOCK.update(wall=time.perf_counter(), usage=resource.getrusage(resource.RUSAGE_SELF), server=None)
     out = STEPS[step](path)
+    server = _server_cpu_s() if _CLOCK["server"] is not None else None
     stop.set()
     watch.join()
     wall = time.perf_counter() - _CLOCK["wall"]
@@ -181,6 +203,7 @@ def child(step: str, path: Path) -> None:
         wall_s=round(wall, 2),
         cpu_s=round(r1.ru_utime + r1.ru_stime - r0.ru_utime - r0.ru_stime + kids.ru_utime + kids.ru_stime, 1),
         children_cpu_s=round(kids.ru_utime + kids.ru_stime, 1),
+        server_cpu_s=round(server - _CLOCK["server"], 1) if server is not None else 0.0,
         peak_rss_gb=round(r1.ru_maxrss / 2**20, 2),
         peak_child_rss_gb=round(kids.ru_maxrss / 2**20, 2),
         children=len(peaks),
@@ -238,10 +261,10 @@ def main() -> None:
         f"{os.cpu_count()} CPUs\n"
     )
     print(
-        "| step | units (pass) | wall s | CPU s | peak RSS GB | peak / decoded | wall / decode | CPU / decode | "
-        "chamber h per unit |"
+        "| step | units (pass) | wall s | CPU s | local server CPU s | peak RSS GB | peak / decoded | wall / decode | "
+        "CPU / decode | chamber h per unit |"
     )
-    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     n_units = args.units
     names = {
         "decode": f"decode the {n_units}-unit file (floor)",
@@ -254,7 +277,8 @@ def main() -> None:
         n = r.get("units", args.units)
         per_unit = hours / args.units if step != "fleet" else hours
         print(
-            f"| {names[step]} | {n} ({r.get('passed', '-')}) | {r['wall_s']:.1f} | {r['cpu_s']:.1f} | {peak:.2f} | "
+            f"| {names[step]} | {n} ({r.get('passed', '-')}) | {r['wall_s']:.1f} | {r['cpu_s']:.1f} | "
+            f"{r.get('server_cpu_s', 0.0):.1f} | {peak:.2f} | "
             f"{peak / decoded_gb:.2f} | {r['wall_s'] / floor if floor else float('nan'):.2f} | "
             f"{r['cpu_s'] / floor_cpu if floor_cpu else float('nan'):.2f} | {per_unit:.2f} |"
         )
