@@ -283,8 +283,15 @@ def fleet_flow(
 
 
 def failure_line(f: dict) -> str:
-    """A failed run in one line: its reason, which names the file (else prefixed with it)."""
-    return f["reason"] if str(f["run"]) in str(f["reason"]) else f"{f['run']}: {f['reason']}"
+    """A failed run, or unit of a run, in one line: its reason, which names the file (else prefixed with it) and the
+    unit (else followed by it: a unit of a run with several whose calibration failed, e.g. ``voltmeter: ...: no
+    temperature plateau ...``, would not say which)."""
+    line = str(f["reason"])
+    if f.get("run") and str(f["run"]) not in line:
+        line = f"{f['run']}: {line}"
+    if f.get("unit") and str(f["unit"]) not in line:
+        line += f" (unit {f['unit']})"
+    return line
 
 
 def _unit_line(o: fleet_plan.UnitOutcome, k: int, total: int) -> str:

@@ -125,8 +125,10 @@ def _units_outcome(result: dict, as_json: bool) -> None:
         parts += [f"{f['unit']}: not calibrated: {f['reason']}" for f in result["failed"]]
         text = "\n\n".join(parts)
     emit(result, as_json, text)
+    from ..fleet import failure_line
+
     for f in result["failed"]:
-        print(f"thermocal: calibrate: {f['reason']}", file=sys.stderr)
+        print(f"thermocal: calibrate: {failure_line(f)}", file=sys.stderr)
     failing = [r["unit"] for r in result["units"] if r.get("status") == "fail"]
     if failing and not result["failed"]:
         print(

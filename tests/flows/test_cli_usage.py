@@ -144,6 +144,23 @@ def test_fleet_summary_names_each_failed_run_once():
     assert "  FAILED  /in/x: no voltmeter" in text
 
 
+def test_a_unit_that_failed_is_named_in_its_line(capsys):
+    """A unit of a run with several whose calibration failed: its reason names the file and the stream, not the unit
+    (the calibration's errors name ``voltmeter``); the line on stderr, and the fleet's, say which unit it is."""
+    import typer
+
+    from flows.cli.calibrate import _units_outcome
+    from flows.fleet import failure_line
+
+    reason = "/in/r.mcap: voltmeter: t_ns=1..2: no temperature plateau with the six test positions TP1..TP6"
+    named = "/in/r.mcap: /unit/AU-0003/voltmeter: unit AU-0003 has a dead channel: uy has no finite sample"
+    with pytest.raises(typer.Exit):
+        _units_outcome({"units": [], "failed": [{"unit": "AU-0002", "reason": reason}]}, True)
+    assert capsys.readouterr().err == f"thermocal: calibrate: {reason} (unit AU-0002)\n"
+    assert failure_line({"run": "/in/r.mcap", "unit": "AU-0002", "reason": reason}) == f"{reason} (unit AU-0002)"
+    assert failure_line({"run": "/in/r.mcap", "unit": "AU-0003", "reason": named}) == named
+
+
 def test_unwritable_outputs_and_wrong_files_are_one_line_errors(monkeypatch, capsys, tmp_path):
     """A place that cannot be written, a file that is not a passport, a registry that is not there: exit 2 and one
     line naming the path (were: an internal error with exit 3; a decoder's message; 'unknown unit')."""
