@@ -16,7 +16,7 @@ process, so that its peak RSS (``ru_maxrss``) is its own:
   column: the floor a plain reader of the same file has;
 - calibrate: the Prefect calibrate flow on the 16-unit file (``flows.calibrate.run_calibrate``, as ``thermocal
   calibrate RUN``: read once, hashed once, segmented once, 16 passports into a fresh registry), after a warm-up
-  flow has started Prefect;
+  flow has started thermocal's local server (as the command finds it once any earlier command has started it);
 - fleet: the fleet flow over the folder of 16 single-unit runs (``flows.fleet.run_fleet``, as ``thermocal fleet``,
   2 worker processes), after the same warm-up.
 
