@@ -17,7 +17,8 @@ supplies observe and fit:
 
 A run holding several units (log-format.md) is read once (``pipeline.io.runs.read_units``), segmented once for the
 run (``segment``: ``pipeline.segment_units.segment_units``, the still times by consensus of the units), then each
-unit goes through choose, observe, fit and write as above; a unit that fails (its input checks, or its
+unit goes through choose, observe, fit and write as above, in one task run a unit (``calibrate-unit``, as the
+fleet's); a unit that fails (its input checks, or its
 calibration) is reported with its reason and the others go on (:func:`calibrate_units`). A unit whose files are
 several is one recording of them (``join_runs``), segmented as such.
 """
@@ -25,6 +26,7 @@ several is one recording of them (``join_runs``), segmented as such.
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
 from concurrent.futures import ThreadPoolExecutor
 from typing import TypeVar, cast
@@ -254,29 +256,38 @@ def calibrate_units(paths, read, registry, settings, method, base, dry_run, step
     for serial, items in by_unit.items():
         runs = [got.units[serial] for _, got, _ in items]
         within = {p: {"unit": serial, "run_id": got.units[serial].meta.run_id} for p, got, _ in items if got.several}
+        steps = functools.partial(
+            _calibrate_unit,
+            runs,
+            [p for p, _, _ in items],
+            registry,
+            settings,
+            method,
+            base,
+            dry_run,
+            step,
+            segmentations=[seg for _, _, seg in items],
+            digests=digests,
+            within=within,
+            release=lambda serial=serial, items=items: [got.units.pop(serial, None) for _, got, _ in items],
+            draw=draw,
+            as_tasks=False,
+        )
         try:
-            results.append(
-                _calibrate_unit(
-                    runs,
-                    [p for p, _, _ in items],
-                    registry,
-                    settings,
-                    method,
-                    base,
-                    dry_run,
-                    step,
-                    segmentations=[seg for _, _, seg in items],
-                    digests=digests,
-                    within=within,
-                    release=lambda serial=serial, items=items: [got.units.pop(serial, None) for _, got, _ in items],
-                    draw=draw,
-                )
-            )
+            results.append(calibrate_unit(serial, _whole(steps)))
         except ThermocalError as e:
             failed.append({"unit": serial, "reason": e.one_line()})
             logger.warning(e.one_line())
-        del runs
+        del runs, steps
     return {"units": results, "failed": failed}
+
+
+@task(name="calibrate-unit", task_run_name="calibrate-{unit}", cache_policy=NO_CACHE)
+def calibrate_unit(unit: str, steps) -> dict:
+    """A unit of a run with several: its choose, observe, fit and write (``steps()``: :func:`_calibrate_unit`, the
+    steps as plain calls) in one task run, as the fleet's ``calibrate-unit``. Four task runs a unit kept thermocal's
+    local server (Prefect's API: each task run's state events) on most of a core while the units were calibrated."""
+    return steps()
 
 
 def _calibrate_unit(
@@ -293,11 +304,14 @@ def _calibrate_unit(
     within: dict | None = None,
     release=None,
     draw=None,
+    as_tasks: bool = True,
 ) -> dict:
     """One unit from its runs (one per path; ``segmentations``: each run's, where already made): select, choose,
-    observe, fit, write; ``release()`` is called once the samples are no longer needed; ``draw``: publish's, for
-    figures drawn elsewhere."""
+    observe, fit, write, each a task run (``as_tasks=False``: plain calls, inside :func:`calibrate_unit`'s task run);
+    ``release()`` is called once the samples are no longer needed; ``draw``: publish's, for figures drawn
+    elsewhere."""
     logger = get_run_logger()
+    call = _as_task if as_tasks else _as_call
     segmentations = segmentations or [None] * len(runs)
     seg_of = {id(r): seg for r, seg in zip(runs, segmentations)}
     path_of = {id(r): p for p, r in zip(paths, runs)}
@@ -312,33 +326,24 @@ def _calibrate_unit(
     if method == "auto":
         what = "" if segmentation is not None else f" (segment {_names(paths)})"
         step(f"choose the method for {unit}{what}")
-        method, base, segmentation, chosen = choose(_whole(run), _whole(settings), _whole(base), _whole(segmentation))
+        method, base, segmentation, chosen = call(choose, run, settings, base, segmentation)
     base_line = None  # which version the differential method starts from, and its status
     if not by_name(method).uses_base_passport:
         base = None
     elif base is None:
         base, base_line = default_base_passport(registry, unit)
     step(f"observe ({'average' if segmentation else 'segment, average'}) {unit} in {_names(paths)}")
-    observed = [observe(_whole(run), method, _whole(settings), _whole(base), _whole(segmentation))]
+    observed = [call(observe, run, method, settings, base, segmentation)]
     del run  # the samples are not needed past the observations
     if release is not None:
         release()
     step(f"fit ({method}: constants, thermal model, VP verification)")
-    calibration = fit(_whole(observed), method, _whole(settings), _whole(base))
+    calibration = call(fit, observed, method, settings, base)
     calibration.warnings[:0] = selection_warnings + ([base_line] if base_line and base is None else [])
     for w in calibration.warnings:
         logger.warning(w)
     step("write" if not dry_run else "dry run (nothing written)")
-    result = write(
-        registry,
-        _whole(calibration),
-        _whole(list(paths)),
-        _whole(settings),
-        dry_run,
-        _whole(digests),
-        _whole(within),
-        draw,
-    )
+    result = call(write, registry, calibration, list(paths), settings, dry_run, digests, within, draw)
     create_markdown_artifact(
         key=_artifact_key(unit), markdown=result_markdown(result), description=f"thermocal calibration of {unit}"
     )
@@ -348,6 +353,16 @@ def _calibrate_unit(
         result["base_passport_used"] = base_line
     step(f"done: {unit} v{result['version']} {result['status']}")
     return result
+
+
+def _as_task(step, *args):
+    """``step`` (a task) run as a task run, each input :func:`_whole`."""
+    return step(*(_whole(a) for a in args))
+
+
+def _as_call(step, *args):
+    """``step`` (a task) called as the plain function it wraps (no task run)."""
+    return step.fn(*args)
 
 
 def _names(paths: list[str]) -> str:

@@ -94,6 +94,32 @@ def test_calibrate_gives_one_passport_per_unit_and_bad_units_fail_alone(chamber)
     assert (
         len({json.loads(Path(u["passport"]).read_text())["provenance"]["inputs"][0]["sha256"] for u in r["units"]}) == 1
     )
+    # one task run a unit (its choose, observe, fit and write inside), beside the run's ingest and segment
+    assert _task_runs_beside("calibrate-AU-0301") == {
+        "ingest": "COMPLETED",
+        "segment": "COMPLETED",
+        "calibrate-AU-0301": "COMPLETED",
+        "calibrate-AU-0304": "COMPLETED",
+    }
+
+
+def _task_runs_beside(name: str) -> dict[str, str]:
+    """Name -> state of every task run of the latest flow run holding a task run named ``name`` (Prefect's suffix
+    of a task run not named by its task left out), from the Prefect API the command recorded it on (this session's
+    local server)."""
+    import httpx
+
+    from flows.localserver import ensure_server
+
+    api = os.environ.get("PREFECT_API_URL") or ensure_server()["api_url"]
+
+    def runs(body: dict) -> list[dict]:
+        return httpx.post(f"{api}/task_runs/filter", json={"limit": 200, **body}, timeout=30).json()
+
+    (latest,) = runs({"task_runs": {"name": {"any_": [name]}}, "sort": "EXPECTED_START_TIME_DESC", "limit": 1})
+    flow_run = latest["flow_run_id"]
+    named = {tr["name"]: tr["state"]["type"] for tr in runs({"flow_runs": {"id": {"any_": [flow_run]}}})}
+    return {n if n.startswith("calibrate-") else n.rsplit("-", 1)[0]: state for n, state in named.items()}  # ingest-3df
 
 
 def test_calibrate_unit_selects_on_the_parquet_layout(chamber):
