@@ -4,6 +4,7 @@ with the same 16 units as 16 single-unit runs through ``thermocal fleet``.
 
     .venv/bin/python benchmarks/multiunit.py [--units 16] [--rate-hz 100] [--encoding protobuf|json]
                                              [--steps decode,calibrate,fleet] [--dir /tmp/thermocal-bench]
+                                             [--repeat 1]
 
 Makes the runs once (``pipeline.simulate.units.simulate_units``) under ``--dir`` (not in git: ~2-3 GB): the
 16-unit file and the 16 single-unit files of the same units (same samples). Then each step in a fresh Python
@@ -28,7 +29,9 @@ second: an upper bound of what they held at once).
 
 Prints the load average, and a markdown table: wall and CPU seconds, peak RSS against the decoded samples
 (t_ns + 3 voltages, 8 bytes each, of every unit), the wall and CPU ratios to the decode floor (on a shared machine
-the CPU ratio is the steadier one), and chamber hours per unit.
+the CPU ratio is the steadier one), and chamber hours per unit. ``--repeat N``: N rounds of the steps, alternating
+(decode, calibrate, decode, calibrate, ...: on a shared machine the decode floor alone moves 10-16 s between
+sittings); the table gives each step's median and a line the ratio of each round.
 """
 
 from __future__ import annotations
@@ -237,6 +240,9 @@ def main() -> None:
     ap.add_argument("--encoding", default="protobuf", choices=("protobuf", "json"))
     ap.add_argument("--steps", default="decode,calibrate,fleet")
     ap.add_argument("--dir", type=Path, default=Path("/tmp/thermocal-bench"))
+    ap.add_argument(
+        "--repeat", type=int, default=1, help="rounds of the steps, alternating; the table gives each step's median"
+    )
     ap.add_argument("--child", nargs=2, metavar=("STEP", "PATH"))
     args = ap.parse_args()
     if args.child:
@@ -248,9 +254,14 @@ def main() -> None:
     args.dir.mkdir(parents=True, exist_ok=True)
     multi, singles = make(args.dir, args.units, args.rate_hz, args.encoding)
     load0 = os.getloadavg()
-    with tempfile.TemporaryDirectory(prefix="prefect-", dir=args.dir) as homes:
-        results = {s: measure(s, singles if s == "fleet" else multi, Path(homes)) for s in args.steps.split(",")}
+    rounds: list[dict[str, dict]] = []
+    for _ in range(args.repeat):  # alternating: a slower spell of the shared machine falls on every step alike
+        with tempfile.TemporaryDirectory(prefix="prefect-", dir=args.dir) as homes:
+            rounds.append(
+                {s: measure(s, singles if s == "fleet" else multi, Path(homes)) for s in args.steps.split(",")}
+            )
     load1 = os.getloadavg()
+    results = _medians(rounds)
     samples = results.get("decode", {}).get("samples") or args.units * int(hours * 3600 * args.rate_hz)
     decoded_gb = samples * 4 * 8 / 2**30
     floor = results.get("decode", {}).get("wall_s")
@@ -283,7 +294,29 @@ def main() -> None:
             f"{peak / decoded_gb:.2f} | {r['wall_s'] / floor if floor else float('nan'):.2f} | "
             f"{r['cpu_s'] / floor_cpu if floor_cpu else float('nan'):.2f} | {per_unit:.2f} |"
         )
+    if len(rounds) > 1 and "decode" in results:
+        for step in results:
+            if step != "decode":
+                each = ", ".join(f"{r[step]['wall_s'] / r['decode']['wall_s']:.2f}" for r in rounds)
+                print(f"\n{step} / decode in wall, round by round: {each}")
     print("\n" + json.dumps(results))
+
+
+def _medians(rounds: list[dict[str, dict]]) -> dict[str, dict]:
+    """Each step's figures over the rounds: the median of every number (counts: the lower median; one round: that
+    round's)."""
+    import statistics
+
+    def median(values: list):
+        if all(isinstance(v, int) for v in values):
+            return statistics.median_low(values)
+        return round(statistics.median(values), 3)
+
+    out: dict[str, dict] = {}
+    for step in rounds[0]:
+        runs = [r[step] for r in rounds]
+        out[step] = {k: median([r[k] for r in runs]) if isinstance(v, (int, float)) else v for k, v in runs[0].items()}
+    return out
 
 
 if __name__ == "__main__":
