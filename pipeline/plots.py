@@ -287,10 +287,13 @@ class _Layers:
     figure's own drawing has (axes in turn, each one's artists by zorder, then the figure's), so the PNG is the one
     ``print_png`` writes of the whole figure when no fixed artist covers a changing one."""
 
-    def __init__(self, fig, fixed: list, best_legends: tuple = ()) -> None:
+    def __init__(self, fig, fixed: list, best_legends: tuple = (), ticks: tuple = (), keyed: tuple = ()) -> None:
         from matplotlib.backends.backend_agg import FigureCanvasAgg
 
         self.fig, self.canvas = fig, FigureCanvasAgg(fig)
+        texts = _TextPixels(fig)
+        self.ticks = {id(axis): _Ticks(axis, texts) for axis in ticks}  # axes' ticks drawn by _Ticks
+        self.keyed = {id(axis): region for axis, region in keyed}  # axes drawn as pixels per view interval
         self._fixed_ids = {id(a) for a in fixed} | {id(fig.patch)}
         for ax in fig.axes:
             self._fixed_ids |= {id(ax.patch), id(ax.title), id(ax)}
@@ -320,17 +323,26 @@ class _Layers:
         changing = self._changing()
         for ax in self.fig.axes:
             ax.viewLim  # noqa: B018 -- applies a pending autoscale (done by the axes' own drawing otherwise)
+        renderer = self.canvas.get_renderer()
         if self._pixels is None:
             self.canvas.draw()
+            renderer = self.canvas.get_renderer()
+            for drawer in self.ticks.values():
+                drawer.draw_label(renderer)
             self._pixels = self.canvas.copy_from_bbox(self.fig.bbox)
         else:
             self.canvas.restore_region(self._pixels)
-        renderer = self.canvas.get_renderer()
         self._paste_legends(renderer)
         for key, artist in pasted:
             self._paste(key, artist, renderer)
         for artist in changing:
-            artist.draw(renderer)
+            ticks, region = self.ticks.get(id(artist)), self.keyed.get(id(artist))
+            if ticks is not None:
+                ticks.draw(renderer)
+            elif region is not None:  # its look fixed by its view interval (its ticks and their labels)
+                self._paste((id(artist), *artist.get_view_interval()), artist, renderer, region)
+            else:
+                artist.draw(renderer)
         imsave(path, self.canvas.buffer_rgba(), format="png", dpi=self.fig.dpi, pil_kwargs={"compress_level": 1})
 
     def _paste_legends(self, renderer) -> None:
@@ -364,15 +376,155 @@ class _Layers:
             self._paste((k, least[1]), legend, renderer)
             legend.set_visible(False)
 
-    def _paste(self, key, artist, renderer) -> None:
-        """``artist`` as the pixels of its first drawing under ``key`` (drawn now when there are none)."""
+    def _paste(self, key, artist, renderer, region=None) -> None:
+        """``artist`` as the pixels of its first drawing under ``key`` (drawn now when there are none): those of its
+        extent, or of ``region`` (a Bbox in pixels where it alone draws)."""
         pixels = self._pasted.get(key)
         if pixels is None:
             artist.draw(renderer)
-            where = artist.get_window_extent(renderer).padded(2)
+            where = artist.get_window_extent(renderer).padded(2) if region is None else region
             self._pasted[key] = self.canvas.copy_from_bbox(where)
         else:
             self.canvas.restore_region(pixels)
+
+
+class _Ticks:
+    """An axis's major ticks drawn as its own drawing draws them (the same locations and labels: its locator and
+    formatter, the ticks in its view interval), for less: its grid lines and its tick marks each as one line, its
+    tick labels as pixels (:class:`_TextPixels`; the texts were 3/4 of a constants figure's ticks). Its axis label is
+    a fixed artist (:meth:`draw_label`, drawn once with the fixed pixels: at a fixed place). An axis with ticks on
+    its other side, a scale other than linear or an offset text (placed by its tick labels' extents) is drawn by
+    matplotlib."""
+
+    def __init__(self, axis, texts: _TextPixels) -> None:
+        from matplotlib.lines import Line2D
+
+        self.axis, self.texts = axis, texts
+        tick = axis.get_major_ticks(1)[0]  # its ticks' look (tick_params, grid), of every tick
+        self.simple = not (tick.tick2line.get_visible() or tick.label2.get_visible())
+        self.lines = []  # (line, across): the grid lines from 0 to 1 across the axes, the tick marks at 0
+        for template, across in ((tick.gridline, (0.0, 1.0)), (tick.tick1line, (0.0,))):
+            if template.get_visible():
+                line = Line2D([], [])
+                line.update_from(template)  # its style, transform and clipping
+                line.set_figure(axis.get_figure(root=False))
+                self.lines.append((line, np.array(across)))
+        self.label = tick.label1 if tick.label1.get_visible() else None  # the tick labels' style and transform
+        self.style = _TextPixels.style(tick.label1)
+
+    def draw_label(self, renderer) -> None:
+        """The axis label, drawn once with the fixed pixels (placed by its coordinates, not by the tick labels)."""
+        self.axis.label.draw(renderer)
+        self.axis.label.set_visible(False)
+
+    def draw(self, renderer) -> None:
+        axis = self.axis
+        locs = np.asarray(axis.get_majorticklocs(), float)
+        formatter = axis.get_major_formatter()
+        labels = formatter.format_ticks(locs)  # all of them, as the axis does: they decide the format
+        if not self.simple or axis.get_scale() != "linear" or formatter.get_offset():
+            axis.draw(renderer)
+            return
+        lo, hi = sorted(axis.get_view_interval())
+        slack = (hi - lo) * 1e-10  # the axis's own tolerance at the ends of its view interval
+        kept = (locs >= lo - slack) & (locs <= hi + slack)
+        locs = locs[kept]
+        along_x = axis.axis_name == "x"
+        for line, across in self.lines:  # one stroke per tick, NaN between them
+            a = np.tile(np.append(across, np.nan), len(locs))
+            b = np.repeat(locs, len(across) + 1)
+            b[len(across) :: len(across) + 1] = np.nan
+            line.set_data((b, a) if along_x else (a, b))
+            line.draw(renderer)
+        if self.label is not None and len(locs):
+            at = self.label.get_position()[1 if along_x else 0]
+            points = np.column_stack([locs, np.full(len(locs), at)] if along_x else [np.full(len(locs), at), locs])
+            where = self.label.get_transform().transform(points)
+            shown = [label for label, keep in zip(labels, kept) if keep]
+            self.texts.draw(renderer, self.label, self.style, shown, where)
+
+
+#: Texts pasted as pixels are drawn at positions rounded to 1 / _TEXT_STEPS pixel (their glyphs are drawn at 1/64).
+_TEXT_STEPS = 4
+
+
+class _TextPixels:
+    """Short texts (tick labels) drawn as the pixels of their first drawing: per style, text and position within a
+    pixel (to 1 / :data:`_TEXT_STEPS`), drawn once by matplotlib on a transparent canvas of their own and then
+    blended in at each place (matplotlib draws a text glyph by glyph each time: ~0.25 ms a glyph). A text too large
+    for that canvas is drawn as it is."""
+
+    _SIZE = (240, 120)  # the canvas's pixels: a tick label at its middle
+
+    def __init__(self, fig) -> None:
+        from matplotlib.backends.backend_agg import RendererAgg
+        from matplotlib.text import Text
+        from matplotlib.transforms import IdentityTransform
+
+        self.canvas = RendererAgg(*self._SIZE, fig.dpi)
+        self.probe = Text()
+        self.probe.set_figure(fig)
+        self.identity = IdentityTransform()
+        self.images: dict[tuple, tuple | None] = {}
+
+    @staticmethod
+    def style(text) -> tuple:
+        """What a text's pixels depend on besides its string and place."""
+        return (
+            text.get_fontproperties(),
+            str(text.get_color()),
+            text.get_alpha(),
+            text.get_horizontalalignment(),
+            text.get_verticalalignment(),
+            text.get_rotation(),
+            text.get_rotation_mode(),
+        )
+
+    def draw(self, renderer, template, style: tuple, texts: list[str], where: np.ndarray) -> None:
+        """``texts`` in ``template``'s look (its ``style``) at ``where`` (pixels: the points of their
+        transform)."""
+        gc = renderer.new_gc()
+        try:
+            snapped = np.round(np.asarray(where) * _TEXT_STEPS) / _TEXT_STEPS
+            whole = np.floor(snapped)
+            for text, (x, y), (fx, fy) in zip(texts, whole, snapped - whole):
+                key = (style, text, fx, fy)
+                if key not in self.images:
+                    self.images[key] = self._render(template, text, fx, fy)
+                image = self.images[key]
+                if image is None:
+                    continue  # nothing drawn
+                if isinstance(image, str):  # too large: drawn as it is
+                    self._direct(renderer, template, text, x + fx, y + fy)
+                    continue
+                pixels, dx, dy = image
+                renderer.draw_image(gc, int(x) + dx, int(y) + dy, pixels)
+        finally:
+            gc.restore()
+
+    def _direct(self, renderer, template, text: str, x: float, y: float) -> None:
+        probe = self.probe
+        probe.update_from(template)
+        probe.set_transform(self.identity)
+        probe.set_position((x, y))
+        probe.set_text(text)
+        probe.draw(renderer)
+
+    def _render(self, template, text: str, fx: float, fy: float):
+        """The pixels of ``text`` drawn with its point at (``fx``, ``fy``) within a pixel, and where their lower
+        left pixel is from that pixel; None when it draws nothing, "large" when it does not fit."""
+        width, height = self._SIZE
+        x0, y0 = width // 2, height // 2
+        self.canvas.clear()
+        self._direct(self.canvas, template, text, x0 + fx, y0 + fy)
+        rgba = np.asarray(self.canvas.buffer_rgba())
+        rows, cols = np.flatnonzero(rgba[..., 3].any(axis=1)), np.flatnonzero(rgba[..., 3].any(axis=0))
+        if not rows.size:
+            return None
+        if rows[0] == 0 or cols[0] == 0 or rows[-1] == height - 1 or cols[-1] == width - 1:
+            return "large"
+        pixels = rgba[rows[-1] : rows[0] - 1 if rows[0] else None : -1, cols[0] : cols[-1] + 1].copy()  # bottom up
+        return pixels, int(cols[0]) - x0, height - 1 - int(rows[-1]) - y0
 
 
 #: matplotlib's places of a legend (its location codes 1-10: the order in which "best" tries them) and where each is
@@ -519,8 +671,23 @@ class _ConstantsFrame:
         """The figure as :class:`_Layers` (made at the first use: a figure whose artists are animated draws only
         its fixed ones in a plain ``print_png``)."""
         if self._layers is None:
+            from matplotlib.transforms import Bbox
+
             legends = tuple(ax.get_legend() for ax in self.axes.flat if ax.get_legend() is not None)
-            self._layers = _Layers(self.fig, [], best_legends=legends)
+            bottom = self.axes[-1]
+            edges = [0.0] + [(a.bbox.x1 + b.bbox.x0) / 2 for a, b in zip(bottom[:-1], bottom[1:])] + [self.fig.bbox.x1]
+            self._layers = _Layers(
+                self.fig,
+                [ax.xaxis for ax in self.axes[:-1].flat],  # no ticks, no label: nothing drawn
+                best_legends=legends,
+                ticks=tuple(ax.yaxis for ax in self.axes.flat),
+                # under each axes of the bottom row, between the middles of the gaps: its temperature axis alone (and
+                # the axes' frame over it, drawn after); the same limits for every unit of one program
+                keyed=tuple(
+                    (ax.xaxis, Bbox.from_extents(x0, 0, x1, ax.bbox.y0 + 2))
+                    for ax, x0, x1 in zip(bottom, edges[:-1], edges[1:])
+                ),
+            )
         return self._layers
 
     def fill(self, T, points, sig, grid, at_grid, at_T, span: tuple[float, float]) -> None:
