@@ -839,9 +839,7 @@ def rolling_std_v(t_ns: np.ndarray, u_v, window_s: float, found: dict | None = N
             nb = ln.astype(np.float64) if all_finite else np.add.reduceat(fin, st).astype(np.float64)
             # P's rows up to this slab's last block (the empty blocks before its first: zeros)
             top = int(bid[-1]) + k // 2 + 1
-            if top - done > rows_p.shape[1]:
-                rows_p = np.concatenate((rows_p[:, :have], np.empty((7, 2 * (top - done) - have))), axis=1)
-                acc = np.empty_like(rows_p)
+            rows_p, acc = _room(rows_p, acc, have, top - done, spare=2)
             rows_p[:, have : top - done] = 0.0
             view = bid[-1] - bid[0] == kb - ka - 1  # its blocks consecutive (no pause inside it)
             row = rows_p[:, bid[0] + k // 2 - done : top - done] if view else np.empty((7, kb - ka))
@@ -874,13 +872,20 @@ def rolling_std_v(t_ns: np.ndarray, u_v, window_s: float, found: dict | None = N
             rows_p[:, :have] = rows_p[:, ready : ready + have].copy()
             done += ready
         # the last windows, over the zero padding after the last block
-        if m + k - 1 - done > rows_p.shape[1]:
-            rows_p = np.concatenate((rows_p[:, :have], np.empty((7, m + k - 1 - done - have))), axis=1)
-            acc = np.empty_like(rows_p)
+        rows_p, acc = _room(rows_p, acc, have, m + k - 1 - done)
         rows_p[:, have : m + k - 1 - done] = 0.0
         _window_std(rows_p, m - done, k, std[done:], count[done:], acc)
     bad_i = np.concatenate(bad) if bad else np.zeros(0, dtype=np.intp)
     return BlockStats(starts=starts, ids=ids, std=std, count=count, n=int(t_ns.size), bad=bad_i)
+
+
+def _room(rows: np.ndarray, acc: np.ndarray, have: int, need: int, spare: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`rolling_std_v`'s buffer of rows (and its scratch ``acc``) with room for ``need`` columns, the first
+    ``have`` kept: the same buffers when they have it already, else new ones of ``spare`` x ``need`` columns."""
+    if need <= rows.shape[1]:
+        return rows, acc
+    rows = np.concatenate((rows[:, :have], np.empty((rows.shape[0], spare * need - have))), axis=1)
+    return rows, np.empty_like(rows)
 
 
 def _window_std(rows: np.ndarray, n_out: int, k: int, std: np.ndarray, count: np.ndarray, acc: np.ndarray) -> None:
