@@ -3,8 +3,8 @@
 write once the run is segmented (~0.3 CPU s since they are drawn in layers, :class:`pipeline.plots._Layers`), so on
 two cores they are drawn beside the calibration. A worker is ``python -m
 pipeline.calibrate.figure_worker``: it imports the plotting code only (no Prefect, no caller's main module), reads
-:class:`pipeline.calibrate.publish.FigureJob` pickles on its standard input and draws each
-(:func:`pipeline.calibrate.publish.draw_figure`) until the input ends, so it ends with its caller (a caller
+:class:`pipeline.calibrate.figures.FigureJob` pickles on its standard input and draws each
+(:func:`pipeline.calibrate.figures.draw_figure`) until the input ends, so it ends with its caller (a caller
 interrupted or killed closes the pipe)."""
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import threading
 import time
 from pathlib import Path
 
-from pipeline.calibrate.publish import FigureJob, draw_figure, drop_missing_figures
+from pipeline.calibrate.figures import FigureJob, draw_figure, drop_missing_figures
 
 #: How long a closing caller waits for the workers to finish the figures they were given (s), before it stops them.
 _FINISH_S = 600.0

@@ -3,16 +3,13 @@ verification figure beside it (:func:`publish`), and the ``calibrate --json`` ob
 
 from __future__ import annotations
 
-import contextlib
 import os
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
 from pathlib import Path
 
+from pipeline.calibrate.figures import FigureJob, figure_beside
 from pipeline.calibrate.result import CalibrationResult
 from pipeline.calibrate.settings import CalibrationSettings
-from pipeline.errors import ThermocalError
-from pipeline.passport.document import load_passport
 from pipeline.passport.provenance import RunDigest, code_version, input_digest
 from pipeline.passport.registry import Registry
 
@@ -81,10 +78,11 @@ def publish(
     version would be written (``version``) or which existing one has the same inputs and settings
     (``existing``: true), with ``dry_run``: true and the passport's content (``passport_content``).
 
-    ``draw``: given, each figure to draw is handed to it as a :class:`FigureJob` (for :func:`draw_figure` elsewhere,
-    e.g. :class:`pipeline.calibrate.figure_worker.FigureWorker`'s second process while the next unit is calibrated)
-    and the result names the figure's path; the caller drops a path whose figure was not made
-    (:func:`drop_missing_figures`). The passport is the same either way."""
+    ``draw``: given, each figure to draw is handed to it as a :class:`pipeline.calibrate.figures.FigureJob` (for
+    :func:`pipeline.calibrate.figures.draw_figure` elsewhere, e.g. by
+    :class:`pipeline.calibrate.figure_worker.FigureWorker`'s process while the next unit is calibrated) and the result
+    names the figure's path; the caller drops a path whose figure was not made
+    (:func:`pipeline.calibrate.figures.drop_missing_figures`). The passport is the same either way."""
     known, within = input_digests or {}, input_units or {}
     notes = {str(Path(src).resolve()): v for src, v in result.input_notes.items()}
     inputs = [
@@ -129,62 +127,6 @@ def publish(
             draw(job)
             out[key] = str(path)
         else:
-            out[key] = _figure(path, wanted, published.created, job.draw)
+            out[key] = figure_beside(path, wanted, published.created, job.draw)
     out["warnings"] = list(result.warnings)
     return out
-
-
-@dataclass(frozen=True)
-class FigureJob:
-    """A figure beside a published passport: ``path`` (``<passport>.png``, the VP errors of ``rows``; or
-    ``<passport>.constants.png``, the constants of the ``passport`` at that path) and the start of its title (unit
-    and version). Picklable, for :func:`draw_figure` in another process."""
-
-    path: str
-    kind: str  # "verification" | "constants"
-    title: str
-    rows: tuple = ()
-    passport: str = ""
-
-    def draw(self, tmp: Path) -> None:
-        from pipeline.plots import plot_constants, plot_verification
-
-        if self.kind == "verification":
-            plot_verification(list(self.rows), tmp, title=f"{self.title}: VP gravity-module error")
-        else:
-            plot_constants(
-                load_passport(Path(self.passport)),
-                tmp,
-                title=f"{self.title}: constants per plateau against temperature, thermal model and residuals",
-            )
-
-
-def draw_figure(job: FigureJob) -> str | None:
-    """Draw ``job``'s figure (as :func:`publish` does for a new version); its path, or None when it was not made."""
-    return _figure(Path(job.path), True, True, job.draw)
-
-
-def drop_missing_figures(result: dict) -> dict:
-    """``result`` (:func:`publish`'s, with ``draw``) without the figure paths whose figures were not made."""
-    for key in ("figure", "constants_figure"):
-        if result.get(key) and not Path(result[key]).exists():
-            result[key] = None
-    return result
-
-
-def _figure(path: Path, wanted: bool, redraw: bool, draw) -> str | None:
-    """Draw a figure beside a passport with ``draw(tmp_path)`` when ``wanted``, for a new version (``redraw``) or
-    where it is missing; its path, or None when there is none. Drawn under a temporary name, then renamed: a killed
-    writer or a full disk leaves no partial figure (a leftover ".tmp-" file is removed by the registry at the unit's
-    next publish)."""
-    if wanted and (redraw or not path.exists()):
-        tmp = path.with_name(f".tmp-{path.stem}-{os.getpid()}.png")
-        try:
-            draw(tmp)
-            os.replace(tmp, path)
-        except (OSError, ValueError, KeyError, ThermocalError):
-            pass  # a figure is a convenience; the passport is written
-        finally:
-            with contextlib.suppress(OSError):
-                tmp.unlink(missing_ok=True)
-    return str(path) if path.exists() else None

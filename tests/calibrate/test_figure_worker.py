@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from pipeline.calibrate.figure_worker import FigureWorker
-from pipeline.calibrate.publish import FigureJob, draw_figure
+from pipeline.calibrate.figures import FigureJob, draw_figure
 from pipeline.passport.document import SCHEMA_ID
 from pipeline.thermal import fit_thermal_model
 from pipeline.verify import VerificationRow
@@ -157,3 +157,15 @@ def test_no_worker_left_drawing_when_the_caller_is_killed(tmp_path):
         time.sleep(0.1)
     assert len(pids) == 1 and not any(alive(pid) for pid in pids)
     assert not list(tmp_path.glob("*/*.png"))  # the 6 figures given were not drawn after the caller was gone
+
+
+def test_worker_imports_the_plotting_code_only():
+    """A worker starts beside the caller's segmentation, on the same cores: its module and a job's type import
+    neither polars, the segmenter nor Prefect (they were ~0.3 CPU s of its start)."""
+    code = (
+        "import sys, pipeline.calibrate.figure_worker, pipeline.calibrate.figures\n"
+        "print(sorted(m for m in ('polars', 'pipeline.segment', 'prefect', 'scipy') if m in sys.modules))"
+    )
+    root = Path(__file__).resolve().parents[2]
+    out = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
