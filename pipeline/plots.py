@@ -111,7 +111,8 @@ class _VerificationFrame:
                     self.series.append((ax, field, line, ring))
                 fixed += self._decor(ax, panels, titles=ax is self.before, names=ax is self.after)
         self.title = fig.suptitle("", x=_MARGINS_IN["left"] / width_in, y=1 - 0.08 / _HEIGHT_IN, ha="left", va="top")
-        self.layers = _Layers(fig, fixed)
+        fixed += [self.before.xaxis, self.after.xaxis]  # no ticks, no label: nothing drawn
+        self.layers = _Layers(fig, fixed, ticks=((self.before.yaxis, True), (self.after.yaxis, True)))
 
     @staticmethod
     def key(panels: list[dict]) -> tuple:
@@ -292,7 +293,7 @@ class _Layers:
 
         self.fig, self.canvas = fig, FigureCanvasAgg(fig)
         texts = _TextPixels(fig)
-        self.ticks = {id(axis): _Ticks(axis, texts) for axis in ticks}  # axes' ticks drawn by _Ticks
+        self.ticks = {id(axis): _Ticks(axis, texts, placed) for axis, placed in ticks}  # (axis, label placed?)
         self.keyed = {id(axis): region for axis, region in keyed}  # axes drawn as pixels per view interval
         self._fixed_ids = {id(a) for a in fixed} | {id(fig.patch)}
         for ax in fig.axes:
@@ -423,17 +424,20 @@ def _write_png(path: Path | BinaryIO, rgba: np.ndarray, dpi: float) -> None:
 class _Ticks:
     """An axis's major ticks drawn as its own drawing draws them (the same locations and labels: its locator and
     formatter, the ticks in its view interval), for less: its grid lines and its tick marks each as one line, its
-    tick labels as pixels (:class:`_TextPixels`; the texts were 3/4 of a constants figure's ticks). Its axis label is
-    a fixed artist (:meth:`draw_label`, drawn once with the fixed pixels: at a fixed place). An axis with ticks on
-    its other side, a scale other than linear or an offset text (placed by its tick labels' extents) is drawn by
-    matplotlib."""
+    tick labels as pixels (:class:`_TextPixels`; the texts were 3/4 of a constants figure's ticks). Its axis label
+    is either fixed (``placed`` False: at coordinates of its own, drawn once with the fixed pixels by
+    :meth:`draw_label`) or placed as matplotlib places a y axis's label on the left (its tick labels' and left
+    spine's extents, less its pad) and pasted as pixels too. An axis with ticks on its other side, a scale other than
+    linear or an offset text (placed by its tick labels' extents) is drawn by matplotlib."""
 
-    def __init__(self, axis, texts: _TextPixels) -> None:
+    def __init__(self, axis, texts: _TextPixels, placed: bool = False) -> None:
         from matplotlib.lines import Line2D
 
         self.axis, self.texts = axis, texts
         tick = axis.get_major_ticks(1)[0]  # its ticks' look (tick_params, grid), of every tick
+        self.placed = placed
         self.simple = not (tick.tick2line.get_visible() or tick.label2.get_visible())
+        self.simple &= not placed or (axis.axis_name == "y" and axis.get_label_position() == "left")
         self.lines = []  # (line, across): the grid lines from 0 to 1 across the axes, the tick marks at 0
         for template, across in ((tick.gridline, (0.0, 1.0)), (tick.tick1line, (0.0,))):
             if template.get_visible():
@@ -443,11 +447,14 @@ class _Ticks:
                 self.lines.append((line, np.array(across)))
         self.label = tick.label1 if tick.label1.get_visible() else None  # the tick labels' style and transform
         self.style = _TextPixels.style(tick.label1)
+        self.label_style = _TextPixels.style(axis.label)
 
     def draw_label(self, renderer) -> None:
-        """The axis label, drawn once with the fixed pixels (placed by its coordinates, not by the tick labels)."""
-        self.axis.label.draw(renderer)
-        self.axis.label.set_visible(False)
+        """A fixed axis label, drawn once with the fixed pixels (placed by its coordinates, not by the tick labels);
+        a placed one is drawn with the ticks."""
+        if not self.placed:
+            self.axis.label.draw(renderer)
+            self.axis.label.set_visible(False)
 
     def draw(self, renderer) -> None:
         axis = self.axis
@@ -468,36 +475,44 @@ class _Ticks:
             b[len(across) :: len(across) + 1] = np.nan
             line.set_data((b, a) if along_x else (a, b))
             line.draw(renderer)
+        extents = []
         if self.label is not None and len(locs):
             at = self.label.get_position()[1 if along_x else 0]
             points = np.column_stack([locs, np.full(len(locs), at)] if along_x else [np.full(len(locs), at), locs])
             where = self.label.get_transform().transform(points)
             shown = [label for label, keep in zip(labels, kept) if keep]
-            self.texts.draw(renderer, self.label, self.style, shown, where)
+            extents = self.texts.draw(renderer, self.label, self.style, shown, where)
+        if self.placed and axis.label.get_visible() and axis.label.get_text():
+            from matplotlib.transforms import Bbox
+
+            label, ax = axis.label, axis.axes
+            left = Bbox.union([*extents, ax.spines.get("left", ax).get_window_extent()]).x0
+            label.set_position((left - axis.labelpad * axis.get_figure(root=True).dpi / 72, label.get_position()[1]))
+            where = label.get_transform().transform([label.get_position()])
+            self.texts.draw(renderer, label, self.label_style, [label.get_text()], where)
 
 
-#: Texts pasted as pixels are drawn at positions rounded to 1 / _TEXT_STEPS pixel (their glyphs are drawn at 1/64).
-_TEXT_STEPS = 4
+#: Texts pasted as pixels are drawn at positions rounded to 1 / _TEXT_STEPS pixel (matplotlib draws glyphs at 1/64):
+#: within 1/4 pixel of their place; each text is drawn once per place within a pixel (~2 ms: 4 rather than 16
+#: places at 1/4 pixel, a fifth of the constants figure's CPU at a run's first units).
+_TEXT_STEPS = 2
 
 
 class _TextPixels:
-    """Short texts (tick labels) drawn as the pixels of their first drawing: per style, text and position within a
-    pixel (to 1 / :data:`_TEXT_STEPS`), drawn once by matplotlib on a transparent canvas of their own and then
-    blended in at each place (matplotlib draws a text glyph by glyph each time: ~0.25 ms a glyph). A text too large
-    for that canvas is drawn as it is."""
+    """Short texts (tick labels, axis labels) drawn as the pixels of their first drawing: per style, text and position
+    within a pixel (to 1 / :data:`_TEXT_STEPS`), drawn once by matplotlib on a transparent canvas of their own and
+    then blended in at each place (matplotlib draws a text glyph by glyph each time: ~0.25 ms a glyph)."""
 
-    _SIZE = (240, 120)  # the canvas's pixels: a tick label at its middle
+    _PAD = 8  # pixels around a text's extent on its canvas (its glyphs' ink may reach a pixel or two beyond)
 
     def __init__(self, fig) -> None:
-        from matplotlib.backends.backend_agg import RendererAgg
         from matplotlib.text import Text
         from matplotlib.transforms import IdentityTransform
 
-        self.canvas = RendererAgg(*self._SIZE, fig.dpi)
         self.probe = Text()
         self.probe.set_figure(fig)
         self.identity = IdentityTransform()
-        self.images: dict[tuple, tuple | None] = {}
+        self.images: dict[tuple, tuple] = {}  # key -> (pixels or None, dx, dy, extent around the point)
 
     @staticmethod
     def style(text) -> tuple:
@@ -510,53 +525,57 @@ class _TextPixels:
             text.get_verticalalignment(),
             text.get_rotation(),
             text.get_rotation_mode(),
+            text.get_linespacing(),
         )
 
-    def draw(self, renderer, template, style: tuple, texts: list[str], where: np.ndarray) -> None:
-        """``texts`` in ``template``'s look (its ``style``) at ``where`` (pixels: the points of their
-        transform)."""
+    def draw(self, renderer, template, style: tuple, texts: list[str], where: np.ndarray) -> list:
+        """``texts`` in ``template``'s look (its ``style``) at ``where`` (pixels: the points of their transform);
+        their extents (as ``get_window_extent``'s, at ``where``)."""
+        extents = []
         gc = renderer.new_gc()
         try:
-            snapped = np.round(np.asarray(where) * _TEXT_STEPS) / _TEXT_STEPS
+            where = np.asarray(where, float)
+            snapped = np.round(where * _TEXT_STEPS) / _TEXT_STEPS
             whole = np.floor(snapped)
-            for text, (x, y), (fx, fy) in zip(texts, whole, snapped - whole):
+            for text, (x, y), (fx, fy), point in zip(texts, whole, snapped - whole, where):
                 key = (style, text, fx, fy)
                 if key not in self.images:
-                    self.images[key] = self._render(template, text, fx, fy)
-                image = self.images[key]
-                if image is None:
-                    continue  # nothing drawn
-                if isinstance(image, str):  # too large: drawn as it is
-                    self._direct(renderer, template, text, x + fx, y + fy)
-                    continue
-                pixels, dx, dy = image
-                renderer.draw_image(gc, int(x) + dx, int(y) + dy, pixels)
+                    self.images[key] = self._render(renderer, template, text, fx, fy)
+                pixels, dx, dy, extent = self.images[key]
+                if pixels is not None:
+                    renderer.draw_image(gc, int(x) + dx, int(y) + dy, pixels)
+                extents.append(extent.translated(*point))
         finally:
             gc.restore()
+        return extents
 
-    def _direct(self, renderer, template, text: str, x: float, y: float) -> None:
+    def _probe(self, template, text: str, x: float, y: float):
         probe = self.probe
         probe.update_from(template)
+        probe.set_rotation_mode(template.get_rotation_mode())  # not among update_from's
         probe.set_transform(self.identity)
         probe.set_position((x, y))
         probe.set_text(text)
-        probe.draw(renderer)
+        return probe
 
-    def _render(self, template, text: str, fx: float, fy: float):
-        """The pixels of ``text`` drawn with its point at (``fx``, ``fy``) within a pixel, and where their lower
-        left pixel is from that pixel; None when it draws nothing, "large" when it does not fit."""
-        width, height = self._SIZE
-        x0, y0 = width // 2, height // 2
-        self.canvas.clear()
-        self._direct(self.canvas, template, text, x0 + fx, y0 + fy)
-        rgba = np.asarray(self.canvas.buffer_rgba())
+    def _render(self, renderer, template, text: str, fx: float, fy: float) -> tuple:
+        """The pixels of ``text`` drawn with its point at (``fx``, ``fy``) within a pixel (bottom row first), where
+        their lower left pixel is from that pixel, and the text's extent around its point."""
+        from matplotlib.backends.backend_agg import RendererAgg
+
+        extent = self._probe(template, text, 0.0, 0.0).get_window_extent(renderer)
+        if not text:
+            return None, 0, 0, extent
+        x0, y0 = self._PAD - int(np.floor(extent.x0)), self._PAD - int(np.floor(extent.y0))
+        width, height = int(np.ceil(extent.x1)) + x0 + self._PAD, int(np.ceil(extent.y1)) + y0 + self._PAD
+        canvas = RendererAgg(width, height, renderer.dpi)  # transparent
+        self._probe(template, text, x0 + fx, y0 + fy).draw(canvas)
+        rgba = np.asarray(canvas.buffer_rgba())
         rows, cols = np.flatnonzero(rgba[..., 3].any(axis=1)), np.flatnonzero(rgba[..., 3].any(axis=0))
         if not rows.size:
-            return None
-        if rows[0] == 0 or cols[0] == 0 or rows[-1] == height - 1 or cols[-1] == width - 1:
-            return "large"
+            return None, 0, 0, extent
         pixels = rgba[rows[-1] : rows[0] - 1 if rows[0] else None : -1, cols[0] : cols[-1] + 1].copy()  # bottom up
-        return pixels, int(cols[0]) - x0, height - 1 - int(rows[-1]) - y0
+        return pixels, int(cols[0]) - x0, height - 1 - int(rows[-1]) - y0, extent
 
 
 #: matplotlib's places of a legend (its location codes 1-10: the order in which "best" tries them) and where each is
@@ -712,7 +731,7 @@ class _ConstantsFrame:
                 self.fig,
                 [ax.xaxis for ax in self.axes[:-1].flat],  # no ticks, no label: nothing drawn
                 best_legends=legends,
-                ticks=tuple(ax.yaxis for ax in self.axes.flat),
+                ticks=tuple((ax.yaxis, False) for ax in self.axes.flat),
                 # under each axes of the bottom row, between the middles of the gaps: its temperature axis alone (and
                 # the axes' frame over it, drawn after); the same limits for every unit of one program
                 keyed=tuple(
