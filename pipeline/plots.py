@@ -380,11 +380,18 @@ class _Layers:
         extent, or of ``region`` (a Bbox in pixels where it alone draws)."""
         pixels = self._pasted.get(key)
         if pixels is None:
+            if len(self._pasted) >= _MOST_KEPT:  # a long-lived process drawing many programs: made again as needed
+                self._pasted.clear()
             artist.draw(renderer)
             where = artist.get_window_extent(renderer).padded(2) if region is None else region
             self._pasted[key] = self.canvas.copy_from_bbox(where)
         else:
             self.canvas.restore_region(pixels)
+
+
+#: At most this many artists' pixels are kept per figure (legends per place, temperature axes per limits; 32 times as
+#: many texts): ~40 MB at most, cleared when full.
+_MOST_KEPT = 256
 
 
 def _write_png(path: Path | BinaryIO, rgba: np.ndarray, dpi: float) -> None:
@@ -540,6 +547,8 @@ class _TextPixels:
             for text, (x, y), (fx, fy), point in zip(texts, whole, snapped - whole, where):
                 key = (style, text, fx, fy)
                 if key not in self.images:
+                    if len(self.images) >= 32 * _MOST_KEPT:
+                        self.images.clear()
                     self.images[key] = self._render(renderer, template, text, fx, fy)
                 pixels, dx, dy, extent = self.images[key]
                 if pixels is not None:
