@@ -1,7 +1,7 @@
 """The figures of a run with several units drawn in another process while the next unit is calibrated
-(:class:`FigureWorker`): the two figures were ~1.5 CPU s per unit, several times the unit's choose, observe, fit and
-write once the run is segmented (~0.3 CPU s since they are drawn in layers, :class:`pipeline.plots._Layers`), so on
-two cores they are drawn beside the calibration. A worker is ``python -m
+(:class:`FigureWorker`): a unit's two figures were ~1.5 CPU s, several times the unit's choose, observe, fit and
+write once the run is segmented (~0.12 CPU s in a warm worker since they are drawn in layers with their tick labels
+pasted, :class:`pipeline.plots._Layers`), so on two cores they are drawn beside the calibration. A worker is ``python -m
 pipeline.calibrate.figure_worker``: it imports the plotting code only (no Prefect, no caller's main module), reads
 :class:`pipeline.calibrate.figures.FigureJob` pickles on its standard input and draws each
 (:func:`pipeline.calibrate.figures.draw_figure`) until the input ends, so it ends with its caller (a caller
@@ -29,8 +29,8 @@ _COST = {"verification": 1, "constants": 3}
 class FigureWorker:
     """publish's ``draw`` (:func:`pipeline.calibrate.publish.publish`): each :class:`FigureJob` sent to one of
     ``processes`` worker processes (the least loaded by :data:`_COST`). One by default: a unit's two figures
-    (~0.3 CPU s) take less than its calibration in the caller, so one worker keeps up, and a second cost ~3 CPU s
-    more on 16 units (its start and first figures) for no shorter run. Used as a context manager: on a normal exit,
+    (~0.12 CPU s warm) take less than its calibration in the caller, so one worker keeps up, and a second costs its
+    start (~1.9 CPU s) and its own first figures for no shorter run. Used as a context manager: on a normal exit,
     waits for the workers, then draws here any figure they did not make (none could start, or one failed), so the
     figures are those :func:`publish` draws inline; on an exception (Ctrl-C too), stops them at once (a figure not
     drawn is drawn at the unit's next publish). ``pids``: the workers' (empty when none could start)."""
