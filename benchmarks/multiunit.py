@@ -241,7 +241,7 @@ def main() -> None:
     ap.add_argument("--steps", default="decode,calibrate,fleet")
     ap.add_argument("--dir", type=Path, default=Path("/tmp/thermocal-bench"))
     ap.add_argument(
-        "--repeat", type=int, default=1, help="rounds of the steps, alternating; the table gives each step's median"
+        "--repeat", type=_rounds, default=1, help="rounds of the steps, alternating; the table gives each step's median"
     )
     ap.add_argument("--child", nargs=2, metavar=("STEP", "PATH"))
     args = ap.parse_args()
@@ -300,6 +300,14 @@ def main() -> None:
                 each = ", ".join(f"{r[step]['wall_s'] / r['decode']['wall_s']:.2f}" for r in rounds)
                 print(f"\n{step} / decode in wall, round by round: {each}")
     print("\n" + json.dumps(results))
+
+
+def _rounds(text: str) -> int:
+    """``--repeat``: a whole number of rounds, at least one."""
+    n = int(text)
+    if n < 1:
+        raise argparse.ArgumentTypeError("at least 1 round")
+    return n
 
 
 def _medians(rounds: list[dict[str, dict]]) -> dict[str, dict]:
