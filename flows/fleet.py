@@ -307,7 +307,8 @@ def _unit_line(o: fleet_plan.UnitOutcome, k: int, total: int) -> str:
 
 
 def fleet_summary(plan: fleet_plan.FleetPlan, outcomes: list[fleet_plan.UnitOutcome]) -> dict:
-    """The ``fleet --json`` object: done units (by serial), failed runs, skipped runs, warnings (by path)."""
+    """The ``fleet --json`` object: done units (by serial, each with its calibration's warnings: a truncated file, a
+    VP segment off every plateau, ...), failed runs, skipped runs, warnings (by path)."""
     done, failed = [], list(plan.failed)
     for o in sorted(outcomes, key=lambda o: o.unit):
         if o.result is not None:
@@ -321,6 +322,7 @@ def fleet_summary(plan: fleet_plan.FleetPlan, outcomes: list[fleet_plan.UnitOutc
                     "created": bool(r.get("created", True)),
                     "passport": r["passport"],
                     "passport_sha256": r["passport_sha256"],
+                    "warnings": list(r.get("warnings") or []),
                 }
             )
         failed += [{**f, "unit": o.unit} for f in o.failed]

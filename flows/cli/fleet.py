@@ -97,11 +97,12 @@ def fleet_text(s: dict) -> str:
         f"done: {count_words(len(s['done']), 'unit')}, failed: {count_words(len(s['failed']), 'run')}, "
         f"skipped: {count_words(len(s['skipped']), 'run')}"
     ]
-    lines += [
-        f"  {d['unit']:<12} v{d['version']:<4} {d['status']:<10} {'new' if d['created'] else 'existing':<8} "
-        + ", ".join(Path(r).name for r in d["runs"])
-        for d in s["done"]
-    ]
+    for d in s["done"]:
+        lines.append(
+            f"  {d['unit']:<12} v{d['version']:<4} {d['status']:<10} {'new' if d['created'] else 'existing':<8} "
+            + ", ".join(Path(r).name for r in d["runs"])
+        )
+        lines += [f"      warning: {w}" for w in d.get("warnings", ())]
     lines += [f"  FAILED  {failure_line(f)}" for f in s["failed"]]
     lines += [f"  skipped {x['run']}: {x['why']}" for x in s["skipped"]]
     return "\n".join(lines)

@@ -1,5 +1,6 @@
 """Run inputs a fleet inbox really holds (issue 15): a truncated copy of a run (same run_id) is never merged, two
-recordings under one run_id are both refused, a folder naming another unit warns; calibrate does the same."""
+recordings under one run_id are both refused, a folder naming another unit warns, a run truncated with no other
+copy is calibrated from its complete chunks and the fleet says so; calibrate does the same."""
 
 from __future__ import annotations
 
@@ -37,10 +38,13 @@ def inbox(tmp_path_factory):
     b1 = write_run(b_run, root / "AU-0202" / "tp.mcap", "mcap")
     b2 = write_run(replace(sim("AU-0202", 3), meta=b_run.meta), root / "AU-0202" / "tp-again.mcap", "mcap")
     c = write_run(sim("AU-0203", 4), root / "AU-0999" / "tp.mcap", "mcap")
-    return root, {"a": a, "a_copy": a_copy, "b1": b1, "b2": b2, "c": c}
+    whole = write_run(sim("AU-0204", 5), root.parent / "AU-0204-whole.mcap", "mcap", chunk_size=1 << 15)
+    d = truncated_copy(whole, root / "AU-0204" / "tp.mcap", 0.97)  # its last chunk cut: the only copy there is
+    return root, {"a": a, "a_copy": a_copy, "b1": b1, "b2": b2, "c": c, "d": d}
 
 
 def test_fleet_never_merges_one_run_id(inbox, tmp_path):
+    from flows.cli.fleet import fleet_text
     from flows.fleet import run_fleet
 
     root, p = inbox
@@ -59,6 +63,12 @@ def test_fleet_never_merges_one_run_id(inbox, tmp_path):
     [w] = summary["warnings"]
     assert w["run"] == str(p["c"].resolve()) and "says unit AU-0999 but its metadata says AU-0203" in w["warning"]
     assert all("\n" not in r for r in failed.values())
+    # a run truncated with no other copy: calibrated from its complete chunks, the reader's warning in the unit's
+    # entry and under its line in the text
+    assert done["AU-0204"]["runs"] == [str(p["d"].resolve())]
+    [cut] = [w for w in done["AU-0204"]["warnings"] if w.startswith("file is truncated at byte ")]
+    assert f"      warning: {cut}" in fleet_text(summary).splitlines()
+    assert not any("truncated at byte" in w for w in done["AU-0201"]["warnings"])  # the copy's is not its
 
 
 def test_calibrate_drops_a_truncated_copy_and_refuses_two_recordings(inbox, tmp_path, monkeypatch, capsys):
