@@ -192,22 +192,16 @@ def calibrate_flow(
             step(f"ingest {os.path.basename(p)}")
             read.append(ingest(p, units))
         hashed = hashed or {p: hashing.submit(hash_run, p) for p in paths}
+        # a unit's steps from its runs and their paths, with what every unit of the command shares
+        unit_steps = functools.partial(
+            _calibrate_unit, registry=registry, settings=settings, method=method, base=base, dry_run=dry_run, step=step
+        )
         with figures or contextlib.nullcontext():
             if any(r.several for r in read):
-                result = calibrate_units(paths, read, registry, settings, method, base, dry_run, step, hashed, figures)
+                result = calibrate_units(paths, read, unit_steps, settings, step, hashed, figures)
             else:
                 digests = {p: f.result() for p, f in hashed.items()}
-                result = _calibrate_unit(
-                    [r.one() for r in read],
-                    list(paths),
-                    registry,
-                    settings,
-                    method,
-                    base,
-                    dry_run,
-                    step,
-                    digests=digests,
-                )
+                result = unit_steps([r.one() for r in read], list(paths), digests=digests)
     finally:
         hashing.shutdown(wait=False, cancel_futures=True)
     if figures is not None and "units" in result:
@@ -227,16 +221,18 @@ def _serials(paths: list[str], units: list[str] | None) -> int:
     return len(found & set(units) if units else found)
 
 
-def calibrate_units(paths, read, registry, settings, method, base, dry_run, step, hashed, draw=None) -> dict:
+def calibrate_units(paths, read, unit_steps, settings, step, hashed, draw=None) -> dict:
     """The runs ``read`` (:class:`pipeline.run.UnitRuns`, one per path) of which some hold several units: each
     unit calibrated from its runs (segmented once per run with several units), one after the other, the samples of
     a unit let go once it is observed. Returns ``{"units": [the calibrate object of each unit], "failed": [{"unit",
     "run", "reason"}]}`` (contract.md): a unit that failed its input checks or its calibration is listed with its
-    one-line reason and the others go on. ``hashed``: each path's :func:`pipeline.passport.provenance.hash_run` as
-    a future, waited for once the runs are segmented (a file hashed once, not once per unit). ``draw``: publish's,
-    for the figures drawn in other processes while the next unit is calibrated
-    (:class:`pipeline.calibrate.figure_worker.FigureWorker`, which :func:`calibrate_flow` starts for two units or
-    more)."""
+    one-line reason and the others go on. ``unit_steps(runs, paths, **kw)``: :func:`_calibrate_unit` with the
+    command's registry, settings, method, base passport, dry run and progress bound; ``settings`` and ``step``: the
+    same, for the segmentation and its progress line. ``hashed``: each path's
+    :func:`pipeline.passport.provenance.hash_run` as a future, waited for once the runs are segmented (a file hashed
+    once, not once per unit). ``draw``: publish's, for the figures drawn in other processes while the next unit is
+    calibrated (:class:`pipeline.calibrate.figure_worker.FigureWorker`, which :func:`calibrate_flow` starts for two
+    units or more)."""
     logger = get_run_logger()
     failed: list[dict] = []
     by_unit: dict[str, list] = {}  # serial -> [(path, UnitRuns, segmentation or None)]
@@ -257,15 +253,9 @@ def calibrate_units(paths, read, registry, settings, method, base, dry_run, step
         runs = [got.units[serial] for _, got, _ in items]
         within = {p: {"unit": serial, "run_id": got.units[serial].meta.run_id} for p, got, _ in items if got.several}
         steps = functools.partial(
-            _calibrate_unit,
+            unit_steps,
             runs,
             [p for p, _, _ in items],
-            registry,
-            settings,
-            method,
-            base,
-            dry_run,
-            step,
             segmentations=[seg for _, _, seg in items],
             digests=digests,
             within=within,
