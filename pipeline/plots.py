@@ -42,9 +42,10 @@ def new_figure(nrows: int, ncols: int, **subplots_kw):
 
 
 def plot_verification(rows, path: str | Path, *, title: str = "") -> Path:
-    """VP gravity-module errors before and after compensation (like seed 000's Fig. 6-7), in micro-g, in two axes
-    with scales of their own: above, uncompensated (the normal-temperature constants at every temperature); below,
-    compensated by method 1 (the verdict) and method 2. ``rows``: :class:`pipeline.verify.VerificationRow` or
+    """VP gravity-module errors before and after compensation (like seed 000's Fig. 6-7), in micro-g (milli-g or g
+    on an axes whose errors reach 10^4 micro-g or 10^7: :func:`_dg_unit`; an infinite error is not drawn), in two
+    axes with scales of their own: above, uncompensated (the normal-temperature constants at every temperature);
+    below, compensated by method 1 (the verdict) and method 2. ``rows``: :class:`pipeline.verify.VerificationRow` or
     their dicts (a passport's ``verification``).
 
     One panel per visit of a verification temperature, coldest first (a temperature visited twice has two panels,
@@ -165,20 +166,30 @@ class _VerificationFrame:
         if not panels:
             return
         for ax in (self.before, self.after):
-            peak, handles, ringed = 0.0, [], False  # the legend: each series, and the first ring drawn
-            for _, field, line, ring in (s for s in self.series if s[0] is ax):
-                dg_ug = np.concatenate([np.append([r[field] for r in p["rows"]], np.nan) for p in panels])[:-1] * 1e6
-                line.set_data(self.x, dg_ug)
-                bad = np.abs(dg_ug) > self.lim_ug
-                ring.set_data(self.x[bad], dg_ug[bad])
+            handles, ringed = [], False  # the legend: each series, and the first ring drawn
+            mine = [s for s in self.series if s[0] is ax]
+            dg_ug = [
+                np.concatenate([np.append([r[field] for r in p["rows"]], np.nan) for p in panels])[:-1] * 1e6
+                for _, field, _, _ in mine
+            ]
+            finite = np.abs(np.concatenate(dg_ug))
+            finite = finite[np.isfinite(finite)]  # (an infinite error has no place on a scale: not drawn)
+            name, per_ug = _dg_unit(float(finite.max()) if finite.size else 0.0)
+            for (_, _, line, ring), dg in zip(mine, dg_ug):
+                bad = np.abs(dg) > self.lim_ug
+                dg = np.where(np.isfinite(dg), dg, np.nan) / per_ug
+                line.set_data(self.x, dg)
+                ring.set_data(self.x[bad], dg[bad])
                 handles += [line, ring] if bad.any() and not ringed else [line]
                 ringed = ringed or bool(bad.any())
-                peak = max(peak, float(np.nanmax(np.abs(dg_ug))))
-            span = max(peak, 1.0) * 1.15
+            span = max(float(finite.max()) / per_ug if finite.size else 0.0, 1.0) * 1.15
             ax.set_ylim(-span, span)
+            ax.yaxis.label.set_text(f"{'before' if ax is self.before else 'after'}: dg  [{name}]")
             for band, lim_ug in self.bands:
                 if band.axes is ax:
-                    band.set_visible(lim_ug < span)
+                    band.set_y(-lim_ug / per_ug)
+                    band.set_height(2 * lim_ug / per_ug)
+                    band.set_visible(lim_ug / per_ug < span)
             labels = tuple(h.get_label() for h in handles)
             if (ax, labels) not in self.legends:  # outside the axes, at a fixed place: pasted as pixels
                 up, at = ("upper left", (0.0, 1.2)) if ax is self.before else ("upper right", (1.0, 1.14))
@@ -194,6 +205,16 @@ class _VerificationFrame:
                     borderaxespad=0,
                 )
             self.shown.append(((ax is self.after, labels), self.legends[ax, labels]))
+
+
+def _dg_unit(peak_ug: float) -> tuple[str, float]:
+    """The unit of a verification axes whose largest error is ``peak_ug`` (micro-g) and its size in micro-g: the
+    coarsest of micro-g, milli-g and g that keeps its tick labels under five digits (a consumer part's errors before
+    compensation reach 10^5 micro-g, whose tick labels would push the axis label off the figure)."""
+    for name, per_ug in (("micro-g", 1.0), ("milli-g", 1e3)):
+        if peak_ug * 1.15 / per_ug < 1e4:
+            return name, per_ug
+    return "g", 1e6
 
 
 def _panel_title(p: dict) -> str:

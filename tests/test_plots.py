@@ -5,6 +5,7 @@ temperature with the fitted model and its residuals."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from PIL import Image
 
 from pipeline import plots
@@ -267,3 +268,35 @@ def test_constants_figure_drawn_again_is_the_figure_made_afresh(tmp_path):
         differ = np.any(again != fresh, axis=-1)
         assert not (differ & ~under & ~labels).any(), (k, np.argwhere(differ & ~under & ~labels)[:5])
         assert (differ & under & ~labels).sum() < 0.1 * under.sum(), k
+
+
+def test_verification_axes_in_milli_g_for_large_errors_and_infinite_errors_left_out(tmp_path):
+    """A consumer part's errors before compensation (~5e5 micro-g) are drawn in milli-g, so the axis label stays on
+    the figure (in micro-g, 7-character tick labels pushed it off the left edge); an infinite error is left out
+    (before: the figure raised "Axis limits cannot be NaN or Inf"); the next unit in micro-g is labelled so again."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    layout = [(-10.0, 100.0), (20.0, 100.0), (45.0, 100.0)]
+    big = _timed(
+        [_row(t, f"VP{k}", 1.5e5 * (k - 3.5), tol, after_ug=300.0 * k) for t, tol in layout for k in range(1, 7)]
+    )
+    plots.plot_verification(big, tmp_path / "big.png")
+    frame = plots._FRAMES.verification
+    renderer = FigureCanvasAgg(frame.fig).get_renderer()
+    assert frame.before.get_ylabel() == "before: dg  [milli-g]"
+    assert frame.after.get_ylabel() == "after: dg  [micro-g]"
+    assert frame.before.get_ylim()[1] == pytest.approx(375.0 * 1.15)
+    for ax in (frame.before, frame.after):
+        assert ax.yaxis.label.get_window_extent(renderer).x0 >= 0
+    rings = frame.series[0][3].get_ydata()  # every error before is beyond its 100-micro-g limit: ringed, in milli-g
+    np.testing.assert_allclose(np.abs(rings), np.abs([0.15 * (k - 3.5) * 1e3 for _ in layout for k in range(1, 7)]))
+    infinite = [
+        VerificationRow(**{**r.to_dict(), "dg_uncompensated_g": np.inf}) if k == 2 else r for k, r in enumerate(big)
+    ]
+    path = plots.plot_verification(infinite, tmp_path / "inf.png")
+    assert Image.open(path).size[0] > 0 and np.isnan(frame.series[0][2].get_ydata()[2])
+    calm = _timed([_row(t, f"VP{k}", 20.0 * k, tol) for t, tol in layout for k in range(1, 7)])
+    plots.plot_verification(calm, tmp_path / "calm.png")
+    assert plots._FRAMES.verification.before.get_ylabel() == "before: dg  [micro-g]"
+    assert plots._dg_unit(8000.0) == ("micro-g", 1.0) and plots._dg_unit(9000.0) == ("milli-g", 1e3)
+    assert plots._dg_unit(2e7) == ("g", 1e6)
