@@ -181,15 +181,17 @@ def _median_step_v(run: Run, t_ns: np.ndarray, a: int, b: int) -> np.ndarray | N
 
 def _moving(run: Run, t_ns: np.ndarray, parts: np.ndarray, still: np.ndarray) -> bool:
     """Whether the unit's voltages move in one of the ``parts`` (k, 2) of a hold: the median |step| between its
-    samples there exceeds :data:`_MOVING_STEP` x that in its own ``still`` spans of the hold, on some channel (no
-    still span in the hold: moving). A still unit's drift with its temperature through a ramp, or a gap without
-    samples, is not motion."""
+    samples there exceeds :data:`_MOVING_STEP` x that in its own ``still`` spans of the hold, on some channel (samples
+    there but no still span in the hold: moving). A still unit's drift with its temperature through a ramp, or a
+    gap without samples (a hold inside a dropout, the holds after a unit's record ends), is not motion."""
+    steps = [m for m in (_median_step_v(run, t_ns, int(x), int(y)) for x, y in parts) if m is not None]
+    if not steps:
+        return False
     noise = [m for m in (_median_step_v(run, t_ns, int(x), int(y)) for x, y in still) if m is not None]
     if not noise:
         return True
     floor = _MOVING_STEP * np.median(np.array(noise), axis=0)
-    steps = (_median_step_v(run, t_ns, int(x), int(y)) for x, y in parts)
-    return any(m is not None and bool(np.any(m > floor)) for m in steps)
+    return any(bool(np.any(m > floor)) for m in steps)
 
 
 def _fixture_label_at(run: Run, t_ns: int) -> str | None:

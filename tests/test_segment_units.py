@@ -90,6 +90,27 @@ def test_no_unit_named_for_drift_in_a_ramp_a_gap_or_a_turned_neighbour():
     assert len(warnings) == 1 and warnings[0].startswith("unit AU-0703: its signal names"), warnings
 
 
+def test_no_unit_named_for_holds_it_has_no_samples_in(four):
+    """A unit whose voltmeter drops out for 5 minutes (whole holds without a sample) or ends early is not "not
+    still" where it has no samples: a gap is missing data, named by the readers' gap warnings (4 and 24 holds were
+    named); its other holds are its own as before."""
+    u = four.units
+    v1, v2 = u["AU-0501"].voltmeter, u["AU-0502"].voltmeter
+    t0 = int(v1["t_ns"][0])
+    gap = (pl.col("t_ns") < t0 + 3000 * 10**9) | (pl.col("t_ns") >= t0 + 3300 * 10**9)
+    units = {
+        **u,
+        "AU-0501": dataclasses.replace(u["AU-0501"], voltmeter=v1.filter(gap)),
+        "AU-0502": dataclasses.replace(u["AU-0502"], voltmeter=v2.filter(pl.col("t_ns") < t0 + 7600 * 10**9)),
+    }
+    segs, warnings = segment_units(units)
+    assert warnings == []
+    assert not any(
+        t0 + 3000 * 10**9 <= s.t_end_ns and s.t_start_ns < t0 + 3300 * 10**9 for s in segs["AU-0501"].segments
+    )
+    assert len(segs["AU-0501"].segments) > 40 and len(segs["AU-0502"].segments) > 20
+
+
 def test_units_on_one_clock_share_its_times_and_segment_as_on_their_own(four, monkeypatch):
     """The units whose voltmeter times are the first unit's share one copy of them (and of their gaps and median
     interval); a unit with other times has its own. Sharing changes no segment: the same segmentations, field by
