@@ -48,7 +48,8 @@ def fleet(
     """Calibrate every run under FOLDER, one passport per unit (Prefect flow, one task per unit).
 
     Runs already processed with the same settings are skipped; a bad run is reported and the rest go on.
-    Exit status: 0 all done or skipped; 1 the fleet ran but some runs failed (listed); 2 it could not run.
+    Exit status: 0 all done or skipped; 1 the fleet ran but some runs failed (listed) or some units' calibrations
+    have status fail (as calibrate's); 2 it could not run.
     """
     from pipeline.calibrate.fleet import POOLS, discover_runs
 
@@ -74,17 +75,25 @@ def fleet(
         method=method,
     )
     emit(summary, as_json, None if as_json else fleet_text(summary))
-    if summary["failed"]:
-        from pipeline.words import count_words
+    from pipeline.words import count_words
 
+    failed = summary["failed"]
+    failing = [d["unit"] for d in summary["done"] if d["status"] == "fail"]
+    if failed:
         from ..fleet import failure_line
 
-        failed = summary["failed"]
         print(
             f"thermocal: fleet: {count_words(len(failed), 'run')} failed: {failure_line(failed[0])}"
             + (" (and more, see the summary)" if len(failed) > 1 else ""),
             file=sys.stderr,
         )
+    elif failing:
+        print(
+            f"thermocal: fleet: {count_words(len(failing), 'unit')} with status fail ({', '.join(failing)}): the "
+            "compensated gravity-module error exceeds its limit at a verification position",
+            file=sys.stderr,
+        )
+    if failed or failing:
         raise typer.Exit(1)
 
 

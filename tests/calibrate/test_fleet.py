@@ -349,7 +349,8 @@ def _read_all(fd: int) -> str:
 
 def test_cli_fleet_json_and_exit_status(fleet, tmp_path):
     """`thermocal fleet DIR --registry R --json`: one JSON object on stdout; a failed run gives exit 1 and one
-    line on stderr (no progress when stderr is not a terminal); a missing folder exits 2 before Prefect starts."""
+    line on stderr (no progress when stderr is not a terminal), and so does a unit calibrated with status fail; a
+    missing folder exits 2 before Prefect starts."""
     inbox = tmp_path / "inbox"
     inbox.mkdir()
     shutil.copy(fleet["inbox"] / "ch1" / "AU-0201.mcap", inbox)
@@ -380,6 +381,14 @@ def test_cli_fleet_json_and_exit_status(fleet, tmp_path):
     assert "thermocal: fleet: plan" in tty and "1 runs: 0 units to calibrate, 1 runs skipped" in tty, tty
     s2 = json.loads(again.stdout)
     assert s2["done"] == [] and [x["why"] for x in s2["skipped"]] == [ALREADY_PROCESSED]
+    # no run failed, but a unit calibrated with status fail (limits no unit meets): exit 1, as calibrate's
+    tight = [*cmd[:4], str(tmp_path / "reg-tight"), *cmd[5:], "--tol-normal-g", "1e-9", "--tol-range-g", "1e-9"]
+    out = subprocess.run(tight, capture_output=True, text=True, timeout=300, env=env)
+    s3 = json.loads(out.stdout)
+    assert [(d["unit"], d["status"]) for d in s3["done"]] == [("AU-0201", "fail")] and s3["failed"] == []
+    assert out.returncode == 1, out.stderr
+    (last,) = [line for line in out.stderr.strip().splitlines() if "created this station's signing key" not in line]
+    assert last.startswith("thermocal: fleet: 1 unit with status fail (AU-0201): "), last
     missing = subprocess.run(
         [exe, "fleet", str(tmp_path / "nowhere"), "--registry", str(tmp_path / "reg")],
         capture_output=True,
