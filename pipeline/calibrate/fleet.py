@@ -170,10 +170,10 @@ def plan_fleet(
     ``calibrate --method auto``, the method each unit's first run supports, chosen when it is calibrated).
 
     A run whose metadata or bytes cannot be read is ``failed``; a second copy of a run (same content hash as
-    another run of the unit) is ``skipped`` as a duplicate; two files with one run_id are never merged
+    another run of the unit) is ``skipped`` as a duplicate; files with one run_id count no sample twice
     (:func:`pipeline.calibrate.inputs.resolve_run_ids`: a truncated copy is ``failed`` and the complete file used,
-    else both ``failed``); a run whose folder names another unit is filed by its metadata, with a warning; a unit
-    whose group identity (its runs' content hashes +
+    the pieces of one recording all used, two recordings under one id both ``failed``); a run whose folder names
+    another unit is filed by its metadata, with a warning; a unit whose group identity (its runs' content hashes +
     ``settings``) is already in ``registry`` has all its runs ``skipped`` as "already processed". Paths in the
     plan are absolute, as in the passports' provenance.
     """

@@ -1,9 +1,12 @@
-"""Which runs a calibration takes: one file per recording, and a warning where a run's folder names another unit.
+"""Which runs a calibration takes: each recording once (its copies left out, its pieces joined), and a warning where
+a run's folder names another unit.
 
-- :func:`resolve_run_ids`: two files with the same ``run_id`` (docs/log-format.md: unique id of a recording) are never
-  merged: the same observations would count twice. When one is a truncated copy of the other (every stream's samples
-  a prefix of the other's), the complete file is used and the copy is reported as failed with that reason; when
-  they differ otherwise, neither is used (both reported, each naming the other).
+- :func:`resolve_run_ids`: the files with one ``run_id`` (docs/log-format.md: unique id of a recording) are copies
+  or pieces of that recording, and no observation may count twice. A truncated or identical copy of another (every
+  stream's samples a prefix of the other's) is reported as failed with that reason, the complete file used; the
+  pieces a logger wrote one recording into (each carrying its run_id, apart in time or sharing samples exactly where
+  they overlap) are all used, to be joined by :func:`join_runs`; files with other samples over one stretch of time
+  are two recordings under one id: neither is used (both reported, each naming the other).
 - :func:`folder_warning`: a run whose folder or file name names a unit (a token shaped like its serial, e.g.
   ``AU-0002`` for ``AU-0001``) other than the serial in its metadata is filed under the metadata's serial, with a
   warning naming both.
@@ -62,9 +65,10 @@ def resolve_run_ids(inputs: Sequence[RunInput], read: Callable[[str], Run]) -> t
     """Split ``inputs`` into the runs to use and the ones not to use (``{"run", "reason"}``, one line each).
 
     Runs are grouped by (unit, run_id); a group of one is kept. In a larger group the runs are read (``read``,
-    e.g. :func:`pipeline.io.runs.read_run`; a run that cannot be read is left out with its error): if every other
-    one is a prefix of the longest (:func:`is_prefix_of`: a truncated or identical copy), the longest is kept;
-    otherwise none is. The order of ``inputs`` is kept.
+    e.g. :func:`pipeline.io.runs.read_run`; a run that cannot be read is left out with its error): a run that is a
+    prefix of a longer (or identical) one of the group (:func:`is_prefix_of`: a truncated or identical copy) is left
+    out; the others are kept when :func:`join_runs` joins them (pieces of one recording), else none is. The order
+    of ``inputs`` is kept.
     """
     groups: dict[tuple[str, str], list[RunInput]] = {}
     for item in inputs:
@@ -82,23 +86,34 @@ def resolve_run_ids(inputs: Sequence[RunInput], read: Callable[[str], Run]) -> t
         readable = [item for item in group if item.path in runs]
         if len(readable) < 2:
             continue
-        longest = max(readable, key=lambda i: runs[i.path].voltmeter.height)
-        others = [i for i in readable if i is not longest]
-        if all(is_prefix_of(runs[i.path], runs[longest.path]) for i in others):
-            for i in others:
-                same = runs[i.path].voltmeter.height == runs[longest.path].voltmeter.height
-                what = "a copy" if same else "a truncated copy"
-                dropped[i.path] = (
-                    f"{i.path}: {what} of {longest.path} (same run_id {run_id!r}; its samples are "
-                    f"{'the same' if same else 'a prefix of the other'}'s): not used, the complete "
-                    "file is"
-                )
-        else:
-            for i in readable:
-                rest = ", ".join(o.path for o in readable if o is not i)
+        # longest first (stable): a file that is a prefix of one kept before it is a copy of that one
+        pieces: list[RunInput] = []
+        for i in sorted(readable, key=lambda i: -runs[i.path].voltmeter.height):
+            whole = next((k for k in pieces if is_prefix_of(runs[i.path], runs[k.path])), None)
+            if whole is None:
+                pieces.append(i)
+                continue
+            same = runs[i.path].voltmeter.height == runs[whole.path].voltmeter.height
+            what = "a copy" if same else "a truncated copy"
+            dropped[i.path] = (
+                f"{i.path}: {what} of {whole.path} (same run_id {run_id!r}; its samples are "
+                f"{'the same' if same else 'a prefix of the other'}'s): not used, the complete file is"
+            )
+        if len(pieces) < 2:
+            continue
+        # the files a logger wrote one recording into (each with the recording's run_id): they join into one run
+        # (:func:`join_runs`); files with other samples over one stretch of time are two recordings under one id
+        try:
+            join_runs([runs[i.path] for i in pieces])
+        except CalibrationError as exc:
+            if exc.stream == "metadata":  # not a clash of samples: the join says so when the recording is used
+                continue
+            clash = ", ".join(p for p in (exc.stream, exc.where) if p)
+            for i in pieces:
+                rest = ", ".join(o.path for o in pieces if o is not i)
                 dropped[i.path] = (
                     f"{i.path}: run_id {run_id!r} of unit {unit} is also the run_id of {rest}, with "
-                    "other samples: which is the recording is unknown, neither is used"
+                    f"other samples{f' ({clash})' if clash else ''}: which is the recording is unknown, neither is used"
                 )
     kept = [i for i in inputs if i.path not in dropped]
     return kept, [{"run": i.path, "reason": dropped[i.path]} for i in inputs if i.path in dropped]
@@ -127,8 +142,9 @@ def folder_warning(path: str | Path, serial: str, root: str | Path | None = None
 
 def select_runs(runs: Sequence[Run]) -> tuple[list[Run], list[str]]:
     """The runs (already read) one calibration takes, and its warnings (``thermocal calibrate``): a truncated copy
-    of another run is left out with a warning; two runs with one run_id and other samples are a CalibrationError
-    naming both (neither can be used); a run whose folder or file name names another unit warns."""
+    of another run is left out with a warning; the pieces of one recording are kept (:func:`resolve_run_ids`); two
+    runs with one run_id and other samples over one stretch of time are a CalibrationError naming both (neither can
+    be used); a run whose folder or file name names another unit warns."""
     by_path = {r.source or f"<run {k}>": r for k, r in enumerate(runs)}
     items = [RunInput(p, r.meta.unit_serial, r.meta.run_id) for p, r in by_path.items()]
     kept, dropped = resolve_run_ids(items, by_path.__getitem__)

@@ -172,3 +172,34 @@ def test_files_of_one_recording_agree_on_how_it_is_calibrated(small_run):
         join_runs([a, replace(b, meta=replace(b.meta, normal_temp_c=25.0))])
     with pytest.raises(CalibrationError, match="disagree on 'unit_grade'"):
         join_runs([a, replace(b, meta=replace(b.meta, unit_grade="consumer"))])
+
+
+def test_the_files_a_logger_wrote_one_recording_into_are_all_used(small_run):
+    """A logger that writes one recording into several files puts the recording's run_id in each: the pieces (one
+    cut inside a hold, two overlapping by samples they share exactly), given in any order beside a truncated copy of
+    one, are all used (the copy left out, with a warning) and join into the whole run. Two files with other samples
+    over one stretch of time under that id are still refused, the line naming the stream and the time."""
+    import polars as pl
+
+    from pipeline.calibrate.inputs import join_runs, select_runs
+    from pipeline.errors import CalibrationError
+
+    t = small_run.voltmeter["t_ns"].to_numpy()
+    rid = small_run.meta.run_id
+    a = run_piece(small_run, int(t[0]), int(t[2000]), rid, source="a.mcap")
+    b = run_piece(small_run, int(t[1900]), int(t[5000]), rid, source="b.mcap")  # shares 100 samples with a
+    c = run_piece(small_run, int(t[5000]), int(t[-1]) + 1, rid, source="c.mcap")
+    c_cut = run_piece(small_run, int(t[5000]), int(t[6000]), rid, source="c-truncated.mcap")
+    kept, warnings = select_runs([c, c_cut, a, b])
+    assert [r.source for r in kept] == ["c.mcap", "a.mcap", "b.mcap"]
+    [w] = warnings
+    assert w.startswith("c-truncated.mcap: a truncated copy of c.mcap")
+    joined = join_runs(kept)
+    for name in ("voltmeter", "au_temperature", "chamber", "fixture"):
+        assert joined.stream(name).equals(small_run.stream(name)), name
+    assert joined.meta.run_id == rid
+    other = replace(b, voltmeter=b.voltmeter.with_columns(pl.col("uz") + 1e-6), source="other.mcap")
+    with pytest.raises(CalibrationError) as info:
+        select_runs([a, b, other])
+    line = info.value.one_line()
+    assert "neither is used" in line and f"voltmeter, t_ns={t[1900]}" in line and "\n" not in line
