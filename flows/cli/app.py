@@ -171,6 +171,25 @@ def passport_in_use(unit_or_file: str, version: int | None, registry: Path | Non
     return load_passport_file(path, unverified=unverified)
 
 
+def refuse_out_over_inputs(out: Path, inputs: list[Path], registry: Path | None = None) -> None:
+    """An output file (``--out``) that would replace what the command reads (``inputs``: the passport file, the
+    run, a folder holding them) or a registry's record (a file of a unit's folder ``REG/units/UNIT/``: its signed
+    versions and log; anything under ``registry``'s ``units``): refused in one line before anything is written."""
+    target = out.resolve()
+    for src in inputs:
+        s = Path(src).resolve()
+        if target == s or (s.is_dir() and target.is_relative_to(s)):
+            raise ThermocalError(f"{out} would replace the input {src}: write the output elsewhere", where="--out")
+    folder = target.parent
+    in_unit_folder = folder.parent.name == "units" and (folder / "log.jsonl").is_file()
+    if in_unit_folder or (registry is not None and target.is_relative_to(Path(registry).resolve() / "units")):
+        raise ThermocalError(
+            f"{out} is inside a registry's unit folder, which holds only its signed records: write the output "
+            "elsewhere",
+            where="--out",
+        )
+
+
 def check_method(method: str) -> None:
     """``--method``: auto or a method of the registry (:mod:`pipeline.calibrate.methods`, by name: none is
     imported)."""

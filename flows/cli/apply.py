@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from .app import JsonFlag, UnverifiedFlag, app, emit, warn
+from .app import JsonFlag, UnverifiedFlag, app, emit, refuse_out_over_inputs, warn
 
 
 @app.command()
@@ -28,6 +28,7 @@ def apply(
     from pipeline.passport.document import load_passport
     from pipeline.passport.registry import load_passport_file
 
+    refuse_out_over_inputs(out, [passport, run])  # never over what it reads or a registry's records
     doc, state = load_passport_file(passport, unverified=unverified)  # verified, or refused in one line
     p = load_passport(doc)
     r = read_run(run, str(p.unit) if read_units_meta(run)[1] else None)  # several units: the passport's

@@ -10,7 +10,17 @@ import typer
 
 from pipeline.errors import ThermocalError
 
-from .app import REGISTRY_HELP, UNIT_OR_FILE_HELP, JsonFlag, UnverifiedFlag, app, emit, passport_in_use, warn
+from .app import (
+    REGISTRY_HELP,
+    UNIT_OR_FILE_HELP,
+    JsonFlag,
+    UnverifiedFlag,
+    app,
+    emit,
+    passport_in_use,
+    refuse_out_over_inputs,
+    warn,
+)
 
 
 def _device_id(text: str | None) -> int | None:
@@ -93,6 +103,8 @@ def export(
     if compare is not None and out is not None:
         raise ThermocalError("--compare writes nothing: leave out --out", where="--compare")
     options = ExportOptions(_device_id(px4_device_id), instance, set_caltemp, rotation)
+    if out is not None:  # never over the passport read or a registry's records
+        refuse_out_over_inputs(out, [Path(unit)] if registry is None else [], registry)
     doc, state = passport_in_use(unit, version, registry, unverified)  # verified, or refused in one line
     if compare is not None:
         params = read_params_file(compare)

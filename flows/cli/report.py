@@ -8,7 +8,17 @@ import typer
 
 from pipeline.io.files import write_text_whole
 
-from .app import REGISTRY_HELP, UNIT_OR_FILE_HELP, JsonFlag, UnverifiedFlag, app, emit, passport_in_use, warn
+from .app import (
+    REGISTRY_HELP,
+    UNIT_OR_FILE_HELP,
+    JsonFlag,
+    UnverifiedFlag,
+    app,
+    emit,
+    passport_in_use,
+    refuse_out_over_inputs,
+    warn,
+)
 from .passport import approval
 
 
@@ -32,6 +42,8 @@ def report(
     from pipeline.passport.registry import Registry
     from pipeline.passport.report import certificate_html, print_pdf
 
+    for path in (out, pdf) if pdf is not None else (out,):  # never over the passport read or a registry's records
+        refuse_out_over_inputs(path, [Path(unit)] if registry is None else [], registry)
     doc, state = passport_in_use(unit, version, registry, unverified)  # verified, or refused in one line
     if state.warning():
         warn(f"certificate of {state.warning()}")

@@ -512,6 +512,25 @@ def test_cli_ardupilot_order_on_stderr_and_json(monkeypatch, capsys, registry, t
     assert code == 2 and "ArduPilot parameters, not px4" in err and str(out) in err
 
 
+def test_cli_out_never_replaces_the_passport_or_a_registry_record(monkeypatch, capsys, registry, tmp_path):
+    """--out on the passport file read, or on a file of a registry's unit folder, is refused in one line and the
+    registry still verifies (the passport was replaced by the parameter file, exit 0, before)."""
+    reg = registry.root
+    v1 = reg / "units" / "AU-0001" / "v0001.json"
+    before = {p: p.read_bytes() for p in (reg / "units" / "AU-0001").iterdir()}
+    for args in (
+        (str(v1), "--format", "px4", "--out", str(v1)),
+        ("AU-0001", "--registry", str(reg), "--format", "csv", "--out", str(v1.with_name("log.jsonl"))),
+        ("AU-0001", "--registry", str(reg), "--format", "ardupilot", "--out", str(v1.with_name("AU-0001.parm"))),
+    ):
+        code, stdout, err = run_main(monkeypatch, capsys, "export", *args)
+        assert code == 2 and stdout == "" and len(_warnings(err)) == 1 and "--out" in err, (args, err)
+    assert {p: p.read_bytes() for p in (reg / "units" / "AU-0001").iterdir()} == before
+    assert registry.verify().ok
+    code, _, err = run_main(monkeypatch, capsys, "export", str(v1), "--format", "csv", "--out", str(tmp_path / "a"))
+    assert code == 0 and (tmp_path / "a").read_text().startswith("quantity,"), err
+
+
 # --- CSV -------------------------------------------------------------------------------------------------------
 
 
