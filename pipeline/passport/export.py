@@ -449,11 +449,21 @@ def export_ardupilot(passport: dict, state=None, options: ExportOptions | None =
     imu = ardupilot_imu(1 if opts.instance is None else opts.instance)
     R, frame = rotation_matrix(opts.rotation, "ardupilot")
     lo, hi = valid_range_c(passport)
-    extra = []
+    extra, warnings = [], []
     a_lo, a_hi = max(lo, ARDUPILOT_TEMP_RANGE_C[0]), min(hi, ARDUPILOT_TEMP_RANGE_C[1])
+    if a_lo >= a_hi:
+        raise ThermocalError(
+            f"the passport is valid over {lo:g} .. {hi:g} C, outside the -70 .. 80 C ArduPilot's {imu.tmin}/"
+            f"{imu.tmax} accept: nothing of it can be exported for ArduPilot",
+            where="--format",
+        )
     if (a_lo, a_hi) != (lo, hi):
         extra.append(
             f"the part of valid_temp_c outside ArduPilot's -70..80 C (TMIN/TMAX clipped to {a_lo:g}..{a_hi:g} C)"
+        )
+        warnings.append(
+            f"{imu.tmin}/{imu.tmax} written as {a_lo:g} .. {a_hi:g} C, not the passport's valid {lo:g} .. {hi:g} C: "
+            f"ArduPilot accepts -70 .. 80 C, and holds the correction at its value at the limit beyond it"
         )
     t0 = float(passport.get("normal_temp_c", 20.0))
     temps = _grid(a_lo, a_hi)
@@ -476,8 +486,9 @@ def export_ardupilot(passport: dict, state=None, options: ExportOptions | None =
         f"set {imu.enable} to 1 (loading this file once does only that: while it is 0 ArduPilot hides the other "
         f"{group} parameters)",
         "reboot",
-        f"load this file again (MAVProxy: param load FILE; QGroundControl or Mission Planner: load from file): "
-        f"now every {group} parameter is there",
+        f"load this file again (MAVProxy: param load FILE; Mission Planner: Full Parameter List > Load from file; "
+        "not QGroundControl, which reads only its own tab-separated files and skips every line of this one): now "
+        f"every {group} parameter is there",
         f"reboot: ArduPilot reads {group} at boot",
     ]
     if opts.set_caltemp:
@@ -533,7 +544,7 @@ def export_ardupilot(passport: dict, state=None, options: ExportOptions | None =
         params,
         steps,
         notes,
-        [],
+        warnings,
         order,
         R.tolist(),
     )
@@ -732,6 +743,15 @@ def export_passport(passport: dict, fmt: str, state=None, options: ExportOptions
         raise ThermocalError(f"unknown export format {fmt!r} ({', '.join(FORMATS)})", where="--format")
     opts = options or ExportOptions()
     opts.check(fmt)
+    if fmt in FIRMWARE_NAMES and np.ptp(valid_range_c(passport)) <= 0:
+        t = valid_range_c(passport)[0]
+        raise ThermocalError(
+            f"{passport.get('unit', 'the unit')} v{passport.get('version')} is valid at one temperature only "
+            f"({t:g} C): it holds no temperature model, so a temperature calibration for {FIRMWARE_NAMES[fmt]} from "
+            "it would correct nothing and only enable the firmware's correction clamped to that temperature; "
+            "--format csv exports its constants",
+            where="--format",
+        )
     try:
         if fmt == "csv":
             return export_csv(passport, state)

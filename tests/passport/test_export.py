@@ -512,6 +512,27 @@ def test_cli_ardupilot_order_on_stderr_and_json(monkeypatch, capsys, registry, t
     assert code == 2 and "ArduPilot parameters, not px4" in err and str(out) in err
 
 
+def test_firmware_files_refuse_or_warn_what_the_firmware_cannot_take(passports):
+    """A passport valid at one temperature (no temperature model) is refused for PX4 and ArduPilot (it wrote ENABLE
+    1 with TMIN = TMAX, which clamps a vehicle's own ArduPilot gyroscope correction to that temperature), not for
+    CSV; a valid range beyond ArduPilot's -70..80 C is clipped with a warning line (was the header alone), refused
+    when nothing is left (was TMIN 85 > TMAX 80); the ArduPilot file is not one QGroundControl loads."""
+    doc = passports["auto"]
+    one = dict(doc, valid_temp_c=[20.0, 20.0])
+    for fmt in ("px4", "ardupilot"):
+        with pytest.raises(ThermocalError, match="valid at one temperature only"):
+            export_passport(one, fmt)
+    assert export_passport(one, "csv").text.startswith("quantity,")
+    wide = export_passport(dict(doc, valid_temp_c=[-60.0, 100.0]), "ardupilot")
+    p = mavproxy_params(wide.text)
+    assert (p["INS_TCAL1_TMIN"], p["INS_TCAL1_TMAX"]) == (-60.0, 80.0)
+    (w,) = wide.warnings
+    assert w.startswith("INS_TCAL1_TMIN/INS_TCAL1_TMAX written as -60 .. 80 C, not the passport's valid -60 .. 100 C")
+    with pytest.raises(ThermocalError, match="outside the -70 .. 80 C"):
+        export_passport(dict(doc, valid_temp_c=[85.0, 120.0]), "ardupilot")
+    assert "not QGroundControl" in wide.steps[2] and export_passport(doc, "ardupilot").warnings == []
+
+
 def test_cli_out_never_replaces_the_passport_or_a_registry_record(monkeypatch, capsys, registry, tmp_path):
     """--out on the passport file read, or on a file of a registry's unit folder, is refused in one line and the
     registry still verifies (the passport was replaced by the parameter file, exit 0, before)."""
