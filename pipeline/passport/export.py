@@ -128,7 +128,7 @@ class Export:
     (micro-g and m/s^2, per axis); ``params``: the exported parameters by name (parameter formats); ``steps``: what
     the user must still do on the vehicle, in order; ``notes``: the temperature and the axes, one sentence each;
     ``warnings``: one line each for stderr (e.g. a PX4 file without a device id); ``order``: one line for stderr,
-    the loading order (ArduPilot)."""
+    the loading order and the steps after it (the device id, reboots, the vehicle's accelerometer calibration)."""
 
     format: str
     unit: str
@@ -399,6 +399,12 @@ def export_px4(passport: dict, state=None, options: ExportOptions | None = None)
         f"best near T0 = {tref:g} C: PX4 computes it on thermally corrected readings, so one made before loading "
         f"leaves up to {_ug3(residual['stale_calibration_max_ug'])}",
     ]
+    order = (
+        "PX4 uses this file only in this order: "
+        + ("" if device else f"set {slot.id} to the accelerometer's device id, ")
+        + f"load it, reboot, redo the vehicle's accelerometer calibration with the IMU between {lo:g} and {hi:g} C "
+        f"(best near T0 = {tref:g} C)"
+    )
     notes = _notes("px4", frame, residual)
     if device:
         notes["device"] = (
@@ -434,7 +440,7 @@ def export_px4(passport: dict, state=None, options: ExportOptions | None = None)
         steps,
         notes,
         warnings,
-        None,
+        order,
         R.tolist(),
     )
 
@@ -512,7 +518,13 @@ def export_ardupilot(passport: dict, state=None, options: ExportOptions | None =
     notes = {**_notes("ardupilot", frame, residual), "limits": gyro}
     order = (
         f"ArduPilot reads this file only in this order: set {imu.enable} 1, reboot, load the file, reboot; "
-        f"{imu.tmin}/{imu.tmax} also clamp the gyroscope correction"
+        f"{imu.tmin}/{imu.tmax} also clamp the gyroscope correction; then "
+        + (
+            f"{imu.caltemp} is T0 = {t0:g} C from this file (--set-caltemp)"
+            if opts.set_caltemp
+            else f"check {imu.caltemp}: if it is -300 or outside {a_lo:g} .. {a_hi:g} C, redo the vehicle's "
+            "accelerometer calibration with the IMU in that range"
+        )
     )
     not_held = _not_held(
         passport,
