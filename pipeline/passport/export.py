@@ -457,7 +457,7 @@ def export_ardupilot(passport: dict, state=None, options: ExportOptions | None =
     lo, hi = valid_range_c(passport)
     extra, warnings = [], []
     a_lo, a_hi = max(lo, ARDUPILOT_TEMP_RANGE_C[0]), min(hi, ARDUPILOT_TEMP_RANGE_C[1])
-    if a_lo >= a_hi:
+    if a_lo > a_hi or (a_lo == a_hi and hi > lo):
         raise ThermocalError(
             f"the passport is valid over {lo:g} .. {hi:g} C, outside the -70 .. 80 C ArduPilot's {imu.tmin}/"
             f"{imu.tmax} accept: nothing of it can be exported for ArduPilot",
@@ -755,8 +755,9 @@ def export_passport(passport: dict, fmt: str, state=None, options: ExportOptions
         raise ThermocalError(f"unknown export format {fmt!r} ({', '.join(FORMATS)})", where="--format")
     opts = options or ExportOptions()
     opts.check(fmt)
-    if fmt in FIRMWARE_NAMES and np.ptp(valid_range_c(passport)) <= 0:
-        t = valid_range_c(passport)[0]
+    stated = load_passport(passport).valid_range_c  # None: states none (an old passport): T0 alone, as before
+    if fmt in FIRMWARE_NAMES and stated is not None and stated[1] <= stated[0]:
+        t = stated[0]
         raise ThermocalError(
             f"{passport.get('unit', 'the unit')} v{passport.get('version')} is valid at one temperature only "
             f"({t:g} C): it holds no temperature model, so a temperature calibration for {FIRMWARE_NAMES[fmt]} from "
