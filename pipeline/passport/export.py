@@ -393,8 +393,10 @@ def export_px4(passport: dict, state=None, options: ExportOptions | None = None)
         "load this file (QGroundControl: Vehicle Setup > Parameters > Tools > Load from file; it refuses a file whose "
         "first column, the system id, is not the vehicle's MAV_SYS_ID: written here as 1, edit that column for "
         "another; if it reports TC_A* parameters the vehicle does not have, set TC_A_ENABLE 1, reboot and load again, "
-        "as PX4's own offboard thermal calibration sets TC_A_ENABLE before loading its file)",
-        "reboot: PX4 reads TC_A_ENABLE at boot",
+        "as PX4's own offboard thermal calibration sets TC_A_ENABLE before loading its file); it replaces the "
+        f"vehicle's {slot.id[:-2]}* slot: when its {slot.id} is another accelerometer's device id (not 0 nor this "
+        "one's), export again with --instance K of a slot whose TC_A<K>_ID is 0",
+        "reboot: PX4 reads TC_A_ENABLE at boot (it enables every TC_A<K>_* slot the vehicle holds, not only this one)",
         f"redo the vehicle's accelerometer calibration with the IMU between TMIN and TMAX ({lo:g} .. {hi:g} C), "
         f"best near T0 = {tref:g} C: PX4 computes it on thermally corrected readings, so one made before loading "
         f"leaves up to {_ug3(residual['stale_calibration_max_ug'])}",

@@ -183,6 +183,10 @@ def test_px4_instance_writes_that_slot_and_it_is_the_one_matched(passports):
     # loaded onto a vehicle whose slot 0 holds another accelerometer's calibration: slot 2 corrects this one
     vehicle = {**p, "TC_A0_ID": 99, "TC_A0_X0_0": 5.0, "TC_A0_X0_1": 5.0, "TC_A0_X0_2": 5.0}
     assert np.array_equal(px4_offsets(vehicle, 1234, TEMPS), px4_offsets(base, 1234, TEMPS))
+    # the file says it replaces its slot (another accelerometer's calibration there is lost) and how to avoid it
+    steps = export_passport(doc, "px4", options=ExportOptions(px4_device_id=1234, instance=2)).steps
+    assert "it replaces the vehicle's TC_A2_* slot: when its TC_A2_ID is another accelerometer's" in steps[0]
+    assert "--instance K of a slot whose TC_A<K>_ID is 0" in steps[0] and "enables every TC_A<K>_*" in steps[1]
     with pytest.raises(ThermocalError, match="slots 0..3"):
         export_passport(doc, "px4", options=ExportOptions(instance=4))
 
