@@ -178,6 +178,11 @@ def apply_passport(passport: Passport | dict, run: Run) -> Applied:
         a[s0:s1] = out
     if passport.status == "fail":
         warnings.append(failed_verification(f"the passport ({passport.unit} v{passport.version})"))
+    if passport.unit and run.meta.unit_serial and passport.unit != run.meta.unit_serial:
+        warnings.append(
+            f"the passport is unit {passport.unit}'s (v{passport.version}) but the run records unit "
+            f"{run.meta.unit_serial}: applied all the same, though each unit has its own constants"
+        )
     rng = passport.valid_range_c
     if rng is None:
         in_range = np.isfinite(temp_c)

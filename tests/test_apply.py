@@ -92,6 +92,10 @@ def test_in_range_and_one_warning(passport, other):
     assert apply_passport(dict(passport, valid_temp_c=[-45.0, 75.0]), run).warnings == []
     failed = apply_passport(dict(passport, valid_temp_c=[-45.0, 75.0], status="fail"), run).warnings
     assert len(failed) == 1 and "failed its verification (status fail)" in failed[0]
+    # another unit's passport: applied, with one line naming both (was silent: a consumer unit's passport on a
+    # navigation unit's run, exit 0 and no word)
+    (other_unit,) = apply_passport(dict(passport, valid_temp_c=[-45.0, 75.0], unit="CU-0001"), run).warnings
+    assert other_unit.startswith("the passport is unit CU-0001's (v") and "the run records unit AU-0001" in other_unit
 
 
 def test_write_parquet_and_mcap(passport, other, tmp_path):
