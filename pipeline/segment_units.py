@@ -56,7 +56,8 @@ def _segment_units(units: dict[str, Run], settings: SegmentSettings, pool) -> tu
     times = {s: clock[0] for s, clock in clocks.items()}
     spans = {s: _spans_ns(times[s], st.stretches) for s, st in own.items()}
     min_ns = int(max(st.settings.static_min_s for st in own.values()) * NS_PER_S)
-    consensus = _cut_at_moves(_majority(list(spans.values()), len(units)), _fixture_moves_ns(units))
+    present = [_present_ns(clocks[s]) for s in units]
+    consensus = _cut_at_moves(_majority(list(spans.values()), present), _fixture_moves_ns(units))
     consensus = consensus[consensus[:, 1] - consensus[:, 0] >= min_ns]
     warnings: list[str] = []
 
@@ -112,18 +113,33 @@ def _spans_ns(t_ns: np.ndarray, stretches: list[tuple[int, int]]) -> np.ndarray:
     return np.column_stack((t_ns[a[:, 0]], t_ns[a[:, 1] - 1]))
 
 
-def _majority(spans: list[np.ndarray], n_units: int) -> np.ndarray:
-    """Time intervals (k, 2) where more than half of ``n_units`` units are inside one of their spans (a sweep over
-    the spans' ends)."""
+def _present_ns(clock: UnitClock) -> np.ndarray:
+    """(k, 2) int64 [first, last] sample times of a unit's voltmeter between its gaps: where it has samples."""
+    t, after = clock[0], np.asarray(clock[1], dtype=np.intp)
+    if not t.size:
+        return np.zeros((0, 2), dtype=np.int64)
+    return np.column_stack((t[np.concatenate(([0], after + 1))], t[np.concatenate((after, [t.size - 1]))]))
+
+
+def _majority(spans: list[np.ndarray], present: list[np.ndarray]) -> np.ndarray:
+    """Time intervals (k, 2) where more than half of the units that have samples then (``present``: each unit's
+    (k, 2) times between its gaps) are inside one of their ``spans`` (a sweep over the spans' ends). A unit in a
+    gap, or whose record has ended, has no say: the others' holds stay theirs."""
     starts = np.concatenate([s[:, 0] for s in spans])
     ends = np.concatenate([s[:, 1] for s in spans])
     if starts.size == 0:
         return np.zeros((0, 2), dtype=np.int64)
-    t = np.concatenate((starts, ends))
-    step = np.concatenate((np.ones(starts.size, dtype=np.int64), -np.ones(ends.size, dtype=np.int64)))
-    order = np.lexsort((-step, t))  # at one time, starts before ends: touching spans stay joined
-    t, count = t[order], np.cumsum(step[order])
-    inside = count > n_units // 2
+    p0 = np.concatenate([p[:, 0] for p in present])
+    p1 = np.concatenate([p[:, 1] for p in present])
+    t = np.concatenate((starts, ends, p0, p1))
+    n, m = starts.size, p0.size
+    step = np.concatenate((np.ones(n, np.int64), -np.ones(n, np.int64), np.zeros(2 * m, np.int64)))  # still
+    here = np.concatenate((np.zeros(2 * n, np.int64), np.ones(m, np.int64), -np.ones(m, np.int64)))  # sampled
+    order = np.argsort(t, kind="stable")
+    t, count, units = t[order], np.cumsum(step[order]), np.cumsum(here[order])
+    last = np.flatnonzero(np.concatenate((t[1:] != t[:-1], [True])))  # the counts after all of one time's ends
+    t, count, units = t[last], count[last], units[last]  # and starts: touching spans stay joined
+    inside = count * 2 > units
     rising = np.flatnonzero(inside & ~np.concatenate(([False], inside[:-1])))
     falling = np.flatnonzero(~inside & np.concatenate(([False], inside[:-1])))
     return np.column_stack((t[rising], t[falling])).astype(np.int64)
@@ -172,11 +188,16 @@ def _uncovered_ns(spans: np.ndarray, a: int, b: int) -> np.ndarray:
 
 
 def _median_step_v(run: Run, t_ns: np.ndarray, a: int, b: int) -> np.ndarray | None:
-    """Per channel, the median |step| between the unit's successive samples in [a, b] (V); None with < 3 there."""
+    """Per channel, the median |step| between the unit's successive finite samples in [a, b] (V); None with < 3
+    there (a sample with a channel not finite is missing data, as a gap is)."""
     i0, i1 = int(np.searchsorted(t_ns, a, side="left")), int(np.searchsorted(t_ns, b, side="right"))
     if i1 - i0 < 3:
         return None
-    return np.array([np.median(np.abs(np.diff(c))) for c in run.voltmeter_slab(i0, i1)])
+    slab = np.column_stack(run.voltmeter_slab(i0, i1))
+    finite = slab[np.isfinite(slab).all(axis=1)]
+    if len(finite) < 3:
+        return None
+    return np.median(np.abs(np.diff(finite, axis=0)), axis=0)
 
 
 def _moving(run: Run, t_ns: np.ndarray, parts: np.ndarray, still: np.ndarray) -> bool:

@@ -26,7 +26,14 @@ def test_majority_of_spans():
     a = np.array([[0, 10], [20, 30]])
     b = np.array([[2, 12], [25, 40]])
     c = np.array([[5, 8]])
-    assert _majority([a, b, c], 3).tolist() == [[2, 10], [25, 30]]
+    whole = np.array([[0, 40]])
+    assert _majority([a, b, c], [whole] * 3).tolist() == [[2, 10], [25, 30]]
+    # c has no samples after 20: of the two units left, both must be still
+    assert _majority([a, b, c], [whole, whole, np.array([[0, 20]])]).tolist() == [[2, 10], [25, 30]]
+    # b has samples from 20 on (still from 25), c until 9: a and c decide 5 .. 8 and a alone 9 .. 10
+    b, c = np.array([[25, 40]]), np.array([[5, 8]])
+    got = _majority([a, b, c], [whole, np.array([[20, 40]]), np.array([[0, 9]])])
+    assert got.tolist() == [[5, 8], [9, 10], [25, 30]]
 
 
 def test_same_segments_as_each_unit_alone(four):
@@ -91,17 +98,20 @@ def test_no_unit_named_for_drift_in_a_ramp_a_gap_or_a_turned_neighbour():
 
 
 def test_no_unit_named_for_holds_it_has_no_samples_in(four):
-    """A unit whose voltmeter drops out for 5 minutes (whole holds without a sample) or ends early is not "not
-    still" where it has no samples: a gap is missing data, named by the readers' gap warnings (4 and 24 holds were
-    named); its other holds are its own as before."""
+    """A unit whose voltmeter drops out for 5 minutes (whole holds without a sample) or ends early, or one of whose
+    channels reads NaN from some time on, is not "not still" where it has no (finite) samples: that is missing data,
+    named by the readers' and the segmenter's warnings (4, 24 and 41 holds were named); its other holds are its own
+    as before."""
     u = four.units
-    v1, v2 = u["AU-0501"].voltmeter, u["AU-0502"].voltmeter
+    v1, v2, v3 = u["AU-0501"].voltmeter, u["AU-0502"].voltmeter, u["AU-0503"].voltmeter
     t0 = int(v1["t_ns"][0])
     gap = (pl.col("t_ns") < t0 + 3000 * 10**9) | (pl.col("t_ns") >= t0 + 3300 * 10**9)
+    nan_z = pl.when(pl.col("t_ns") > t0 + 6000 * 10**9).then(float("nan")).otherwise(pl.col("uz"))
     units = {
         **u,
         "AU-0501": dataclasses.replace(u["AU-0501"], voltmeter=v1.filter(gap)),
         "AU-0502": dataclasses.replace(u["AU-0502"], voltmeter=v2.filter(pl.col("t_ns") < t0 + 7600 * 10**9)),
+        "AU-0503": dataclasses.replace(u["AU-0503"], voltmeter=v3.with_columns(uz=nan_z)),
     }
     segs, warnings = segment_units(units)
     assert warnings == []
@@ -109,6 +119,13 @@ def test_no_unit_named_for_holds_it_has_no_samples_in(four):
         t0 + 3000 * 10**9 <= s.t_end_ns and s.t_start_ns < t0 + 3300 * 10**9 for s in segs["AU-0501"].segments
     )
     assert len(segs["AU-0501"].segments) > 40 and len(segs["AU-0502"].segments) > 20
+    assert not any(s.t_end_ns > t0 + 6000 * 10**9 for s in segs["AU-0503"].segments)
+    # the others' holds stay theirs: a unit without samples has no say in the consensus (with two units, one in its
+    # gap, the other lost the 4 holds of the gap; with three of four missing data, the last lost 41)
+    for run, others in ((u["AU-0504"], units), (u["AU-0502"], {"AU-0501": units["AU-0501"], "AU-0502": u["AU-0502"]})):
+        on_plateaus = [(g.position, g.plateau) for g in segment_units(others)[0][run.meta.unit_serial].segments]
+        alone = [(g.position, g.plateau) for g in segment_run(run).segments]
+        assert [x for x in on_plateaus if x[1] is not None] == [x for x in alone if x[1] is not None]
 
 
 def test_units_on_one_clock_share_its_times_and_segment_as_on_their_own(four, monkeypatch):
