@@ -4,7 +4,8 @@ Flight software corrects its accelerometer for temperature with a bias-only cubi
 the temperature the IMU reports and clamped to a range; :mod:`pipeline.passport.firmware` has each firmware's
 arithmetic, parameter names, rotations and parameter-file forms. The files here are written for the vehicle as it
 is: its own accelerometer calibration holds an offset and a gain per axis (no cross-axis terms), so the reading a
-firmware corrects is, per axis i of the firmware's frame, ``r_i = g (U_i - U0_i(T0)) / K0_ii`` (m/s^2), and its
+firmware corrects is, per axis i of the firmware's frame, ``r_i = g (U_i - U0_i(T0)) / K0_ii`` (m/s^2; g is the
+firmwares' 9.80665, to which their accelerometer calibration scales 1 g, not the passport's local gravity), and its
 temperature error is
 
 - the bias ``b_i(T) = g (U0_i(T) - U0_i(T0)) / K0_ii``, held by the format (its cubic fit error is stated), plus
@@ -53,6 +54,7 @@ from pipeline.passport.firmware import (
     ARDUPILOT_SCALE,
     ARDUPILOT_TEMP_RANGE_C,
     ARDUPILOT_TREF_C,
+    FIRMWARE_G_MPS2,
     PX4_SLOTS,
     PX4_UPDATE_STEP_C,
     QGC_FLOAT,
@@ -177,7 +179,8 @@ class Export:
 class VehicleModel:
     """The passport as the vehicle reads it, in the firmware's axes, on ``temps_c`` (n,): ``bias`` (n, 3) m/s^2
     (relative to T0), ``rel`` (n, 3, 3) the unheld temperature terms and ``cross0`` (3, 3) the cross-axis terms at T0
-    (error in g per g of specific force, per axis of the reading), ``g`` local gravity m/s^2."""
+    (error in g per g of specific force, per axis of the reading), ``g`` the m/s^2 of 1 g on the vehicle
+    (:data:`pipeline.passport.firmware.FIRMWARE_G_MPS2`)."""
 
     temps_c: np.ndarray
     bias: np.ndarray
@@ -221,7 +224,7 @@ def vehicle_model(passport: dict, temps_c: np.ndarray, rotation: np.ndarray | No
     in the axes ``rotation`` takes the unit's into (identity: the unit's x, y, z); see the module's docstring."""
     model = load_model(passport)
     R = np.eye(3) if rotation is None else np.asarray(rotation, dtype=float)
-    g = float(passport.get("g_local_mps2", 9.80665))
+    g = FIRMWARE_G_MPS2  # a bias of x g reads x * 9.80665 m/s^2 after the vehicle's calibration, not x * g_local
     temps = np.atleast_1d(np.asarray(temps_c, dtype=float))
     K, U0 = model.constants_at(temps)
     K0 = R @ np.asarray(model.K0, dtype=float) @ R.T

@@ -46,6 +46,9 @@ ARDUPILOT_TREF_C = 35.0  # fixed reference temperature of ArduPilot's tempcal (n
 ARDUPILOT_SCALE = 1.0e6  # ArduPilot stores the coefficients times 1e6
 ARDUPILOT_TEMP_RANGE_C = (-70.0, 80.0)  # the range INS_TCALn_TMIN/TMAX accept
 ARDUPILOT_DEFAULTS = {"TMIN": 0.0, "TMAX": 70.0, "CALTEMP": -300.0}
+#: What a vehicle's own accelerometer calibration makes 1 g read, m/s^2 (PX4's CONSTANTS_ONE_G, ArduPilot's
+#: GRAVITY_MSS): the firmwares' offsets are in these units whatever the gravity where the unit was calibrated
+FIRMWARE_G_MPS2 = 9.80665
 QGC_INT32, QGC_FLOAT = 6, 9  # MAV_PARAM_TYPE of a QGroundControl parameter file's last column
 AXES = "xyz"
 
