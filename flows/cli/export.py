@@ -9,6 +9,7 @@ from pathlib import Path
 import typer
 
 from pipeline.errors import ThermocalError
+from pipeline.io.files import write_text_whole
 
 from .app import (
     REGISTRY_HELP,
@@ -116,10 +117,7 @@ def export(
     assert fmt is not None
     exp = export_passport(doc, fmt, state=state, options=options)
     if out is not None:  # before the warnings: a file that cannot be written is the one line on stderr
-        try:
-            out.write_text(exp.text)
-        except OSError as e:
-            raise ThermocalError(f"cannot write the export ({e.strerror})", path=str(out)) from None
+        write_text_whole(out, exp.text, "export", make_folder=False)  # whole or not at all
     if state.warning():
         warn(f"export of {state.warning()}")
     for line in exp.warnings:

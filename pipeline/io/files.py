@@ -90,15 +90,18 @@ def read_regular_bytes(
             raise error(f"cannot read the {what} ({exc.strerror})", path=str(p)) from None
 
 
-def write_text_whole(path: str | os.PathLike, text: str, what: str) -> Path:
+def write_text_whole(path: str | os.PathLike, text: str, what: str, *, make_folder: bool = True) -> Path:
     """Write ``text`` (UTF-8) to ``path`` whole or not at all: under a temporary name beside it, then renamed (its
-    folder created). ThermocalError "cannot write the ``what`` (reason)" naming the file when it cannot be written."""
+    folder created unless ``make_folder`` is False); a file already there stays as it was when the writing fails.
+    ThermocalError "cannot write the ``what`` (reason)" naming the file when it cannot be written."""
     out = Path(path)
+    tmp = out.with_name(f".{out.name}.tmp")
     try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = out.with_name(f".{out.name}.tmp")
+        if make_folder:
+            out.parent.mkdir(parents=True, exist_ok=True)
         tmp.write_text(text, encoding="utf-8")
         os.replace(tmp, out)
     except OSError as e:
+        tmp.unlink(missing_ok=True)
         raise ThermocalError(f"cannot write the {what} ({e.strerror or e})", path=str(out)) from None
     return out

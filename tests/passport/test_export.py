@@ -580,6 +580,26 @@ def test_cli_out_never_replaces_the_passport_or_a_registry_record(monkeypatch, c
     assert code == 0 and (tmp_path / "a").read_text().startswith("quantity,"), err
 
 
+def test_cli_a_failed_write_leaves_the_previous_file(monkeypatch, capsys, registry, tmp_path):
+    """The disk filling up in the middle of writing --out: exit 2 in one line, the previous export there unchanged
+    and no partial parameter file (was: the first half of the new file, which would load part of the parameters)."""
+    out = tmp_path / "au1.params"
+    args = ("export", "AU-0001", "--registry", str(registry.root), "--format", "px4", "--out", str(out))
+    assert run_main(monkeypatch, capsys, *args, "--px4-device-id", "7")[0] == 0
+    before = out.read_bytes()
+    real = Path.write_text
+
+    def half_then_full(self, data, *a, **k):
+        real(self, data[: len(data) // 2], *a, **k)
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(Path, "write_text", half_then_full)
+    code, stdout, err = run_main(monkeypatch, capsys, *args, "--px4-device-id", "8")
+    monkeypatch.undo()
+    assert code == 2 and len(_warnings(err)) == 1 and "No space left on device" in err, err
+    assert out.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["au1.params"]
+
+
 # --- CSV -------------------------------------------------------------------------------------------------------
 
 
