@@ -960,8 +960,9 @@ def _static_and_bad(
 
     The window adapts to the recording: ``static_window_s`` first; where the stretches it finds cover less than
     :data:`STATIC_COVER` of the record (poses shorter than a few windows, as on a hand-turned fixture), windows of
-    1/2, 1/4 and 1/8 of it (never fewer than :data:`MIN_WINDOW_SAMPLES` samples, with ``static_min_s`` shortened to
-    :data:`POSE_WINDOWS` windows) are tried, and the first that covers as much is kept (else the one covering most).
+    1/2, 1/4 and 1/8 of it (never fewer than :data:`MIN_WINDOW_SAMPLES` samples: a step below that tries that
+    shortest window instead, the last; ``static_min_s`` shortened to :data:`POSE_WINDOWS` windows) are tried, and the
+    first that covers as much is kept (else the one covering most).
     """
     return _adaptive_static(t_ns, ch, settings)[:2]
 
@@ -995,12 +996,11 @@ def _adaptive_static(
     runs, bad = _static_at(t_ns, ch, settings, readers, found)
     best = (cover(runs), runs, settings)
     window = settings.static_window_s
+    shortest = MIN_WINDOW_SAMPLES * dt_s  # the shortest window the rate allows: the last one tried
     for _ in range(3):
-        if best[0] >= STATIC_COVER:
+        if best[0] >= STATIC_COVER or not window > shortest:  # (NaN: no rate, no trial)
             break
-        window /= 2
-        if not dt_s > 0 or window < MIN_WINDOW_SAMPLES * dt_s:
-            break
+        window = max(window / 2, shortest)
         trial = dataclasses.replace(
             settings,
             static_window_s=window,
