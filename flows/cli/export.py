@@ -75,6 +75,12 @@ def export(
         "accelerometer calibration, which writes it: only when the vehicle's accelerometer offsets and scales are "
         "this passport's T0 constants)",
     ),
+    qgc: bool = typer.Option(
+        False,
+        "--qgc",
+        help="ArduPilot: write QGroundControl's tab-separated parameter file (it loads no other form) instead of "
+        "NAME VALUE lines (MAVProxy, Mission Planner)",
+    ),
     rotation: str | None = typer.Option(
         None,
         "--rotation",
@@ -103,7 +109,7 @@ def export(
         raise ThermocalError("give --format px4|ardupilot|csv (or --compare PARAMS_FILE)", where="--format")
     if compare is not None and out is not None:
         raise ThermocalError("--compare writes nothing: leave out --out", where="--compare")
-    options = ExportOptions(_device_id(px4_device_id), instance, set_caltemp, rotation)
+    options = ExportOptions(_device_id(px4_device_id), instance, set_caltemp, rotation, qgc)
     if out is not None:  # never over the passport read or a registry's records
         refuse_out_over_inputs(out, [Path(unit)] if registry is None else [], registry)
     doc, state = passport_in_use(unit, version, registry, unverified)  # verified, or refused in one line

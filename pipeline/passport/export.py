@@ -58,6 +58,7 @@ from pipeline.passport.firmware import (
     PX4_SLOTS,
     PX4_UPDATE_STEP_C,
     QGC_FLOAT,
+    QGC_INT8,
     QGC_INT32,
     ardupilot_correction,
     ardupilot_imu,
@@ -94,18 +95,21 @@ class ExportOptions:
     """What the user says about the vehicle. ``px4_device_id``: the accelerometer's device id (PX4,
     ``TC_A<k>_ID``); ``instance``: PX4's slot k of ``TC_A<k>_*`` (0..3, default 0) or ArduPilot's IMU n of
     ``INS_TCAL<n>_*`` (1..5, default 1); ``set_caltemp``: ArduPilot, write ``INS_ACC<n>_CALTEMP`` = T0;
-    ``rotation``: ``--rotation`` (:func:`pipeline.passport.firmware.rotation_matrix`)."""
+    ``rotation``: ``--rotation`` (:func:`pipeline.passport.firmware.rotation_matrix`); ``qgc``: ArduPilot, write
+    QGroundControl's tab-separated form (``SYS COMP NAME VALUE TYPE``) instead of ``NAME VALUE`` lines."""
 
     px4_device_id: int | None = None
     instance: int | None = None
     set_caltemp: bool = False
     rotation: str | None = None
+    qgc: bool = False
 
     def check(self, fmt: str) -> None:
         """Options that do not go with ``fmt`` are a usage error."""
         wrong = [
             (self.px4_device_id is not None and fmt != "px4", "--px4-device-id goes with --format px4"),
             (self.set_caltemp and fmt != "ardupilot", "--set-caltemp goes with --format ardupilot"),
+            (self.qgc and fmt != "ardupilot", "--qgc goes with --format ardupilot (a PX4 file is QGroundControl's)"),
             (self.instance is not None and fmt == "csv", "--instance goes with --format px4 or ardupilot"),
             (self.rotation is not None and fmt == "csv", "--rotation goes with --format px4 or ardupilot"),
         ]
@@ -497,9 +501,15 @@ def export_ardupilot(passport: dict, state=None, options: ExportOptions | None =
         f"set {imu.enable} to 1 (loading this file once does only that: while it is 0 ArduPilot hides the other "
         f"{group} parameters)",
         "reboot",
-        f"load this file again (MAVProxy: param load FILE; Mission Planner: Full Parameter List > Load from file; "
-        "not QGroundControl, which reads only its own tab-separated files and skips every line of this one): now "
-        f"every {group} parameter is there",
+        (
+            "load this file again (QGroundControl: Vehicle Setup > Parameters > Tools > Load from file; it refuses a "
+            "file whose first column, the system id, is not the vehicle's SYSID_THISMAV: written here as 1, edit that "
+            f"column for another): now every {group} parameter is there"
+            if opts.qgc
+            else "load this file again (MAVProxy: param load FILE; Mission Planner: Full Parameter List > Load from "
+            "file; not QGroundControl, which reads only its own tab-separated files and skips every line of this "
+            f"one: export with --qgc for it): now every {group} parameter is there"
+        ),
         f"reboot: ArduPilot reads {group} at boot",
     ]
     if opts.set_caltemp:
@@ -541,7 +551,8 @@ def export_ardupilot(passport: dict, state=None, options: ExportOptions | None =
     )
     text = _header(
         passport,
-        f"ArduPilot IMU temperature calibration ({group}), parameter file",
+        f"ArduPilot IMU temperature calibration ({group}), "
+        + ("QGroundControl parameter file" if opts.qgc else "parameter file (MAVProxy, Mission Planner)"),
         (a_lo, a_hi),
         steps,
         notes,
@@ -549,7 +560,16 @@ def export_ardupilot(passport: dict, state=None, options: ExportOptions | None =
         residual,
         state,
     )
-    text += [f"{name} {int(value) if name == imu.enable else _num(value)}" for name, value in params.items()]
+    if opts.qgc:  # ENABLE is an int8 parameter, the rest float; a row of another type QGroundControl skips
+        text += ["# Vehicle-Id\tComponent-Id\tName\tValue\tType"]
+        text += [
+            f"1\t1\t{name}\t{int(value)}\t{QGC_INT8}"
+            if name == imu.enable
+            else f"1\t1\t{name}\t{_f32(value)}\t{QGC_FLOAT}"
+            for name, value in params.items()
+        ]
+    else:
+        text += [f"{name} {int(value) if name == imu.enable else _num(value)}" for name, value in params.items()]
     return Export(
         "ardupilot",
         passport.get("unit", ""),

@@ -22,8 +22,9 @@ Facts read from the firmwares' sources and parameter definitions, written here i
 - **Rotations**: both firmwares name sensor rotations ``ROTATION_*`` with an enum number, each a roll, pitch and
   yaw in degrees whose matrix is ``Rz(yaw) Ry(pitch) Rx(roll)``, taking a vector from the sensor's axes into the
   rotated ones (``v' = R v``). The first 41 names are common (number 38 differs in its angles).
-- **Parameter files**: QGroundControl writes ``SYS COMP NAME VALUE TYPE`` (tab separated, type 6 = int32, 9 =
-  float); MAVProxy ``NAME VALUE`` and Mission Planner ``NAME,VALUE``; ``#`` starts a comment line.
+- **Parameter files**: QGroundControl writes ``SYS COMP NAME VALUE TYPE`` (tab separated, type 2 = int8, 6 =
+  int32, 9 = float; it loads only that form, and a parameter only with the vehicle's type); MAVProxy ``NAME
+  VALUE`` and Mission Planner ``NAME,VALUE``; ``#`` starts a comment line.
 """
 
 from __future__ import annotations
@@ -49,7 +50,7 @@ ARDUPILOT_DEFAULTS = {"TMIN": 0.0, "TMAX": 70.0, "CALTEMP": -300.0}
 #: What a vehicle's own accelerometer calibration makes 1 g read, m/s^2 (PX4's CONSTANTS_ONE_G, ArduPilot's
 #: GRAVITY_MSS): the firmwares' offsets are in these units whatever the gravity where the unit was calibrated
 FIRMWARE_G_MPS2 = 9.80665
-QGC_INT32, QGC_FLOAT = 6, 9  # MAV_PARAM_TYPE of a QGroundControl parameter file's last column
+QGC_INT8, QGC_INT32, QGC_FLOAT = 2, 6, 9  # MAV_PARAM_TYPE of a QGroundControl parameter file's last column
 AXES = "xyz"
 
 

@@ -561,6 +561,27 @@ def test_firmware_files_refuse_or_warn_what_the_firmware_cannot_take(passports):
     assert "not QGroundControl" in wide.steps[2] and export_passport(doc, "ardupilot").warnings == []
 
 
+def test_ardupilot_qgc_form_loads_in_qgroundcontrol(passports, tmp_path):
+    """QGroundControl loads only ``SYS COMP NAME VALUE TYPE`` tab-separated lines and a parameter only with the
+    vehicle's type (ArduPilot's ENABLE an int8, 2; the rest float, 9): ``--qgc`` writes that form, with the same
+    values (float32) as the NAME VALUE form, and --compare reads it back; the NAME VALUE file sends QGroundControl
+    users to --qgc."""
+    doc = passports["auto"]
+    plain = export_passport(doc, "ardupilot", options=ExportOptions(instance=2, set_caltemp=True))
+    qgc = export_passport(doc, "ardupilot", options=ExportOptions(instance=2, set_caltemp=True, qgc=True))
+    rows = [line.split("\t") for line in qgc.text.splitlines() if line and not line.startswith("#")]
+    assert all(len(r) == 5 and r[:2] == ["1", "1"] and len(r[2]) <= 16 for r in rows)
+    assert [r[2:] for r in rows if r[4] != "9"] == [["INS_TCAL2_ENABLE", "1", "2"]]
+    mav = mavproxy_params(plain.text)
+    assert {r[2]: F32(float(r[3])) for r in rows} == {k: F32(v) for k, v in mav.items()}
+    assert "QGroundControl: Vehicle Setup" in qgc.steps[2] and "export with --qgc" in plain.steps[2]
+    (tmp_path / "v.params").write_text(qgc.text)
+    r = compare_params(doc, read_params_file(tmp_path / "v.params"), options=ExportOptions(instance=2))
+    assert r["applied"] and max(r["max_diff_ug"]) < 0.01, r
+    with pytest.raises(ThermocalError, match="--qgc goes with --format ardupilot"):
+        export_passport(doc, "px4", options=ExportOptions(qgc=True))
+
+
 def test_cli_out_never_replaces_the_passport_or_a_registry_record(monkeypatch, capsys, registry, tmp_path):
     """--out on the passport file read, or on a file of a registry's unit folder, is refused in one line and the
     registry still verifies (the passport was replaced by the parameter file, exit 0, before)."""
