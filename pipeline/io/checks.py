@@ -136,12 +136,16 @@ def check_stream(
     df = _impossible_values_missing(label, df, warnings)
     if not t.is_sorted():
         t_ns = t.to_numpy()
-        back = t_ns[1:] < t_ns[:-1]
+        # a sample is out of order when an earlier row has a later time (a clock stepped back: every sample
+        # until it catches up, not only the first)
+        behind = np.maximum.accumulate(t_ns[:-1]) - t_ns[1:]
+        back = behind > 0
         row = int(back.argmax()) + 1
         df = df.sort("t_ns", maintain_order=True)
         warnings.append(
             f"{label}: {int(np.count_nonzero(back))} samples were out of time order (first at row {row}: "
-            f"t_ns={t_ns[row]} after t_ns={t_ns[row - 1]}); sorted by t_ns"
+            f"t_ns={t_ns[row]} after t_ns={t_ns[row - 1]}; up to {behind.max() / 1e9:.6g} s before an earlier "
+            "row's time); sorted by t_ns"
         )
     if stream != "fixture" and df.height > 1:
         df, spans = _check_time_base(label, df, path=path, warnings=warnings)

@@ -319,6 +319,21 @@ def test_out_of_order_blocks_are_sorted_with_a_warning(tmp_path):
     assert any("out of time order" in w for w in run.warnings)
 
 
+def test_a_clock_stepped_back_counts_every_sample_it_puts_out_of_order():
+    """A logger's clock read 0..99 s, then stepped back to 70.5 s: the 29 readings until it passes 99 s again are
+    out of order (said was 1: the one step), and the warning says how far back they went."""
+    from pipeline.io.checks import check_stream
+
+    t = np.concatenate((np.arange(100.0), np.arange(70.5, 130.0)))
+    df = make_frame("au_temperature", {"t_ns": (T0_NS + t * 1e9).astype(np.int64), "temp_c": np.full(t.size, 20.0)})
+    warnings: list[str] = []
+    got = check_stream("au_temperature", df, path="x.mcap", warnings=warnings)
+    assert got["t_ns"].is_sorted() and got.height == df.height
+    [w] = [w for w in warnings if "out of time order" in w]
+    assert w.startswith("au_temperature: 29 samples were out of time order (first at row 100: ")
+    assert "up to 28.5 s before an earlier row's time" in w
+
+
 def test_null_samples_read_as_nan(tmp_path):
     body = b'{"t_ns": [%d, %d, %d], "ux": [1.5, null, 2], "uy": [0, 0, 0], "uz": [null, null, null]}' % (
         T0_NS,
