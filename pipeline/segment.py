@@ -1615,7 +1615,7 @@ def _name_segments(run: Run, rows: list[dict], settings: SegmentSettings, warnin
     gain_v_per_g = run.meta.nominal_gain_v_per_g
     gain: np.ndarray | None
     if gain_v_per_g is not None and gain_v_per_g != 0 and np.isfinite(gain_v_per_g):
-        gain, offset = np.full(3, float(gain_v_per_g)), np.zeros(3)
+        gain, offset = _polarity_from_fixture(mean_v, fix, float(gain_v_per_g), warnings), np.zeros(3)
     else:
         gain, offset = _scale_from_fixture(mean_v, fix)
         if gain is None:
@@ -1703,6 +1703,32 @@ def _scale_from_fixture(mean_v: np.ndarray, fix: list[str | None]) -> tuple[np.n
     if np.any(gain == 0) or not np.all(np.isfinite(gain)):
         return None, np.zeros(3)
     return gain, offset
+
+
+def _polarity_from_fixture(
+    mean_v: np.ndarray, fix: list[str | None], nominal_v_per_g: float, warnings: list[str]
+) -> np.ndarray:
+    """The per-axis gains (V/g) to name positions with: ``nominal_v_per_g`` on each axis, or its opposite on every
+    axis where the fixture log shows all three outputs with the other sign (a unit wired with the other polarity, or
+    a run whose shared ``nominal_gain_v_per_g`` is not this unit's), with a warning. No mounting turns all three axes
+    over (that is a mirror image, which gravity naming with the nominal sign would take for the opposite positions:
+    TP1 for TP3, every hold in conflict); one axis reversed is found from the label conflicts
+    (:func:`pipeline.plausibility.mirrored_axis`), two are what a unit turned 180 degrees reads. The log decides only
+    where each axis's fit to its labels has the nominal gain's size (within a factor 1.5)."""
+    nominal = np.full(3, nominal_v_per_g)
+    shown, _ = _scale_from_fixture(mean_v, fix)
+    if shown is None:
+        return nominal
+    ratio = shown / nominal
+    if not np.all((ratio < -0.5) & (ratio > -1.5)):
+        return nominal
+    warnings.append(
+        f"voltmeter: the fixture log's positions show every axis with the opposite sign of nominal_gain_v_per_g "
+        f"({nominal_v_per_g:+g} V/g; the labelled holds fit {', '.join(f'{g:+.3g}' for g in shown)} V/g on x, y, "
+        "z): the unit is named as the log says (wired with the other polarity, or the metadata's gain not this "
+        "unit's?)"
+    )
+    return -nominal
 
 
 def _refine_scale(

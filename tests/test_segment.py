@@ -132,6 +132,27 @@ def test_names_from_fixture_log_when_no_nominal_gain(standard):
     assert any("unnamed" in w for w in seg.warnings)
 
 
+@pytest.mark.parametrize("reversed_", [("ux", "uy", "uz"), ("uz",), ("ux", "uz")])
+def test_a_unit_of_the_other_polarity_is_named_as_the_fixture_log_says(reversed_):
+    """A unit whose outputs have the other sign than nominal_gain_v_per_g on every axis (wired so, or a run's shared
+    gain not its own) is named as the fixture log says, with one warning (it was named from gravity with the nominal
+    sign: every hold in conflict, TP1 named TP3, VPs unnamed, a passport 'unverified' of the wrong sign). One axis
+    reversed (a mirror the label conflicts show) or two (a unit turned 180 degrees) are named from gravity as
+    before."""
+    run = simulate(SimConfig(program="short", rate_hz=2.0, seed=5)).run
+    flipped = dataclasses.replace(run, voltmeter=run.voltmeter.with_columns([-pl.col(c) for c in reversed_]))
+    seg, plain = segment_run(flipped), segment_run(run)
+    lines = [w for w in seg.warnings if "opposite sign of nominal_gain_v_per_g" in w]
+    if len(reversed_) < 3:
+        assert not lines and any("conflict" in w for w in seg.warnings)
+        return
+    assert len(lines) == 1 and "every axis" in lines[0] and "+0.5" in lines[0]
+    assert not any("conflict" in w for w in seg.warnings)
+    assert [(g.position, g.label_source) for g in seg.segments] == [
+        (g.position, g.label_source) for g in plain.segments
+    ]
+
+
 def test_nan_samples_excluded_with_warning():
     res = simulate(SimConfig(program="short", seed=5))
     run = res.run

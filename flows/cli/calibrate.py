@@ -108,12 +108,17 @@ def calibrate(
         return
     emit(result, as_json, None if as_json else calibrate_text(result))
     if result.get("status") == "fail":
-        print(
-            f"thermocal: calibrate: {result['unit']}: status fail (the compensated gravity-module error "
-            "exceeds its limit at a verification position)",
-            file=sys.stderr,
-        )
+        print(f"thermocal: calibrate: {result['unit']}: status fail ({fail_reason(result)})", file=sys.stderr)
         raise typer.Exit(1)
+
+
+def fail_reason(result: dict) -> str:
+    """Why a calibration's status is fail, in a few words: its first plausibility finding (constants no unit of
+    its type has: the status is fail whatever the VP verification said), else the verification."""
+    implausible = [w.removeprefix("implausible: ") for w in result.get("warnings", []) if w.startswith("implausible: ")]
+    if implausible:
+        return f"implausible constants: {implausible[0]}"
+    return "the compensated gravity-module error exceeds its limit at a verification position"
 
 
 def _units_outcome(result: dict, as_json: bool) -> None:
@@ -129,13 +134,10 @@ def _units_outcome(result: dict, as_json: bool) -> None:
 
     for f in result["failed"]:
         print(f"thermocal: calibrate: {failure_line(f)}", file=sys.stderr)
-    failing = [r["unit"] for r in result["units"] if r.get("status") == "fail"]
+    failing = [r for r in result["units"] if r.get("status") == "fail"]
     if failing and not result["failed"]:
-        print(
-            f"thermocal: calibrate: {', '.join(failing)}: status fail (the compensated gravity-module error "
-            "exceeds its limit at a verification position)",
-            file=sys.stderr,
-        )
+        said = "; ".join(f"{r['unit']}: status fail ({fail_reason(r)})" for r in failing)
+        print(f"thermocal: calibrate: {said}", file=sys.stderr)
     if result["failed"]:
         raise typer.Exit(2)
     if failing:

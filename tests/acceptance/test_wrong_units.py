@@ -69,6 +69,10 @@ def test_calibrate_command_reports_the_mistake(run, tmp_path, monkeypatch, capsy
     )
     with pytest.raises(SystemExit) as info:
         main()
-    out = json.loads(capsys.readouterr().out)
+    captured = capsys.readouterr()
+    out = json.loads(captured.out)
     assert info.value.code in (0, 1)  # 1 once `fail` exits 1 (docs/contract.md); never a pass
     assert out["status"] == "fail" and any("voltages recorded in mV?" in w for w in out["warnings"])
+    # the stderr line gives the reason of the fail: the constants, not the VP verification (it said the latter)
+    [line] = [x for x in captured.err.splitlines() if x.startswith("thermocal: calibrate: AU-0150: status fail (")]
+    assert "(implausible constants: gain" in line and "voltages recorded in mV?" in line, line
