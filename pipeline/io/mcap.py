@@ -91,11 +91,15 @@ def unit_topic(serial: str, stream: str) -> str:
 
 def parse_topic(topic: str) -> tuple[str | None, str | None]:
     """(unit serial or None, stream or None) of a topic: ``/voltmeter`` is (None, "voltmeter"),
-    ``/unit/AU-0102/au/temperature`` ("AU-0102", "au_temperature"); (None, None) for a topic not part of a run."""
+    ``/unit/AU-0102/au/temperature`` ("AU-0102", "au_temperature"); (None, None) for a topic not part of a run. The
+    serial is what lies between the prefix and the stream's topic, so a serial with a ``/`` in it (``IMU/A1``) reads
+    back as :func:`unit_topic` wrote it."""
     if topic.startswith(UNIT_TOPIC_PREFIX):
-        serial, sep, rest = topic[len(UNIT_TOPIC_PREFIX) :].partition("/")
-        stream = STREAM_OF_TOPIC.get("/" + rest) if sep and serial else None
-        return (serial, stream) if stream in PER_UNIT_STREAMS else (None, None)
+        rest = topic[len(UNIT_TOPIC_PREFIX) :]
+        for stream in PER_UNIT_STREAMS:
+            if rest.endswith(TOPICS[stream]) and len(rest) > len(TOPICS[stream]):
+                return rest[: -len(TOPICS[stream])], stream
+        return None, None
     return None, STREAM_OF_TOPIC.get(topic)
 
 

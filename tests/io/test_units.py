@@ -83,6 +83,23 @@ def test_both_layouts_round_trip(three, tmp_path, fmt):
         read_run(path, "AU-0999")
 
 
+def test_serials_with_a_slash_or_a_space_round_trip(three, tmp_path):
+    """Serials are the metadata's strings: one with a '/' (its MCAP topics /unit/IMU/A1/voltmeter) or a space reads
+    back with its samples (the MCAP reader took 'IMU' for the serial: every unit 'listed but no samples')."""
+    runs, _ = three
+    names = ["IMU/A1", "SN 1002", "IMU/A/3"]
+    renamed = UnitRuns.of_units(
+        [
+            dataclasses.replace(r, meta=dataclasses.replace(r.meta, unit_serial=n))
+            for r, n in zip(runs.units.values(), names)
+        ]
+    )
+    for fmt, name in (("mcap", "s.mcap"), ("parquet", "s")):
+        got = read_units(write_run(renamed, tmp_path / name, fmt))
+        assert not got.failed and list(got.units) == names
+        assert all(got.units[n].voltmeter.equals(renamed.units[n].voltmeter) for n in names)
+
+
 def test_simulate_units_mcap_read_by_the_mcap_library(tmp_path):
     """A file written by ``thermocal simulate --units`` read back by the mcap library's own reader: the topics of
     log-format.md, every unit's samples, the shared streams once, the metadata."""
