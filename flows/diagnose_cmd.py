@@ -1,4 +1,4 @@
-"""``thermocal diagnose RUN [--passport FILE | --registry DIR] [--json]``: the command behind the CLI (no Prefect).
+"""``thermocal diagnose RUN... [--passport FILE | --registry DIR] [--json]``: the command behind the CLI (no Prefect).
 
 Reads the run (and the passport when given: a file, or the unit's current passport in a registry, see
 Reads the run (and the passport when given: a file, or the unit's current passport in a registry, see
@@ -14,8 +14,13 @@ run holding several) and go where ``--out`` says, else beside the registry (``RE
 from __future__ import annotations
 
 import math
+import os
+from collections.abc import Sequence
 from pathlib import Path
 
+import numpy as np
+
+from pipeline.calibrate.inputs import join_runs, select_runs, time_span_ns
 from pipeline.diagnose.diagnosis import diagnose_run
 from pipeline.errors import ThermocalError
 from pipeline.io.runs import read_run, read_run_meta
@@ -25,6 +30,7 @@ from pipeline.passport.canonical import canonical_json
 from pipeline.passport.document import load_passport
 from pipeline.passport.registry import Registry, load_passport_file
 from pipeline.passport.signing import sign_record
+from pipeline.run import Run
 
 from .runtime import Steps
 
@@ -55,7 +61,7 @@ def current_passport(registry: Path, unit: str, unverified: bool = False):
 
 
 def diagnose_command(
-    run: Path,
+    run: Path | Sequence[Path],
     passport: Path | None,
     as_json: bool,
     out_png: Path | None,
@@ -70,8 +76,12 @@ def diagnose_command(
     or used ``unverified`` and said so), or one fitted from the run when neither is given; write the PNG to
     ``out_png`` and the extended passport to ``out_passport`` (default: in :func:`output_folder`; of one unit of a
     run holding several, named with the unit). ``unit``: the unit of a run holding several (only its streams are
-    read). Progress on stderr when it is a terminal (``as_json`` is not used). Returns the report."""
-    run = Path(run)
+    read). Progress on stderr when it is a terminal (``as_json`` is not used). Returns the report.
+
+    ``run`` may be the files of one recording (any order): read as one, as ``calibrate`` reads them
+    (:func:`pipeline.calibrate.inputs.select_runs`, ``join_runs``); the outputs are named after the first in time."""
+    runs = [Path(run)] if isinstance(run, (str, os.PathLike)) else [Path(r) for r in run]
+    run = runs[0]
     step = Steps("diagnose")
     if passport is not None and registry is not None:
         raise ThermocalError("give --passport or --registry, not both", where="diagnose")
@@ -84,8 +94,8 @@ def diagnose_command(
         )
     elif registry is not None:
         given, source, state = current_passport(registry, unit or read_run_meta(run).unit_serial, unverified)
-    step(f"ingest {run.name}")
-    the_run = read_run(run, unit)
+    step(f"ingest {', '.join(r.name for r in runs)}")
+    the_run, run = _one_recording(runs, unit)
     step("segment, fit and search the residual" if given is None else "segment and search the residual")
     result = diagnose_run(the_run, given, passport_source=source)
     step("write figure and extended passport")
@@ -112,6 +122,20 @@ def diagnose_command(
     report["figure"] = str(png)
     report["extended_passport"] = str(ext)
     return report
+
+
+def _one_recording(paths: list[Path], unit: str | None) -> tuple[Run, Path]:
+    """The run of ``paths`` (the files of one recording, joined in time order, copies left out with a warning) and
+    the file that names the outputs (the first in time)."""
+    if len(paths) == 1:
+        return read_run(paths[0], unit), paths[0]
+    runs = [read_run(p, unit) for p in paths]
+    path_of = {id(r): p for r, p in zip(runs, paths)}
+    kept, left_out = select_runs(runs)
+    joined = join_runs(kept)
+    joined.warnings[:0] = left_out
+    first = min(kept, key=lambda r: time_span_ns(r.voltmeter) or (np.iinfo(np.int64).max, 0))
+    return joined, path_of[id(first)]
 
 
 def _sealed(extended: dict, state) -> dict:

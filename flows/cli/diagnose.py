@@ -1,4 +1,4 @@
-"""``thermocal diagnose RUN``: the recording against the model its passport predicts (the work:
+"""``thermocal diagnose RUN...``: the recording against the model its passport predicts (the work:
 :mod:`flows.diagnose_cmd`)."""
 
 from __future__ import annotations
@@ -12,7 +12,9 @@ from .app import JsonFlag, UnverifiedFlag, app, emit
 
 @app.command()
 def diagnose(
-    run: Path = typer.Argument(..., metavar="RUN", help="an .mcap file or a Parquet run directory"),
+    runs: list[Path] = typer.Argument(
+        ..., metavar="RUN", help="an .mcap file or a Parquet run directory; several files of one unit are one recording"
+    ),
     passport: Path | None = typer.Option(
         None,
         "--passport",
@@ -49,6 +51,6 @@ def diagnose(
     from ..diagnose_cmd import diagnose_command, diagnose_text
 
     report = diagnose_command(
-        run, passport, as_json, png, out_passport, registry, unit, out_dir=out, unverified=unverified
+        runs, passport, as_json, png, out_passport, registry, unit, out_dir=out, unverified=unverified
     )  # a failed passport: its notes
     emit(report, as_json, None if as_json else diagnose_text(report))

@@ -175,3 +175,27 @@ def test_files_with_other_samples_at_one_time_exit_2(split_short, tmp_path, monk
     [line] = err.strip().splitlines()
     assert f"{files[1]} and {clash} hold other samples over the same stretch of time" in line
     assert f"t_ns={t[100]}" in line
+
+
+def test_diagnose_reads_a_units_files_as_one_recording(split_short, tmp_path, monkeypatch, capsys):
+    """``thermocal diagnose RUN...``: the four files, in any order, are the whole file's recording: the same report
+    (verdict, findings, residuals, the extended model but for its source) and the figure and extended passport
+    named after the first file in time. Before: exit 2 'Got unexpected extra argument(s)'."""
+    whole, files = split_short
+    code, out, err = run_main(monkeypatch, capsys, "diagnose", str(whole), "--out", str(tmp_path / "w"), "--json")
+    assert code == 0, err
+    ref = json.loads(out)
+    given = [str(f) for f in files]
+    random.Random(3).shuffle(given)
+    code, out, err = run_main(monkeypatch, capsys, "diagnose", *given, "--out", str(tmp_path / "p"), "--json")
+    assert code == 0, err
+    rep = json.loads(out)
+    assert rep["figure"] == str(tmp_path / "p" / "part-0.diagnose.png") and Path(rep["figure"]).is_file()
+    assert rep["extended_passport"] == str(tmp_path / "p" / "part-0.diagnose.passport.json")
+    assert rep["extended_model"]["source"]["run"] == " + ".join(str(f) for f in files)
+    assert rep["run_id"] == "+".join(f"short-part-{k}" for k in range(4))
+    for r in (rep, ref):
+        for key in ("figure", "extended_passport", "run_id"):
+            r.pop(key)
+        r["extended_model"].pop("source")
+    assert rep == ref
