@@ -200,6 +200,10 @@ class Run:
     fixture: pl.DataFrame | None = None
     source: str = ""
     warnings: list[str] = field(default_factory=list)
+    #: (first, last) voltmeter ns of the files joined into this run (:func:`pipeline.calibrate.inputs.join_runs`)
+    #: that had no fixture log while another had one: the log says nothing then, and a position it logged before
+    #: is believed there, or after, only where the signal agrees
+    unlogged_ns: tuple[tuple[int, int], ...] = ()
 
     def stream(self, name: str) -> pl.DataFrame | None:
         return getattr(self, name)

@@ -1279,7 +1279,7 @@ def segment_run(
     pieces = _cut_at_plateaus(t_ns, stretches, plateaus, settings)
     all_gaps = np.concatenate([gaps["voltmeter"], holes.reshape(-1, 2)])
     all_gaps = all_gaps[np.argsort(all_gaps[:, 1], kind="stable")]
-    fixture, stale = _fixture_labels(run, t_ns, pieces, all_gaps)
+    fixture, stale = _fixture_labels(run, t_ns, pieces, all_gaps, run.unlogged_ns)
 
     rows: list[dict[str, Any]] = []
     tt_s = tt_ns.astype(np.float64)
@@ -1570,11 +1570,15 @@ def _held_only_in_gaps(
     return [k for k, (held, inside) in times.items() if inside > 0 and held - inside < min_s * _NS]
 
 
-def _fixture_labels(run: Run, t_ns: np.ndarray, pieces, gaps_ns: np.ndarray) -> tuple[list[str | None], list[bool]]:
+def _fixture_labels(
+    run: Run, t_ns: np.ndarray, pieces, gaps_ns: np.ndarray, unlogged_ns=()
+) -> tuple[list[str | None], list[bool]]:
     """The fixture position logged for the middle of each piece (None: no log, MOVING or unknown), and whether
     that event was logged before a gap of the recording (``gaps_ns``, (k, 2) ns) that lies before the piece: the
     fixture log may have lost the events of a move in the gap, so such a label is only believed where the signal
-    agrees with it."""
+    agrees with it. So is one logged before the start of a stretch the log does not cover (``unlogged_ns``: a file
+    of the recording without a fixture log, :attr:`pipeline.run.Run.unlogged_ns`) that begins by the piece's start:
+    the piece lies in it or after it."""
     fx = run.fixture
     if fx is None or fx.height == 0 or not pieces:
         return [None] * len(pieces), [False] * len(pieces)
@@ -1592,6 +1596,11 @@ def _fixture_labels(run: Run, t_ns: np.ndarray, pieces, gaps_ns: np.ndarray) -> 
         g = np.searchsorted(gaps_ns[:, 1], first, side="right") - 1
         ok = g >= 0
         stale[ok] = gaps_ns[g[ok], 0] >= event[ok]
+    if len(unlogged_ns):
+        starts = np.array(sorted(a for a, _ in unlogged_ns), dtype=np.int64)
+        u = np.searchsorted(starts, first, side="right") - 1  # the last such stretch begun by the piece's start
+        ok = u >= 0
+        stale[ok] |= starts[u[ok]] >= event[ok]
     out = []
     for j in k:
         name = fp[j] if j >= 0 else None

@@ -228,7 +228,19 @@ def join_runs(runs: Sequence[Run]) -> Run:
         fixture=streams["fixture"],
         source=" + ".join(r.source for r in runs if r.source),
         warnings=[f"{n}: {w}" for n, r in zip(names, runs) for w in r.warnings],
+        unlogged_ns=_unlogged_ns(runs),
     )
+
+
+def _unlogged_ns(runs: Sequence[Run]) -> tuple[tuple[int, int], ...]:
+    """The (first, last) voltmeter ns of the files (in time order) without a fixture log, when another has one (and
+    those the files carried already): :attr:`pipeline.run.Run.unlogged_ns`. A file whose log is there but empty
+    logged no move: the position logged before holds on through it."""
+    if all(r.fixture is None for r in runs):
+        return ()
+    spans = [s for r in runs for s in r.unlogged_ns]
+    spans += [span for r in runs if r.fixture is None and (span := time_span_ns(r.voltmeter))]
+    return tuple(sorted(spans))
 
 
 def _time_order(run: Run) -> tuple:

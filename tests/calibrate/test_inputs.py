@@ -203,3 +203,30 @@ def test_the_files_a_logger_wrote_one_recording_into_are_all_used(small_run):
         select_runs([a, b, other])
     line = info.value.one_line()
     assert "neither is used" in line and f"voltmeter, t_ns={t[1900]}" in line and "\n" not in line
+
+
+def test_a_file_without_the_fixture_log_is_not_labelled_with_the_one_before(small_run):
+    """The files of one recording, the middle one (TP2..TP4 held at +20 C) without a fixture log: the log says
+    nothing then, so the position it logged before (TP1) is not carried through that file. Before: one 'fixture
+    label conflict ... fixture log says TP1' per hold of the middle file; the positions came from gravity all the
+    same. Now no conflict, the same named segments as the whole run's."""
+    from pipeline.calibrate.inputs import join_runs
+    from pipeline.segment import segment_run
+
+    t0 = int(small_run.voltmeter["t_ns"][0])
+    cut = [t0 + int(s * 1e9) for s in (950.0, 1200.0)]
+    a = run_piece(small_run, t0, cut[0], "a", source="a.mcap")
+    b = run_piece(small_run, cut[0], cut[1], "b", source="b.mcap", fixture=None)
+    c = run_piece(small_run, cut[1], t0 + 10**13, "c", source="c.mcap")
+    joined = join_runs([c, b, a])
+    got, whole = segment_run(joined), segment_run(small_run)
+    assert not [w for w in got.warnings if "conflict" in w], got.warnings
+    tb = b.voltmeter["t_ns"]
+    assert joined.unlogged_ns == ((int(tb[0]), int(tb[-1])),)
+    names = lambda seg: [(s.t_start_ns, s.position) for s in seg.segments]  # noqa: E731
+    assert names(got) == names(whole)
+    held = {s.position for s in got.segments if cut[0] <= s.t_start_ns < cut[1]}
+    assert {"TP2", "TP3", "TP4"} <= held
+    # the middle file's log there but empty (no move logged in it): TP1 holds on through it, as logged
+    empty = replace(b, fixture=small_run.fixture.head(0))
+    assert join_runs([a, empty, c]).unlogged_ns == ()
