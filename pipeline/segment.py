@@ -174,6 +174,9 @@ class Segmentation:
     #: rate and to the length of the poses)
     static_window_s: float | None = None
     static_min_s: float | None = None
+    #: the static window (s) and shortest stretch (s) of the most lenient static detection tried at this rate
+    #: (:func:`_lenient_static`): a hold shorter than their sum leaves no static stretch (:func:`short_holds`)
+    lenient_static_s: tuple[float, float] | None = None
     #: the gaps no segment spans, by stream (``voltmeter``, ``au_temperature``): (last sample before, first after)
     #: in ns (:func:`gap_spans`: longer than half the static window, and than half the plateau slope window)
     gaps_ns: dict[str, list[tuple[int, int]]] = field(default_factory=dict)
@@ -987,30 +990,51 @@ def _adaptive_static(
     if t_ns.size < 2:
         return [], np.flatnonzero(~ch.finite()), settings
     readers = reader_gap_indices(t_ns) if readers is None else readers
-    span_ns = float(t_ns[-1] - t_ns[0])
     dt_s = (median_interval_ns(t_ns) if interval_ns is None else interval_ns) / _NS
 
-    def cover(runs):
-        return sum(float(t_ns[b - 1] - t_ns[a]) for a, b in runs) / span_ns if span_ns > 0 else 1.0
-
     runs, bad = _static_at(t_ns, ch, settings, readers, found)
-    best = (cover(runs), runs, settings)
-    window = settings.static_window_s
-    shortest = MIN_WINDOW_SAMPLES * dt_s  # the shortest window the rate allows: the last one tried
-    for _ in range(3):
-        if best[0] >= STATIC_COVER or not window > shortest:  # (NaN: no rate, no trial)
+    best = (_cover(t_ns, runs), runs, settings)
+    for trial in _shorter_windows(settings, dt_s):
+        if best[0] >= STATIC_COVER:
             break
+        r, _ = _static_at(t_ns, ch, trial, readers, found)
+        c = _cover(t_ns, r)
+        if c > best[0] * 1.1:
+            best = (c, r, trial)
+    return best[1], bad, best[2]
+
+
+def _cover(t_ns: np.ndarray, runs) -> float:
+    """The fraction of the record (times ``t_ns``, sorted) that the stretches ``runs`` cover."""
+    span_ns = float(t_ns[-1] - t_ns[0])
+    return sum(float(t_ns[b - 1] - t_ns[a]) for a, b in runs) / span_ns if span_ns > 0 else 1.0
+
+
+def _lenient_static(rated: SegmentSettings, used: SegmentSettings, covered: float, dt_s: float) -> SegmentSettings:
+    """Of the static detections :func:`_adaptive_static` tried (``rated``, the settings for the rate, then
+    :func:`_shorter_windows` while the stretches covered less than :data:`STATIC_COVER`; ``used``, the one it kept,
+    whose stretches cover the fraction ``covered`` of the record), the one that finds the shortest holds: the
+    least ``static_window_s + static_min_s``."""
+    tried = [used] if covered >= STATIC_COVER else [rated, *_shorter_windows(rated, dt_s)]
+    return min(tried, key=lambda s: s.static_window_s + s.static_min_s)
+
+
+def _shorter_windows(settings: SegmentSettings, dt_s: float):
+    """The settings :func:`_adaptive_static` tries in turn after ``settings`` on a record sampled every ``dt_s``
+    seconds: the window halved (three times at most), never below :data:`MIN_WINDOW_SAMPLES` samples (the shortest
+    window the rate allows is the last one tried), ``static_min_s`` shortened to :data:`POSE_WINDOWS` windows but
+    never below :data:`MIN_SEGMENT_SAMPLES` samples."""
+    window = settings.static_window_s
+    shortest = MIN_WINDOW_SAMPLES * dt_s
+    for _ in range(3):
+        if not window > shortest:  # (NaN: no rate, no trial)
+            return
         window = max(window / 2, shortest)
-        trial = dataclasses.replace(
+        yield dataclasses.replace(
             settings,
             static_window_s=window,
             static_min_s=max(MIN_SEGMENT_SAMPLES * dt_s, min(settings.static_min_s, POSE_WINDOWS * window)),
         )
-        r, _ = _static_at(t_ns, ch, trial, readers, found)
-        c = cover(r)
-        if c > best[0] * 1.1:
-            best = (c, r, trial)
-    return best[1], bad, best[2]
 
 
 def _static_at(
@@ -1254,10 +1278,13 @@ def segment_run(
 
     readers = None if static is None else static.gaps_after
     readers = reader_gap_indices(t_ns) if readers is None else readers
+    rated = settings
     if static is None:
         stretches, bad_u, settings = _adaptive_static(t_ns, ch, settings, readers, interval_ns)
     else:
         stretches, bad_u, settings = static.stretches, static.bad, static.settings
+    covered = _cover(t_ns, stretches) if t_ns.size > 1 else 1.0
+    lenient = _lenient_static(rated, settings, covered, float("nan") if interval_ns is None else interval_ns / _NS)
     # a sample in a gap of the thermosensor, or away from its record, has no temperature: no stretch holds one
     holes = thermosensor_gaps(tt_ns, settings)
     unknown = thermosensor_gaps(tt_ns, settings, within=(t_ns[0], t_ns[-1])) if t_ns.size and tt_ns.size else holes
@@ -1336,17 +1363,81 @@ def segment_run(
             )
         )
     first = np.empty(min(ch.n, _SLAB_SAMPLES))  # (one buffer for the three channels' resolutions)
-    return Segmentation(
+    seg = Segmentation(
         plateaus=plateaus,
         segments=segments,
         warnings=warnings,
         stretches=stretches,
         static_window_s=settings.static_window_s,
         static_min_s=settings.static_min_s,
+        lenient_static_s=(lenient.static_window_s, lenient.static_min_s),
         gaps_ns={k: [(int(a), int(b)) for a, b in v] for k, v in gaps.items()},
         resolution_v=vector3(
             [reading_resolution(ch.copy_into(c, 0, first.size, first), scratch=True) for c in range(3)]
         ),
+    )
+    if run.fixture is not None and run.fixture.height:  # (without a log, the holds are found when refused)
+        note = short_holds(run, seg, t_ns, interval_ns)
+        if note:
+            warnings.append(f"{SHORT_HOLDS_WARNING}: {note}: not used")
+    return seg
+
+
+#: how the warning of holds too short for the static detection at the recording's rate begins
+SHORT_HOLDS_WARNING = "voltmeter: holds too short for the rate"
+#: a static window or stretch within this factor of its fewest samples is at that floor (the rate set it)
+_AT_FLOOR = 1.001
+
+
+def short_holds(run: Run, seg: Segmentation, t_ns=None, interval_ns: float | None = None) -> str | None:
+    """What says that positions were held too briefly for the static detection at the voltmeter's rate, e.g.
+    ``16 of the fixture log's 25 holds (TP2, ...) last ~60 s at 0.5 Hz; a position needs >= 72 s at this rate (a
+    24-s static window, stretches of >= 48 s)``; None when no hold is that short. The holds are the fixture log's
+    (from each position's event to the next event) or, without a log, the still poses the signal shows: the quiet
+    stretches too short to keep (with the segmentation's window, plus that window). What a position needs is
+    :attr:`Segmentation.lenient_static_s`, from the settings at this rate (:func:`for_rate`,
+    :func:`_shorter_windows`); None too when neither is at its floor of :data:`MIN_WINDOW_SAMPLES` and
+    :data:`MIN_SEGMENT_SAMPLES` samples (the cause is not the rate). ``t_ns``, ``interval_ns``: the voltmeter's
+    sorted times and their :func:`median_interval_ns`, when already found."""
+    if seg.lenient_static_s is None or seg.static_window_s is None:
+        return None
+    t_ns = run.t_ns() if t_ns is None else t_ns
+    if t_ns.size < 3:
+        return None
+    dt_s = (median_interval_ns(t_ns) if interval_ns is None else interval_ns) / _NS
+    window_s, min_s = seg.lenient_static_s
+    if not (window_s <= MIN_WINDOW_SAMPLES * dt_s * _AT_FLOOR or min_s <= MIN_SEGMENT_SAMPLES * dt_s * _AT_FLOOR):
+        return None  # the rate did not lengthen what a hold needs: a faster voltmeter would not find more
+    needed_s = window_s + min_s
+    fx = run.fixture
+    if fx is not None and fx.height:
+        ft = fx["t_ns"].to_numpy()
+        order = np.argsort(ft, kind="stable")
+        ft, fp = ft[order], np.asarray(fx["position"].to_list(), dtype=object)[order]
+        new = np.concatenate(([True], fp[1:] != fp[:-1]))  # an event repeating the position goes on holding it
+        ft, fp = ft[new], fp[new]
+        ends = np.append(ft[1:], max(int(t_ns[-1]), int(ft[-1])))
+        held = [(str(p), (b - a) / _NS) for p, a, b in zip(fp, ft, ends) if p in ALL_POSITIONS]
+        short = [(p, d) for p, d in held if d < needed_s]
+        names = ", ".join(dict.fromkeys(p for p, _ in short))
+        what = f"{len(short)} of the fixture log's {len(held)} holds ({names}) last"
+        durations = [d for _, d in short]
+    else:
+        quiet, _ = _static_at(
+            t_ns,
+            Channels.of_run(run),
+            dataclasses.replace(SegmentSettings(), static_window_s=seg.static_window_s, static_min_s=0.0),
+        )
+        poses = np.array([(t_ns[b - 1] - t_ns[a]) / _NS + seg.static_window_s for a, b in quiet])
+        durations = list(poses[poses < needed_s])
+        if len(durations) < max(2, poses.size - len(durations)):  # short poses: most of the still ones
+            return None
+        what = f"{len(durations)} still poses (no fixture log) last"
+    if not durations:
+        return None
+    return (
+        f"{what} ~{float(np.median(durations)):.2g} s at {1 / dt_s:.3g} Hz; a position needs >= {needed_s:.3g} s at "
+        f"this rate (a {window_s:.3g}-s static window, stretches of >= {min_s:.3g} s)"
     )
 
 

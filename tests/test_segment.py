@@ -9,10 +9,11 @@ import numpy as np
 import polars as pl
 import pytest
 
+from pipeline import segment as seg_mod
 from pipeline.io.runs import read_run, write_run
 from pipeline.positions import gravity_vector_g, nearest_position
 from pipeline.run import Run, RunMeta, make_frame
-from pipeline.segment import SegmentSettings, find_plateaus, find_static, segment_run
+from pipeline.segment import SegmentSettings, find_plateaus, find_static, segment_run, short_holds
 from pipeline.simulate.chamber import SimConfig, simulate
 from pipeline.simulate.program import get_program
 from tests.conftest import DATA
@@ -362,6 +363,48 @@ def test_short_hand_turned_poses_found(rate_hz, jitter_s, hold_s):
         assert h["t_start_ns"] - 2e9 <= s.t_start_ns < s.t_end_ns <= h["t_end_ns"] + 2e9
         assert s.duration_s > 0.3 * hold_s
     assert dc.replace(SegmentSettings()).static_window_s == 2.0
+    assert short_holds(res.run, seg) is None  # poses long enough at this rate: nothing to say
+
+
+def test_poses_too_short_for_the_rate_are_named_in_the_refusal():
+    """Hand-turned poses of 3 s without a fixture log at 10 Hz: the shortest window the rate allows is 12 samples
+    (1.2 s) and a stretch is kept from 3 s, so a pose needs 4.2 s: none is found and calibrate refuses. The one
+    line says so (before: only "no calibration method fits", not why)."""
+    from pipeline.calibrate.methods import auto_method
+    from pipeline.errors import CalibrationError
+
+    res = simulate(SimConfig(program="handheld", rate_hz=10.0, jitter_s=4e-3, with_fixture_log=False, seed=3))
+    seg = segment_run(res.run)
+    dt_s = 0.1
+    window_s = seg_mod.MIN_WINDOW_SAMPLES * dt_s
+    needed_s = window_s + max(seg_mod.MIN_SEGMENT_SAMPLES * dt_s, min(3.0, seg_mod.POSE_WINDOWS * window_s))
+    with pytest.raises(CalibrationError) as e:
+        auto_method(res.run, seg)
+    line = e.value.one_line()
+    assert "\n" not in line and "no calibration method fits" in line
+    assert f"36 still poses (no fixture log) last ~3.1 s at 10 Hz; a position needs >= {needed_s:.3g} s" in line
+    assert needed_s == pytest.approx(4.2)
+
+
+def test_holds_too_short_for_the_rate_are_named_in_the_refusal():
+    """The short program (60-s holds) with the voltmeter at 0.5 Hz: a 12-sample window (24 s) and 24-sample
+    stretches (48 s) need holds of 72 s, so only TP1 and TP6 (carried through the soaks) are found and the tilt
+    method refuses. The segmenter's warning and the refusal's one line say that the holds were too short for the
+    rate (before: only which positions were missing)."""
+    from pipeline.calibrate.tilt import CALIBRATION_METHOD as tilt
+    from pipeline.errors import CalibrationError
+
+    res = simulate(SimConfig(program="short", rate_hz=0.5, seed=11))
+    held = {round((h["t_end_ns"] - h["t_start_ns"]) / 1e9) for h in res.truth["holds"] if h["position"] == "TP3"}
+    assert held == {60}
+    needed_s = (seg_mod.MIN_WINDOW_SAMPLES + seg_mod.MIN_SEGMENT_SAMPLES) * 2.0
+    said = f"last ~60 s at 0.5 Hz; a position needs >= {needed_s:.3g} s at this rate"
+    seg = segment_run(res.run)
+    assert [w for w in seg.warnings if w.startswith(seg_mod.SHORT_HOLDS_WARNING) and said in w]
+    with pytest.raises(CalibrationError) as e:
+        tilt.calibrate([res.run])
+    line = e.value.one_line()
+    assert "\n" not in line and "missing TP2, TP3, TP4, TP5" in line and said in line
 
 
 def test_long_holds_keep_the_default_window():

@@ -101,8 +101,14 @@ def auto_method(run, seg) -> tuple[str, str]:
     kind = KIND_WORDS.get(recording.program.kind, recording.program.kind)
     chosen = auto_choice(judged)
     if chosen is None:
+        from pipeline.segment import short_holds
+
         why = "; ".join(f"{m.name}: {s.why}" for m, s in judged)
-        raise CalibrationError(f"no calibration method fits this recording ({kind}; {why})", path=run.source)
+        short = short_holds(run, seg)
+        raise CalibrationError(
+            f"no calibration method fits this recording ({kind}; {why})" + (f"; {short}" if short else ""),
+            path=run.source,
+        )
     m, s = chosen
     return m.name, f"{m.name} ({kind}: {s.why})"
 

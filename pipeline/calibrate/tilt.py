@@ -41,6 +41,7 @@ from pipeline.constants import fit_constants
 from pipeline.errors import CalibrationError
 from pipeline.passport.document import Passport
 from pipeline.positions import TEST_POSITIONS, gravity_vector_g
+from pipeline.segment import SHORT_HOLDS_WARNING
 from pipeline.thermal import ThermalModel, cluster_temperatures, default_order, fit_thermal_model
 from pipeline.uncertainty import (
     design_matrix,
@@ -146,7 +147,15 @@ class Tilt(Method):
     ) -> Fitted:
         """:func:`fit_unit` over the observations of one unit's observed runs."""
         observations = [o for r in observed for o in r.observations]
-        return Fitted(fit_unit(unit_of(observed), observations, settings, observed[0].meta.normal_temp_c))
+        try:
+            return Fitted(fit_unit(unit_of(observed), observations, settings, observed[0].meta.normal_temp_c))
+        except CalibrationError as e:
+            # positions missing because the holds were too short for the rate: say so in the refusal's line
+            short = next((w for r in observed for w in r.warnings if w.startswith(SHORT_HOLDS_WARNING)), None)
+            if short is None:
+                raise
+            why = short.removeprefix("voltmeter: ").removesuffix(": not used")
+            raise CalibrationError(f"{e.message}; {why}", path=e.path, stream=e.stream, where=e.where) from None
 
     def verification_notes(self, observations, rows, normal_temp_c: float) -> list[str]:
         """What the VP data leave unverified of the thermal model's range (:func:`verification_gap`)."""
