@@ -12,7 +12,10 @@ at the mean powers, not at the mean temperature (a hold of 120 s at 2 C/min span
 a curvature of about 1e-6 V/C^2: 1.3 micro-V between the two). The fit is linear in the 4 (p + 1) coefficients per
 channel (:func:`design`), one least-squares solve for the three channels.
 
-``T_e`` is the thermosensor, smoothed over ``temp_smooth_s``, or the sensing element's temperature behind it through
+``T_e`` is the thermosensor, smoothed over ``temp_smooth_s`` (between readings further apart than :data:`FINE_S` a
+cubic through the smoothed readings and their slopes, :func:`pipeline.dynamics.hermite`, evaluated every
+:data:`FINE_S`: a thermosensor read once a minute on 1.5 C/min ramps with turns is not cut into straight chords),
+or the sensing element's temperature behind it through
 a first-order lag ``tau`` (``tau dT_e/dt = T - T_e``, physics.md ``thermal_lag``). On a program that passes every
 temperature once heating and once cooling, a lag left out shifts the heating and the cooling legs in opposite
 directions and the fit averages them (Niu et al.'s balanced up and down legs); fitted (``lag_fit``, a one-dimensional
@@ -44,7 +47,7 @@ from pipeline.calibrate.observations import Observation, ObservedRun, determines
 from pipeline.calibrate.recording import Recording
 from pipeline.calibrate.result import UnitFit
 from pipeline.calibrate.settings import CalibrationSettings
-from pipeline.dynamics import first_order_lag, ramp_direction, smooth_temperature
+from pipeline.dynamics import first_order_lag, hermite, ramp_direction, smooth_temperature, stretch_cuts
 from pipeline.errors import CalibrationError
 from pipeline.passport.document import Passport
 from pipeline.positions import AXES, gravity_vector_g, is_test_position
@@ -78,13 +81,26 @@ class RampSettings:
     cluster_s: float = 1800.0
 
 
+#: the smoothed thermosensor is evaluated at least this often (s) between its readings (:func:`_sensor`): the mean
+#: powers and the lag, exact for a temperature linear between grid points, then see the curve between readings a
+#: minute apart (fast program, seeds 44-46 read every 59-61 s: |dK| at T0 0.9-2.6 micro-V/g with chords, 0.2-0.8
+#: with the cubic every 5 s; read every second: the grid as it was)
+FINE_S = 5.0
+
+
 @dataclass
 class Sensor:
-    """A run's smoothed thermosensor on its own time grid: ``t_s`` (s since ``t_ref_ns``), ``temp_c`` (C)."""
+    """A run's smoothed thermosensor on a time grid: ``t_s`` (s since ``t_ref_ns``), ``temp_c`` (C); ``step_s`` the
+    thermosensor's own (median) step between readings (s; 0: that of ``t_s``)."""
 
     t_s: np.ndarray
     temp_c: np.ndarray
     t_ref_ns: int
+    step_s: float = 0.0
+
+    def reading_step_s(self) -> float:
+        """The thermosensor's median step between readings (s)."""
+        return self.step_s if self.step_s > 0 else float(np.median(np.diff(self.t_s)))
 
     def element(self, tau_s: float) -> np.ndarray:
         """The element temperature (C) on the grid: the sensor through a first-order lag ``tau_s`` (0: itself)."""
@@ -183,8 +199,27 @@ def _sensor(run, smooth_s: float) -> Sensor:
         )
     t_ref = int(tt[0])
     t_s = (tt - t_ref) / _NS
-    smooth, _ = smooth_temperature(t_s, temp, smooth_s)
-    return Sensor(t_s, smooth, t_ref)
+    smooth, rate_c_per_min = smooth_temperature(t_s, temp, smooth_s)
+    step_s = float(np.median(np.diff(t_s)))
+    cuts = stretch_cuts(t_s)
+    grid = fine_grid(t_s, cuts, FINE_S)
+    if grid.size == t_s.size:
+        return Sensor(t_s, smooth, t_ref, step_s)
+    return Sensor(grid, hermite(grid, t_s, smooth, rate_c_per_min / 60.0, cuts), t_ref, step_s)
+
+
+def fine_grid(t_s: np.ndarray, cuts: np.ndarray, fine_s: float) -> np.ndarray:
+    """The sorted times ``t_s`` (s) with each interval longer than ``fine_s`` cut into equal steps of at most
+    ``fine_s``, but for the intervals after ``cuts`` (gaps: nothing is known inside them)."""
+    h = np.diff(t_s)
+    n = np.maximum(np.ceil(h / fine_s - 1e-9), 1).astype(np.int64)
+    if len(cuts):
+        n[np.asarray(cuts, dtype=np.intp)] = 1
+    if not np.any(n > 1):
+        return t_s
+    i = np.repeat(np.arange(h.size), n)
+    k = np.arange(i.size) - np.repeat(np.cumsum(n) - n, n)
+    return np.concatenate([t_s[i] + h[i] * k / n[i], t_s[-1:]])
 
 
 def _mean_direction(direction, t0_s: np.ndarray, t1_s: np.ndarray, points: int = 9) -> np.ndarray:
@@ -474,7 +509,7 @@ def fit_ramp(pieces: list[Pieces], t0_c: float, thermal_model: str = "auto", ram
     if ramp.lag_fit:
         none = fit_linear(tp, 0.0, t0_c, order, weight, hyst)
         pv = _f_test(none.rss, best.rss, 1, dof)
-        step = min(float(np.median(np.diff(p.sensor.t_s))) for p in tp)
+        step = min(p.sensor.reading_step_s() for p in tp)
         # a lag shorter than the thermosensor's sample step is no lag the data resolve
         lag_test = {"tau_s": best.tau_s, "p_value": pv, "kept": pv < TEST_P and best.tau_s >= step}
         if not lag_test["kept"]:
