@@ -155,6 +155,12 @@ def smooth_temperature(t_s: np.ndarray, temp_c: np.ndarray, window_s: float) -> 
     return hermite(t_s, ts, smooth, rate / 60.0, cuts), np.interp(t_s, ts, rate)
 
 
+def smoothed_noise_span_s(step_s: float, smooth_s: float) -> float:
+    """How far (s) the noise of a thermosensor read every ``step_s`` and smoothed over ``smooth_s``
+    (:func:`smooth_temperature`, a window of at least five readings) stays correlated: twice the window."""
+    return 2.0 * max(float(smooth_s), 5.0 * float(step_s))
+
+
 def stretch_cuts(t_s: np.ndarray) -> np.ndarray:
     """Indices ``i`` of a thermosensor's sorted reading times ``t_s`` (s) after which comes one of its gaps
     (:func:`pipeline.segment.thermosensor_gaps`' rule): :func:`smooth_temperature` smooths each stretch between two
@@ -280,6 +286,7 @@ __all__ = [
     "ramp_direction",
     "step_at",
     "smooth_temperature",
+    "smoothed_noise_span_s",
     "stretch_cuts",
     "hermite",
     "Thermosensor",

@@ -52,7 +52,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline.dynamics import Thermosensor
+from pipeline.dynamics import Thermosensor, smoothed_noise_span_s
 from pipeline.errors import CalibrationError
 from pipeline.model import specific_force_g, vector3
 from pipeline.passport.document import Passport, load_passport
@@ -421,7 +421,7 @@ def sensor_span_s(sensor: Thermosensor, smooth_s: float) -> float:
     the output's change with temperature is in every block for minutes, which the few :data:`CLUSTER_S` clusters
     estimate too noisily and the voltmeter's noise does not hold."""
     step_s = float(np.median(np.diff(sensor.t_s))) if sensor.t_s.size > 1 else 0.0
-    return 2.0 * max(float(smooth_s), 5.0 * step_s)
+    return smoothed_noise_span_s(step_s, smooth_s)
 
 
 def _cross_factor(K0: np.ndarray, c: int, j: int) -> float:

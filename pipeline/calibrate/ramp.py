@@ -47,7 +47,14 @@ from pipeline.calibrate.observations import Observation, ObservedRun, determines
 from pipeline.calibrate.recording import Recording
 from pipeline.calibrate.result import UnitFit
 from pipeline.calibrate.settings import CalibrationSettings
-from pipeline.dynamics import first_order_lag, hermite, ramp_direction, smooth_temperature, stretch_cuts
+from pipeline.dynamics import (
+    first_order_lag,
+    hermite,
+    ramp_direction,
+    smooth_temperature,
+    smoothed_noise_span_s,
+    stretch_cuts,
+)
 from pipeline.errors import CalibrationError
 from pipeline.passport.document import Passport
 from pipeline.positions import AXES, gravity_vector_g, is_test_position
@@ -514,7 +521,9 @@ def fit_ramp(pieces: list[Pieces], t0_c: float, thermal_model: str = "auto", ram
         lag_test = {"tau_s": best.tau_s, "p_value": pv, "kept": pv < TEST_P and best.tau_s >= step}
         if not lag_test["kept"]:
             best = none
-    cov, tau_sigma, h_sigma = _covariances(tp, best, t0_c, noise, ramp.cluster_s, with_lag=best.tau_s > 0)
+    cov, tau_sigma, h_sigma = _covariances(
+        tp, best, t0_c, noise, ramp.cluster_s, with_lag=best.tau_s > 0, smooth_s=ramp.temp_smooth_s
+    )
     model = _polynomial(best.model_coef, order, t0_c)
     temps = np.concatenate(
         [p.sensor.mean_powers(p.t0_s, p.t1_s, best.tau_s, 0.0, 1)[:, 1] for p in tp]
@@ -548,19 +557,34 @@ def _polynomial(coef: np.ndarray, order: int, t0_c: float) -> PolynomialModel:
     return PolynomialModel(K0.copy(), U0[0].copy(), float(t0_c), int(order), U0[1:].copy(), rel)
 
 
-def _clusters(pieces: list[Pieces], cluster_s: float) -> np.ndarray:
-    return np.concatenate([k * 1_000_000 + np.floor(p.t0_s / cluster_s).astype(np.int64) for k, p in enumerate(pieces)])
+def _clusters(pieces: list[Pieces], cluster_s: float, smooth_s: float) -> np.ndarray:
+    """(2, m): each piece's stretch of ``cluster_s`` (a slow misfit), and of the span the smoothed thermosensor's
+    noise stays correlated over (:func:`pipeline.dynamics.smoothed_noise_span_s`: read once a minute, its 7 mC
+    times the outputs' change with temperature is shared by the pieces of ten minutes, which the few long clusters
+    estimate too noisily)."""
+    return np.vstack(
+        [
+            np.concatenate([k * 1_000_000 + np.floor(p.t0_s / span(p)).astype(np.int64) for k, p in enumerate(pieces)])
+            for span in (lambda p: cluster_s, lambda p: smoothed_noise_span_s(p.sensor.reading_step_s(), smooth_s))
+        ]
+    )
 
 
 def _covariances(
-    pieces: list[Pieces], fit: LinearFit, t0_c: float, noise: np.ndarray, cluster_s: float, with_lag: bool
+    pieces: list[Pieces],
+    fit: LinearFit,
+    t0_c: float,
+    noise: np.ndarray,
+    cluster_s: float,
+    with_lag: bool,
+    smooth_s: float = RampSettings.temp_smooth_s,
 ) -> tuple[list[np.ndarray], float | None, np.ndarray | None]:
     """Per channel, the covariance of its 4 (p + 1) coefficients (:func:`pipeline.uncertainty.regression_cov`),
     with the lag's uncertainty included when a lag was fitted (its column: the change of the prediction per second
     of lag); and the lag's standard uncertainty (s), the channels' estimates combined by inverse variance."""
     from pipeline.uncertainty import regression_cov
 
-    clusters = _clusters(pieces, cluster_s)
+    clusters = _clusters(pieces, cluster_s, smooth_s)
     J = None
     if with_lag:
         h = max(1.0, 0.01 * fit.tau_s)

@@ -93,7 +93,8 @@ def test_a_thermosensor_read_once_a_minute(fast_lag, every_s):
     """The same run with the thermosensor read once a minute (log-format.md: "one reading a minute"): the
     temperature between readings is the cubic through the smoothed readings and their slopes, not their chords
     (which on the 1.5 C/min ramps with turns gave |dK| at T0 of 3.5 / 1.4 micro-V/g, 10 sigma, and a spurious
-    order 3): order 2 as the unit's, the lag within 1 %, K at T0 within 0.6 micro-V/g and 4 sigma of the truth."""
+    order 3): order 2 as the unit's, the lag within 1 %, K and U0 at T0 within 0.6 micro-V(/g) and 4 sigma of the
+    truth (the smoothed readings' noise, correlated over ten minutes, in U0's sigma: 4.2 sigma when left out)."""
     th = fast_lag.run.au_temperature
     kept = (th["t_ns"] - th["t_ns"][0]) % (every_s * 1_000_000_000) == 0
     run = dataclasses.replace(fast_lag.run, au_temperature=th.filter(kept))
@@ -103,7 +104,7 @@ def test_a_thermosensor_read_once_a_minute(fast_lag, every_s):
     dK, dU = np.abs(fit.model.K0 - K_t[0]), np.abs(fit.model.U00 - U0_t[0])
     assert fit.model.order == 2 and fit.tau_s == pytest.approx(TAU_S, rel=0.01)
     assert dK.max() < 6e-7 and np.all(dK <= 4 * sK)
-    assert dU.max() < 6e-7
+    assert dU.max() < 6e-7 and np.all(dU <= 4 * sU)
 
 
 def test_every_vp_hold_verified_at_its_own_element_temperature(fast_lag_calibrated, fast_lag):
