@@ -1132,6 +1132,9 @@ def _runs(mask: np.ndarray) -> np.ndarray:
 #: fewest voltmeter samples in a static window, and in a kept static segment (for a stable noise floor)
 MIN_WINDOW_SAMPLES = 12
 MIN_SEGMENT_SAMPLES = 24
+#: fewest voltmeter samples in a kept static segment on a temperature plateau (a hold there is known to be one: a
+#: voltmeter at 0.5 Hz finds the 60-s holds of the short program); off every plateau :data:`MIN_SEGMENT_SAMPLES`
+MIN_HOLD_SAMPLES = 12
 
 
 def for_rate(settings: SegmentSettings, t_ns, interval_ns: float | None = None) -> SegmentSettings:
@@ -1268,6 +1271,7 @@ def segment_run(
 
     known = static is not None and static.t_ns is t_ns and static.interval_ns is not None  # (not after sorting)
     interval_ns = static.interval_ns if known and static is not None else median_interval_ns(t_ns)
+    asked_min_s = settings.static_min_s
     settings = for_rate(settings, t_ns, interval_ns)
     plateaus = find_plateaus(tt_ns, temp, settings)
     if not plateaus:
@@ -1284,12 +1288,31 @@ def segment_run(
     else:
         stretches, bad_u, settings = static.stretches, static.bad, static.settings
     covered = _cover(t_ns, stretches) if t_ns.size > 1 else 1.0
-    lenient = _lenient_static(rated, settings, covered, float("nan") if interval_ns is None else interval_ns / _NS)
+    dt_s = float("nan") if interval_ns is None else interval_ns / _NS
+    lenient = _lenient_static(rated, settings, covered, dt_s)
+    # on a temperature plateau a hold is known to be one: a stretch of MIN_HOLD_SAMPLES will do there
+    hold_min_s = max(MIN_HOLD_SAMPLES * dt_s, min(asked_min_s, settings.static_min_s))
+    if static is None and plateaus and hold_min_s < settings.static_min_s:
+        shorter = dataclasses.replace(settings, static_min_s=hold_min_s)
+        found, _ = _static_at(t_ns, ch, shorter, readers)
+        starts = np.array([p.t_start_ns for p in plateaus], dtype=np.int64)
+        ends = np.array([p.t_end_ns for p in plateaus], dtype=np.int64)
+        on = np.searchsorted(starts, [t_ns[a] for a, _ in found], side="right") - 1  # the plateau begun by then
+        extra = [
+            (a, b)
+            for (a, b), j in zip(found, on)
+            if j >= 0 and t_ns[b - 1] <= ends[j] and t_ns[b - 1] - t_ns[a] < settings.static_min_s * _NS
+        ]
+        if extra:
+            stretches = sorted(stretches + extra)
+        lenient = dataclasses.replace(lenient, static_min_s=min(lenient.static_min_s, hold_min_s))
+    else:
+        hold_min_s = settings.static_min_s
     # a sample in a gap of the thermosensor, or away from its record, has no temperature: no stretch holds one
     holes = thermosensor_gaps(tt_ns, settings)
     unknown = thermosensor_gaps(tt_ns, settings, within=(t_ns[0], t_ns[-1])) if t_ns.size and tt_ns.size else holes
     if len(unknown):
-        min_ns = settings.static_min_s * _NS
+        min_ns = hold_min_s * _NS  # (pieces off every plateau: static_min_s, :func:`_cut_at_plateaus`)
         stretches = [(a, b) for a, b in remove_spans(t_ns, stretches, unknown) if t_ns[b - 1] - t_ns[a] >= min_ns]
     outside_ns = sum(b - a for a, b in unknown) - sum(b - a for a, b in holes)
     if tt_ns.size > 1 and outside_ns > median_interval_ns(tt_ns):  # more than a reading's worth
@@ -1303,7 +1326,7 @@ def segment_run(
         )
     gaps = {"voltmeter": gap_spans(t_ns, settings.static_window_s / 2, readers), "au_temperature": holes}
     warnings += _gaps_on_plateaus(plateaus, gaps, settings.static_min_s, run.fixture)
-    pieces = _cut_at_plateaus(t_ns, stretches, plateaus, settings)
+    pieces = _cut_at_plateaus(t_ns, stretches, plateaus, settings, hold_min_s)
     all_gaps = np.concatenate([gaps["voltmeter"], holes.reshape(-1, 2)])
     all_gaps = all_gaps[np.argsort(all_gaps[:, 1], kind="stable")]
     fixture, stale = _fixture_labels(run, t_ns, pieces, all_gaps, run.unlogged_ns)
@@ -1578,9 +1601,14 @@ _GAPS_LISTED = 5
 
 
 def _cut_at_plateaus(
-    t_ns: np.ndarray, stretches: list[tuple[int, int]], plateaus: list[Plateau], settings: SegmentSettings
+    t_ns: np.ndarray,
+    stretches: list[tuple[int, int]],
+    plateaus: list[Plateau],
+    settings: SegmentSettings,
+    hold_min_s: float | None = None,
 ) -> list[tuple[int, int, int | None, int | None]]:
-    """Cut static stretches at plateau boundaries, drop pieces shorter than static_min_s, trim each piece.
+    """Cut static stretches at plateau boundaries, drop pieces shorter than static_min_s (on a plateau's stable
+    part: ``hold_min_s``, when given), trim each piece.
 
     A stretch is cut where each plateau begins and ends, except where it began in that plateau's settling: a hold
     the program started while the unit still settled is one segment, even where it goes on into the stable part.
@@ -1598,6 +1626,7 @@ def _cut_at_plateaus(
     start_idx = np.searchsorted(t_ns, starts, side="left")
     end_idx = np.searchsorted(t_ns, ends, side="right")
     min_ns = settings.static_min_s * _NS
+    hold_min_ns = min_ns if hold_min_s is None else min(min_ns, hold_min_s * _NS)
     out = []
     for i0, i1 in stretches:
         cuts = np.concatenate((start_idx[fronts > t_ns[i0]], end_idx))
@@ -1605,12 +1634,14 @@ def _cut_at_plateaus(
         bounds = np.concatenate(([i0], inner, [i1]))
         for a, b in zip(bounds[:-1], bounds[1:]):
             a, b = int(a), int(b)
-            if b <= a or t_ns[b - 1] - t_ns[a] < min_ns:
+            if b <= a or t_ns[b - 1] - t_ns[a] < hold_min_ns:
                 continue
             dur_ns = t_ns[b - 1] - t_ns[a]
             first = t_ns[a]
             on = np.flatnonzero((fronts <= first) & (first <= ends))
             k = int(on[0]) if on.size else None
+            if dur_ns < min_ns and not (k is not None and first >= starts[k]):
+                continue  # (shorter than static_min_s: only on a plateau's stable part)
             trim0 = int(min(settings.settle_trim_s * _NS, _MAX_START_TRIM * dur_ns))
             trim1 = int(min(settings.settle_trim_s / 10 * _NS, _MAX_END_TRIM * dur_ns))
             # (search keys of the array's dtype: a float key would convert the whole array)
