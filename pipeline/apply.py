@@ -38,6 +38,21 @@ from pipeline.run import Run
 from pipeline.utc import utc_text
 
 APPLY_COLUMNS = ("t_ns", "ax_g", "ay_g", "az_g", "temp_c", "in_range")
+#: ``apply --out``'s file format by the name's suffix (lower case; no suffix: Parquet), docs/contract.md
+OUTPUT_FORMATS = {"": "parquet", ".parquet": "parquet", ".pq": "parquet", ".mcap": "mcap", ".csv": "csv"}
+
+
+def output_format(path: str | Path) -> str:
+    """The format :func:`write_applied` writes to ``path``: ``parquet``, ``mcap`` or ``csv`` by its suffix. Any
+    other suffix is refused in one line before anything is read (a ``.csv`` or ``.json`` name holding Parquet would
+    mislead whoever opens it)."""
+    suffix = Path(path).suffix.lower()
+    if suffix not in OUTPUT_FORMATS:
+        raise ThermocalError(
+            f"apply writes Parquet (.parquet, .pq or no suffix), MCAP (.mcap) or CSV (.csv), not a '{suffix}' file",
+            path=str(path),
+        )
+    return OUTPUT_FORMATS[suffix]
 
 
 @dataclass
@@ -218,12 +233,13 @@ def write_applied(
     run: Run | None = None,
     verification=None,
 ) -> Path:
-    """Write the compensated recording: Parquet (any name), or MCAP with ``.mcap`` (one JSON channel ``apply`` of
-    row blocks), with the passport used and how it was verified (``verification``:
-    :class:`pipeline.passport.verification.Verification`) in the file's metadata (Parquet key-value metadata, the
-    MCAP ``thermocal.apply`` record). The file is written beside and renamed into place, so a failure leaves no
-    partial file."""
+    """Write the compensated recording in the format of its suffix (:func:`output_format`): Parquet, MCAP (one JSON
+    channel ``apply`` of row blocks) or CSV (a header row, then one line a row), with the passport used and how it
+    was verified (``verification``: :class:`pipeline.passport.verification.Verification`) in the file's metadata
+    (Parquet key-value metadata, the MCAP ``thermocal.apply`` record, the CSV's leading ``# thermocal.KEY: VALUE``
+    lines). The file is written beside and renamed into place, so a failure leaves no partial file."""
     path = Path(path)
+    fmt = output_format(path)
     tmp = path.with_name(f".{path.name}.partial")
     passport = load_passport(passport) if passport is not None else None
     meta = {
@@ -238,8 +254,12 @@ def write_applied(
         "passport_verification": verification.label if verification is not None else "not checked",
     }
     try:
-        if path.suffix == ".mcap":
+        if fmt == "mcap":
             _write_mcap(applied.table, tmp, meta)
+        elif fmt == "csv":
+            with open(tmp, "w", encoding="utf-8", newline="") as f:
+                f.writelines(f"# thermocal.{k}: {v}\n" for k, v in meta.items())
+                applied.table.write_csv(f)
         else:
             applied.table.write_parquet(tmp, metadata={f"thermocal.{k}": v for k, v in meta.items()})
         tmp.replace(path)

@@ -5,14 +5,17 @@ from __future__ import annotations
 import numpy as np
 import polars as pl
 import pytest
+from polars.testing import assert_frame_equal
 
 from pipeline import compensate
 from pipeline.apply import APPLY_COLUMNS, apply_passport, write_applied
 from pipeline.calibrate.tilt import fit_unit, observe_run, verify_unit
+from pipeline.io.runs import write_run
 from pipeline.passport.document import build_passport, load_model, load_passport
 from pipeline.run import Run
 from pipeline.simulate.chamber import SimConfig, simulate
 from pipeline.utc import utc_text
+from tests.conftest import run_main
 
 T0 = 20.0
 
@@ -113,7 +116,37 @@ def test_write_parquet_and_mcap(passport, other, tmp_path):
     with open(mc, "rb") as f:
         rows = sum(len(json.loads(m.data)["t_ns"]) for _, _, m in make_reader(f).iter_messages())
     assert rows == run.voltmeter.height
+    csv = write_applied(out, tmp_path / "a.CSV", passport=passport, run=run)  # the suffix in any case
+    head = csv.read_text().splitlines()[:6]
+    assert head[0] == "# thermocal.passport_unit: AU-0001"
+    assert head[4] == "# thermocal.passport_verification: not checked"
+    assert head[5] == ",".join(APPLY_COLUMNS)
+    assert_frame_equal(pl.read_csv(csv, comment_prefix="#"), out.table)  # every value back to the bit, NaN as NaN
     assert not list(tmp_path.glob(".*partial"))
+
+
+def test_cli_writes_csv_and_refuses_a_name_of_no_format(passport, other, tmp_path, monkeypatch, capsys):
+    """``apply --out x.csv`` wrote a Parquet file named x.csv (any name but .mcap was Parquet); now CSV, and a name
+    of a format apply does not write (.json, .xlsx) is refused in one line, exit 2, before anything is read."""
+    import json
+
+    run, _ = other
+    run_file = write_run(run, tmp_path / "run.mcap", "mcap")
+    passport_file = tmp_path / "passport.json"
+    passport_file.write_text(json.dumps(passport))
+    for name in ("x.json", "x.xlsx"):
+        code, out, err = run_main(monkeypatch, capsys, "apply", str(passport_file), str(run_file), "--out", name)
+        assert (code, out) == (2, "") and err.count("\n") == 1, err
+        assert f"{name}: apply writes Parquet (.parquet, .pq or no suffix), MCAP (.mcap) or CSV (.csv)" in err
+        assert not (tmp_path / name).exists()
+    target = tmp_path / "applied.csv"
+    code, out, err = run_main(
+        monkeypatch, capsys, "apply", str(passport_file), str(run_file), "--out", str(target), "--unverified"
+    )
+    assert code == 0, err
+    back = pl.read_csv(target, comment_prefix="#")
+    assert back.columns == list(APPLY_COLUMNS) and back.height == run.voltmeter.height
+    assert "# thermocal.passport_verification: UNVERIFIED (--unverified): " in target.read_text()
 
 
 @pytest.fixture(scope="module")

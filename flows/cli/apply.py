@@ -17,18 +17,21 @@ def apply(
         help="passport JSON file (verified first)",
     ),
     run: Path = typer.Argument(..., metavar="RUN", help="an .mcap file or a Parquet run directory"),
-    out: Path = typer.Option(..., "--out", help="output: a Parquet file, or MCAP when the name ends .mcap"),
+    out: Path = typer.Option(
+        ..., "--out", help="output: Parquet (.parquet, .pq or no suffix), MCAP (.mcap) or CSV (.csv)"
+    ),
     unverified: UnverifiedFlag = False,
     as_json: JsonFlag = False,
 ):
     """The passport's model (thermal model included) applied to every voltmeter sample: specific force in g, one
     row per input row, in_range per the passport's valid temperatures (a warning when some are outside)."""
-    from pipeline.apply import apply_passport, write_applied
+    from pipeline.apply import apply_passport, output_format, write_applied
     from pipeline.io.runs import read_run, read_units_meta
     from pipeline.passport.document import load_passport
     from pipeline.passport.registry import load_passport_file
 
     refuse_out_over_inputs(out, [passport, run])  # never over what it reads or a registry's records
+    output_format(out)  # a name of no format it writes: refused before anything is read
     doc, state = load_passport_file(passport, unverified=unverified)  # verified, or refused in one line
     p = load_passport(doc)
     r = read_run(run, str(p.unit) if read_units_meta(run)[1] else None)  # several units: the passport's

@@ -824,9 +824,11 @@ def _header(
 ) -> list[str]:
     unit, version = passport.get("unit", "?"), passport.get("version")
     lo, hi = valid
+    check = getattr(state, "verification", None)
+    stored = "content_sha256 as stored, unverified" if check is not None and not check.verified else "content_sha256"
     lines = [
         f"# {what}",
-        f"# thermocal export of {unit} passport v{version} (content_sha256 "
+        f"# thermocal export of {unit} passport v{version} ({stored} "
         f"{str(passport.get('content_sha256', ''))[:16]}), method {passport.get('method', 'tilt_six_position')}",
         f"# status {passport.get('status')}; {_approval(passport, state)}",
     ]

@@ -133,6 +133,12 @@ def test_commands_refuse_an_altered_passport_in_one_line(base, tmp_path, monkeyp
     summary = json.loads(out)
     assert summary["passport_used"]["verification"]["verified"] is False
     assert "UNVERIFIED" in Path("x.params").read_text() and "UNVERIFIED" in err
+    # the hash the header names is the one the file claims, said so (it named it as the passport's own)
+    stored = str(json.loads(newest.read_text())["content_sha256"])[:16]
+    assert (
+        f"passport v{newest.stem[1:].lstrip('0')} (content_sha256 as stored, unverified {stored})"
+        in Path("x.params").read_text()
+    )
     code, out, err = run_main(monkeypatch, capsys, *commands["report"], "--unverified")
     assert code == 0 and "UNVERIFIED" in out and "UNVERIFIED" in Path("x.html").read_text(), err
     code, out, err = run_main(monkeypatch, capsys, *commands["apply"], "--unverified", "--json")
