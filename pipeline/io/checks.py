@@ -154,6 +154,8 @@ def check_stream(
                 warnings.extend(gap_lines({label: spans}))
             else:
                 gaps[label] = spans
+    if stream == "voltmeter" and df.height > 1:
+        df = _stuck_missing(label, df, warnings)
     if stream == "fixture" and df.height:
         bad = ~df["position"].is_in(FIXTURE_LABELS) | df["position"].is_null()
         if bad.any():
@@ -194,14 +196,20 @@ def _intervals(t_ns: np.ndarray):
         yield a, np.diff(t_ns[a : a + SLAB_SAMPLES + 1])
 
 
-def gap_indices(t_ns: np.ndarray) -> np.ndarray:
-    """Indices ``i`` of the sorted times ``t_ns`` after which comes a gap: ``t_ns[i + 1] - t_ns[i]`` longer than
-    :data:`GAP_FACTOR` median intervals (the median from at most ~100 000 intervals)."""
+def median_interval_ns(t_ns: np.ndarray) -> float:
+    """The median interval (ns) of the sorted times ``t_ns``, from at most ~100 000 intervals (0 with fewer than two
+    times)."""
     n = t_ns.size - 1
     if n < 1:
-        return np.empty(0, dtype=np.intp)
+        return 0.0
     k = np.arange(0, n, max(1, n // 100_000))
-    median_ns = float(np.median(t_ns[k + 1] - t_ns[k]))
+    return float(np.median(t_ns[k + 1] - t_ns[k]))
+
+
+def gap_indices(t_ns: np.ndarray) -> np.ndarray:
+    """Indices ``i`` of the sorted times ``t_ns`` after which comes a gap: ``t_ns[i + 1] - t_ns[i]`` longer than
+    :data:`GAP_FACTOR` median intervals (:func:`median_interval_ns`)."""
+    median_ns = median_interval_ns(t_ns)
     if not median_ns > 0:
         return np.empty(0, dtype=np.intp)
     limit = np.int64(math.floor(GAP_FACTOR * median_ns))  # integer comparison: no float copy of the intervals
@@ -428,6 +436,115 @@ def dead_channels(voltmeter: pl.DataFrame) -> list[str]:
         elif finite.min() == finite.max():
             out.append(f"{c} reads {finite.min()!r} V in every sample")
     return out
+
+
+#: Expected number of stretches a live channel repeats one reading for by chance, per channel and record, that
+#: :func:`stuck_stretches` may call stuck: the threshold is set so that quantised noise stays below it.
+STUCK_FALSE_RATE = 1e-3
+#: The fewest consecutive identical samples called stuck, whatever the channel's noise (see :func:`stuck_stretches`).
+MIN_STUCK_SAMPLES = 4
+
+
+def stuck_stretches(col: pl.Series) -> tuple[np.ndarray, int, float, float]:
+    """The stretches where a voltmeter channel ``col`` (V, in time order) repeats one finite value for so many
+    consecutive samples that its noise cannot: a channel stuck (at its last value, at 0 V), or clipped at a rail
+    (a saturated output reads the rail's value exactly). Returns ((k, 2) [first, end) sample indices, the fewest
+    samples called stuck, the channel's highest and lowest finite value).
+
+    The threshold: a live channel's reading changes from one sample to the next unless its noise sigma is within a
+    quantisation step q of the voltmeter (a 24-bit voltmeter's LSB repeats: two consecutive readings are equal with
+    probability p ~ q / (2 sqrt(pi) sigma) when sigma >> q, p = 0 for unquantised values). p is measured on the
+    channel itself: the fraction of consecutive equal pairs outside the runs called stuck (the threshold and p
+    found together: a long stuck stretch would otherwise make a live channel look quiet). A run
+    of n equal readings then starts at a given sample with probability p**(n - 1), so over the record's N samples
+    n_min = 1 + ceil(log(STUCK_FALSE_RATE / N) / log p) keeps the expected number of live runs called stuck below
+    :data:`STUCK_FALSE_RATE`; in seconds n_min / rate: e.g. the real recordings' p of 0.03-0.12 (N 1e4-3e5) give
+    7-9 samples (7 s at 1 Hz, 0.09 s at 102 Hz) where their longest repeat is 4-6; 5 uV noise on a 24-bit +-1 V
+    voltmeter (p ~ 0.007, N = 1e6) 6 samples. At least :data:`MIN_STUCK_SAMPLES` (a logger repeating one reading
+    once or twice when a conversion is late is no fault). A channel whose readings are mostly equal (p >= 0.5: its
+    noise far below the step) cannot be told stuck from quiet and gives none. NaN breaks a run (missing data is
+    the gap and non-finite checks' business). One pass over the column in slabs of :data:`SLAB_SAMPLES`."""
+    n = col.len()
+    m = MIN_STUCK_SAMPLES - 1  # equal pairs in a row that make the shortest run
+    found: list[np.ndarray] = []
+    equal = 0
+    hi, lo = -math.inf, math.inf
+    for a in range(0, n, SLAB_SAMPLES):
+        x = slab_of(col, a, min(n, a + SLAB_SAMPLES + m))  # pairs a .. a + SLAB_SAMPLES + m - 2
+        hi, lo = max(hi, float(np.fmax.reduce(x))), min(lo, float(np.fmin.reduce(x)))
+        same = x[1:] == x[:-1]  # NaN is never equal: it breaks a run
+        equal += int(np.count_nonzero(same[:SLAB_SAMPLES]))
+        w = max(same.size - m + 1, 0)
+        run = same[:w].copy()
+        for k in range(1, m):
+            run &= same[k : w + k]
+        found.append(a + np.flatnonzero(run[:SLAB_SAMPLES]))  # samples i .. i + m all equal
+    first = np.concatenate(found) if found else np.zeros(0, dtype=np.int64)
+    cut = np.flatnonzero(np.diff(first) > 1)
+    runs = (
+        np.column_stack((first[np.concatenate(([0], cut + 1))], first[np.concatenate((cut, [first.size - 1]))] + m + 1))
+        if first.size
+        else np.zeros((0, 2), dtype=np.int64)
+    )
+    length = runs[:, 1] - runs[:, 0]
+    n_min = MIN_STUCK_SAMPLES
+    for _ in range(8):  # p without the runs called stuck, until the threshold no longer changes
+        p = max(equal - int(np.sum(length[length >= n_min] - 1)), 0) / max(n - 1, 1)
+        if p >= 0.5:
+            return np.zeros((0, 2), dtype=np.int64), n, hi, lo
+        was, n_min = n_min, MIN_STUCK_SAMPLES
+        if p > 0:
+            n_min = max(n_min, 1 + math.ceil(math.log(STUCK_FALSE_RATE / max(n, 1)) / math.log(p)))
+        if n_min == was:
+            break
+    return runs[length >= n_min], n_min, hi, lo
+
+
+def _stuck_missing(label: str, df: pl.DataFrame, warnings: list[str]) -> pl.DataFrame:
+    """The voltmeter channels' stuck or clipped stretches (:func:`stuck_stretches`) set to NaN (missing: no hold in
+    them is used, as with any non-finite sample), with one warning per channel naming how many, the time in all
+    (s), the first and the longest (value, start as t_ns, UTC and seconds from the stream's first sample, duration
+    in s) and the shortest stretch called stuck (s). A channel that reads one value in every sample is left as it
+    is (:func:`dead_channels`)."""
+    t_ns = df["t_ns"].to_numpy()
+    step_ns = median_interval_ns(t_ns)
+    for c in ("ux", "uy", "uz"):
+        col = df[c]
+        runs, n_min, hi, lo = stuck_stretches(col)
+        if not runs.size or hi == lo:
+            continue
+        dur_s = (t_ns[runs[:, 1] - 1] - t_ns[runs[:, 0]] + step_ns) / 1e9
+        values = col.gather(runs[:, 0]).to_numpy()
+        said = [
+            _stuck_text(t_ns, int(runs[k, 0]), int(runs[k, 1]), float(values[k]), float(dur_s[k]), hi, lo)
+            for k in dict.fromkeys((0, int(np.argmax(dur_s))))
+        ]
+        more = f"; the longest {said[1]}" if len(said) > 1 else ""
+        warnings.append(
+            f"{label}: {c} stuck (one reading repeated for >= {n_min * step_ns / 1e9:.3g} s, {n_min} samples, "
+            f"which its noise does not give) in {runs.shape[0]} stretch(es), {float(dur_s.sum()):.1f} s in all: "
+            "the first at "
+            f"{said[0]}{more}; treated as missing (no hold in them is used)"
+        )
+        edge = np.zeros(df.height + 1, dtype=np.int8)
+        edge[runs[:, 0]] += 1
+        edge[runs[:, 1]] -= 1
+        stuck = np.cumsum(edge[:-1], dtype=np.int32) > 0
+        df = df.with_columns(pl.when(pl.Series(stuck)).then(float("nan")).otherwise(pl.col(c)).alias(c))
+    return df
+
+
+def _stuck_text(t_ns: np.ndarray, a: int, b: int, value_v: float, dur_s: float, hi: float, lo: float) -> str:
+    """One stuck stretch (samples ``a .. b - 1`` at ``value_v``) in a warning: value, a rail when it is the channel's
+    highest or lowest, duration (s), start (t_ns, UTC, s after the stream's first sample)."""
+    from pipeline.utc import utc_span
+
+    rail = " (the channel's highest value: clipped at a rail?)" if value_v == hi else ""
+    rail = " (the channel's lowest value: clipped at a rail?)" if value_v == lo else rail
+    return (
+        f"{value_v:.7g} V{rail} for {dur_s:.1f} s from t_ns={t_ns[a]} "
+        f"({utc_span(int(t_ns[a]), int(t_ns[b - 1]))}, {(t_ns[a] - t_ns[0]) / 1e9:.1f} s after the start)"
+    )
 
 
 def writable_units(runs: UnitRuns, *, path: str) -> tuple[dict[str, pl.DataFrame], dict[str, dict[str, pl.DataFrame]]]:
