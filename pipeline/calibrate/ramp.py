@@ -32,7 +32,8 @@ The method (:class:`Ramp`, a :class:`pipeline.calibrate.method.Method`): ``obser
 smoothed thermosensor, :func:`observe_run`), ``fit`` (:func:`fit_ramp`, and the holds as observations at their element
 temperatures, :func:`hold_observations`, which the shared tail verifies: the VP holds, with the status never
 ``pass`` where they leave a side of T0 unverified); ``supports``: test positions that determine the 12 constants held
-over 10 C or more, preferred by ``--method auto`` where most were held off the soaked plateaus.
+over 10 C or more, preferred by ``--method auto`` where most were held off the soaked plateaus, or where those
+off them determine the constants more than 10 C beyond the plateaus that do (:func:`_beyond_the_plateaus`).
 """
 
 from __future__ import annotations
@@ -705,8 +706,9 @@ def _legs(pieces: Pieces) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------------------------
 # the method
 
-#: ``--method auto``'s preference where most test-position holds lie off the soaked plateaus: above the tilt
-#: method's with a fixture log (28), below the differential method's on a sweep it supports (30)
+#: ``--method auto``'s preference where most test-position holds lie off the soaked plateaus (or reach beyond them,
+#: :func:`_beyond_the_plateaus`): above the tilt method's with a fixture log (28), below the differential method's on a
+#: sweep it supports (30)
 PREFERENCE_RAMPS = 29.0
 PREFERENCE = 5.0
 #: test positions held over at least this temperature span (C)
@@ -727,6 +729,31 @@ def visits(segments) -> list:
     return [next(group) for _, group in itertools.groupby(named, key=hold)]
 
 
+def _beyond_the_plateaus(off_holds, plateau_temps_c: list[float]) -> str | None:
+    """Where test-position holds off every soaked plateau (``off_holds``, :func:`visits`) determine the 12 constants
+    more than :data:`MIN_SPAN_C` below the coldest or above the warmest of the soaks whose test positions determine
+    them (``plateau_temps_c``, the tilt method's), the clause saying so, else None: the tilt method leaves those
+    holds out and its passport stops short of them (a stepped program whose soaks do not wait out the unit's lag:
+    a stage's holds drift through the plateau test), the ramp method takes every hold at its own temperature."""
+    if not off_holds:
+        return None
+    temps = np.array([h.temp_c for h in off_holds])
+    if plateau_temps_c:
+        lo, hi = min(plateau_temps_c), max(plateau_temps_c)
+        sides = [(f"below the plateaus' {lo:+.1f} .. {hi:+.1f} C", temps < lo - MIN_SPAN_C)]
+        sides.append((f"above the plateaus' {lo:+.1f} .. {hi:+.1f} C", temps > hi + MIN_SPAN_C))
+    else:
+        sides = [("where no plateau holds the test positions", np.isfinite(temps))]
+    for where, sel in sides:
+        names = [h.position for h, s in zip(off_holds, sel) if s]
+        if determines_constants(names):
+            return (
+                f"{', '.join(sorted(set(names)))} held off the soaked plateaus at {temps[sel].min():+.1f} .. "
+                f"{temps[sel].max():+.1f} C, {where}"
+            )
+    return None
+
+
 class Ramp(Method):
     """Positions held on temperature ramps (fast programs): see the module doc. Options: ``ramp``
     (:class:`RampSettings`)."""
@@ -744,12 +771,18 @@ class Ramp(Method):
         lo, hi = (min(temps), max(temps)) if temps else (float("nan"), float("nan"))
         ok = bool(tp) and determines_constants(names) and hi - lo >= MIN_SPAN_C
         holds = [h for h in visits(recording.segmentation.segments) if is_test_position(h.position)]
-        off = sum(1 for h in holds if h.plateau not in recording.soaks and h.settling is None)
+        off_holds = [h for h in holds if h.plateau not in recording.soaks and h.settling is None]
+        off = len(off_holds)
+        most = 2 * off > len(holds)
+        beyond = (
+            None if most or not ok else _beyond_the_plateaus(off_holds, [c[2] for c in recording.constant_plateaus])
+        )
         return Support(
             supported=ok,
             why=(
                 f"test positions {', '.join(names)} held over {lo:+.1f} .. {hi:+.1f} C; {off} of "
                 f"{count_words(len(holds), 'test-position hold')} off the soaked plateaus"
+                + (f"; {beyond}" if beyond else "")
                 if ok
                 else f"needs test positions that determine the 12 constants held over {MIN_SPAN_C:.0f} C or more; "
                 + (f"found {', '.join(names)} over {lo:+.1f} .. {hi:+.1f} C" if tp else "found none")
@@ -762,7 +795,7 @@ class Ramp(Method):
                 if ok
                 else ()
             ),
-            preference=PREFERENCE_RAMPS if ok and 2 * off > len(holds) else PREFERENCE,
+            preference=PREFERENCE_RAMPS if ok and (most or beyond) else PREFERENCE,
         )
 
     def observe(
