@@ -26,7 +26,14 @@ from abc import ABC, abstractmethod
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, ClassVar
 
-from pipeline.calibrate.observations import Observation, ObservedRun, plateau_summary, unit_of, verify_unit
+from pipeline.calibrate.observations import (
+    Observation,
+    ObservedRun,
+    plateau_summary,
+    unit_of,
+    verification_gap,
+    verify_unit,
+)
 from pipeline.calibrate.result import CalibrationResult, UnitFit
 from pipeline.calibrate.settings import CalibrationSettings
 from pipeline.passport.document import Passport, build_passport, load_passport
@@ -133,8 +140,11 @@ class Method(ABC):
     def verification_notes(
         self, observations: list[Observation], rows: list[VerificationRow], normal_temp_c: float
     ) -> list[str]:
-        """Warnings about the verification itself, after the others (default: none)."""
-        return []
+        """Warnings about the verification itself, after the others (default: what the VP data leave unverified of
+        the thermal model's range, :func:`pipeline.calibrate.observations.verification_gap`: the reason
+        :func:`verify_unit` gives every method's ``pass`` up for ``unverified``)."""
+        gap = verification_gap(observations, normal_temp_c) if rows else None
+        return [gap] if gap else []
 
     def finish(self, observed: list[ObservedRun], fitted: Fitted, settings: CalibrationSettings) -> CalibrationResult:
         """The tail of every method: verify ``fitted.fit.model`` at every VP observation against the unit grade's

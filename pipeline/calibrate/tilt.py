@@ -9,7 +9,7 @@ The method (:class:`Tilt`, a :class:`pipeline.calibrate.method.Method`), each st
    during a plateau's positions, so each position is at a slightly different temperature);
 3. the tail every method shares (:meth:`pipeline.calibrate.method.Method.finish`): dg at every VP observation,
    uncompensated and by both compensation methods, the plausibility judgement and the passport document, as a
-   :class:`pipeline.calibrate.result.CalibrationResult`; the tilt method adds what the VP data leave unverified
+   :class:`pipeline.calibrate.result.CalibrationResult`, with what the VP data leave unverified
    (:func:`pipeline.calibrate.observations.verification_gap`). ``calibrate_observed`` is 2 then 3,
    ``calibrate(runs)`` 1, 2, 3.
 """
@@ -31,7 +31,6 @@ from pipeline.calibrate.observations import (
     plateau_groups,
     plateau_summary,
     unit_of,
-    verification_gap,
     verify_unit,
 )
 from pipeline.calibrate.recording import Recording
@@ -156,11 +155,6 @@ class Tilt(Method):
                 raise
             why = short.removeprefix("voltmeter: ").removesuffix(": not used")
             raise CalibrationError(f"{e.message}; {why}", path=e.path, stream=e.stream, where=e.where) from None
-
-    def verification_notes(self, observations, rows, normal_temp_c: float) -> list[str]:
-        """What the VP data leave unverified of the thermal model's range (:func:`verification_gap`)."""
-        gap = verification_gap(observations, normal_temp_c) if rows else None
-        return [gap] if gap else []
 
 
 #: how much ``--method auto`` prefers the tilt method (:attr:`pipeline.calibrate.method.Support.preference`): above

@@ -7,6 +7,7 @@ finds with them. Runs are small: the fast program (2.8 h) at 2 Hz, the issue's s
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import re
 from pathlib import Path
@@ -391,3 +392,27 @@ def test_soaks_that_wait_out_the_lag_stay_with_the_tilt_method():
     method, _, seg, why = resolve_auto(sim.run, CalibrationSettings())
     assert method == "tilt", why
     assert "held off the soaked plateaus at" not in ramp.Ramp().supports(Recording.of(sim.run, seg)).why
+
+
+@functools.cache
+def _stepped(spec: str):
+    return simulate(SimConfig(program=parse_program(spec, hold_s=120.0, case_lag_s=300.0), rate_hz=2.0, seed=7))
+
+
+@pytest.mark.parametrize("method", ["tilt", "ramp"])
+@pytest.mark.parametrize(
+    "spec, side",
+    [
+        ("20@5:TP; -40@5:TP; 20@5:TP+VP; 70@5:TP+VP", "below"),
+        ("20@15:TP; -40@15:TP; 20@15:TP+VP; 70@15:TP+VP", "below"),
+        ("20@5:TP+VP; -40@5:TP+VP; 20@5:TP; 70@5:TP", "above"),
+    ],
+)
+def test_a_status_unverified_for_a_side_of_t0_says_so_whatever_the_method(spec, side, method):
+    """Programs with VP holds on one side of T0 only: every method's 'pass' becomes 'unverified' there
+    (observations.verify_unit), and the warnings say why, for the ramp method too: its passports were
+    'unverified' with nothing but the fit's notes (the tilt method alone added verification_gap's line)."""
+    res = by_name(method).calibrate([_stepped(spec).run], CalibrationSettings())
+    assert res.status == "unverified"
+    said = [w for w in res.warnings if w.startswith(f"verification does not exercise the thermal model {side} T0")]
+    assert len(said) == 1 and said[0].endswith("so the status is not pass"), res.warnings
