@@ -18,6 +18,7 @@ import pytest
 
 from pipeline.calibrate.methods import by_name, resolve_auto
 from pipeline.calibrate.settings import CalibrationSettings
+from pipeline.errors import ThermocalError
 from pipeline.io.checks import MIN_STUCK_SAMPLES, STUCK_FALSE_RATE, check_stream, stuck_stretches
 from pipeline.io.runs import read_units, write_run
 from pipeline.segment_units import segment_units
@@ -38,6 +39,9 @@ VARIANTS = {
     "last value to the end": ("hold", 6000.0, None, None),
     "0 V 20 min": ("zero", 2900.0, 1200.0, None),
     "clipped at +0.3 V": ("clip", 0.0, None, 0.3),
+    "clipped at 0 V": ("clip", 0.0, None, 0.0),
+    # the rail at the median of the -40 C TP2 hold (uy at +1 g): that hold half clipped, no long run of one value there
+    "clipped at a hold's median": ("clip", 3020.0, 40.0, None),
 }
 
 
@@ -82,23 +86,29 @@ def _variant(src: Path, dst: Path, unit: str, channel: str, spec) -> tuple[float
     elif kind == "zero":
         value, new = 0.0, pl.when(sel).then(pl.lit(0.0))
     else:
-        value, new = clip_v, pl.when(sel & (pl.col(channel) > clip_v)).then(pl.lit(clip_v))
+        if clip_v is None:  # the median of the stretch given; the whole run clipped there
+            clip_v = float(np.median(v.filter(sel)[channel].to_numpy()))
+        value, new = clip_v, pl.when(mine & (pl.col(channel) > clip_v)).then(pl.lit(clip_v))
     v.with_columns(new.otherwise(pl.col(channel)).alias(channel)).write_parquet(dst / "voltmeter.parquet")
     return a_s, end_s - a_s, value
 
 
 def _calibrate(path: Path) -> dict:
-    """Each unit's (constants' max z against nothing yet: the passport document, the warnings) read from real
-    files, segmented as the calibrate flow does (the units' consensus), by the method auto picks."""
+    """Each unit's (passport document or None, warnings, the refusal's one line or None), read from real files,
+    segmented as the calibrate flow does (the units' consensus), by the method auto picks."""
     runs = read_units(path)
     settings = CalibrationSettings()
     segs, _ = segment_units(runs.units, settings.segment)
-    out = {}
+    out: dict[str, tuple[dict | None, list[str], str | None]] = {}
     for serial, run in runs.units.items():
-        method, _, seg, _ = resolve_auto(run, settings, None, segs[serial])
-        m = by_name(method)
-        res = m.calibrate_observed([m.observe(run, settings, segmentation=seg)], settings)
-        out[serial] = (res.passport, res.warnings)
+        try:
+            method, _, seg, _ = resolve_auto(run, settings, None, segs[serial])
+            m = by_name(method)
+            res = m.calibrate_observed([m.observe(run, settings, segmentation=seg)], settings)
+        except ThermocalError as e:
+            out[serial] = (None, list(run.warnings), e.one_line())
+        else:
+            out[serial] = (res.passport, res.warnings, None)
     return out
 
 
@@ -125,9 +135,14 @@ def test_a_stuck_stretch_is_named_and_left_out(clean, kind, variant):
     dst = tmp / f"{kind}-{re.sub(r'[^a-z0-9]+', '-', variant)}"
     a_s, dur_s, value = _variant(src, dst, unit, "uy", VARIANTS[variant])
     after = _calibrate(dst)
-    doc, warnings = after[unit]
-    said = [w for w in warnings if ": uy stuck (one reading repeated for >= " in w]
+    doc, warnings, refused = after[unit]
+    clip = VARIANTS[variant][0] == "clip"
+    head = (
+        f": uy clipped at {value:.7g} V, its highest reading (" if clip else ": uy stuck (one reading repeated for >= "
+    )
+    said = [w for w in warnings if head in w]
     assert len(said) == 1, warnings
+    assert not [w for w in warnings if ": uy " in w and w not in said]
     line = said[0]
     assert ("unit AU-0302" in line) == (kind == "multi")
     first = re.search(
@@ -135,17 +150,22 @@ def test_a_stuck_stretch_is_named_and_left_out(clean, kind, variant):
     )
     assert first, line
     assert float(first.group(1)) == pytest.approx(value, abs=5e-8)
-    if VARIANTS[variant][0] == "clip":
-        assert "clipped at a rail" in first.group(2)
-        assert re.search(r"in \d+ stretch\(es\)", line)
+    if clip:
+        assert re.search(r"\((\d+) samples read it, (\d+) the next lower value: a rail", line)
     else:
         assert "in 1 stretch(es)" in line
         assert float(first.group(5)) == pytest.approx(a_s, abs=0.6)
         assert float(first.group(3)) == pytest.approx(dur_s, abs=1.1)
     assert not [w for w in warnings if "not still in" in w or "otherwise than the other units" in w]
-    assert _max_z(doc, truths[unit]) < K_SIGMA
-    for serial, (other, _) in after.items():
+    if doc is None:  # too little left: this unit refused alone, in one line
+        assert refused and "\n" not in refused
+    elif len(doc["per_plateau"]) >= 2:
+        assert _max_z(doc, truths[unit]) < K_SIGMA
+    else:  # one plateau left (clipped at 0 V, AU-0302): T0's constants from it alone; the status says fail
+        assert doc["status"] == "fail"
+    for serial, (other, _, _) in after.items():
         if serial != unit:
+            assert other is not None and before[serial][0] is not None
             assert other["coefficients"] == before[serial][0]["coefficients"]
             assert other["status"] == before[serial][0]["status"]
 
@@ -153,7 +173,7 @@ def test_a_stuck_stretch_is_named_and_left_out(clean, kind, variant):
 def _stuck_lines(run) -> list[str]:
     w: list[str] = []
     check_stream("voltmeter", run.voltmeter, path="x", warnings=w)
-    return [x for x in w if "stuck" in x]
+    return [x for x in w if "stuck" in x or "clipped" in x]
 
 
 @pytest.mark.parametrize(
@@ -176,13 +196,13 @@ def test_real_recordings_have_no_stuck_channel(run):
     if not (REAL / run).exists():
         pytest.skip("the real recordings are not on this machine")
     runs = read_units(REAL / run)
-    assert not [w for r in runs.units.values() for w in r.warnings if "stuck" in w]
+    assert not [w for r in runs.units.values() for w in r.warnings if "stuck" in w or "clipped" in w]
 
 
 @pytest.mark.parametrize("sample", ["standard_short.mcap", "standard_short_parquet"])
 def test_sample_data_has_no_stuck_channel(sample):
     runs = read_units(REPO / "sample_data" / sample)
-    assert not [w for r in runs.units.values() for w in r.warnings if "stuck" in w]
+    assert not [w for r in runs.units.values() for w in r.warnings if "stuck" in w or "clipped" in w]
 
 
 @pytest.mark.parametrize("lsb_over_sigma", [0.1, 1.0, 2.0])
@@ -232,3 +252,29 @@ def test_stuck_runs_are_the_maximal_runs_across_slabs(monkeypatch):
                 loop.append([i, j])
             i = j
         assert runs.tolist() == loop
+
+
+@pytest.mark.parametrize("rate_hz", [2.0, 10.0, 100.0])
+def test_a_hold_clipped_within_its_noise_is_left_out_whole(rate_hz):
+    """A 60-s hold whose signal lies at the rail (5 uV noise, every reading above the rail read as the rail: half
+    its readings) between live holds 1 mV below: the readings at the rail come in short runs (a run of 4 or more
+    only 1 in 8), so the stuck test alone kept most of them and every reading below the rail, a mean biased by
+    -0.4 sigma or more. Now the whole hold, from its first reading at the rail to its last, is missing and named as
+    clipped with the rail's value; the live holds are untouched."""
+    rng = np.random.default_rng(5)
+    n = int(60 * rate_hz)
+    rail = 0.55
+    u = np.concatenate([rail - 1e-3 + 5e-6 * rng.normal(size=n), rail + 5e-6 * rng.normal(size=n)])
+    u = np.concatenate([u, rail - 1e-3 + 5e-6 * rng.normal(size=n)])
+    u = np.minimum(u, rail)
+    t_ns = 1_793_491_200_000_000_000 + (np.arange(u.size) * 1e9 / rate_hz).astype(np.int64)
+    live = 1e-3 + 5e-6 * rng.normal(size=u.size)
+    df = pl.DataFrame({"t_ns": t_ns, "ux": live, "uy": u, "uz": -live})
+    w: list[str] = []
+    out = check_stream("voltmeter", df, path="x", warnings=w)
+    gone = np.flatnonzero(np.isnan(out["uy"].to_numpy()))
+    at = np.flatnonzero(u == rail)
+    assert gone.tolist() == list(range(at[0], at[-1] + 1))
+    assert at[0] < n + 5 and at[-1] > 2 * n - 5
+    assert [x for x in w if x.startswith(f"voltmeter: uy clipped at {rail:.7g} V, its highest reading")]
+    assert not np.isnan(out["ux"].to_numpy()).any() and not np.isnan(out["uz"].to_numpy()).any()
