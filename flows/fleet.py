@@ -2,8 +2,11 @@
 
 One flow run per fleet job, one task per unit (``calibrate-unit``, a call of
 :func:`pipeline.calibrate.fleet.compute_group`): a unit's runs, TP runs and the VP runs that verify them, are
-calibrated together. Planning (discovery, metadata, content hashes, the registry's identity check) is
-:func:`pipeline.calibrate.fleet.plan_fleet`, run once in the flow.
+calibrated together. The units whose only run is one run holding several units are one task
+(``calibrate-units``, :func:`pipeline.calibrate.fleet.compute_run`): the run read and segmented once for its units,
+as ``thermocal calibrate`` does, so that both commands make the same passports from it. Planning (discovery,
+metadata, content hashes, the registry's identity check) is :func:`pipeline.calibrate.fleet.plan_fleet`, run once in
+the flow.
 
 The tasks only compute; publishing happens in one place, the flow itself, as each unit's result comes back
 (:func:`pipeline.calibrate.fleet.publish_group`: signed with this station's key, appended to the registry the user
@@ -80,6 +83,49 @@ def calibrate_unit(
     ``pool`` when given (the flow's), else here."""
     args = (unit, runs, settings, method, base_passport, within)
     return pool.submit(fleet_plan.compute_group, *args).result() if pool else fleet_plan.compute_group(*args)
+
+
+@task(name="calibrate-units", task_run_name="calibrate-{name}", cache_policy=NO_CACHE)
+def calibrate_units(
+    name: str,
+    run: str,
+    bases: dict[str, Passport | None],
+    settings: CalibrationSettings,
+    method: str = "tilt",
+    pool: Executor | None = None,
+) -> list[fleet_plan.ComputedUnit]:
+    """The units ``bases`` of ``run``, a run holding several units that is their only run, together:
+    :func:`pipeline.calibrate.fleet.compute_run` (the run read and segmented once, as ``calibrate`` does), in the
+    process ``pool`` when given, else here. ``name``: the units, for the task run's name."""
+    args = (run, bases, settings, method)
+    return pool.submit(fleet_plan.compute_run, *args).result() if pool else fleet_plan.compute_run(*args)
+
+
+def _submit(runner, batch: list[fleet_plan.UnitGroup], settings, method, pool):
+    """The task of one batch of :meth:`pipeline.calibrate.fleet.FleetPlan.batches`: ``calibrate-units`` for the
+    units of a run with several, ``calibrate-unit`` for one unit."""
+    run = batch[0].shared_run
+    if run is None:
+        (g,) = batch
+        params = {
+            "unit": g.unit,
+            "runs": list(g.runs),
+            "settings": settings,
+            "method": method,
+            "base_passport": g.base_passport,
+            "within": g.within,
+            "pool": pool,
+        }
+        return runner.submit(calibrate_unit, params)
+    params = {
+        "name": "+".join(g.unit for g in batch),
+        "run": run,
+        "bases": {g.unit: g.base_passport for g in batch},
+        "settings": settings,
+        "method": method,
+        "pool": pool,
+    }
+    return runner.submit(calibrate_units, params)
 
 
 def default_workers() -> int:
@@ -225,38 +271,27 @@ def fleet_flow(
     outcomes: list[fleet_plan.UnitOutcome] = []
     runner_name = "none"
     if plan.groups:
-        runner, runner_name, processes = make_task_runner(dask_address, workers, pool, len(plan.groups))
+        batches = plan.batches()
+        runner, runner_name, processes = make_task_runner(dask_address, workers, pool, len(batches))
         with runner, _compute_pool(processes) as compute_pool, _Progress(step.on, len(plan.groups), logger) as bar:
-            futures = {
-                runner.submit(
-                    calibrate_unit,
-                    {
-                        "unit": g.unit,
-                        "runs": list(g.runs),
-                        "settings": settings,
-                        "method": method,
-                        "base_passport": g.base_passport,
-                        "within": g.within,
-                        "pool": compute_pool,
-                    },
-                ): g
-                for g in plan.groups
-            }
+            futures = {_submit(runner, batch, settings, method, compute_pool): batch for batch in batches}
             for fut in as_completed(list(futures)):
-                group = futures[fut]
+                batch = futures[fut]
                 try:
-                    computed = fut.result()
+                    got = fut.result()
+                    computed = got if isinstance(got, list) else [got]
                 except Exception as exc:
                     reason = fleet_plan.reason_of(exc)
-                    outcome = fleet_plan.UnitOutcome(
-                        group.unit, list(group.runs), None, [{"run": r, "reason": reason} for r in group.runs], 0.0
-                    )
-                else:  # the one place the fleet signs and writes: here, on the station
-                    outcome = fleet_plan.publish_group(
-                        registry, computed, settings, figures, group.digests, group.within
-                    )
-                outcomes.append(outcome)
-                bar.unit_done(_unit_line(outcome, len(outcomes), len(plan.groups)), outcome.failed)
+                    computed = [
+                        fleet_plan.ComputedUnit(
+                            g.unit, list(g.runs), None, [], [{"run": r, "reason": reason} for r in g.runs], 0.0
+                        )
+                        for g in batch
+                    ]
+                for group, unit in zip(batch, computed):  # the one place the fleet signs and writes: on the station
+                    outcome = fleet_plan.publish_group(registry, unit, settings, figures, group.digests, group.within)
+                    outcomes.append(outcome)
+                    bar.unit_done(_unit_line(outcome, len(outcomes), len(plan.groups)), outcome.failed)
     summary = fleet_summary(plan, outcomes)
     summary["flow_run_id"] = str(flow_run.id)
     summary["timing"] = {

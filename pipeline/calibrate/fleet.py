@@ -20,8 +20,12 @@ calibrate one unit's group while isolating a bad run.
 The Prefect flow (``flows/fleet.py``) runs :func:`plan_fleet` once and :func:`calibrate_group` as one task per unit.
 
 A run holding several units (log-format.md) counts once per unit: each of its units is grouped with that unit's
-other runs, calibrated from its own streams (``read_run(path, unit)``: the other units' messages are not decoded),
-and its passport's provenance names the run and the unit; a unit of it whose data is bad fails alone.
+other runs, and its passport's provenance names the run and the unit; a unit of it whose data is bad fails alone.
+The units whose only run it is are calibrated together, as ``thermocal calibrate RUN`` calibrates them
+(:func:`compute_run`: the run read once, segmented once by the consensus of its units,
+:func:`pipeline.segment_units.segment_units`), so the passports are the same whichever command made them
+(:meth:`FleetPlan.batches`). A unit with other runs beside it is one recording of all its files, its own streams
+read from the run (``read_run(path, unit)``) and segmented alone, as ``calibrate`` does with the same files.
 """
 
 from __future__ import annotations
@@ -52,6 +56,7 @@ from pipeline.passport.document import Passport
 from pipeline.passport.provenance import RunDigest, hash_run
 from pipeline.passport.registry import Registry, identity_key
 from pipeline.run import Run, RunMeta
+from pipeline.segment import Segmentation
 
 #: A directory holding one of these is a Parquet run directory (docs/log-format.md).
 PARQUET_RUN_MARKERS = ("voltmeter.parquet", PARQUET_META_FILE)
@@ -76,6 +81,12 @@ class UnitGroup:
     base_passport: Passport | None = field(default=None, compare=False)
     within: dict[str, dict] = field(default_factory=dict, compare=False)
 
+    @property
+    def shared_run(self) -> str | None:
+        """The run holding several units that is this unit's only run (its segmentation is the run's, made with
+        the other units: :func:`compute_run`), else None."""
+        return self.runs[0] if len(self.runs) == 1 and self.runs[0] in self.within else None
+
 
 @dataclass
 class FleetPlan:
@@ -92,6 +103,23 @@ class FleetPlan:
     @property
     def runs_found(self) -> int:
         return sum(len(g.runs) for g in self.groups) + len(self.skipped) + len(self.failed)
+
+    def batches(self) -> list[list[UnitGroup]]:
+        """The groups as the fleet's tasks calibrate them: the units whose only run is one run holding several
+        units together, one batch a run (:func:`compute_run`: the run read and segmented once, as ``calibrate``),
+        every other unit alone (:func:`compute_group`); in the order of :attr:`groups`."""
+        out: list[list[UnitGroup]] = []
+        by_run: dict[str, list[UnitGroup]] = {}
+        for g in self.groups:
+            run = g.shared_run
+            if run is None:
+                out.append([g])
+            elif run in by_run:
+                by_run[run].append(g)
+            else:
+                by_run[run] = [g]
+                out.append(by_run[run])
+        return out
 
 
 @dataclass
@@ -348,16 +376,20 @@ def compute_group(
     Runs that cannot be read, or belong to another unit, are dropped (listed in ``failed``); the rest are one
     recording of the unit (:func:`pipeline.calibrate.inputs.join_runs`), calibrated together. If the unit cannot be
     calibrated at all, every remaining run is listed in ``failed`` with the reason and ``calibration`` is None. Bad
-    inputs never raise.
+    inputs never raise. A unit whose only run holds several units is calibrated from the run's segmentation, as
+    ``calibrate`` does (:func:`compute_run`); a unit with other runs beside it is one recording of its files,
+    segmented alone, as ``calibrate`` does with those files.
     """
     t0 = time.perf_counter()
     runs = [str(r) for r in runs]
+    if len(runs) == 1 and runs[0] in (within or {}):  # its only run holds several units: their consensus
+        return compute_run(runs[0], {unit: base_passport}, settings, method)[0]
     failed: list[dict] = []
     good: list[str] = []
-    observed: list = []
     calibration = None
     try:
-        chosen = by_name(method) if method != "auto" else None
+        if method != "auto":
+            by_name(method)
     except CalibrationError as exc:
         failed = [{"run": p, "reason": reason_of(exc)} for p in runs]
         return ComputedUnit(unit, runs, None, [], failed, time.perf_counter() - t0)
@@ -374,21 +406,79 @@ def compute_group(
         good.append(path)
     if good:
         try:
-            run = join_runs(read)  # the unit's files are one recording
-            del read
-            seg = None
-            if chosen is None:  # --method auto: the method the unit's recording supports
-                method, base_passport, seg, _ = resolve_auto(run, settings, base_passport)
-                chosen = by_name(method)
-            assert chosen is not None  # named, or chosen on the recording
-            observed.append(chosen.observe(run, settings, base_passport=base_passport, segmentation=seg))
-            del run
-            calibration = chosen.calibrate_observed(observed, settings, base_passport=base_passport)
+            holder = [join_runs(read)]  # the unit's files are one recording
+            read.clear()
+            calibration = _calibrate_recording(holder, None, settings, method, base_passport)
         except Exception as exc:
             reason = reason_of(exc)
             failed += [{"run": p, "reason": reason} for p in good]
             good = []
     return ComputedUnit(unit, runs, calibration, good, failed, time.perf_counter() - t0)
+
+
+def _calibrate_recording(
+    holder: list[Run], seg: Segmentation | None, settings: CalibrationSettings, method: str, base: Passport | None
+) -> CalibrationResult:
+    """One unit's recording (``holder``: a list holding its run, emptied once it is observed, so that its samples
+    go then) calibrated by ``method`` (``auto``: the method it supports, :func:`resolve_auto`) from ``seg`` (its
+    segmentation when already made: the run's consensus for a unit of a run with several, else None: segmented
+    here): the steps of the calibrate flow's ``_calibrate_unit`` past its reading."""
+    run = holder.pop()
+    if method == "auto":  # the method the unit's recording supports
+        method, base, seg, _ = resolve_auto(run, settings, base, seg)
+    chosen = by_name(method)
+    observed = [chosen.observe(run, settings, base_passport=base, segmentation=seg)]
+    del run
+    return chosen.calibrate_observed(observed, settings, base_passport=base)
+
+
+def compute_run(
+    path: str,
+    bases: Mapping[str, Passport | None],
+    settings: CalibrationSettings = CalibrationSettings(),
+    method: str = "tilt",
+) -> list[ComputedUnit]:
+    """The units ``bases`` (serial -> the base passport a method may start from, :attr:`UnitGroup.base_passport`)
+    of ``path``, a run holding several units that is each of these units' only run, calibrated as ``thermocal
+    calibrate PATH`` calibrates them, writing nothing: the run read once with all its units
+    (:func:`pipeline.io.runs.read_units`), segmented once for the run when two or more units pass its input checks
+    (:func:`pipeline.segment_units.segment_units`: the still times by the consensus of all its units, also those
+    not calibrated here; a unit whose signal disagrees is named in its warnings), then each unit chosen, observed
+    and fitted from its own segmentation. So a unit's passport is the one ``calibrate`` makes from the same run
+    (constants bit-identical). A unit that fails the run's input checks, or its calibration, fails alone with its
+    one-line reason; a run that cannot be read or segmented fails every unit of ``bases``. Never raises for bad
+    input. Each unit's ``compute_s`` is its own calibration plus its share of the reading and segmentation."""
+    from pipeline.segment_units import segment_units
+
+    t0 = time.perf_counter()
+    units = list(bases)
+    try:
+        if method != "auto":
+            by_name(method)
+        got = read_units(path)
+        segs = segment_units(got.units, settings.segment)[0] if len(got.units) > 1 else {}
+        mine = {u: got.units.pop(u) for u in units if u in got.units}
+        got.units.clear()  # the other units' samples were needed for the consensus only
+    except Exception as exc:
+        share = (time.perf_counter() - t0) / max(1, len(units))
+        reason = reason_of(exc)
+        return [ComputedUnit(u, [path], None, [], [{"run": path, "reason": reason}], share) for u in units]
+    share = (time.perf_counter() - t0) / max(1, len(units))
+    out = []
+    for unit in units:
+        t1 = time.perf_counter()
+        calibration, failed = None, []
+        if unit not in mine:
+            why = got.failed.get(unit) or f"{path}: no unit {unit} in this run"
+            failed = [{"run": path, "reason": why}]
+        else:
+            try:
+                calibration = _calibrate_recording([mine.pop(unit)], segs.get(unit), settings, method, bases[unit])
+            except Exception as exc:
+                failed = [{"run": path, "reason": reason_of(exc)}]
+        good = [path] if calibration is not None else []
+        out.append(ComputedUnit(unit, [path], calibration, good, failed, share + time.perf_counter() - t1))
+    return out
 
 
 def publish_group(
