@@ -36,6 +36,7 @@ from pipeline.calibrate.observations import (
 )
 from pipeline.calibrate.result import CalibrationResult, UnitFit
 from pipeline.calibrate.settings import CalibrationSettings
+from pipeline.errors import CalibrationError
 from pipeline.passport.document import Passport, build_passport, load_passport
 from pipeline.plausibility import assess
 from pipeline.run import PX4_DEVICE_ID_KEY
@@ -205,7 +206,11 @@ class Method(ABC):
         """:meth:`fit` then :meth:`finish`: the calibration of one unit from its observed runs (``base_passport``: a
         document is loaded once here, :func:`pipeline.passport.document.load_passport`)."""
         base = None if base_passport is None else load_passport(base_passport)
-        return self.finish(observed, self.fit(observed, settings, base_passport=base, **options), settings)
+        try:
+            fitted = self.fit(observed, settings, base_passport=base, **options)
+        except CalibrationError as e:
+            raise with_stuck_clauses(e, [w for r in observed for w in r.warnings]) from None
+        return self.finish(observed, fitted, settings)
 
     def calibrate(
         self,
@@ -222,6 +227,19 @@ class Method(ABC):
         base = None if base_passport is None else load_passport(base_passport)
         observed = [self.observe(r, settings, base_passport=base, **options) for r in runs]
         return self.calibrate_observed(observed, settings, base_passport=base, **options)
+
+
+def with_stuck_clauses(e: CalibrationError, warnings: list[str]) -> CalibrationError:
+    """``e`` with the channels left out as stuck or clipped (:func:`pipeline.io.checks.stuck_clauses`) named, when
+    there are any: the refusal of a unit with too little left says why."""
+    from pipeline.io.checks import stuck_clauses
+
+    clauses = stuck_clauses(warnings)
+    if not clauses:
+        return e
+    return CalibrationError(
+        f"{e.message}; left out as stuck or clipped: {'; '.join(clauses)}", path=e.path, stream=e.stream, where=e.where
+    )
 
 
 def _without_exact_rows(rows: list[VerificationRow], status: str, fitted: Fitted) -> tuple[str, str | None]:

@@ -104,10 +104,15 @@ def auto_method(run, seg) -> tuple[str, str]:
         from pipeline.segment import short_holds
 
         why = "; ".join(f"{m.name}: {s.why}" for m, s in judged)
+        from pipeline.calibrate.method import with_stuck_clauses
+
         short = short_holds(run, seg)
-        raise CalibrationError(
-            f"no calibration method fits this recording ({kind}; {why})" + (f"; {short}" if short else ""),
-            path=run.source,
+        raise with_stuck_clauses(
+            CalibrationError(
+                f"no calibration method fits this recording ({kind}; {why})" + (f"; {short}" if short else ""),
+                path=run.source,
+            ),
+            run.warnings,
         )
     m, s = chosen
     return m.name, f"{m.name} ({kind}: {s.why})"

@@ -9,6 +9,7 @@ run before a writer writes it.
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import polars as pl
@@ -500,6 +501,21 @@ def stuck_stretches(col: pl.Series) -> tuple[np.ndarray, int, float, float]:
     return runs[length >= n_min], n_min, hi, lo
 
 
+#: How a stuck or clipped channel's warning ends (:func:`stuck_clauses` finds them by it).
+STUCK_LEFT_OUT = "treated as missing (no hold in them is used)"
+
+
+def stuck_clauses(warnings: list[str]) -> list[str]:
+    """The stuck and clipped channels' warnings (:func:`_stuck_missing`) among ``warnings``, each shortened to its
+    stream, channel, stretches and time in all (``voltmeter.parquet unit AU-0302: uy stuck in 1 stretch(es),
+    11811.0 s in all``): what a refusal adds when a unit has too little left."""
+    return [
+        re.sub(r" \([^()]*\)", "", w.split(": the first at ")[0])
+        for w in dict.fromkeys(warnings)
+        if w.endswith(STUCK_LEFT_OUT)
+    ]
+
+
 #: Readings at a rail at most this many samples apart belong to one clipped stretch (see :func:`rail_stretches`).
 RAIL_GAP_SAMPLES = 32
 
@@ -628,7 +644,7 @@ def _stretches_line(
     more = f"; the longest {said[1]}" if len(said) > 1 else ""
     return (
         f"{head} in {runs.shape[0]} stretch(es), {float(dur_s.sum()):.1f} s in all: the first at {said[0]}{more}; "
-        "treated as missing (no hold in them is used)"
+        f"{STUCK_LEFT_OUT}"
     )
 
 

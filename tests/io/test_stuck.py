@@ -37,6 +37,8 @@ VARIANTS = {
     "last value 20 min": ("hold", 2900.0, 1200.0, None),
     "last value 2 h": ("hold", 2900.0, 7200.0, None),
     "last value to the end": ("hold", 6000.0, None, None),
+    # too little left: the first plateau only, before the stretch
+    "last value from 15 min to the end": ("hold", 900.0, None, None),
     "0 V 20 min": ("zero", 2900.0, 1200.0, None),
     "clipped at +0.3 V": ("clip", 0.0, None, 0.3),
     "clipped at 0 V": ("clip", 0.0, None, 0.0),
@@ -157,8 +159,12 @@ def test_a_stuck_stretch_is_named_and_left_out(clean, kind, variant):
         assert float(first.group(5)) == pytest.approx(a_s, abs=0.6)
         assert float(first.group(3)) == pytest.approx(dur_s, abs=1.1)
     assert not [w for w in warnings if "not still in" in w or "otherwise than the other units" in w]
-    if doc is None:  # too little left: this unit refused alone, in one line
+    if doc is None:  # too little left: this unit refused alone, in one line naming the channel left out
         assert refused and "\n" not in refused
+        total = re.search(r" ([\d.]+) s in all", line)
+        assert total
+        clause = rf": uy (stuck|clipped at [^;]*) in \d+ stretch\(es\), {total.group(1)} s in all"
+        assert re.search(rf"; left out as stuck or clipped: [^;]*{clause}", refused)
     elif len(doc["per_plateau"]) >= 2:
         assert _max_z(doc, truths[unit]) < K_SIGMA
     else:  # one plateau left (clipped at 0 V, AU-0302): T0's constants from it alone; the status says fail
