@@ -60,6 +60,18 @@ def base_constants(base_passport: Passport, unit: str) -> tuple[np.ndarray, np.n
     return K0, U0, base_passport.normal_temp_c
 
 
+def held_orientations(recording: Recording) -> list[dict[str, Any]]:
+    """The static poses of ``recording`` (:attr:`Recording.poses`) the differential method takes: each held
+    :data:`SWEEP_MIN_HOLD_S` or more through :data:`SWEEP_MIN_SPAN_C` or more."""
+    return [
+        p
+        for p in recording.poses
+        if p["longest_hold_s"] >= SWEEP_MIN_HOLD_S
+        and None not in p["temp_range_c"]
+        and p["temp_range_c"][1] - p["temp_range_c"][0] >= SWEEP_MIN_SPAN_C
+    ]
+
+
 class Differential(Method):
     """Seed 003's differential calibration: fixed orientations through a temperature cycle or sweep; starts from a
     normal-temperature passport when there is one, else from the constants the orientations determine."""
@@ -72,13 +84,7 @@ class Differential(Method):
         """Orientations held :data:`SWEEP_MIN_HOLD_S` or more through :data:`SWEEP_MIN_SPAN_C` or more (two or
         more); per axis, whether its bias and scale factor separate (vertical in one orientation, horizontal in
         another)."""
-        held = [
-            p
-            for p in recording.poses
-            if p["longest_hold_s"] >= SWEEP_MIN_HOLD_S
-            and None not in p["temp_range_c"]
-            and p["temp_range_c"][1] - p["temp_range_c"][0] >= SWEEP_MIN_SPAN_C
-        ]
+        held = held_orientations(recording)
         roles = axis_roles(held)
         both = [ax for ax, (v, h) in roles.items() if v and h]
         ok = len(held) >= 2

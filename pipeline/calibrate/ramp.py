@@ -710,6 +710,9 @@ def _legs(pieces: Pieces) -> np.ndarray:
 #: :func:`_beyond_the_plateaus`): above the tilt method's with a fixture log (28), below the differential method's on a
 #: sweep it supports (30)
 PREFERENCE_RAMPS = 29.0
+#: ... and on a sweep whose long-held orientations leave an axis undetermined (:func:`_partial_sweep`): above the
+#: differential method's (30)
+PREFERENCE_OVER_SWEEP = 31.0
 PREFERENCE = 5.0
 #: test positions held over at least this temperature span (C)
 MIN_SPAN_C = 10.0
@@ -754,6 +757,30 @@ def _beyond_the_plateaus(off_holds, plateau_temps_c: list[float]) -> str | None:
     return None
 
 
+def _partial_sweep(recording: Recording) -> str | None:
+    """Where the orientations the differential method would take on this sweep (two or more held an hour or more,
+    :func:`pipeline.calibrate.differential.held_orientations`) leave an axis whose bias and scale factor they do not
+    separate (never vertical, or never horizontal), the clause saying so, else None: the differential method leaves
+    that axis' constants at T0 at their nominal values (or the base passport's) and its scale-factor temperature terms
+    at 0, where the test positions held on the ramps determine all 12 constants and their temperature model (a
+    stepped program whose soaks do not wait out the unit's lag: no plateau, the fixture resting in one position
+    through every ramp)."""
+    from pipeline.calibrate.differential import held_orientations
+    from pipeline.calibrate.recording import axis_roles
+
+    held = held_orientations(recording)
+    if len(held) < 2:
+        return None
+    roles = axis_roles(held)
+    axes = [ax for ax, (vertical, horizontal) in roles.items() if not (vertical and horizontal)]
+    if not axes:
+        return None
+    return (
+        f"the {count_words(len(held), 'orientation')} held 1 h or more do not separate bias and scale factor on "
+        f"axis {', '.join(axes)} (the differential method would leave them undetermined)"
+    )
+
+
 class Ramp(Method):
     """Positions held on temperature ramps (fast programs): see the module doc. Options: ``ramp``
     (:class:`RampSettings`)."""
@@ -777,12 +804,14 @@ class Ramp(Method):
         beyond = (
             None if most or not ok else _beyond_the_plateaus(off_holds, [c[2] for c in recording.constant_plateaus])
         )
+        partial = _partial_sweep(recording) if ok and most and recording.program.kind == "sweep" else None
         return Support(
             supported=ok,
             why=(
                 f"test positions {', '.join(names)} held over {lo:+.1f} .. {hi:+.1f} C; {off} of "
                 f"{count_words(len(holds), 'test-position hold')} off the soaked plateaus"
                 + (f"; {beyond}" if beyond else "")
+                + (f"; {partial}" if partial else "")
                 if ok
                 else f"needs test positions that determine the 12 constants held over {MIN_SPAN_C:.0f} C or more; "
                 + (f"found {', '.join(names)} over {lo:+.1f} .. {hi:+.1f} C" if tp else "found none")
@@ -795,7 +824,11 @@ class Ramp(Method):
                 if ok
                 else ()
             ),
-            preference=PREFERENCE_RAMPS if ok and (most or beyond) else PREFERENCE,
+            preference=PREFERENCE_OVER_SWEEP
+            if partial
+            else PREFERENCE_RAMPS
+            if ok and (most or beyond)
+            else PREFERENCE,
         )
 
     def observe(

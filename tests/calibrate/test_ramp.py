@@ -416,3 +416,34 @@ def test_a_status_unverified_for_a_side_of_t0_says_so_whatever_the_method(spec, 
     assert res.status == "unverified"
     said = [w for w in res.warnings if w.startswith(f"verification does not exercise the thermal model {side} T0")]
     assert len(said) == 1 and said[0].endswith("so the status is not pass"), res.warnings
+
+
+@pytest.mark.parametrize(
+    "spec",
+    ["20@20:TP; -40@20:TP; 20@20:TP+VP; 70@20:TP+VP", "20@20:TP+VP; 70@20:TP; 20@20:TP; -40@20:TP+VP"],
+)
+def test_a_sweep_of_test_positions_whose_long_holds_leave_axes_undetermined_takes_the_ramp_method(spec):
+    """Stepped programs whose 20-min soaks do not wait out a 900-s lag: no plateau at all (a 'temperature sweep'),
+    the fixture resting in one position through every ramp. auto took the differential method (preferred on a
+    sweep) from the two positions held an hour or more, which separate no axis: without a base passport K_xx,
+    K_yy, K_zz, every cross-axis term and U0_x kept at nominal values (16 mV/g off the truth), the x and z
+    scale-factor temperature terms 0, 'unverified'. The test positions held on the ramps determine all 12
+    constants: auto takes the ramp method, says why, and the constants at T0 are within 1 micro-V(/g) and 4
+    stated sigmas of the truth over -38 .. +68 C."""
+    prog = parse_program(spec, hold_s=120.0, move_s=20.0, case_lag_s=900.0)
+    sim = simulate(SimConfig(program=prog, rate_hz=2.0, seed=7))
+    method, _, seg, why = resolve_auto(sim.run, CalibrationSettings())
+    assert method == "ramp", why
+    assert re.search(
+        r"; the 2 orientations held 1 h or more do not separate bias and scale factor on axis x, y, z \(", why
+    )
+    res = ramp.calibrate_observed([ramp.observe(sim.run, CalibrationSettings(), segmentation=seg)])
+    doc = res.passport
+    lo, hi = doc["valid_temp_c"]
+    assert lo < -37.0 and hi > 67.0
+    K_t, U0_t = _truth(sim, [20.0])
+    dK = np.abs(np.array(doc["coefficients"]["K"]) - K_t[0])
+    dU = np.abs(np.array(doc["coefficients"]["U0"]) - U0_t[0])
+    unc = doc["uncertainty"]["coefficients"]
+    assert dK.max() < 1e-6 and np.all(dK <= 4 * np.array(unc["K"]))
+    assert dU.max() < 1e-6 and np.all(dU <= 4 * np.array(unc["U0"]))
