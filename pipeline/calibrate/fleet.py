@@ -200,7 +200,8 @@ def plan_fleet(
     A run whose metadata or bytes cannot be read is ``failed``; a second copy of a run (same content hash as
     another run of the unit) is ``skipped`` as a duplicate; files with one run_id count no sample twice
     (:func:`pipeline.calibrate.inputs.resolve_run_ids`: a truncated copy is ``failed`` and the complete file used,
-    the pieces of one recording all used, two recordings under one id both ``failed``); a run whose folder names
+    the pieces of one recording all used, or ``skipped`` as "part of" the file holding the recording whole beside
+    them, two recordings under one id both ``failed``); a run whose folder names
     another unit is filed by its metadata, with a warning; a unit whose group identity (its runs' content hashes +
     ``settings``) is already in ``registry`` has all its runs ``skipped`` as "already processed". Paths in the
     plan are absolute, as in the passports' provenance.
@@ -247,7 +248,10 @@ def plan_fleet(
         kept = list(unique.values())
         usable, dropped = resolve_run_ids([RunInput(i["path"], unit, i["run_id"]) for i in kept], _unit_reader(unit))
         if dropped:
-            plan.failed += [{**f, "unit": unit} for f in dropped]
+            plan.skipped += [
+                {"run": f["run"], "why": f"part of {f['part_of']}", "unit": unit} for f in dropped if "part_of" in f
+            ]
+            plan.failed += [{**f, "unit": unit} for f in dropped if "part_of" not in f]
             paths_kept = {u.path for u in usable}
             kept = [i for i in kept if i["path"] in paths_kept]
             if not kept:

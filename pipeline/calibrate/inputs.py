@@ -3,10 +3,12 @@ a run's folder names another unit.
 
 - :func:`resolve_run_ids`: the files with one ``run_id`` (docs/log-format.md: unique id of a recording) are copies
   or pieces of that recording, and no observation may count twice. A truncated or identical copy of another (every
-  stream's samples a prefix of the other's) is reported as failed with that reason, the complete file used; the
-  pieces a logger wrote one recording into (each carrying its run_id, apart in time or sharing samples exactly where
-  they overlap) are all used, to be joined by :func:`join_runs`; files with other samples over one stretch of time
-  are two recordings under one id: neither is used (both reported, each naming the other).
+  stream's samples a prefix of the other's) is reported as failed with that reason, the complete file used; pieces
+  of the recording beside the file holding it whole (their samples all in it, one of them starting later) are left
+  out as the same samples twice, not a failure, the whole file used; the pieces a logger wrote one recording into
+  (each carrying its run_id, apart in time or sharing samples exactly where they overlap) are all used, to be joined
+  by :func:`join_runs`; files with other samples over one stretch of time are two recordings under one id: neither
+  is used (both reported, each naming the other).
 - :func:`folder_warning`: a run whose folder or file name names a unit (a token shaped like its serial, e.g.
   ``AU-0002`` for ``AU-0001``) other than the serial in its metadata is filed under the metadata's serial, with a
   warning naming both.
@@ -34,6 +36,7 @@ from pipeline.run import Run, RunMeta
 __all__ = [
     "RunInput",
     "folder_warning",
+    "is_part_of",
     "is_prefix_of",
     "join_runs",
     "resolve_run_ids",
@@ -61,19 +64,38 @@ def is_prefix_of(short: Run, long: Run) -> bool:
     return True
 
 
+def is_part_of(short: Run, long: Run) -> bool:
+    """True when every stream of ``short`` is a run of consecutive rows of ``long``'s (the same values), from the row
+    at ``short``'s first time on: its samples are all in ``long``, a piece of it or a copy of a stretch of it."""
+    longs = long.streams()
+    for name, df in short.streams().items():
+        if df.height == 0:
+            continue
+        other = longs.get(name)
+        if other is None or df.height > other.height:
+            return False
+        start = int(other["t_ns"].search_sorted(df["t_ns"][0], side="left"))
+        if start + df.height > other.height or not df.equals(other.slice(start, df.height)):
+            return False
+    return True
+
+
 def resolve_run_ids(inputs: Sequence[RunInput], read: Callable[[str], Run]) -> tuple[list[RunInput], list[dict]]:
     """Split ``inputs`` into the runs to use and the ones not to use (``{"run", "reason"}``, one line each).
 
     Runs are grouped by (unit, run_id); a group of one is kept. In a larger group the runs are read (``read``,
-    e.g. :func:`pipeline.io.runs.read_run`; a run that cannot be read is left out with its error): a run that is a
-    prefix of a longer (or identical) one of the group (:func:`is_prefix_of`: a truncated or identical copy) is left
-    out; the others are kept when :func:`join_runs` joins them (pieces of one recording), else none is. The order
-    of ``inputs`` is kept.
+    e.g. :func:`pipeline.io.runs.read_run`; a run that cannot be read is left out with its error). Runs whose
+    samples are all in a longer (or identical) one of the group (:func:`is_part_of`) are left out: when one of them
+    starts later than that run they are the pieces of the recording it holds whole (the same samples twice), each
+    listed with ``"part_of"``: that run's path (not a failure); else they are truncated or identical copies of it
+    (:func:`is_prefix_of`). The others are kept when :func:`join_runs` joins them (pieces of one recording), else
+    none is. The order of ``inputs`` is kept.
     """
     groups: dict[tuple[str, str], list[RunInput]] = {}
     for item in inputs:
         groups.setdefault((item.unit, item.run_id), []).append(item)
     dropped: dict[str, str] = {}
+    part_of: dict[str, str] = {}  # a piece of the recording -> the file holding it whole
     for (unit, run_id), group in groups.items():
         if len(group) < 2:
             continue
@@ -86,19 +108,32 @@ def resolve_run_ids(inputs: Sequence[RunInput], read: Callable[[str], Run]) -> t
         readable = [item for item in group if item.path in runs]
         if len(readable) < 2:
             continue
-        # longest first (stable): a file that is a prefix of one kept before it is a copy of that one
+        # longest first (stable): a file whose samples are all in one kept before it is a copy or a piece of it
         pieces: list[RunInput] = []
+        inside: dict[str, list[RunInput]] = {}
         for i in sorted(readable, key=lambda i: -runs[i.path].voltmeter.height):
-            whole = next((k for k in pieces if is_prefix_of(runs[i.path], runs[k.path])), None)
+            whole = next((k for k in pieces if is_part_of(runs[i.path], runs[k.path])), None)
             if whole is None:
                 pieces.append(i)
+            else:
+                inside.setdefault(whole.path, []).append(i)
+        for whole_path, parts in inside.items():
+            if not all(is_prefix_of(runs[i.path], runs[whole_path]) for i in parts):
+                # the recording in pieces beside the whole file: the same samples twice, the whole file used
+                for i in parts:
+                    dropped[i.path] = (
+                        f"{i.path}: part of {whole_path} (same run_id {run_id!r}; its samples are all in it): the "
+                        "same samples twice, not used; the whole file is"
+                    )
+                    part_of[i.path] = whole_path
                 continue
-            same = runs[i.path].voltmeter.height == runs[whole.path].voltmeter.height
-            what = "a copy" if same else "a truncated copy"
-            dropped[i.path] = (
-                f"{i.path}: {what} of {whole.path} (same run_id {run_id!r}; its samples are "
-                f"{'the same' if same else 'a prefix of the other'}'s): not used, the complete file is"
-            )
+            for i in parts:
+                same = runs[i.path].voltmeter.height == runs[whole_path].voltmeter.height
+                what = "a copy" if same else "a truncated copy"
+                dropped[i.path] = (
+                    f"{i.path}: {what} of {whole_path} (same run_id {run_id!r}; its samples are "
+                    f"{'the same' if same else 'a prefix of the other'}'s): not used, the complete file is"
+                )
         if len(pieces) < 2:
             continue
         # the files a logger wrote one recording into (each with the recording's run_id): they join into one run
@@ -116,7 +151,11 @@ def resolve_run_ids(inputs: Sequence[RunInput], read: Callable[[str], Run]) -> t
                     f"other samples{f' ({clash})' if clash else ''}: which is the recording is unknown, neither is used"
                 )
     kept = [i for i in inputs if i.path not in dropped]
-    return kept, [{"run": i.path, "reason": dropped[i.path]} for i in inputs if i.path in dropped]
+    return kept, [
+        {"run": i.path, "reason": dropped[i.path], **({"part_of": part_of[i.path]} if i.path in part_of else {})}
+        for i in inputs
+        if i.path in dropped
+    ]
 
 
 def _serial_pattern(serial: str) -> re.Pattern[str]:

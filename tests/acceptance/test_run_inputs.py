@@ -86,3 +86,64 @@ def test_calibrate_drops_a_truncated_copy_and_refuses_two_recordings(inbox, tmp_
     assert code == 2 and out == ""
     [line] = [x for x in err.splitlines() if x.startswith("thermocal:")]
     assert "neither is used" in line and str(p["b2"]) in line
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory):
+    """A short program at 2 Hz recorded whole, and the same recording cut into pieces that keep its run_id."""
+    from tests.conftest import run_piece
+
+    run = sim("AU-0205", 6)
+    d = tmp_path_factory.mktemp("pieces")
+    whole = write_run(run, d / "whole.mcap", "mcap")
+    t = run.voltmeter["t_ns"].to_numpy()
+    return (
+        run,
+        whole,
+        lambda a, b, name: write_run(
+            run_piece(run, int(t[int(a * (len(t) - 1))]), int(t[int(b * (len(t) - 1))]) + 1, run.meta.run_id),
+            d / name,
+            "mcap",
+        ),
+    )
+
+
+#: pieces as fractions of the recording: three, two, one from the middle, the start and the end
+PIECES = [((0, 1 / 3), (1 / 3, 2 / 3), (2 / 3, 1)), ((0, 0.5), (0.5, 1)), ((0.3, 0.6),), ((0, 0.2), (0.8, 1))]
+
+
+@pytest.mark.parametrize("pieces", PIECES, ids=["three", "two", "middle", "start-and-end"])
+def test_the_pieces_of_a_recording_beside_its_whole_file_are_one_recording(
+    recording, pieces, tmp_path, monkeypatch, capsys
+):
+    """A folder holding a recording's pieces (one run_id) beside the whole file: the same samples twice, one
+    recording. The fleet uses the whole file, lists each piece as skipped (``part of`` the whole file: not a
+    failure, exit 0) and so finds the version ``calibrate WHOLE`` made; ``calibrate`` given all the files makes the
+    whole file's passport. Was: the first piece failed as 'a truncated copy' (exit 1) and the others were joined
+    with the whole file into another identity (a second version of the same data)."""
+    _, whole, cut = recording
+    inbox = tmp_path / "inbox"
+    inbox.mkdir()
+    (inbox / "whole.mcap").write_bytes(whole.read_bytes())
+    parts = [cut(a, b, f"piece-{k}.mcap") for k, (a, b) in enumerate(pieces)]
+    for p in parts:
+        p.rename(inbox / p.name)
+    parts = [str((inbox / p.name).resolve()) for p in parts]
+    reg = str(tmp_path / "reg")
+    code, out, err = run_main(monkeypatch, capsys, "calibrate", str(inbox / "whole.mcap"), "--registry", reg, "--json")
+    assert code == 0, err
+    made = json.loads(out)
+    code, out, err = run_main(monkeypatch, capsys, "fleet", str(inbox), "--registry", reg, "--json")
+    assert code == 0, err
+    summary = json.loads(out)
+    assert summary["done"] == [] and summary["failed"] == []
+    whole_path = str((inbox / "whole.mcap").resolve())
+    assert {(s["run"], s["why"]) for s in summary["skipped"]} == {(whole_path, "already processed")} | {
+        (p, f"part of {whole_path}") for p in parts
+    }
+    # calibrate given the whole file and its pieces (any order): the whole file's passport, found
+    code, out, err = run_main(monkeypatch, capsys, "calibrate", *parts[::-1], whole_path, "--registry", reg, "--json")
+    assert code == 0, err
+    again = json.loads(out)
+    assert (again["version"], again["created"], again["passport_sha256"]) == (1, False, made["passport_sha256"])
+    assert sum(w.startswith(tuple(parts)) and f": part of {whole_path} " in w for w in again["warnings"]) == len(parts)
