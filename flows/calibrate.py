@@ -68,7 +68,13 @@ def _whole(value: T) -> T:
 
 @task(name="ingest", cache_policy=NO_CACHE)
 def ingest(path: str, units: list[str] | None = None) -> UnitRuns:
-    return runio.read_units(path, units)
+    """The run at ``path`` with all its units, also when ``units`` names the ones to calibrate (an unknown serial is
+    a RunFormatError): a run with several is segmented by the consensus of all its units, so that a unit's passport
+    does not depend on which others were asked for (``fleet``, and ``calibrate`` without ``--unit``, make the
+    same); :func:`calibrate_units` calibrates the ``units`` alone."""
+    got = runio.read_units(path)
+    got.select(units)  # checks the serials
+    return got
 
 
 @task(name="segment", cache_policy=NO_CACHE)
@@ -198,10 +204,10 @@ def calibrate_flow(
         )
         with figures or contextlib.nullcontext():
             if any(r.several for r in read):
-                result = calibrate_units(paths, read, unit_steps, settings, step, hashed, figures)
+                result = calibrate_units(paths, read, unit_steps, settings, step, hashed, figures, units)
             else:
                 digests = {p: f.result() for p, f in hashed.items()}
-                result = unit_steps([r.one() for r in read], list(paths), digests=digests)
+                result = unit_steps([r.select(units).one() for r in read], list(paths), digests=digests)
     finally:
         hashing.shutdown(wait=False, cancel_futures=True)
     if figures is not None and "units" in result:
@@ -221,7 +227,7 @@ def _serials(paths: list[str], units: list[str] | None) -> int:
     return len(found & set(units) if units else found)
 
 
-def calibrate_units(paths, read, unit_steps, settings, step, hashed, draw=None) -> dict:
+def calibrate_units(paths, read, unit_steps, settings, step, hashed, draw=None, units=None) -> dict:
     """The runs ``read`` (:class:`pipeline.run.UnitRuns`, one per path) of which some hold several units: each
     unit calibrated from its runs (segmented once per run with several units), one after the other, the samples of
     a unit let go once it is observed. Returns ``{"units": [the calibrate object of each unit], "failed": [{"unit",
@@ -232,12 +238,13 @@ def calibrate_units(paths, read, unit_steps, settings, step, hashed, draw=None) 
     :func:`pipeline.passport.provenance.hash_run` as a future, waited for once the runs are segmented (a file hashed
     once, not once per unit). ``draw``: publish's, for the figures drawn in other processes while the next unit is
     calibrated (:class:`pipeline.calibrate.figure_worker.FigureWorker`, which :func:`calibrate_flow` starts for two
-    units or more)."""
+    units or more). ``units``: only these are calibrated (``--unit``); every unit of a run takes part in its
+    segmentation all the same."""
     logger = get_run_logger()
     failed: list[dict] = []
     by_unit: dict[str, list] = {}  # serial -> [(path, UnitRuns, segmentation or None)]
     for p, got in zip(paths, read):
-        failed += [{"unit": u, "run": p, "reason": why} for u, why in got.failed.items()]
+        failed += [{"unit": u, "run": p, "reason": why} for u, why in got.failed.items() if not units or u in units]
         segs: dict = {}
         if got.several:
             if len(got.units) > 1:
@@ -245,6 +252,8 @@ def calibrate_units(paths, read, unit_steps, settings, step, hashed, draw=None) 
                 segs, run_warnings = segment(_whole(got.units), settings)
                 for w in run_warnings:
                     logger.warning(w)
+        for serial in [s for s in got.units if units and s not in units]:
+            del got.units[serial]  # its samples were needed for the run's segmentation only
         for serial in got.units:
             by_unit.setdefault(serial, []).append((p, got, segs.get(serial)))
     digests = {p: f.result() for p, f in hashed.items()}

@@ -116,3 +116,22 @@ def test_calibrate_and_fleet_make_the_same_passports(tmp_path, n, layout, odd):
     assert {u["unit"]: (u["version"], u["created"]) for u in back["units"]} == {u: (1, False) for u in by_fleet}
     for unit in by_fleet:
         assert not (tmp_path / "reg-f" / "units" / unit / "v0002.json").exists()
+
+
+@pytest.mark.parametrize("layout", ["mcap", "parquet"])
+def test_calibrate_unit_makes_the_passport_of_the_whole_run(tmp_path, layout):
+    """``calibrate RUN --unit X`` segments the run by the consensus of all its units, as ``calibrate RUN`` and
+    ``fleet`` do: X's passport does not depend on which other units were asked for. Was: only the named units were
+    read and voted (one unit: segmented alone), AU-0704's constants 3.9e-9 relative off, every unit's verification
+    rows other."""
+    from flows.calibrate import run_calibrate
+
+    _, paths = _inbox(tmp_path, 4, layout, "none")
+    settings = CalibrationSettings()
+    every = {u["unit"]: u for u in run_calibrate(paths, str(tmp_path / "reg"), settings, method="auto")["units"]}
+    for k, units in enumerate((["AU-0704"], ["AU-0701", "AU-0704"])):
+        some = run_calibrate(paths, str(tmp_path / f"reg{k}"), settings, method="auto", units=units)
+        assert [u["unit"] for u in some["units"]] == units and some["failed"] == []
+        for u in some["units"]:
+            assert _content(u["passport"]) == _content(every[u["unit"]]["passport"]), u["unit"]
+            assert u["warnings"] == every[u["unit"]]["warnings"]
