@@ -288,6 +288,7 @@ def assemble_run(
         if df.height == 0:
             raise RunFormatError("required stream has no samples", path=path, stream=stream)
     checked = check_streams(frames, path=path, warnings=warnings)
+    refuse_dead_channel(checked["voltmeter"], meta_values.get("unit_serial"), path=path, stream="voltmeter")
     meta = RunMeta.from_strings(meta_values, path=path)
     warnings.extend(_plausible(meta, checked, path, "au_temperature"))
     return Run(
@@ -406,11 +407,7 @@ def _unit_run(meta_values, serial, serials, frames, shared, path, warnings, stre
             )
     own: list[str] = []
     checked = check_streams(frames, path=path, warnings=own, label=lambda s: stream_label(serial, s))
-    dead = dead_channels(checked["voltmeter"])
-    if dead:
-        raise RunFormatError(
-            f"unit {serial} has a dead channel: {dead[0]}", path=path, stream=stream_label(serial, "voltmeter")
-        )
+    refuse_dead_channel(checked["voltmeter"], serial, path=path, stream=stream_label(serial, "voltmeter"))
     meta = RunMeta.from_strings(unit_meta_values(meta_values, serial, serials), path=path)
     own += [f"{w} (unit {serial})" for w in _plausible(meta, checked, path, stream_label(serial, "au_temperature"))]
     warnings.extend(own)
@@ -437,6 +434,15 @@ def dead_channels(voltmeter: pl.DataFrame) -> list[str]:
         elif finite.min() == finite.max():
             out.append(f"{c} reads {finite.min()!r} V in every sample")
     return out
+
+
+def refuse_dead_channel(voltmeter: pl.DataFrame, serial: str | None, *, path: str, stream: str) -> None:
+    """Refuse a unit with a dead voltmeter channel (:func:`dead_channels`) in one line naming the file, the stream
+    (``stream``, as the layout names it), the unit and the first dead channel: a single-unit run and each unit of a
+    run with several alike (its calibration could only fail later, on a plateau whose positions look missing)."""
+    dead = dead_channels(voltmeter)
+    if dead:
+        raise RunFormatError(f"unit {serial or '(no serial)'} has a dead channel: {dead[0]}", path=path, stream=stream)
 
 
 #: Expected number of stretches a live channel repeats one reading for by chance, per channel and record, that

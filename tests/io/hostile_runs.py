@@ -32,7 +32,8 @@ _CHUNK, _FOOTER, _DATA_END = 6, 2, 15
 
 def tiny_run(n: int = 20, unit: str = "AU-0901") -> Run:
     t = 1_793_491_200_000_000_000 + np.arange(n, dtype=np.int64) * 1_000_000_000
-    volt = make_frame("voltmeter", {"t_ns": t, "ux": np.zeros(n), "uy": np.zeros(n), "uz": np.full(n, -0.55)})
+    odd = 1e-5 * (np.arange(n) % 2)  # V: every other sample differs (one value throughout is a dead channel)
+    volt = make_frame("voltmeter", {"t_ns": t, "ux": odd, "uy": -odd, "uz": -0.55 + odd})
     temp = make_frame("au_temperature", {"t_ns": t, "temp_c": np.full(n, 20.0)})
     return Run(RunMeta(unit_serial=unit, run_id=f"hostile-{unit}"), volt, temp)
 

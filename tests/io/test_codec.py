@@ -202,9 +202,9 @@ def _write_file(
 def _block(t0: int, n: int = 4) -> dict[str, np.ndarray]:
     return {
         "t_ns": t0 + np.arange(n, dtype=np.int64) * 1_000_000,
-        "ux": np.ones(n),
-        "uy": np.zeros(n),
-        "uz": np.full(n, -1.0),
+        "ux": 1.0 + 1e-3 * np.arange(n),  # V: live channels (one value throughout is a dead channel, refused)
+        "uy": 1e-3 * np.arange(n),
+        "uz": -1.0 - 1e-3 * np.arange(n),
     }
 
 

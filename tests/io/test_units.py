@@ -20,6 +20,7 @@ from pipeline.io.runs import read_run, read_units, read_units_meta, write_run
 from pipeline.run import Run, UnitRuns
 from pipeline.simulate.chamber import SimConfig
 from pipeline.simulate.units import simulate_units, unit_serials
+from tests.conftest import run_main
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -179,6 +180,43 @@ def test_unit_checks_fail_alone(three, tmp_path, fmt):
     assert list(got2.units) == ["AU-0101", "AU-0102"]
     assert "AU-0103" in got2.failed and ("no thermosensor samples" in got2.failed["AU-0103"]
                                          or "no samples of it" in got2.failed["AU-0103"])  # fmt: skip
+
+
+@pytest.mark.parametrize("fmt", ["mcap", "parquet"])
+@pytest.mark.parametrize(
+    "channel, value, says",
+    [
+        ("uy", 0.0, "uy reads 0.0 V in every sample"),
+        ("ux", float("nan"), "ux has no finite sample"),
+        ("uz", 0.4375, "uz reads 0.4375 V in every sample"),
+    ],
+)
+def test_a_dead_channel_is_refused_alike_in_a_single_unit_run(
+    three, tmp_path, monkeypatch, capsys, fmt, channel, value, says
+):
+    """A single-unit run with a channel at one value (or NaN) throughout is refused as a unit of a run with several
+    is, through the one check (checks.refuse_dead_channel): one line naming the file, the stream, the unit and the
+    channel, exit 2 from inspect, calibrate and diagnose. Was: a single-unit run was read, and calibrate said "no
+    temperature plateau with the six test positions ... (missing TP2, TP4)" (0 V) or "no named static position"
+    (NaN), inspect printed its plateaus."""
+    runs, _ = three
+    unit = runs.units["AU-0102"]
+    dead = unit.voltmeter.with_columns(pl.lit(value).alias(channel))
+    single = write_run(dataclasses.replace(unit, voltmeter=dead), tmp_path / ("s.mcap" if fmt == "mcap" else "s"), fmt)
+    several = write_run(_edit(runs, "AU-0102", voltmeter=dead), tmp_path / ("m.mcap" if fmt == "mcap" else "m"), fmt)
+    multi_line = read_units(several).failed["AU-0102"]
+    with pytest.raises(RunFormatError) as info:
+        read_run(single)
+    line = info.value.one_line()
+    assert line == f"{single}: voltmeter: unit AU-0102 has a dead channel: {says}"
+    assert multi_line.endswith(f": unit AU-0102 has a dead channel: {says}")  # the same reason, its stream labelled
+    monkeypatch.setenv("THERMOCAL_CACHE_DIR", str(tmp_path / "cache"))
+    commands = [("inspect", str(single)), ("diagnose", str(single))]
+    if fmt == "mcap" and channel == "uy":
+        commands.append(("calibrate", str(single), "--registry", str(tmp_path / "reg")))
+    for args in commands:
+        code, out, err = run_main(monkeypatch, capsys, *args)
+        assert (code, err) == (2, f"thermocal: error: {line}\n"), args
 
 
 def test_truncated_file_warns_every_unit(three, tmp_path):
