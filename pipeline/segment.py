@@ -1236,15 +1236,38 @@ def unit_clock(run: Run) -> UnitClock:
     return UnitClock(t_ns, reader_gap_indices(t_ns), median_interval_ns(t_ns), {})
 
 
+def _non_finite_line(volts: pl.DataFrame, t_ns: np.ndarray, bad: np.ndarray, interval_ns, unit: str | None) -> str:
+    """The warning about the voltmeter samples ``bad`` (sorted indices into ``t_ns``, the table ``volts``' times)
+    that have a non-finite channel: the unit (``unit``, named in a run with several), how many samples, the
+    channels with how many each, and the stretches in seconds (:func:`pipeline.io.checks.stretches_text`)."""
+    from pipeline.io.checks import stretches_text
+
+    at = pl.Series(bad)
+    counts = {c: int(volts[c].gather(at).is_finite().not_().sum()) for c in ("ux", "uy", "uz")}
+    channels = ", ".join(f"{c} {n}" for c, n in counts.items() if n)
+    cut = np.flatnonzero(np.diff(bad) > 1)
+    runs = np.column_stack((bad[np.concatenate(([0], cut + 1))], bad[np.concatenate((cut, [bad.size - 1]))] + 1))
+    step_ns = float("nan") if interval_ns is None else float(interval_ns)
+    where = "voltmeter" if unit is None else f"voltmeter of unit {unit}"
+    return (
+        f"{where}: {bad.size} non-finite samples excluded (not static), {channels}, "
+        f"{stretches_text(t_ns, runs, step_ns)}"
+    )
+
+
 def segment_run(
-    run: Run, settings: SegmentSettings = SegmentSettings(), static: StaticStretches | None = None
+    run: Run,
+    settings: SegmentSettings = SegmentSettings(),
+    static: StaticStretches | None = None,
+    unit: str | None = None,
 ) -> Segmentation:
     """Plateaus, static segments (cut at plateau boundaries, trimmed, averaged, named) and warnings of ``run``.
 
     The voltages are read from the run's table a slab at a time (:class:`Channels`): besides the table, the
     per-sample memory is the times (8 bytes per sample) and a few masks (1 byte per sample). ``static``: the static
     stretches decided elsewhere (:func:`static_stretches`, e.g. across the units of one fixture), used instead of
-    finding them here.
+    finding them here. ``unit``: the unit's serial where the run holds several (its warnings about its own
+    voltmeter name it).
     """
     warnings: list[str] = []
     t_ns = run.t_ns() if static is None or static.t_ns is None else static.t_ns
@@ -1321,9 +1344,7 @@ def segment_run(
             "reading have no temperature: not used"
         )
     if bad_u.size:
-        warnings.append(
-            f"voltmeter: {bad_u.size} non-finite samples excluded (not static), first at t_ns={int(t_ns[bad_u[0]])}"
-        )
+        warnings.append(_non_finite_line(volts, t_ns, bad_u, interval_ns, unit))
     gaps = {"voltmeter": gap_spans(t_ns, settings.static_window_s / 2, readers), "au_temperature": holes}
     warnings += _gaps_on_plateaus(plateaus, gaps, settings.static_min_s, run.fixture)
     pieces = _cut_at_plateaus(t_ns, stretches, plateaus, settings, hold_min_s)

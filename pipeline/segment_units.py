@@ -68,7 +68,7 @@ def _segment_units(units: dict[str, Run], settings: SegmentSettings, pool) -> tu
         i1 = np.searchsorted(t, mine[:, 1], side="right")
         keep = (i1 > i0) & (mine[:, 1] - mine[:, 0] >= int(own[serial].settings.static_min_s * NS_PER_S))
         stretches = [(int(a), int(b)) for a, b in zip(i0[keep], i1[keep])]
-        return segment_run(units[serial], settings, dataclasses.replace(own[serial], stretches=stretches))
+        return segment_run(units[serial], settings, dataclasses.replace(own[serial], stretches=stretches), unit=serial)
 
     segs: dict[str, Segmentation] = dict(zip(units, pool.map(unit_segmentation, units)))
     for serial in units:

@@ -149,3 +149,56 @@ def test_units_on_one_clock_share_its_times_and_segment_as_on_their_own(four, mo
     assert all(clocks[s].found is found for s in list(units)[1:-1]) and clocks[last].found is not found
     monkeypatch.setattr(su, "_clocks", lambda us: {s: unit_clock(r) for s, r in us.items()})
     assert segment_units(units) == shared
+
+
+@pytest.mark.parametrize(
+    "stretches",
+    [
+        (("uy", 2900, 1200, float("nan")),),
+        (("ux", 1000, 100, float("nan")), ("uz", 1000, 100, float("inf")), ("uz", 5000, 300, float("nan"))),
+    ],
+    ids=["uy 20 min", "ux+uz, then uz"],
+)
+def test_non_finite_samples_are_named_by_unit_channel_and_seconds(four, stretches):
+    """A channel NaN (or inf) for part of a run: one line per unit naming the unit (in a run with several), each
+    channel with its count, and the stretches in seconds (how many, in all, the first and the longest: UTC, s after
+    the start, duration), as a stuck channel's line. Was: "voltmeter: 6000 non-finite samples excluded (not
+    static), first at t_ns=..." (no unit, no channel, no duration)."""
+    from pipeline.utc import utc_span
+
+    u = four.units
+    run = u["AU-0503"]
+    t = run.voltmeter["t_ns"].to_numpy()
+    step_ns = float(np.median(np.diff(t)))
+    bad = np.zeros(t.size, bool)
+    v = run.voltmeter
+    per = {}
+    for c, a_s, dur_s, x in stretches:
+        sel = (t >= t[0] + a_s * 10**9) & (t < t[0] + (a_s + dur_s) * 10**9)
+        bad |= sel
+        per[c] = per.get(c, np.zeros(t.size, bool)) | sel
+        v = v.with_columns(pl.when(pl.Series(sel)).then(x).otherwise(pl.col(c)).alias(c))
+    edited = dataclasses.replace(run, voltmeter=v)
+    edge = np.flatnonzero(np.diff(np.concatenate(([0], bad.astype(np.int8), [0]))))
+    runs = edge.reshape(-1, 2)  # [first, end) of each stretch
+    dur = (t[runs[:, 1] - 1] - t[runs[:, 0]] + step_ns) / 1e9
+
+    def one(k):
+        a, b = runs[k]
+        return (
+            f"for {dur[k]:.1f} s from t_ns={t[a]} ({utc_span(int(t[a]), int(t[b - 1]))}, "
+            f"{(t[a] - t[0]) / 1e9:.1f} s after the start)"
+        )
+
+    longest = int(np.argmax(dur))
+    said = f"the first {one(0)}" + (f"; the longest {one(longest)}" if longest else "")
+    channels = ", ".join(f"{c} {int(per[c].sum())}" for c in ("ux", "uy", "uz") if c in per)
+    tail = (
+        f"{int(bad.sum())} non-finite samples excluded (not static), {channels}, in {len(runs)} stretch(es), "
+        f"{dur.sum():.1f} s in all: {said}"
+    )
+    segs, _ = segment_units({**u, "AU-0503": edited})
+    assert [w for w in segs["AU-0503"].warnings if "non-finite" in w] == [f"voltmeter of unit AU-0503: {tail}"]
+    assert not any("non-finite" in w for s, seg in segs.items() if s != "AU-0503" for w in seg.warnings)
+    assert [w for w in segment_run(edited).warnings if "non-finite" in w] == [f"voltmeter: {tail}"]
+    assert f"{dur.sum():.1f}" == f"{sum(d for _, d in {(a, d) for _, a, d, _ in stretches}):.1f}"  # 1200.0, 400.0

@@ -641,28 +641,52 @@ def _stretches_line(
     lo: float = math.nan,
 ) -> str:
     """One warning about the stretches ``runs`` ((k, 2) [first, end) samples) of a channel: ``head``, how many, the
-    time in all, the first and the longest (:func:`_stuck_text`)."""
+    time in all, the first and the longest (:func:`stretches_text`)."""
+    return f"{head} {stretches_text(t_ns, runs, step_ns, values, hi, lo)}; {STUCK_LEFT_OUT}"
+
+
+def stretches_text(
+    t_ns: np.ndarray,
+    runs: np.ndarray,
+    step_ns: float,
+    values: np.ndarray | None = None,
+    hi: float = math.nan,
+    lo: float = math.nan,
+) -> str:
+    """The stretches ``runs`` ((k, 2) [first, end) sample indices into ``t_ns``, one sample lasting ``step_ns``) in
+    a warning, in seconds: how many, the time in all, the first and the longest, each with its value when ``values``
+    (V) are given (:func:`_stuck_text`): ``in 1 stretch(es), 1200.0 s in all: the first at 0 V for 1200.0 s from
+    t_ns=... (UTC span, 2900.0 s after the start)``. The one text of stretches of a voltmeter channel: stuck,
+    clipped, or non-finite (:func:`pipeline.segment.segment_run`)."""
+    step_ns = step_ns if math.isfinite(step_ns) else 0.0
     dur_s = (t_ns[runs[:, 1] - 1] - t_ns[runs[:, 0]] + step_ns) / 1e9
     said = [
-        _stuck_text(t_ns, int(runs[k, 0]), int(runs[k, 1]), float(values[k]), float(dur_s[k]), hi, lo)
+        _stuck_text(
+            t_ns,
+            int(runs[k, 0]),
+            int(runs[k, 1]),
+            None if values is None else float(values[k]),
+            float(dur_s[k]),
+            hi,
+            lo,
+        )
         for k in dict.fromkeys((0, int(np.argmax(dur_s))))
     ]
     more = f"; the longest {said[1]}" if len(said) > 1 else ""
-    return (
-        f"{head} in {runs.shape[0]} stretch(es), {float(dur_s.sum()):.1f} s in all: the first at {said[0]}{more}; "
-        f"{STUCK_LEFT_OUT}"
-    )
+    return f"in {runs.shape[0]} stretch(es), {float(dur_s.sum()):.1f} s in all: the first {said[0]}{more}"
 
 
-def _stuck_text(t_ns: np.ndarray, a: int, b: int, value_v: float, dur_s: float, hi: float, lo: float) -> str:
-    """One stretch (samples ``a .. b - 1`` at ``value_v``) in a warning: value, a rail when it is the channel's
-    highest or lowest (``hi``, ``lo``), duration (s), start (t_ns, UTC, s after the stream's first sample)."""
+def _stuck_text(t_ns: np.ndarray, a: int, b: int, value_v: float | None, dur_s: float, hi: float, lo: float) -> str:
+    """One stretch (samples ``a .. b - 1``, at ``value_v`` when given) in a warning: value, a rail when it is the
+    channel's highest or lowest (``hi``, ``lo``), duration (s), start (t_ns, UTC, s after the stream's first
+    sample)."""
     from pipeline.utc import utc_span
 
     rail = " (the channel's highest value: clipped at a rail?)" if value_v == hi else ""
     rail = " (the channel's lowest value: clipped at a rail?)" if value_v == lo else rail
+    value = "" if value_v is None else f"at {value_v:.7g} V{rail} "
     return (
-        f"{value_v:.7g} V{rail} for {dur_s:.1f} s from t_ns={t_ns[a]} "
+        f"{value}for {dur_s:.1f} s from t_ns={t_ns[a]} "
         f"({utc_span(int(t_ns[a]), int(t_ns[b - 1]))}, {(t_ns[a] - t_ns[0]) / 1e9:.1f} s after the start)"
     )
 

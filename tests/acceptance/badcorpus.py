@@ -514,7 +514,7 @@ CASES: tuple[Case, ...] = (
         "nan-inf-samples-parquet",
         _frames_case("nonfinite", "parquet", _nonfinite),
         None,
-        ("voltmeter", "non-finite samples excluded", "first at t_ns="),
+        ("voltmeter", "non-finite samples excluded (not static), ", "s after the start)"),
         calibrates=True,
     ),
     Case(
