@@ -20,7 +20,8 @@ run (``segment``: ``pipeline.segment_units.segment_units``, the still times by c
 unit goes through choose, observe, fit and write as above, in one task run a unit (``calibrate-unit``, as the
 fleet's); a unit that fails (its input checks, or its
 calibration) is reported with its reason and the others go on (:func:`calibrate_units`). A unit whose files are
-several is one recording of them (``join_runs``), segmented as such.
+several is one recording of them (``join_runs``), segmented as such; the units of a run with several split into
+files are joined each and segmented together, by the consensus, so that each gets the whole file's passport.
 """
 
 from __future__ import annotations
@@ -242,43 +243,86 @@ def calibrate_units(paths, read, unit_steps, settings, step, hashed, draw=None, 
     segmentation all the same."""
     logger = get_run_logger()
     failed: list[dict] = []
-    by_unit: dict[str, list] = {}  # serial -> [(path, UnitRuns, segmentation or None)]
+    by_unit: dict[str, list] = {}  # serial -> [(path, UnitRuns)]
     for p, got in zip(paths, read):
         failed += [{"unit": u, "run": p, "reason": why} for u, why in got.failed.items() if not units or u in units]
-        segs: dict = {}
-        if got.several:
-            if len(got.units) > 1:
-                step(f"segment {len(got.units)} units of {os.path.basename(p)} (still times once for the run)")
-                segs, run_warnings = segment(_whole(got.units), settings)
-                for w in run_warnings:
-                    logger.warning(w)
-        for serial in [s for s in got.units if units and s not in units]:
-            del got.units[serial]  # its samples were needed for the run's segmentation only
         for serial in got.units:
-            by_unit.setdefault(serial, []).append((p, got, segs.get(serial)))
+            by_unit.setdefault(serial, []).append((p, got))
+    # a unit whose files are several is one recording of them (select_runs, join_runs): the units whose recordings
+    # are the same files are segmented together, as the whole file holding them is (the consensus of their still
+    # times over the joined recordings: a recording cut into files calibrates as the file it was cut from)
+    joined = _joined_recordings(by_unit)
+    segs: dict[str, dict] = {}  # path -> serial -> segmentation of the units calibrated from that file alone
+    for p, got in zip(paths, read):
+        if got.several and len(got.units) > 1 and any(s not in joined for s in got.units):
+            step(f"segment {len(got.units)} units of {os.path.basename(p)} (still times once for the run)")
+            segs[p], run_warnings = segment(_whole(got.units), settings)
+            for w in run_warnings:
+                logger.warning(w)
+    together: dict[tuple[str, ...], list[str]] = {}
+    for serial, (_, kept, _) in joined.items():
+        if any(got.several for _, got in by_unit[serial]):
+            together.setdefault(tuple(kept), []).append(serial)
+    joined_segs: dict[str, Segmentation] = {}
+    for files, serials in together.items():
+        if len(serials) > 1:
+            step(f"segment {len(serials)} units of {_names(list(files))} (still times once for the recording)")
+            got_segs, run_warnings = segment(_whole({s: joined[s][0] for s in serials}), settings)
+            joined_segs.update(got_segs)
+            for w in run_warnings:
+                logger.warning(w)
+    run_ids = {(p, s): got.units[s].meta.run_id for s, items in by_unit.items() for p, got in items}
+    for serial in joined:  # the files' pieces of a joined unit are no longer needed
+        for _, got in by_unit[serial]:
+            got.units.pop(serial, None)
+    for serial in [s for s in by_unit if units and s not in units]:
+        joined.pop(serial, None)  # its samples were needed for the segmentation only
+        for _, got in by_unit.pop(serial):
+            got.units.pop(serial, None)
     digests = {p: f.result() for p, f in hashed.items()}
     results = []
     for serial, items in by_unit.items():
-        runs = [got.units[serial] for _, got, _ in items]
-        within = {p: {"unit": serial, "run_id": got.units[serial].meta.run_id} for p, got, _ in items if got.several}
+        recording = [(*joined.pop(serial), joined_segs.get(serial))] if serial in joined else None
+        runs = [] if recording else [got.units[serial] for _, got in items]
+        within = {p: {"unit": serial, "run_id": run_ids[p, serial]} for p, got in items if got.several}
         steps = functools.partial(
             unit_steps,
             runs,
-            [p for p, _, _ in items],
-            segmentations=[seg for _, _, seg in items],
+            [p for p, _ in items],
+            segmentations=[segs.get(p, {}).get(serial) for p, _ in items],
             digests=digests,
             within=within,
-            release=lambda serial=serial, items=items: [got.units.pop(serial, None) for _, got, _ in items],
+            release=lambda serial=serial, items=items: [got.units.pop(serial, None) for _, got in items],
             draw=draw,
             as_tasks=False,
+            recording=recording,
         )
         try:
             results.append(calibrate_unit(serial, _whole(steps)))
         except ThermocalError as e:
             failed.append({"unit": serial, "reason": e.one_line()})
             logger.warning(e.one_line())
-        del runs, steps
+        del runs, steps, recording
     return {"units": results, "failed": failed}
+
+
+def _joined_recordings(by_unit: dict[str, list]) -> dict[str, tuple[Run, list[str], list[str]]]:
+    """The units of ``by_unit`` (serial -> its [(path, UnitRuns)]) whose files, once copies are left out
+    (:func:`pipeline.calibrate.inputs.select_runs`), are several: serial -> (the files joined as one recording,
+    :func:`pipeline.calibrate.inputs.join_runs`; the paths of the files kept, in the order given; the selection's
+    warnings). A unit whose files cannot be selected or joined is not here: its own calibration says why."""
+    out = {}
+    for serial, items in by_unit.items():
+        if len(items) < 2:
+            continue
+        path_of = {id(got.units[serial]): p for p, got in items}
+        try:
+            runs, warnings = select_runs([got.units[serial] for _, got in items])
+            if len(runs) > 1:
+                out[serial] = (join_runs(runs), [path_of[id(r)] for r in runs], warnings)
+        except ThermocalError:
+            continue
+    return out
 
 
 @task(name="calibrate-unit", task_run_name="calibrate-{unit}", cache_policy=NO_CACHE)
@@ -304,24 +348,30 @@ def _calibrate_unit(
     release=None,
     draw=None,
     as_tasks: bool = True,
+    recording: list | None = None,
 ) -> dict:
     """One unit from its runs (one per path; ``segmentations``: each run's, where already made): select, choose,
     observe, fit, write, each a task run (``as_tasks=False``: plain calls, inside :func:`calibrate_unit`'s task run);
     ``release()`` is called once the samples are no longer needed; ``draw``: publish's, for figures drawn
-    elsewhere."""
+    elsewhere. ``recording``: a list holding (the unit's files already selected and joined, the paths kept, the
+    selection's warnings, the joined recording's segmentation or None), emptied here, in place of ``runs``."""
     logger = get_run_logger()
     call = _as_task if as_tasks else _as_call
-    segmentations = segmentations or [None] * len(runs)
-    seg_of = {id(r): seg for r, seg in zip(runs, segmentations)}
-    path_of = {id(r): p for p, r in zip(paths, runs)}
-    runs, selection_warnings = select_runs(runs)  # one file per run_id (a truncated copy is left out)
-    paths = [path_of[id(r)] for r in runs]
-    segmentations = [seg_of[id(r)] for r in runs]
-    unit = unit_of(runs)
-    # the files given together are one recording (a segmentation made for one file holds for that file alone)
-    segmentation, chosen = (segmentations[0] if len(runs) == 1 else None), None
-    run = join_runs(runs)
-    del runs
+    if recording:
+        run, paths, selection_warnings, segmentation = recording.pop()
+        unit, chosen = run.meta.unit_serial, None
+    else:
+        segmentations = segmentations or [None] * len(runs)
+        seg_of = {id(r): seg for r, seg in zip(runs, segmentations)}
+        path_of = {id(r): p for p, r in zip(paths, runs)}
+        runs, selection_warnings = select_runs(runs)  # one file per run_id (a truncated copy is left out)
+        paths = [path_of[id(r)] for r in runs]
+        segmentations = [seg_of[id(r)] for r in runs]
+        unit = unit_of(runs)
+        # the files given together are one recording (a segmentation made for one file holds for that file alone)
+        segmentation, chosen = (segmentations[0] if len(runs) == 1 else None), None
+        run = join_runs(runs)
+        del runs
     if method == "auto":
         what = "" if segmentation is not None else f" (segment {_names(paths)})"
         step(f"choose the method for {unit}{what}")

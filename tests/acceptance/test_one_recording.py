@@ -199,3 +199,78 @@ def test_diagnose_reads_a_units_files_as_one_recording(split_short, tmp_path, mo
             r.pop(key)
         r["extended_model"].pop("source")
     assert rep == ref
+
+
+@pytest.fixture(scope="module")
+def short_units(tmp_path_factory):
+    """Three units through the short program at 10 Hz in one run, the whole file's dry-run results by unit, and the
+    program's times to cut at: in the -40 C soak (before its positions), in the hold of TP3 at -40 C, in the ramp
+    after the VP positions at -10 C."""
+    from flows.calibrate import run_calibrate
+    from pipeline.calibrate.settings import CalibrationSettings
+    from pipeline.simulate.units import simulate_units
+
+    d = tmp_path_factory.mktemp("units-split")
+    runs, truths = simulate_units(SimConfig(program="short", rate_hz=10.0, seed=15), 3)
+    holds = next(iter(truths.values()))["holds"]
+    tp_m40 = next(h for h in holds if h["setpoint_c"] == -40.0 and h["position"] == "TP3")
+    times = {
+        "soak": min(h["t_start_ns"] for h in holds if h["setpoint_c"] == -40.0) - 600 * 10**9,
+        "hold": (tp_m40["t_start_ns"] + tp_m40["t_end_ns"]) // 2,
+        "ramp": max(h["t_end_ns"] for h in holds if h["setpoint_c"] == -10.0) + 600 * 10**9,
+    }
+    whole = write_run(runs, d / "whole.mcap", "mcap")
+    ref = run_calibrate([str(whole)], str(d / "ref"), CalibrationSettings(), method="auto", dry_run=True)
+    assert not ref["failed"] and len(ref["units"]) == 3
+    return d, runs, times, {u["unit"]: u for u in ref["units"]}
+
+
+#: the passport fields a do-nothing split may change: when and by what it was made, and the hashes of that
+_MADE = ("provenance", "created_utc", "content_sha256", "signature", "parent_sha256")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    "cuts, fmt, order, unit",
+    [
+        (("hold",), "mcap", (0, 1), None),
+        (("soak",), "parquet", (1, 0), None),
+        (("ramp",), "mcap", (1, 0), "AU-0002"),
+        (("soak", "ramp"), "parquet", (2, 0, 1), None),
+        (("hold", "ramp"), "mcap", (1, 2, 0), "AU-0003"),
+    ],
+)
+def test_a_run_of_several_units_split_into_files_gives_the_whole_files_passports(short_units, cuts, fmt, order, unit):
+    """The pieces of a run with several units (one run_id), in any order, either layout, every unit or one
+    (``--unit``): each unit's passport is the whole file's, every field but when and by what it was made (the
+    units' joined recordings are segmented together, by the consensus of their still times, as the whole file is;
+    before, each unit's joined recording was segmented alone: AU-0001's per-plateau K at 20 C and 70 C differed by
+    ~0.006 micro-V/g)."""
+    from flows.calibrate import run_calibrate
+    from pipeline.calibrate.settings import CalibrationSettings
+    from pipeline.run import UnitRuns
+
+    d, runs, times, ref = short_units
+    edges = [0, *sorted(times[c] for c in cuts), 2**62]
+    run_id = next(iter(runs.units.values())).meta.run_id
+    name = "-".join(cuts) + f"-{fmt}"
+    files = [
+        write_run(
+            UnitRuns.of_units([run_piece(r, edges[k], edges[k + 1], run_id) for r in runs.units.values()]),
+            d / name / (f"part-{k}.mcap" if fmt == "mcap" else f"part-{k}"),
+            fmt,
+        )
+        for k in range(len(edges) - 1)
+    ]
+    given = [str(files[k]) for k in order]
+    units = [unit] if unit else None
+    out = run_calibrate(given, str(d / f"reg-{name}"), CalibrationSettings(), method="auto", dry_run=True, units=units)
+    assert not out["failed"]
+    assert sorted(u["unit"] for u in out["units"]) == (units or sorted(ref))
+    for u in out["units"]:
+        doc, whole = u["passport_content"], ref[u["unit"]]["passport_content"]
+        assert doc["status"] == whole["status"] and doc["method"] == whole["method"] == "tilt_six_position"
+        strip = lambda p: {k: v for k, v in p.items() if k not in _MADE}  # noqa: E731
+        differ = sorted(k for k in set(doc) | set(whole) if k not in _MADE and doc.get(k) != whole.get(k))
+        assert differ == [], f"{u['unit']}: {differ}"
+        assert strip(doc) == strip(whole)
