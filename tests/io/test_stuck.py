@@ -196,6 +196,27 @@ def test_clean_simulated_runs_have_no_stuck_channel(program, rate_hz):
     assert _stuck_lines(dataclasses.replace(run, voltmeter=q)) == []
 
 
+@pytest.mark.parametrize(("program", "rate_hz"), [("short", 10.0), ("standard", 1.0), ("fast", 5.0), ("sweep", 2.0)])
+@pytest.mark.parametrize(("step_v", "average"), [(1e-3, 1), (3e-4, 1), (5e-5, 1), (3e-4, 10), (1e-5, 10)])
+def test_coarsely_quantised_clean_runs_have_no_stuck_channel(program, rate_hz, step_v, average):
+    """A clean run read by a coarse voltmeter (1 mV or 0.3 mV steps: 5 uV of noise is 0.005-0.1 of a step), or
+    averaged over 10 samples then quantised: every quiet hold reads one value for most of its length. Before, the
+    stuck test measured p outside the runs it called stuck, so it called 40-1600 stretches at 6-1600 different
+    values stuck (short 10 Hz at 1 mV: 12 100 s of 12 700 on each channel, and the +1 g holds a rail) and
+    ``calibrate`` refused the run ('no named static position on any of the 7 temperature plateau(s)'). Now a
+    channel whose stretches hold more than MAX_STUCK_VALUES values is not judged: nothing called stuck or clipped."""
+    run = simulate(SimConfig(program=program, rate_hz=rate_hz, seed=11)).run
+    v = run.voltmeter
+    box = np.ones(average) / average
+    q = v.with_columns(
+        [
+            pl.Series(c, np.round(np.convolve(v[c].to_numpy(), box, mode="same") / step_v) * step_v)
+            for c in ("ux", "uy", "uz")
+        ]
+    )
+    assert _stuck_lines(dataclasses.replace(run, voltmeter=q)) == []
+
+
 @pytest.mark.parametrize("run", ["imucal_ferraris/run", "cats_tag/run"])
 def test_real_recordings_have_no_stuck_channel(run):
     """The real recordings (their readings repeat 2-12 % of the time, at most 4-6 in a row): no stuck warning."""
