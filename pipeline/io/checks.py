@@ -450,11 +450,14 @@ def refuse_dead_channel(voltmeter: pl.DataFrame, serial: str | None, *, path: st
 STUCK_FALSE_RATE = 1e-3
 #: The fewest consecutive identical samples called stuck, whatever the channel's noise (see :func:`stuck_stretches`).
 MIN_STUCK_SAMPLES = 4
-#: The most different values a channel's stuck stretches may hold: a fault holds one (its last value, 0 V, a rail),
-#: a few when it recurs. More mean the channel's noise lies below its quantisation step in places (a coarse ADC, or
-#: averaged readings: every quiet hold one long run, each at its own value), which repeats alone cannot tell from
+#: A channel with more than :data:`MAX_STUCK_STRETCHES` stuck stretches at more than :data:`MAX_STUCK_VALUES`
+#: different values is not judged: a fault gives a few stretches (a logger freezing at its last value now and then),
+#: or many at one value (0 V, a rail); dozens to thousands at as many values mean the channel's noise lies below its
+#: quantisation step in places (a coarse ADC, or averaged readings: every quiet hold one long run at its own value,
+#: 36-4196 stretches at 4-2011 values in simulated runs at 5 uV-1 mV steps), which repeats alone cannot tell from
 #: stuck (see :func:`stuck_stretches`).
 MAX_STUCK_VALUES = 3
+MAX_STUCK_STRETCHES = 16
 
 
 def stuck_stretches(col: pl.Series) -> tuple[np.ndarray, int, float, float]:
@@ -474,11 +477,11 @@ def stuck_stretches(col: pl.Series) -> tuple[np.ndarray, int, float, float]:
     7-9 samples (7 s at 1 Hz, 0.09 s at 102 Hz) where their longest repeat is 4-6; 5 uV noise on a 24-bit +-1 V
     voltmeter (p ~ 0.007, N = 1e6) 6 samples. At least :data:`MIN_STUCK_SAMPLES` (a logger repeating one reading
     once or twice when a conversion is late is no fault). A channel whose readings are mostly equal (p >= 0.5: its
-    noise far below the step) cannot be told stuck from quiet and gives none; nor does one whose stretches hold more
-    than :data:`MAX_STUCK_VALUES` different values (a 1-mV step with 5 uV of noise: each quiet hold reads one value
-    for its whole length, so p outside the long runs is tiny and every hold would be called stuck). NaN breaks a
-    run (missing data is the gap and non-finite checks' business). One pass over the column in slabs of
-    :data:`SLAB_SAMPLES`."""
+    noise far below the step) cannot be told stuck from quiet and gives none; nor does one with more than
+    :data:`MAX_STUCK_STRETCHES` stretches at more than :data:`MAX_STUCK_VALUES` different values (a 1-mV step with
+    5 uV of noise: each quiet hold reads one value for its whole length, so p outside the long runs is tiny and
+    every hold would be called stuck). NaN breaks a run (missing data is the gap and non-finite checks' business).
+    One pass over the column in slabs of :data:`SLAB_SAMPLES`."""
     n = col.len()
     m = MIN_STUCK_SAMPLES - 1  # equal pairs in a row that make the shortest run
     found: list[np.ndarray] = []
@@ -513,7 +516,7 @@ def stuck_stretches(col: pl.Series) -> tuple[np.ndarray, int, float, float]:
         if n_min == was:
             break
     runs = runs[length >= n_min]
-    if np.unique(col.gather(runs[:, 0]).to_numpy()).size > MAX_STUCK_VALUES:
+    if runs.shape[0] > MAX_STUCK_STRETCHES and np.unique(col.gather(runs[:, 0]).to_numpy()).size > MAX_STUCK_VALUES:
         return np.zeros((0, 2), dtype=np.int64), n, hi, lo
     return runs, n_min, hi, lo
 

@@ -217,6 +217,32 @@ def test_coarsely_quantised_clean_runs_have_no_stuck_channel(program, rate_hz, s
     assert _stuck_lines(dataclasses.replace(run, voltmeter=q)) == []
 
 
+def test_a_channel_that_freezes_at_its_last_value_four_times_is_named_each_time():
+    """Short program, 2 Hz: uy frozen at its last value for 300 s from 2000, 4000, 6000 and 8000 s (four stretches
+    at four values; before: none named, the clause for coarse voltmeters taking them for quiet holds): one line
+    naming 4 stretches, 1200 s in all, and those 2400 samples missing."""
+    run = simulate(SimConfig(program="short", rate_hz=2.0, seed=3)).run
+    v = run.voltmeter
+    t = v["t_ns"].to_numpy()
+    rel = (t - t[0]) / 1e9
+    y = v["uy"].to_numpy().copy()
+    frozen = np.zeros(y.size, dtype=bool)
+    for a in (2000.0, 4000.0, 6000.0, 8000.0):
+        s = (rel > a) & (rel <= a + 300.0)
+        y[s] = y[np.flatnonzero(rel <= a)[-1]]
+        frozen |= s
+    w: list[str] = []
+    out = check_stream("voltmeter", v.with_columns(pl.Series("uy", y)), path="x", warnings=w)
+    said = [x for x in w if "stuck" in x or "clipped" in x]
+    assert (
+        len(said) == 1
+        and said[0].startswith("voltmeter: uy stuck (")
+        and " in 4 stretch(es), 1202.0 s in all" in said[0]
+    )
+    gone = np.isnan(out["uy"].to_numpy())
+    assert gone.sum() == frozen.sum() + 4 and not (frozen & ~gone).any()  # each from the last live sample, its value
+
+
 @pytest.mark.parametrize("run", ["imucal_ferraris/run", "cats_tag/run"])
 def test_real_recordings_have_no_stuck_channel(run):
     """The real recordings (their readings repeat 2-12 % of the time, at most 4-6 in a row): no stuck warning."""
