@@ -43,6 +43,7 @@ from pipeline.positions import TEST_POSITIONS, gravity_vector_g
 from pipeline.segment import SHORT_HOLDS_WARNING
 from pipeline.thermal import ThermalModel, cluster_temperatures, default_order, fit_thermal_model
 from pipeline.uncertainty import (
+    ThermalSigma,
     design_matrix,
     estimator_matrix,
     excess_scatter_v,
@@ -273,6 +274,7 @@ def fit_unit(
         np.array([f.K_sigma for f in fits]),
         np.array([f.U0_sigma for f in fits]),
     )
+    sigma = _extrapolated_to_t0(sigma, [f.temp_c for f in fits], normal_temp_c)
     temps = [f.temp_c for f in fits]
     fits.sort(key=lambda f: (f.temp_c, f.run_id, f.plateau))
     return UnitFit(
@@ -285,6 +287,29 @@ def fit_unit(
         valid_temp_c=(round(min(temps), 1), round(max(temps), 1)),
         excess_scatter_v=tau_v,
     )
+
+
+def _extrapolated_to_t0(sigma: ThermalSigma, plateau_temps_c, t0_c: float) -> ThermalSigma:
+    """``sigma`` with the constants at T0 (K0, U00) undetermined when T0 lies more than
+    :data:`pipeline.plausibility.T0_MARGIN_C` outside the temperatures of the plateaus the constants come from (C):
+    the constants at T0 are then the thermal model extrapolated beyond every plateau (one plateau at -40 C left:
+    its constants, taken as T0's), an error the plateaus' noise does not contain and the data do not measure. Their
+    uncertainty is null, each named in ``uncertainty.undetermined`` with why. (The plausibility check on T0,
+    :func:`pipeline.plausibility.check_t0_span`, looks at every AU temperature of the runs, ramps included: a run
+    through -40..70 C of which only the -40 C plateau gave constants passes it.)"""
+    from pipeline.plausibility import T0_MARGIN_C
+
+    lo, hi = float(np.min(plateau_temps_c)), float(np.max(plateau_temps_c))
+    if lo - T0_MARGIN_C <= t0_c <= hi + T0_MARGIN_C:
+        return sigma
+    why = (
+        f"T0 {t0_c:g} C lies outside the temperatures of the plateaus the constants come from ({lo:.1f}..{hi:.1f} C, "
+        f"with {T0_MARGIN_C:g} C to spare): extrapolated by the thermal model, an error the data do not measure"
+    )
+    names = [f"K.{a}{b}" for a in "xyz" for b in "xyz"] + [f"U0.{a}" for a in "xyz"]
+    extra = dict(sigma.extra or {})
+    extra["undetermined"] = {**(extra.get("undetermined") or {}), **dict.fromkeys(names, why)}
+    return replace(sigma, K0=np.full((3, 3), np.nan), U00=np.full(3, np.nan), extra=extra)
 
 
 def _referral_shifts(local: ThermalModel, groups, fits: list[PlateauConstants]) -> dict[int, np.ndarray]:

@@ -166,3 +166,31 @@ def test_degenerate_recordings_say_what_they_lack_in_numbers():
     assert_every_uncertainty_a_number_or_named(doc)
     assert all(0 < s < 1e-14 for s in doc["uncertainty"]["coefficients"]["U0"])
     assert not nan.search(certificate_html(doc, figures={}))
+
+
+@pytest.mark.parametrize(
+    "program, t_c, undetermined",
+    [("-40@30:TP", -40.0, True), ("45@30:TP", 45.0, True), ("28@30:TP", 28.0, False)],
+)
+def test_constants_at_t0_from_plateaus_far_from_it_are_undetermined(program, t_c, undetermined):
+    """One plateau far from T0 (as AU-0302 with uy clipped at 0 V: only -40 C left): the constants at T0 are that
+    plateau's, extrapolated by a model the data cannot check, so their uncertainty is null and named (was: the
+    plateau's noise, 0.3 ppm of K, against an error of 640 ppm: z ~ 1e3). Within 10 C of T0 they keep their numbers."""
+    from pipeline.simulate.program import parse_program
+
+    run = simulate(SimConfig(program=parse_program(program, hold_s=60), rate_hz=2, seed=3)).run
+    doc = by_name("tilt").calibrate([run], CalibrationSettings()).passport
+    assert [round(p["temp_c"]) for p in doc["per_plateau"]] == [round(t_c)]
+    unc = doc["uncertainty"]
+    if not undetermined:
+        assert all(isinstance(x, float) and 0 < x < 1e-5 for row in unc["coefficients"]["K"] for x in row)
+        assert "K.xx" not in (unc.get("undetermined") or {})
+        return
+    assert unc["coefficients"]["K"] == [[None] * 3] * 3 and unc["coefficients"]["U0"] == [None] * 3
+    why = (
+        f"T0 20 C lies outside the temperatures of the plateaus the constants come from ({t_c:.1f}..{t_c:.1f} C, with "
+        "10 C to spare): extrapolated by the thermal model, an error the data do not measure"
+    )
+    names = [f"K.{a}{b}" for a in "xyz" for b in "xyz"] + [f"U0.{a}" for a in "xyz"]
+    assert {k: unc["undetermined"][k] for k in names} == dict.fromkeys(names, why)
+    json.dumps(doc, allow_nan=False)

@@ -167,8 +167,10 @@ def test_a_stuck_stretch_is_named_and_left_out(clean, kind, variant):
         assert re.search(rf"; left out as stuck or clipped: [^;]*{clause}", refused)
     elif len(doc["per_plateau"]) >= 2:
         assert _max_z(doc, truths[unit]) < K_SIGMA
-    else:  # one plateau left (clipped at 0 V, AU-0302): T0's constants from it alone; the status says fail
+    else:  # one plateau left (clipped at 0 V, AU-0302: -40 C): T0's constants extrapolated from it, undetermined
         assert doc["status"] == "fail"
+        assert doc["uncertainty"]["coefficients"]["K"] == [[None] * 3] * 3
+        assert "extrapolated by the thermal model" in doc["uncertainty"]["undetermined"]["K.xx"]
     for serial, (other, _, _) in after.items():
         if serial != unit:
             assert other is not None and before[serial][0] is not None
