@@ -36,6 +36,7 @@ from pipeline.run import NS_PER_S as _NS
 from pipeline.run import SLAB_SAMPLES as _SLAB  # samples compensated at a time (the K(T) stack: 72 bytes a sample)
 from pipeline.run import Run
 from pipeline.utc import utc_text
+from pipeline.words import printable
 
 APPLY_COLUMNS = ("t_ns", "ax_g", "ay_g", "az_g", "temp_c", "in_range")
 #: ``apply --out``'s file format by the name's suffix (lower case; no suffix: Parquet), docs/contract.md
@@ -258,7 +259,9 @@ def write_applied(
             _write_mcap(applied.table, tmp, meta)
         elif fmt == "csv":
             with open(tmp, "w", encoding="utf-8", newline="") as f:
-                f.writelines(f"# thermocal.{k}: {v}\n" for k, v in meta.items())
+                # one line a key whatever the run's metadata holds (a run_id with a newline wrote a line of its own,
+                # outside the comments: a CSV of other columns)
+                f.writelines(f"# thermocal.{k}: {printable(v, lines=False)}\n" for k, v in meta.items())
                 applied.table.write_csv(f)
         else:
             applied.table.write_parquet(tmp, metadata={f"thermocal.{k}": v for k, v in meta.items()})

@@ -125,6 +125,29 @@ def test_write_parquet_and_mcap(passport, other, tmp_path):
     assert not list(tmp_path.glob(".*partial"))
 
 
+@pytest.mark.parametrize("run_id", ["lab run 7\nx,y,z\n1,2,3", "r\r\n# thermocal.valid_temp_c: -99,99", "tab\there"])
+def test_csv_metadata_is_one_line_a_key_whatever_the_run_id_holds(passport, other, tmp_path, run_id):
+    """A run_id (free text in the run's metadata) with a newline wrote lines of its own into the CSV's head: 'x,y,z'
+    read as the header row (polars: 'found more fields than defined in Schema'), or a forged '# thermocal.' line.
+    Now each key is one line, its control characters escaped as the terminal output escapes them (printable): the
+    five keys, then the columns, the table back to the bit."""
+    import dataclasses
+
+    run, _ = other
+    run = dataclasses.replace(run, meta=dataclasses.replace(run.meta, run_id=run_id))
+    out = apply_passport(passport, run)
+    csv = write_applied(out, tmp_path / "a.csv", passport=passport, run=run)
+    head = csv.read_text().splitlines()[:6]
+    assert [h.split(":")[0] for h in head[:5]] == [
+        f"# thermocal.{k}"
+        for k in ("passport_unit", "passport_version", "run_id", "valid_temp_c", "passport_verification")
+    ]
+    escaped = run_id.replace("\n", "\\x0a").replace("\r", "\\x0d").replace("\t", "\\x09")
+    assert head[2] == f"# thermocal.run_id: {escaped}"
+    assert head[5] == ",".join(APPLY_COLUMNS)
+    assert_frame_equal(pl.read_csv(csv, comment_prefix="#"), out.table)
+
+
 def test_cli_writes_csv_and_refuses_a_name_of_no_format(passport, other, tmp_path, monkeypatch, capsys):
     """``apply --out x.csv`` wrote a Parquet file named x.csv (any name but .mcap was Parquet); now CSV, and a name
     of a format apply does not write (.json, .xlsx) is refused in one line, exit 2, before anything is read."""
