@@ -70,8 +70,11 @@ def write_run(run: Run | UnitRuns, path: str | Path, fmt: str = "mcap", **opts: 
 
     ``opts`` go to :func:`pipeline.io.mcap.write_mcap` (block size, chunk size, compression, summary). Returns the
     path written. The file or directory appears complete or not at all (written aside, then renamed); a place it
-    cannot be written is a one-line :class:`ThermocalError`.
+    cannot be written is a one-line :class:`ThermocalError`. A :class:`UnitRuns` read from a single-unit run (not
+    ``several``) is written as that run, so what :func:`read_units` read is written back in the layout it came in.
     """
+    if isinstance(run, UnitRuns) and not run.several and len(run.units) == 1:
+        (run,) = run.units.values()  # streams with a unit column and no 'units' key: a file no reader accepts
     if fmt not in FORMATS:
         raise RunFormatError(f"unknown run format {fmt!r}; expected one of {', '.join(FORMATS)}", path=str(path))
     if fmt == "parquet" and opts:

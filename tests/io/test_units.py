@@ -248,3 +248,22 @@ def test_single_unit_run_keeps_its_layout(tmp_path):
     got = read_units(path)
     assert not got.several and list(got.units) == ["AU-0001"]
     assert read_run(path).voltmeter.equals(run.voltmeter)
+
+
+@pytest.mark.parametrize("fmt", ["mcap", "parquet"])
+def test_a_single_unit_run_read_by_read_units_is_written_back_readable(tmp_path, fmt):
+    """read_units on a single-unit run gives a UnitRuns (several False); write_run wrote it with a unit column or
+    per-unit topics and no 'units' key, a file every reader refuses ('metadata: the file has streams of units AU-0001
+    but its metadata has no 'units' key'). Now it is written as the single-unit run it was read from: read back, the
+    same unit, metadata and streams."""
+    runs, _ = simulate_units(SimConfig(program="short", rate_hz=2.0), 1)
+    run = runs.units["AU-0001"]
+    first = write_run(Run(run.meta, run.voltmeter, run.au_temperature, run.chamber, run.fixture), tmp_path / "a.mcap")
+    read = read_units(first)
+    assert not read.several
+    again = read_units(write_run(read, tmp_path / f"b.{fmt}", fmt))
+    assert not again.several and list(again.units) == ["AU-0001"]
+    (back,) = again.units.values()
+    assert back.meta == read.units["AU-0001"].meta
+    for stream, df in read.units["AU-0001"].streams().items():
+        assert back.streams()[stream].equals(df), stream
