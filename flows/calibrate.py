@@ -42,7 +42,7 @@ from prefect.cache_policies import NO_CACHE  # noqa: E402  (no input hashing: a 
 from prefect.utilities.annotations import opaque  # noqa: E402
 
 from pipeline.calibrate.figure_worker import FigureWorker  # noqa: E402
-from pipeline.calibrate.inputs import join_runs, select_runs  # noqa: E402
+from pipeline.calibrate.inputs import join_runs, joined_recordings, recordings_by_files, select_runs  # noqa: E402
 from pipeline.calibrate.methods import by_name, default_base_passport, resolve_auto  # noqa: E402
 from pipeline.calibrate.observations import ObservedRun, unit_of  # noqa: E402
 from pipeline.calibrate.publish import publish  # noqa: E402
@@ -251,7 +251,7 @@ def calibrate_units(paths, read, unit_steps, settings, step, hashed, draw=None, 
     # a unit whose files are several is one recording of them (select_runs, join_runs): the units whose recordings
     # are the same files are segmented together, as the whole file holding them is (the consensus of their still
     # times over the joined recordings: a recording cut into files calibrates as the file it was cut from)
-    joined = _joined_recordings(by_unit)
+    joined = joined_recordings({s: [(p, got.units[s]) for p, got in items] for s, items in by_unit.items()})
     segs: dict[str, dict] = {}  # path -> serial -> segmentation of the units calibrated from that file alone
     for p, got in zip(paths, read):
         if got.several and len(got.units) > 1 and any(s not in joined for s in got.units):
@@ -259,14 +259,13 @@ def calibrate_units(paths, read, unit_steps, settings, step, hashed, draw=None, 
             segs[p], run_warnings = segment(_whole(got.units), settings)
             for w in run_warnings:
                 logger.warning(w)
-    together: dict[tuple[str, ...], list[str]] = {}
-    for serial, (_, kept, _) in joined.items():
-        if any(got.several for _, got in by_unit[serial]):
-            together.setdefault(tuple(kept), []).append(serial)
     joined_segs: dict[str, Segmentation] = {}
-    for files, serials in together.items():
+    for serials in recordings_by_files(joined).values():
+        serials = [s for s in serials if any(got.several for _, got in by_unit[s])]
         if len(serials) > 1:
-            step(f"segment {len(serials)} units of {_names(list(files))} (still times once for the recording)")
+            step(
+                f"segment {len(serials)} units of {_names(joined[serials[0]][1])} (still times once for the recording)"
+            )
             got_segs, run_warnings = segment(_whole({s: joined[s][0] for s in serials}), settings)
             joined_segs.update(got_segs)
             for w in run_warnings:
@@ -304,25 +303,6 @@ def calibrate_units(paths, read, unit_steps, settings, step, hashed, draw=None, 
             logger.warning(e.one_line())
         del runs, steps, recording
     return {"units": results, "failed": failed}
-
-
-def _joined_recordings(by_unit: dict[str, list]) -> dict[str, tuple[Run, list[str], list[str]]]:
-    """The units of ``by_unit`` (serial -> its [(path, UnitRuns)]) whose files, once copies are left out
-    (:func:`pipeline.calibrate.inputs.select_runs`), are several: serial -> (the files joined as one recording,
-    :func:`pipeline.calibrate.inputs.join_runs`; the paths of the files kept, in the order given; the selection's
-    warnings). A unit whose files cannot be selected or joined is not here: its own calibration says why."""
-    out = {}
-    for serial, items in by_unit.items():
-        if len(items) < 2:
-            continue
-        path_of = {id(got.units[serial]): p for p, got in items}
-        try:
-            runs, warnings = select_runs([got.units[serial] for _, got in items])
-            if len(runs) > 1:
-                out[serial] = (join_runs(runs), [path_of[id(r)] for r in runs], warnings)
-        except ThermocalError:
-            continue
-    return out
 
 
 @task(name="calibrate-unit", task_run_name="calibrate-{unit}", cache_policy=NO_CACHE)

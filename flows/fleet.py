@@ -2,8 +2,9 @@
 
 One flow run per fleet job, one task per unit (``calibrate-unit``, a call of
 :func:`pipeline.calibrate.fleet.compute_group`): a unit's runs, TP runs and the VP runs that verify them, are
-calibrated together. The units whose only run is one run holding several units are one task
-(``calibrate-units``, :func:`pipeline.calibrate.fleet.compute_run`): the run read and segmented once for its units,
+calibrated together. The units whose only runs are one run holding several units (or the files one such run was cut
+into) are one task (``calibrate-units``, :func:`pipeline.calibrate.fleet.compute_run`): read and segmented once for
+its units,
 as ``thermocal calibrate`` does, so that both commands make the same passports from it. Planning (discovery,
 metadata, content hashes, the registry's identity check) is :func:`pipeline.calibrate.fleet.plan_fleet`, run once in
 the flow.
@@ -88,15 +89,15 @@ def calibrate_unit(
 @task(name="calibrate-units", task_run_name="calibrate-{name}", cache_policy=NO_CACHE)
 def calibrate_units(
     name: str,
-    run: str,
+    run: list[str],
     bases: dict[str, Passport | None],
     settings: CalibrationSettings,
     method: str = "tilt",
     pool: Executor | None = None,
 ) -> list[fleet_plan.ComputedUnit]:
-    """The units ``bases`` of ``run``, a run holding several units that is their only run, together:
-    :func:`pipeline.calibrate.fleet.compute_run` (the run read and segmented once, as ``calibrate`` does), in the
-    process ``pool`` when given, else here. ``name``: the units, for the task run's name."""
+    """The units ``bases`` of ``run``, a run holding several units (or the files one was cut into) that is their
+    only run, together: :func:`pipeline.calibrate.fleet.compute_run` (read and segmented once, as ``calibrate``
+    does), in the process ``pool`` when given, else here. ``name``: the units, for the task run's name."""
     args = (run, bases, settings, method)
     return pool.submit(fleet_plan.compute_run, *args).result() if pool else fleet_plan.compute_run(*args)
 
@@ -104,7 +105,7 @@ def calibrate_units(
 def _submit(runner, batch: list[fleet_plan.UnitGroup], settings, method, pool):
     """The task of one batch of :meth:`pipeline.calibrate.fleet.FleetPlan.batches`: ``calibrate-units`` for the
     units of a run with several, ``calibrate-unit`` for one unit."""
-    run = batch[0].shared_run
+    run = batch[0].shared_runs
     if run is None:
         (g,) = batch
         params = {
@@ -119,7 +120,7 @@ def _submit(runner, batch: list[fleet_plan.UnitGroup], settings, method, pool):
         return runner.submit(calibrate_unit, params)
     params = {
         "name": "+".join(g.unit for g in batch),
-        "run": run,
+        "run": list(run),
         "bases": {g.unit: g.base_passport for g in batch},
         "settings": settings,
         "method": method,

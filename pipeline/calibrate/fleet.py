@@ -24,20 +24,30 @@ other runs, and its passport's provenance names the run and the unit; a unit of 
 The units whose only run it is are calibrated together, as ``thermocal calibrate RUN`` calibrates them
 (:func:`compute_run`: the run read once, segmented once by the consensus of its units,
 :func:`pipeline.segment_units.segment_units`), so the passports are the same whichever command made them
-(:meth:`FleetPlan.batches`). A unit with other runs beside it is one recording of all its files, its own streams
-read from the run (``read_run(path, unit)``) and segmented alone, as ``calibrate`` does with the same files.
+(:meth:`FleetPlan.batches`). So are the units whose runs are the same pieces of such a run (one run_id, cut into
+files): each unit's pieces joined, the joined units segmented together, as ``calibrate PART1 PART2`` does. A unit
+with a run of its own beside them is one recording of all its files, its own streams read from the runs
+(``read_run(path, unit)``) and segmented alone, as ``calibrate`` does with the same files.
 """
 
 from __future__ import annotations
 
 import os
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from pipeline.calibrate.inputs import RunInput, folder_warning, join_runs, resolve_run_ids
+from pipeline.calibrate.inputs import (
+    RunInput,
+    folder_warning,
+    join_runs,
+    joined_recordings,
+    recordings_by_files,
+    resolve_run_ids,
+    select_runs,
+)
 from pipeline.calibrate.methods import all_methods, base_passport_of, by_name, default_base_passport, resolve_auto
 from pipeline.calibrate.publish import publish, recorded_settings
 from pipeline.calibrate.result import CalibrationResult, base_reference
@@ -82,10 +92,11 @@ class UnitGroup:
     within: dict[str, dict] = field(default_factory=dict, compare=False)
 
     @property
-    def shared_run(self) -> str | None:
-        """The run holding several units that is this unit's only run (its segmentation is the run's, made with
-        the other units: :func:`compute_run`), else None."""
-        return self.runs[0] if len(self.runs) == 1 and self.runs[0] in self.within else None
+    def shared_runs(self) -> tuple[str, ...] | None:
+        """This unit's runs, sorted, when every one of them holds several units (the run, or the pieces of one
+        recording cut into files: its segmentation is made with the other units of the same files,
+        :func:`compute_run`), else None."""
+        return tuple(sorted(self.runs)) if self.runs and all(r in self.within for r in self.runs) else None
 
 
 @dataclass
@@ -105,13 +116,14 @@ class FleetPlan:
         return sum(len(g.runs) for g in self.groups) + len(self.skipped) + len(self.failed)
 
     def batches(self) -> list[list[UnitGroup]]:
-        """The groups as the fleet's tasks calibrate them: the units whose only run is one run holding several
-        units together, one batch a run (:func:`compute_run`: the run read and segmented once, as ``calibrate``),
-        every other unit alone (:func:`compute_group`); in the order of :attr:`groups`."""
+        """The groups as the fleet's tasks calibrate them: the units whose runs are the same files, all holding
+        several units (one run, or the pieces of one), together, one batch a set of files (:func:`compute_run`: the
+        files read and segmented once, as ``calibrate``), every other unit alone (:func:`compute_group`); in the
+        order of :attr:`groups`."""
         out: list[list[UnitGroup]] = []
-        by_run: dict[str, list[UnitGroup]] = {}
+        by_run: dict[tuple[str, ...], list[UnitGroup]] = {}
         for g in self.groups:
-            run = g.shared_run
+            run = g.shared_runs
             if run is None:
                 out.append([g])
             elif run in by_run:
@@ -381,13 +393,14 @@ def compute_group(
     recording of the unit (:func:`pipeline.calibrate.inputs.join_runs`), calibrated together. If the unit cannot be
     calibrated at all, every remaining run is listed in ``failed`` with the reason and ``calibration`` is None. Bad
     inputs never raise. A unit whose only run holds several units is calibrated from the run's segmentation, as
-    ``calibrate`` does (:func:`compute_run`); a unit with other runs beside it is one recording of its files,
-    segmented alone, as ``calibrate`` does with those files.
+    ``calibrate`` does (:func:`compute_run`), and so is a unit whose runs all hold several units (the pieces of one
+    such run); a unit with a run of its own beside them is one recording of its files, segmented alone, as
+    ``calibrate`` does with those files.
     """
     t0 = time.perf_counter()
     runs = [str(r) for r in runs]
-    if len(runs) == 1 and runs[0] in (within or {}):  # its only run holds several units: their consensus
-        return compute_run(runs[0], {unit: base_passport}, settings, method)[0]
+    if runs and all(r in (within or {}) for r in runs):  # its runs hold several units: their consensus
+        return compute_run(runs, {unit: base_passport}, settings, method)[0]
     failed: list[dict] = []
     good: list[str] = []
     calibration = None
@@ -437,52 +450,98 @@ def _calibrate_recording(
 
 
 def compute_run(
-    path: str,
+    paths: str | Sequence[str],
     bases: Mapping[str, Passport | None],
     settings: CalibrationSettings = CalibrationSettings(),
     method: str = "tilt",
 ) -> list[ComputedUnit]:
     """The units ``bases`` (serial -> the base passport a method may start from, :attr:`UnitGroup.base_passport`)
-    of ``path``, a run holding several units that is each of these units' only run, calibrated as ``thermocal
-    calibrate PATH`` calibrates them, writing nothing: the run read once with all its units
-    (:func:`pipeline.io.runs.read_units`), segmented once for the run when two or more units pass its input checks
-    (:func:`pipeline.segment_units.segment_units`: the still times by the consensus of all its units, also those
-    not calibrated here; a unit whose signal disagrees is named in its warnings), then each unit chosen, observed
-    and fitted from its own segmentation. So a unit's passport is the one ``calibrate`` makes from the same run
-    (constants bit-identical). A unit that fails the run's input checks, or its calibration, fails alone with its
-    one-line reason; a run that cannot be read or segmented fails every unit of ``bases``. Never raises for bad
-    input. Each unit's ``compute_s`` is its own calibration plus its share of the reading and segmentation."""
+    of ``paths``, a run holding several units (or the files one such run was cut into, one run_id) that are each of
+    these units' only runs, calibrated as ``thermocal calibrate PATHS`` calibrates them, writing nothing: each file
+    read once with all its units (:func:`pipeline.io.runs.read_units`); of several files, each unit's pieces joined
+    (:func:`pipeline.calibrate.inputs.joined_recordings`); segmented once when two or more units pass the input
+    checks (:func:`pipeline.segment_units.segment_units`: the still times by the consensus of all the units of the
+    same files, also those not calibrated here; a unit whose signal disagrees is named in its warnings), then each
+    unit chosen, observed and fitted from its own segmentation. So a unit's passport is the one ``calibrate`` makes
+    from the same files (constants bit-identical). A unit that fails the input checks, or its calibration, fails
+    alone with its one-line reason; a file that cannot be read or segmented fails every unit of ``bases``. Never
+    raises for bad input. Each unit's ``compute_s`` is its own calibration plus its share of the reading and
+    segmentation."""
     from pipeline.segment_units import segment_units
 
     t0 = time.perf_counter()
+    paths = [paths] if isinstance(paths, str) else [str(p) for p in paths]
     units = list(bases)
+    warnings: dict[str, list[str]] = {}
     try:
         if method != "auto":
             by_name(method)
-        got = read_units(path)
-        segs = segment_units(got.units, settings.segment)[0] if len(got.units) > 1 else {}
-        mine = {u: got.units.pop(u) for u in units if u in got.units}
-        got.units.clear()  # the other units' samples were needed for the consensus only
+        read = [read_units(p) for p in paths]
+        if len(paths) == 1:
+            got = read[0]
+            segs = segment_units(got.units, settings.segment)[0] if len(got.units) > 1 else {}
+            mine = {u: got.units.pop(u) for u in units if u in got.units}
+            failed_why = dict(got.failed)
+        else:  # the pieces of one recording: each unit's joined, the units of the same files segmented together
+            by_unit: dict[str, list[tuple[str, Run]]] = {}
+            for p, got in zip(paths, read):
+                for serial, run in got.units.items():
+                    by_unit.setdefault(serial, []).append((p, run))
+            failed_why = {u: why for got in read for u, why in got.failed.items()}
+            joined = joined_recordings(by_unit)
+            for got in read:
+                got.units.clear()
+            by_unit.clear()
+            whole = frozenset(paths)
+            together = recordings_by_files(joined).get(whole, [])
+            segs = segment_units({s: joined[s][0] for s in together}, settings.segment)[0] if len(together) > 1 else {}
+            mine = {}
+            for u in units:
+                if u in joined and frozenset(joined[u][1]) == whole:
+                    mine[u], warnings[u] = joined[u][0], joined[u][2]
+                elif u not in failed_why:
+                    failed_why[u] = _unjoined_reason(u, paths)
+            joined.clear()
     except Exception as exc:
         share = (time.perf_counter() - t0) / max(1, len(units))
         reason = reason_of(exc)
-        return [ComputedUnit(u, [path], None, [], [{"run": path, "reason": reason}], share) for u in units]
+        return [
+            ComputedUnit(u, list(paths), None, [], [{"run": p, "reason": reason} for p in paths], share) for u in units
+        ]
     share = (time.perf_counter() - t0) / max(1, len(units))
     out = []
     for unit in units:
         t1 = time.perf_counter()
         calibration, failed = None, []
         if unit not in mine:
-            why = got.failed.get(unit) or f"{path}: no unit {unit} in this run"
-            failed = [{"run": path, "reason": why}]
+            why = failed_why.get(unit) or f"{_names(paths)}: no unit {unit} in this run"
+            failed = [{"run": p, "reason": why} for p in paths]
         else:
             try:
                 calibration = _calibrate_recording([mine.pop(unit)], segs.get(unit), settings, method, bases[unit])
+                calibration.warnings[:0] = warnings.get(unit, [])
             except Exception as exc:
-                failed = [{"run": path, "reason": reason_of(exc)}]
-        good = [path] if calibration is not None else []
-        out.append(ComputedUnit(unit, [path], calibration, good, failed, share + time.perf_counter() - t1))
+                failed = [{"run": p, "reason": reason_of(exc)} for p in paths]
+        good = list(paths) if calibration is not None else []
+        out.append(ComputedUnit(unit, list(paths), calibration, good, failed, share + time.perf_counter() - t1))
     return out
+
+
+def _names(paths: Sequence[str]) -> str:
+    return ", ".join(os.path.basename(p) for p in paths)
+
+
+def _unjoined_reason(unit: str, paths: Sequence[str]) -> str:
+    """Why ``unit``'s pieces in ``paths`` are not one recording of them all: :func:`select_runs` and
+    :func:`join_runs`'s one-line error on the unit's own streams, read again (only on this failure)."""
+    try:
+        runs, _ = select_runs([read_run(p, unit) for p in paths])
+        if len(runs) < len(paths):
+            return f"{_names(paths)}: unit {unit}'s files are not one recording of them all"
+        join_runs(runs)
+    except Exception as exc:
+        return reason_of(exc)
+    return f"{_names(paths)}: unit {unit}'s files are not one recording of them all"
 
 
 def publish_group(

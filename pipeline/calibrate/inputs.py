@@ -16,6 +16,10 @@ a run's folder names another unit.
 - :func:`join_runs`: the runs of one unit given together are one recording (log-format.md, "Other rates and gaps"):
   one :class:`~pipeline.run.Run`, the files in time order, the time between two files a gap within it; samples two
   files share exactly are kept once; two files with other samples over one stretch of time are refused.
+- :func:`joined_recordings`: the units with several files, each as one recording of them (:func:`select_runs` then
+  :func:`join_runs`), and :func:`recordings_by_files`: those whose recordings are the same files, which are
+  segmented together by the consensus of their still times as the file they were cut from is
+  (``calibrate PART1 PART2`` and ``fleet`` alike).
 
 Used by ``thermocal calibrate`` (the runs on the command line), ``inspect`` and ``fleet`` (the runs under a folder).
 """
@@ -23,14 +27,14 @@ Used by ``thermocal calibrate`` (the runs on the command line), ``inspect`` and 
 from __future__ import annotations
 
 import re
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import polars as pl
 
-from pipeline.errors import CalibrationError
+from pipeline.errors import CalibrationError, ThermocalError
 from pipeline.run import Run, RunMeta
 
 __all__ = [
@@ -39,6 +43,8 @@ __all__ = [
     "is_part_of",
     "is_prefix_of",
     "join_runs",
+    "joined_recordings",
+    "recordings_by_files",
     "resolve_run_ids",
     "select_runs",
     "time_span_ns",
@@ -195,6 +201,35 @@ def select_runs(runs: Sequence[Run]) -> tuple[list[Run], list[str]]:
     warnings = [d["reason"] for d in dropped]
     warnings += [w for p, r in by_path.items() if r.source and (w := folder_warning(p, r.meta.unit_serial))]
     return [by_path[i.path] for i in kept], warnings
+
+
+def joined_recordings(by_unit: Mapping[str, Sequence[tuple[str, Run]]]) -> dict[str, tuple[Run, list[str], list[str]]]:
+    """The units of ``by_unit`` (serial -> its [(path, its run read from that file)]) whose files, once copies are
+    left out (:func:`select_runs`), are several: serial -> (the files joined as one recording, :func:`join_runs`;
+    the paths of the files kept, in the order given; the selection's warnings). A unit whose files cannot be
+    selected or joined is not here: its own calibration says why."""
+    out = {}
+    for serial, items in by_unit.items():
+        if len(items) < 2:
+            continue
+        path_of = {id(run): p for p, run in items}
+        try:
+            runs, warnings = select_runs([run for _, run in items])
+            if len(runs) > 1:
+                out[serial] = (join_runs(runs), [path_of[id(r)] for r in runs], warnings)
+        except ThermocalError:
+            continue
+    return out
+
+
+def recordings_by_files(joined: Mapping[str, tuple[Run, list[str], list[str]]]) -> dict[frozenset[str], list[str]]:
+    """The units of :func:`joined_recordings` by the set of files their recordings were joined from: the units of
+    one set, two or more, are segmented together (the consensus of their still times), as the file they were cut
+    from is."""
+    out: dict[frozenset[str], list[str]] = {}
+    for serial, (_, kept, _) in joined.items():
+        out.setdefault(frozenset(kept), []).append(serial)
+    return out
 
 
 #: metadata that says how a recording is calibrated: the files of one recording must agree on it

@@ -135,3 +135,73 @@ def test_calibrate_unit_makes_the_passport_of_the_whole_run(tmp_path, layout):
         for u in some["units"]:
             assert _content(u["passport"]) == _content(every[u["unit"]]["passport"]), u["unit"]
             assert u["warnings"] == every[u["unit"]]["warnings"]
+
+
+#: (the cuts, between the cold TP3 hold's halves, in the -40 C soak, in the ramp after -10 C; the layout)
+SPLITS = [(("hold",), "mcap"), (("soak", "ramp"), "parquet")]
+
+
+@pytest.fixture(scope="module")
+def split_units(tmp_path_factory):
+    """3 units, short program at 10 Hz, seed 15 (at 2 Hz each unit segmented alone gives the consensus's passports),
+    the cut times, and ``calibrate``'s passports of the whole file."""
+    from flows.calibrate import run_calibrate
+
+    d = tmp_path_factory.mktemp("fleet-split")
+    runs, truths = simulate_units(SimConfig(program="short", rate_hz=10.0, seed=15), 3)
+    holds = next(iter(truths.values()))["holds"]
+    tp3 = next(h for h in holds if h["setpoint_c"] == -40.0 and h["position"] == "TP3")
+    times = {
+        "hold": (tp3["t_start_ns"] + tp3["t_end_ns"]) // 2,
+        "soak": min(h["t_start_ns"] for h in holds if h["setpoint_c"] == -40.0) - 600 * 10**9,
+        "ramp": max(h["t_end_ns"] for h in holds if h["setpoint_c"] == -10.0) + 600 * 10**9,
+    }
+    whole = write_run(runs, d / "whole.mcap", "mcap")
+    ref = run_calibrate([str(whole)], str(d / "ref"), CalibrationSettings(), method="auto", dry_run=True)
+    assert ref["failed"] == [] and len(ref["units"]) == 3
+    return d, runs, times, {u["unit"]: u["passport_content"] for u in ref["units"]}
+
+
+@pytest.mark.parametrize(("cuts", "layout"), SPLITS, ids=[f"{len(c) + 1}-{f}" for c, f in SPLITS])
+def test_fleet_over_the_pieces_of_a_run_of_several_units_makes_calibrates_passports(split_units, cuts, layout):
+    """The pieces of a run with several units (one run_id) in a folder: ``fleet`` calibrates the units whose runs
+    are the same pieces together (each unit's pieces joined, the joined units segmented by the consensus), so its
+    passports are ``calibrate PIECES``'s, which are the whole file's (every field but when and by what they were
+    made). Was: the fleet segmented each unit's joined pieces alone: every unit's per_plateau, verification and
+    coefficients other (AU-0001's K off by up to ~0.006 micro-V/g)."""
+    from flows.calibrate import run_calibrate
+    from flows.fleet import run_fleet
+
+    d, runs, times, whole = split_units
+    name = "-".join(cuts) + f"-{layout}"
+    inbox = d / name
+    edges = [0, *sorted(times[c] for c in cuts), 2**62]
+    run_id = next(iter(runs.units.values())).meta.run_id
+    paths = sorted(
+        str(
+            write_run(
+                UnitRuns.of_units([run_piece(r, edges[k], edges[k + 1], run_id) for r in runs.units.values()]),
+                inbox / (f"part-{k}.mcap" if layout == "mcap" else f"part-{k}"),
+                layout,
+            ).resolve()
+        )
+        for k in range(len(edges) - 1)
+    )
+    settings = CalibrationSettings()
+    cal = run_calibrate(paths, str(d / f"reg-c-{name}"), settings, method="auto")
+    fleet = run_fleet(str(inbox), str(d / f"reg-f-{name}"), settings, method="auto", figures=False, pool="thread")
+    assert cal["failed"] == [] and fleet["failed"] == [] and fleet["skipped"] == []
+    by_cal = {u["unit"]: u for u in cal["units"]}
+    by_fleet = {u["unit"]: u for u in fleet["done"]}
+    assert sorted(by_cal) == sorted(by_fleet) == sorted(whole)
+    # when and by what a passport was made, and its version (the whole file's: a dry run, no registry)
+    made = ("provenance", "created_utc", "content_sha256", "signature", "parent_sha256", "version")
+    for unit, c in by_cal.items():
+        f = by_fleet[unit]
+        a, b = _content(c["passport"]), _content(f["passport"])
+        assert b["per_plateau"] == a["per_plateau"] == whole[unit]["per_plateau"], unit
+        assert b["coefficients"] == a["coefficients"] == whole[unit]["coefficients"], unit
+        assert a == b, unit
+        assert f["runs"] == paths and f["warnings"] == c["warnings"], unit
+        differ = sorted(k for k in set(a) | set(whole[unit]) if k not in made and a.get(k) != whole[unit].get(k))
+        assert differ == [], f"{unit}: {differ}"
