@@ -239,7 +239,7 @@ def find_plateaus(t_ns: np.ndarray, temp_c: np.ndarray, settings: SegmentSetting
         seg = temp_c[i0:i1]
         in_band = np.abs(seg - np.median(seg)) <= settings.plateau_band_c
         found += [(i0 + j0, i0 + j1) for j0, j1 in _runs(in_band) if clock_s[i0 + j1 - 1] - clock_s[i0 + j0] >= min_s]
-    if not found and _short_record_stable(t_s, temp_c, record_s, settings):
+    if not found and _short_record_stable(t_s, temp_c, record_s, settings, stable, window_s):
         found = [(0, temp_c.size)]
     found = _join_interrupted(found, clock_s, temp_c, settings, window_s)
     found = sorted(found + _approaches(rate_c_per_min, clock_s, temp_c, found, settings))
@@ -271,14 +271,27 @@ def find_plateaus(t_ns: np.ndarray, temp_c: np.ndarray, settings: SegmentSetting
     return out
 
 
-def _short_record_stable(t_s: np.ndarray, temp_c: np.ndarray, record_s: float, settings: SegmentSettings) -> bool:
+def _short_record_stable(
+    t_s: np.ndarray,
+    temp_c: np.ndarray,
+    record_s: float,
+    settings: SegmentSettings,
+    stable: np.ndarray,
+    window_s: float,
+) -> bool:
     """A record shorter than ``plateau_min_s`` (a hand-turned recording of a few minutes) is one plateau when its
-    temperature's slope over the whole record (one least-squares line, s) is below ``plateau_rate_c_per_min`` and
-    every reading lies within ``plateau_band_c`` of the median. The local slopes of :func:`find_plateaus` ask each
-    sample to be stable over ``slope_window_s``, and at the record's ends that window is one-sided: its slope is
-    noisier there (a 160-s record at 20.00 +- 0.01 C read once a second crossed 0.02 C/min at its last samples, so
-    no stable run spanned the record and the recording had no plateau)."""
+    temperature's slope over the whole record (one least-squares line, s) is below ``plateau_rate_c_per_min``,
+    every reading lies within ``plateau_band_c`` of the median, and every sample whose slope window (``window_s``,
+    s) lies wholly inside the record is ``stable`` (its local slope below the threshold). The local slopes of
+    :func:`find_plateaus` ask each sample to be stable over ``slope_window_s``, and at the record's ends that window
+    is one-sided: its slope is noisier there (a 160-s record at 20.00 +- 0.01 C read once a second crossed
+    0.02 C/min at its last samples, so no stable run spanned the record and the recording had no plateau). Inside
+    the record the local slopes still rule: the one line's slope alone is blind to a dip and return (a 240-s record
+    falling 0.4 C and back at up to 0.3 C/min has a whole-record slope near 0)."""
     if record_s >= settings.plateau_min_s or temp_c.size < MIN_SLOPE_SAMPLES:
+        return False
+    inside = (t_s >= t_s[0] + window_s / 2) & (t_s <= t_s[-1] - window_s / 2)
+    if not np.all(stable[inside]):
         return False
     slope_c_per_min = abs(float(_local_slope_c_per_s(t_s, temp_c, 4.0 * (t_s[-1] - t_s[0]) + 1.0)[0])) * 60.0
     return slope_c_per_min < settings.plateau_rate_c_per_min and bool(

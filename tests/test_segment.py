@@ -564,3 +564,17 @@ def test_a_hand_turned_recording_with_its_log_calibrates(seed):
     assert status == "pass"
     assert np.max(np.abs((np.array(doc["coefficients"]["K"]) - k_true[0]) / np.array(sigma["K"]))) < 3.0
     assert np.max(np.abs((np.array(doc["coefficients"]["U0"]) - u_true[0]) / np.array(sigma["U0"]))) < 3.0
+
+
+@pytest.mark.parametrize("dip_c", [0.1, 0.4])
+def test_a_short_record_that_dips_and_returns_is_not_a_plateau(dip_c):
+    """A short record whose temperature falls by ``dip_c`` and comes back (up to 0.2-0.8 C/min mid-record, 10-40
+    times the plateau rate) has a whole-record least-squares slope near 0 and stays within the 0.5-C band: the one
+    line alone called it one stable plateau (every seed, 40 of 40). The local slopes whose window lies inside the
+    record still rule: no plateau; the same records without the dip keep theirs."""
+    for seed in range(40):
+        a = simulate(SimConfig(program="handheld", rate_hz=20.0, seed=seed)).run.au_temperature
+        t, temp_c = a["t_ns"].to_numpy(), a["temp_c"].to_numpy()
+        x = (t - t[0]) / (t[-1] - t[0])
+        assert find_plateaus(t, temp_c - dip_c * np.sin(np.pi * x) ** 2) == [], seed
+        assert len(find_plateaus(t, temp_c)) == 1, seed
