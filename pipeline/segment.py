@@ -1270,13 +1270,12 @@ def _non_finite_line(volts: pl.DataFrame, t_ns: np.ndarray, bad: np.ndarray, int
     """The warning about the voltmeter samples ``bad`` (sorted indices into ``t_ns``, the table ``volts``' times)
     that have a non-finite channel: the unit (``unit``, named in a run with several), how many samples, the
     channels with how many each, and the stretches in seconds (:func:`pipeline.io.checks.stretches_text`)."""
-    from pipeline.io.checks import stretches_text
+    from pipeline.io.checks import index_stretches, stretches_text
 
     at = pl.Series(bad)
     counts = {c: int(volts[c].gather(at).is_finite().not_().sum()) for c in ("ux", "uy", "uz")}
     channels = ", ".join(f"{c} {n}" for c, n in counts.items() if n)
-    cut = np.flatnonzero(np.diff(bad) > 1)
-    runs = np.column_stack((bad[np.concatenate(([0], cut + 1))], bad[np.concatenate((cut, [bad.size - 1]))] + 1))
+    runs, _ = index_stretches(bad)
     step_ns = float("nan") if interval_ns is None else float(interval_ns)
     where = "voltmeter" if unit is None else f"voltmeter of unit {unit}"
     return (

@@ -274,8 +274,8 @@ def fit_unit(
         np.array([f.K_sigma for f in fits]),
         np.array([f.U0_sigma for f in fits]),
     )
-    sigma = _extrapolated_to_t0(sigma, [f.temp_c for f in fits], normal_temp_c)
     temps = [f.temp_c for f in fits]
+    sigma = _extrapolated_to_t0(sigma, temps, normal_temp_c)
     fits.sort(key=lambda f: (f.temp_c, f.run_id, f.plateau))
     return UnitFit(
         unit=unit,

@@ -445,6 +445,14 @@ def refuse_dead_channel(voltmeter: pl.DataFrame, serial: str | None, *, path: st
         raise RunFormatError(f"unit {serial or '(no serial)'} has a dead channel: {dead[0]}", path=path, stream=stream)
 
 
+def index_stretches(idx: np.ndarray, max_step: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """The sorted sample indices ``idx`` (non-empty) grouped into stretches, a new one wherever the next index is
+    more than ``max_step`` further on: ((k, 2) [first, last + 1) indices, how many of ``idx`` each holds)."""
+    cut = np.flatnonzero(np.diff(idx) > max_step)
+    first, last = idx[np.concatenate(([0], cut + 1))], idx[np.concatenate((cut, [idx.size - 1]))]
+    return np.column_stack((first, last + 1)), np.diff(np.concatenate(([0], cut + 1, [idx.size])))
+
+
 #: Expected number of stretches a live channel repeats one reading for by chance, per channel and record, that
 #: :func:`stuck_stretches` may call stuck: the threshold is set so that quantised noise stays below it.
 STUCK_FALSE_RATE = 1e-3
@@ -498,12 +506,7 @@ def stuck_stretches(col: pl.Series) -> tuple[np.ndarray, int, float, float]:
             run &= same[k : w + k]
         found.append(a + np.flatnonzero(run[:SLAB_SAMPLES]))  # samples i .. i + m all equal
     first = np.concatenate(found) if found else np.zeros(0, dtype=np.int64)
-    cut = np.flatnonzero(np.diff(first) > 1)
-    runs = (
-        np.column_stack((first[np.concatenate(([0], cut + 1))], first[np.concatenate((cut, [first.size - 1]))] + m + 1))
-        if first.size
-        else np.zeros((0, 2), dtype=np.int64)
-    )
+    runs = index_stretches(first)[0] + (0, m) if first.size else np.zeros((0, 2), dtype=np.int64)
     length = runs[:, 1] - runs[:, 0]
     n_min = MIN_STUCK_SAMPLES
     for _ in range(8):  # p without the runs called stuck, until the threshold no longer changes
@@ -581,12 +584,8 @@ def rail_stretches(col: pl.Series, rail_v: float, n_min: int) -> tuple[np.ndarra
             n_nxt += k
     if found < n_min or found < 2 * n_nxt:
         return np.zeros((0, 2), dtype=np.int64), found, n_nxt
-    idx = np.concatenate(at)
-    cut = np.flatnonzero(np.diff(idx) > max(RAIL_GAP_SAMPLES, n_min))
-    first, last = idx[np.concatenate(([0], cut + 1))], idx[np.concatenate((cut, [idx.size - 1]))]
-    size = np.diff(np.concatenate(([0], cut + 1, [idx.size])))
-    keep = size >= n_min
-    return np.column_stack((first[keep], last[keep] + 1)), found, n_nxt
+    runs, size = index_stretches(np.concatenate(at), max(RAIL_GAP_SAMPLES, n_min))
+    return runs[size >= n_min], found, n_nxt
 
 
 def _stuck_missing(label: str, df: pl.DataFrame, warnings: list[str]) -> pl.DataFrame:
