@@ -155,6 +155,27 @@ def verify_positions(
     return rows
 
 
+def failed_outside(rows: list[dict], valid_temp_c) -> str | None:
+    """Where failing rows (``rows``: :meth:`VerificationRow.to_dict` of a passport, ``passed`` false) lie outside
+    the temperatures the passport's data covered (``valid_temp_c``, lo and hi in C), the clause saying how many
+    of how many failed, how many of them outside and at which temperatures (C), and how far (C) the thermal model
+    was extrapolated to them; None when every failing row lies within the range (or none fails)."""
+    failing = [r for r in rows if not r.get("passed", True)]
+    if not failing or not valid_temp_c:
+        return None
+    lo, hi = float(valid_temp_c[0]), float(valid_temp_c[1])
+    beyond = {id(r): max(lo - r["temp_c"], r["temp_c"] - hi) for r in failing}
+    out = [r for r in failing if beyond[id(r)] > 0]
+    if not out:
+        return None
+    at = ", ".join(f"{t:+.1f}" for t in sorted({round(float(r["temp_c"]), 1) for r in out}))
+    return (
+        f"at {len(failing)} of {len(rows)} verification positions, {len(out)} of them at {at} C, outside the "
+        f"calibrated {lo:+.1f} .. {hi:+.1f} C (the thermal model extrapolated by up to "
+        f"{max(beyond[id(r)] for r in out):.0f} C)"
+    )
+
+
 def overall_status(rows: list[VerificationRow]) -> str:
     """``pass`` when every VP segment is within tolerance, ``fail`` otherwise, ``unverified`` without VP data."""
     if not rows:

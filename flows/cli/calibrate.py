@@ -118,7 +118,16 @@ def fail_reason(result: dict) -> str:
     implausible = [w.removeprefix("implausible: ") for w in result.get("warnings", []) if w.startswith("implausible: ")]
     if implausible:
         return f"implausible constants: {implausible[0]}"
-    return "the compensated gravity-module error exceeds its limit at a verification position"
+    from pipeline.calibrate.tilt import stage_clauses
+    from pipeline.verify import failed_outside
+
+    doc = _passport_doc(result) or {}
+    outside = failed_outside(doc.get("verification", []), doc.get("valid_temp_c"))
+    lost = stage_clauses(result.get("warnings", []))
+    if outside is None and not lost:
+        return "the compensated gravity-module error exceeds its limit at a verification position"
+    where = outside or "at a verification position"
+    return "; ".join([f"the compensated gravity-module error exceeds its limit {where}", *lost])
 
 
 def _units_outcome(result: dict, as_json: bool) -> None:
@@ -144,16 +153,21 @@ def _units_outcome(result: dict, as_json: bool) -> None:
         raise typer.Exit(1)
 
 
-def calibrate_text(r: dict) -> str:
-    from pipeline.passport.text import calibrate_lines
-
+def _passport_doc(r: dict) -> dict | None:
+    """The passport a calibration result wrote (or would write: a dry run's content), None when it cannot be read."""
     doc = r.get("passport_content") if r.get("dry_run") else None
     if doc is None and r.get("passport") and Path(r["passport"]).is_file():
         try:
             doc = json.loads(Path(r["passport"]).read_text())
         except (OSError, ValueError):
             doc = None
-    lines = calibrate_lines(r, doc)
+    return doc
+
+
+def calibrate_text(r: dict) -> str:
+    from pipeline.passport.text import calibrate_lines
+
+    lines = calibrate_lines(r, _passport_doc(r))
     if r.get("base_passport_used"):
         lines.insert(1, r["base_passport_used"])
     return "\n".join(lines)

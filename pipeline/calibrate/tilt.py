@@ -40,7 +40,8 @@ from pipeline.constants import fit_constants
 from pipeline.errors import CalibrationError
 from pipeline.passport.document import Passport
 from pipeline.positions import TEST_POSITIONS, gravity_vector_g
-from pipeline.segment import SHORT_HOLDS_WARNING
+from pipeline.run import NS_PER_S as _NS
+from pipeline.segment import SHORT_HOLDS_WARNING, Segmentation, SegmentSettings, segment_run
 from pipeline.thermal import ThermalModel, cluster_temperatures, default_order, fit_thermal_model
 from pipeline.uncertainty import (
     ThermalSigma,
@@ -135,7 +136,9 @@ class Tilt(Method):
         """The run's observations and warnings; CalibrationError for a run with no named static position on any
         plateau (``base_passport`` is not used by this method; ``segmentation``: the run's, if already made with
         ``settings.segment``)."""
-        obs, warnings = observe_run(run, settings.segment, segmentation)
+        seg = segmentation if segmentation is not None else segment_run(run, settings.segment)
+        obs, warnings = observe_run(run, settings.segment, seg)
+        warnings += left_out_stages(seg, obs, settings.segment)
         return ObservedRun(meta=run.meta, source=run.source, observations=obs, warnings=warnings)
 
     def fit(
@@ -156,6 +159,90 @@ class Tilt(Method):
                 raise
             why = short.removeprefix("voltmeter: ").removesuffix(": not used")
             raise CalibrationError(f"{e.message}; {why}", path=e.path, stream=e.stream, where=e.where) from None
+
+
+#: how a warning of a stage the tilt method leaves out begins (:func:`left_out_stages`); ``calibrate``'s status line
+#: quotes the clause before its first ": " (:func:`stage_clause`)
+STAGE_LEFT_OUT = "the tilt method leaves out the "
+
+
+def left_out_stages(seg: Segmentation, obs: list[Observation], settings: SegmentSettings) -> list[str]:
+    """One warning per stage of the program the tilt method leaves out although the unit held test positions
+    there, beyond the run's calibration plateaus (:func:`calibration_plateaus`, their temperatures ``lo .. hi``)
+    by more than ``plateau_band_c``:
+
+    - a plateau whose test positions do not determine the 12 constants (the others lost, e.g. to a data gap);
+    - two or more test positions held off every plateau and off every settling at one temperature (within
+      ``settle_band_c``, each hold's own spread within ``plateau_band_c``: not a ramp), e.g. a soak too short for
+      the plateau test, or one whose stable part a data gap took.
+
+    Each names the stage's temperature (C), the positions and their time, why they were not used (the data gap
+    of any stream within ``plateau_min_s`` of them, else the temperature's rate over the holds, C/min) and how far
+    (C) the thermal model is extrapolated to reach that stage. [] when the run has no calibration plateau."""
+    from pipeline.calibrate.ramp import visits
+    from pipeline.positions import is_test_position
+
+    cal = [t for _, _, t, _ in calibration_plateaus(obs)]
+    if not cal:
+        return []
+    lo, hi = min(cal), max(cal)
+    used = {(r, p) for r, p, _, _ in calibration_plateaus(obs)}
+    stages: list[tuple[float, list[str], int, int, str]] = []  # temperature, positions, span ns, why
+    for (run_id, p), rows in plateau_groups(obs).items():
+        names = list(dict.fromkeys(o.position for o in rows))
+        if (run_id, p) not in used and len(names) > 1:  # one position: held through the soak, not a stage
+            why = f"its test positions {', '.join(names)} do not determine the 12 constants"
+            t0, t1 = min(o.t_start_ns for o in rows), max(o.t_end_ns for o in rows)
+            stages.append((float(np.mean([o.temp_c for o in rows])), names, t0, t1, why))
+    off = [
+        h
+        for h in visits(seg.segments)
+        if is_test_position(h.position)
+        and h.plateau is None
+        and h.settling is None
+        and h.temp_std_c <= settings.plateau_band_c
+    ]
+    groups: list[list] = []
+    for h in off:
+        if groups and abs(h.temp_c - groups[-1][0].temp_c) <= settings.settle_band_c:
+            groups[-1].append(h)
+        else:
+            groups.append([h])
+    for g in groups:
+        names = list(dict.fromkeys(h.position for h in g))
+        if len(names) < 2:
+            continue
+        t_min = np.array([(h.t_start_ns + h.t_end_ns) / 2 for h in g]) / _NS / 60.0
+        temps = np.array([h.temp_c for h in g])
+        rate = abs(float(np.polyfit(t_min, temps, 1)[0])) if len(g) > 1 and np.ptp(t_min) > 0 else 0.0
+        why = (
+            f"off every temperature plateau (the temperature moved {rate:.2f} C/min there; a plateau needs below "
+            f"{settings.plateau_rate_c_per_min} C/min for {settings.plateau_min_s:.0f} s of data)"
+        )
+        stages.append((float(np.mean(temps)), names, g[0].t_start_ns, g[-1].t_end_ns, why))
+    gaps = [(a, b) for spans in seg.gaps_ns.values() for a, b in spans]
+    out = []
+    for temp_c, names, t0, t1, why in sorted(stages, key=lambda s: s[2]):
+        beyond = lo - temp_c if temp_c < lo else temp_c - hi
+        if beyond <= settings.plateau_band_c:
+            continue
+        near = sorted(
+            (a, b) for a, b in gaps if a < t1 + settings.plateau_min_s * _NS and b > t0 - settings.plateau_min_s * _NS
+        )
+        lost = f"lost its test positions to the data gap {utc_span(*near[0])}" if near else "was not used"
+        out.append(
+            f"{STAGE_LEFT_OUT}{temp_c:+.0f} C stage, which {lost}: {'what is left of it, ' if near else ''}"
+            f"{', '.join(names)} held at {temp_c:+.1f} C ({utc_span(t0, t1)}), {why}; the calibration plateaus "
+            f"cover {lo:+.1f} .. {hi:+.1f} C only, so the thermal model is extrapolated by {beyond:.0f} C to that "
+            "stage"
+        )
+    return out
+
+
+def stage_clauses(warnings: list[str]) -> list[str]:
+    """The head of each :func:`left_out_stages` warning among ``warnings`` (the text before its first ": "): which
+    stage the tilt method left out and why, in a few words, for a status line."""
+    return [w.split(": ", 1)[0] for w in warnings if w.startswith(STAGE_LEFT_OUT)]
 
 
 #: how much ``--method auto`` prefers the tilt method (:attr:`pipeline.calibrate.method.Support.preference`): above
