@@ -20,10 +20,10 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.calibrate.inputs import join_runs, select_runs, time_span_ns
+from pipeline.calibrate.inputs import join_runs, segment_recordings, select_runs, time_span_ns, unit_recordings
 from pipeline.diagnose.diagnosis import diagnose_run
 from pipeline.errors import ThermocalError
-from pipeline.io.runs import read_run, read_run_meta
+from pipeline.io.runs import read_run_meta, read_units
 from pipeline.jsonable import to_jsonable
 from pipeline.model import OUTPUT_UNITS
 from pipeline.passport.canonical import canonical_json
@@ -31,6 +31,7 @@ from pipeline.passport.document import load_passport
 from pipeline.passport.registry import Registry, load_passport_file
 from pipeline.passport.signing import sign_record
 from pipeline.run import Run
+from pipeline.segment import Segmentation
 
 from .runtime import Steps
 
@@ -95,9 +96,9 @@ def diagnose_command(
     elif registry is not None:
         given, source, state = current_passport(registry, unit or read_run_meta(run).unit_serial, unverified)
     step(f"ingest {', '.join(r.name for r in runs)}")
-    the_run, run = _one_recording(runs, unit)
+    the_run, run, seg = _one_recording(runs, unit)
     step("segment, fit and search the residual" if given is None else "segment and search the residual")
-    result = diagnose_run(the_run, given, passport_source=source)
+    result = diagnose_run(the_run, given, passport_source=source, segmentation=seg)
     step("write figure and extended passport")
     folder = output_folder(out_dir, registry, the_run.meta.unit_serial)
     tag = f".{unit}" if unit else ""
@@ -124,18 +125,35 @@ def diagnose_command(
     return report
 
 
-def _one_recording(paths: list[Path], unit: str | None) -> tuple[Run, Path]:
-    """The run of ``paths`` (the files of one recording, joined in time order, copies left out with a warning) and
-    the file that names the outputs (the first in time)."""
-    if len(paths) == 1:
-        return read_run(paths[0], unit), paths[0]
-    runs = [read_run(p, unit) for p in paths]
+def _one_recording(paths: list[Path], unit: str | None) -> tuple[Run, Path, Segmentation | None]:
+    """The run of ``paths`` (the files of one recording, joined in time order, copies left out with a warning), the
+    file that names the outputs (the first in time) and its segmentation when made here: ``unit`` of a run holding
+    several units (the file, or the pieces it was cut into, one run_id) is segmented with the other units of the
+    same files, by the consensus of their still times, as ``calibrate`` segments it
+    (:func:`pipeline.calibrate.inputs.unit_recordings`, :func:`~pipeline.calibrate.inputs.segment_recordings`);
+    None: the diagnosis segments the run alone."""
+    read = [(str(p), read_units(p)) for p in paths]
+    runs = [got.one(unit) for _, got in read]  # the unit named, in every file (else the reader's one-line error)
+    if unit is not None and any(got.several and len(got.units) > 1 for _, got in read):
+        recordings, _ = unit_recordings(read)
+        if unit in recordings:  # else its files are not one recording: select_runs or join_runs says why below
+            run, kept, left_out = recordings[unit]
+            first = min(kept, key=lambda p: _first_ns(next(got.units[unit] for q, got in read if q == p)))
+            segs, _ = segment_recordings(recordings, only=[unit])
+            run.warnings[:0] = left_out
+            return run, Path(first), segs[unit]
+    if len(runs) == 1:
+        return runs[0], paths[0], None
     path_of = {id(r): p for r, p in zip(runs, paths)}
-    kept, left_out = select_runs(runs)
-    joined = join_runs(kept)
-    joined.warnings[:0] = left_out
-    first = min(kept, key=lambda r: time_span_ns(r.voltmeter) or (np.iinfo(np.int64).max, 0))
-    return joined, path_of[id(first)]
+    kept_runs, warnings = select_runs(runs)
+    run = join_runs(kept_runs)
+    run.warnings[:0] = warnings
+    first_run = min(kept_runs, key=_first_ns)
+    return run, path_of[id(first_run)], None
+
+
+def _first_ns(run: Run) -> tuple[int, int]:
+    return time_span_ns(run.voltmeter) or (np.iinfo(np.int64).max, 0)
 
 
 def _sealed(extended: dict, state) -> dict:

@@ -8,6 +8,7 @@ each unit as above.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -21,24 +22,65 @@ from pipeline.utc import utc_text
 from pipeline.words import count_words
 
 
-def summarize_units(got: UnitRuns) -> dict[str, Any]:
+def summarize_units(got: UnitRuns | Sequence[tuple[str, UnitRuns]]) -> dict[str, Any]:
     """What a run holding several units holds (JSON-ready): its metadata as in the file, each unit's
     :func:`summarize_run` (poses, plateaus, the methods it supports) in ``units``, segmented once for the run
     (:func:`pipeline.segment_units.segment_units`), the units that failed their input checks with their reasons in
-    ``failed``, and the run's warnings (a unit whose signal disagrees with the others' is named there)."""
-    from pipeline.segment_units import segment_units
+    ``failed``, and the run's warnings (a unit whose signal disagrees with the others' is named there).
 
+    ``got`` may be the files such a run was cut into ([(path, what was read from it)], one run_id): each unit's
+    pieces are one recording (:func:`pipeline.calibrate.inputs.unit_recordings`, with its ``files`` as
+    :func:`summarize_runs` lists them) and the units of the same files are segmented together, as ``calibrate``
+    does (:func:`pipeline.calibrate.inputs.segment_recordings`): the poses and plateaus of the file they were cut
+    from. ``metadata`` is then the first file's in time, ``source`` the files in time order."""
+    from pipeline.calibrate.inputs import segment_recordings, unit_recordings
+
+    read = [(got.source, got)] if isinstance(got, UnitRuns) else list(got)
+    if len(read) > 1:
+        read.sort(key=lambda item: _first_ns(item[1]))
+    recordings, unjoined = unit_recordings(read)
     try:
-        segs, disagree = segment_units(got.units)
+        segs, disagree = segment_recordings(recordings)
     except ThermocalError as exc:
         segs, disagree = {}, [f"segmentation of the run failed: {exc.one_line()}"]
+    units = []
+    for serial, (run, paths, left_out) in recordings.items():
+        unit = summarize_run(run, segs.get(serial))
+        if len(read) > 1:
+            unit["files"] = _files([r for p, g in read for s, r in g.units.items() if s == serial and p in paths])
+            unit["warnings"] = left_out + unit["warnings"]
+        units.append(unit)
+    failed = {u: why for _, g in read for u, why in g.failed.items()}
+    failed.update(unjoined)
+    several = len(read) > 1
     return {
-        "source": got.source,
-        "metadata": dict(got.meta_values),
-        "units": [summarize_run(run, segs.get(serial)) for serial, run in got.units.items()],
-        "failed": [{"unit": u, "reason": why} for u, why in got.failed.items()],
-        "warnings": [*got.warnings, *disagree],
+        "source": " + ".join(p for p, _ in read) if several else read[0][1].source,
+        "metadata": dict(read[0][1].meta_values),
+        "units": units,
+        "failed": [{"unit": u, "reason": why} for u, why in failed.items()],
+        "warnings": [*(f"{p}: {w}" if several else w for p, g in read for w in g.warnings), *disagree],
     }
+
+
+def _first_ns(got: UnitRuns) -> int:
+    """The first voltmeter time of a file's units (the files of a run in time order)."""
+    from pipeline.calibrate.inputs import time_span_ns
+
+    spans = [span[0] for r in got.units.values() if (span := time_span_ns(r.voltmeter))]
+    return min(spans, default=int(np.iinfo(np.int64).max))
+
+
+def _files(kept: list[Run]) -> list[dict[str, Any]]:
+    """``files`` of a recording of several files: each file's source, run_id, first and last voltmeter time, in
+    time order."""
+    from pipeline.calibrate.inputs import time_span_ns
+
+    spans = [time_span_ns(r.voltmeter) or (None, None) for r in kept]
+    files = [
+        {"source": r.source, "run_id": r.meta.run_id, "t_start_ns": a, "t_end_ns": b} for r, (a, b) in zip(kept, spans)
+    ]
+    files.sort(key=lambda f: (f["t_start_ns"] is None, f["t_start_ns"] or 0))
+    return files
 
 
 def format_units(summary: dict[str, Any]) -> str:
@@ -86,19 +128,14 @@ def summarize_runs(runs: list[Run]) -> dict[str, Any]:
     run),
     described by :func:`summarize_run`; with several files, ``files`` lists each one used (source, run_id, first
     and last voltmeter time) and ``warnings`` also says which were left out."""
-    from pipeline.calibrate.inputs import join_runs, select_runs, time_span_ns
+    from pipeline.calibrate.inputs import join_runs, select_runs
 
     if len(runs) == 1:
         return summarize_run(runs[0])
     kept, left_out = select_runs(runs)
     recording = join_runs(kept)
-    spans = [time_span_ns(r.voltmeter) or (None, None) for r in kept]
-    files = [
-        {"source": r.source, "run_id": r.meta.run_id, "t_start_ns": a, "t_end_ns": b} for r, (a, b) in zip(kept, spans)
-    ]
-    files.sort(key=lambda f: (f["t_start_ns"] is None, f["t_start_ns"] or 0))
     summary = summarize_run(recording)
-    summary["files"] = files
+    summary["files"] = _files(kept)
     summary["warnings"] = left_out + summary["warnings"]
     return summary
 

@@ -17,12 +17,18 @@ def inspect(
     as_json: JsonFlag = False,
 ):
     """What a run holds: metadata, streams, rates, gaps, the plateaus and static positions found (no Prefect); a run
-    holding several units: each unit; several files of one unit: them as one recording."""
+    holding several units: each unit; several files of one unit: them as one recording; the files a run of several
+    units was cut into: each unit's pieces as one recording, segmented as the whole file."""
     from pipeline.inspect import format_summary, format_units, summarize_runs, summarize_units
-    from pipeline.io.runs import read_run, read_units
+    from pipeline.io.runs import read_units
 
     if len(runs) > 1:
-        summary = summarize_runs([read_run(r) for r in runs])
+        read = [(str(r), read_units(r)) for r in runs]
+        if any(got.several for _, got in read):  # the files a run of several units was cut into: each unit joined
+            summary = summarize_units(read)
+            emit(summary, as_json, None if as_json else format_units(summary))
+            return
+        summary = summarize_runs([got.one() for _, got in read])
         emit(summary, as_json, None if as_json else format_summary(summary))
         return
     got = read_units(runs[0])

@@ -19,7 +19,8 @@ a run's folder names another unit.
 - :func:`joined_recordings`: the units with several files, each as one recording of them (:func:`select_runs` then
   :func:`join_runs`), and :func:`recordings_by_files`: those whose recordings are the same files, which are
   segmented together by the consensus of their still times as the file they were cut from is
-  (``calibrate PART1 PART2`` and ``fleet`` alike).
+  (``calibrate PART1 PART2`` and ``fleet`` alike); :func:`unit_recordings` and :func:`segment_recordings`: every
+  unit of the files read (in one file or several) as its recording, segmented so (``inspect`` and ``diagnose``).
 
 Used by ``thermocal calibrate`` (the runs on the command line), ``inspect`` and ``fleet`` (the runs under a folder).
 """
@@ -35,7 +36,8 @@ import numpy as np
 import polars as pl
 
 from pipeline.errors import CalibrationError, ThermocalError
-from pipeline.run import Run, RunMeta
+from pipeline.run import Run, RunMeta, UnitRuns
+from pipeline.segment import Segmentation, SegmentSettings
 
 __all__ = [
     "RunInput",
@@ -46,8 +48,10 @@ __all__ = [
     "joined_recordings",
     "recordings_by_files",
     "resolve_run_ids",
+    "segment_recordings",
     "select_runs",
     "time_span_ns",
+    "unit_recordings",
 ]
 
 
@@ -230,6 +234,63 @@ def recordings_by_files(joined: Mapping[str, tuple[Run, list[str], list[str]]]) 
     for serial, (_, kept, _) in joined.items():
         out.setdefault(frozenset(kept), []).append(serial)
     return out
+
+
+def unit_recordings(
+    read: Sequence[tuple[str, UnitRuns]],
+) -> tuple[dict[str, tuple[Run, list[str], list[str]]], dict[str, str]]:
+    """Every unit of the files ``read`` ([(path, what :func:`pipeline.io.runs.read_units` read from it)]) as one
+    recording: serial -> (its run, the paths it was made of, the selection's warnings), as
+    :func:`joined_recordings` gives a unit in several files (a unit in one file: that file's run, ``[path]``,
+    ``[]``; one whose other files are copies left out: the file kept); and the units whose files cannot be one
+    recording, serial -> the one-line reason (:func:`select_runs` / :func:`join_runs`'s). The units' order is that
+    of their first file."""
+    by_unit: dict[str, list[tuple[str, Run]]] = {}
+    for p, got in read:
+        for serial, run in got.units.items():
+            by_unit.setdefault(serial, []).append((p, run))
+    joined = joined_recordings(by_unit)
+    out: dict[str, tuple[Run, list[str], list[str]]] = {}
+    failed: dict[str, str] = {}
+    for serial, items in by_unit.items():
+        if serial in joined:
+            out[serial] = joined[serial]
+            continue
+        if len(items) == 1:
+            out[serial] = (items[0][1], [items[0][0]], [])
+            continue
+        path_of = {id(run): p for p, run in items}
+        try:
+            runs, warnings = select_runs([run for _, run in items])
+            join_runs(runs)  # the reason, when they are not one recording (one run: itself)
+        except ThermocalError as exc:
+            failed[serial] = exc.one_line()
+            continue
+        out[serial] = (runs[0], [path_of[id(runs[0])]], warnings)
+    return out, failed
+
+
+def segment_recordings(
+    recordings: Mapping[str, tuple[Run, list[str], list[str]]],
+    settings: SegmentSettings | None = None,
+    only: Sequence[str] | None = None,
+) -> tuple[dict[str, Segmentation], list[str]]:
+    """Each unit's segmentation of ``recordings`` (:func:`unit_recordings`), as ``calibrate`` makes it: the units
+    whose recordings are the same files together, by the consensus of their still times
+    (:func:`pipeline.segment_units.segment_units`; a unit alone: its own), and the run-level warnings naming units
+    that disagree. ``only``: just the groups holding these units. Raises the segmenter's ThermocalError."""
+    from pipeline.segment_units import segment_units
+
+    settings = settings if settings is not None else SegmentSettings()
+    segs: dict[str, Segmentation] = {}
+    warnings: list[str] = []
+    for serials in recordings_by_files(recordings).values():
+        if only is not None and not set(serials) & set(only):
+            continue
+        got, lines = segment_units({s: recordings[s][0] for s in serials}, settings)
+        segs.update(got)
+        warnings += lines
+    return segs, warnings
 
 
 #: metadata that says how a recording is calibrated: the files of one recording must agree on it

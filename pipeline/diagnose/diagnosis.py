@@ -122,11 +122,16 @@ def diagnose_run(
     passport: Passport | dict | None = None,
     settings: DiagnoseSettings = DiagnoseSettings(),
     passport_source: str | None = None,
+    segmentation: Segmentation | None = None,
 ) -> Diagnosis:
     """Diagnose ``run`` against ``passport`` (fitted from the run when None; a document is loaded once here,
-    :func:`pipeline.passport.document.load_passport`). See the module doc."""
+    :func:`pipeline.passport.document.load_passport`). ``segmentation``: the run's, when already made (a unit of a
+    run holding several: the consensus of the units' still times, as ``calibrate`` segments it,
+    :func:`pipeline.calibrate.inputs.segment_recordings`); else :func:`pipeline.segment.segment_run`'s. See the
+    module doc."""
     with _one_blas_thread():
-        return _diagnose(run, None if passport is None else load_passport(passport), settings, passport_source)
+        loaded = None if passport is None else load_passport(passport)
+        return _diagnose(run, loaded, settings, passport_source, segmentation)
 
 
 def _one_blas_thread():
@@ -140,10 +145,14 @@ def _one_blas_thread():
 
 
 def _diagnose(
-    run: Run, passport: Passport | None, settings: DiagnoseSettings, passport_source: str | None
+    run: Run,
+    passport: Passport | None,
+    settings: DiagnoseSettings,
+    passport_source: str | None,
+    segmentation: Segmentation | None = None,
 ) -> Diagnosis:
     seg_settings = segment_settings_for(run)
-    seg = segment_run(run, seg_settings)
+    seg = segmentation if segmentation is not None else segment_run(run, seg_settings)
     given = passport is not None
     if passport is None:
         try:

@@ -1,0 +1,138 @@
+"""The files a run of several units was cut into (log-format.md, "Runs with several units": one run_id in several
+files), as ``inspect``, ``diagnose``, ``calibrate`` and ``fleet`` see them: each unit's pieces one recording, the
+units of the same files segmented together (the consensus of their still times), as the whole file is.
+
+Real files: a 3-unit short program at 10 Hz (at 2 Hz a unit segmented alone finds the consensus's holds, at 10 Hz
+it does not), written by the project's writers and cut with :func:`tests.conftest.run_piece`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from pipeline.io.runs import write_run
+from pipeline.run import UnitRuns
+from pipeline.simulate.chamber import SimConfig
+from tests.conftest import run_main, run_piece
+
+S = 10**9
+#: the examples of the properties here (each writes the pieces and reads them back: a few seconds)
+EXAMPLES = int(os.environ.get("THERMOCAL_HYPOTHESIS_EXAMPLES", "4"))
+
+
+@pytest.fixture(scope="module")
+def units3(tmp_path_factory):
+    """Three units through the short program at 10 Hz (seed 15) in one run: the folder, the runs, the whole file
+    and its run's (first, last) voltmeter ns."""
+    from pipeline.simulate.units import simulate_units
+
+    d = tmp_path_factory.mktemp("units3")
+    runs, _ = simulate_units(SimConfig(program="short", rate_hz=10.0, seed=15), 3)
+    whole = write_run(runs, d / "whole.mcap", "mcap")
+    t = next(iter(runs.units.values())).voltmeter["t_ns"]
+    return d, runs, whole, (int(t[0]), int(t[-1]))
+
+
+def _pieces(runs: UnitRuns, cuts_ns: list[int], folder: Path, fmt: str, drop: dict[int, str] | None = None):
+    """The run cut at ``cuts_ns`` into files of the same run_id (``drop``: piece index -> a unit left out of it)."""
+    run_id = next(iter(runs.units.values())).meta.run_id
+    edges = [0, *sorted(cuts_ns), 2**62]
+    out = []
+    for k in range(len(edges) - 1):
+        units = [
+            run_piece(r, edges[k], edges[k + 1], run_id) for s, r in runs.units.items() if (drop or {}).get(k) != s
+        ]
+        name = f"part-{k}.mcap" if fmt == "mcap" else f"part-{k}"
+        out.append(write_run(UnitRuns.of_units(units), folder / name, fmt))
+    return out
+
+
+def _inspect(monkeypatch, capsys, *paths) -> dict:
+    code, out, err = run_main(monkeypatch, capsys, "inspect", *map(str, paths), "--json")
+    assert code == 0, err
+    return json.loads(out)
+
+
+@pytest.fixture(scope="module")
+def whole_inspected(units3):
+    from pipeline.inspect import summarize_units
+    from pipeline.io.runs import read_units
+
+    return summarize_units(read_units(units3[2]))
+
+
+@settings(
+    max_examples=EXAMPLES,
+    deadline=None,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+)
+@given(
+    cuts=st.lists(st.floats(0.02, 0.98), min_size=1, max_size=2, unique=True),
+    fmt=st.sampled_from(["mcap", "parquet"]),
+    reverse=st.booleans(),
+)
+def test_inspect_of_the_pieces_gives_each_unit_the_whole_files_poses(
+    units3, whole_inspected, monkeypatch, capsys, cuts, fmt, reverse
+):
+    """``inspect PART...`` (any order) of a 3-unit run cut at 1-2 random times: every unit's poses, plateaus and
+    static segments are the whole file's, each unit listing the files it was joined from. Was: exit 2, "the run
+    holds 3 units (AU-0001, AU-0002, AU-0003): name one with --unit" (inspect read each file as one unit)."""
+    d, runs, _, (t0, t1) = units3
+    folder = Path(tempfile.mkdtemp(dir=d))
+    paths = _pieces(runs, [t0 + int(c * (t1 - t0)) for c in cuts], folder, fmt)
+    got = _inspect(monkeypatch, capsys, *(reversed(paths) if reverse else paths))
+    assert got["failed"] == [] and got["warnings"] == whole_inspected["warnings"]
+    assert got["source"] == " + ".join(str(p) for p in paths)
+    assert [u["metadata"]["unit_serial"] for u in got["units"]] == ["AU-0001", "AU-0002", "AU-0003"]
+    for unit, whole in zip(got["units"], whole_inspected["units"]):
+        assert [f["source"] for f in unit["files"]] == [str(p) for p in paths]
+        assert unit["recording"]["poses"] == whole["recording"]["poses"], unit["metadata"]["unit_serial"]
+        assert len(unit["recording"]["poses"]) == 12
+        for key in ("plateaus", "static_positions", "segmentation_warnings", "recording"):
+            assert unit[key] == whole[key], (unit["metadata"]["unit_serial"], key)
+        assert unit["streams"]["voltmeter"]["samples"] == whole["streams"]["voltmeter"]["samples"]
+
+
+@pytest.mark.parametrize("unit", ["AU-0001", "AU-0003"])
+def test_diagnose_of_a_unit_of_the_pieces_uses_the_consensus_of_the_units(units3, monkeypatch, capsys, unit, tmp_path):
+    """``diagnose PART2 PART1 --unit S`` and ``diagnose WHOLE --unit S``: the same report, that of the unit's
+    recording segmented with the other units of the run (``segment_units``, as ``calibrate`` segments it), not
+    alone: the passport it fits from the run (and writes extended) is the tilt fit of the consensus's holds,
+    ``calibrate``'s coefficients. Was: the unit's recording
+    segmented alone, whole file or pieces (at 10 Hz AU-0001's fitted K and the residual RMS differ: rms_before_v
+    3.87425e-7 V alone, 3.87393e-7 V with the consensus)."""
+    from pipeline.calibrate.settings import CalibrationSettings
+    from pipeline.diagnose.diagnosis import fit_passport
+    from pipeline.diagnose.signal import segment_settings_for
+    from pipeline.io.runs import read_units
+    from pipeline.segment_units import segment_units
+
+    d, runs, whole, (t0, t1) = units3
+    paths = _pieces(runs, [t0 + (t1 - t0) * 2 // 5], tmp_path, "mcap")
+    reports = []
+    for k, files in enumerate(([whole], paths[::-1])):
+        out_dir = str(tmp_path / f"out-{k}")
+        code, out, err = run_main(
+            monkeypatch, capsys, "diagnose", *map(str, files), "--unit", unit, "--json", "--out", out_dir
+        )
+        assert code == 0, err
+        reports.append(json.loads(out))
+    got = read_units(whole)
+    run = got.units[unit]
+    segs, _ = segment_units(got.units)
+    fitted = fit_passport(run, segs[unit], CalibrationSettings(segment=segment_settings_for(run)))
+    a, b = reports
+    assert a["unit"] == b["unit"] == unit and a["verdict"] == b["verdict"]
+    for key in ("findings", "rms_before_v", "rms_after_v", "rms_noise_v", "vp", "blocks", "located"):
+        assert a[key] == b[key], key
+    assert a["extended_model"]["base"] == b["extended_model"]["base"]
+    for rep in reports:  # the passport diagnose fitted from the run and wrote extended
+        written = json.loads(Path(rep["extended_passport"]).read_text())["coefficients"]
+        assert written["K"] == fitted.K.tolist() and written["U0"] == fitted.U0.tolist()
