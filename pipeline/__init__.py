@@ -17,6 +17,7 @@ Steps and data:
 
 - ``run``: the one canonical in-memory form of a chamber run, whatever the file format
 - ``segment``: temperature plateaus and static positions found from the data
+- ``settling``: the reading's creep after each move (``tilt_settling``), found in the holds and out of their means
 - ``inspect``: what a recording holds, before anything is fitted (plateau program or sweep, poses, methods)
 - ``apply``: a passport's full model applied to every voltmeter sample of a recording
 - ``plots``: figures (PNG)

@@ -53,6 +53,7 @@ from pipeline.positions import (
 from pipeline.run import NS_PER_S as _NS
 from pipeline.run import SLAB_SAMPLES as _SLAB_SAMPLES
 from pipeline.run import Run, slab_of
+from pipeline.settling import HoldMoments, hold_moments, settling_fit
 
 #: blocks per static window (the time resolution of static detection is static_window_s / this)
 _BLOCKS_PER_WINDOW = 10
@@ -1386,7 +1387,13 @@ def segment_run(
     # the voltmeter's times as float64 (for the interpolation of the temperature), once for the units on them
     t_float = None if memo is None else _once(memo, "float64", lambda: t_ns.astype(np.float64))
     n_bad = np.searchsorted(bad_u, [a for a, *_ in pieces]), np.searchsorted(bad_u, [b for _, b, *_ in pieces])
-    for (i0, i1, p, settling), fix, old, some_bad in zip(pieces, fixture, stale, n_bad[1] > n_bad[0]):
+    # a piece begins after a move where its static stretch is not its predecessor's (else a plateau cut it)
+    stretch_of = np.searchsorted(np.array([a for a, _ in stretches], dtype=np.int64), [a for a, *_ in pieces], "right")
+    after_move = np.concatenate(([False], stretch_of[1:] != stretch_of[:-1]))
+    moments: list[HoldMoments] = []
+    for (i0, i1, p, settling), fix, old, some_bad, moved in zip(
+        pieces, fixture, stale, n_bad[1] > n_bad[0], after_move
+    ):
         cols, tt = ch.slab(i0, i1), (t_ns if t_float is None else t_float)[i0:i1]
         if some_bad:  # (non-finite samples are found once: :attr:`StaticStretches.bad`)
             fin = finite_columns(cols)
@@ -1395,6 +1402,8 @@ def segment_run(
         ddof = 1 if tt.size > 1 else 0
         stats = [_mean_std(c, ddof) for c in cols]
         temp_c = _mean_std(tc, 0)
+        t_s = (tt - tt[0]) / _NS if moved and tt.size else np.zeros(0)  # (no creep without a move: no moments)
+        moments.append(hold_moments(t_s, cols, np.array([m for m, _ in stats])))
         rows.append(
             dict(
                 t_start_ns=int(t_ns[i0]),
@@ -1410,6 +1419,7 @@ def segment_run(
                 stale=old,
             )
         )
+    _take_out_settling(rows, moments, after_move, warnings)
 
     names = _name_segments(run, rows, settings, warnings)
     continues = _continued_holds(rows, [nm["position"] for nm in names], all_gaps, run.fixture, settings)
@@ -1454,6 +1464,30 @@ def segment_run(
         if note:
             warnings.append(f"{SHORT_HOLDS_WARNING}: {note}: not used")
     return seg
+
+
+def _take_out_settling(
+    rows: list[dict[str, Any]], moments: list[HoldMoments], after_move: np.ndarray, warnings: list[str]
+) -> None:
+    """The creep after each move (:func:`pipeline.settling.settling_fit`) taken out of the means of ``rows`` (the
+    segments in time order, with their :class:`pipeline.settling.HoldMoments` and whether each follows a move: its
+    static stretch is not its predecessor's), said in ``warnings``; nothing changes where the recording shows
+    none."""
+    if len(rows) < 2:
+        return
+    found = settling_fit(
+        moments,
+        np.array([r["mean_v"] for r in rows]),
+        np.array([r["std_v"] for r in rows]),
+        np.array([r["t_start_ns"] for r in rows], dtype=np.int64) / _NS,
+        np.array([r["t_end_ns"] for r in rows], dtype=np.int64) / _NS,
+        np.asarray(after_move)[1:],
+    )
+    if not found.used:
+        return
+    for r, c in zip(rows, found.correction_v):
+        r["mean_v"] = r["mean_v"] - c
+    warnings.append(found.line(int(np.count_nonzero(np.any(found.correction_v != 0, axis=1)))))
 
 
 #: how the warning of holds too short for the static detection at the recording's rate begins

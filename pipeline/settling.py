@@ -1,0 +1,164 @@
+"""The reading's creep after each move of the fixture (docs/physics.md, effect ``tilt_settling``), found in the
+static holds and taken out of their means.
+
+After a move from one position to the next the reading creeps to its final value, U += -f (U_new - U_old)
+exp(-(t - t_arrive)/tau_s): each hold's mean is off by a fixed fraction of the step it arrived by, and the
+constants, which are differences of hold means, are off by tens of micro-V/g at f = 2e-4, tau_s = 30 s, far beyond
+their noise. The creep's shape ties it down: it is proportional, channel by channel, to the step U_new - U_old (the
+mean of the hold less the mean of the one before it), it decays with one time constant, and it begins as the hold
+does. So two numbers for the whole run, the amplitude g (the fraction of the step left at a hold's first sample)
+and tau_s, are fitted to every hold's samples at once (:func:`settling_fit`), each hold with its own mean and its
+own linear trend in time (a unit still settling in temperature drifts slowly through a hold; the referral to the
+plateau's temperature takes that into account, not this), and where g stands out of the noise the hold means are
+corrected by the creep's mean over each hold.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.effects.base import log_grid
+from pipeline.effects.tilt_settling import TiltSettling
+from pipeline.run import SLAB_SAMPLES
+
+#: the time constants tried (s): the catalogue effect's range, 10 % apart (a hold's mean creep depends on tau_s
+#: nearly in proportion: a coarser grid leaves a bias)
+TAU_GRID_S: tuple[float, ...] = log_grid(TiltSettling.grid[0], TiltSettling.grid[-1], 70)
+#: a hold whose predecessor ended longer ago than this (s) is not taken to have arrived from it (the move is not seen)
+MAX_MOVE_S = 120.0
+#: the creep is taken out only where its amplitude stands out of the noise by this many standard errors
+MIN_Z = 10.0
+#: the largest plausible creep, as a fraction of the step (the catalogue effect's bound)
+MAX_FRACTION = 0.01
+
+
+@dataclass(frozen=True)
+class HoldMoments:
+    """What :func:`settling_fit` needs of one hold's samples, per time constant of :data:`TAU_GRID_S`: with
+    e(t) = exp(-(t - t_first)/tau_s) and ``e_mean`` its mean over the hold (n_tau,), r = e - e_mean, ``ee`` =
+    sum r^2 (n_tau,) and ``eu`` = sum r (u_i - mean u_i) (n_tau, 3) V."""
+
+    ee: np.ndarray
+    eu: np.ndarray
+    e_mean: np.ndarray
+
+
+def hold_moments(t_s: np.ndarray, u_v: list[np.ndarray], mean_v: np.ndarray) -> HoldMoments:
+    """:class:`HoldMoments` of one hold from its sample times ``t_s`` (s, any origin) and its three channels
+    ``u_v`` (V) with their means ``mean_v`` (V)."""
+    n_tau = len(TAU_GRID_S)
+    ee, eu, e_mean = np.zeros(n_tau), np.zeros((n_tau, 3)), np.zeros(n_tau)
+    if t_s.size < 3:
+        return HoldMoments(ee, eu, e_mean)
+    x = t_s - t_s[0]
+    u = np.stack([np.asarray(c, dtype=float) - m for c, m in zip(u_v, mean_v)], axis=1)  # (n, 3) V
+    inv_tau = 1.0 / np.asarray(TAU_GRID_S)
+    per = max(1, SLAB_SAMPLES // x.size)  # time constants at a time: at most a slab's worth of e(t) in memory
+    for k in range(0, n_tau, per):
+        r = np.exp(-np.outer(inv_tau[k : k + per], x))  # (per, n)
+        e_mean[k : k + per] = r.mean(axis=1)
+        r -= e_mean[k : k + per, None]
+        ee[k : k + per] = np.einsum("kn,kn->k", r, r)
+        eu[k : k + per] = r @ u
+    return HoldMoments(ee=ee, eu=eu, e_mean=e_mean)
+
+
+@dataclass(frozen=True)
+class Settling:
+    """The creep fitted over a run's holds: ``fraction`` (the part of each step still missing at a hold's first
+    sample, > 0 for a creep towards the final value), ``tau_s`` (s), ``z`` (the amplitude over its standard error)
+    and ``correction_v`` (n_holds, 3) V, what to subtract from each hold's mean (zero unless ``used``)."""
+
+    fraction: float
+    tau_s: float
+    z: float
+    used: bool
+    correction_v: np.ndarray
+
+    def line(self, n_holds: int) -> str:
+        """The warning that says what was found and done."""
+        return (
+            f"voltmeter: the reading creeps after each move (tilt_settling): {self.fraction * 1e6:.0f} ppm of the "
+            f"step at the start of a hold, time constant {self.tau_s:.0f} s ({self.z:.0f} standard errors); the "
+            f"means of {n_holds} holds corrected by up to {np.abs(self.correction_v).max() * 1e6:.2f} micro-V"
+        )
+
+
+def settling_fit(
+    moments: list[HoldMoments],
+    mean_v: np.ndarray,
+    std_v: np.ndarray,
+    start_s: np.ndarray,
+    end_s: np.ndarray,
+    moved: np.ndarray,
+) -> Settling:
+    """The creep after each move over a run's holds, in time order: their :class:`HoldMoments`, means and standard
+    deviations ``mean_v``, ``std_v`` (n, 3) V, first and last sample times ``start_s``, ``end_s`` (n,) s, and
+    ``moved`` (n - 1,): whether a move lies between hold k and k + 1 (not a mere cut of one still stretch, e.g.
+    where a plateau begins).
+
+    The step of hold k is mean_v[k] - mean_v[k-1] where a move lies between them and hold k-1 ended at most
+    :data:`MAX_MOVE_S` before hold k began (else 0: no creep is modelled). Channels are weighted by their median
+    noise variance. For each tau_s of :data:`TAU_GRID_S` the amplitude g is the weighted least-squares fit of
+    u = mean + g step e(t); the tau_s with the largest reduction of chi-square is taken, refined between the grid's
+    points. The correction g step e_mean per hold is used where tau_s lies inside the grid (a best fit at its end,
+    900 s, is a slow drift through the holds that happens to follow the steps, not a creep: clean short programs
+    show one of up to 300 standard errors at 1 micro-V of noise, from the unit's temperature still settling), g < 0
+    (the reading starts short of its final value), its z is at least :data:`MIN_Z` and -g at most
+    :data:`MAX_FRACTION`."""
+    n = len(moments)
+    zero = Settling(0.0, float("nan"), 0.0, False, np.zeros((n, 3)))
+    if n < 2:
+        return zero
+    step = np.zeros((n, 3))
+    moved = np.asarray(moved, dtype=bool) & (start_s[1:] - end_s[:-1] <= MAX_MOVE_S)
+    step[1:][moved] = (mean_v[1:] - mean_v[:-1])[moved]
+    var = np.median(np.asarray(std_v, dtype=float) ** 2, axis=0)
+    if not np.all(var > 0):
+        return zero
+    w = 1.0 / var  # (3,)
+    ee = np.stack([m.ee for m in moments])  # (n, n_tau)
+    eu = np.stack([m.eu for m in moments])  # (n, n_tau, 3)
+    num = np.einsum("ki,kti,i->t", step, eu, w)
+    den = np.einsum("ki,kt,i->t", step**2, ee, w)
+    ok = den > 0
+    if not ok.any():
+        return zero
+    chi2 = np.where(ok, num**2 / np.where(ok, den, 1.0), 0.0)
+    best = int(np.argmax(chi2))
+    # between the grid's time constants: num, den and the holds' e_mean are smooth in log(tau_s), quadratic
+    # through the best one and its neighbours (1e-4 of their values at 10 % spacing)
+    nodes = np.clip(np.arange(best - 1, best + 2), 0, len(TAU_GRID_S) - 1)
+    log_tau = np.log(np.asarray(TAU_GRID_S))
+    if len(set(nodes.tolist())) == 3 and ok[nodes].all():
+        fine = np.linspace(log_tau[nodes[0]], log_tau[nodes[2]], _FINE)
+        lag = _lagrange(log_tau[nodes], fine)  # (_FINE, 3)
+        num_f, den_f = lag @ num[nodes], lag @ den[nodes]
+        j = int(np.argmax(num_f**2 / den_f))
+        weights, tau_s = lag[j], float(np.exp(fine[j]))
+    else:
+        weights, tau_s = np.eye(3)[1], float(TAU_GRID_S[best])
+    num_b, den_b = float(weights @ num[nodes]), float(weights @ den[nodes])
+    g = num_b / den_b
+    z = abs(num_b) / np.sqrt(den_b)
+    resolved = 0 < best < len(TAU_GRID_S) - 1  # (at the grid's end: a drift through the holds, not a creep)
+    used = resolved and g < 0 and z >= MIN_Z and -g <= MAX_FRACTION
+    e_mean = np.array([m.e_mean[nodes] @ weights for m in moments])
+    correction = g * step * e_mean[:, None] if used else np.zeros((n, 3))
+    return Settling(-g, tau_s, float(z), used, correction)
+
+
+#: points of the fine search of tau_s between two neighbours of the grid's best
+_FINE = 201
+
+
+def _lagrange(nodes: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Weights (len(x), 3) of the quadratic through three ``nodes`` evaluated at ``x``."""
+    w = np.ones((x.size, 3))
+    for a in range(3):
+        for b in range(3):
+            if a != b:
+                w[:, a] *= (x - nodes[b]) / (nodes[a] - nodes[b])
+    return w
