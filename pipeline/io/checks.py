@@ -42,6 +42,8 @@ MAX_JUMP_S = 86_400.0
 #: not a recording's (a -2**63 placeholder, a clock never set); and differences of two such times stay far from
 #: int64 overflow.
 T_NS_RANGE = (0, 2**62)
+#: The refusal of a sampled stream that holds two samples with one time and different values.
+SAME_TIME = "two different samples at the same time"
 #: What a sample of each value column can physically be; a value outside (e.g. 1e308 C) is treated as missing
 #: (NaN, as a non-finite sample is) with a warning naming the first such sample. Temperatures in C (absolute zero ..
 #: 1000 C), outputs in V or m/s^2.
@@ -135,6 +137,7 @@ def check_stream(
                 where=f"row {row}",
             )
     df = _impossible_values_missing(label, df, warnings)
+    stepped_back = ""  # where the times went back, for an error that sorting them leads to
     if not t.is_sorted():
         t_ns = t.to_numpy()
         # a sample is out of order when an earlier row has a later time (a clock stepped back: every sample
@@ -148,8 +151,13 @@ def check_stream(
             f"t_ns={t_ns[row]} after t_ns={t_ns[row - 1]}; up to {behind.max() / 1e9:.6g} s before an earlier "
             "row's time); sorted by t_ns"
         )
+        stepped_back = (
+            f"the times step back {(t_ns[row - 1] - t_ns[row]) / 1e9:.6g} s at row {row} (t_ns={t_ns[row]} after "
+            f"t_ns={t_ns[row - 1]}): a clock set back by a whole number of sample intervals, or a block written "
+            "again with other values"
+        )
     if stream != "fixture" and df.height > 1:
-        df, spans = _check_time_base(label, df, path=path, warnings=warnings)
+        df, spans = _check_time_base(label, df, path=path, warnings=warnings, stepped_back=stepped_back)
         if spans.size:
             if gaps is None:
                 warnings.extend(gap_lines({label: spans}))
@@ -218,10 +226,12 @@ def gap_indices(t_ns: np.ndarray) -> np.ndarray:
 
 
 def _check_time_base(
-    stream: str, df: pl.DataFrame, *, path: str, warnings: list[str]
+    stream: str, df: pl.DataFrame, *, path: str, warnings: list[str], stepped_back: str = ""
 ) -> tuple[pl.DataFrame, np.ndarray]:
     """Jumps (error), repeated samples (dropped) and gaps (returned: (k, 2) int64 ns, the last sample before each and
-    the first after) of a sampled stream sorted by time. Slab by slab
+    the first after) of a sampled stream sorted by time. ``stepped_back``: where the times of the stream as read went
+    back (it was sorted here), said in the refusal of two different samples at one time; without it the rows are
+    the file's. Slab by slab
     (:data:`SLAB_SAMPLES`): the only arrays the length of the stream are the times and, when samples repeat, one
     byte a row to drop them (104 M identical rows once made four more copies of the table)."""
     t_ns = df["t_ns"].to_numpy()
@@ -251,9 +261,11 @@ def _check_time_base(
             equal &= (u == v) | (np.isnan(u) & np.isnan(v))
         if not equal.all():
             k = a + int(same[~equal][0]) + 1
-            raise RunFormatError(
-                "two different samples at the same time", path=path, stream=stream, where=f"t_ns={t_ns[k]}"
+            why = stepped_back or (
+                f"the time does not advance at row {k} (t_ns={t_ns[k]} twice): stamps coarser than the sampling, "
+                "or a clock held back"
             )
+            raise RunFormatError(f"{SAME_TIME}: {why}", path=path, stream=stream, where=f"t_ns={t_ns[k]}")
         if keep is None:
             keep = np.ones(t_ns.size, dtype=bool)
             first_same = a + int(same[0]) + 1

@@ -334,6 +334,69 @@ def test_a_clock_stepped_back_counts_every_sample_it_puts_out_of_order():
     assert "up to 28.5 s before an earlier row's time" in w
 
 
+def _stepped_back_run_file(
+    tmp_path: Path, fmt: str, stream: str, back_s: float, name: str = "stepped"
+) -> tuple[Path, np.ndarray]:
+    """A 100-s run (voltmeter 10 Hz, thermosensor 1 Hz) whose ``stream``'s clock is set back ``back_s`` at 50 s,
+    written as the logger would (rows in the order taken) as ``fmt``; and that stream's times as written."""
+    t_v = T0_NS + np.arange(1000, dtype=np.int64) * 100_000_000
+    t_1 = T0_NS + np.arange(100, dtype=np.int64) * 1_000_000_000
+    times = {"voltmeter": t_v, "au_temperature": t_1}
+    times[stream] = np.where(times[stream] >= T0_NS + 50 * 10**9, times[stream] - round(back_s * 1e9), times[stream])
+    v = np.linspace(-0.55, 0.55, 1000)  # every sample differs from every other
+    frames = {
+        "voltmeter": {"t_ns": times["voltmeter"], "ux": v, "uy": -v, "uz": v / 2},
+        "au_temperature": {"t_ns": times["au_temperature"], "temp_c": np.linspace(20.0, 21.0, 100)},
+    }
+    if fmt == "mcap":
+        msgs = [
+            (
+                TOPICS[stream_name],
+                int(cols["t_ns"][k]),
+                orjson.dumps({c: a[k : k + 10] for c, a in cols.items()}, option=orjson.OPT_SERIALIZE_NUMPY),
+            )
+            for stream_name, cols in frames.items()
+            for k in range(0, cols["t_ns"].size, 10)
+        ]
+        return write_raw_mcap(tmp_path / f"{name}.mcap", msgs, META.to_strings()), times[stream]
+    path = tmp_path / name
+    path.mkdir()
+    for stream_name, cols in frames.items():
+        pl.DataFrame(cols).write_parquet(path / f"{stream_name}.parquet")
+    (path / "run.json").write_bytes(orjson.dumps(META.to_strings()))
+    return path, times[stream]
+
+
+@pytest.mark.parametrize("fmt", ["mcap", "parquet"])
+@pytest.mark.parametrize(
+    ("stream", "back_s", "row", "gone_back_s"),
+    [("voltmeter", 2.0, 500, 1.9), ("voltmeter", 30.0, 500, 29.9), ("au_temperature", 1.0, 50, None)],
+)
+def test_a_clock_set_back_whole_sample_intervals_is_refused_naming_the_step(
+    tmp_path, fmt, stream, back_s, row, gone_back_s
+):
+    """A logger's clock set back by a whole number of its sample intervals (a leap second, an NTP step on a logger
+    stamping on a grid) puts samples on times already taken by others, with other values. That stays a refusal, but
+    the line says where the times went back and by how much (said was only "two different samples at the same
+    time", which reads as a corrupt file); a step that is no whole number of intervals is sorted with a warning."""
+    path, t = _stepped_back_run_file(tmp_path, fmt, stream, back_s)
+    with pytest.raises(RunFormatError) as info:
+        read_run(path)
+    first = T0_NS + 50 * 10**9 - round(back_s * 1e9)  # the first time taken twice
+    why = (
+        f"the times step back {gone_back_s:g} s at row {row} (t_ns={t[row]} after t_ns={t[row - 1]}): a clock set "
+        "back by a whole number of sample intervals, or a block written again with other values"
+        if gone_back_s is not None  # a step of one interval leaves the times in order: one time twice
+        else f"the time does not advance at row {row} (t_ns={t[row]} twice): stamps coarser than the sampling, or a "
+        "clock held back"
+    )
+    assert str(info.value) == f"{path}: {stream}: t_ns={first}: two different samples at the same time: {why}"
+    odd, _ = _stepped_back_run_file(tmp_path, fmt, stream, back_s + 0.05, name="odd")
+    got = read_run(odd)
+    assert got.stream(stream).height == t.size and got.stream(stream)["t_ns"].is_sorted()
+    assert any(w.startswith(f"{stream}: ") and "out of time order" in w for w in got.warnings)
+
+
 def test_null_samples_read_as_nan(tmp_path):
     body = b'{"t_ns": [%d, %d, %d], "ux": [1.5, null, 2], "uy": [0, 0, 1], "uz": [null, 0.5, 0.25]}' % (
         T0_NS,
