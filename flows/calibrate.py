@@ -42,7 +42,14 @@ from prefect.cache_policies import NO_CACHE  # noqa: E402  (no input hashing: a 
 from prefect.utilities.annotations import opaque  # noqa: E402
 
 from pipeline.calibrate.figure_worker import FigureWorker  # noqa: E402
-from pipeline.calibrate.inputs import join_runs, joined_recordings, recordings_by_files, select_runs  # noqa: E402
+from pipeline.calibrate.inputs import (  # noqa: E402
+    absent_from_pieces,
+    join_runs,
+    joined_recordings,
+    recordings_by_files,
+    select_runs,
+    time_span_ns,
+)
 from pipeline.calibrate.methods import by_name, default_base_passport, resolve_auto  # noqa: E402
 from pipeline.calibrate.observations import ObservedRun, unit_of  # noqa: E402
 from pipeline.calibrate.publish import publish  # noqa: E402
@@ -252,6 +259,10 @@ def calibrate_units(paths, read, unit_steps, settings, step, hashed, draw=None, 
     # are the same files are segmented together, as the whole file holding them is (the consensus of their still
     # times over the joined recordings: a recording cut into files calibrates as the file it was cut from)
     joined = joined_recordings({s: [(p, got.units[s]) for p, got in items] for s, items in by_unit.items()})
+    absent = absent_from_pieces(  # a unit missing from one of the files its run was cut into
+        [(p, got.meta_values.get("run_id", ""), got.serials) for p, got in zip(paths, read) if got.several],
+        lambda p: _span_ns(read[paths.index(p)]),
+    )
     segs: dict[str, dict] = {}  # path -> serial -> segmentation of the units calibrated from that file alone
     for p, got in zip(paths, read):
         if got.several and len(got.units) > 1 and any(s not in joined for s in got.units):
@@ -295,6 +306,7 @@ def calibrate_units(paths, read, unit_steps, settings, step, hashed, draw=None, 
             draw=draw,
             as_tasks=False,
             recording=recording,
+            notes=absent.get(serial, []),
         )
         try:
             results.append(calibrate_unit(serial, _whole(steps)))
@@ -329,12 +341,14 @@ def _calibrate_unit(
     draw=None,
     as_tasks: bool = True,
     recording: list | None = None,
+    notes: list[str] | None = None,
 ) -> dict:
     """One unit from its runs (one per path; ``segmentations``: each run's, where already made): select, choose,
     observe, fit, write, each a task run (``as_tasks=False``: plain calls, inside :func:`calibrate_unit`'s task run);
     ``release()`` is called once the samples are no longer needed; ``draw``: publish's, for figures drawn
     elsewhere. ``recording``: a list holding (the unit's files already selected and joined, the paths kept, the
-    selection's warnings, the joined recording's segmentation or None), emptied here, in place of ``runs``."""
+    selection's warnings, the joined recording's segmentation or None), emptied here, in place of ``runs``.
+    ``notes``: warnings about the unit's inputs found before (a piece of its run it is missing from), put first."""
     logger = get_run_logger()
     call = _as_task if as_tasks else _as_call
     if recording:
@@ -368,7 +382,9 @@ def _calibrate_unit(
         release()
     step(f"fit ({method}: constants, thermal model, VP verification)")
     calibration = call(fit, observed, method, settings, base)
-    calibration.warnings[:0] = selection_warnings + ([base_line] if base_line and base is None else [])
+    calibration.warnings[:0] = [*(notes or []), *selection_warnings] + (
+        [base_line] if base_line and base is None else []
+    )
     for w in calibration.warnings:
         logger.warning(w)
     step("write" if not dry_run else "dry run (nothing written)")
@@ -392,6 +408,12 @@ def _as_task(step, *args):
 def _as_call(step, *args):
     """``step`` (a task) called as the plain function it wraps (no task run)."""
     return step.fn(*args)
+
+
+def _span_ns(got) -> tuple[int, int] | None:
+    """The first and last voltmeter ns of a file's units (:class:`pipeline.run.UnitRuns`), None without samples."""
+    spans = [span for r in got.units.values() if (span := time_span_ns(r.voltmeter))]
+    return (min(a for a, _ in spans), max(b for _, b in spans)) if spans else None
 
 
 def _names(paths: list[str]) -> str:

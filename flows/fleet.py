@@ -290,6 +290,8 @@ def fleet_flow(
                         for g in batch
                     ]
                 for group, unit in zip(batch, computed):  # the one place the fleet signs and writes: on the station
+                    if unit.calibration is not None and group.warnings:  # found while planning: first, as calibrate
+                        unit.calibration.warnings[:0] = list(group.warnings)
                     outcome = fleet_plan.publish_group(registry, unit, settings, figures, group.digests, group.within)
                     outcomes.append(outcome)
                     bar.unit_done(_unit_line(outcome, len(outcomes), len(plan.groups)), outcome.failed)

@@ -41,12 +41,14 @@ from pathlib import Path
 
 from pipeline.calibrate.inputs import (
     RunInput,
+    absent_from_pieces,
     folder_warning,
     join_runs,
     joined_recordings,
     recordings_by_files,
     resolve_run_ids,
     select_runs,
+    time_span_ns,
 )
 from pipeline.calibrate.methods import all_methods, base_passport_of, by_name, default_base_passport, resolve_auto
 from pipeline.calibrate.publish import publish, recorded_settings
@@ -90,6 +92,9 @@ class UnitGroup:
     digests: dict[str, RunDigest] = field(default_factory=dict, compare=False)
     base_passport: Passport | None = field(default=None, compare=False)
     within: dict[str, dict] = field(default_factory=dict, compare=False)
+    #: warnings about the unit's inputs found while planning (a piece of its run it is missing from), put first in
+    #: its calibration's warnings, as ``calibrate`` puts them
+    warnings: tuple[str, ...] = field(default=(), compare=False)
 
     @property
     def shared_runs(self) -> tuple[str, ...] | None:
@@ -230,12 +235,15 @@ def plan_fleet(
             paths.append(p.resolve())
     with ThreadPoolExecutor(max_workers=PLAN_THREADS) as pool:
         inspected = list(pool.map(_inspect_run, paths))
+    pieces: list[tuple[str, str, list[str]]] = []  # the runs holding several units: (path, run_id, serials)
     for path, (found, digest) in zip(paths, inspected):
         if isinstance(digest, BaseException):  # one bad run must not stop the fleet
             plan.failed.append({"run": str(path), "reason": reason_of(digest)})
             continue
         assert found is not None  # _inspect_run gives None only beside the exception
         metas, several = found
+        if several and metas:
+            pieces.append((str(path), metas[0].run_id, [m.unit_serial for m in metas]))
         for meta in metas:
             unit = meta.unit_serial
             warning = None if several else folder_warning(path, unit, Path(root).resolve())
@@ -250,6 +258,7 @@ def plan_fleet(
                     "several": several,
                 }
             )
+    absent = absent_from_pieces(pieces, _span_ns)  # a unit missing from one of the files its run was cut into
     candidates = all_methods() if method == "auto" else [by_name(method)]
     for unit, inputs in sorted(by_unit.items()):
         unique: dict[str, dict] = {}
@@ -308,9 +317,21 @@ def plan_fleet(
                 digests={i["path"]: i["digest"] for i in kept},
                 base_passport=base,
                 within={i["path"]: {"unit": unit, "run_id": i["run_id"]} for i in kept if i["several"]},
+                warnings=tuple(absent.get(unit, [])),
             )
         )
     return plan
+
+
+def _span_ns(path: str) -> tuple[int, int] | None:
+    """The first and last voltmeter ns of a run's units (read only for a piece a unit is missing from); None when
+    it cannot be read (the reading reports why elsewhere)."""
+    try:
+        got = read_units(path)
+    except Exception:
+        return None
+    spans = [span for r in got.units.values() if (span := time_span_ns(r.voltmeter))]
+    return (min(a for a, _ in spans), max(b for _, b in spans)) if spans else None
 
 
 def _unit_reader(unit: str) -> Callable[[str], Run]:

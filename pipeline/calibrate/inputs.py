@@ -20,7 +20,8 @@ a run's folder names another unit.
   :func:`join_runs`), and :func:`recordings_by_files`: those whose recordings are the same files, which are
   segmented together by the consensus of their still times as the file they were cut from is
   (``calibrate PART1 PART2`` and ``fleet`` alike); :func:`unit_recordings` and :func:`segment_recordings`: every
-  unit of the files read (in one file or several) as its recording, segmented so (``inspect`` and ``diagnose``).
+  unit of the files read (in one file or several) as its recording, segmented so (``inspect`` and ``diagnose``);
+  :func:`absent_from_pieces`: a unit missing from one of the files its run was cut into, one warning line each.
 
 Used by ``thermocal calibrate`` (the runs on the command line), ``inspect`` and ``fleet`` (the runs under a folder).
 """
@@ -41,6 +42,7 @@ from pipeline.segment import Segmentation, SegmentSettings
 
 __all__ = [
     "RunInput",
+    "absent_from_pieces",
     "folder_warning",
     "is_part_of",
     "is_prefix_of",
@@ -291,6 +293,37 @@ def segment_recordings(
         segs.update(got)
         warnings += lines
     return segs, warnings
+
+
+def absent_from_pieces(
+    files: Sequence[tuple[str, str, Sequence[str]]], span_of: Callable[[str], tuple[int, int] | None]
+) -> dict[str, list[str]]:
+    """The units of a run with several units cut into files that are missing from one of them while the other
+    units are in it: serial -> one warning line per such file, naming the unit, the file and the file's time span
+    (``span_of(path)``: its first and last voltmeter ns; None: unknown). ``files``: each file holding several units
+    as (path, its run_id, the serials it lists); the files of one run_id are the pieces of one recording."""
+    from pipeline.utc import utc_text
+
+    by_run: dict[str, list[tuple[str, set[str]]]] = {}
+    for path, run_id, listed in files:
+        by_run.setdefault(run_id, []).append((path, set(listed)))
+    out: dict[str, list[str]] = {}
+    for run_id, pieces in by_run.items():
+        if len(pieces) < 2:
+            continue
+        every = set().union(*(held for _, held in pieces))
+        for path, held in pieces:
+            missing = sorted(every - held)
+            if not missing:
+                continue
+            span = span_of(path)
+            when = f"{utc_text(span[0])} .. {utc_text(span[1])}" if span else "time span unknown"
+            for serial in missing:
+                out.setdefault(serial, []).append(
+                    f"{path}: unit {serial} is missing from this piece of run {run_id!r} ({when}), which holds the "
+                    "other units: its recording has no samples over that time"
+                )
+    return out
 
 
 #: metadata that says how a recording is calibrated: the files of one recording must agree on it

@@ -136,3 +136,51 @@ def test_diagnose_of_a_unit_of_the_pieces_uses_the_consensus_of_the_units(units3
     for rep in reports:  # the passport diagnose fitted from the run and wrote extended
         written = json.loads(Path(rep["extended_passport"]).read_text())["coefficients"]
         assert written["K"] == fitted.K.tolist() and written["U0"] == fitted.U0.tolist()
+
+
+@pytest.fixture(scope="module")
+def units3_2hz(tmp_path_factory):
+    """Three units through the short program at 2 Hz (seed 15) in one run, and its (first, last) voltmeter ns."""
+    from pipeline.simulate.units import simulate_units
+
+    runs, _ = simulate_units(SimConfig(program="short", rate_hz=2.0, seed=15), 3)
+    t = next(iter(runs.units.values())).voltmeter["t_ns"]
+    return tmp_path_factory.mktemp("units3-2hz"), runs, (int(t[0]), int(t[-1]))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("cuts", "drop"), [((0.4,), {1: "AU-0003"}), ((0.3, 0.7), {1: "AU-0001"})])
+def test_a_unit_missing_from_a_piece_of_its_run_is_named_by_calibrate_and_fleet(units3_2hz, cuts, drop):
+    """The pieces of a 3-unit run (one run_id), one unit left out of one piece: ``calibrate PIECES`` and ``fleet``
+    name it in that unit's warnings, first, one line naming the unit, the piece and the piece's time span; the
+    other units' warnings name nothing. Was: the warnings were [] (the unit calibrated from the pieces it is in,
+    nothing said about the hole)."""
+    from flows.calibrate import run_calibrate
+    from flows.fleet import run_fleet
+    from pipeline.calibrate.settings import CalibrationSettings
+    from pipeline.utc import utc_text
+
+    d, runs, (t0, t1) = units3_2hz
+    name = "-".join(f"{c}" for c in cuts)
+    inbox = d / name
+    cut_ns = [t0 + int(c * (t1 - t0)) for c in cuts]
+    paths = [str(p.resolve()) for p in _pieces(runs, cut_ns, inbox, "mcap", drop)]
+    [(k, unit)] = drop.items()
+    edges = [t0, *cut_ns, t1 + 1]
+    t = next(iter(runs.units.values())).voltmeter["t_ns"].to_numpy()
+    first, last = int(t[t >= edges[k]][0]), int(t[t < edges[k + 1]][-1])
+    line = (
+        f"{paths[k]}: unit {unit} is missing from this piece of run {runs.units[unit].meta.run_id!r} "
+        f"({utc_text(first)} .. {utc_text(last)}), which holds the other units: its recording has no samples over "
+        "that time"
+    )
+    settings = CalibrationSettings()
+    cal = run_calibrate(paths, str(d / f"reg-c-{name}"), settings, method="auto", dry_run=True)
+    fleet = run_fleet(str(inbox), str(d / f"reg-f-{name}"), settings, method="auto", figures=False, pool="thread")
+    for got in ({u["unit"]: u for u in cal["units"]}, {u["unit"]: u for u in fleet["done"]}):
+        assert sorted(got) == ["AU-0001", "AU-0002", "AU-0003"]
+        assert got[unit]["warnings"][0] == line
+        assert [w for w in got[unit]["warnings"] if "is missing from this piece" in w] == [line]
+        for other in set(got) - {unit}:
+            assert not any("is missing from this piece" in w for w in got[other]["warnings"]), other
+    assert cal["failed"] == [] and fleet["failed"] == []
