@@ -500,8 +500,10 @@ def stuck_stretches(col: pl.Series) -> tuple[np.ndarray, int, float, float]:
     noise far below the step) cannot be told stuck from quiet and gives none; nor does one with more than
     :data:`MAX_STUCK_STRETCHES` stretches at more than :data:`MAX_STUCK_VALUES` different values (a 1-mV step with
     5 uV of noise: each quiet hold reads one value for its whole length, so p outside the long runs is tiny and
-    every hold would be called stuck). NaN breaks a run (missing data is the gap and non-finite checks' business).
-    One pass over the column in slabs of :data:`SLAB_SAMPLES`."""
+    every hold would be called stuck). Of the runs left, those the readings beside them explain are dropped
+    (:func:`_locally_unlikely`: a coarse step's p varies from hold to hold with where the signal sits in its bin).
+    NaN breaks a run (missing data is the gap and non-finite checks' business). One pass over the column in slabs
+    of :data:`SLAB_SAMPLES`."""
     n = col.len()
     m = MIN_STUCK_SAMPLES - 1  # equal pairs in a row that make the shortest run
     found: list[np.ndarray] = []
@@ -533,7 +535,57 @@ def stuck_stretches(col: pl.Series) -> tuple[np.ndarray, int, float, float]:
     runs = runs[length >= n_min]
     if runs.shape[0] > MAX_STUCK_STRETCHES and np.unique(col.gather(runs[:, 0]).to_numpy()).size > MAX_STUCK_VALUES:
         return np.zeros((0, 2), dtype=np.int64), n, hi, lo
-    return runs, n_min, hi, lo
+    return runs[_locally_unlikely(col, runs, n)], n_min, hi, lo
+
+
+#: Around a run of one reading, :func:`_locally_unlikely` looks this many times the run's own duration before it
+#: and after it (the channel's readings there: the same hold, where its noise sits in the same quantisation bins).
+STUCK_WINDOW_RUNS = 1
+
+
+def _locally_unlikely(col: pl.Series, runs: np.ndarray, n: int) -> np.ndarray:
+    """Which of the ``runs`` ((k, 2) [first, end) samples of ``col``, each one reading v repeated, as long as the
+    channel-wide threshold of :func:`stuck_stretches` or longer) the channel's own readings next to them do not
+    explain. A coarsely quantised channel's chance of repeating v depends on where the signal sits in its bin: a
+    quiet hold whose mean lies at the middle of a bin reads that bin's value in a fraction f (68 % at a noise of
+    half a step) of its samples, so it repeats it far longer than the channel-wide p (taken over holds whose
+    means lie at bin edges, and ramps) predicts (a consumer unit on a 1-mV voltmeter: uy 'stuck' for 2.7 s at
+    10 Hz, nothing stuck). f is measured in :data:`STUCK_WINDOW_RUNS` times the run's duration before the run and
+    after it (the larger of the two sides), other runs called stuck left out: among the finite readings within a
+    quantisation step of v (v's bin and the two beside it: a hold's readings, not those of a ramp far from v),
+    the fraction at v, with one reading at v and one beside it added ((k + 1) / (m + 2): a margin for the few
+    dozen readings beside a run in a short hold, and 2 of 2 on a ramp crossing v is not certainty). A run of L
+    readings is unlikely when L >= 1 + ceil(log(STUCK_FALSE_RATE / N) / log f), the channel-wide rule with the
+    local f. A channel frozen at its last value, at 0 V or at a rail reads v rarely or never beside the frozen
+    stretch (f about 1/3 at most, for a 24-bit voltmeter: a threshold of ~20 samples, and 0 where no reading is
+    near v): still named. One slice per run (the runs are few: at most :data:`MAX_STUCK_STRETCHES` at more than
+    :data:`MAX_STUCK_VALUES` values, or many at a few values)."""
+    keep = np.ones(runs.shape[0], dtype=bool)
+    log_rate = math.log(STUCK_FALSE_RATE / max(n, 1))
+    values = col.gather(runs[:, 0]).to_numpy() if runs.size else np.zeros(0)
+    for k, (a, b) in enumerate(runs.tolist()):
+        w = STUCK_WINDOW_RUNS * (b - a)
+        f = 0.0
+        for s0, s1 in ((max(0, a - w), a), (b, min(n, b + w))):
+            x = slab_of(col, s0, s1).copy()
+            # the other runs in the window (the rest of a stretch frozen around a NaN or a glitch) are left out
+            for j in range(int(np.searchsorted(runs[:, 1], s0, "right")), int(np.searchsorted(runs[:, 0], s1))):
+                if j != k:
+                    x[max(runs[j, 0], s0) - s0 : min(runs[j, 1], s1) - s0] = np.nan
+            x = x[np.isfinite(x)]
+            if x.size < 2:
+                continue
+            # the readings within one quantisation step of v (its bin and the two beside it: < 1.5 steps off; the
+            # step: the smallest change between consecutive readings there), not a ramp's readings far from it
+            dx = np.abs(np.diff(x))
+            step = np.fmin.reduce(np.where(dx > 0, dx, np.inf))
+            off = np.abs(x - values[k])
+            near = int(np.count_nonzero(off < 1.5 * step))
+            if near:  # one more reading at v than seen: a margin for the few dozen readings of a short hold
+                f = max(f, (int(np.count_nonzero(off == 0)) + 1) / (near + 2))
+        if f > 0 and b - a < 1 + math.ceil(log_rate / math.log(f)):
+            keep[k] = False
+    return keep
 
 
 #: How a stuck or clipped channel's warning ends (:func:`stuck_clauses` finds them by it).

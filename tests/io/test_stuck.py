@@ -284,10 +284,13 @@ def test_the_threshold_follows_the_channel_s_own_repeats(lsb_over_sigma):
 def test_stuck_runs_are_the_maximal_runs_across_slabs(monkeypatch):
     """Against a plain loop over the samples: quantised noise with planted runs of 1-40 equal readings and NaNs,
     slabs of 1000 samples (runs crossing their edges): the stretches found are exactly the maximal runs of one
-    finite reading at least the threshold long."""
+    finite reading at least the threshold long (before the local test, which
+    test_clean_quantised_holds_have_no_stuck_stretch_and_a_freeze_in_them_is_named checks, drops those that the
+    readings beside them explain: here the plain loop's runs of a common value)."""
     import pipeline.io.checks as checks
 
     monkeypatch.setattr(checks, "SLAB_SAMPLES", 1000)
+    monkeypatch.setattr(checks, "_locally_unlikely", lambda col, runs, n: np.ones(runs.shape[0], dtype=bool))
     rng = np.random.default_rng(1)
     for _ in range(100):
         n = int(rng.integers(1, 5000))
@@ -333,3 +336,49 @@ def test_a_hold_clipped_within_its_noise_is_left_out_whole(rate_hz):
     assert at[0] < n + 5 and at[-1] > 2 * n - 5
     assert [x for x in w if x.startswith(f"voltmeter: uy clipped at {rail:.7g} V, its highest reading")]
     assert not np.isnan(out["ux"].to_numpy()).any() and not np.isnan(out["uz"].to_numpy()).any()
+
+
+def _quantised_holds(seed: int, rate_hz: float, step_sigmas: float, sigma_v: float = 5e-4) -> tuple[np.ndarray, int]:
+    """A clean channel (V) as a chamber run makes it: 40 holds of 60 s at levels drawn in -0.5..0.5 V (so at every
+    place within a quantisation bin), each after a 30-s ramp; noise ``sigma_v``, read with a step of
+    ``step_sigmas`` sigma. Returns the readings and the index of the middle of the 6th hold."""
+    rng = np.random.default_rng(seed)
+    hold, ramp = int(60 * rate_hz), int(30 * rate_hz)
+    parts, level = [], 0.0
+    for _ in range(40):
+        nxt = rng.uniform(-0.5, 0.5)
+        parts += [np.linspace(level, nxt, ramp, endpoint=False), np.full(hold, nxt)]
+        level = nxt
+    x = np.concatenate(parts)
+    q = step_sigmas * sigma_v
+    return np.round((x + rng.normal(0.0, sigma_v, x.size)) / q) * q, 5 * (hold + ramp) + ramp + hold // 2
+
+
+@pytest.mark.parametrize("rate_hz", [0.5, 2.0, 10.0])
+@pytest.mark.parametrize("step_sigmas", [0.25, 0.5, 1.0, 1.5, 2.0])
+def test_clean_quantised_holds_have_no_stuck_stretch_and_a_freeze_in_them_is_named(rate_hz, step_sigmas):
+    """A coarse step's chance of repeating a reading depends on where the hold's mean sits in its bin (68 % of a
+    hold's readings in one bin at the middle of it, with a step of 2 sigma): the channel-wide p of the test before
+    called 1-4 runs of 10-27 samples in 53 of these 300 channels (and a consumer unit on a 1-mV voltmeter 'uy
+    stuck ... 2.7 s'). Seeds 0..19: no stuck stretch; the same channels frozen at their last value for 120 s from
+    the middle of a hold: that stretch named (a run holding it)."""
+    for seed in range(20):
+        x, a = _quantised_holds(seed, rate_hz, step_sigmas)
+        runs, _, _, _ = stuck_stretches(pl.Series(x))
+        assert runs.tolist() == [], (seed, runs.tolist())
+        end = a + int(120 * rate_hz)
+        x[a:end] = x[a - 1]
+        runs, _, _, _ = stuck_stretches(pl.Series(x))
+        assert [[s, e] for s, e in runs.tolist() if s <= a - 1 and e >= end], (seed, runs.tolist())
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_a_consumer_unit_on_a_coarse_voltmeter_has_no_stuck_channel(seed):
+    """A consumer unit (0.5 mV of noise), short program at 10 Hz, its voltages read with a step of 0.25-2 sigma
+    (0.125-1 mV): nothing called stuck or clipped (before: 25 of these 300 channels, e.g. seed 2 at 1 mV: 'uy stuck
+    (one reading repeated for >= 2.6 s, 26 samples ...) ... for 2.7 s')."""
+    run = simulate(SimConfig(program="short", rate_hz=10.0, seed=seed, unit_type="consumer", noise_v=5e-4)).run
+    for step_sigmas in (0.25, 0.5, 1.0, 1.5, 2.0):
+        q = step_sigmas * 5e-4
+        v = run.voltmeter.with_columns([(pl.col(c) / q).round() * q for c in ("ux", "uy", "uz")])
+        assert _stuck_lines(dataclasses.replace(run, voltmeter=v)) == [], step_sigmas
