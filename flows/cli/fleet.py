@@ -78,7 +78,8 @@ def fleet(
     from pipeline.words import count_words
 
     failed = summary["failed"]
-    failing = [d["unit"] for d in summary["done"] if d["status"] == "fail"]
+    failing_done = [d for d in summary["done"] if d["status"] == "fail"]
+    failing = [d["unit"] for d in failing_done]
     if failed:
         from ..fleet import failure_line
 
@@ -88,9 +89,12 @@ def fleet(
             file=sys.stderr,
         )
     elif failing:
+        from .calibrate import fail_reason
+
+        reasons = [fail_reason(d) for d in failing_done]  # calibrate's words, per unit where they differ
+        why = reasons[0] if len(set(reasons)) == 1 else "; ".join(f"{u}: {r}" for u, r in zip(failing, reasons))
         print(
-            f"thermocal: fleet: {count_words(len(failing), 'unit')} with status fail ({', '.join(failing)}): the "
-            "compensated gravity-module error exceeds its limit at a verification position",
+            f"thermocal: fleet: {count_words(len(failing), 'unit')} with status fail ({', '.join(failing)}): {why}",
             file=sys.stderr,
         )
     if failed or failing:

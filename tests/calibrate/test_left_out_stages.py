@@ -103,3 +103,24 @@ def test_a_fail_caused_by_a_stage_lost_to_a_gap_says_so(make, tmp_path, monkeypa
     )
     assert m, line
     assert 1 <= int(m[2]) <= int(m[1]) and int(m[2]) <= 6
+
+
+def test_fleet_says_what_calibrate_says_of_such_a_fail(tmp_path, monkeypatch, capsys):
+    """fleet's line for a unit with status fail was a fixed text (`the compensated gravity-module error exceeds
+    its limit at a verification position`), whatever the reason; it now gives calibrate's reason."""
+    run, unit = _gapped_single()
+    (tmp_path / "inbox").mkdir()
+    write_run(run, tmp_path / "inbox" / "gap.mcap", "mcap")
+    argv = ["thermocal", "fleet", str(tmp_path / "inbox"), "--registry", str(tmp_path / "reg"), "--json"]
+    monkeypatch.setattr(sys, "argv", [*argv, "--pool", "thread"])
+    with pytest.raises(SystemExit) as info:
+        main()
+    assert info.value.code == 1
+    [line] = [x for x in capsys.readouterr().err.splitlines() if x.startswith("thermocal: fleet: ")]
+    assert line.startswith(f"thermocal: fleet: 1 unit with status fail ({unit}): the compensated gravity-module ")
+    assert re.search(
+        r"error exceeds its limit at \d+ of 24 verification positions, \d of them at -10\.0 C, outside the "
+        r"calibrated \+20\.0 \.\. \+70\.0 C \(the thermal model extrapolated by up to 30 C\); the tilt method "
+        r"leaves out the -40 C stage, which lost its test positions to the data gap 2026-11-01 ",
+        line,
+    ), line
