@@ -117,7 +117,10 @@ def fleet_text(s: dict) -> str:
         )
         lines += [f"      warning: {w}" for w in d.get("warnings", ())]
     lines += [f"  FAILED  {failure_line(f)}" for f in s["failed"]]
-    lines += [f"  skipped {x['run']}: {x['why']}" for x in s["skipped"]]
+    lines += [
+        f"  skipped {x['run']}: {x['why']}" + (f" (units {', '.join(x['units'])})" if x.get("units") else "")
+        for x in s["skipped"]
+    ]
     return "\n".join(lines)
 
 

@@ -216,7 +216,8 @@ def plan_fleet(
 
     A run whose metadata or bytes cannot be read is ``failed``; a second copy of a run (same content hash as
     another run of the unit) is ``skipped`` as a duplicate; files with one run_id count no sample twice
-    (:func:`pipeline.calibrate.inputs.resolve_run_ids`: a truncated copy is ``failed`` and the complete file used,
+    (:func:`pipeline.calibrate.inputs.resolve_run_ids`: a truncated copy is ``skipped`` once, ``{"run", "why":
+    "truncated copy of PATH", "units": [the units it holds]}``, and the complete file used,
     the pieces of one recording all used, or ``skipped`` as "part of" the file holding the recording whole beside
     them, two recordings under one id both ``failed``); a run whose folder names
     another unit is filed by its metadata, with a warning; a unit whose group identity (its runs' content hashes +
@@ -260,6 +261,7 @@ def plan_fleet(
             )
     absent = absent_from_pieces(pieces, _span_ns)  # a unit missing from one of the files its run was cut into
     candidates = all_methods() if method == "auto" else [by_name(method)]
+    copies: dict[str, dict] = {}
     for unit, inputs in sorted(by_unit.items()):
         unique: dict[str, dict] = {}
         for item in inputs:
@@ -272,7 +274,12 @@ def plan_fleet(
             plan.skipped += [
                 {"run": f["run"], "why": f"part of {f['part_of']}", "unit": unit} for f in dropped if "part_of" in f
             ]
-            plan.failed += [{**f, "unit": unit} for f in dropped if "part_of" not in f]
+            for f in dropped:  # a copy the complete file is used in place of: skipped once per file, with its units
+                if "copy_of" in f:
+                    copies.setdefault(f["run"], {"run": f["run"], "why": f["copy_of"], "units": []})["units"].append(
+                        unit
+                    )
+            plan.failed += [{**f, "unit": unit} for f in dropped if "part_of" not in f and "copy_of" not in f]
             paths_kept = {u.path for u in usable}
             kept = [i for i in kept if i["path"] in paths_kept]
             if not kept:
@@ -320,6 +327,7 @@ def plan_fleet(
                 warnings=tuple(absent.get(unit, [])),
             )
         )
+    plan.skipped += copies.values()
     return plan
 
 

@@ -100,14 +100,16 @@ def resolve_run_ids(inputs: Sequence[RunInput], read: Callable[[str], Run]) -> t
     samples are all in a longer (or identical) one of the group (:func:`is_part_of`) are left out: when one of them
     starts later than that run they are the pieces of the recording it holds whole (the same samples twice), each
     listed with ``"part_of"``: that run's path (not a failure); else they are truncated or identical copies of it
-    (:func:`is_prefix_of`). The others are kept when :func:`join_runs` joins them (pieces of one recording), else
-    none is. The order of ``inputs`` is kept.
+    (:func:`is_prefix_of`), each listed with ``"copy_of"``: ``"truncated copy of PATH"`` or ``"copy of PATH"`` (not a
+    failure either: the complete file is used). The others are kept when :func:`join_runs` joins them (pieces of
+    one recording), else none is. The order of ``inputs`` is kept.
     """
     groups: dict[tuple[str, str], list[RunInput]] = {}
     for item in inputs:
         groups.setdefault((item.unit, item.run_id), []).append(item)
     dropped: dict[str, str] = {}
     part_of: dict[str, str] = {}  # a piece of the recording -> the file holding it whole
+    copy_of: dict[str, str] = {}  # a copy (truncated or not) -> the complete file, used in its place
     for (unit, run_id), group in groups.items():
         if len(group) < 2:
             continue
@@ -146,6 +148,7 @@ def resolve_run_ids(inputs: Sequence[RunInput], read: Callable[[str], Run]) -> t
                     f"{i.path}: {what} of {whole_path} (same run_id {run_id!r}; its samples are "
                     f"{'the same' if same else 'a prefix of the other'}'s): not used, the complete file is"
                 )
+                copy_of[i.path] = f"{what.removeprefix('a ')} of {whole_path}"
         if len(pieces) < 2:
             continue
         # the files a logger wrote one recording into (each with the recording's run_id): they join into one run
@@ -164,7 +167,12 @@ def resolve_run_ids(inputs: Sequence[RunInput], read: Callable[[str], Run]) -> t
                 )
     kept = [i for i in inputs if i.path not in dropped]
     return kept, [
-        {"run": i.path, "reason": dropped[i.path], **({"part_of": part_of[i.path]} if i.path in part_of else {})}
+        {
+            "run": i.path,
+            "reason": dropped[i.path],
+            **({"part_of": part_of[i.path]} if i.path in part_of else {}),
+            **({"copy_of": copy_of[i.path]} if i.path in copy_of else {}),
+        }
         for i in inputs
         if i.path in dropped
     ]

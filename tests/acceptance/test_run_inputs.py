@@ -51,9 +51,15 @@ def test_fleet_never_merges_one_run_id(inbox, tmp_path):
     summary = run_fleet(str(root), str(tmp_path / "reg"), pool="thread", workers=2)
     done = {d["unit"]: d for d in summary["done"]}
     failed = {Path(f["run"]): f["reason"] for f in summary["failed"]}
-    # the complete file is used, the truncated copy listed with why
+    skipped = {Path(s["run"]): s for s in summary["skipped"]}
+    # the complete file is used, the truncated copy skipped (not failed) with why and its unit
     assert done["AU-0201"]["runs"] == [str(p["a"].resolve())]
-    assert "a truncated copy of " + str(p["a"].resolve()) in failed[p["a_copy"].resolve()]
+    assert p["a_copy"].resolve() not in failed
+    assert skipped[p["a_copy"].resolve()] == {
+        "run": str(p["a_copy"].resolve()),
+        "why": "truncated copy of " + str(p["a"].resolve()),
+        "units": ["AU-0201"],
+    }
     # two recordings under one run_id: neither is used, the unit is not calibrated
     assert "AU-0202" not in done
     assert "neither is used" in failed[p["b1"].resolve()] and str(p["b2"].resolve()) in failed[p["b1"].resolve()]

@@ -184,3 +184,26 @@ def test_a_unit_missing_from_a_piece_of_its_run_is_named_by_calibrate_and_fleet(
         for other in set(got) - {unit}:
             assert not any("is missing from this piece" in w for w in got[other]["warnings"]), other
     assert cal["failed"] == [] and fleet["failed"] == []
+
+
+@pytest.mark.slow
+def test_a_truncated_copy_of_a_run_of_several_units_is_skipped_once_with_its_units(units3_2hz, monkeypatch, capsys):
+    """A 3-unit run and a truncated copy of it (its first 60 % of bytes, a USB stick's) in one inbox: every unit
+    calibrated from the complete file; the copy is skipped once, not failed once per unit, with the units it
+    holds, and the fleet exits 0. Was: ``"failed"`` listed the copy 3 times (once per unit) and the fleet exited
+    1 though every unit got its passport."""
+    d, runs, _ = units3_2hz
+    inbox = d / "copy"
+    whole = write_run(runs, inbox / "chamber.mcap", "mcap", chunk_size=1 << 15).resolve()
+    copy = inbox / "usb" / "chamber.mcap"
+    copy.parent.mkdir(parents=True)
+    data = whole.read_bytes()
+    copy.write_bytes(data[: int(len(data) * 0.6)])
+    code, out, err = run_main(monkeypatch, capsys, "fleet", str(inbox), "--registry", str(d / "reg-copy"), "--json")
+    got = json.loads(out)
+    assert code == 0, err
+    assert got["failed"] == []
+    assert [(u["unit"], u["runs"]) for u in got["done"]] == [(s, [str(whole)]) for s in runs.units]
+    assert got["skipped"] == [
+        {"run": str(copy.resolve()), "why": f"truncated copy of {whole}", "units": ["AU-0001", "AU-0002", "AU-0003"]}
+    ]
