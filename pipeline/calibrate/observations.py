@@ -48,6 +48,9 @@ class Observation:
     #: the readings' resolution per channel (V, :attr:`pipeline.segment.Segmentation.resolution_v`): a floor of the
     #: mean's uncertainty (:func:`pipeline.uncertainty.segment_noise_var_v2`)
     resolution_v: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    #: the standard error (C) of ``temp_c`` from the thermosensor's noise
+    #: (:attr:`pipeline.segment.StaticSegment.temp_sigma_c`)
+    temp_sigma_c: float = 0.0
 
 
 @dataclass
@@ -97,6 +100,7 @@ def observations_from_segmentation(run_id: str, segmentation, source: str = "") 
                 source=source,
                 settling=settling,
                 resolution_v=resolution_v,
+                temp_sigma_c=float(s.temp_sigma_c),
             )
         )
         made[s.index] = len(out) - 1
@@ -118,6 +122,7 @@ def _pooled(o: Observation, s: StaticSegment) -> Observation:
         std_v=(float(std[0]), float(std[1]), float(std[2])),
         count=n1 + n2,
         temp_c=(n1 * o.temp_c + n2 * float(s.temp_c)) / (n1 + n2),
+        temp_sigma_c=float(np.hypot(n1 * o.temp_sigma_c, n2 * s.temp_sigma_c)) / (n1 + n2),
         t_end_ns=int(s.t_end_ns),
     )
 

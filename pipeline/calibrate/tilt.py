@@ -348,9 +348,10 @@ def fit_unit(
         fits = _fit_plateaus(groups, shift, settings.constants_method, None)
     if not settings.temperature_referencing_passes:
         shift = {}
-    fits, tau_v = _with_uncertainty(fits, groups, shift)
+    temp_v = _temperature_noise_v(thermal("auto"), groups, fits) if shift else None
+    fits, tau_v = _with_uncertainty(fits, groups, shift, temp_noise_v=temp_v)
     if shift:
-        fits, tau_v = _with_uncertainty(fits, groups, shift, _referral_errors(thermal, groups, fits))
+        fits, tau_v = _with_uncertainty(fits, groups, shift, _referral_errors(thermal, groups, fits), temp_v)
     nominal, K_nom, U0_nom = _at_calibration_temperatures(fits, thermal("auto"), normal_temp_c, settings.cluster_tol_c)
     model = thermal(settings.thermal_model, nominal, K_nom, U0_nom)
     sigma = thermal_sigma(
@@ -433,14 +434,33 @@ def _group_shifts(local: ThermalModel, layout) -> list[tuple[list[int], np.ndarr
     return out
 
 
+def _temperature_noise_v(local: ThermalModel, groups, fits: list[PlateauConstants]) -> dict[int, np.ndarray]:
+    """Per observation (by id), the standard error (3,) V of its referral shift (:func:`_referral_shifts`) from the
+    thermosensor's noise in its mean temperature (:attr:`Observation.temp_sigma_c`, C): the local model's slope
+    d/dT [K(T) a + U0(T)] at the segment's temperature (V/C) times it. Independent between segments (each its own
+    readings, but for the one or two that neighbouring holds share). With the thermosensor read at 1 Hz it is
+    about 0.1 micro-V on a 60-s hold (0.0014 C at 1e-4 V/C); read once a minute, up to 1 micro-V, beyond the
+    hold mean's noise."""
+    h_c = 0.5  # (the models are polynomials of order <= 3: a central difference over +-0.5 C is their slope)
+    by_id = {id(o): o for rows in groups.values() for o in rows}
+    out: dict[int, np.ndarray] = {}
+    for ids, t_seg, a, _ in _referral_layout(groups, fits):
+        Kp, U0p = local.constants_at(t_seg + h_c)
+        Km, U0m = local.constants_at(t_seg - h_c)
+        slope = (np.einsum("nij,nj->ni", Kp - Km, a) + (U0p - U0m)) / (2 * h_c)
+        sigma_c = np.array([by_id[i].temp_sigma_c for i in ids])
+        out.update(zip(ids, np.abs(slope) * sigma_c[:, None]))
+    return out
+
+
 def _referral_errors(thermal, groups, fits: list[PlateauConstants]) -> dict[int, np.ndarray]:
     """Per observation (by id), the 1-sigma changes (n_moves, 3) V of its referral shift (:func:`_referral_shifts`)
     when the local model is refitted with one plateau's K column j (j = x, y, z) or U0 moved by +-1 standard
     uncertainty, one row per move. The moves are independent (a shift of channel i depends on K_ij and U0_i only),
     and within one move the changes of all segments are fully correlated (one slope error): the error of
-    referring each segment to its plateau's temperature through the model's slope. The thermosensor's own noise,
-    averaged over a segment (0.01 C / sqrt(n) against temperature differences of tenths of a degree to degrees),
-    is negligible beside it and not included. Measured: with 20-min soaks (positions up to 1.1 C from their
+    referring each segment to its plateau's temperature through the model's slope. The thermosensor's own noise in
+    each segment's temperature is another error, independent per segment (:func:`_temperature_noise_v`).
+    Measured: with 20-min soaks (positions up to 1.1 C from their
     plateau's mean) the referral error is about 0.005 micro-V against 0.3 micro-V of a segment mean's noise, so it
     moves the stored sigmas by less than 0.1 % (tests/calibrate/test_uncertainty_coverage.py); it is included all
     the same, so a program with longer excursions is covered too."""
@@ -470,11 +490,14 @@ def _with_uncertainty(
     groups,
     shift_v: dict[int, np.ndarray],
     referral_v: dict[int, np.ndarray] | None = None,
+    temp_noise_v: dict[int, np.ndarray] | None = None,
 ) -> tuple[list[PlateauConstants], np.ndarray]:
     """The plateau fits with the standard uncertainties of their constants (:mod:`pipeline.uncertainty`): the
     noise measured in each segment plus the excess scatter of the fits' residuals, pooled over the plateaus, and
     the error of referring each segment to its plateau's temperature (``referral_v``: :func:`_referral_errors`,
-    propagated through the plateau's estimator with the segments' correlation)."""
+    propagated through the plateau's estimator with the segments' correlation) and the thermosensor's noise in
+    each segment's temperature (``temp_noise_v``: :func:`_temperature_noise_v`, independent per segment, with the
+    segment's own noise)."""
     parts = []
     for f in fits:
         rows = groups[(f.run_id, f.plateau)]
@@ -491,7 +514,8 @@ def _with_uncertainty(
                     np.array([o.std_v for o in rows]),
                     np.array([o.count for o in rows]),
                     np.array([o.resolution_v for o in rows]),
-                ),
+                )
+                + (np.array([temp_noise_v[id(o)] for o in rows]) ** 2 if temp_noise_v else 0.0),
             )
         )
     tau_v = excess_scatter_v([p[2] for p in parts], [p[3] for p in parts], [p[0] for p in parts], [p[1] for p in parts])

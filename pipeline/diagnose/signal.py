@@ -33,7 +33,7 @@ from pipeline.effects.base import SignalContext
 from pipeline.positions import ALL_POSITIONS, MOVING, POSITION_NAMES
 from pipeline.run import NS_PER_S as _NS
 from pipeline.run import SLAB_SAMPLES, Run
-from pipeline.segment import Segmentation, SegmentSettings, finite_columns, for_rate
+from pipeline.segment import Segmentation, SegmentSettings, finite_columns, for_rate, thermosensor_noise_c
 
 #: the smallest per-sample noise assumed (a noise-free or coarsely quantised record still has a finite weight)
 _NOISE_FLOOR_V = 1e-9
@@ -603,8 +603,7 @@ def temperature_noise_c(run: Run) -> tuple[float, float]:
     if temp.size < 10:
         return 0.0, 1.0
     rate_hz = _NS / float(np.median(np.diff(tt)))
-    d2 = temp[2:] - 2 * temp[1:-1] + temp[:-2]
-    return float(1.4826 * np.median(np.abs(d2 - np.median(d2))) / np.sqrt(6.0)), rate_hz
+    return thermosensor_noise_c(temp), rate_hz
 
 
 def make_blocks(rec: StaticRecord, block_s: float = 30.0, fine_edges_s=FINE_EDGES_S) -> Blocks:
