@@ -7,10 +7,12 @@ constants, which are differences of hold means, are off by tens of micro-V/g at 
 their noise. The creep's shape ties it down: it is proportional, channel by channel, to the step U_new - U_old (the
 mean of the hold less the mean of the one before it), it decays with one time constant, and it begins as the hold
 does. So two numbers for the whole run, the amplitude g (the fraction of the step left at a hold's first sample)
-and tau_s, are fitted to every hold's samples at once (:func:`settling_fit`), each hold with its own mean and its
-own linear trend in time (a unit still settling in temperature drifts slowly through a hold; the referral to the
-plateau's temperature takes that into account, not this), and where g stands out of the noise the hold means are
-corrected by the creep's mean over each hold.
+and tau_s, are fitted to every hold's samples at once (:func:`settling_fit`), each hold with its own mean, and
+where g stands out of the noise the hold means are corrected by the creep's mean over each hold.
+
+Not corrected: holds on a ramp (the fast program), where a drift through each hold that follows the steps puts the
+best time constant at the grid's end (refused, see :func:`settling_fit`), and the ramp method, which averages its
+own pieces of the holds from the samples and does not use the segment means.
 """
 
 from __future__ import annotations
