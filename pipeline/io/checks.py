@@ -605,6 +605,9 @@ def stuck_clauses(warnings: list[str]) -> list[str]:
 
 #: Readings at a rail at most this many samples apart belong to one clipped stretch (see :func:`rail_stretches`).
 RAIL_GAP_SAMPLES = 32
+#: The rail's count must exceed twice the next value's by this many of its Poisson standard deviations (see
+#: :func:`rail_stretches`).
+RAIL_MARGIN_SIGMAS = 3.0
 
 
 def rail_stretches(col: pl.Series, rail_v: float, n_min: int) -> tuple[np.ndarray, int, int]:
@@ -614,7 +617,11 @@ def rail_stretches(col: pl.Series, rail_v: float, n_min: int) -> tuple[np.ndarra
     its noise reads ``rail_v`` in many samples with others between (no run long enough for
     :func:`stuck_stretches`, yet its mean is biased); a live channel's readings thin out towards its extreme, the
     extreme value read fewer times than the next one inwards. Called clipped: ``rail_v`` read by at least ``n_min``
-    samples (the stuck threshold) and at least twice as many as the next value inwards. A stretch runs from the
+    samples (the stuck threshold) and by more than twice as many (k) as the next value inwards (j), by
+    :data:`RAIL_MARGIN_SIGMAS` of the counts' Poisson standard deviation: k - 2 j >= 3 sqrt(k + 4 j). A coarse step
+    (noise half a step) makes a live hold whose mean sits in the channel's top bin read it about twice as often as
+    the next (a 62-s +1 g hold at 0.5 Hz, 10-uV steps: 21 and 10, called a rail by the bare factor 2); a hold at a
+    rail reads it in half its samples and the next value rarely (60 against 1: 60 - 2 >= 24). A stretch runs from the
     first to the last of a group of >= ``n_min`` such samples each within :data:`RAIL_GAP_SAMPLES` of the next, the
     readings between included: leaving out only the clipped readings would keep a hold's readings below the rail
     and bias its mean the other way. A hold whose mean lies d sigma inside the rail reads it in a fraction
@@ -646,7 +653,7 @@ def rail_stretches(col: pl.Series, rail_v: float, n_min: int) -> tuple[np.ndarra
             nxt, n_nxt = v, k
         elif v == nxt:
             n_nxt += k
-    if found < n_min or found < 2 * n_nxt:
+    if found < n_min or found - 2 * n_nxt < RAIL_MARGIN_SIGMAS * math.sqrt(found + 4 * n_nxt):
         return np.zeros((0, 2), dtype=np.int64), found, n_nxt
     runs, size = index_stretches(np.concatenate(at), max(RAIL_GAP_SAMPLES, n_min))
     return runs[size >= n_min], found, n_nxt

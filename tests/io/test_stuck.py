@@ -19,7 +19,7 @@ import pytest
 from pipeline.calibrate.methods import by_name, resolve_auto
 from pipeline.calibrate.settings import CalibrationSettings
 from pipeline.errors import ThermocalError
-from pipeline.io.checks import MIN_STUCK_SAMPLES, STUCK_FALSE_RATE, check_stream, stuck_stretches
+from pipeline.io.checks import MIN_STUCK_SAMPLES, STUCK_FALSE_RATE, check_stream, rail_stretches, stuck_stretches
 from pipeline.io.runs import read_units, write_run
 from pipeline.segment_units import segment_units
 from pipeline.simulate.chamber import SimConfig, simulate
@@ -382,3 +382,32 @@ def test_a_consumer_unit_on_a_coarse_voltmeter_has_no_stuck_channel(seed):
         q = step_sigmas * 5e-4
         v = run.voltmeter.with_columns([(pl.col(c) / q).round() * q for c in ("ux", "uy", "uz")])
         assert _stuck_lines(dataclasses.replace(run, voltmeter=v)) == [], step_sigmas
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_a_short_hold_at_a_coarse_channel_s_extreme_is_not_a_rail(seed):
+    """Short program at 0.5 Hz (a hold is ~30 readings), 5 uV of noise read with a step of 0.25-2 sigma: the +1 g
+    hold at the hottest plateau is a channel's highest reading and its mean may sit in the top bin, read about
+    twice as often as the next lower one. Before, the bare factor 2 called 3 of these 100 runs' holds a rail and
+    set them to NaN (seed 11 at 10 uV: 'ux clipped at 0.56256 V, its highest reading (21 samples read it, 10 the
+    next lower value ...'): nothing called stuck or clipped."""
+    run = simulate(SimConfig(program="short", rate_hz=0.5, seed=seed)).run
+    for step_sigmas in (0.25, 0.5, 1.0, 1.5, 2.0):
+        q = step_sigmas * 5e-6
+        v = run.voltmeter.with_columns([(pl.col(c) / q).round() * q for c in ("ux", "uy", "uz")])
+        assert _stuck_lines(dataclasses.replace(run, voltmeter=v)) == [], step_sigmas
+
+
+@pytest.mark.parametrize(("found", "n_next", "rail"), [(21, 10, False), (10, 5, False), (60, 1, True), (40, 5, True)])
+def test_a_rail_reads_more_than_twice_the_next_value_by_three_poisson_sigmas(found, n_next, rail):
+    """The rail rule on counts: k readings at the extreme, j at the next value inwards; a rail when
+    k - 2 j >= 3 sqrt(k + 4 j) (21 and 10, 10 and 5: a live hold in the top bin; 60 and 1, 40 and 5: clipped; the
+    bare factor 2 called the first two a rail). The hold's readings mixed, between live readings."""
+    rng = np.random.default_rng(0)
+    hold = rng.permutation(np.concatenate([np.full(found, 1.0), np.full(n_next, 0.9), rng.uniform(0.7, 0.8, 10)]))
+    x = np.concatenate([rng.uniform(-0.5, 0.5, 200), hold, rng.uniform(-0.5, 0.5, 200)])
+    clipped, k, j = rail_stretches(pl.Series(x), 1.0, 4)
+    assert (k, j) == (found, n_next)
+    assert clipped.tolist() == (
+        [[200 + int(np.argmax(hold == 1.0)), 200 + hold.size - int(np.argmax(hold[::-1] == 1.0))]] if rail else []
+    )
