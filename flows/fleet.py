@@ -289,6 +289,9 @@ def fleet_flow(
                         )
                         for g in batch
                     ]
+                for w in (w for unit in computed for w in unit.run_warnings):  # a unit named, calibrated elsewhere
+                    logger.warning(w["warning"])
+                    plan.warnings.append(w)
                 for group, unit in zip(batch, computed):  # the one place the fleet signs and writes: on the station
                     if unit.calibration is not None and group.warnings:  # found while planning: first, as calibrate
                         unit.calibration.warnings[:0] = list(group.warnings)

@@ -402,6 +402,10 @@ class ComputedUnit:
     good: list[str]
     failed: list[dict]
     compute_s: float
+    #: the segmentation's run-level warnings (:func:`pipeline.segment_units.segment_units`) naming a unit not
+    #: calibrated from it (a unit with a file of its own beside the run, segmented with that file): its own
+    #: passport cannot carry them, so the fleet reports them by run ({"run", "warning"}); on one unit of a batch
+    run_warnings: list[dict] = field(default_factory=list)
 
 
 def compute_group(
@@ -508,7 +512,7 @@ def compute_run(
         read = [read_units(p) for p in paths]
         if len(paths) == 1:
             got = read[0]
-            segs = segment_units(got.units, settings.segment)[0] if len(got.units) > 1 else {}
+            segs, run_lines = segment_units(got.units, settings.segment) if len(got.units) > 1 else ({}, [])
             mine = {u: got.units.pop(u) for u in units if u in got.units}
             failed_why = dict(got.failed)
         else:  # the pieces of one recording: each unit's joined, the units of the same files segmented together
@@ -523,7 +527,9 @@ def compute_run(
             by_unit.clear()
             whole = frozenset(paths)
             together = recordings_by_files(joined).get(whole, [])
-            segs = segment_units({s: joined[s][0] for s in together}, settings.segment)[0] if len(together) > 1 else {}
+            segs, run_lines = (
+                segment_units({s: joined[s][0] for s in together}, settings.segment) if len(together) > 1 else ({}, [])
+            )
             mine = {}
             for u in units:
                 if u in joined and frozenset(joined[u][1]) == whole:
@@ -553,6 +559,9 @@ def compute_run(
                 failed = [{"run": p, "reason": reason_of(exc)} for p in paths]
         good = list(paths) if calibration is not None else []
         out.append(ComputedUnit(unit, list(paths), calibration, good, failed, share + time.perf_counter() - t1))
+    lost = [w for w in run_lines if not any(w.startswith(f"unit {u}: ") for u in units)]
+    if out and lost:  # the unit it names is calibrated elsewhere: said by run, once
+        out[0].run_warnings = [{"run": " + ".join(paths), "warning": w} for w in lost]
     return out
 
 

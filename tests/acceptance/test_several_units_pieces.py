@@ -207,3 +207,35 @@ def test_a_truncated_copy_of_a_run_of_several_units_is_skipped_once_with_its_uni
     assert got["skipped"] == [
         {"run": str(copy.resolve()), "why": f"truncated copy of {whole}", "units": ["AU-0001", "AU-0002", "AU-0003"]}
     ]
+
+
+@pytest.mark.slow
+def test_a_unit_named_by_a_runs_consensus_but_calibrated_elsewhere_is_reported_by_the_fleet(tmp_path):
+    """A 3-unit run (5 Hz, to 2 h) whose AU-0702 is mounted turned (x and y swapped) and goes on in a file of its
+    own: AU-0702 is calibrated from both files (segmented alone), AU-0701/0703 from the run's consensus, which names
+    AU-0702. The fleet reports that line once, by run, in its top-level ``warnings``, word for word as ``inspect``
+    says it of the run. Was: dropped (``segment_units(...)[0]``): the fleet's warnings were []."""
+    import dataclasses
+
+    from flows.fleet import run_fleet
+    from pipeline.inspect import summarize_units
+    from pipeline.io.runs import read_units
+    from pipeline.simulate.units import simulate_units
+
+    runs = simulate_units(SimConfig(unit_serial="AU-0701", program="short", rate_hz=5.0, seed=3), 3)[0]
+    units = list(runs.units.values())
+    v = units[1].voltmeter
+    units[1] = dataclasses.replace(units[1], voltmeter=v.with_columns(ux=-v["uy"], uy=v["ux"]))
+    cut = int(v["t_ns"][0]) + 7200 * S
+    inbox = tmp_path / "inbox"
+    own = write_run(run_piece(units[1], cut, 2**62, "AU-0702-rest"), inbox / "AU-0702-rest.mcap", "mcap")
+    run_id = units[0].meta.run_id
+    chamber = write_run(UnitRuns.of_units([run_piece(r, 0, cut, run_id) for r in units]), inbox / "chamber.mcap")
+    [line] = summarize_units(read_units(chamber))["warnings"]
+    assert line.startswith("unit AU-0702: its signal names ")
+    got = run_fleet(str(inbox), str(tmp_path / "reg"), method="auto", figures=False, pool="thread")
+    done = {d["unit"]: d for d in got["done"]}
+    assert sorted(done) == ["AU-0701", "AU-0702", "AU-0703"] and got["failed"] == []
+    assert done["AU-0702"]["runs"] == sorted([str(own.resolve()), str(chamber.resolve())])
+    assert got["warnings"] == [{"run": str(chamber.resolve()), "warning": line}]
+    assert all(line not in d["warnings"] for d in done.values())
