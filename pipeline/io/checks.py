@@ -42,6 +42,12 @@ MAX_JUMP_S = 86_400.0
 #: not a recording's (a -2**63 placeholder, a clock never set); and differences of two such times stay far from
 #: int64 overflow.
 T_NS_RANGE = (0, 2**62)
+#: A thermosensor glitch (:func:`_isolated_readings_missing`): at most this many readings in a row that depart from
+#: the readings around them by more than GLITCH_C plus GLITCH_C_PER_S times the time between those (C, C/s: no case
+#: follows its chamber faster than 15 C/min, and a thermosensor's noise is hundredths of a C) and come back.
+GLITCH_MAX_READINGS = 3
+GLITCH_C = 5.0
+GLITCH_C_PER_S = 0.25
 #: The refusal of a sampled stream that holds two samples with one time and different values.
 SAME_TIME = "two different samples at the same time"
 #: What a sample of each value column can physically be; a value outside (e.g. 1e308 C) is treated as missing
@@ -163,6 +169,8 @@ def check_stream(
                 warnings.extend(gap_lines({label: spans}))
             else:
                 gaps[label] = spans
+    if stream == "au_temperature" and df.height > 2:
+        df = _isolated_readings_missing(label, df, warnings)
     if stream == "voltmeter" and df.height > 1:
         df = _stuck_missing(label, df, warnings)
     if stream == "fixture" and df.height:
@@ -176,6 +184,43 @@ def check_stream(
                 where=f"t_ns={df['t_ns'][row]}",
             )
     return df
+
+
+def _isolated_readings_missing(stream: str, df: pl.DataFrame, warnings: list[str]) -> pl.DataFrame:
+    """Thermosensor glitches set to NaN (missing), with one warning naming how many and the first (row, t_ns,
+    value): a run of at most :data:`GLITCH_MAX_READINGS` readings that lies beyond both readings around it, on one
+    side, by more than the temperature can move between those two (:data:`GLITCH_C` plus :data:`GLITCH_C_PER_S`
+    times the time between them, s), while those two agree within that. A sensor's power-on or bus-error value
+    (85 C, -127 C) read once in a soak would otherwise split its plateau. ``df`` is sorted by time; non-finite
+    readings are skipped (the readings around a glitch are the finite ones)."""
+    finite = np.flatnonzero(np.isfinite(df["temp_c"].to_numpy()))
+    y = df["temp_c"].to_numpy()[finite]
+    t_s = df["t_ns"].to_numpy()[finite] / 1e9
+    glitch = np.zeros(y.size, dtype=bool)
+    for n in range(1, GLITCH_MAX_READINGS + 1):
+        if y.size < n + 2:
+            break
+        # runs y[i:i + n] for i = 1 .. size - n - 1, between y[i - 1] and y[i + n]
+        runs = np.lib.stride_tricks.sliding_window_view(y[1:-1], n)
+        before, after = y[: -n - 1], y[n + 1 :]
+        limit = GLITCH_C + GLITCH_C_PER_S * (t_s[n + 1 :] - t_s[: -n - 1])
+        above = runs.min(axis=1) - np.maximum(before, after) > limit
+        below = np.minimum(before, after) - runs.max(axis=1) > limit
+        hit = np.flatnonzero((above | below) & (np.abs(after - before) <= limit)) + 1
+        for k in range(n):
+            glitch[hit + k] = True
+    if not glitch.any():
+        return df
+    rows = finite[glitch]
+    row = int(rows[0])
+    warnings.append(
+        f"{stream}: {rows.size} reading(s) of temp_c that leave the readings around them and come back (a glitch: "
+        f"more than {GLITCH_C:g} C plus {GLITCH_C_PER_S:g} C/s) treated as missing; the first at "
+        f"t_ns={df['t_ns'][row]} (row {row}): {df['temp_c'][row]!r}"
+    )
+    bad = np.zeros(df.height, dtype=bool)
+    bad[rows] = True
+    return df.with_columns(pl.when(pl.Series(bad)).then(float("nan")).otherwise(pl.col("temp_c")).alias("temp_c"))
 
 
 def _impossible_values_missing(stream: str, df: pl.DataFrame, warnings: list[str]) -> pl.DataFrame:

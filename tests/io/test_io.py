@@ -49,7 +49,7 @@ def make_run(n: int = 5000, seed: int = 0, optional: bool = True) -> Run:
     u[7] = (-0.0, 5e-324, np.nextafter(1e6, 0.0))
     m = n // 10
     t_1 = T0_NS + np.arange(m, dtype=np.int64) * 1_000_000_000
-    temp = 20.0 + rng.normal(0.0, 30.0, m)
+    temp = 20.0 + np.cumsum(rng.normal(0.0, 0.5, m))  # a thermosensor's walk (white noise of 30 C reads as glitches)
     temp[2] = np.nan
     frames = dict(
         voltmeter=make_frame("voltmeter", {"t_ns": t_v, "ux": u[:, 0], "uy": u[:, 1], "uz": u[:, 2]}),
