@@ -204,6 +204,10 @@ class Run:
     #: that had no fixture log while another had one: the log says nothing then, and a position it logged before
     #: is believed there, or after, only where the signal agrees
     unlogged_ns: tuple[tuple[int, int], ...] = ()
+    #: the voltmeter stretches the readers set to NaN as stuck or clipped, already named in a warning
+    #: (:func:`pipeline.io.checks.check_stream`): (channel, first ns, last ns) each; the segmenter's non-finite line
+    #: does not count them again
+    left_out_ns: tuple[tuple[str, int, int], ...] = ()
 
     def stream(self, name: str) -> pl.DataFrame | None:
         return getattr(self, name)
@@ -337,6 +341,7 @@ class UnitRuns:
                 chamber=first.chamber,
                 fixture=first.fixture,
                 source=source,
+                left_out_ns=r.left_out_ns,
             )
             for r in runs
         }

@@ -1293,14 +1293,36 @@ def unit_clock(run: Run) -> UnitClock:
     return UnitClock(t_ns, reader_gap_indices(t_ns), median_interval_ns(t_ns), {})
 
 
-def _non_finite_line(volts: pl.DataFrame, t_ns: np.ndarray, bad: np.ndarray, interval_ns, unit: str | None) -> str:
+def _non_finite_line(
+    volts: pl.DataFrame,
+    t_ns: np.ndarray,
+    bad: np.ndarray,
+    interval_ns,
+    unit: str | None,
+    left_out_ns: tuple[tuple[str, int, int], ...] = (),
+) -> str | None:
     """The warning about the voltmeter samples ``bad`` (sorted indices into ``t_ns``, the table ``volts``' times)
     that have a non-finite channel: the unit (``unit``, named in a run with several), how many samples, the
-    channels with how many each, and the stretches in seconds (:func:`pipeline.io.checks.stretches_text`)."""
+    channels with how many each, and the stretches in seconds (:func:`pipeline.io.checks.stretches_text`). A
+    channel's samples in ``left_out_ns`` (:attr:`pipeline.run.Run.left_out_ns`: set to NaN by the readers as stuck
+    or clipped, and named there) are not counted again; None when no other is left."""
     from pipeline.io.checks import index_stretches, stretches_text
 
     at = pl.Series(bad)
-    counts = {c: int(volts[c].gather(at).is_finite().not_().sum()) for c in ("ux", "uy", "uz")}
+    t_bad = t_ns[bad]
+    counts: dict[str, int] = {}
+    other = np.zeros(bad.size, dtype=bool)
+    for c in ("ux", "uy", "uz"):
+        missing = ~np.isfinite(volts[c].gather(at).to_numpy())
+        spans = np.array(sorted((a, b) for ch, a, b in left_out_ns if ch == c), dtype=np.int64).reshape(-1, 2)
+        if spans.size:
+            k = np.searchsorted(spans[:, 0], t_bad, "right") - 1
+            missing &= ~((k >= 0) & (t_bad <= spans[np.maximum(k, 0), 1]))
+        counts[c] = int(np.count_nonzero(missing))
+        other |= missing
+    bad = bad[other]
+    if not bad.size:
+        return None
     channels = ", ".join(f"{c} {n}" for c, n in counts.items() if n)
     runs, _ = index_stretches(bad)
     step_ns = float("nan") if interval_ns is None else float(interval_ns)
@@ -1407,8 +1429,9 @@ def segment_run(
             f"voltmeter: {outside_ns / _NS:.0f} s of samples before the first or after the last AU thermosensor "
             "reading have no temperature: not used"
         )
-    if bad_u.size:
-        warnings.append(_non_finite_line(volts, t_ns, bad_u, interval_ns, unit))
+    said = _non_finite_line(volts, t_ns, bad_u, interval_ns, unit, run.left_out_ns) if bad_u.size else None
+    if said:
+        warnings.append(said)
     gaps = {"voltmeter": gap_spans(t_ns, settings.static_window_s / 2, readers), "au_temperature": holes}
     warnings += _gaps_on_plateaus(plateaus, gaps, settings.static_min_s, run.fixture)
     pieces = _cut_at_plateaus(t_ns, stretches, plateaus, settings, hold_min_s)

@@ -202,3 +202,40 @@ def test_non_finite_samples_are_named_by_unit_channel_and_seconds(four, stretche
     assert not any("non-finite" in w for s, seg in segs.items() if s != "AU-0503" for w in seg.warnings)
     assert [w for w in segment_run(edited).warnings if "non-finite" in w] == [f"voltmeter: {tail}"]
     assert f"{dur.sum():.1f}" == f"{sum(d for _, d in {(a, d) for _, a, d, _ in stretches}):.1f}"  # 1200.0, 400.0
+
+
+@pytest.mark.parametrize("with_nan", [False, True], ids=["uy frozen", "uy frozen, ux NaN 100 s"])
+def test_a_stuck_stretch_is_not_counted_again_as_non_finite(four, tmp_path, with_nan):
+    """uy of AU-0503 frozen at its last value for 1200 s from 2900 s (real Parquet files, read back): the readers
+    name it ('uy stuck ... 1200.x s') and set it to NaN. Before, the segmenter counted those samples again:
+    'voltmeter of unit AU-0503: 6001 non-finite samples excluded (not static), uy 6001, ...' beside the stuck line.
+    Now no non-finite line for it; a stretch the file holds as NaN (ux, 100 s from 1000 s) is still named, alone."""
+    from pipeline.io.runs import read_units, write_run
+    from pipeline.utc import utc_span
+
+    path = write_run(UnitRuns.of_units(list(four.units.values())), tmp_path / "run", "parquet")
+    v = pl.read_parquet(path / "voltmeter.parquet")
+    mine = pl.col("unit") == "AU-0503"
+    rel = (pl.col("t_ns") - v["t_ns"].min()) / 1e9
+    last = float(v.filter(mine & (rel < 2900))["uy"][-1])
+    v = v.with_columns(pl.when(mine & (rel >= 2900) & (rel < 4100)).then(last).otherwise(pl.col("uy")).alias("uy"))
+    if with_nan:
+        v = v.with_columns(
+            pl.when(mine & (rel >= 1000) & (rel < 1100)).then(float("nan")).otherwise(pl.col("ux")).alias("ux")
+        )
+    v.write_parquet(path / "voltmeter.parquet")
+    runs = read_units(path)
+    assert [w for w in runs.units["AU-0503"].warnings if " uy stuck " in w]
+    segs, _ = segment_units(runs.units)
+    said = [w for w in segs["AU-0503"].warnings if "non-finite" in w]
+    if not with_nan:
+        assert said == []
+        return
+    t = runs.units["AU-0503"].voltmeter["t_ns"].to_numpy()
+    a = int(np.argmax(t >= t[0] + 1000 * 10**9))
+    b = int(np.argmax(t >= t[0] + 1100 * 10**9))
+    assert said == [
+        f"voltmeter of unit AU-0503: {b - a} non-finite samples excluded (not static), ux {b - a}, in 1 stretch(es), "
+        f"100.0 s in all: the first for 100.0 s from t_ns={t[a]} ({utc_span(int(t[a]), int(t[b - 1]))}, 1000.0 s "
+        "after the start)"
+    ]

@@ -405,6 +405,7 @@ def join_runs(runs: Sequence[Run]) -> Run:
         source=" + ".join(r.source for r in runs if r.source),
         warnings=[f"{n}: {w}" for n, r in zip(names, runs) for w in r.warnings],
         unlogged_ns=_unlogged_ns(runs),
+        left_out_ns=tuple(x for r in runs for x in r.left_out_ns),
     )
 
 

@@ -64,17 +64,24 @@ PHYSICAL_RANGE: dict[str, tuple[float, float]] = {
 
 
 def check_streams(
-    frames: dict[str, pl.DataFrame], *, path: str, warnings: list[str], label=None
+    frames: dict[str, pl.DataFrame],
+    *,
+    path: str,
+    warnings: list[str],
+    label=None,
+    left_out: list[tuple[str, int, int]] | None = None,
 ) -> dict[str, pl.DataFrame]:
     """Each stream of ``frames`` (name -> table) checked by :func:`check_stream`; returns them in time order.
 
     Gaps are warned about once for all the streams: one line per set of streams whose gaps coincide (a logger that
     stopped: ``voltmeter, au_temperature, chamber: 1 gap(s) ...``), so a stream is named in one gap line at most.
     ``label(stream)`` names a stream (default: its name; one unit's streams of a run with several units carry the
-    unit)."""
+    unit). ``left_out``: where :func:`check_stream` adds the stretches it sets to NaN as stuck or clipped."""
     spans: dict[str, np.ndarray] = {}
     checked = {
-        name: check_stream(name, df, path=path, warnings=warnings, label=label(name) if label else None, gaps=spans)
+        name: check_stream(
+            name, df, path=path, warnings=warnings, label=label(name) if label else None, gaps=spans, left_out=left_out
+        )
         for name, df in frames.items()
     }
     warnings.extend(gap_lines(spans))
@@ -115,6 +122,7 @@ def check_stream(
     warnings: list[str],
     label: str | None = None,
     gaps: dict[str, np.ndarray] | None = None,
+    left_out: list[tuple[str, int, int]] | None = None,
 ) -> pl.DataFrame:
     """Check a stream table read from a file; return it in time order.
 
@@ -124,7 +132,9 @@ def check_stream(
     ``t_ns`` or a jump forward by more than :data:`MAX_JUMP_S` are errors; gaps are warned about. Non-finite values
     are kept. ``label`` names the stream in errors and warnings (default: ``stream``; one unit's stream of a run with
     several units is named with its unit). ``gaps``: where to put the stream's gaps (``gaps[label]``, see
-    :func:`gap_lines`) when it has any; without it they are warned about here.
+    :func:`gap_lines`) when it has any; without it they are warned about here. ``left_out``: where to add the
+    voltmeter stretches set to NaN as stuck or clipped (:func:`_stuck_missing`), (channel, first ns, last ns) each
+    (:attr:`pipeline.run.Run.left_out_ns`).
     """
     label = label or stream
     t = df["t_ns"]
@@ -172,7 +182,7 @@ def check_stream(
     if stream == "au_temperature" and df.height > 2:
         df = _isolated_readings_missing(label, df, warnings)
     if stream == "voltmeter" and df.height > 1:
-        df = _stuck_missing(label, df, warnings)
+        df = _stuck_missing(label, df, warnings, [] if left_out is None else left_out)
     if stream == "fixture" and df.height:
         bad = ~df["position"].is_in(FIXTURE_LABELS) | df["position"].is_null()
         if bad.any():
@@ -344,7 +354,8 @@ def assemble_run(
             raise RunFormatError("required stream is missing", path=path, stream=stream)
         if df.height == 0:
             raise RunFormatError("required stream has no samples", path=path, stream=stream)
-    checked = check_streams(frames, path=path, warnings=warnings)
+    left_out: list[tuple[str, int, int]] = []
+    checked = check_streams(frames, path=path, warnings=warnings, left_out=left_out)
     refuse_dead_channel(checked["voltmeter"], meta_values.get("unit_serial"), path=path, stream="voltmeter")
     meta = RunMeta.from_strings(meta_values, path=path)
     warnings.extend(_plausible(meta, checked, path, "au_temperature"))
@@ -356,6 +367,7 @@ def assemble_run(
         fixture=checked.get("fixture"),
         source=path,
         warnings=warnings,
+        left_out_ns=tuple(left_out),
     )
 
 
@@ -463,7 +475,8 @@ def _unit_run(meta_values, serial, serials, frames, shared, path, warnings, stre
                 stream=stream_label(serial, stream),
             )
     own: list[str] = []
-    checked = check_streams(frames, path=path, warnings=own, label=lambda s: stream_label(serial, s))
+    left_out: list[tuple[str, int, int]] = []
+    checked = check_streams(frames, path=path, warnings=own, label=lambda s: stream_label(serial, s), left_out=left_out)
     refuse_dead_channel(checked["voltmeter"], serial, path=path, stream=stream_label(serial, "voltmeter"))
     meta = RunMeta.from_strings(unit_meta_values(meta_values, serial, serials), path=path)
     own += [f"{w} (unit {serial})" for w in _plausible(meta, checked, path, stream_label(serial, "au_temperature"))]
@@ -476,6 +489,7 @@ def _unit_run(meta_values, serial, serials, frames, shared, path, warnings, stre
         fixture=shared.get("fixture"),
         source=path,
         warnings=whole_run + own,
+        left_out_ns=tuple(left_out),
     )
 
 
@@ -704,12 +718,15 @@ def rail_stretches(col: pl.Series, rail_v: float, n_min: int) -> tuple[np.ndarra
     return runs[size >= n_min], found, n_nxt
 
 
-def _stuck_missing(label: str, df: pl.DataFrame, warnings: list[str]) -> pl.DataFrame:
+def _stuck_missing(
+    label: str, df: pl.DataFrame, warnings: list[str], left_out: list[tuple[str, int, int]]
+) -> pl.DataFrame:
     """The voltmeter channels' stuck stretches (:func:`stuck_stretches`) and stretches clipped at a rail
     (:func:`rail_stretches`) set to NaN (missing: no hold in them is used, as with any non-finite sample), with one
     warning per channel and kind naming how many, the time in all (s), the first and the longest (value, start as
     t_ns, UTC and seconds from the stream's first sample, duration in s). A channel that reads one value in every
-    sample is left as it is (:func:`dead_channels`)."""
+    sample is left as it is (:func:`dead_channels`). Each stretch set to NaN is added to ``left_out`` as (channel,
+    first ns, last ns)."""
     t_ns = df["t_ns"].to_numpy()
     step_ns = median_interval_ns(t_ns)
     for c in ("ux", "uy", "uz"):
@@ -756,6 +773,7 @@ def _stuck_missing(label: str, df: pl.DataFrame, warnings: list[str]) -> pl.Data
         np.add.at(edge, both[:, 0], 1)
         np.add.at(edge, both[:, 1], -1)
         stuck = np.cumsum(edge[:-1], dtype=np.int32) > 0
+        left_out += [(c, int(t_ns[a]), int(t_ns[b - 1])) for a, b in index_stretches(np.flatnonzero(stuck))[0]]
         df = df.with_columns(pl.when(pl.Series(stuck)).then(float("nan")).otherwise(pl.col(c)).alias(c))
     return df
 
