@@ -138,7 +138,7 @@ class Tilt(Method):
         ``settings.segment``)."""
         seg = segmentation if segmentation is not None else segment_run(run, settings.segment)
         obs, warnings = observe_run(run, settings.segment, seg)
-        warnings += left_out_stages(seg, obs, settings.segment)
+        warnings += left_out_stages(seg, obs, settings.segment, run)
         return ObservedRun(meta=run.meta, source=run.source, observations=obs, warnings=warnings)
 
     def fit(
@@ -166,7 +166,7 @@ class Tilt(Method):
 STAGE_LEFT_OUT = "the tilt method leaves out the "
 
 
-def left_out_stages(seg: Segmentation, obs: list[Observation], settings: SegmentSettings) -> list[str]:
+def left_out_stages(seg: Segmentation, obs: list[Observation], settings: SegmentSettings, run=None) -> list[str]:
     """One warning per stage of the program the tilt method leaves out although the unit held test positions
     there, beyond the run's calibration plateaus (:func:`calibration_plateaus`, their temperatures ``lo .. hi``)
     by more than ``plateau_band_c``:
@@ -174,26 +174,33 @@ def left_out_stages(seg: Segmentation, obs: list[Observation], settings: Segment
     - a plateau whose test positions do not determine the 12 constants (the others lost, e.g. to a data gap);
     - two or more test positions held off every plateau and off every settling at one temperature (within
       ``settle_band_c``, each hold's own spread within ``plateau_band_c``: not a ramp), e.g. a soak too short for
-      the plateau test, or one whose stable part a data gap took.
+      the plateau test, or one whose stable part a data gap took;
+    - two or more test positions the fixture log of ``run`` held in a data gap off every plateau (a stage whose
+      every hold was lost), at the last temperature read before the gap.
 
-    Each names the stage's temperature (C), the positions and their time, why they were not used (the data gap
-    of any stream within ``plateau_min_s`` of them, else the temperature's rate over the holds, C/min) and how far
+    Pieces of these less than ``plateau_min_s`` apart and within ``settle_band_c`` of each other are one stage.
+    Each warning names the stage's temperature (C), the positions and their time, why they were not used (the data
+    gap of any stream within ``plateau_min_s`` of them, the temperature's rate over the holds, C/min) and how far
     (C) the thermal model is extrapolated to reach that stage. [] when the run has no calibration plateau."""
     from pipeline.calibrate.ramp import visits
     from pipeline.positions import is_test_position
 
-    cal = [t for _, _, t, _ in calibration_plateaus(obs)]
-    if not cal:
+    plateaus = calibration_plateaus(obs)
+    if not plateaus:
         return []
-    lo, hi = min(cal), max(cal)
-    used = {(r, p) for r, p, _, _ in calibration_plateaus(obs)}
-    stages: list[tuple[float, list[str], int, int, str]] = []  # temperature, positions, span ns, why
+    lo, hi = min(t for _, _, t, _ in plateaus), max(t for _, _, t, _ in plateaus)
+    used = {(r, p) for r, p, _, _ in plateaus}
+    pieces: list[tuple[float, list[str], int, int, str]] = []  # temperature C, positions, span ns, what
     for (run_id, p), rows in plateau_groups(obs).items():
         names = list(dict.fromkeys(o.position for o in rows))
         if (run_id, p) not in used and len(names) > 1:  # one position: held through the soak, not a stage
-            why = f"its test positions {', '.join(names)} do not determine the 12 constants"
             t0, t1 = min(o.t_start_ns for o in rows), max(o.t_end_ns for o in rows)
-            stages.append((float(np.mean([o.temp_c for o in rows])), names, t0, t1, why))
+            temp_c = float(np.mean([o.temp_c for o in rows]))
+            what = (
+                f"{', '.join(names)} held at {temp_c:+.1f} C ({utc_span(t0, t1)}), which do not determine the 12 "
+                "constants"
+            )
+            pieces.append((temp_c, names, t0, t1, what))
     off = [
         h
         for h in visits(seg.segments)
@@ -214,27 +221,85 @@ def left_out_stages(seg: Segmentation, obs: list[Observation], settings: Segment
             continue
         t_min = np.array([(h.t_start_ns + h.t_end_ns) / 2 for h in g]) / _NS / 60.0
         temps = np.array([h.temp_c for h in g])
-        rate = abs(float(np.polyfit(t_min, temps, 1)[0])) if len(g) > 1 and np.ptp(t_min) > 0 else 0.0
-        why = (
-            f"off every temperature plateau (the temperature moved {rate:.2f} C/min there; a plateau needs below "
-            f"{settings.plateau_rate_c_per_min} C/min for {settings.plateau_min_s:.0f} s of data)"
+        rate = abs(float(np.polyfit(t_min, temps, 1)[0])) if np.ptp(t_min) > 0 else 0.0
+        temp_c, t0, t1 = float(np.mean(temps)), g[0].t_start_ns, g[-1].t_end_ns
+        what = (
+            f"{', '.join(names)} held at {temp_c:+.1f} C ({utc_span(t0, t1)}) off every temperature plateau (the "
+            f"temperature moved {rate:.2f} C/min there; a plateau needs below {settings.plateau_rate_c_per_min} "
+            f"C/min for {settings.plateau_min_s:.0f} s of data)"
         )
-        stages.append((float(np.mean(temps)), names, g[0].t_start_ns, g[-1].t_end_ns, why))
-    gaps = [(a, b) for spans in seg.gaps_ns.values() for a, b in spans]
+        pieces.append((temp_c, names, t0, t1, what))
+    gaps = _union([(a, b) for spans in seg.gaps_ns.values() for a, b in spans])
+    pieces += _stages_in_gaps(seg, gaps, settings, run)
+    stages: list[tuple[float, list[str], int, int, list[str]]] = []
+    for temp_c, names, t0, t1, what in sorted(pieces, key=lambda x: x[2]):
+        if stages:
+            s_c, s_names, s0, s1, s_what = stages[-1]
+            if t0 - s1 < settings.plateau_min_s * _NS and abs(temp_c - s_c) <= settings.settle_band_c:
+                stages[-1] = (s_c, list(dict.fromkeys([*s_names, *names])), s0, max(s1, t1), [*s_what, what])
+                continue
+        stages.append((temp_c, names, t0, t1, [what]))
     out = []
-    for temp_c, names, t0, t1, why in sorted(stages, key=lambda s: s[2]):
+    for temp_c, _names, t0, t1, whats in stages:
         beyond = lo - temp_c if temp_c < lo else temp_c - hi
         if beyond <= settings.plateau_band_c:
             continue
-        near = sorted(
-            (a, b) for a, b in gaps if a < t1 + settings.plateau_min_s * _NS and b > t0 - settings.plateau_min_s * _NS
-        )
+        margin = settings.plateau_min_s * _NS
+        near = [(a, b) for a, b in gaps if a < t1 + margin and b > t0 - margin]
         lost = f"lost its test positions to the data gap {utc_span(*near[0])}" if near else "was not used"
         out.append(
-            f"{STAGE_LEFT_OUT}{temp_c:+.0f} C stage, which {lost}: {'what is left of it, ' if near else ''}"
-            f"{', '.join(names)} held at {temp_c:+.1f} C ({utc_span(t0, t1)}), {why}; the calibration plateaus "
+            f"{STAGE_LEFT_OUT}{temp_c:+.0f} C stage, which {lost}: {'; '.join(whats)}; the calibration plateaus "
             f"cover {lo:+.1f} .. {hi:+.1f} C only, so the thermal model is extrapolated by {beyond:.0f} C to that "
             "stage"
+        )
+    return out
+
+
+def _union(spans: list[tuple[int, int]]) -> list[tuple[int, int]]:
+    """The union of the spans (first, last ns), as disjoint spans in time order."""
+    out: list[tuple[int, int]] = []
+    for a, b in sorted(spans):
+        if out and a <= out[-1][1]:
+            out[-1] = (out[-1][0], max(out[-1][1], b))
+        else:
+            out.append((a, b))
+    return out
+
+
+def _stages_in_gaps(
+    seg: Segmentation, gaps: list[tuple[int, int]], settings: SegmentSettings, run
+) -> list[tuple[float, list[str], int, int, str]]:
+    """Stages lost whole to a data gap (``gaps``: disjoint (first, last) ns) off every plateau: two or more test
+    positions the fixture log of ``run`` held in the gap for ``static_min_s`` or more, at the last AU temperature
+    read before it (C). [] without a run or a fixture log."""
+    from pipeline.positions import is_test_position
+    from pipeline.segment import _fixture_time_in_gaps
+
+    if run is None or run.fixture is None or run.fixture.height == 0 or not gaps:
+        return []
+    fronts = [(p.t_start_ns if p.settle_start_ns is None else p.settle_start_ns, p.t_end_ns) for p in seg.plateaus]
+    t_ns = run.au_temperature["t_ns"].to_numpy()
+    temp_c = run.au_temperature["temp_c"].to_numpy()
+    ok = np.isfinite(temp_c)
+    t_ns, temp_c = t_ns[ok], temp_c[ok]
+    out = []
+    for a, b in gaps:
+        if any(a < f1 and b > f0 for f0, f1 in fronts):
+            continue
+        held = _fixture_time_in_gaps(run.fixture, a, b, np.array([[a, b]], dtype=np.int64))
+        names = [k for k, (_, inside) in held.items() if is_test_position(k) and inside >= settings.static_min_s * _NS]
+        before = t_ns <= a
+        if len(names) < 2 or not before.any():
+            continue
+        at_c = float(temp_c[before][np.argmax(t_ns[before])])
+        out.append(
+            (
+                at_c,
+                names,
+                int(a),
+                int(b),
+                f"{', '.join(names)} held in the gap (the fixture log), at {at_c:+.1f} C before it",
+            )
         )
     return out
 

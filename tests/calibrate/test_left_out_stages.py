@@ -124,3 +124,37 @@ def test_fleet_says_what_calibrate_says_of_such_a_fail(tmp_path, monkeypatch, ca
         r"leaves out the -40 C stage, which lost its test positions to the data gap 2026-11-01 ",
         line,
     ), line
+
+
+def test_a_stage_whose_every_hold_a_gap_took_is_named_from_the_fixture_log():
+    """10 min of every stream lost over the +70 C test positions of the short program (2 Hz): no hold of that
+    stage is left, the model covers -40 .. +20 C and the 45 C VPs fail, extrapolated 25 C; the status line named
+    neither (no warning named the stage, only the gap and what the fixture log held in it). The fixture log's
+    positions in the gap and the temperature before it name the stage now."""
+    from flows.cli.calibrate import fail_reason
+
+    run = simulate(SimConfig(program="short", rate_hz=2.0)).run
+    t0 = int(run.voltmeter["t_ns"][0])
+    g0, g1 = t0 + 9850 * NS_PER_S, t0 + 10450 * NS_PER_S
+    cut = {
+        k: getattr(run, k).filter((pl.col("t_ns") < g0) | (pl.col("t_ns") >= g1))
+        for k in ("voltmeter", "au_temperature", "chamber")
+    }
+    method, res = _calibrate(dataclasses.replace(run, **cut))
+    assert method == "tilt" and res.status == "fail" and res.passport["valid_temp_c"] == [-40.0, 20.0]
+    [line] = [w for w in res.warnings if w.startswith("the tilt method leaves out the ")]
+    assert re.fullmatch(
+        r"the tilt method leaves out the \+70 C stage, which lost its test positions to the data gap 2026-11-01 "
+        r"02:44:09\.\d+ \.\. 02:54:10\.\d+ UTC: TP1, TP2, TP3, TP4, TP5, TP6 held in the gap \(the fixture log\), at "
+        r"\+(69\.9|70\.0) C before it; the calibration plateaus cover -40\.0 \.\. \+20\.0 C only, so the thermal "
+        r"model is extrapolated by 50 C to that stage",
+        line,
+    ), line
+    said = fail_reason({"dry_run": True, "passport_content": res.passport, "warnings": res.warnings})
+    assert re.fullmatch(
+        r"the compensated gravity-module error exceeds its limit at \d+ of \d+ verification positions, \d+ of them "
+        r"at \+45\.0 C, outside the calibrated -40\.0 \.\. \+20\.0 C \(the thermal model extrapolated by up to 25 C\); "
+        r"the tilt method leaves out the \+70 C stage, which lost its test positions to the data gap 2026-11-01 "
+        r"02:44:09\.\d+ \.\. 02:54:10\.\d+ UTC",
+        said,
+    ), said
