@@ -155,9 +155,15 @@ def verify_positions(
     return rows
 
 
+#: a failing VP further than this (C) outside the calibrated range is extrapolated to; nearer, it lies on the edge
+#: plateau itself (its VPs scatter by hundredths of a degree about the plateau's test positions)
+OUTSIDE_RANGE_C = 1.0
+
+
 def failed_outside(rows: list[dict], valid_temp_c) -> str | None:
     """Where failing rows (``rows``: :meth:`VerificationRow.to_dict` of a passport, ``passed`` false) lie outside
-    the temperatures the passport's data covered (``valid_temp_c``, lo and hi in C), the clause saying how many
+    the temperatures the passport's data covered (``valid_temp_c``, lo and hi in C) by more than
+    :data:`OUTSIDE_RANGE_C`, the clause saying how many
     of how many failed, how many of them outside and at which temperatures (C), and how far (C) the thermal model
     was extrapolated to them; None when every failing row lies within the range (or none fails)."""
     failing = [r for r in rows if not r.get("passed", True)]
@@ -165,7 +171,7 @@ def failed_outside(rows: list[dict], valid_temp_c) -> str | None:
         return None
     lo, hi = float(valid_temp_c[0]), float(valid_temp_c[1])
     beyond = {id(r): max(lo - r["temp_c"], r["temp_c"] - hi) for r in failing}
-    out = [r for r in failing if beyond[id(r)] > 0]
+    out = [r for r in failing if beyond[id(r)] > OUTSIDE_RANGE_C]
     if not out:
         return None
     at = ", ".join(f"{t:+.1f}" for t in sorted({round(float(r["temp_c"]), 1) for r in out}))

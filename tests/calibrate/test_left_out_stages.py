@@ -158,3 +158,21 @@ def test_a_stage_whose_every_hold_a_gap_took_is_named_from_the_fixture_log():
         r"02:44:09\.\d+ \.\. 02:54:10\.\d+ UTC",
         said,
     ), said
+
+
+def test_a_failing_vp_on_the_edge_plateau_is_not_called_extrapolated():
+    """A VP that fails at 69.97 C of a passport valid over +20.0 .. +70.0 C lies on the 70 C plateau, not beyond
+    it: the status line called it `outside the calibrated +20.0 .. +70.0 C (the thermal model extrapolated by up
+    to 0 C)`. Only a VP more than 1 C outside is said to be extrapolated to."""
+    from pipeline.verify import failed_outside
+
+    def row(temp_c, passed):
+        return {"temp_c": temp_c, "position": "VP1", "dg_method1_g": 0.0, "passed": passed}
+
+    edge = [row(69.97, False), row(20.003, True), row(19.98, False)]
+    assert failed_outside(edge, [20.0, 70.0]) is None
+    beyond = [*edge, row(-10.004, False), row(-9.996, False), row(71.2, False)]
+    assert failed_outside(beyond, [20.0, 70.0]) == (
+        "at 5 of 6 verification positions, 3 of them at -10.0, +71.2 C, outside the calibrated +20.0 .. +70.0 C "
+        "(the thermal model extrapolated by up to 30 C)"
+    )
