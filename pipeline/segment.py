@@ -1461,7 +1461,7 @@ def segment_run(
         temp_c = _mean_std(tc, 0)
         temp_sigma_c = temp_noise_c * np.sqrt(interpolated_mean_weight2(tt_s, tt)) if tt.size else 0.0
         t_s = (tt - tt[0]) / _NS if moved and tt.size else np.zeros(0)  # (no creep without a move: no moments)
-        moments.append(hold_moments(t_s, cols, np.array([m for m, _ in stats])))
+        moments.append(hold_moments(t_s, cols, np.array([m for m, _ in stats]), tc))
         rows.append(
             dict(
                 t_start_ns=int(t_ns[i0]),

@@ -7,12 +7,17 @@ constants, which are differences of hold means, are off by tens of micro-V/g at 
 their noise. The creep's shape ties it down: it is proportional, channel by channel, to the step U_new - U_old (the
 mean of the hold less the mean of the one before it), it decays with one time constant, and it begins as the hold
 does. So two numbers for the whole run, the amplitude g (the fraction of the step left at a hold's first sample)
-and tau_s, are fitted to every hold's samples at once (:func:`settling_fit`), each hold with its own mean, and
-where g stands out of the noise the hold means are corrected by the creep's mean over each hold.
+and tau_s, are fitted to every hold's samples at once (:func:`settling_fit`), each hold with its own mean and its
+own quadratic in its temperature (the thermosensor's, interpolated onto its samples): a unit still approaching its
+temperature (positions held without a soak, or on a ramp) drifts through each hold with the temperature, by the
+thermal model's slope, and that drift, which also follows the steps (the slope depends on the position), is the
+thermal model's business, not a creep (without it a program held without soaks, issue 23's, found a 'creep' of
+1260 ppm, tau_s 415 s, at 14000 standard errors on a run without one and moved its hold means by up to 1.3 mV).
+Where g stands out of the noise the hold means are corrected by the creep's mean over each hold.
 
-Not corrected: holds on a ramp (the fast program), where a drift through each hold that follows the steps puts the
-best time constant at the grid's end (refused, see :func:`settling_fit`), and the ramp method, which averages its
-own pieces of the holds from the samples and does not use the segment means.
+Not corrected: the ramp method, which averages its own pieces of the holds from the samples and does not use the
+segment means (the fast program's creep is found, 139 ppm at tau_s 30 s for the catalogue's, and said in the
+warning, but its passport does not change).
 """
 
 from __future__ import annotations
@@ -39,32 +44,56 @@ MAX_FRACTION = 0.01
 @dataclass(frozen=True)
 class HoldMoments:
     """What :func:`settling_fit` needs of one hold's samples, per time constant of :data:`TAU_GRID_S`: with
-    e(t) = exp(-(t - t_first)/tau_s) and ``e_mean`` its mean over the hold (n_tau,), r = e - e_mean, ``ee`` =
-    sum r^2 (n_tau,) and ``eu`` = sum r (u_i - mean u_i) (n_tau, 3) V."""
+    e(t) = exp(-(t - t_first)/tau_s) and ``e_mean`` its mean over the hold (n_tau,), r = e less its least-squares
+    fit by the hold's nuisance terms (a constant and a quadratic in the hold's temperature:
+    :func:`_nuisance_basis`), ``ee`` = sum r^2 (n_tau,) and ``eu`` = sum r (u_i - mean u_i) (n_tau, 3) V."""
 
     ee: np.ndarray
     eu: np.ndarray
     e_mean: np.ndarray
 
 
-def hold_moments(t_s: np.ndarray, u_v: list[np.ndarray], mean_v: np.ndarray) -> HoldMoments:
-    """:class:`HoldMoments` of one hold from its sample times ``t_s`` (s, any origin) and its three channels
-    ``u_v`` (V) with their means ``mean_v`` (V)."""
+def hold_moments(
+    t_s: np.ndarray, u_v: list[np.ndarray], mean_v: np.ndarray, temp_c: np.ndarray | None = None
+) -> HoldMoments:
+    """:class:`HoldMoments` of one hold from its sample times ``t_s`` (s, any origin), its three channels ``u_v``
+    (V) with their means ``mean_v`` (V) and its temperature at those samples ``temp_c`` (C; None or non-finite:
+    the hold's mean alone is a nuisance term)."""
     n_tau = len(TAU_GRID_S)
     ee, eu, e_mean = np.zeros(n_tau), np.zeros((n_tau, 3)), np.zeros(n_tau)
-    if t_s.size < 3:
+    basis = _nuisance_basis(t_s.size, temp_c)  # (n, q) orthonormal columns
+    if t_s.size < basis.shape[1] + 2:
         return HoldMoments(ee, eu, e_mean)
     x = t_s - t_s[0]
     u = np.stack([np.asarray(c, dtype=float) - m for c, m in zip(u_v, mean_v)], axis=1)  # (n, 3) V
     inv_tau = 1.0 / np.asarray(TAU_GRID_S)
+    bu = basis.T @ u  # (q, 3)
     per = max(1, SLAB_SAMPLES // x.size)  # time constants at a time: at most a slab's worth of e(t) in memory
     for k in range(0, n_tau, per):
-        r = np.exp(-np.outer(inv_tau[k : k + per], x))  # (per, n)
-        e_mean[k : k + per] = r.mean(axis=1)
-        r -= e_mean[k : k + per, None]
-        ee[k : k + per] = np.einsum("kn,kn->k", r, r)
-        eu[k : k + per] = r @ u
+        e = np.exp(-np.outer(inv_tau[k : k + per], x))  # (per, n)
+        e_mean[k : k + per] = e.mean(axis=1)
+        # r = e - B (B^T e) with B the orthonormal nuisance basis, without forming r: r.r = e.e - |B^T e|^2,
+        # r.u = e.u - (B^T e).(B^T u)
+        eb = e @ basis  # (per, q)
+        ee[k : k + per] = np.maximum(np.einsum("kn,kn->k", e, e) - np.einsum("kq,kq->k", eb, eb), 0.0)
+        eu[k : k + per] = e @ u - eb @ bu
     return HoldMoments(ee=ee, eu=eu, e_mean=e_mean)
+
+
+def _nuisance_basis(n: int, temp_c: np.ndarray | None) -> np.ndarray:
+    """Orthonormal columns (n, q) spanning a hold's nuisance terms: a constant, and where the hold's temperature
+    ``temp_c`` (C, at its n samples) is finite and varies, a quadratic in it (the drift of a unit still
+    approaching its temperature, :mod:`pipeline.settling`); columns the others already span are left out."""
+    cols = [np.ones(n)]
+    if temp_c is not None and n > 0 and np.all(np.isfinite(temp_c)):
+        d = np.asarray(temp_c, dtype=float) - float(np.mean(temp_c))
+        spread_c = float(np.sqrt(np.mean(d * d)))
+        if spread_c > 0:
+            d = d / spread_c
+            cols += [d, d * d]
+    q, r = np.linalg.qr(np.stack(cols, axis=1))
+    diag = np.abs(np.diag(r))
+    return q[:, diag > 1e-9 * diag[0]] if n else q
 
 
 @dataclass(frozen=True)
@@ -104,7 +133,8 @@ def settling_fit(
     The step of hold k is mean_v[k] - mean_v[k-1] where a move lies between them and hold k-1 ended at most
     :data:`MAX_MOVE_S` before hold k began (else 0: no creep is modelled). Channels are weighted by their median
     noise variance. For each tau_s of :data:`TAU_GRID_S` the amplitude g is the weighted least-squares fit of
-    u = mean + g step e(t); the tau_s with the largest reduction of chi-square is taken, refined between the grid's
+    u = nuisance + g step e(t) (each hold's nuisance: its mean and a quadratic in its temperature,
+    :class:`HoldMoments`); the tau_s with the largest reduction of chi-square is taken, refined between the grid's
     points. The correction g step e_mean per hold is used where tau_s lies inside the grid (a best fit at its end,
     900 s, is a slow drift through the holds that happens to follow the steps, not a creep: clean short programs
     show one of up to 300 standard errors at 1 micro-V of noise, from the unit's temperature still settling), g < 0
