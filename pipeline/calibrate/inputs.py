@@ -309,8 +309,17 @@ def absent_from_pieces(
     """The units of a run with several units cut into files that are missing from one of them while the other
     units are in it: serial -> one warning line per such file, naming the unit, the file and the file's time span
     (``span_of(path)``: its first and last voltmeter ns; None: unknown). ``files``: each file holding several units
-    as (path, its run_id, the serials it lists); the files of one run_id are the pieces of one recording."""
+    as (path, its run_id, the serials it lists); the files of one run_id are the pieces of one recording. A unit
+    another file of the run holds over the piece's whole span (the file the pieces were cut from, beside them) is
+    not missing there."""
     from pipeline.utc import utc_text
+
+    known: dict[str, tuple[int, int] | None] = {}
+
+    def span_ns(path: str) -> tuple[int, int] | None:  # each file's span read once
+        if path not in known:
+            known[path] = span_of(path)
+        return known[path]
 
     by_run: dict[str, list[tuple[str, set[str]]]] = {}
     for path, run_id, listed in files:
@@ -324,9 +333,15 @@ def absent_from_pieces(
             missing = sorted(every - held)
             if not missing:
                 continue
-            span = span_of(path)
+            span = span_ns(path)
             when = f"{utc_text(span[0])} .. {utc_text(span[1])}" if span else "time span unknown"
             for serial in missing:
+                if span and any(
+                    serial in other and (o := span_ns(p)) is not None and o[0] <= span[0] and o[1] >= span[1]
+                    for p, other in pieces
+                    if p != path
+                ):
+                    continue  # another file of the run holds the unit over this piece's time: not missing
                 out.setdefault(serial, []).append(
                     f"{path}: unit {serial} is missing from this piece of run {run_id!r} ({when}), which holds the "
                     "other units: its recording has no samples over that time"

@@ -187,6 +187,33 @@ def test_a_unit_missing_from_a_piece_of_its_run_is_named_by_calibrate_and_fleet(
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("fmt", ["mcap", "parquet"])
+def test_a_unit_missing_from_a_piece_is_not_said_missing_beside_the_whole_file(units3_2hz, fmt):
+    """The pieces of a 3-unit run, AU-0003 left out of the second, beside the whole file they were cut from (one
+    run_id): every unit is calibrated from the whole file, AU-0003 included, so no unit's warnings say it "has no
+    samples over that time" (``calibrate`` and ``fleet`` alike); each unit's first warning is the same "part of"
+    line as the others'. Was: AU-0003's first warning said it missing from the second piece, its recording without
+    samples there, though the whole file's samples over that time were calibrated."""
+    from flows.calibrate import run_calibrate
+    from flows.fleet import run_fleet
+    from pipeline.calibrate.settings import CalibrationSettings
+
+    d, runs, (t0, t1) = units3_2hz
+    inbox = d / f"whole-beside-{fmt}"
+    paths = [str(p.resolve()) for p in _pieces(runs, [t0 + int(0.4 * (t1 - t0))], inbox, fmt, {1: "AU-0003"})]
+    whole = str(write_run(runs, inbox / ("whole.mcap" if fmt == "mcap" else "whole"), fmt).resolve())
+    settings = CalibrationSettings()
+    cal = run_calibrate([*paths, whole], str(d / f"reg-cw-{fmt}"), settings, method="auto", dry_run=True)
+    fleet = run_fleet(str(inbox), str(d / f"reg-fw-{fmt}"), settings, method="auto", figures=False, pool="thread")
+    for got in ({u["unit"]: u for u in cal["units"]}, {u["unit"]: u for u in fleet["done"]}):
+        assert sorted(got) == ["AU-0001", "AU-0002", "AU-0003"]
+        for unit, done in got.items():
+            assert [w for w in done["warnings"] if "is missing from this piece" in w] == [], unit
+            assert done["status"] == "pass", unit
+    assert cal["failed"] == [] and fleet["failed"] == []
+
+
+@pytest.mark.slow
 def test_a_truncated_copy_of_a_run_of_several_units_is_skipped_once_with_its_units(units3_2hz, monkeypatch, capsys):
     """A 3-unit run and a truncated copy of it (its first 60 % of bytes, a USB stick's) in one inbox: every unit
     calibrated from the complete file; the copy is skipped once, not failed once per unit, with the units it
