@@ -1293,6 +1293,16 @@ def unit_clock(run: Run) -> UnitClock:
     return UnitClock(t_ns, reader_gap_indices(t_ns), median_interval_ns(t_ns), {})
 
 
+def _left_out(t_ns: np.ndarray, left_out_ns: tuple[tuple[str, int, int], ...], column: str) -> np.ndarray:
+    """Which of the times ``t_ns`` (ns) lie in a stretch of ``column`` that the readers set to NaN as stuck or
+    clipped and named (:attr:`pipeline.run.Run.left_out_ns`): a non-finite line does not count them again."""
+    spans = np.array(sorted((a, b) for c, a, b in left_out_ns if c == column), dtype=np.int64).reshape(-1, 2)
+    if not spans.size:
+        return np.zeros(t_ns.size, dtype=bool)
+    k = np.searchsorted(spans[:, 0], t_ns, "right") - 1
+    return (k >= 0) & (t_ns <= spans[np.maximum(k, 0), 1])
+
+
 def _non_finite_line(
     volts: pl.DataFrame,
     t_ns: np.ndarray,
@@ -1313,11 +1323,7 @@ def _non_finite_line(
     counts: dict[str, int] = {}
     other = np.zeros(bad.size, dtype=bool)
     for c in ("ux", "uy", "uz"):
-        missing = ~np.isfinite(volts[c].gather(at).to_numpy())
-        spans = np.array(sorted((a, b) for ch, a, b in left_out_ns if ch == c), dtype=np.int64).reshape(-1, 2)
-        if spans.size:
-            k = np.searchsorted(spans[:, 0], t_bad, "right") - 1
-            missing &= ~((k >= 0) & (t_bad <= spans[np.maximum(k, 0), 1]))
+        missing = ~np.isfinite(volts[c].gather(at).to_numpy()) & ~_left_out(t_bad, left_out_ns, c)
         counts[c] = int(np.count_nonzero(missing))
         other |= missing
     bad = bad[other]
@@ -1365,9 +1371,11 @@ def segment_run(
         warnings.append("au_temperature: samples not in time order; sorted")
     bad_t = ~np.isfinite(temp)
     if bad_t.any():
-        warnings.append(
-            f"au_temperature: {int(bad_t.sum())} non-finite samples ignored, first at t_ns={int(tt_ns[bad_t][0])}"
-        )
+        other = bad_t & ~_left_out(tt_ns, run.left_out_ns, "temp_c")  # (stuck or clipped: named by the readers)
+        if other.any():
+            warnings.append(
+                f"au_temperature: {int(other.sum())} non-finite samples ignored, first at t_ns={int(tt_ns[other][0])}"
+            )
         tt_ns, temp = tt_ns[~bad_t], temp[~bad_t]
 
     known = static is not None and static.t_ns is t_ns and static.interval_ns is not None  # (not after sorting)

@@ -133,8 +133,8 @@ def check_stream(
     are kept. ``label`` names the stream in errors and warnings (default: ``stream``; one unit's stream of a run with
     several units is named with its unit). ``gaps``: where to put the stream's gaps (``gaps[label]``, see
     :func:`gap_lines`) when it has any; without it they are warned about here. ``left_out``: where to add the
-    voltmeter stretches set to NaN as stuck or clipped (:func:`_stuck_missing`), (channel, first ns, last ns) each
-    (:attr:`pipeline.run.Run.left_out_ns`).
+    stretches of the voltmeter's and the thermosensor's columns (:data:`STUCK_CHECKED`) set to NaN as stuck or
+    clipped (:func:`_stuck_missing`), (column, first ns, last ns) each (:attr:`pipeline.run.Run.left_out_ns`).
     """
     label = label or stream
     t = df["t_ns"]
@@ -181,8 +181,8 @@ def check_stream(
                 gaps[label] = spans
     if stream == "au_temperature" and df.height > 2:
         df = _isolated_readings_missing(label, df, warnings)
-    if stream == "voltmeter" and df.height > 1:
-        df = _stuck_missing(label, df, warnings, [] if left_out is None else left_out)
+    if stream in STUCK_CHECKED and df.height > 1:
+        df = _stuck_missing(label, df, warnings, [] if left_out is None else left_out, *STUCK_CHECKED[stream])
     if stream == "fixture" and df.height:
         bad = ~df["position"].is_in(FIXTURE_LABELS) | df["position"].is_null()
         if bad.any():
@@ -662,6 +662,14 @@ def stuck_clauses(warnings: list[str]) -> list[str]:
     ]
 
 
+#: The streams whose columns are checked for stuck and clipped stretches (:func:`_stuck_missing`): their columns
+#: and the unit of their values. The thermosensor too: frozen for an hour while the chamber ramps, it would make a
+#: plateau that is not there (for it, only runs it leaves by a jump, :func:`_thermosensor_frozen`; no rails).
+STUCK_CHECKED: dict[str, tuple[tuple[str, ...], str]] = {
+    "voltmeter": (("ux", "uy", "uz"), "V"),
+    "au_temperature": (("temp_c",), "C"),
+}
+
 #: Readings at a rail at most this many samples apart belong to one clipped stretch (see :func:`rail_stretches`).
 RAIL_GAP_SAMPLES = 32
 #: The rail's count must exceed twice the next value's by this many of its Poisson standard deviations (see
@@ -718,43 +726,76 @@ def rail_stretches(col: pl.Series, rail_v: float, n_min: int) -> tuple[np.ndarra
     return runs[size >= n_min], found, n_nxt
 
 
+def _thermosensor_frozen(
+    col: pl.Series, t_ns: pl.Series, runs: np.ndarray, values: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Of a thermosensor's stuck ``runs`` ((k, 2) [first, end) readings of ``col``, C, at ``values``), those it
+    left by a jump the temperature cannot make (:func:`_isolated_readings_missing`'s :data:`GLITCH_C` plus
+    :data:`GLITCH_C_PER_S` times the time from the run's last reading to the next finite one): a sensor frozen
+    while the chamber moved, which would make a plateau that is not there. A quiet plateau read in coarse steps
+    (0.0625 C: one value for minutes, the extreme one at the coldest plateau) ends a step away, and a run at the
+    record's end has no reading after it: neither is named (neither makes a plateau that is not there)."""
+    keep = np.zeros(runs.shape[0], dtype=bool)
+    n = col.len()
+    for k, b in enumerate(runs[:, 1].tolist()):
+        after = slab_of(col, b, min(n, b + SLAB_SAMPLES))
+        nxt = np.flatnonzero(np.isfinite(after))
+        if nxt.size:
+            dt_s = (int(t_ns[b + int(nxt[0])]) - int(t_ns[b - 1])) / 1e9
+            keep[k] = abs(float(after[nxt[0]]) - float(values[k])) > GLITCH_C + GLITCH_C_PER_S * dt_s
+    return runs[keep], values[keep]
+
+
 def _stuck_missing(
-    label: str, df: pl.DataFrame, warnings: list[str], left_out: list[tuple[str, int, int]]
+    label: str,
+    df: pl.DataFrame,
+    warnings: list[str],
+    left_out: list[tuple[str, int, int]],
+    columns: tuple[str, ...] = ("ux", "uy", "uz"),
+    unit: str = "V",
 ) -> pl.DataFrame:
-    """The voltmeter channels' stuck stretches (:func:`stuck_stretches`) and stretches clipped at a rail
-    (:func:`rail_stretches`) set to NaN (missing: no hold in them is used, as with any non-finite sample), with one
-    warning per channel and kind naming how many, the time in all (s), the first and the longest (value, start as
-    t_ns, UTC and seconds from the stream's first sample, duration in s). A channel that reads one value in every
-    sample is left as it is (:func:`dead_channels`). Each stretch set to NaN is added to ``left_out`` as (channel,
-    first ns, last ns)."""
+    """The stuck stretches (:func:`stuck_stretches`) and stretches clipped at a rail (:func:`rail_stretches`) of the
+    ``columns`` (values in ``unit``: the voltmeter's channels in V, the thermosensor's temp_c in C) set to NaN
+    (missing: no hold in them is used, as with any non-finite sample; a thermosensor's missing readings leave a
+    gap, where no voltmeter sample has a temperature), with one warning per column and kind naming how many, the
+    time in all (s), the first and the longest (value, start as t_ns, UTC and seconds from the stream's first
+    sample, duration in s). A column that reads one value in every sample is left as it is (a voltmeter's:
+    :func:`dead_channels`; a thermosensor at one temperature throughout is a run without a temperature model), and
+    so is one whose stretches leave fewer than the threshold's number of live readings (nothing to tell them from).
+    The thermosensor (``unit`` C) has no rails and only the stuck runs :func:`_thermosensor_frozen` keeps.
+    Each stretch set to NaN is added to ``left_out`` as (column, first ns, last ns)."""
     t_ns = df["t_ns"].to_numpy()
     step_ns = median_interval_ns(t_ns)
-    for c in ("ux", "uy", "uz"):
+    for c in columns:
         col = df[c]
         runs, n_min, hi, lo = stuck_stretches(col)
         if hi == lo or not math.isfinite(hi):
             continue
         gone: list[np.ndarray] = []
+        said: list[str] = []
         values = col.gather(runs[:, 0]).to_numpy()
-        for rail_v, side, inwards in ((hi, "highest", "lower"), (lo, "lowest", "higher")):
+        if unit == "C":
+            runs, values = _thermosensor_frozen(col, df["t_ns"], runs, values)
+        for rail_v, side, inwards in ((hi, "highest", "lower"), (lo, "lowest", "higher")) if unit == "V" else ():
             clipped, found, n_next = rail_stretches(col, rail_v, n_min)
             if not clipped.size:
                 continue
             runs, values = runs[values != rail_v], values[values != rail_v]
             gone.append(clipped)
-            warnings.append(
+            said.append(
                 _stretches_line(
-                    f"{label}: {c} clipped at {rail_v:.7g} V, its {side} reading ({found} samples read it, "
+                    f"{label}: {c} clipped at {rail_v:.7g} {unit}, its {side} reading ({found} samples read it, "
                     f"{n_next} the next {inwards} value: a rail, where a live channel's readings thin out)",
                     t_ns,
                     clipped,
                     np.full(clipped.shape[0], rail_v),
                     step_ns,
+                    unit=unit,
                 )
             )
         if runs.size:
             gone.append(runs)
-            warnings.append(
+            said.append(
                 _stretches_line(
                     f"{label}: {c} stuck (one reading repeated for >= {n_min * step_ns / 1e9:.3g} s, {n_min} "
                     "samples, which its noise does not give)",
@@ -764,6 +805,7 @@ def _stuck_missing(
                     step_ns,
                     hi,
                     lo,
+                    unit=unit,
                 )
             )
         if not gone:
@@ -773,6 +815,13 @@ def _stuck_missing(
         np.add.at(edge, both[:, 0], 1)
         np.add.at(edge, both[:, 1], -1)
         stuck = np.cumsum(edge[:-1], dtype=np.int32) > 0
+        finite = col.is_finite().to_numpy()
+        if int(np.count_nonzero(finite & ~stuck)) < n_min:
+            # nothing live left to tell the stretches from (a quiet column read coarsely: a 160-s handheld
+            # record's thermosensor at 20 C in 0.0625 C steps reads one value but once): not judged, as one
+            # value throughout is not
+            continue
+        warnings.extend(said)
         left_out += [(c, int(t_ns[a]), int(t_ns[b - 1])) for a, b in index_stretches(np.flatnonzero(stuck))[0]]
         df = df.with_columns(pl.when(pl.Series(stuck)).then(float("nan")).otherwise(pl.col(c)).alias(c))
     return df
@@ -786,10 +835,11 @@ def _stretches_line(
     step_ns: float,
     hi: float = math.nan,
     lo: float = math.nan,
+    unit: str = "V",
 ) -> str:
     """One warning about the stretches ``runs`` ((k, 2) [first, end) samples) of a channel: ``head``, how many, the
-    time in all, the first and the longest (:func:`stretches_text`)."""
-    return f"{head} {stretches_text(t_ns, runs, step_ns, values, hi, lo)}; {STUCK_LEFT_OUT}"
+    time in all, the first and the longest (:func:`stretches_text`; values in ``unit``)."""
+    return f"{head} {stretches_text(t_ns, runs, step_ns, values, hi, lo, unit)}; {STUCK_LEFT_OUT}"
 
 
 def stretches_text(
@@ -799,12 +849,14 @@ def stretches_text(
     values: np.ndarray | None = None,
     hi: float = math.nan,
     lo: float = math.nan,
+    unit: str = "V",
 ) -> str:
     """The stretches ``runs`` ((k, 2) [first, end) sample indices into ``t_ns``, one sample lasting ``step_ns``) in
     a warning, in seconds: how many, the time in all, the first and the longest, each with its value when ``values``
-    (V) are given (:func:`_stuck_text`): ``in 1 stretch(es), 1200.0 s in all: the first at 0 V for 1200.0 s from
-    t_ns=... (UTC span, 2900.0 s after the start)``. The one text of stretches of a voltmeter channel: stuck,
-    clipped, or non-finite (:func:`pipeline.segment.segment_run`)."""
+    (in ``unit``: V, or C for the thermosensor) are given (:func:`_stuck_text`): ``in 1 stretch(es), 1200.0 s in
+    all: the first at 0 V for 1200.0 s from t_ns=... (UTC span, 2900.0 s after the start)``. The one text of
+    stretches of a voltmeter channel or the thermosensor: stuck, clipped, or non-finite
+    (:func:`pipeline.segment.segment_run`)."""
     step_ns = step_ns if math.isfinite(step_ns) else 0.0
     dur_s = (t_ns[runs[:, 1] - 1] - t_ns[runs[:, 0]] + step_ns) / 1e9
     said = [
@@ -816,6 +868,7 @@ def stretches_text(
             float(dur_s[k]),
             hi,
             lo,
+            unit,
         )
         for k in dict.fromkeys((0, int(np.argmax(dur_s))))
     ]
@@ -823,7 +876,9 @@ def stretches_text(
     return f"in {runs.shape[0]} stretch(es), {float(dur_s.sum()):.1f} s in all: the first {said[0]}{more}"
 
 
-def _stuck_text(t_ns: np.ndarray, a: int, b: int, value_v: float | None, dur_s: float, hi: float, lo: float) -> str:
+def _stuck_text(
+    t_ns: np.ndarray, a: int, b: int, value_v: float | None, dur_s: float, hi: float, lo: float, unit: str = "V"
+) -> str:
     """One stretch (samples ``a .. b - 1``, at ``value_v`` when given) in a warning: value, a rail when it is the
     channel's highest or lowest (``hi``, ``lo``), duration (s), start (t_ns, UTC, s after the stream's first
     sample)."""
@@ -831,7 +886,7 @@ def _stuck_text(t_ns: np.ndarray, a: int, b: int, value_v: float | None, dur_s: 
 
     rail = " (the channel's highest value: clipped at a rail?)" if value_v == hi else ""
     rail = " (the channel's lowest value: clipped at a rail?)" if value_v == lo else rail
-    value = "" if value_v is None else f"at {value_v:.7g} V{rail} "
+    value = "" if value_v is None else f"at {value_v:.7g} {unit}{rail} "
     return (
         f"{value}for {dur_s:.1f} s from t_ns={t_ns[a]} "
         f"({utc_span(int(t_ns[a]), int(t_ns[b - 1]))}, {(t_ns[a] - t_ns[0]) / 1e9:.1f} s after the start)"

@@ -411,3 +411,55 @@ def test_a_rail_reads_more_than_twice_the_next_value_by_three_poisson_sigmas(fou
     assert clipped.tolist() == (
         [[200 + int(np.argmax(hold == 1.0)), 200 + hold.size - int(np.argmax(hold[::-1] == 1.0))]] if rail else []
     )
+
+
+@pytest.mark.parametrize("fmt", ["parquet", "mcap"])
+def test_a_frozen_thermosensor_is_named_and_makes_no_plateau(tmp_path, fmt):
+    """Short program at 2 Hz: the AU thermosensor frozen at its last reading (-10.0 C, on the way down to -40 C) for
+    an hour from 4500 s. Before: not a word, and a -10 C plateau that is not there (6 plateaus: 20, -40, -10, 45,
+    70, 20 C) with a 'reading creeps after each move' correction of the holds. Now one warning names it, those
+    readings are missing (a gap in the thermosensor: no voltmeter sample there has a temperature), not counted again
+    as non-finite, and the plateaus are the program's other five."""
+    from pipeline.segment import segment_run
+
+    res = simulate(SimConfig(program="short", rate_hz=2.0, seed=3))
+    t = res.run.au_temperature
+    rel = (t["t_ns"].to_numpy() - int(t["t_ns"][0])) / 1e9
+    a = int(np.flatnonzero(rel < 4500)[-1])  # the last reading before: its value repeated
+    frozen = (rel >= 4500) & (rel < 8100)
+    temp = t["temp_c"].to_numpy().copy()
+    temp[frozen] = temp[a]
+    run = dataclasses.replace(res.run, au_temperature=t.with_columns(pl.Series("temp_c", temp)))
+    path = write_run(run, tmp_path / f"r.{fmt}" if fmt == "mcap" else tmp_path / "r", fmt)
+    read = next(iter(read_units(path).units.values()))
+    said = [w for w in read.warnings if "temp_c" in w]
+    b = int(np.flatnonzero(frozen)[-1])
+    start = int(t["t_ns"][a])
+    assert len(said) == 1 and said[0].startswith(
+        "au_temperature: temp_c stuck (one reading repeated for >= 4 s, 4 samples, which its noise does not give) "
+        f"in 1 stretch(es), {b - a + 1:.1f} s in all: the first at {temp[a]:.7g} C for {b - a + 1:.1f} s from "
+        f"t_ns={start} ("
+    ), said
+    gone = np.isnan(read.au_temperature["temp_c"].to_numpy())
+    assert np.flatnonzero(gone).tolist() == list(range(a, b + 1))
+    seg = segment_run(read)
+    assert [round(p.temp_c) for p in seg.plateaus] == [20, -40, 45, 70, 20]
+    assert not [w for w in seg.warnings if "non-finite" in w]
+
+
+@pytest.mark.parametrize(
+    ("program", "rate_hz"), [("short", 2.0), ("standard", 1.0), ("sweep", 2.0), ("handheld", 100.0)]
+)
+def test_a_live_thermosensor_is_never_called_stuck(program, rate_hz):
+    """Simulated thermosensors, as simulated and read in steps of 0.001-0.5 C (a 0.0625-C sensor at a plateau reads
+    one value for minutes; the 160-s handheld record's reads 20 C in all but one reading): nothing called stuck or
+    clipped, the readings untouched."""
+    for seed in range(3):
+        t = simulate(SimConfig(program=program, rate_hz=rate_hz, seed=seed)).run.au_temperature
+        for q in (0.0, 0.001, 0.01, 0.0625, 0.1, 0.5):
+            x = t["temp_c"].to_numpy()
+            x = np.round(x / q) * q if q else x
+            w: list[str] = []
+            out = check_stream("au_temperature", t.with_columns(pl.Series("temp_c", x)), path="x", warnings=w)
+            assert [line for line in w if "stuck" in line or "clipped" in line] == [], (seed, q)
+            assert np.array_equal(out["temp_c"].to_numpy(), x)
