@@ -48,7 +48,7 @@ from pipeline.calibrate.inputs import (  # noqa: E402
     joined_recordings,
     recordings_by_files,
     select_runs,
-    time_span_ns,
+    units_span_ns,
 )
 from pipeline.calibrate.methods import by_name, default_base_passport, resolve_auto  # noqa: E402
 from pipeline.calibrate.observations import ObservedRun, unit_of  # noqa: E402
@@ -61,7 +61,7 @@ from pipeline.passport.canonical import canonical_json  # noqa: E402
 from pipeline.passport.document import Passport, load_passport  # noqa: E402
 from pipeline.passport.provenance import hash_run  # noqa: E402
 from pipeline.passport.registry import Registry  # noqa: E402
-from pipeline.run import Run, UnitRuns  # noqa: E402
+from pipeline.run import Run, UnitRuns, check_serials  # noqa: E402
 from pipeline.segment import Segmentation  # noqa: E402
 
 T = TypeVar("T")
@@ -75,14 +75,12 @@ def _whole(value: T) -> T:
 
 
 @task(name="ingest", cache_policy=NO_CACHE)
-def ingest(path: str, units: list[str] | None = None) -> UnitRuns:
-    """The run at ``path`` with all its units, also when ``units`` names the ones to calibrate (an unknown serial is
-    a RunFormatError): a run with several is segmented by the consensus of all its units, so that a unit's passport
-    does not depend on which others were asked for (``fleet``, and ``calibrate`` without ``--unit``, make the
-    same); :func:`calibrate_units` calibrates the ``units`` alone."""
-    got = runio.read_units(path)
-    got.select(units)  # checks the serials
-    return got
+def ingest(path: str) -> UnitRuns:
+    """The run at ``path`` with all its units, also when ``--unit`` names the ones to calibrate (checked over all the
+    files given, :func:`pipeline.run.check_serials`): a run with several is segmented by the consensus of all its
+    units, so that a unit's passport does not depend on which others were asked for (``fleet``, and ``calibrate``
+    without ``--unit``, make the same); :func:`calibrate_units` calibrates the ``units`` alone."""
+    return runio.read_units(path)
 
 
 @task(name="segment", cache_policy=NO_CACHE)
@@ -204,7 +202,8 @@ def calibrate_flow(
         read = []
         for p in paths:
             step(f"ingest {os.path.basename(p)}")
-            read.append(ingest(p, units))
+            read.append(ingest(p))
+        check_serials(read, units)  # a serial in no file; one missing from a piece is calibrated from the others
         hashed = hashed or {p: hashing.submit(hash_run, p) for p in paths}
         # a unit's steps from its runs and their paths, with what every unit of the command shares
         unit_steps = functools.partial(
@@ -261,7 +260,7 @@ def calibrate_units(paths, read, unit_steps, settings, step, hashed, draw=None, 
     joined = joined_recordings({s: [(p, got.units[s]) for p, got in items] for s, items in by_unit.items()})
     absent = absent_from_pieces(  # a unit missing from one of the files its run was cut into
         [(p, got.meta_values.get("run_id", ""), got.serials) for p, got in zip(paths, read) if got.several],
-        lambda p: _span_ns(read[paths.index(p)]),
+        lambda p: units_span_ns(read[paths.index(p)]),
     )
     segs: dict[str, dict] = {}  # path -> serial -> segmentation of the units calibrated from that file alone
     for p, got in zip(paths, read):
@@ -408,12 +407,6 @@ def _as_task(step, *args):
 def _as_call(step, *args):
     """``step`` (a task) called as the plain function it wraps (no task run)."""
     return step.fn(*args)
-
-
-def _span_ns(got) -> tuple[int, int] | None:
-    """The first and last voltmeter ns of a file's units (:class:`pipeline.run.UnitRuns`), None without samples."""
-    spans = [span for r in got.units.values() if (span := time_span_ns(r.voltmeter))]
-    return (min(a for a, _ in spans), max(b for _, b in spans)) if spans else None
 
 
 def _names(paths: list[str]) -> str:

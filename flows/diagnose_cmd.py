@@ -30,7 +30,7 @@ from pipeline.passport.canonical import canonical_json
 from pipeline.passport.document import load_passport
 from pipeline.passport.registry import Registry, load_passport_file
 from pipeline.passport.signing import sign_record
-from pipeline.run import Run
+from pipeline.run import Run, check_serials
 from pipeline.segment import Segmentation
 
 from .runtime import Steps
@@ -133,18 +133,23 @@ def _one_recording(paths: list[Path], unit: str | None) -> tuple[Run, Path, Segm
     (:func:`pipeline.calibrate.inputs.unit_recordings`, :func:`~pipeline.calibrate.inputs.segment_recordings`);
     None: the diagnosis segments the run alone."""
     read = [(str(p), read_units(p)) for p in paths]
-    runs = [got.one(unit) for _, got in read]  # the unit named, in every file (else the reader's one-line error)
+    if unit is not None and len(read) > 1:  # a serial in no file at all; one missing from a piece: the others
+        check_serials([got for _, got in read], [unit])
+    holding = [(Path(p), got) for p, got in read if unit is None or unit in got.serials]
+    runs = [got.one(unit) for _, got in holding]  # the unit named, in the files holding it (else the reader's error)
     if unit is not None and any(got.several and len(got.units) > 1 for _, got in read):
         recordings, _ = unit_recordings(read)
         if unit in recordings:  # else its files are not one recording: select_runs or join_runs says why below
             run, kept, left_out = recordings[unit]
             first = min(kept, key=lambda p: _first_ns(next(got.units[unit] for q, got in read if q == p)))
+            if len(kept) == 1:  # its one file: segmented with that file's units, as calibrate segments it
+                recordings, _ = unit_recordings([(kept[0], dict(read)[kept[0]])])
             segs, _ = segment_recordings(recordings, only=[unit])
             run.warnings[:0] = left_out
             return run, Path(first), segs[unit]
     if len(runs) == 1:
-        return runs[0], paths[0], None
-    path_of = {id(r): p for r, p in zip(runs, paths)}
+        return runs[0], holding[0][0], None
+    path_of = {id(r): p for r, (p, _) in zip(runs, holding)}
     kept_runs, warnings = select_runs(runs)
     run = join_runs(kept_runs)
     run.warnings[:0] = warnings

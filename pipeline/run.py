@@ -395,6 +395,29 @@ class UnitRuns:
         return self.select([serial]).units[serial]
 
 
+def check_serials(read: list[UnitRuns], serials: list[str] | None) -> None:
+    """``--unit`` over the files given together (``read``: each file's :class:`UnitRuns`): a serial is selectable
+    when some file holds it (a unit missing from one piece of its run is calibrated from the pieces it is in); one
+    in no file is a RunFormatError naming it (one file: :meth:`UnitRuns.select`'s, naming that file's units). A file
+    of a single unit must be that unit's (:meth:`UnitRuns.select`)."""
+    if not serials:
+        return
+    if len(read) == 1:
+        read[0].select(serials)
+        return
+    for got in read:
+        if not got.several:
+            got.select(serials)
+    held = [s for got in read for s in got.serials]
+    unknown = [s for s in serials if s not in held]
+    if unknown:
+        raise RunFormatError(
+            f"no unit {', '.join(unknown)} in any of these runs (units: {', '.join(dict.fromkeys(held))})",
+            path=" + ".join(got.source or "?" for got in read),
+            where="--unit",
+        )
+
+
 class UnitFailed(RunFormatError):
     """A unit of a run with several units that failed its input checks; the message is its one-line reason."""
 

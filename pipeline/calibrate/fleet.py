@@ -48,7 +48,7 @@ from pipeline.calibrate.inputs import (
     recordings_by_files,
     resolve_run_ids,
     select_runs,
-    time_span_ns,
+    units_span_ns,
 )
 from pipeline.calibrate.methods import all_methods, base_passport_of, by_name, default_base_passport, resolve_auto
 from pipeline.calibrate.publish import publish, recorded_settings
@@ -338,8 +338,7 @@ def _span_ns(path: str) -> tuple[int, int] | None:
         got = read_units(path)
     except Exception:
         return None
-    spans = [span for r in got.units.values() if (span := time_span_ns(r.voltmeter))]
-    return (min(a for a, _ in spans), max(b for _, b in spans)) if spans else None
+    return units_span_ns(got)
 
 
 def _unit_reader(unit: str) -> Callable[[str], Run]:

@@ -54,6 +54,7 @@ __all__ = [
     "select_runs",
     "time_span_ns",
     "unit_recordings",
+    "units_span_ns",
 ]
 
 
@@ -448,6 +449,13 @@ def time_span_ns(df: pl.DataFrame) -> tuple[int, int] | None:
         return None
     t = df["t_ns"].to_numpy()
     return int(t.min()), int(t.max())
+
+
+def units_span_ns(got: UnitRuns) -> tuple[int, int] | None:
+    """The first and last voltmeter ns of a file's units (what :func:`pipeline.io.runs.read_units` read), None
+    without samples: the time span :func:`absent_from_pieces` names."""
+    spans = [span for r in got.units.values() if (span := time_span_ns(r.voltmeter))]
+    return (min(a for a, _ in spans), max(b for _, b in spans)) if spans else None
 
 
 def _joined_stream(name: str, frames: list[tuple[int, pl.DataFrame]], names: list[str]) -> pl.DataFrame:

@@ -214,6 +214,68 @@ def test_a_unit_missing_from_a_piece_is_not_said_missing_beside_the_whole_file(u
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize(("cuts", "drop"), [((0.4,), {1: "AU-0003"}), ((0.3, 0.7), {1: "AU-0001"})])
+def test_a_unit_missing_from_a_piece_is_selectable_with_unit(units3_2hz, monkeypatch, capsys, cuts, drop):
+    """``calibrate PIECES --unit S`` where S is missing from one piece (the other units in it): S calibrated from
+    the pieces that hold it, the same passport and warnings (the "missing from this piece" line first) as
+    ``calibrate PIECES`` gives it; a serial in no piece is still exit 2, one line naming it and the files. Was: exit
+    2, "PIECE: --unit: no unit S in this run (units: ...)" (the serial checked file by file)."""
+    from flows.calibrate import run_calibrate
+    from pipeline.calibrate.settings import CalibrationSettings
+
+    d, runs, (t0, t1) = units3_2hz
+    name = "sel-" + "-".join(f"{c}" for c in cuts)
+    paths = [str(p) for p in _pieces(runs, [t0 + int(c * (t1 - t0)) for c in cuts], d / name, "mcap", drop)]
+    [(k, unit)] = drop.items()
+    settings = CalibrationSettings()
+    every = run_calibrate(paths, str(d / f"reg-all-{name}"), settings, method="auto", dry_run=True)
+    one = run_calibrate(paths, str(d / f"reg-one-{name}"), settings, method="auto", dry_run=True, units=[unit])
+    assert one["failed"] == [] and [u["unit"] for u in one["units"]] == [unit]
+    (got,) = one["units"]
+    (want,) = [u for u in every["units"] if u["unit"] == unit]
+    assert "is missing from this piece" in got["warnings"][0] and paths[k] in got["warnings"][0]
+    assert got["warnings"] == want["warnings"] and got["status"] == want["status"]
+    made = ("created_utc", "content_sha256")
+    assert {key: v for key, v in got["passport_content"].items() if key not in made} == {
+        key: v for key, v in want["passport_content"].items() if key not in made
+    }
+    code, out, err = run_main(
+        monkeypatch, capsys, "calibrate", *paths, "--unit", "AU-0999", "--registry", str(d / f"reg-x-{name}")
+    )
+    assert (code, out) == (2, "")
+    assert err.strip().splitlines()[-1] == (
+        f"thermocal: error: {' + '.join(paths)}: --unit: no unit AU-0999 in any of these runs "
+        "(units: AU-0001, AU-0002, AU-0003)"
+    )
+
+
+def test_diagnose_of_a_unit_missing_from_a_piece_uses_the_pieces_holding_it(units3_2hz, monkeypatch, capsys):
+    """``diagnose PART0 PART1 --unit AU-0003`` where AU-0003 is missing from PART1 (the other units in it): the
+    report of ``diagnose PART0 --unit AU-0003`` (its recording is PART0's, segmented with PART0's units, as
+    ``calibrate`` segments it); a serial in no piece: exit 2, one line naming it. Was: exit 2, "PART1: --unit: no
+    unit AU-0003 in this run (units: AU-0001, AU-0002)"."""
+    d, runs, (t0, t1) = units3_2hz
+    paths = [str(p) for p in _pieces(runs, [t0 + (t1 - t0) * 2 // 5], d / "diag-missing", "mcap", {1: "AU-0003"})]
+    reports = []
+    for k, files in enumerate((paths, paths[:1])):
+        code, out, err = run_main(
+            monkeypatch, capsys, "diagnose", *files, "--unit", "AU-0003", "--json", "--out", str(d / f"diag-out-{k}")
+        )
+        assert code == 0, err
+        reports.append(json.loads(out))
+    a, b = reports
+    assert a["unit"] == b["unit"] == "AU-0003" and a["verdict"] == b["verdict"]
+    for key in ("findings", "rms_before_v", "rms_after_v", "rms_noise_v", "vp", "blocks", "located", "notes"):
+        assert a[key] == b[key], key
+    code, out, err = run_main(monkeypatch, capsys, "diagnose", *paths, "--unit", "AU-0999", "--json")
+    assert (code, out) == (2, "")
+    assert err.strip().splitlines()[-1] == (
+        f"thermocal: error: {' + '.join(paths)}: --unit: no unit AU-0999 in any of these runs "
+        "(units: AU-0001, AU-0002, AU-0003)"
+    )
+
+
+@pytest.mark.slow
 def test_a_truncated_copy_of_a_run_of_several_units_is_skipped_once_with_its_units(units3_2hz, monkeypatch, capsys):
     """A 3-unit run and a truncated copy of it (its first 60 % of bytes, a USB stick's) in one inbox: every unit
     calibrated from the complete file; the copy is skipped once, not failed once per unit, with the units it
