@@ -32,12 +32,19 @@ def summarize_units(got: UnitRuns | Sequence[tuple[str, UnitRuns]]) -> dict[str,
     pieces are one recording (:func:`pipeline.calibrate.inputs.unit_recordings`, with its ``files`` as
     :func:`summarize_runs` lists them) and the units of the same files are segmented together, as ``calibrate``
     does (:func:`pipeline.calibrate.inputs.segment_recordings`): the poses and plateaus of the file they were cut
-    from. ``metadata`` is then the first file's in time, ``source`` the files in time order."""
-    from pipeline.calibrate.inputs import segment_recordings, unit_recordings
+    from. ``metadata`` is then the first file's in time, ``source`` the files in time order; a unit missing from
+    one of the pieces (the other units in it) is named first in its ``warnings``, as ``calibrate`` names it
+    (:func:`pipeline.calibrate.inputs.absent_from_pieces`)."""
+    from pipeline.calibrate.inputs import absent_from_pieces, segment_recordings, unit_recordings, units_span_ns
 
     read = [(got.source, got)] if isinstance(got, UnitRuns) else list(got)
+    absent: dict[str, list[str]] = {}  # a unit missing from one of the pieces: named first, as calibrate names it
     if len(read) > 1:
-        read.sort(key=lambda item: _first_ns(item[1]))
+        span_of = {p: units_span_ns(g) for p, g in read}
+        read.sort(key=lambda item: (span_of[item[0]] or (int(np.iinfo(np.int64).max), 0))[0])
+        absent = absent_from_pieces(
+            [(p, g.meta_values.get("run_id", ""), g.serials) for p, g in read if g.several], span_of.__getitem__
+        )
     recordings, unjoined = unit_recordings(read)
     try:
         segs, disagree = segment_recordings(recordings)
@@ -48,7 +55,7 @@ def summarize_units(got: UnitRuns | Sequence[tuple[str, UnitRuns]]) -> dict[str,
         unit = summarize_run(run, segs.get(serial))
         if len(read) > 1:
             unit["files"] = _files([r for p, g in read for s, r in g.units.items() if s == serial and p in paths])
-            unit["warnings"] = left_out + unit["warnings"]
+            unit["warnings"] = absent.get(serial, []) + left_out + unit["warnings"]
         units.append(unit)
     failed = {u: why for _, g in read for u, why in g.failed.items()}
     failed.update(unjoined)
@@ -60,14 +67,6 @@ def summarize_units(got: UnitRuns | Sequence[tuple[str, UnitRuns]]) -> dict[str,
         "failed": [{"unit": u, "reason": why} for u, why in failed.items()],
         "warnings": [*(f"{p}: {w}" if several else w for p, g in read for w in g.warnings), *disagree],
     }
-
-
-def _first_ns(got: UnitRuns) -> int:
-    """The first voltmeter time of a file's units (the files of a run in time order)."""
-    from pipeline.calibrate.inputs import time_span_ns
-
-    spans = [span[0] for r in got.units.values() if (span := time_span_ns(r.voltmeter))]
-    return min(spans, default=int(np.iinfo(np.int64).max))
 
 
 def _files(kept: list[Run]) -> list[dict[str, Any]]:

@@ -186,6 +186,41 @@ def test_a_unit_missing_from_a_piece_of_its_run_is_named_by_calibrate_and_fleet(
     assert cal["failed"] == [] and fleet["failed"] == []
 
 
+@pytest.mark.parametrize(
+    ("cuts", "drop", "fmt"),
+    [((0.4,), {1: "AU-0003"}, "mcap"), ((0.3, 0.7), {1: "AU-0001"}, "parquet"), ((0.5,), {0: "AU-0002"}, "mcap")],
+)
+def test_inspect_names_a_unit_missing_from_a_piece_as_calibrate_does(units3_2hz, monkeypatch, capsys, cuts, drop, fmt):
+    """``inspect PIECES`` of a 3-unit run, one unit left out of one piece: that unit's warnings begin with the line
+    ``calibrate`` and ``fleet`` give it (the piece, its time span), in any order of the files; the other units'
+    name nothing; beside the whole file, no unit is said missing. Was: the unit's warnings were [] (its plateaus
+    and poses fewer than the others', nothing said why)."""
+    from pipeline.utc import utc_text
+
+    d, runs, (t0, t1) = units3_2hz
+    folder = d / f"inspect-{'-'.join(map(str, cuts))}-{fmt}"
+    cut_ns = [t0 + int(c * (t1 - t0)) for c in cuts]
+    paths = [p.resolve() for p in _pieces(runs, cut_ns, folder, fmt, drop)]
+    [(k, unit)] = drop.items()
+    edges = [t0, *cut_ns, t1 + 1]
+    t = next(iter(runs.units.values())).voltmeter["t_ns"].to_numpy()
+    first, last = int(t[t >= edges[k]][0]), int(t[t < edges[k + 1]][-1])
+    line = (
+        f"{paths[k]}: unit {unit} is missing from this piece of run {runs.units[unit].meta.run_id!r} "
+        f"({utc_text(first)} .. {utc_text(last)}), which holds the other units: its recording has no samples over "
+        "that time"
+    )
+    for order in (paths, paths[::-1]):
+        got = {u["metadata"]["unit_serial"]: u for u in _inspect(monkeypatch, capsys, *order)["units"]}
+        assert sorted(got) == ["AU-0001", "AU-0002", "AU-0003"]
+        assert got[unit]["warnings"][0] == line
+        for serial, u in got.items():
+            assert [w for w in u["warnings"] if "is missing from this piece" in w] == ([line] if serial == unit else [])
+    whole = write_run(runs, folder / ("whole.mcap" if fmt == "mcap" else "whole"), fmt)
+    beside = _inspect(monkeypatch, capsys, *paths, whole)["units"]
+    assert not any("is missing from this piece" in w for u in beside for w in u["warnings"])
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("fmt", ["mcap", "parquet"])
 def test_a_unit_missing_from_a_piece_is_not_said_missing_beside_the_whole_file(units3_2hz, fmt):
