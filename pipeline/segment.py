@@ -53,7 +53,7 @@ from pipeline.positions import (
 from pipeline.run import NS_PER_S as _NS
 from pipeline.run import SLAB_SAMPLES as _SLAB_SAMPLES
 from pipeline.run import Run, slab_of
-from pipeline.settling import HoldMoments, hold_moments, settling_fit
+from pipeline.settling import HoldMoments, Settling, hold_moments, settling_fit
 
 #: blocks per static window (the time resolution of static detection is static_window_s / this)
 _BLOCKS_PER_WINDOW = 10
@@ -188,6 +188,10 @@ class Segmentation:
     #: the readings' resolution per channel (V, :func:`reading_resolution`): the step below which a recorded value
     #: says nothing, and so a floor of every mean's uncertainty
     resolution_v: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    #: the creep after each move taken out of the segments' means (:func:`pipeline.settling.settling_fit`, its holds
+    #: the segments by index), None where none was: what a method averaging its own stretches of the samples takes
+    #: out too (:func:`pipeline.calibrate.ramp.cut_pieces`)
+    settling: Settling | None = None
 
     def on_plateau(self, i: int) -> list[StaticSegment]:
         """Segments on plateau ``i``, in time order."""
@@ -1486,7 +1490,7 @@ def segment_run(
                 stale=old,
             )
         )
-    _take_out_settling(rows, moments, after_move, warnings)
+    creep = _take_out_settling(rows, moments, after_move, warnings)
 
     names = _name_segments(run, rows, settings, warnings)
     continues = _continued_holds(rows, [nm["position"] for nm in names], all_gaps, run.fixture, settings)
@@ -1526,6 +1530,7 @@ def segment_run(
         resolution_v=vector3(
             [reading_resolution(ch.copy_into(c, 0, first.size, first), scratch=True) for c in range(3)]
         ),
+        settling=creep,
     )
     if run.fixture is not None and run.fixture.height:  # (without a log, the holds are found when refused)
         note = short_holds(run, seg, t_ns, interval_ns)
@@ -1567,13 +1572,13 @@ def interpolated_mean_weight2(xp: np.ndarray, x: np.ndarray) -> float:
 
 def _take_out_settling(
     rows: list[dict[str, Any]], moments: list[HoldMoments], after_move: np.ndarray, warnings: list[str]
-) -> None:
+) -> Settling | None:
     """The creep after each move (:func:`pipeline.settling.settling_fit`) taken out of the means of ``rows`` (the
     segments in time order, with their :class:`pipeline.settling.HoldMoments` and whether each follows a move: its
-    static stretch is not its predecessor's), said in ``warnings``; nothing changes where the recording shows
-    none."""
+    static stretch is not its predecessor's), said in ``warnings``, and returned; nothing changes (None) where the
+    recording shows none."""
     if len(rows) < 2:
-        return
+        return None
     found = settling_fit(
         moments,
         np.array([r["mean_v"] for r in rows]),
@@ -1583,10 +1588,11 @@ def _take_out_settling(
         np.asarray(after_move)[1:],
     )
     if not found.used:
-        return
+        return None
     for r, c in zip(rows, found.correction_v):
         r["mean_v"] = r["mean_v"] - c
     warnings.append(found.line(int(np.count_nonzero(np.any(found.correction_v != 0, axis=1)))))
+    return found
 
 
 #: how the warning of holds too short for the static detection at the recording's rate begins

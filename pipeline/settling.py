@@ -13,11 +13,10 @@ temperature (positions held without a soak, or on a ramp) drifts through each ho
 thermal model's slope, and that drift, which also follows the steps (the slope depends on the position), is the
 thermal model's business, not a creep (without it a program held without soaks, issue 23's, found a 'creep' of
 1260 ppm, tau_s 415 s, at 14000 standard errors on a run without one and moved its hold means by up to 1.3 mV).
-Where g stands out of the noise the hold means are corrected by the creep's mean over each hold.
-
-Not corrected: the ramp method, which averages its own pieces of the holds from the samples and does not use the
-segment means (the fast program's creep is found, 139 ppm at tau_s 30 s for the catalogue's, and said in the
-warning, but its passport does not change).
+Where g stands out of the noise the hold means are corrected by the creep's mean over each hold. The ramp method,
+which averages its own pieces of the holds from the samples, takes the same fitted creep out of each piece
+(:meth:`Settling.creep_v`, :func:`pipeline.calibrate.ramp.cut_pieces`): it is fitted once, by the segmentation,
+and its scale's uncertainty (:attr:`Settling.scale_sigma`) is a term of that method's sigmas.
 """
 
 from __future__ import annotations
@@ -99,14 +98,35 @@ def _nuisance_basis(n: int, temp_c: np.ndarray | None) -> np.ndarray:
 @dataclass(frozen=True)
 class Settling:
     """The creep fitted over a run's holds: ``fraction`` (the part of each step still missing at a hold's first
-    sample, > 0 for a creep towards the final value), ``tau_s`` (s), ``z`` (the amplitude over its standard error)
-    and ``correction_v`` (n_holds, 3) V, what to subtract from each hold's mean (zero unless ``used``)."""
+    sample, > 0 for a creep towards the final value), ``tau_s`` (s), ``z`` (the amplitude over its standard error),
+    ``correction_v`` (n_holds, 3) V, what to subtract from each hold's mean, and ``amplitude_v`` (n_holds, 3) V, the
+    creep at each hold's first sample (g times its step; both zero unless ``used``)."""
 
     fraction: float
     tau_s: float
     z: float
     used: bool
     correction_v: np.ndarray
+    amplitude_v: np.ndarray
+    #: the relative standard uncertainty of the correction, taken as one scale of every hold's: the amplitude's
+    #: (1 / z) and, in quadrature, the largest relative change of the corrections over the time constants whose
+    #: chi-square is within 1 of the best (g refitted at each)
+    scale_sigma: float = 0.0
+
+    def creep_v(self, hold: np.ndarray, x_s: np.ndarray) -> np.ndarray:
+        """The creep (m, 3) V in the samples ``x_s`` (m,) s after the first sample of their holds ``hold`` (m,),
+        indices of the holds :func:`settling_fit` was given: what to subtract from those samples."""
+        return self.amplitude_v[hold] * np.exp(-np.asarray(x_s, dtype=float) / self.tau_s)[:, None]
+
+    def mean_creep_v(self, hold: np.ndarray, x0_s: np.ndarray, x1_s: np.ndarray) -> np.ndarray:
+        """The creep's mean (m, 3) V over the time from ``x0_s`` to ``x1_s`` (m,) s after the first sample of the
+        holds ``hold`` (m,) (its value at ``x0_s`` where they are equal)."""
+        x0, x1 = np.asarray(x0_s, dtype=float), np.asarray(x1_s, dtype=float)
+        a, b = np.exp(-x0 / self.tau_s), np.exp(-x1 / self.tau_s)
+        span = x1 - x0
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean = np.where(span > 0, self.tau_s * (a - b) / np.where(span > 0, span, 1.0), a)
+        return self.amplitude_v[hold] * mean[:, None]
 
     def line(self, n_holds: int) -> str:
         """The warning that says what was found and done."""
@@ -141,7 +161,7 @@ def settling_fit(
     (the reading starts short of its final value), its z is at least :data:`MIN_Z` and -g at most
     :data:`MAX_FRACTION`."""
     n = len(moments)
-    zero = Settling(0.0, float("nan"), 0.0, False, np.zeros((n, 3)))
+    zero = Settling(0.0, float("nan"), 0.0, False, np.zeros((n, 3)), np.zeros((n, 3)))
     if n < 2:
         return zero
     step = np.zeros((n, 3))
@@ -164,12 +184,17 @@ def settling_fit(
     # through the best one and its neighbours (1e-4 of their values at 10 % spacing)
     nodes = np.clip(np.arange(best - 1, best + 2), 0, len(TAU_GRID_S) - 1)
     log_tau = np.log(np.asarray(TAU_GRID_S))
+    near, shift = np.zeros(0, dtype=np.intp), np.zeros((0, n))
     if len(set(nodes.tolist())) == 3 and ok[nodes].all():
         fine = np.linspace(log_tau[nodes[0]], log_tau[nodes[2]], _FINE)
         lag = _lagrange(log_tau[nodes], fine)  # (_FINE, 3)
         num_f, den_f = lag @ num[nodes], lag @ den[nodes]
-        j = int(np.argmax(num_f**2 / den_f))
+        chi2_f = num_f**2 / den_f
+        j = int(np.argmax(chi2_f))
         weights, tau_s = lag[j], float(np.exp(fine[j]))
+        near = np.flatnonzero(chi2_f >= chi2_f[j] - 1.0)  # the time constants within 1 of the best chi-square
+        e_near = lag[near] @ np.stack([m.e_mean[nodes] for m in moments]).T  # (q, n)
+        shift = (num_f[near] / den_f[near])[:, None] * e_near  # g e_mean of each hold at each of them
     else:
         weights, tau_s = np.eye(3)[1], float(TAU_GRID_S[best])
     num_b, den_b = float(weights @ num[nodes]), float(weights @ den[nodes])
@@ -178,8 +203,16 @@ def settling_fit(
     resolved = 0 < best < len(TAU_GRID_S) - 1  # (at the grid's end: a drift through the holds, not a creep)
     used = resolved and g < 0 and z >= MIN_Z and -g <= MAX_FRACTION
     e_mean = np.array([m.e_mean[nodes] @ weights for m in moments])
-    correction = g * step * e_mean[:, None] if used else np.zeros((n, 3))
-    return Settling(-g, tau_s, float(z), used, correction)
+    amplitude = g * step if used else np.zeros((n, 3))
+    scale_sigma = 0.0
+    if used:
+        # the corrections' relative change over the time constants near the best: g e_mean of each hold, weighted
+        # by the steps (a correction is g e_mean times the step)
+        size = np.sqrt(np.einsum("ki,i->k", step**2, w))
+        base = g * e_mean * size
+        spread = float(np.max(np.abs(shift * size[None, :] - base[None, :]).sum(axis=1))) if near.size else 0.0
+        scale_sigma = float(np.hypot(1.0 / z, spread / np.abs(base).sum()))
+    return Settling(-g, tau_s, float(z), used, amplitude * e_mean[:, None], amplitude, scale_sigma)
 
 
 #: points of the fine search of tau_s between two neighbours of the grid's best

@@ -152,6 +152,10 @@ class Pieces:
     count: np.ndarray
     sensor: Sensor
     direction: np.ndarray | None = None
+    #: the change (m, 3) V of each piece's mean for one standard uncertainty of the scale of the creep after each
+    #: move taken out of it (:attr:`pipeline.settling.Settling.scale_sigma`: one error shared by the run's pieces),
+    #: None where none was taken out
+    creep_sigma_v: np.ndarray | None = None
 
     def directions(self) -> np.ndarray:
         """Per piece, the direction the temperature last came from: +1 after heating, -1 after cooling, 0 before
@@ -177,6 +181,7 @@ class Pieces:
             self.count[mask],
             self.sensor,
             self.directions()[mask],
+            None if self.creep_sigma_v is None else self.creep_sigma_v[mask],
         )
 
     def __len__(self) -> int:
@@ -239,12 +244,15 @@ def _mean_direction(direction, t0_s: np.ndarray, t1_s: np.ndarray, points: int =
     return direction(t.ravel()).reshape(t.shape).mean(axis=1)
 
 
-def cut_pieces(t_ns: np.ndarray, u_v: np.ndarray, spans_ns: np.ndarray, piece_s: float):
+def cut_pieces(t_ns: np.ndarray, u_v: np.ndarray, spans_ns: np.ndarray, piece_s: float, creep=None):
     """Cut the spans [start, end] ns (k, 2) of static segments into pieces of equal length, at most ``piece_s``
     (s) each, and average the samples of each: (segment index (m,), times of the first and last finite sample
     (m,) ns, mean (m, 3) V, noise variance of the mean (m, 3) V^2 from the sample-to-sample differences d
     (var(d) / 2 / n: a drift along the piece does not count), finite sample count (m,)). ``t_ns`` sorted;
-    non-finite samples are left out; a piece with fewer than 3 samples is dropped."""
+    non-finite samples are left out; a piece with fewer than 3 samples is dropped. ``creep``: None, or what to
+    subtract from the samples before they are averaged, a function of their spans' indices (n,) and of their times
+    since their span's start (n,) s giving (n, 3) V (the creep after each move the segmentation found,
+    :meth:`pipeline.settling.Settling.creep_v`)."""
     spans = np.asarray(spans_ns, dtype=np.int64).reshape(-1, 2)
     dur_s = (spans[:, 1] - spans[:, 0]) / _NS
     n_pieces = np.maximum(1, np.ceil(dur_s / piece_s - 1e-9)).astype(int)
@@ -270,6 +278,10 @@ def cut_pieces(t_ns: np.ndarray, u_v: np.ndarray, spans_ns: np.ndarray, piece_s:
     mean = np.zeros((seg.size, 3))
     for c in range(3):
         mean[:, c] = np.bincount(owner, u0[idx, c], minlength=seg.size) / count
+    if creep is not None:  # (its mean over each piece's finite samples; the noise below is a difference of samples)
+        taken = creep(seg[owner], (t_ns[idx] - spans[seg[owner], 0]) / _NS) * w[:, None]
+        for c in range(3):
+            mean[:, c] -= np.bincount(owner, taken[:, c], minlength=seg.size) / count
     # sample-to-sample differences inside each piece (both samples finite)
     same = (owner[1:] == owner[:-1]) & (w[1:] > 0) & (w[:-1] > 0)
     d = u0[idx[1:]] - u0[idx[:-1]]
@@ -311,7 +323,14 @@ def observe_run(run, settings: CalibrationSettings, segmentation=None, ramp: Ram
     sensor = _sensor(run, ramp.temp_smooth_s)
     t_ns, u_v = _sorted_voltmeter(run)
     spans = np.array([[s.t_start_ns, s.t_end_ns] for s in named], dtype=np.int64)
-    k, start, end, mean, var, count = cut_pieces(t_ns, u_v, spans, ramp.piece_s)
+    creep = None
+    if seg.settling is not None:  # the creep after each move the segmentation took out of its means: out of the
+        found, hold = seg.settling, np.array([s.index for s in named], dtype=np.intp)  # pieces too
+
+        def creep(k: np.ndarray, x_s: np.ndarray) -> np.ndarray:
+            return found.creep_v(hold[k], x_s)
+
+    k, start, end, mean, var, count = cut_pieces(t_ns, u_v, spans, ramp.piece_s, creep)
     pieces = Pieces(
         run_id=run.meta.run_id,
         position=np.array([named[i].position for i in k], dtype=object),
@@ -324,6 +343,9 @@ def observe_run(run, settings: CalibrationSettings, segmentation=None, ramp: Ram
         sensor=sensor,
     )
     pieces.direction = _mean_direction(ramp_direction(run, sensor.t_ref_ns), pieces.t0_s, pieces.t1_s)
+    if creep is not None:
+        x0_s, x1_s = (start - spans[k, 0]) / _NS, (end - spans[k, 0]) / _NS
+        pieces.creep_sigma_v = found.scale_sigma * found.mean_creep_v(hold[k], x0_s, x1_s)
     # a run without a temperature plateau is what this method is for: the segmentation's warning of it is no news
     seg_warnings = [w for w in seg.warnings if seg.plateaus or not w.startswith(NO_PLATEAU_WARNING)]
     return ObservedRun(
@@ -594,9 +616,12 @@ def _covariances(
         J = (Xp - Xm) @ fit.coef / (fit.tau_s + h - max(fit.tau_s - h, 0.0))  # (m, 3) V/s
     covs, tau_var, h_sig = [], [], []
     n = 4 * (fit.order + 1)
+    creep = _creep_coef_shifts(pieces, fit)
     for c in range(3):
         X = fit.X if J is None else np.column_stack([fit.X, J[:, c]])
         cov = regression_cov(X, fit.resid[:, c], noise[:, c], clusters)
+        for d in creep:  # each run's creep correction: one scale error for all its pieces
+            cov[: d.shape[0], : d.shape[0]] += np.outer(d[:, c], d[:, c])
         if J is not None:
             tau_var.append(cov[-1, -1])
         if fit.hyst:
@@ -607,6 +632,23 @@ def _covariances(
         inv = sum(1.0 / v for v in tau_var if np.isfinite(v) and v > 0)
         tau_sigma = float(np.sqrt(1.0 / inv)) if inv > 0 else None
     return covs, tau_sigma, (np.array(h_sig) if h_sig else None)
+
+
+def _creep_coef_shifts(pieces: list[Pieces], fit: LinearFit) -> list[np.ndarray]:
+    """Per run whose pieces had the creep after each move taken out (:attr:`Pieces.creep_sigma_v`), the change
+    (columns of ``fit.X``, 3) of the fit's coefficients for one standard uncertainty of that creep's scale: the
+    least-squares solution for those changes of the pieces' means (the lag and the order held)."""
+    out = []
+    row = 0
+    for p in pieces:
+        if p.creep_sigma_v is not None and np.any(p.creep_sigma_v != 0):
+            dy = np.zeros((fit.X.shape[0], 3))
+            dy[row : row + len(p)] = p.creep_sigma_v
+            scale = np.linalg.norm(fit.X, axis=0)
+            scale[scale == 0] = 1.0
+            out.append(np.linalg.lstsq(fit.X / scale, dy, rcond=None)[0] / scale[:, None])
+        row += len(p)
+    return out
 
 
 def sigma_of(fit: RampFit):
