@@ -419,10 +419,129 @@ def join_runs(runs: Sequence[Run]) -> Run:
         chamber=streams["chamber"],
         fixture=streams["fixture"],
         source=" + ".join(r.source for r in runs if r.source),
-        warnings=[f"{n}: {w}" for n, r in zip(names, runs) for w in r.warnings],
+        warnings=[f"{n}: {w}" for n, r in zip(names, runs) for w in r.warnings]
+        + _other_runs_line(runs, names)
+        + _thermosensor_step_lines(runs, names),
         unlogged_ns=_unlogged_ns(runs),
         left_out_ns=tuple(x for r in runs for x in r.left_out_ns),
     )
+
+
+def _other_runs_line(runs: Sequence[Run], names: Sequence[str]) -> list[str]:
+    """One warning line when the files joined (in time order, ``names`` their paths) carry more than one run_id:
+    separate recordings of the unit (a re-run), calibrated as one recording by design, the time between each
+    run_id's last voltmeter sample and the next one's first said; pieces of one run_id give none."""
+    spans: dict[str, list[int]] = {}
+    files: dict[str, list[str]] = {}
+    for n, r in zip(names, runs):
+        span = time_span_ns(r.voltmeter)
+        got = spans.setdefault(r.meta.run_id, [])
+        if span is not None:
+            got[:] = [min(got[0], span[0]), max(got[1], span[1])] if got else list(span)
+        files.setdefault(r.meta.run_id, []).append(n)
+    if len(spans) < 2:
+        return []
+    ids = list(spans)
+    said = ", ".join(f"{i!r} ({', '.join(files[i])})" for i in ids)
+    between = [
+        f"{(spans[b][0] - spans[a][1]) / 3.6e12:.1f} h" for a, b in zip(ids[:-1], ids[1:]) if spans[a] and spans[b]
+    ]
+    return [
+        f"the files given together are {len(ids)} runs of unit {runs[0].meta.unit_serial} (different run_ids: "
+        f"{said}), calibrated as one recording: the time between them ({', '.join(between) or 'unknown'}) is a gap "
+        "within it, and the day-to-day repeatability of the unit is not judged"
+    ]
+
+
+#: the AU temperature's value at a join of two files is taken from a straight line through each file's readings
+#: within this time (s) of the join (at least :data:`JOIN_MIN_READINGS` of them)
+JOIN_WINDOW_S = 15.0
+JOIN_MIN_READINGS = 5
+#: a join whose files' readings are further apart than this (s) is not judged: the temperature may move between
+JOIN_MAX_GAP_S = 15.0
+#: a step at a join is a warning when it exceeds this many of its standard errors, and at least this (C): the
+#: straight lines miss the bend at a ramp's corner by up to 0.03 C (short program, split at every second)
+JOIN_STEP_SIGMAS = 6.0
+JOIN_STEP_FLOOR_C = 0.1
+
+
+def _end_value(t_s: np.ndarray, y: np.ndarray, last: bool) -> tuple[float, float] | None:
+    """The value at time 0 of a straight line through a file's readings (``t_s`` s from the join, ``y``, NaN
+    dropped) nearest that end (``last``: its last ones), within :data:`JOIN_WINDOW_S` of it and at least
+    :data:`JOIN_MIN_READINGS`; with its standard error. None with fewer readings or no spread in time."""
+    ok = np.isfinite(y)
+    t_s, y = t_s[ok], y[ok]
+    if t_s.size < JOIN_MIN_READINGS:
+        return None
+    near = np.abs(t_s - (t_s[-1] if last else t_s[0])) <= JOIN_WINDOW_S
+    if near.sum() < JOIN_MIN_READINGS:
+        near = np.zeros(t_s.size, dtype=bool)
+        if last:
+            near[-JOIN_MIN_READINGS:] = True
+        else:
+            near[:JOIN_MIN_READINGS] = True
+    design = np.column_stack([np.ones(int(near.sum())), t_s[near]])
+    normal = design.T @ design
+    if np.linalg.det(normal) <= 0:
+        return None
+    coef, *_ = np.linalg.lstsq(design, y[near], rcond=None)
+    resid = y[near] - design @ coef
+    var = float(resid @ resid) / (resid.size - 2)
+    return float(coef[0]), float(np.sqrt(var * np.linalg.inv(normal)[0, 0]))
+
+
+def _stream_step(
+    before: pl.DataFrame | None, after: pl.DataFrame | None, column: str
+) -> tuple[float, float, int] | None:
+    """The step (after minus before) of ``column`` at the join of two files' tables of one stream, each side's
+    straight line (:func:`_end_value`) taken at the middle of the join: (step, its standard error, join time ns);
+    None when a side is missing or too short, or the files are more than :data:`JOIN_MAX_GAP_S` apart."""
+    if before is None or after is None or not before.height or not after.height:
+        return None
+    if column not in before.columns or column not in after.columns:
+        return None
+    t0, t1 = before["t_ns"].to_numpy(), after["t_ns"].to_numpy()
+    if (int(t1[0]) - int(t0[-1])) / 1e9 > JOIN_MAX_GAP_S:
+        return None
+    at_ns = (int(t0[-1]) + int(t1[0])) // 2
+    a = _end_value((t0 - at_ns) / 1e9, before[column].to_numpy().astype(np.float64), last=True)
+    b = _end_value((t1 - at_ns) / 1e9, after[column].to_numpy().astype(np.float64), last=False)
+    if a is None or b is None:
+        return None
+    return b[0] - a[0], float(np.hypot(a[1], b[1])), at_ns
+
+
+def _is_step(step: tuple[float, float, float]) -> bool:
+    """A step beyond its noise: :data:`JOIN_STEP_SIGMAS` standard errors and :data:`JOIN_STEP_FLOOR_C`."""
+    return abs(step[0]) > max(JOIN_STEP_SIGMAS * step[1], JOIN_STEP_FLOOR_C)
+
+
+def _thermosensor_step_lines(runs: Sequence[Run], names: Sequence[str]) -> list[str]:
+    """One warning line per join of two files (in time order, ``names`` their paths) where the AU temperature steps
+    beyond its noise (:func:`_is_step`) while the chamber does not (neither its setpoint nor its air temperature
+    steps so; no chamber log: the AU temperature alone): a thermosensor or logger changed between the
+    files, whose offset the calibration takes as a temperature change. Names both files, the join's time and the
+    step. Joins further apart than :data:`JOIN_MAX_GAP_S` are not judged."""
+    from pipeline.utc import utc_text
+
+    lines = []
+    for k in range(len(runs) - 1):
+        before, after = runs[k], runs[k + 1]
+        step = _stream_step(before.au_temperature, after.au_temperature, "temp_c")
+        if step is None or not _is_step(step):
+            continue
+        chamber = [(c, _stream_step(before.chamber, after.chamber, f"{c}_c")) for c in ("setpoint", "air")]
+        if any(got is not None and _is_step(got) for _, got in chamber):
+            continue
+        said = ", ".join(f"{c} {got[0]:+.2f} C" for c, got in chamber if got is not None)
+        said = f", while the chamber does not ({said})" if said else ""
+        lines.append(
+            f"{names[k]} -> {names[k + 1]}: the AU temperature steps {step[0]:+.2f} C at the join of the files "
+            f"({utc_text(step[2])}), beyond its noise (+-{step[1]:.3f} C){said}: a "
+            "thermosensor or logger changed between the files? The calibration takes the step as the unit's "
+            "temperature"
+        )
+    return lines
 
 
 def _unlogged_ns(runs: Sequence[Run]) -> tuple[tuple[int, int], ...]:
