@@ -176,3 +176,27 @@ def test_a_failing_vp_on_the_edge_plateau_is_not_called_extrapolated():
         "at 5 of 6 verification positions, 3 of them at -10.0, +71.2 C, outside the calibrated +20.0 .. +70.0 C "
         "(the thermal model extrapolated by up to 30 C)"
     )
+
+
+def test_a_fail_caused_by_a_thermosensor_only_gap_names_the_stage_it_took(tmp_path, monkeypatch, capsys):
+    """explore3.md item 6: 1 h of the thermosensor alone lost over the -40 C stage and the -10 C VPs (the voltmeter
+    complete): the model covers +20 .. +70 C at order 1 and the +45 C VPs fail. The status line names the stage the
+    gap took, not only the verification (56dac5d, fc99e4c); a guard, it passes since those."""
+    run = simulate(SimConfig(program="short", rate_hz=2.0)).run
+    t0 = int(run.voltmeter["t_ns"][0])
+    g0, g1 = t0 + 2500 * NS_PER_S, t0 + 6100 * NS_PER_S
+    th = run.au_temperature.filter((pl.col("t_ns") < g0) | (pl.col("t_ns") >= g1))
+    path = write_run(dataclasses.replace(run, au_temperature=th), tmp_path / "thgap.mcap", "mcap")
+    argv = ["thermocal", "calibrate", str(path), "--registry", str(tmp_path / "reg"), "--json"]
+    monkeypatch.setattr(sys, "argv", argv)
+    with pytest.raises(SystemExit) as info:
+        main()
+    assert info.value.code == 1
+    err = capsys.readouterr().err
+    [line] = [x for x in err.splitlines() if x.startswith("thermocal: calibrate: ")]
+    assert re.fullmatch(
+        r"thermocal: calibrate: AU-0001: status fail \(the compensated gravity-module error exceeds its limit at "
+        r"[^;]*; the tilt method leaves out the -40 C stage, which lost its test positions to the data gap "
+        r"2026-11-01 00:41:\d\d\.\d+ \.\. 01:41:\d\d\.\d+ UTC\)",
+        line,
+    ), line
