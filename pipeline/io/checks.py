@@ -167,10 +167,14 @@ def check_stream(
             f"t_ns={t_ns[row]} after t_ns={t_ns[row - 1]}; up to {behind.max() / 1e9:.6g} s before an earlier "
             "row's time); sorted by t_ns"
         )
+        # the clock was set back by how much earlier than due the sample came: its time against the one before
+        # plus the stream's interval (a 2-s set-back of a 10-Hz stream puts 49.9 s before 48.0 s: 2 s, not 1.9 s)
+        step_ns = median_interval_ns(df["t_ns"].to_numpy())
+        due_ns = int(t_ns[row - 1]) + round(step_ns)
         stepped_back = (
-            f"the times step back {(t_ns[row - 1] - t_ns[row]) / 1e9:.6g} s at row {row} (t_ns={t_ns[row]} after "
-            f"t_ns={t_ns[row - 1]}): a clock set back by a whole number of sample intervals, or a block written "
-            "again with other values"
+            f"the times go back at row {row} (t_ns={t_ns[row]} after t_ns={t_ns[row - 1]}, where t_ns={due_ns} was "
+            f"due at the stream's {step_ns / 1e9:.6g}-s interval): a clock set back {(due_ns - t_ns[row]) / 1e9:.6g} "
+            f"s ({(due_ns - t_ns[row]) / step_ns:.6g} sample intervals), or a block written again with other values"
         )
     if stream != "fixture" and df.height > 1:
         df, spans = _check_time_base(label, df, path=path, warnings=warnings, stepped_back=stepped_back)

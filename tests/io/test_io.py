@@ -369,24 +369,34 @@ def _stepped_back_run_file(
 
 @pytest.mark.parametrize("fmt", ["mcap", "parquet"])
 @pytest.mark.parametrize(
-    ("stream", "back_s", "row", "gone_back_s"),
-    [("voltmeter", 2.0, 500, 1.9), ("voltmeter", 30.0, 500, 29.9), ("au_temperature", 1.0, 50, None)],
+    ("stream", "back_s", "row", "interval_s"),
+    [
+        ("voltmeter", 2.0, 500, 0.1),
+        ("voltmeter", 30.0, 500, 0.1),
+        ("voltmeter", 0.3, 500, 0.1),
+        ("au_temperature", 3.0, 50, 1.0),
+        ("au_temperature", 1.0, 50, None),
+    ],
 )
 def test_a_clock_set_back_whole_sample_intervals_is_refused_naming_the_step(
-    tmp_path, fmt, stream, back_s, row, gone_back_s
+    tmp_path, fmt, stream, back_s, row, interval_s
 ):
     """A logger's clock set back by a whole number of its sample intervals (a leap second, an NTP step on a logger
     stamping on a grid) puts samples on times already taken by others, with other values. That stays a refusal, but
-    the line says where the times went back and by how much (said was only "two different samples at the same
-    time", which reads as a corrupt file); a step that is no whole number of intervals is sorted with a warning."""
+    the line says where the times went back and by how much the clock was set back, in s and sample intervals
+    (said was only "two different samples at the same time", which reads as a corrupt file; then the gap between
+    the two stamps, one interval short of the set-back: 1.9 s for 2 s at 10 Hz, 1 s for 2 s at 1 Hz); a step that
+    is no whole number of intervals is sorted with a warning."""
     path, t = _stepped_back_run_file(tmp_path, fmt, stream, back_s)
     with pytest.raises(RunFormatError) as info:
         read_run(path)
     first = T0_NS + 50 * 10**9 - round(back_s * 1e9)  # the first time taken twice
+    due = t[row - 1] + round(interval_s * 1e9) if interval_s is not None else 0
     why = (
-        f"the times step back {gone_back_s:g} s at row {row} (t_ns={t[row]} after t_ns={t[row - 1]}): a clock set "
-        "back by a whole number of sample intervals, or a block written again with other values"
-        if gone_back_s is not None  # a step of one interval leaves the times in order: one time twice
+        f"the times go back at row {row} (t_ns={t[row]} after t_ns={t[row - 1]}, where t_ns={due} was due at the "
+        f"stream's {interval_s:g}-s interval): a clock set back {back_s:g} s ({back_s / interval_s:g} sample "
+        "intervals), or a block written again with other values"
+        if interval_s is not None  # a step of one interval leaves the times in order: one time twice
         else f"the time does not advance at row {row} (t_ns={t[row]} twice): stamps coarser than the sampling, or a "
         "clock held back"
     )
