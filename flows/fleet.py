@@ -401,7 +401,7 @@ def summary_table(summary: dict) -> list[dict]:
     ]
     rows += [
         {
-            "unit": s.get("unit", ""),
+            "unit": ", ".join(s.get("units", [])),
             "outcome": "skipped",
             "version": s.get("version", ""),
             "status": "",

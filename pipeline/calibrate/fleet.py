@@ -221,7 +221,8 @@ def plan_fleet(
     the pieces of one recording all used, or ``skipped`` as "part of" the file holding the recording whole beside
     them, two recordings under one id both ``failed``); a run whose folder names
     another unit is filed by its metadata, with a warning; a unit whose group identity (its runs' content hashes +
-    ``settings``) is already in ``registry`` has all its runs ``skipped`` as "already processed". Paths in the
+    ``settings``) is already in ``registry`` has all its runs ``skipped`` as "already processed". A file skipped
+    is listed once (per why, and version), with ``"units"``: every unit it is skipped for. Paths in the
     plan are absolute, as in the passports' provenance.
     """
     reg = registry if isinstance(registry, Registry) else Registry(registry)
@@ -261,24 +262,27 @@ def plan_fleet(
             )
     absent = absent_from_pieces(pieces, _span_ns)  # a unit missing from one of the files its run was cut into
     candidates = all_methods() if method == "auto" else [by_name(method)]
-    copies: dict[str, dict] = {}
+    per_file: dict[tuple[str, str, int | None], dict] = {}  # (run, why, version) -> its skipped row
+
+    def skip(run: str, why: str, unit: str, version: int | None = None) -> None:
+        """A run skipped for ``unit``: one row per file (and why, and version), listing every unit it is skipped for."""
+        row = per_file.setdefault((run, why, version), {"run": run, "why": why, "units": []})
+        row["units"].append(unit)
+        if version is not None:
+            row["version"] = version
+
     for unit, inputs in sorted(by_unit.items()):
         unique: dict[str, dict] = {}
         for item in inputs:
             first = unique.setdefault(item["sha256"], item)
             if first is not item:
-                plan.skipped.append({"run": item["path"], "why": f"duplicate of {first['path']}", "unit": unit})
+                skip(item["path"], f"duplicate of {first['path']}", unit)
         kept = list(unique.values())
         usable, dropped = resolve_run_ids([RunInput(i["path"], unit, i["run_id"]) for i in kept], _unit_reader(unit))
         if dropped:
-            plan.skipped += [
-                {"run": f["run"], "why": f"part of {f['part_of']}", "unit": unit} for f in dropped if "part_of" in f
-            ]
-            for f in dropped:  # a copy the complete file is used in place of: skipped once per file, with its units
-                if "copy_of" in f:
-                    copies.setdefault(f["run"], {"run": f["run"], "why": f["copy_of"], "units": []})["units"].append(
-                        unit
-                    )
+            for f in dropped:  # a piece of the whole file beside it, or a copy the complete file is used in place of
+                if "part_of" in f or "copy_of" in f:
+                    skip(f["run"], f"part of {f['part_of']}" if "part_of" in f else f["copy_of"], unit)
             plan.failed += [{**f, "unit": unit} for f in dropped if "part_of" not in f and "copy_of" not in f]
             paths_kept = {u.path for u in usable}
             kept = [i for i in kept if i["path"] in paths_kept]
@@ -312,9 +316,8 @@ def plan_fleet(
             plan.failed += [{"run": i["path"], "reason": exc.one_line()} for i in kept]
             continue
         if done is not None:
-            plan.skipped += [
-                {"run": i["path"], "why": ALREADY_PROCESSED, "unit": unit, "version": done.version} for i in kept
-            ]
+            for i in kept:
+                skip(i["path"], ALREADY_PROCESSED, unit, done.version)
             continue
         plan.groups.append(
             UnitGroup(
@@ -327,7 +330,7 @@ def plan_fleet(
                 warnings=tuple(absent.get(unit, [])),
             )
         )
-    plan.skipped += copies.values()
+    plan.skipped += per_file.values()
     return plan
 
 

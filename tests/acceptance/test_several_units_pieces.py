@@ -334,6 +334,34 @@ def test_a_truncated_copy_of_a_run_of_several_units_is_skipped_once_with_its_uni
 
 
 @pytest.mark.slow
+def test_the_fleet_skips_a_file_of_several_units_once_with_its_units(units3_2hz, monkeypatch, capsys):
+    """A 3-unit run, its 2 pieces beside it and a byte-identical copy of it: the fleet, run twice, lists each file it
+    skips once, with the units it is skipped for (``"part of"``, ``"duplicate of"`` and, on the rerun, ``"already
+    processed"`` with the version), as it lists a truncated copy. Was: one row per unit (the rerun: 12 rows for 4
+    files, each with ``"unit"``)."""
+    import shutil
+
+    d, runs, (t0, t1) = units3_2hz
+    inbox = d / "skip-once"
+    whole = str(write_run(runs, inbox / "chamber.mcap", "mcap").resolve())
+    pieces = [str(p.resolve()) for p in _pieces(runs, [t0 + int(0.4 * (t1 - t0))], inbox / "parts", "mcap")]
+    copy = inbox / "usb" / "chamber.mcap"
+    copy.parent.mkdir()
+    shutil.copyfile(whole, copy)
+    units = ["AU-0001", "AU-0002", "AU-0003"]
+    beside = [{"run": p, "why": f"part of {whole}", "units": units} for p in pieces]
+    beside += [{"run": str(copy.resolve()), "why": f"duplicate of {whole}", "units": units}]
+    for k, first in enumerate((True, False)):
+        code, out, err = run_main(monkeypatch, capsys, "fleet", str(inbox), "--registry", str(d / "reg-skip"), "--json")
+        got = json.loads(out)
+        assert code == 0, err
+        assert got["failed"] == []
+        assert [(u["unit"], u["runs"]) for u in got["done"]] == ([(s, [whole]) for s in units] if first else [])
+        done = [] if first else [{"run": whole, "why": "already processed", "units": units, "version": 1}]
+        assert got["skipped"] == sorted(beside + done, key=lambda s: s["run"]), k
+
+
+@pytest.mark.slow
 def test_a_unit_named_by_a_runs_consensus_but_calibrated_elsewhere_is_reported_by_the_fleet(tmp_path):
     """A 3-unit run (5 Hz, to 2 h) whose AU-0702 is mounted turned (x and y swapped) and goes on in a file of its
     own: AU-0702 is calibrated from both files (segmented alone), AU-0701/0703 from the run's consensus, which names

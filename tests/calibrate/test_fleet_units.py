@@ -109,7 +109,8 @@ def test_calibrate_and_fleet_make_the_same_passports(tmp_path, n, layout, odd):
     # into one registry, the second command finds what the first made: fleet after calibrate ...
     again = run_fleet(str(inbox), str(tmp_path / "reg-c"), settings, method="auto", figures=False, pool="thread")
     assert again["done"] == [] and again["failed"] == []
-    skipped = {(s["unit"], s["why"], s.get("version")) for s in again["skipped"]}
+    assert [s["run"] for s in again["skipped"]] == paths  # each file once, with the units it holds
+    skipped = {(u, s["why"], s.get("version")) for s in again["skipped"] for u in s["units"]}
     assert skipped == {(u, "already processed", 1) for u in by_cal}
     # ... and calibrate after fleet
     back = run_calibrate(paths, str(tmp_path / "reg-f"), settings, method="auto")

@@ -144,10 +144,9 @@ def test_fleet_counts_every_unit(chamber):
     assert sorted(f["unit"] for f in r["failed"]) == ["AU-0302", "AU-0303"]
     assert all(f["run"] == str(mcap.resolve()) for f in r["failed"])
     again = json.loads(_cli("fleet", str(d / "fleet"), "--registry", str(d / "reg-fleet"), "--json").stdout)
-    assert sorted(s.get("unit") for s in again["skipped"] if s["why"] == "already processed") == [
-        "AU-0301",
-        "AU-0304",
-        "AU-0400",
+    assert sorted((s["run"], s["units"]) for s in again["skipped"] if s["why"] == "already processed") == [
+        (str(mcap.resolve()), ["AU-0301", "AU-0304"]),
+        (str((d / "fleet" / "single.mcap").resolve()), ["AU-0400"]),
     ]
 
 
