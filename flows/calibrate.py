@@ -263,12 +263,15 @@ def calibrate_units(paths, read, unit_steps, settings, step, hashed, draw=None, 
         lambda p: units_span_ns(read[paths.index(p)]),
     )
     segs: dict[str, dict] = {}  # path -> serial -> segmentation of the units calibrated from that file alone
+    elsewhere: list[dict] = []  # a file's consensus line naming a unit whose passport comes from its joined files
     for p, got in zip(paths, read):
         if got.several and len(got.units) > 1 and any(s not in joined for s in got.units):
             step(f"segment {len(got.units)} units of {os.path.basename(p)} (still times once for the run)")
             segs[p], run_warnings = segment(_whole(got.units), settings)
             for w in run_warnings:
                 logger.warning(w)
+                if any(w.startswith(f"unit {s}: ") for s in joined if not units or s in units):
+                    elsewhere.append({"run": p, "warning": w})  # its own passport cannot carry it: said by run
     joined_segs: dict[str, Segmentation] = {}
     for serials in recordings_by_files(joined).values():
         serials = [s for s in serials if any(got.several for _, got in by_unit[s])]
@@ -313,7 +316,7 @@ def calibrate_units(paths, read, unit_steps, settings, step, hashed, draw=None, 
             failed.append({"unit": serial, "reason": e.one_line()})
             logger.warning(e.one_line())
         del runs, steps, recording
-    return {"units": results, "failed": failed}
+    return {"units": results, "failed": failed, **({"warnings": elsewhere} if elsewhere else {})}
 
 
 @task(name="calibrate-unit", task_run_name="calibrate-{unit}", cache_policy=NO_CACHE)

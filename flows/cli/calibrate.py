@@ -137,6 +137,7 @@ def _units_outcome(result: dict, as_json: bool) -> None:
     if not as_json:
         parts = [calibrate_text(r) for r in result["units"]]
         parts += [f"{f['unit']}: not calibrated: {f['reason']}" for f in result["failed"]]
+        parts += [f"warning: {w['run']}: {w['warning']}" for w in result.get("warnings", [])]
         text = "\n\n".join(parts)
     emit(result, as_json, text)
     from ..fleet import failure_line

@@ -361,15 +361,11 @@ def test_the_fleet_skips_a_file_of_several_units_once_with_its_units(units3_2hz,
         assert got["skipped"] == sorted(beside + done, key=lambda s: s["run"]), k
 
 
-@pytest.mark.slow
-def test_a_unit_named_by_a_runs_consensus_but_calibrated_elsewhere_is_reported_by_the_fleet(tmp_path):
+def _turned_with_own_file(tmp_path):
     """A 3-unit run (5 Hz, to 2 h) whose AU-0702 is mounted turned (x and y swapped) and goes on in a file of its
-    own: AU-0702 is calibrated from both files (segmented alone), AU-0701/0703 from the run's consensus, which names
-    AU-0702. The fleet reports that line once, by run, in its top-level ``warnings``, word for word as ``inspect``
-    says it of the run. Was: dropped (``segment_units(...)[0]``): the fleet's warnings were []."""
+    own: (the inbox, the own file, the run, the run's consensus line naming AU-0702 as ``inspect`` says it)."""
     import dataclasses
 
-    from flows.fleet import run_fleet
     from pipeline.inspect import summarize_units
     from pipeline.io.runs import read_units
     from pipeline.simulate.units import simulate_units
@@ -385,6 +381,52 @@ def test_a_unit_named_by_a_runs_consensus_but_calibrated_elsewhere_is_reported_b
     chamber = write_run(UnitRuns.of_units([run_piece(r, 0, cut, run_id) for r in units]), inbox / "chamber.mcap")
     [line] = summarize_units(read_units(chamber))["warnings"]
     assert line.startswith("unit AU-0702: its signal names ")
+    return inbox, own, chamber, line
+
+
+@pytest.mark.slow
+def test_a_unit_named_by_a_runs_consensus_but_calibrated_elsewhere_is_reported_by_calibrate(
+    tmp_path, monkeypatch, capsys
+):
+    """The run and AU-0702's own file of :func:`_turned_with_own_file` given to ``calibrate`` (either order):
+    the run's consensus line naming AU-0702 is in the top-level ``warnings`` of ``--json``, by run, as the fleet
+    reports it, and a ``warning: RUN: LINE`` line of the text; in no unit's warnings; the same with
+    ``--unit AU-0702``. Was: only in the flow run's log (no ``warnings`` key)."""
+    inbox, own, chamber, line = _turned_with_own_file(tmp_path)
+    for k, files in enumerate(([own, chamber], [chamber, own])):
+        args = [
+            "calibrate",
+            *map(str, files),
+            "--registry",
+            str(tmp_path / f"reg-{k}"),
+            "--dry-run",
+            "--method",
+            "auto",
+        ]
+        code, out, err = run_main(monkeypatch, capsys, *args, "--json")
+        got = json.loads(out)
+        assert code in (0, 1), err
+        assert sorted(u["unit"] for u in got["units"]) == ["AU-0701", "AU-0702", "AU-0703"] and got["failed"] == []
+        assert got["warnings"] == [{"run": str(chamber), "warning": line}]
+        assert all(line not in u["warnings"] for u in got["units"])
+    code, out, err = run_main(monkeypatch, capsys, *args)
+    assert f"warning: {chamber}: {line}" in out.splitlines()
+    code, out, err = run_main(monkeypatch, capsys, *args, "--unit", "AU-0702", "--json")
+    got = json.loads(out)
+    assert [u["unit"] for u in got["units"]] == ["AU-0702"] and got["warnings"] == [
+        {"run": str(chamber), "warning": line}
+    ]
+
+
+@pytest.mark.slow
+def test_a_unit_named_by_a_runs_consensus_but_calibrated_elsewhere_is_reported_by_the_fleet(tmp_path):
+    """A 3-unit run (5 Hz, to 2 h) whose AU-0702 is mounted turned (x and y swapped) and goes on in a file of its
+    own: AU-0702 is calibrated from both files (segmented alone), AU-0701/0703 from the run's consensus, which names
+    AU-0702. The fleet reports that line once, by run, in its top-level ``warnings``, word for word as ``inspect``
+    says it of the run. Was: dropped (``segment_units(...)[0]``): the fleet's warnings were []."""
+    from flows.fleet import run_fleet
+
+    inbox, own, chamber, line = _turned_with_own_file(tmp_path)
     got = run_fleet(str(inbox), str(tmp_path / "reg"), method="auto", figures=False, pool="thread")
     done = {d["unit"]: d for d in got["done"]}
     assert sorted(done) == ["AU-0701", "AU-0702", "AU-0703"] and got["failed"] == []
