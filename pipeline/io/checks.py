@@ -17,6 +17,7 @@ import polars as pl
 from pipeline.errors import RunFormatError
 from pipeline.positions import MOVING, POSITION_NAMES
 from pipeline.run import (
+    NS_PER_S,
     PER_UNIT_STREAMS,
     REQUIRED_STREAMS,
     SLAB_SAMPLES,
@@ -543,7 +544,7 @@ MAX_STUCK_VALUES = 3
 MAX_STUCK_STRETCHES = 16
 
 
-def stuck_stretches(col: pl.Series) -> tuple[np.ndarray, int, float, float]:
+def stuck_stretches(col: pl.Series, interval_s: float = 0.0) -> tuple[np.ndarray, int, float, float]:
     """The stretches where a voltmeter channel ``col`` (V, in time order) repeats one finite value for so many
     consecutive samples that its noise cannot: a channel stuck (at its last value, at 0 V), or clipped at a rail
     (a saturated output reads the rail's value exactly). Returns ((k, 2) [first, end) sample indices, the fewest
@@ -564,7 +565,8 @@ def stuck_stretches(col: pl.Series) -> tuple[np.ndarray, int, float, float]:
     :data:`MAX_STUCK_STRETCHES` stretches at more than :data:`MAX_STUCK_VALUES` different values (a 1-mV step with
     5 uV of noise: each quiet hold reads one value for its whole length, so p outside the long runs is tiny and
     every hold would be called stuck). Of the runs left, those the readings beside them explain are dropped
-    (:func:`_locally_unlikely`: a coarse step's p varies from hold to hold with where the signal sits in its bin).
+    (:func:`_locally_unlikely`, with the channel's sample interval ``interval_s``, s, 0 if not known: a coarse
+    step's p varies from hold to hold with where the signal sits in its bin).
     NaN breaks a run (missing data is the gap and non-finite checks' business). One pass over the column in slabs
     of :data:`SLAB_SAMPLES`."""
     n = col.len()
@@ -598,15 +600,21 @@ def stuck_stretches(col: pl.Series) -> tuple[np.ndarray, int, float, float]:
     runs = runs[length >= n_min]
     if runs.shape[0] > MAX_STUCK_STRETCHES and np.unique(col.gather(runs[:, 0]).to_numpy()).size > MAX_STUCK_VALUES:
         return np.zeros((0, 2), dtype=np.int64), n, hi, lo
-    return runs[_locally_unlikely(col, runs, n)], n_min, hi, lo
+    return runs[_locally_unlikely(col, runs, n, interval_s)], n_min, hi, lo
 
 
 #: Around a run of one reading, :func:`_locally_unlikely` looks this many times the run's own duration before it
-#: and after it (the channel's readings there: the same hold, where its noise sits in the same quantisation bins).
+#: and after it (the channel's readings there: the same hold, where its noise sits in the same quantisation bins),
+#: and at least :data:`STUCK_WINDOW_S` seconds on each side: f from the 20 readings beside a 10-s freeze at 2 Hz was
+#: too rough to judge it by, and a window much longer than a hold's drift through one bin (240 s at 0.5 Hz)
+#: averages f down where the hold crosses the middle of v's bin (live runs of 15-20 readings called stuck).
 STUCK_WINDOW_RUNS = 1
+STUCK_WINDOW_S = 30.0
+#: The pooled f needs at least this many times the run's readings near v beside it (:func:`_locally_unlikely`).
+STUCK_POOLED_RUNS = 1.5
 
 
-def _locally_unlikely(col: pl.Series, runs: np.ndarray, n: int) -> np.ndarray:
+def _locally_unlikely(col: pl.Series, runs: np.ndarray, n: int, interval_s: float = 0.0) -> np.ndarray:
     """Which of the ``runs`` ((k, 2) [first, end) samples of ``col``, each one reading v repeated, as long as the
     channel-wide threshold of :func:`stuck_stretches` or longer) the channel's own readings next to them do not
     explain. A coarsely quantised channel's chance of repeating v depends on where the signal sits in its bin: a
@@ -614,7 +622,10 @@ def _locally_unlikely(col: pl.Series, runs: np.ndarray, n: int) -> np.ndarray:
     half a step) of its samples, so it repeats it far longer than the channel-wide p (taken over holds whose
     means lie at bin edges, and ramps) predicts (a consumer unit on a 1-mV voltmeter: uy 'stuck' for 2.7 s at
     10 Hz, nothing stuck). f is measured in :data:`STUCK_WINDOW_RUNS` times the run's duration before the run and
-    after it (the larger of the two sides), other runs called stuck left out: among the finite readings within a
+    after it, at least :data:`STUCK_WINDOW_S` on each side (``interval_s``: the sample interval, s), both sides
+    pooled where their readings near v are at least :data:`STUCK_POOLED_RUNS` times the run's (the larger of two
+    sides of 20 readings each biased f upward: 10-s freezes at 2 Hz kept as live; with fewer, a short hold or a
+    low rate, the larger side's f), other runs called stuck left out: among the finite readings within a
     quantisation step of v (v's bin and the two beside it: a hold's readings, not those of a ramp far from v),
     the fraction at v, with one reading at v and one beside it added ((k + 1) / (m + 2): a margin for the few
     dozen readings beside a run in a short hold, and 2 of 2 on a ramp crossing v is not certainty). A run of L
@@ -625,10 +636,11 @@ def _locally_unlikely(col: pl.Series, runs: np.ndarray, n: int) -> np.ndarray:
     :data:`MAX_STUCK_VALUES` values, or many at a few values)."""
     keep = np.ones(runs.shape[0], dtype=bool)
     log_rate = math.log(STUCK_FALSE_RATE / max(n, 1))
+    w_min = math.ceil(STUCK_WINDOW_S / interval_s) if interval_s > 0 else 0  # samples
     values = col.gather(runs[:, 0]).to_numpy() if runs.size else np.zeros(0)
     for k, (a, b) in enumerate(runs.tolist()):
-        w = STUCK_WINDOW_RUNS * (b - a)
-        f = 0.0
+        w = max(STUCK_WINDOW_RUNS * (b - a), w_min)
+        at, near, f_side = 0, 0, 0.0  # readings at v and within a step of it, both sides pooled; the larger side's f
         for s0, s1 in ((max(0, a - w), a), (b, min(n, b + w))):
             x = slab_of(col, s0, s1).copy()
             # the other runs in the window (the rest of a stretch frozen around a NaN or a glitch) are left out
@@ -643,9 +655,13 @@ def _locally_unlikely(col: pl.Series, runs: np.ndarray, n: int) -> np.ndarray:
             dx = np.abs(np.diff(x))
             step = np.fmin.reduce(np.where(dx > 0, dx, np.inf))
             off = np.abs(x - values[k])
-            near = int(np.count_nonzero(off < 1.5 * step))
-            if near:  # one more reading at v than seen: a margin for the few dozen readings of a short hold
-                f = max(f, (int(np.count_nonzero(off == 0)) + 1) / (near + 2))
+            m_side, k_side = int(np.count_nonzero(off < 1.5 * step)), int(np.count_nonzero(off == 0))
+            near, at = near + m_side, at + k_side
+            if m_side:  # one more reading at v than seen: a margin for the few readings of a short hold
+                f_side = max(f_side, (k_side + 1) / (m_side + 2))
+        # pooled where the readings near v outnumber the run STUCK_POOLED_RUNS times; else (a short hold, a low
+        # rate) the larger side's f, which a few readings at v on one side make larger
+        f = (at + 1) / (near + 2) if near >= STUCK_POOLED_RUNS * (b - a) else f_side
         if f > 0 and b - a < 1 + math.ceil(log_rate / math.log(f)):
             keep[k] = False
     return keep
@@ -772,7 +788,7 @@ def _stuck_missing(
     step_ns = median_interval_ns(t_ns)
     for c in columns:
         col = df[c]
-        runs, n_min, hi, lo = stuck_stretches(col)
+        runs, n_min, hi, lo = stuck_stretches(col, step_ns / NS_PER_S)
         if hi == lo or not math.isfinite(hi):
             continue
         gone: list[np.ndarray] = []
