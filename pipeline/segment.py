@@ -1556,17 +1556,39 @@ def interpolated_mean_weight2(xp: np.ndarray, x: np.ndarray) -> float:
     """The sum of the squared weights of the readings at ``xp`` (sorted) in the mean of their linear interpolation
     (``np.interp``, the ends held) at the points ``x``: the variance of that mean in units of one reading's variance,
     for independent readings (1 where every point lies between the same two readings' ends, 1/n for n readings
-    one per point)."""
+    one per point).
+
+    In closed form per interval between readings: a point x in [xp_j, xp_j+1) gives reading j the weight
+    1 - lam and reading j+1 lam, lam = (x - xp_j) / (xp_j+1 - xp_j), so each interval needs only its count of
+    points and the sum of their x - xp_j (one sum over the points, cut where each reading's time falls: no per-point
+    weights); points before the first reading or from the last one on weigh on that reading alone. Exact for
+    points and readings on whole nanoseconds (float64 of int64 ns, the segmentation's)."""
     m, n = xp.size, x.size
     if m < 2 or n == 0:
         return 1.0
     x = np.asarray(x, dtype=np.float64)
-    j = np.clip(np.searchsorted(xp, x, side="right") - 1, 0, m - 2)
-    dx = xp[j + 1] - xp[j]
-    lam = np.clip(np.divide(x - xp[j], dx, out=np.zeros(n), where=dx > 0), 0.0, 1.0)
-    lo = int(j.min())
-    size = int(j.max()) - lo + 2
-    w = (np.bincount(j - lo, 1.0 - lam, minlength=size) + np.bincount(j + 1 - lo, lam, minlength=size)) / n
+    if n > 1 and np.any(x[1:] < x[:-1]):
+        x = np.sort(x)
+    # the intervals j = lo..hi the points fall in (np.interp's: x in [xp_j, xp_j+1), the ends held)
+    lo = min(max(int(np.searchsorted(xp, x[0], side="right")) - 1, 0), m - 2)
+    hi = min(max(int(np.searchsorted(xp, x[-1], side="right")) - 1, 0), m - 2)
+    r = np.asarray(xp[lo : hi + 2], dtype=np.float64)  # readings lo..hi+1
+    cut = np.searchsorted(x, r, side="left")  # (hi - lo + 2,) the first point at or after each reading
+    count = np.diff(cut)  # (hi - lo + 1,) points within each interval
+    full = count > 0
+    # each interval's sum of x - x_0 (reduceat at the starts of the non-empty ones: each runs to the next such
+    # start), less its count times xp_j - x_0: its sum of x - xp_j, exact for whole ns below 2^53 ns an interval
+    sums = np.zeros(count.size)
+    if np.any(full):
+        sums[full] = np.add.reduceat(x[: cut[-1]] - x[0], cut[:-1][full])
+    dx = np.diff(r)
+    lam_sum = np.divide(sums - count * (r[:-1] - x[0]), dx, out=np.zeros(count.size), where=full & (dx > 0))
+    w = np.zeros(r.size)
+    w[:-1] += count - lam_sum
+    w[1:] += lam_sum
+    w[0] += cut[0]  # points before the first reading: on it alone
+    w[-1] += n - cut[-1]  # points at or after the last reading lo..hi+1 (the last of all): on it alone
+    w /= n
     return float(w @ w)
 
 

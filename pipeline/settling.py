@@ -68,9 +68,8 @@ def hold_moments(
     if t_s.size < basis.shape[1] + 2:
         return HoldMoments(ee, eu, e_mean)
     x = t_s - t_s[0]
-    u = np.stack([np.asarray(c, dtype=float) - m for c, m in zip(u_v, mean_v)], axis=1)  # (n, 3) V
+    n, q = x.size, basis.shape[1]
     inv_tau = 1.0 / np.asarray(TAU_GRID_S)
-    bu = basis.T @ u  # (q, 3)
     # each time constant on blocks of consecutive samples lasting at most tau_s / BLOCK_PER_TAU: within a block b,
     # e(t) = E_b (1 + <d^2>_b / (2 tau_s^2)) - E_b d / tau_s, E_b = e(the block's mean time), d = t - that time (the
     # block's mean and slope right; the rest, E_b (d^2 - <d^2>_b) / (2 tau_s^2) < 3.2e-4 E_b, averages out in the
@@ -81,33 +80,63 @@ def hold_moments(
     length = np.minimum(np.asarray(TAU_GRID_S) / (BLOCK_PER_TAU * dt_s) if dt_s > 0 else 1.0, x.size / MIN_BLOCKS)
     length = np.maximum(1.0, length)
     level = np.floor(np.log2(length)).astype(int)
-    # additive block sums: samples, t, t^2, u, t u, basis, t basis
-    sums = [np.ones(x.size), x, x * x, u, x[:, None] * u, basis, x[:, None] * basis]
+    # additive block sums, one row each (one array, its rows contiguous: each level one pass of pairs):
+    # samples, t, t^2, u (3, V, less its mean), t u, basis (q), t basis
+    sums = np.empty((9 + 2 * q, n))
+    sums[0] = 1.0
+    sums[1] = x
+    np.multiply(x, x, out=sums[2])
+    for i, (c, m) in enumerate(zip(u_v, mean_v)):
+        np.subtract(np.asarray(c, dtype=float), m, out=sums[3 + i])
+    sums[9 : 9 + q] = basis.T
+    np.multiply(x, sums[3:6], out=sums[6:9])
+    np.multiply(x, sums[9 : 9 + q], out=sums[9 + q :])
+    bu = sums[9 : 9 + q] @ sums[3:6].T  # (q, 3) basis^T u
     for lev in range(int(level.max()) + 1):
-        if lev:
-            pairs = np.arange(0, sums[0].size, 2)
-            sums = [np.add.reduceat(a, pairs, axis=0) for a in sums]
+        if lev:  # pairs of the level before (an odd one out at the end alone)
+            half = sums.shape[1] // 2
+            pairs = np.empty((sums.shape[0], sums.shape[1] - half))
+            np.add(sums[:, 0 : 2 * half : 2], sums[:, 1 : 2 * half : 2], out=pairs[:, :half])
+            if pairs.shape[1] > half:
+                pairs[:, half] = sums[:, -1]
+            sums = pairs
         taus = np.flatnonzero(level == lev)
         if not taus.size:
             continue
-        count, sx, sxx, su, sxu, sb, sxb = sums
+        count, sx, sxx, su, sxu, sb, sxb = (
+            sums[0],
+            sums[1],
+            sums[2],
+            sums[3:6],
+            sums[6:9],
+            sums[9 : 9 + q],
+            sums[9 + q :],
+        )
         xb = sx / count  # (m,) s, the blocks' mean times
         d2 = np.maximum(sxx - sx * xb, 0.0)  # (m,) s^2, sum of d^2 over each block
-        du = sxu - xb[:, None] * su  # (m, 3) s V, sum of d u
-        db = sxb - xb[:, None] * sb  # (m, q) s, sum of d basis
+        du = sxu - xb * su  # (3, m) s V, sum of d u
+        db = sxb - xb * sb  # (q, m) s, sum of d basis
+        # with a = <d^2>_b, h = 1 / (2 tau_s^2), level_e = E_b (1 + a h) and slope = E_b / tau_s, every sum over the
+        # blocks is one of E_b or E_b^2 times what depends on the block alone: one product by E_b of (m, 9 + 3 q)
+        # and one by E_b^2 of (m, 4) for the time constants of this level
+        a = d2 / count
+        lin = np.concatenate([count[None], d2[None], sb, a * sb, db, su, a * su, du])  # (5 + 3 q + ... , m)
+        sq = np.stack([count, d2, d2 * a])  # (3, m)
         per = max(1, SLAB_SAMPLES // xb.size)  # time constants at a time: at most a slab's worth of e(t) in memory
         for k in range(0, taus.size, per):
             sel = taus[k : k + per]
+            it, h = inv_tau[sel, None], 0.5 * inv_tau[sel, None] ** 2  # (per, 1)
             big_e = np.exp(-np.outer(inv_tau[sel], xb))  # (per, m) E_b
-            slope = big_e * inv_tau[sel, None]  # (per, m) E_b / tau_s
-            level_e = big_e * (1.0 + (d2 / count)[None, :] * (0.5 * inv_tau[sel, None] ** 2))  # (per, m)
-            e_mean[sel] = level_e @ count / x.size
+            e1 = big_e @ lin.T  # (per, 2 + 3 q + 9)
+            e2 = (big_e * big_e) @ sq.T  # (per, 3)
+            e_mean[sel] = (e1[:, 0] + h[:, 0] * e1[:, 1]) / x.size
             # r = e - B (B^T e) with B the orthonormal nuisance basis, without forming r: r.r = e.e - |B^T e|^2,
             # r.u = e.u - (B^T e).(B^T u)
-            eb = level_e @ sb - slope @ db  # (per, q)
-            ee_all = (level_e * level_e) @ count + (slope * slope) @ d2
+            eb = e1[:, 2 : 2 + q] + h * e1[:, 2 + q : 2 + 2 * q] - it * e1[:, 2 + 2 * q : 2 + 3 * q]  # (per, q)
+            ee_all = e2[:, 0] + (2.0 * h[:, 0] + it[:, 0] ** 2) * e2[:, 1] + h[:, 0] ** 2 * e2[:, 2]
             ee[sel] = np.maximum(ee_all - np.einsum("kq,kq->k", eb, eb), 0.0)
-            eu[sel] = level_e @ su - slope @ du - eb @ bu
+            j = 2 + 3 * q
+            eu[sel] = e1[:, j : j + 3] + h * e1[:, j + 3 : j + 6] - it * e1[:, j + 6 : j + 9] - eb @ bu
     return HoldMoments(ee=ee, eu=eu, e_mean=e_mean)
 
 
