@@ -43,10 +43,13 @@ MAX_JUMP_S = 86_400.0
 #: not a recording's (a -2**63 placeholder, a clock never set); and differences of two such times stay far from
 #: int64 overflow.
 T_NS_RANGE = (0, 2**62)
-#: A thermosensor glitch (:func:`_isolated_readings_missing`): at most this many readings in a row that depart from
-#: the readings around them by more than GLITCH_C plus GLITCH_C_PER_S times the time between those (C, C/s: no case
-#: follows its chamber faster than 15 C/min, and a thermosensor's noise is hundredths of a C) and come back.
-GLITCH_MAX_READINGS = 3
+#: A thermosensor glitch (:func:`_isolated_readings_missing`): readings lasting at most GLITCH_MAX_S (s, from the
+#: first to the last: one reading always qualifies) that depart from the readings around them by more than GLITCH_C
+#: plus GLITCH_C_PER_S times the time between those (C, C/s: no case follows its chamber faster than 15 C/min, and a
+#: thermosensor's noise is hundredths of a C) and come back, or that begin or end the record. At most
+#: GLITCH_MAX_JUMPS stretches between jumps in a row (glitch values that differ among themselves: 85 C then 60 C).
+GLITCH_MAX_S = 10.0
+GLITCH_MAX_JUMPS = 4
 GLITCH_C = 5.0
 GLITCH_C_PER_S = 0.25
 #: The refusal of a sampled stream that holds two samples with one time and different values.
@@ -203,33 +206,63 @@ def check_stream(
 
 def _isolated_readings_missing(stream: str, df: pl.DataFrame, warnings: list[str]) -> pl.DataFrame:
     """Thermosensor glitches set to NaN (missing), with one warning naming how many and the first (row, t_ns,
-    value): a run of at most :data:`GLITCH_MAX_READINGS` readings that lies beyond both readings around it, on one
-    side, by more than the temperature can move between those two (:data:`GLITCH_C` plus :data:`GLITCH_C_PER_S`
-    times the time between them, s), while those two agree within that. A sensor's power-on or bus-error value
-    (85 C, -127 C) read once in a soak would otherwise split its plateau. ``df`` is sorted by time; non-finite
-    readings are skipped (the readings around a glitch are the finite ones)."""
+    value): readings lasting at most :data:`GLITCH_MAX_S` (s, from the first of them to the last) that lie beyond
+    both readings around them, on one side, by more than the temperature can move between those two
+    (:data:`GLITCH_C` plus :data:`GLITCH_C_PER_S` times the time between them, s), while those two agree within
+    that. At the record's first or last readings (a DS18B20's 85 C power-on value is its first) there is one
+    reading beside them: they lie beyond it by more than the temperature can move from the first of them to it,
+    and it agrees with the reading after it. A sensor's power-on or bus-error value (85 C, -127 C) read once in a
+    soak would otherwise split its plateau. A glitch has no more readings than the stretch before it or after it
+    (the readings between two glitches a few seconds apart are not one). The candidates are the stretches between
+    jumps (consecutive readings further apart than the temperature can move), up to :data:`GLITCH_MAX_JUMPS` of
+    them in a row (glitch values that differ among themselves). ``df`` is sorted by time; non-finite readings are
+    skipped (the readings around a glitch are the finite ones). Vectorised over the candidates."""
     finite = np.flatnonzero(np.isfinite(df["temp_c"].to_numpy()))
     y = df["temp_c"].to_numpy()[finite]
-    t_s = df["t_ns"].to_numpy()[finite] / 1e9
+    t_s = df["t_ns"].to_numpy()[finite] / NS_PER_S
     glitch = np.zeros(y.size, dtype=bool)
-    for n in range(1, GLITCH_MAX_READINGS + 1):
-        if y.size < n + 2:
-            break
-        # runs y[i:i + n] for i = 1 .. size - n - 1, between y[i - 1] and y[i + n]
-        runs = np.lib.stride_tricks.sliding_window_view(y[1:-1], n)
-        before, after = y[: -n - 1], y[n + 1 :]
-        limit = GLITCH_C + GLITCH_C_PER_S * (t_s[n + 1 :] - t_s[: -n - 1])
-        above = runs.min(axis=1) - np.maximum(before, after) > limit
-        below = np.minimum(before, after) - runs.max(axis=1) > limit
-        hit = np.flatnonzero((above | below) & (np.abs(after - before) <= limit)) + 1
-        for k in range(n):
-            glitch[hit + k] = True
+    if y.size >= 3:
+        jump = np.abs(np.diff(y)) > GLITCH_C + GLITCH_C_PER_S * np.diff(t_s)
+        # stretches between jumps: readings edge[m] + 1 .. edge[m + 1] (the record's ends as edges -1 and size - 1)
+        edge = np.concatenate(([-1], np.flatnonzero(jump), [y.size - 1]))
+        lo_seg = np.minimum.reduceat(y, edge[:-1] + 1)
+        hi_seg = np.maximum.reduceat(y, edge[:-1] + 1)
+        jump_at = np.append(jump, False)  # jump_at[i]: y[i] and y[i + 1] are a jump (False past the end)
+        for k in range(1, min(GLITCH_MAX_JUMPS, edge.size - 2) + 1):
+            first, last = edge[:-k] + 1, edge[k:]  # the candidate: readings first .. last
+            lo = np.lib.stride_tricks.sliding_window_view(lo_seg, k).min(axis=1)
+            hi = np.lib.stride_tricks.sliding_window_view(hi_seg, k).max(axis=1)
+            before, after = first - 1, last + 1  # -1 at the start, size at the end
+            has_b, has_a = before >= 0, after < y.size
+            b, a = np.clip(before, 0, y.size - 1), np.clip(after, 0, y.size - 1)
+            short = t_s[last] - t_s[first] <= GLITCH_MAX_S
+            # no longer than the stretches beside it (two glitches 5 s apart: the readings between them are not one)
+            count = last - first + 1
+            seg_n = np.diff(edge)  # readings per stretch between jumps
+            m = np.arange(first.size)
+            short &= count <= np.where(m >= 1, seg_n[np.maximum(m - 1, 0)], count)
+            short &= count <= np.where(m + k < seg_n.size, seg_n[np.minimum(m + k, seg_n.size - 1)], count)
+            # inside: beyond both readings around it, which agree
+            limit = GLITCH_C + GLITCH_C_PER_S * (t_s[a] - t_s[b])
+            inside = has_b & has_a
+            inside &= (lo - np.maximum(y[b], y[a]) > limit) | (np.minimum(y[b], y[a]) - hi > limit)
+            inside &= np.abs(y[a] - y[b]) <= limit
+            # at the start: beyond the reading after it, which agrees with the next one
+            lim_a = GLITCH_C + GLITCH_C_PER_S * (t_s[a] - t_s[first])
+            start = ~has_b & has_a & ((lo - y[a] > lim_a) | (y[a] - hi > lim_a)) & ~jump_at[a]
+            start &= a + 1 < y.size
+            # at the end: beyond the reading before it, which agrees with the one before that
+            lim_b = GLITCH_C + GLITCH_C_PER_S * (t_s[last] - t_s[b])
+            end = has_b & ~has_a & ((lo - y[b] > lim_b) | (y[b] - hi > lim_b)) & (b >= 1) & ~jump_at[b - 1]
+            for c in np.flatnonzero(short & (inside | start | end)).tolist():  # the few glitches found
+                glitch[first[c] : last[c] + 1] = True
     if not glitch.any():
         return df
     rows = finite[glitch]
     row = int(rows[0])
     warnings.append(
-        f"{stream}: {rows.size} reading(s) of temp_c that leave the readings around them and come back (a glitch: "
+        f"{stream}: {rows.size} reading(s) of temp_c that leave the readings around them and come back, or begin or "
+        f"end the record away from the readings beside them (a glitch: "
         f"more than {GLITCH_C:g} C plus {GLITCH_C_PER_S:g} C/s) treated as missing; the first at "
         f"t_ns={df['t_ns'][row]} (row {row}): {df['temp_c'][row]!r}"
     )

@@ -21,6 +21,16 @@ GLITCHES = {
     "-127 C once at -40 C": [(3_100, -127.0, 1)],
     "85 C three times at +70 C": [(10_050, 85.0, 3)],
     "several kinds": [(1_500, 85.0, 1), (3_100, -127.0, 2), (4_250, 85.0, 1), (10_000, 85.0, 1), (12_000, -127.0, 3)],
+    # d9bcf11 counted readings (at most 3) and needed a reading on each side: none of these was named
+    "85 C as the first reading (power-on)": [(0, 85.0, 1)],
+    "85 C as the last reading": [(1e9, 85.0, 1)],
+    "85 C twice at the start": [(0, 85.0, 2)],
+    "-127 C as the last three readings": [(1e9, -127.0, 3)],
+    "85 C four times at +70 C": [(10_050, 85.0, 4)],
+    "-127 C for 10 s at -40 C": [(3_100, -127.0, 11)],
+    "85 C then 125 C at +70 C": [(10_050, 85.0, 2), (10_052, 125.0, 2)],
+    # the readings between two glitches are not a glitch (below both, which agree)
+    "85 C twice, 5 s apart, at +70 C": [(10_050, 85.0, 1), (10_055, 85.0, 1)],
 }
 
 
@@ -36,7 +46,7 @@ def _with(run, glitches, value=None):
     y = th["temp_c"].to_numpy().copy()
     rows = []
     for at_s, v, n in glitches:
-        i = int(np.argmin(np.abs(t_s - at_s)))
+        i = min(int(np.argmin(np.abs(t_s - at_s))), y.size - n)  # past the end: the last n readings
         y[i : i + n] = v if value is None else value
         rows += range(i, i + n)
     return dataclasses.replace(run, au_temperature=th.with_columns(pl.Series("temp_c", y))), rows
@@ -62,7 +72,8 @@ def test_thermosensor_glitches_read_as_missing_and_the_plateaus_stay(tmp_path, f
     th = glitched.au_temperature
     (line,) = [w for w in got.warnings if "glitch" in w]
     assert line == (
-        f"au_temperature: {len(rows)} reading(s) of temp_c that leave the readings around them and come back (a "
+        f"au_temperature: {len(rows)} reading(s) of temp_c that leave the readings around them and come back, or "
+        f"begin or end the record away from the readings beside them (a "
         f"glitch: more than 5 C plus 0.25 C/s) treated as missing; the first at t_ns={th['t_ns'][first]} (row "
         f"{first}): {th['temp_c'][first]!r}"
     )
