@@ -64,11 +64,14 @@ def hold_moments(
     the hold's mean alone is a nuisance term)."""
     n_tau = len(TAU_GRID_S)
     ee, eu, e_mean = np.zeros(n_tau), np.zeros((n_tau, 3)), np.zeros(n_tau)
-    basis = _nuisance_basis(t_s.size, temp_c)  # (n, q) orthonormal columns
-    if t_s.size < basis.shape[1] + 2:
+    n = t_s.size
+    # the nuisance terms' columns (na, n) and R^-1 (q, q), the orthonormal basis A[:q]^T R^-1 (:func:`_nuisance_basis`)
+    # never formed: its sums are those of A times R^-1
+    cols_a, rinv = _nuisance_terms(n, temp_c)
+    na, q = cols_a.shape[0], rinv.shape[0]
+    if n < q + 2:
         return HoldMoments(ee, eu, e_mean)
     x = t_s - t_s[0]
-    n, q = x.size, basis.shape[1]
     inv_tau = 1.0 / np.asarray(TAU_GRID_S)
     # each time constant on blocks of consecutive samples lasting at most tau_s / BLOCK_PER_TAU: within a block b,
     # e(t) = E_b (1 + <d^2>_b / (2 tau_s^2)) - E_b d / tau_s, E_b = e(the block's mean time), d = t - that time (the
@@ -80,18 +83,17 @@ def hold_moments(
     length = np.minimum(np.asarray(TAU_GRID_S) / (BLOCK_PER_TAU * dt_s) if dt_s > 0 else 1.0, x.size / MIN_BLOCKS)
     length = np.maximum(1.0, length)
     level = np.floor(np.log2(length)).astype(int)
-    # additive block sums, one row each (one array, its rows contiguous: each level one pass of pairs):
-    # samples, t, t^2, u (3, V, less its mean), t u, basis (q), t basis
-    sums = np.empty((9 + 2 * q, n))
-    sums[0] = 1.0
-    sums[1] = x
-    np.multiply(x, x, out=sums[2])
+    # additive block sums, one row each (one array, its rows contiguous: each level one pass of pairs): the
+    # nuisance columns A (na: 1, the first, is the samples' count), t A (t, ...), t^2, u (3, V, less its mean), t u
+    iu = 2 * na + 1
+    sums = np.empty((iu + 6, n))
+    sums[:na] = cols_a
+    np.multiply(x, cols_a, out=sums[na : 2 * na])
+    np.multiply(x, x, out=sums[2 * na])
     for i, (c, m) in enumerate(zip(u_v, mean_v)):
-        np.subtract(np.asarray(c, dtype=float), m, out=sums[3 + i])
-    sums[9 : 9 + q] = basis.T
-    np.multiply(x, sums[3:6], out=sums[6:9])
-    np.multiply(x, sums[9 : 9 + q], out=sums[9 + q :])
-    bu = sums[9 : 9 + q] @ sums[3:6].T  # (q, 3) basis^T u
+        np.subtract(np.asarray(c, dtype=float), m, out=sums[iu + i])
+    np.multiply(x, sums[iu : iu + 3], out=sums[iu + 3 : iu + 6])
+    bu = rinv.T @ (sums[:q] @ sums[iu : iu + 3].T)  # (q, 3) basis^T u
     for lev in range(int(level.max()) + 1):
         if lev:  # pairs of the level before (an odd one out at the end alone)
             half = sums.shape[1] // 2
@@ -103,31 +105,24 @@ def hold_moments(
         taus = np.flatnonzero(level == lev)
         if not taus.size:
             continue
-        count, sx, sxx, su, sxu, sb, sxb = (
-            sums[0],
-            sums[1],
-            sums[2],
-            sums[3:6],
-            sums[6:9],
-            sums[9 : 9 + q],
-            sums[9 + q :],
-        )
+        count, sx, sxx, su, sxu = sums[0], sums[na], sums[2 * na], sums[iu : iu + 3], sums[iu + 3 : iu + 6]
+        sb, sxb = rinv.T @ sums[:q], rinv.T @ sums[na : na + q]  # (q, m) the basis' sums, t basis'
         xb = sx / count  # (m,) s, the blocks' mean times
         d2 = np.maximum(sxx - sx * xb, 0.0)  # (m,) s^2, sum of d^2 over each block
         du = sxu - xb * su  # (3, m) s V, sum of d u
         db = sxb - xb * sb  # (q, m) s, sum of d basis
         # with a = <d^2>_b, h = 1 / (2 tau_s^2), level_e = E_b (1 + a h) and slope = E_b / tau_s, every sum over the
-        # blocks is one of E_b or E_b^2 times what depends on the block alone: one product by E_b of (m, 9 + 3 q)
-        # and one by E_b^2 of (m, 4) for the time constants of this level
+        # blocks is one of E_b or E_b^2 times what depends on the block alone: one product by E_b of (m, 11 + 3 q)
+        # and one by E_b^2 of (m, 3) for the time constants of this level
         a = d2 / count
-        lin = np.concatenate([count[None], d2[None], sb, a * sb, db, su, a * su, du])  # (5 + 3 q + ... , m)
+        lin = np.concatenate([count[None], d2[None], sb, a * sb, db, su, a * su, du])  # (11 + 3 q, m)
         sq = np.stack([count, d2, d2 * a])  # (3, m)
         per = max(1, SLAB_SAMPLES // xb.size)  # time constants at a time: at most a slab's worth of e(t) in memory
         for k in range(0, taus.size, per):
             sel = taus[k : k + per]
             it, h = inv_tau[sel, None], 0.5 * inv_tau[sel, None] ** 2  # (per, 1)
             big_e = np.exp(-np.outer(inv_tau[sel], xb))  # (per, m) E_b
-            e1 = big_e @ lin.T  # (per, 2 + 3 q + 9)
+            e1 = big_e @ lin.T  # (per, 11 + 3 q)
             e2 = (big_e * big_e) @ sq.T  # (per, 3)
             e_mean[sel] = (e1[:, 0] + h[:, 0] * e1[:, 1]) / x.size
             # r = e - B (B^T e) with B the orthonormal nuisance basis, without forming r: r.r = e.e - |B^T e|^2,
@@ -140,10 +135,12 @@ def hold_moments(
     return HoldMoments(ee=ee, eu=eu, e_mean=e_mean)
 
 
-def _nuisance_basis(n: int, temp_c: np.ndarray | None) -> np.ndarray:
-    """Orthonormal columns (n, q) spanning a hold's nuisance terms: a constant, and where the hold's temperature
-    ``temp_c`` (C, at its n samples) is finite and varies, a quadratic in it (the drift of a unit still
-    approaching its temperature, :mod:`pipeline.settling`); columns the others already span are left out."""
+def _nuisance_terms(n: int, temp_c: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """A hold's nuisance terms at its n samples: their columns A (na, n), a constant 1 and, where the hold's
+    temperature ``temp_c`` (C, at its n samples) is finite and varies, d and d^2 with d that temperature less its
+    mean over its RMS (the drift of a unit still approaching its temperature, :mod:`pipeline.settling`), and
+    R^-1 (q, q), q <= na, the inverse of the triangle of their QR factorisation: A[:q]^T R^-1 are orthonormal
+    columns spanning them (:func:`_nuisance_basis`); a column the others already span is left out."""
     cols = [np.ones(n)]
     if temp_c is not None and n > 0 and np.all(np.isfinite(temp_c)):
         d = np.asarray(temp_c, dtype=float) - float(np.mean(temp_c))
@@ -151,9 +148,20 @@ def _nuisance_basis(n: int, temp_c: np.ndarray | None) -> np.ndarray:
         if spread_c > 0:
             d = d / spread_c
             cols += [d, d * d]
-    q, r = np.linalg.qr(np.stack(cols, axis=1))
+    cols_a = np.stack(cols)
+    if n == 0:
+        return cols_a, np.eye(1)
+    r = np.asarray(np.linalg.qr(cols_a.T, mode="r"))  # (na, na) the triangle
     diag = np.abs(np.diag(r))
-    return q[:, diag > 1e-9 * diag[0]] if n else q
+    keep = diag > 1e-9 * diag[0]
+    q = int(np.argmin(keep)) if not keep.all() else keep.size  # (the leading columns: d never lies in 1's span)
+    return cols_a, np.linalg.inv(r[:q, :q])
+
+
+def _nuisance_basis(n: int, temp_c: np.ndarray | None) -> np.ndarray:
+    """Orthonormal columns (n, q) spanning a hold's nuisance terms (:func:`_nuisance_terms`)."""
+    cols_a, rinv = _nuisance_terms(n, temp_c)
+    return cols_a[: rinv.shape[0]].T @ rinv if n else np.zeros((0, 1))
 
 
 @dataclass(frozen=True)

@@ -203,3 +203,27 @@ def test_hold_moments_cost_does_not_grow_with_the_rate():
 
     slow, fast = cost(100.0), cost(10.0)
     assert slow <= 6.0 * fast, (slow, fast)
+
+
+@pytest.mark.parametrize("levels", [2, 3, 50])
+def test_hold_moments_with_a_thermosensor_of_few_levels(levels):
+    """A hold whose interpolated temperature takes 2 values (d^2 then lies in the span of 1 and d: the nuisance
+    terms are 2, :func:`pipeline.settling._nuisance_terms`), 3 or 50: the basis is orthonormal (to 1e-12) and
+    :func:`hold_moments`, which sums the nuisance columns and not the basis, gives every sample's moments."""
+    from pipeline.settling import _nuisance_basis, _nuisance_terms
+
+    rng = np.random.default_rng(levels)
+    n = 6000
+    t_s = np.arange(n) / 50.0
+    temp_c = 20.0 + 0.01 * rng.integers(0, levels, n)
+    cols_a, rinv = _nuisance_terms(n, temp_c)
+    assert (cols_a.shape[0], rinv.shape[0]) == (3, 2 if levels == 2 else 3)
+    basis = _nuisance_basis(n, temp_c)
+    np.testing.assert_allclose(basis.T @ basis, np.eye(basis.shape[1]), atol=1e-12)
+    u = 1e-4 * np.exp(-t_s / 7.0)[:, None] * np.array([1.0, -0.5, 0.2]) + rng.normal(0.0, 5e-6, (n, 3))
+    got = hold_moments(t_s, [u[:, i] for i in range(3)], u.mean(axis=0), temp_c)
+    ee, eu, e_mean = _exact_moments(t_s, u, temp_c)
+    np.testing.assert_allclose(got.e_mean, e_mean, rtol=3e-4)
+    np.testing.assert_allclose(got.ee, ee, rtol=3e-4, atol=1e-12 * n)
+    off = np.abs(got.eu - eu) / (3e-4 * np.abs(eu) + 0.01 * 5e-6 * np.sqrt(ee)[:, None])
+    assert off.max() <= 1.0, off.max()
