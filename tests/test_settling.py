@@ -56,21 +56,26 @@ def test_constants_honest_under_settling_standard(seed):
     assert any(w.startswith(CREEP) for w in warnings)
 
 
-@pytest.mark.parametrize("seed", [1, 2, 3])
-def test_nothing_changes_without_creep(seed, monkeypatch):
-    """On a run without the creep no warning, and the hold means are the plain means of the holds' samples (the
-    fit's z far below its threshold)."""
-    run = simulate(SimConfig(program="short", seed=seed)).run
-    fits = []
-
+def _segmented_with_fits(run, monkeypatch):
+    """``segment_run(run)`` and the creep fits it made (:func:`settling_fit`'s results, in order)."""
     import pipeline.segment as segment
+
+    fits = []
 
     def recording(*a, **k):
         fits.append(settling_fit(*a, **k))
         return fits[-1]
 
     monkeypatch.setattr(segment, "settling_fit", recording)
-    seg = segment_run(run)
+    return segment_run(run), fits
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_nothing_changes_without_creep(seed, monkeypatch):
+    """On a run without the creep no warning, and the hold means are the plain means of the holds' samples (the
+    fit's z far below its threshold)."""
+    run = simulate(SimConfig(program="short", seed=seed)).run
+    seg, fits = _segmented_with_fits(run, monkeypatch)
     assert not any(w.startswith(CREEP) for w in seg.warnings)
     assert len(fits) == 1 and not fits[0].used and fits[0].z < 5.0
     t, u = run.t_ns(), run.voltmeter["ux"].to_numpy()
@@ -94,16 +99,7 @@ def test_no_creep_where_positions_are_held_without_soaks(seed, hold_s, case_lag_
     (K at T0 949 micro-V/g off the truth, status fail; 0.25 micro-V/g without the correction). Now the fit stays
     in the noise (z < 5), no warning, and the hold means are their samples' plain means."""
     run = simulate(SimConfig(program=parse_program(NO_SOAK, hold_s=hold_s, case_lag_s=case_lag_s), seed=seed)).run
-    fits = []
-
-    import pipeline.segment as segment
-
-    def recording(*a, **k):
-        fits.append(settling_fit(*a, **k))
-        return fits[-1]
-
-    monkeypatch.setattr(segment, "settling_fit", recording)
-    seg = segment_run(run)
+    seg, fits = _segmented_with_fits(run, monkeypatch)
     assert not any(w.startswith(CREEP) for w in seg.warnings)
     assert len(fits) == 1 and not fits[0].used and fits[0].z < 5.0, (fits[0].z, fits[0].tau_s, fits[0].fraction)
     t, u = run.t_ns(), run.voltmeter["uy"].to_numpy()

@@ -40,6 +40,20 @@ def units3(tmp_path_factory):
     return d, runs, whole, (int(t[0]), int(t[-1]))
 
 
+def _missing_line(runs, piece, unit: str, edges_ns: list[int], k: int) -> str:
+    """The warning naming ``unit`` missing from piece ``k`` (its file ``piece``) of ``runs`` cut at ``edges_ns``:
+    the piece's time span is that of the other units' samples in it."""
+    from pipeline.utc import utc_text
+
+    t = next(iter(runs.units.values())).voltmeter["t_ns"].to_numpy()
+    first, last = int(t[t >= edges_ns[k]][0]), int(t[t < edges_ns[k + 1]][-1])
+    return (
+        f"{piece}: unit {unit} is missing from this piece of run {runs.units[unit].meta.run_id!r} "
+        f"({utc_text(first)} .. {utc_text(last)}), which holds the other units: its recording has no samples over "
+        "that time"
+    )
+
+
 def _pieces(runs: UnitRuns, cuts_ns: list[int], folder: Path, fmt: str, drop: dict[int, str] | None = None):
     """The run cut at ``cuts_ns`` into files of the same run_id (``drop``: piece index -> a unit left out of it)."""
     run_id = next(iter(runs.units.values())).meta.run_id
@@ -158,7 +172,6 @@ def test_a_unit_missing_from_a_piece_of_its_run_is_named_by_calibrate_and_fleet(
     from flows.calibrate import run_calibrate
     from flows.fleet import run_fleet
     from pipeline.calibrate.settings import CalibrationSettings
-    from pipeline.utc import utc_text
 
     d, runs, (t0, t1) = units3_2hz
     name = "-".join(f"{c}" for c in cuts)
@@ -166,14 +179,7 @@ def test_a_unit_missing_from_a_piece_of_its_run_is_named_by_calibrate_and_fleet(
     cut_ns = [t0 + int(c * (t1 - t0)) for c in cuts]
     paths = [str(p.resolve()) for p in _pieces(runs, cut_ns, inbox, "mcap", drop)]
     [(k, unit)] = drop.items()
-    edges = [t0, *cut_ns, t1 + 1]
-    t = next(iter(runs.units.values())).voltmeter["t_ns"].to_numpy()
-    first, last = int(t[t >= edges[k]][0]), int(t[t < edges[k + 1]][-1])
-    line = (
-        f"{paths[k]}: unit {unit} is missing from this piece of run {runs.units[unit].meta.run_id!r} "
-        f"({utc_text(first)} .. {utc_text(last)}), which holds the other units: its recording has no samples over "
-        "that time"
-    )
+    line = _missing_line(runs, paths[k], unit, [t0, *cut_ns, t1 + 1], k)
     settings = CalibrationSettings()
     cal = run_calibrate(paths, str(d / f"reg-c-{name}"), settings, method="auto", dry_run=True)
     fleet = run_fleet(str(inbox), str(d / f"reg-f-{name}"), settings, method="auto", figures=False, pool="thread")
@@ -195,21 +201,13 @@ def test_inspect_names_a_unit_missing_from_a_piece_as_calibrate_does(units3_2hz,
     ``calibrate`` and ``fleet`` give it (the piece, its time span), in any order of the files; the other units'
     name nothing; beside the whole file, no unit is said missing. Was: the unit's warnings were [] (its plateaus
     and poses fewer than the others', nothing said why)."""
-    from pipeline.utc import utc_text
 
     d, runs, (t0, t1) = units3_2hz
     folder = d / f"inspect-{'-'.join(map(str, cuts))}-{fmt}"
     cut_ns = [t0 + int(c * (t1 - t0)) for c in cuts]
     paths = [p.resolve() for p in _pieces(runs, cut_ns, folder, fmt, drop)]
     [(k, unit)] = drop.items()
-    edges = [t0, *cut_ns, t1 + 1]
-    t = next(iter(runs.units.values())).voltmeter["t_ns"].to_numpy()
-    first, last = int(t[t >= edges[k]][0]), int(t[t < edges[k + 1]][-1])
-    line = (
-        f"{paths[k]}: unit {unit} is missing from this piece of run {runs.units[unit].meta.run_id!r} "
-        f"({utc_text(first)} .. {utc_text(last)}), which holds the other units: its recording has no samples over "
-        "that time"
-    )
+    line = _missing_line(runs, paths[k], unit, [t0, *cut_ns, t1 + 1], k)
     for order in (paths, paths[::-1]):
         got = {u["metadata"]["unit_serial"]: u for u in _inspect(monkeypatch, capsys, *order)["units"]}
         assert sorted(got) == ["AU-0001", "AU-0002", "AU-0003"]

@@ -57,14 +57,19 @@ def test_a_stage_the_tilt_method_leaves_out_is_named(x_c):
 
 def _gapped_single():
     """The short program at 2 Hz with 10 min of every stream lost over the -40 C test positions."""
+    return _short_with_gap(2600.0, 3200.0), "AU-0001"
+
+
+def _short_with_gap(start_s: float, end_s: float):
+    """The short program at 2 Hz with every stream lost from ``start_s`` to ``end_s`` (s after its first sample)."""
     run = simulate(SimConfig(program="short", rate_hz=2.0)).run
     t0 = int(run.voltmeter["t_ns"][0])
-    g0, g1 = t0 + 2600 * NS_PER_S, t0 + 3200 * NS_PER_S
+    g0, g1 = t0 + int(start_s * NS_PER_S), t0 + int(end_s * NS_PER_S)
     cut = {
         k: getattr(run, k).filter((pl.col("t_ns") < g0) | (pl.col("t_ns") >= g1))
         for k in ("voltmeter", "au_temperature", "chamber")
     }
-    return dataclasses.replace(run, **cut), "AU-0001"
+    return dataclasses.replace(run, **cut)
 
 
 def _gapped_unit():
@@ -80,6 +85,17 @@ def _gapped_unit():
     return UnitRuns.of_units(units), units[1].meta.unit_serial
 
 
+def _fail_line(path, tmp_path, monkeypatch, capsys) -> str:
+    """``thermocal calibrate PATH --json``'s one stderr line, its exit code 1 (a unit's status fail) asserted."""
+    argv = ["thermocal", "calibrate", str(path), "--registry", str(tmp_path / "reg"), "--json"]
+    monkeypatch.setattr(sys, "argv", argv)
+    with pytest.raises(SystemExit) as info:
+        main()
+    assert info.value.code == 1
+    [line] = [x for x in capsys.readouterr().err.splitlines() if x.startswith("thermocal: calibrate: ")]
+    return line
+
+
 @pytest.mark.parametrize("make", [_gapped_single, _gapped_unit], ids=["all streams", "one unit's voltmeter"])
 def test_a_fail_caused_by_a_stage_lost_to_a_gap_says_so(make, tmp_path, monkeypatch, capsys):
     """The status line said only `the compensated gravity-module error exceeds its limit at a verification
@@ -87,13 +103,7 @@ def test_a_fail_caused_by_a_stage_lost_to_a_gap_says_so(make, tmp_path, monkeypa
     and the VPs at -10 C failed, extrapolated 30 C. Now the line says all three (exit 1 as before)."""
     run, unit = make()
     path = write_run(run, tmp_path / "gap.mcap", "mcap")
-    argv = ["thermocal", "calibrate", str(path), "--registry", str(tmp_path / "reg"), "--json"]
-    monkeypatch.setattr(sys, "argv", argv)
-    with pytest.raises(SystemExit) as info:
-        main()
-    assert info.value.code == 1
-    err = capsys.readouterr().err
-    [line] = [x for x in err.splitlines() if x.startswith("thermocal: calibrate: ")]
+    line = _fail_line(path, tmp_path, monkeypatch, capsys)
     assert f"{unit}: status fail (the compensated gravity-module error exceeds its limit at " in line
     m = re.search(
         r"at (\d+) of 24 verification positions, (\d+) of them at -10\.0 C, outside the calibrated \+20\.0 \.\. "
@@ -133,14 +143,7 @@ def test_a_stage_whose_every_hold_a_gap_took_is_named_from_the_fixture_log():
     positions in the gap and the temperature before it name the stage now."""
     from flows.cli.calibrate import fail_reason
 
-    run = simulate(SimConfig(program="short", rate_hz=2.0)).run
-    t0 = int(run.voltmeter["t_ns"][0])
-    g0, g1 = t0 + 9850 * NS_PER_S, t0 + 10450 * NS_PER_S
-    cut = {
-        k: getattr(run, k).filter((pl.col("t_ns") < g0) | (pl.col("t_ns") >= g1))
-        for k in ("voltmeter", "au_temperature", "chamber")
-    }
-    method, res = _calibrate(dataclasses.replace(run, **cut))
+    method, res = _calibrate(_short_with_gap(9850.0, 10450.0))
     assert method == "tilt" and res.status == "fail" and res.passport["valid_temp_c"] == [-40.0, 20.0]
     [line] = [w for w in res.warnings if w.startswith("the tilt method leaves out the ")]
     assert re.fullmatch(
@@ -187,13 +190,7 @@ def test_a_fail_caused_by_a_thermosensor_only_gap_names_the_stage_it_took(tmp_pa
     g0, g1 = t0 + 2500 * NS_PER_S, t0 + 6100 * NS_PER_S
     th = run.au_temperature.filter((pl.col("t_ns") < g0) | (pl.col("t_ns") >= g1))
     path = write_run(dataclasses.replace(run, au_temperature=th), tmp_path / "thgap.mcap", "mcap")
-    argv = ["thermocal", "calibrate", str(path), "--registry", str(tmp_path / "reg"), "--json"]
-    monkeypatch.setattr(sys, "argv", argv)
-    with pytest.raises(SystemExit) as info:
-        main()
-    assert info.value.code == 1
-    err = capsys.readouterr().err
-    [line] = [x for x in err.splitlines() if x.startswith("thermocal: calibrate: ")]
+    line = _fail_line(path, tmp_path, monkeypatch, capsys)
     assert re.fullmatch(
         r"thermocal: calibrate: AU-0001: status fail \(the compensated gravity-module error exceeds its limit at "
         r"[^;]*; the tilt method leaves out the -40 C stage, which lost its test positions to the data gap "
