@@ -195,6 +195,7 @@ def exit_guarded(body) -> None:
         warnings.simplefilter("ignore")
     lost = _LostInterrupts(sys.unraisablehook)
     sys.unraisablehook = lost
+    interrupted = _Interrupted.install()
     try:
         code = body()
         if lost.count:  # the interrupt was swallowed and its repeat came too late: still the user's Ctrl-C
@@ -208,12 +209,18 @@ def exit_guarded(body) -> None:
     except SystemExit:
         raise
     except Exception as e:
-        if os.environ.get("THERMOCAL_DEBUG"):
+        if interrupted is not None and interrupted.seen:  # the user's Ctrl-C, wrapped by a library on its way up
+            print("thermocal: aborted", file=sys.stderr)
+            code = 130
+        elif os.environ.get("THERMOCAL_DEBUG"):
             raise
-        text = printable(" ".join(str(e).split()), lines=False)
-        print(f"thermocal: internal error: {type(e).__name__}: {text}", file=sys.stderr)
-        code = 3
+        else:
+            text = printable(" ".join(str(e).split()), lines=False)
+            print(f"thermocal: internal error: {type(e).__name__}: {text}", file=sys.stderr)
+            code = 3
     finally:
+        if interrupted is not None:
+            interrupted.restore()
         sys.unraisablehook = lost.hook
         sys.stdout = stdout
         quiet.__exit__(None, None, None)
@@ -222,6 +229,43 @@ def exit_guarded(body) -> None:
 
 #: seconds after a Ctrl-C swallowed by a finaliser that it is raised again (:class:`_LostInterrupts`)
 _INTERRUPT_AGAIN_S = 0.05
+
+
+class _Interrupted:
+    """SIGINT's handler while a command runs: notes that the user pressed Ctrl-C, then does what the handler before
+    it did (Python's: raise ``KeyboardInterrupt``). A library may turn that KeyboardInterrupt into an error of its
+    own on its way up (pydantic's serializer, called by Prefect, raises ``PydanticSerializationError: Error calling
+    function ...: KeyboardInterrupt``): :func:`exit_guarded` still answers it as Ctrl-C (``thermocal: aborted``,
+    130), not as an internal error."""
+
+    def __init__(self, previous) -> None:
+        self.previous = previous
+        self.seen = False
+
+    @classmethod
+    def install(cls) -> _Interrupted | None:
+        """The handler, installed where a handler can be (the main thread) and the one before it is Python's or
+        another callable (an ignored SIGINT stays ignored); else None."""
+        import signal
+        import threading
+
+        if threading.current_thread() is not threading.main_thread():
+            return None
+        previous = signal.getsignal(signal.SIGINT)
+        if not callable(previous):
+            return None
+        handler = cls(previous)
+        signal.signal(signal.SIGINT, handler)
+        return handler
+
+    def __call__(self, signum, frame) -> None:
+        self.seen = True
+        self.previous(signum, frame)
+
+    def restore(self) -> None:
+        import signal
+
+        signal.signal(signal.SIGINT, self.previous)
 
 
 class _LostInterrupts:

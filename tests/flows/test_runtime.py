@@ -55,3 +55,48 @@ def test_other_exceptions_in_finalisers_are_reported_as_before():
     assert done.returncode == 0, done.stderr
     assert done.stdout == "finished\n"
     assert "Exception ignored in" in done.stderr and "ValueError: in a finaliser" in done.stderr
+
+
+_WRAPPED = """
+import signal
+from flows.runtime import exit_guarded
+
+class SerializationError(Exception):
+    pass
+
+def serialize():  # a library that turns whatever its callback raises into an error of its own (pydantic-core)
+    try:
+        signal.raise_signal(signal.SIGINT)
+    except BaseException as e:
+        raise SerializationError(f"Error calling function `_ser_model`: {type(e).__name__}:") from None
+
+def body():
+    serialize()
+    print("finished")
+    return 0
+
+exit_guarded(body)
+"""
+
+
+def test_ctrl_c_turned_into_a_library_error_is_still_ctrl_c():
+    """SIGINT while Prefect's pydantic serializer ran: pydantic-core turns the KeyboardInterrupt into its own
+    PydanticSerializationError, and `thermocal calibrate` said `internal error: PydanticSerializationError: Error
+    calling function `_ser_model`: KeyboardInterrupt:` and exited 3 (a CI run of test_localserver's Ctrl-C test).
+    Any exception after the user's Ctrl-C is the Ctrl-C: exit 130, one line."""
+    done = subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(_WRAPPED)], cwd=ROOT, capture_output=True, text=True, timeout=60
+    )
+    assert done.returncode == 130, done.stderr
+    assert done.stderr.splitlines() == ["thermocal: aborted"]
+    assert done.stdout == ""
+
+
+def test_a_library_error_without_ctrl_c_is_an_internal_error():
+    """The same error without a Ctrl-C before it stays an internal error (exit 3, one line)."""
+    script = textwrap.dedent(_WRAPPED).replace("signal.raise_signal(signal.SIGINT)", "raise ValueError('no')")
+    done = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 3, done.stderr
+    assert done.stderr.splitlines() == [
+        "thermocal: internal error: SerializationError: Error calling function `_ser_model`: ValueError:"
+    ]
